@@ -1,0 +1,55 @@
+"""Exception hierarchy.
+
+Every failure a user can cause is raised as a subclass of :class:`LicalibError` whose message
+is one sentence naming the problem and the fix. Only the CLI turns these into exit codes.
+"""
+
+from __future__ import annotations
+
+
+class LicalibError(Exception):
+    """Base class of every error licalib reports to a user."""
+
+    exit_code: int = 1
+
+
+class BagError(LicalibError):
+    """The input is missing, not a bag, corrupt or truncated."""
+
+    exit_code = 2
+
+
+class TopicError(LicalibError):
+    """A topic is missing, ambiguous or of the wrong message type."""
+
+    exit_code = 3
+
+
+class DataError(LicalibError):
+    """The messages are unusable: empty or NaN clouds, bad point layout, wrong units."""
+
+    exit_code = 4
+
+
+class TimestampError(DataError):
+    """Stamps are unsorted, duplicated, have gaps, or a time field has no span."""
+
+    exit_code = 5
+
+
+class ConfigError(LicalibError):
+    """A configuration file or option is invalid."""
+
+    exit_code = 6
+
+
+class ExcitationError(LicalibError):
+    """The data does not excite the motion the calibration needs."""
+
+    exit_code = 7
+
+
+class SolverError(LicalibError):
+    """The optimisation failed."""
+
+    exit_code = 8

@@ -1,0 +1,1 @@
+"""Bag input/output: the only package that imports rosbags."""
