@@ -1,0 +1,1 @@
+"""Command implementations: parse options, one library call, render. No numerics here."""

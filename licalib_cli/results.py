@@ -1,0 +1,274 @@
+"""The result file (schema v1): extrinsic, time offset, IMU and LiDAR intrinsics.
+
+The same keys are used for a calibration result and for a simulator's ``truth.yaml``::
+
+    schema_version: 1
+    extrinsic:                 # T_imu_lidar: p_imu = R p_lidar + t
+      translation: [x, y, z]   # metres
+      rotation_quaternion: [x, y, z, w]
+      rotation_rpy_deg: [roll, pitch, yaw]   # R = Rz(yaw) Ry(pitch) Rx(roll)
+      time_offset_s: 0.005     # t_imu = t_lidar + time_offset_s
+    imu_intrinsics: {...}
+    lidar_intrinsics: {...}
+
+Extra top-level keys (``gravity``, ``uncertainty``, ``observability``, ``provenance``, ...) are kept
+as they are in :attr:`CalibrationResult.extra`.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import yaml
+from scipy.spatial.transform import Rotation
+
+from licalib_cli.config import yaml_error_summary
+from licalib_cli.errors import ConfigError
+from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
+
+SCHEMA_VERSION = 1
+F64 = npt.NDArray[np.float64]
+
+
+def _list(a: npt.ArrayLike, digits: int = 9) -> list[float]:
+    return [round(float(x), digits) for x in np.asarray(a, dtype=np.float64).reshape(-1)]
+
+
+def rpy_deg_from_matrix(rot: F64) -> F64:
+    """``[roll, pitch, yaw]`` in degrees with ``R = Rz(yaw) Ry(pitch) Rx(roll)``."""
+    return Rotation.from_matrix(rot).as_euler("ZYX", degrees=True)[::-1].copy()
+
+
+def matrix_from_rpy_deg(rpy_deg: npt.ArrayLike) -> F64:
+    """Inverse of :func:`rpy_deg_from_matrix`."""
+    r = np.asarray(rpy_deg, dtype=np.float64)
+    return Rotation.from_euler("ZYX", r[::-1], degrees=True).as_matrix()
+
+
+@dataclass(frozen=True)
+class Extrinsic:
+    """``T_imu_lidar`` and the time offset.
+
+    Attributes:
+        rotation: (3, 3) ``R`` with ``p_imu = R p_lidar + t``.
+        translation: (3,) ``t``, metres (the LiDAR origin in the IMU frame).
+        time_offset_s: ``t_imu = t_lidar + time_offset_s``.
+    """
+
+    rotation: F64 = field(default_factory=lambda: np.eye(3))
+    translation: F64 = field(default_factory=lambda: np.zeros(3))
+    time_offset_s: float = 0.0
+
+    @property
+    def quaternion(self) -> F64:
+        """``[x, y, z, w]`` with ``w >= 0``."""
+        q = Rotation.from_matrix(self.rotation).as_quat()
+        return -q if q[3] < 0 else q
+
+    def matrix(self) -> F64:
+        """(4, 4) homogeneous ``T_imu_lidar``."""
+        out = np.eye(4)
+        out[:3, :3], out[:3, 3] = self.rotation, self.translation
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "translation": _list(self.translation),
+            "rotation_quaternion": _list(self.quaternion, 12),
+            "rotation_rpy_deg": _list(rpy_deg_from_matrix(self.rotation)),
+            "time_offset_s": round(float(self.time_offset_s), 12),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Extrinsic:
+        if "rotation_quaternion" in d:
+            rot = Rotation.from_quat(np.asarray(d["rotation_quaternion"], float)).as_matrix()
+        elif "rotation_rpy_deg" in d:
+            rot = matrix_from_rpy_deg(d["rotation_rpy_deg"])
+        else:
+            rot = np.eye(3)
+        return cls(
+            rotation=rot,
+            translation=np.asarray(d.get("translation", [0.0, 0.0, 0.0]), dtype=np.float64),
+            time_offset_s=float(d.get("time_offset_s", 0.0)),
+        )
+
+    def error_to(self, other: Extrinsic) -> dict[str, float]:
+        """Errors against a reference: translation (m), rotation angle (deg), time offset (s)."""
+        d_rot = Rotation.from_matrix(self.rotation.T @ other.rotation).magnitude()
+        return {
+            "translation_m": float(np.linalg.norm(self.translation - other.translation)),
+            "rotation_deg": float(np.degrees(d_rot)),
+            "time_offset_s": float(abs(self.time_offset_s - other.time_offset_s)),
+        }
+
+
+def imu_intrinsics_to_dict(k: ImuIntrinsics) -> dict[str, Any]:
+    """YAML mapping of the IMU model of method.md section 3."""
+    q = np.asarray(k.gyro_rotation, dtype=np.float64)
+    q = -q if q[3] < 0 else q
+    return {
+        "gyro_scale": _list(k.gyro_scale),  # diag(S_w)
+        "gyro_misalignment": _list(k.gyro_misalignment),  # M_w = [[1,m0,m1],[0,1,m2],[0,0,1]]
+        "gyro_rotation_quaternion": _list(q, 12),  # R_wI: IMU frame -> gyro frame
+        "gyro_rotation_rpy_deg": _list(rpy_deg_from_matrix(Rotation.from_quat(q).as_matrix())),
+        "accel_scale": _list(k.accel_scale),  # diag(S_a)
+        "accel_misalignment": _list(k.accel_misalignment),  # M_a
+        "gyro_g_sensitivity": [_list(row) for row in np.asarray(k.gyro_g_sensitivity)],  # A_w
+        "gyro_bias": _list(k.gyro_bias),  # rad/s
+        "accel_bias": _list(k.accel_bias),  # m/s^2
+    }
+
+
+def imu_intrinsics_from_dict(d: dict[str, Any]) -> ImuIntrinsics:
+    default = ImuIntrinsics()
+    if "gyro_rotation_quaternion" in d:
+        q = np.asarray(d["gyro_rotation_quaternion"], dtype=np.float64)
+    elif "gyro_rotation_rpy_deg" in d:
+        q = Rotation.from_matrix(matrix_from_rpy_deg(d["gyro_rotation_rpy_deg"])).as_quat()
+    else:
+        q = default.gyro_rotation
+
+    def arr(key: str, fallback: F64) -> F64:
+        return np.asarray(d[key], dtype=np.float64) if key in d else fallback
+
+    return ImuIntrinsics(
+        gyro_scale=arr("gyro_scale", default.gyro_scale),
+        gyro_misalignment=arr("gyro_misalignment", default.gyro_misalignment),
+        gyro_rotation=q,
+        accel_scale=arr("accel_scale", default.accel_scale),
+        accel_misalignment=arr("accel_misalignment", default.accel_misalignment),
+        gyro_g_sensitivity=arr("gyro_g_sensitivity", default.gyro_g_sensitivity).reshape(3, 3),
+        gyro_bias=arr("gyro_bias", default.gyro_bias),
+        accel_bias=arr("accel_bias", default.accel_bias),
+    )
+
+
+def lidar_intrinsics_to_dict(k: LidarIntrinsics) -> dict[str, Any]:
+    """YAML mapping of the per-beam model of method.md section 4 (angles in degrees)."""
+    return {
+        "num_beams": k.num_beams,
+        "nominal_elevation_deg": _list(np.degrees(k.nominal_elevation)),  # phi_i
+        "elevation_correction_deg": _list(np.degrees(k.elevation_correction)),  # dphi_i
+        "azimuth_correction_deg": _list(np.degrees(k.azimuth_correction)),  # dtheta_i
+        "vertical_offset_m": _list(k.vertical_offset),  # V_i
+        "horizontal_offset_m": _list(k.horizontal_offset),  # H_i
+        "range_scale": _list(k.range_scale),  # s_i
+        "range_offset_m": _list(k.range_offset),  # drho_i
+    }
+
+
+def lidar_intrinsics_from_dict(d: dict[str, Any]) -> LidarIntrinsics:
+    def arr(key: str) -> F64:
+        return np.asarray(d[key], dtype=np.float64)
+
+    try:
+        return LidarIntrinsics(
+            nominal_elevation=np.radians(arr("nominal_elevation_deg")),
+            elevation_correction=np.radians(arr("elevation_correction_deg")),
+            azimuth_correction=np.radians(arr("azimuth_correction_deg")),
+            vertical_offset=arr("vertical_offset_m"),
+            horizontal_offset=arr("horizontal_offset_m"),
+            range_scale=arr("range_scale"),
+            range_offset=arr("range_offset_m"),
+        )
+    except KeyError as err:
+        msg = f"lidar_intrinsics is missing the key {err.args[0]!r}; see the README's result schema."
+        raise ConfigError(msg) from err
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """A calibration (or a simulator's ground truth) in schema v1."""
+
+    extrinsic: Extrinsic = field(default_factory=Extrinsic)
+    imu_intrinsics: ImuIntrinsics = field(default_factory=ImuIntrinsics)
+    lidar_intrinsics: LidarIntrinsics | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"schema_version": SCHEMA_VERSION}
+        out["extrinsic"] = self.extrinsic.to_dict()
+        out["imu_intrinsics"] = imu_intrinsics_to_dict(self.imu_intrinsics)
+        if self.lidar_intrinsics is not None:
+            out["lidar_intrinsics"] = lidar_intrinsics_to_dict(self.lidar_intrinsics)
+        out.update(self.extra)
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> CalibrationResult:
+        version = d.get("schema_version")
+        if version != SCHEMA_VERSION:
+            msg = (
+                f"The result file has schema_version {version!r}, but this licalib reads "
+                f"version {SCHEMA_VERSION}; regenerate it with this version."
+            )
+            raise ConfigError(msg)
+        known = {"schema_version", "extrinsic", "imu_intrinsics", "lidar_intrinsics"}
+        lidar = d.get("lidar_intrinsics")
+        return cls(
+            extrinsic=Extrinsic.from_dict(d.get("extrinsic", {})),
+            imu_intrinsics=imu_intrinsics_from_dict(d.get("imu_intrinsics", {})),
+            lidar_intrinsics=lidar_intrinsics_from_dict(lidar) if lidar else None,
+            extra={k: v for k, v in d.items() if k not in known},
+        )
+
+    def to_yaml(self) -> str:
+        return dump_yaml(self.to_dict())
+
+    def save(self, path: Path) -> None:
+        """Write the YAML atomically."""
+        write_text_atomic(Path(path), self.to_yaml())
+
+    @classmethod
+    def load(cls, path: Path) -> CalibrationResult:
+        path = Path(path)
+        try:
+            data = yaml.safe_load(path.read_text())
+        except FileNotFoundError as err:
+            msg = f"The result file {path} does not exist; check the path."
+            raise ConfigError(msg) from err
+        except yaml.YAMLError as err:
+            msg = f"The result file {path} is not valid YAML ({yaml_error_summary(err)}); regenerate it."
+            raise ConfigError(msg) from err
+        if not isinstance(data, dict):
+            msg = f"The result file {path} is not a YAML mapping; regenerate it."
+            raise ConfigError(msg)
+        return cls.from_dict(data)
+
+
+class _Dumper(yaml.SafeDumper):
+    pass
+
+
+def _represent_list(dumper: yaml.SafeDumper, data: list[Any]) -> yaml.Node:
+    flow = all(not isinstance(x, (dict, list)) for x in data)
+    return dumper.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=flow)
+
+
+_Dumper.add_representer(list, _represent_list)
+
+
+def dump_yaml(data: dict[str, Any]) -> str:
+    """YAML with short lists on one line and keys in insertion order."""
+    return yaml.dump(data, Dumper=_Dumper, sort_keys=False, default_flow_style=False, width=120)
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file and a rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
