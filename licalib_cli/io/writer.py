@@ -16,8 +16,9 @@ from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 
 if TYPE_CHECKING:
-    import numpy.typing as npt
     from types import TracebackType
+
+    import numpy.typing as npt
 
 IMU_TYPE = "sensor_msgs/msg/Imu"
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
@@ -65,7 +66,8 @@ class BagWriter:
         if self._ros1:
             self._writer: Any = Writer1(self.path)
         else:
-            plugin = StoragePlugin.MCAP if self.fmt is BagFormat.ROS2_MCAP else StoragePlugin.SQLITE3
+            mcap = self.fmt is BagFormat.ROS2_MCAP
+            plugin = StoragePlugin.MCAP if mcap else StoragePlugin.SQLITE3
             self._writer = Writer2(self.path, version=Writer2.VERSION_LATEST, storage_plugin=plugin)
         self._conns: dict[tuple[str, str], Any] = {}
         self._seq = 0

@@ -1,0 +1,182 @@
+"""``licalib info BAG``: what is in a bag and whether licalib can use it.
+
+Thin command: parse options -> ``load_config`` -> :func:`licalib_cli.inspection.inspect_bag`
+-> render (rich tables, or one JSON object with ``--json``).
+
+Exit codes: 0 when the segment is usable; otherwise the code of the first fatal problem
+(2 bag unreadable, 3 topic problem, 4 unusable data, 5 timestamp problem, 6 configuration),
+with its one-sentence message on standard error. With ``--json`` the JSON object is printed
+to standard output in every case where the bag could be opened.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.markup import escape
+from rich.table import Table
+
+from licalib_cli.commands.render import console
+from licalib_cli.config import load_config
+from licalib_cli.inspection import BagReport, inspect_bag
+
+
+def info_command(
+    bag: Annotated[
+        Path,
+        typer.Argument(
+            help="ROS1 .bag (or folder of split .bag files), ROS2 bag folder, or .db3/.mcap."
+        ),
+    ],
+    imu_topic: Annotated[
+        str | None, typer.Option("--imu-topic", help="sensor_msgs/Imu topic.")
+    ] = None,
+    lidar_topic: Annotated[
+        str | None, typer.Option("--lidar-topic", help="sensor_msgs/PointCloud2 topic.")
+    ] = None,
+    config: Annotated[Path | None, typer.Option("--config", "-c", help="YAML config file.")] = None,
+    as_json: Annotated[
+        bool, typer.Option("--json", help="Print one JSON object for scripts.")
+    ] = False,
+    start: Annotated[
+        float | None,
+        typer.Option("--start", help="Segment start, seconds after the first message."),
+    ] = None,
+    duration: Annotated[
+        float | None, typer.Option("--duration", help="Segment length, seconds.")
+    ] = None,
+) -> None:
+    """Show topics, rates, gaps, point layout, IMU units and clock offsets of a bag."""
+    cfg = load_config(
+        config,
+        {
+            "imu.topic": imu_topic,
+            "lidar.topic": lidar_topic,
+            "bag.start_s": start,
+            "bag.duration_s": duration,
+        },
+    )
+    report = inspect_bag(bag, cfg)
+    if as_json:
+        typer.echo(json.dumps(report.to_dict(), indent=2))
+    else:
+        render_report(report)
+    err = report.error()
+    if err is not None:
+        raise err
+
+
+def _fmt(value: object, fmt: str = "") -> str:
+    if value is None:
+        return "-"
+    return format(value, fmt) if fmt else str(value)
+
+
+def _problem_cell(n: int, bad: bool = True) -> str:
+    if n == 0:
+        return "0"
+    return f"[red]{n}[/red]" if bad else f"[yellow]{n}[/yellow]"
+
+
+def render_report(report: BagReport) -> None:
+    """Print the report as rich tables on standard output."""
+    out = console()
+    seg = f"{report.segment_start_s:g} s"
+    seg += f" + {report.segment_duration_s:g} s" if report.segment_duration_s else " to the end"
+    out.print(
+        f"[bold]{escape(report.path)}[/bold]  {report.format}, {report.duration_s:.3f} s, "
+        f"{len(report.topics)} topics; segment: {seg}"
+    )
+    roles = {}
+    if report.imu is not None:
+        roles[report.imu.topic] = "IMU"
+    if report.lidar is not None:
+        roles[report.lidar.topic] = "LiDAR"
+    topics = Table(title="Topics", title_justify="left")
+    for col, just in (
+        ("topic", "left"),
+        ("type", "left"),
+        ("count", "right"),
+        ("rate (Hz)", "right"),
+        ("used as", "left"),
+    ):
+        topics.add_column(col, justify=just)  # type: ignore[arg-type]
+    for t in report.topics:
+        topics.add_row(
+            escape(t.name), t.msgtype, str(t.count), f"{t.rate_hz:.1f}", roles.get(t.name, "")
+        )
+    out.print(topics)
+
+    if report.imu is not None:
+        i = report.imu
+        imu = Table(title=f"IMU {escape(i.topic)}", title_justify="left", show_header=False)
+        imu.add_column("key")
+        imu.add_column("value")
+        imu.add_row("samples", f"{i.count} over {i.duration_s:.3f} s")
+        imu.add_row("rate", f"{i.rate_hz:.1f} Hz")
+        imu.add_row("gyro unit", f"{i.gyro_unit} ({i.gyro_unit_source}, p99 |w| {i.gyro_p99:.3g})")
+        imu.add_row(
+            "accel unit",
+            f"{i.accel_unit} ({i.accel_unit_source}, median |a| {i.accel_norm_median:.3f})",
+        )
+        imu.add_row(
+            "gaps > 5x period", f"{_problem_cell(i.gaps)} (largest {i.max_gap_s * 1e3:.1f} ms)"
+        )
+        imu.add_row("stamps going backwards", _problem_cell(i.backwards))
+        imu.add_row("duplicated stamps", _problem_cell(i.duplicates))
+        out.print(imu)
+
+    if report.lidar is not None:
+        li = report.lidar
+        lid = Table(title=f"LiDAR {escape(li.topic)}", title_justify="left", show_header=False)
+        lid.add_column("key")
+        lid.add_column("value")
+        lid.add_row("clouds", f"{li.count} over {li.duration_s:.3f} s")
+        lid.add_row("rate", f"{li.rate_hz:.2f} Hz")
+        if li.fields:
+            order = "big-endian" if li.is_bigendian else "little-endian"
+            lid.add_row("fields", escape(", ".join(li.fields)))
+            lid.add_row("point step", f"{li.point_step} bytes, {order}")
+            shape = f"organised {li.height} x {li.width}" if li.height > 1 else "unorganised"
+            lid.add_row(
+                "points per scan",
+                f"{li.points_per_scan} ({shape}), {li.valid_points_per_scan} valid",
+            )
+            if li.time_field is not None:
+                timing = f"'{li.time_field}' in {li.time_unit}, {li.time_reference}"
+            else:
+                timing = f"none: estimated from {li.time_estimation}"
+            lid.add_row("per-point time", timing)
+            lid.add_row("header stamp at sweep", _fmt(li.stamp_position))
+            src = f"field '{li.ring_field}'" if li.ring_field else "recovered from elevation"
+            lid.add_row("beams", f"{li.beams} ({src})")
+            skipped = sum(li.clouds_skipped.values())
+            detail = ", ".join(f"{k}: {v}" for k, v in li.clouds_skipped.items())
+            lid.add_row(
+                "unusable clouds",
+                f"{_problem_cell(skipped, False)} of {li.clouds_checked} checked"
+                + (f" ({detail})" if detail else ""),
+            )
+        lid.add_row(
+            "gaps > 2.5x period",
+            f"{_problem_cell(li.gaps, False)} (largest {li.max_gap_s * 1e3:.1f} ms)",
+        )
+        lid.add_row("stamps going backwards", _problem_cell(li.backwards))
+        lid.add_row("duplicated stamps", _problem_cell(li.duplicates))
+        out.print(lid)
+
+    if report.clock_offset_s is not None:
+        out.print(
+            f"Clock difference IMU - LiDAR (coarse, from record times): "
+            f"{report.clock_offset_s:+.6f} s"
+        )
+    for note in report.notes:
+        out.print(f"[cyan]note[/cyan]: {escape(note)}")
+    for p in report.problems:
+        tag = "[red]error[/red]" if p.fatal else "[yellow]warning[/yellow]"
+        out.print(f"{tag}: {escape(p.message)}")
+    if report.usable:
+        out.print("[green]usable[/green]")

@@ -1,0 +1,508 @@
+"""The pre-flight report of a bag (``licalib info``) as data.
+
+:func:`inspect_bag` reads a segment (the whole bag by default) and returns a frozen
+:class:`BagReport`: topics, IMU and LiDAR rates, gaps, unsorted or duplicated stamps, the
+detected point layout, IMU units and the coarse IMU-LiDAR clock difference, plus the list of
+problems. It applies the same rules as :func:`licalib_cli.io.reader.read_segment` (see that
+module's table), so a bag that ``info`` calls usable can be read by the other commands.
+
+Unlike the reader, topic and data problems do not raise: they are collected so that the whole
+report can be shown; :meth:`BagReport.error` gives the exception for the first fatal one.
+Only unreadable inputs (missing, not a bag, corrupt) raise :class:`BagError`.
+
+Times: int64 ns in the data; the report's ``*_s`` values are seconds, relative to the first
+stamp of the stream concerned unless stated otherwise. ``clock_offset_s`` is the coarse
+``t_imu - t_lidar`` difference of the two clocks (same sign as ``time_offset_s``), measured
+against the bag's record times at the last point of each sweep (good to the publication
+latency, milliseconds).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from licalib_cli.config import CalibConfig
+from licalib_cli.errors import DataError, LicalibError, TimestampError, TopicError
+from licalib_cli.io import reader as rd
+from licalib_cli.io.bag import CLOUD_TYPE, IMU_TYPE, BagHandle, open_bag, select_topic
+
+__all__ = ["BagReport", "ImuReport", "LidarReport", "TopicReport", "inspect_bag"]
+
+logger = logging.getLogger(__name__)
+
+_NS = 1_000_000_000
+_MAX_DECODED = 200
+
+
+@dataclass(frozen=True)
+class TopicReport:
+    """One topic of the bag (whole bag, not only the segment).
+
+    Attributes:
+        name: topic name.
+        msgtype: message type, e.g. ``sensor_msgs/msg/Imu``.
+        count: messages in the bag.
+        rate_hz: count over the bag's record duration, Hz.
+    """
+
+    name: str
+    msgtype: str
+    count: int
+    rate_hz: float
+
+
+@dataclass(frozen=True)
+class ImuReport:
+    """The IMU stream of the segment.
+
+    Attributes:
+        topic: topic name.
+        count: samples in the segment.
+        rate_hz: nominal rate from the median stamp difference, Hz.
+        duration_s: last minus first stamp, s.
+        gyro_unit: unit of the raw gyro data (``rad/s`` or ``deg/s``).
+        accel_unit: unit of the raw accelerometer data (``m/s^2`` or ``g``).
+        gyro_unit_source: ``detected``, ``assumed`` or ``config``.
+        accel_unit_source: ``detected``, ``assumed`` or ``config``.
+        gyro_p99: 99th percentile of the raw rate norm.
+        accel_norm_median: median raw accelerometer norm.
+        gaps: stamp differences longer than 5x the period.
+        max_gap_s: largest stamp difference, s.
+        backwards: stamps smaller than the previous one.
+        duplicates: stamps equal to the previous one.
+        first_stamp_ns: first stamp, ns.
+    """
+
+    topic: str
+    count: int
+    rate_hz: float
+    duration_s: float
+    gyro_unit: str
+    accel_unit: str
+    gyro_unit_source: str
+    accel_unit_source: str
+    gyro_p99: float
+    accel_norm_median: float
+    gaps: int
+    max_gap_s: float
+    backwards: int
+    duplicates: int
+    first_stamp_ns: int
+
+
+@dataclass(frozen=True)
+class LidarReport:
+    """The LiDAR stream of the segment and its detected point layout.
+
+    Attributes:
+        topic: topic name.
+        count: clouds in the segment.
+        rate_hz: nominal rate from the median stamp difference, Hz.
+        duration_s: last minus first stamp, s.
+        fields: ``name:type`` of every PointField.
+        point_step: bytes per point.
+        is_bigendian: byte order.
+        height: rows (1 = unorganised).
+        width: points per row.
+        time_field: per-point time field, or None when times are estimated.
+        time_unit: unit of the time field, or None.
+        time_reference: ``relative``, ``absolute`` or ``estimated``.
+        stamp_position: header stamp at the sweep ``start``, ``end``, ``middle``, ``unknown``.
+        time_estimation: ``azimuth`` or ``index`` when times are estimated, else None.
+        ring_field: beam field, or None when beams are recovered from elevation.
+        beams: number of beams.
+        points_per_scan: median points per message (including invalid ones).
+        valid_points_per_scan: median valid points per cloud.
+        clouds_checked: clouds decoded to check their content (a sample on long bags).
+        clouds_skipped: how many of those were unusable, by reason.
+        gaps: stamp differences longer than 2.5x the period.
+        max_gap_s: largest stamp difference, s.
+        backwards: stamps smaller than the previous one.
+        duplicates: stamps equal to the previous one.
+        first_stamp_ns: first stamp, ns.
+    """
+
+    topic: str
+    count: int
+    rate_hz: float
+    duration_s: float
+    fields: tuple[str, ...] = ()
+    point_step: int = 0
+    is_bigendian: bool = False
+    height: int = 0
+    width: int = 0
+    time_field: str | None = None
+    time_unit: str | None = None
+    time_reference: str | None = None
+    stamp_position: str | None = None
+    time_estimation: str | None = None
+    ring_field: str | None = None
+    beams: int = 0
+    points_per_scan: int = 0
+    valid_points_per_scan: int = 0
+    clouds_checked: int = 0
+    clouds_skipped: dict[str, int] = field(default_factory=dict)
+    gaps: int = 0
+    max_gap_s: float = 0.0
+    backwards: int = 0
+    duplicates: int = 0
+    first_stamp_ns: int = 0
+
+
+@dataclass(frozen=True)
+class BagReport:
+    """Everything ``licalib info`` shows.
+
+    Attributes:
+        path: the bag as given.
+        format: ``ros1``, ``ros2-db3`` or ``ros2-mcap``.
+        start_ns: first record time of the bag, ns.
+        end_ns: last record time of the bag, ns.
+        segment_start_s: segment start after the first message, s.
+        segment_duration_s: segment length, s (None: to the end).
+        topics: every topic of the bag.
+        imu: the IMU stream, or None when no IMU topic could be chosen.
+        lidar: the LiDAR stream, or None when no LiDAR topic could be chosen.
+        clock_offset_s: coarse ``t_imu - t_lidar`` clock difference, s (None: unknown).
+        problems: findings, fatal ones first.
+        notes: informative remarks (detected units, layout overrides).
+    """
+
+    path: str
+    format: str
+    start_ns: int
+    end_ns: int
+    segment_start_s: float
+    segment_duration_s: float | None
+    topics: tuple[TopicReport, ...]
+    imu: ImuReport | None
+    lidar: LidarReport | None
+    clock_offset_s: float | None
+    problems: tuple[rd.Problem, ...]
+    notes: tuple[str, ...] = ()
+
+    @property
+    def duration_s(self) -> float:
+        """Record duration of the whole bag, s."""
+        return (self.end_ns - self.start_ns) / _NS
+
+    @property
+    def usable(self) -> bool:
+        """True when no problem is fatal."""
+        return not any(p.fatal for p in self.problems)
+
+    @property
+    def exit_code(self) -> int:
+        """0 when usable, else the exit code of the first fatal problem."""
+        for p in self.problems:
+            if p.fatal:
+                return p.exit_code
+        return 0
+
+    def error(self) -> LicalibError | None:
+        """The exception for the first fatal problem, or None when usable."""
+        for p in self.problems:
+            if p.fatal:
+                return p.exception()
+        return None
+
+    def to_dict(self) -> dict[str, Any]:
+        """The report as plain JSON-serialisable data (``licalib info --json``)."""
+        imu = None
+        if self.imu is not None:
+            i = self.imu
+            imu = {
+                "topic": i.topic,
+                "count": i.count,
+                "rate_hz": round(i.rate_hz, 3),
+                "duration_s": round(i.duration_s, 6),
+                "gyro_unit": i.gyro_unit,
+                "accel_unit": i.accel_unit,
+                "gyro_unit_source": i.gyro_unit_source,
+                "accel_unit_source": i.accel_unit_source,
+                "gyro_p99": round(i.gyro_p99, 6),
+                "accel_norm_median": round(i.accel_norm_median, 6),
+                "gaps": i.gaps,
+                "max_gap_s": round(i.max_gap_s, 6),
+                "backwards": i.backwards,
+                "duplicates": i.duplicates,
+                "first_stamp_ns": i.first_stamp_ns,
+            }
+        lidar = None
+        if self.lidar is not None:
+            li = self.lidar
+            lidar = {
+                "topic": li.topic,
+                "count": li.count,
+                "rate_hz": round(li.rate_hz, 3),
+                "duration_s": round(li.duration_s, 6),
+                "time_field": li.time_field,
+                "time_unit": li.time_unit,
+                "time_reference": li.time_reference,
+                "stamp_position": li.stamp_position,
+                "time_estimation": li.time_estimation,
+                "beams": li.beams,
+                "ring_field": li.ring_field,
+                "fields": list(li.fields),
+                "point_step": li.point_step,
+                "is_bigendian": li.is_bigendian,
+                "height": li.height,
+                "width": li.width,
+                "points_per_scan": li.points_per_scan,
+                "valid_points_per_scan": li.valid_points_per_scan,
+                "clouds_checked": li.clouds_checked,
+                "clouds_skipped": dict(li.clouds_skipped),
+                "gaps": li.gaps,
+                "max_gap_s": round(li.max_gap_s, 6),
+                "backwards": li.backwards,
+                "duplicates": li.duplicates,
+                "first_stamp_ns": li.first_stamp_ns,
+            }
+        return {
+            "path": self.path,
+            "format": self.format,
+            "duration_s": round(self.duration_s, 6),
+            "start_ns": self.start_ns,
+            "end_ns": self.end_ns,
+            "segment": {"start_s": self.segment_start_s, "duration_s": self.segment_duration_s},
+            "topics": [
+                {
+                    "name": t.name,
+                    "type": t.msgtype,
+                    "count": t.count,
+                    "rate_hz": round(t.rate_hz, 3),
+                }
+                for t in self.topics
+            ],
+            "imu": imu,
+            "lidar": lidar,
+            "clock_offset_s": None
+            if self.clock_offset_s is None
+            else round(self.clock_offset_s, 6),
+            "usable": self.usable,
+            "exit_code": self.exit_code,
+            "problems": [
+                {
+                    "severity": "error" if p.fatal else "warning",
+                    "message": p.message,
+                    "exit_code": p.exit_code,
+                }
+                for p in self.problems
+            ],
+            "notes": list(self.notes),
+        }
+
+
+def _inspect_imu(
+    bag: BagHandle,
+    cfg: CalibConfig,
+    window: rd.SegmentWindow,
+    problems: list[rd.Problem],
+    notes: list[str],
+) -> tuple[ImuReport | None, int | None]:
+    try:
+        topic = select_topic(bag, IMU_TYPE, cfg.imu.topic, "--imu-topic", "imu.topic")
+    except TopicError as err:
+        problems.append(rd.Problem(str(err), True, TopicError))
+        return None, None
+    off = rd.stamp_record_offset(bag, topic.name, window)
+    raw = rd.read_raw_imu(bag, topic.name, window, off)
+    stats = rd.stamp_stats(raw.t_ns, rd.IMU_GAP_FACTOR)
+    dup = rd.exact_duplicates(raw)
+    problems.extend(rd.imu_problems(stats, int(dup.sum())))
+    keep = ~dup
+    units = rd.detect_imu_units(
+        raw.gyro[keep], raw.accel[keep], cfg.imu.gyro_unit, cfg.imu.accel_unit
+    )
+    notes.extend(units.messages())
+    report = ImuReport(
+        topic=topic.name,
+        count=stats.count,
+        rate_hz=stats.rate_hz,
+        duration_s=stats.duration_s,
+        gyro_unit=units.gyro_unit,
+        accel_unit=units.accel_unit,
+        gyro_unit_source=units.gyro_source,
+        accel_unit_source=units.accel_source,
+        gyro_p99=units.gyro_p99,
+        accel_norm_median=units.accel_norm_median,
+        gaps=stats.gaps,
+        max_gap_s=stats.max_gap_s,
+        backwards=stats.backwards,
+        duplicates=stats.duplicates,
+        first_stamp_ns=stats.first_ns,
+    )
+    return report, off
+
+
+def _inspect_lidar(
+    bag: BagHandle,
+    cfg: CalibConfig,
+    window: rd.SegmentWindow,
+    problems: list[rd.Problem],
+    notes: list[str],
+) -> tuple[LidarReport | None, int | None]:
+    try:
+        topic = select_topic(bag, CLOUD_TYPE, cfg.lidar.topic, "--lidar-topic", "lidar.topic")
+    except TopicError as err:
+        problems.append(rd.Problem(str(err), True, TopicError))
+        return None, None
+    off = rd.stamp_record_offset(bag, topic.name, window)
+    stamps = [
+        m.stamp_ns if m.stamp_ns is not None else m.record_ns
+        for m in rd.window_messages(bag, topic.name, window, off)
+    ]
+    stats = rd.stamp_stats(np.asarray(stamps, np.int64), rd.LIDAR_GAP_FACTOR)
+    problems.extend(rd.lidar_stamp_problems(stats))
+    base = LidarReport(
+        topic=topic.name,
+        count=stats.count,
+        rate_hz=stats.rate_hz,
+        duration_s=stats.duration_s,
+        gaps=stats.gaps,
+        max_gap_s=stats.max_gap_s,
+        backwards=stats.backwards,
+        duplicates=stats.duplicates,
+        first_stamp_ns=stats.first_ns,
+    )
+    if stats.count == 0:
+        return base, off
+    try:
+        layout = rd.detect_layout(bag, topic.name, window, off, cfg)
+    except (DataError, TimestampError) as err:
+        problems.append(rd.Problem(str(err), True, type(err)))
+        return base, off
+    clock_off = off + layout.sweep_end_offset_ns
+    notes.extend(layout.time.notes)
+    # Check the content of up to _MAX_DECODED clouds spread over the segment.
+    step = max(1, int(np.ceil(stats.count / _MAX_DECODED)))
+    tally = rd.ScanTally()
+    for k, m in enumerate(rd.window_messages(bag, topic.name, window, off)):
+        if k % step:
+            continue
+        msg = bag.deserialize(m)
+        stamp = m.stamp_ns if m.stamp_ns is not None else m.record_ns
+        tally.total += 1
+        names = rd.field_names(msg)
+        tf = layout.time.field if layout.time.field in names else None
+        rf = layout.ring_field if layout.ring_field in names else None
+        if layout.time.field is not None and tf is None:
+            tally.skipped["no time field"] += 1
+            continue
+        dec = rd.decode_cloud(msg, stamp, tf, rf)
+        scan = rd.make_scan(dec, layout, cfg, 0)
+        if isinstance(scan, str):
+            tally.skipped[scan] += 1
+    problems.extend(tally.problems())
+    tl = layout.time
+    report = LidarReport(
+        topic=topic.name,
+        count=stats.count,
+        rate_hz=stats.rate_hz,
+        duration_s=stats.duration_s,
+        fields=layout.fields,
+        point_step=layout.point_step,
+        is_bigendian=layout.is_bigendian,
+        height=layout.height,
+        width=layout.width,
+        time_field=tl.field,
+        time_unit=tl.unit,
+        time_reference=tl.reference,
+        stamp_position=tl.stamp_position,
+        time_estimation=tl.method,
+        ring_field=layout.ring_field,
+        beams=layout.beams,
+        points_per_scan=layout.points_per_scan,
+        valid_points_per_scan=layout.valid_points_per_scan,
+        clouds_checked=tally.total,
+        clouds_skipped={k: v for k, v in tally.skipped.items() if v},
+        gaps=stats.gaps,
+        max_gap_s=stats.max_gap_s,
+        backwards=stats.backwards,
+        duplicates=stats.duplicates,
+        first_stamp_ns=stats.first_ns,
+    )
+    return report, clock_off
+
+
+def inspect_bag(path: Path, cfg: CalibConfig) -> BagReport:
+    """Inspect a segment of a bag (the whole bag by default) without calibrating.
+
+    Args:
+        path: a ROS1 ``.bag`` (or folder of split ``.bag`` files), a ROS2 bag folder, or a bare
+            ``.db3``/``.mcap`` file.
+        cfg: configuration (``bag``, ``imu``, ``lidar`` sections: topics, segment, overrides).
+
+    Returns:
+        The report; topic, stamp and content problems are listed in ``problems``.
+
+    Raises:
+        BagError: the path is missing, not a bag, or corrupt/truncated.
+        DataError: the segment starts after the end of the bag.
+    """
+    problems: list[rd.Problem] = []
+    notes: list[str] = []
+    with open_bag(path) as bag:
+        dur = max((bag.end_ns - bag.start_ns) / _NS, 1e-9)
+        topics = tuple(
+            TopicReport(t.name, t.msgtype, t.count, t.count / dur if t.count > 1 else 0.0)
+            for t in bag.topics
+        )
+        window = rd.segment_window(bag, cfg)
+        imu, off_imu = _inspect_imu(bag, cfg, window, problems, notes)
+        lidar, off_lid = _inspect_lidar(bag, cfg, window, problems, notes)
+        fmt, start_ns, end_ns = bag.format, bag.start_ns, bag.end_ns
+    stamp_rates = {r.topic: r.rate_hz for r in (imu, lidar) if r is not None and r.rate_hz > 0}
+    topics = tuple(
+        TopicReport(t.name, t.msgtype, t.count, stamp_rates.get(t.name, t.rate_hz)) for t in topics
+    )
+    clock = None
+    if off_imu is not None and off_lid is not None:
+        clock_ns = off_imu - off_lid
+        clock = clock_ns / _NS
+        if abs(clock_ns) >= _NS:
+            problems.append(
+                rd.Problem(
+                    f"The IMU and LiDAR stamps use different clocks ({clock:+.3f} s apart); "
+                    "licalib shifts the LiDAR times into the IMU clock, check the drivers' "
+                    "time synchronisation.",
+                    False,
+                    TimestampError,
+                )
+            )
+        if imu is not None and lidar is not None and imu.count and lidar.count:
+            shift = clock_ns if abs(clock_ns) >= _NS else 0
+            i0, i1 = imu.first_stamp_ns, imu.first_stamp_ns + int(imu.duration_s * _NS)
+            l0 = lidar.first_stamp_ns + shift
+            l1 = l0 + int(lidar.duration_s * _NS)
+            if l1 < i0 or l0 > i1:
+                problems.append(
+                    rd.Problem(
+                        "The IMU and LiDAR stamps do not overlap in time; the sensors' clocks "
+                        "are not synchronised, fix the drivers' time stamping and re-record.",
+                        True,
+                        TimestampError,
+                    )
+                )
+    problems.sort(key=lambda p: not p.fatal)
+    for p in problems:
+        logger.debug("problem: %s", p.message)
+    return BagReport(
+        path=str(path),
+        format=fmt,
+        start_ns=start_ns,
+        end_ns=end_ns,
+        segment_start_s=cfg.bag.start_s,
+        segment_duration_s=cfg.bag.duration_s,
+        topics=topics,
+        imu=imu,
+        lidar=lidar,
+        clock_offset_s=clock,
+        problems=tuple(problems),
+        notes=tuple(notes),
+    )

@@ -1,0 +1,147 @@
+"""``licalib info``: readable table, ``--json`` for scripts, exit codes."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from licalib_cli.cli import main
+
+_spec = importlib.util.spec_from_file_location(
+    "licalib_test_layouts", Path(__file__).parents[1] / "io" / "_layouts.py"
+)
+assert _spec is not None and _spec.loader is not None
+layouts = importlib.util.module_from_spec(_spec)
+sys.modules[_spec.name] = layouts
+_spec.loader.exec_module(layouts)
+
+PERIOD = 100_000_000
+JSON_IMU_KEYS = {"topic", "count", "rate_hz", "gyro_unit", "accel_unit"}
+JSON_LIDAR_KEYS = {
+    "topic",
+    "count",
+    "rate_hz",
+    "time_field",
+    "time_unit",
+    "time_reference",
+    "beams",
+}
+
+
+def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+        raise SystemExit(0)
+    out = capsys.readouterr()
+    return int(exc.value.code or 0), out.out, out.err
+
+
+@pytest.fixture(scope="module")
+def small_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("info") / "small.bag"
+    layouts.write_velodyne_bag(path, "ros1", n_clouds=10)
+    return path
+
+
+def test_info_table(small_bag: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, err = _run(["info", str(small_bag)], capsys)
+    assert code == 0, err
+    for text in (
+        "/imu",
+        "/velodyne_points",
+        "sensor_msgs/msg/PointCloud2",
+        "200.0 Hz",
+        "'time' in s, relative",
+        "end",
+        "16 (field 'ring')",
+        "rad/s",
+        "m/s^2",
+        "Clock difference",
+        "usable",
+    ):
+        assert text in out, text
+    assert "Traceback" not in out + err
+
+
+def test_info_json(small_bag: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, _ = _run(["info", str(small_bag), "--json"], capsys)
+    assert code == 0
+    data = json.loads(out)
+    assert JSON_IMU_KEYS <= set(data["imu"])
+    assert JSON_LIDAR_KEYS <= set(data["lidar"])
+    assert {"clock_offset_s", "problems", "usable", "exit_code", "topics"} <= set(data)
+    assert data["imu"]["count"] == 240 and data["imu"]["rate_hz"] == pytest.approx(200.0)
+    assert data["imu"]["gyro_unit"] == "rad/s" and data["imu"]["accel_unit"] == "m/s^2"
+    li = data["lidar"]
+    assert (li["count"], li["time_field"], li["time_unit"], li["time_reference"]) == (
+        10,
+        "time",
+        "s",
+        "relative",
+    )
+    assert li["stamp_position"] == "end" and li["beams"] == 16
+    assert li["rate_hz"] == pytest.approx(10.0)
+    # velodyne stamps the last packet: the last point is 0.56 ms before the record time
+    assert abs(data["clock_offset_s"]) < 1e-3
+    assert data["problems"] == [] and data["usable"]
+
+
+def test_info_segment_options(small_bag: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, _ = _run(
+        ["info", str(small_bag), "--json", "--start", "0.2", "--duration", "0.5"], capsys
+    )
+    assert code == 0
+    data = json.loads(out)
+    assert data["imu"]["count"] == 100 and data["lidar"]["count"] == 5
+
+
+def test_info_json_reports_fatal_problem_with_exit_code(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "two"
+    layouts.write_custom_bag(path, imu_topics=("/imu_a", "/imu_b"))
+    code, out, err = _run(["info", str(path), "--json"], capsys)
+    assert code == 3
+    data = json.loads(out)
+    assert data["usable"] is False and data["exit_code"] == 3 and data["imu"] is None
+    assert data["problems"][0]["severity"] == "error"
+    assert "--imu-topic" in err
+    code, out, _ = _run(["info", str(path), "--json", "--imu-topic", "/imu_b"], capsys)
+    assert code == 0 and json.loads(out)["imu"]["topic"] == "/imu_b"
+
+
+def test_info_shows_coarse_clock_difference(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import numpy as np
+
+    from licalib_cli.io.writer import BagWriter
+
+    path = tmp_path / "clock"
+    t0 = 1_700_000_000 * layouts.NS
+    boot = 3_000 * layouts.NS
+    with BagWriter(path, "ros2-mcap") as w:
+        for i in range(240):
+            t = t0 + i * 5_000_000
+            w.write_imu(
+                "/imu", t - t0 + boot, [0.4 * np.sin(i / 9), 0.1, 0], [0, 0, 9.8], record_ns=t
+            )
+        for k in range(10):
+            stamp = t0 + k * 100_000_000
+            w.write_cloud(
+                "/points", stamp, layouts.velodyne_points(stamp), record_ns=stamp + PERIOD
+            )
+    code, out, _ = _run(["info", str(path), "--json"], capsys)
+    assert code == 0
+    data = json.loads(out)
+    assert data["clock_offset_s"] == pytest.approx((boot - t0) / 1e9, abs=2e-3)
+    assert any("different clocks" in p["message"] for p in data["problems"])
+    code, out, _ = _run(["info", str(path)], capsys)
+    assert code == 0
+    line = next(ln for ln in out.splitlines() if ln.startswith("Clock difference"))
+    shown = float(line.split(":")[1].split()[0])
+    assert shown == pytest.approx((boot - t0) / 1e9, abs=2e-3)
