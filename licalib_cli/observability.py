@@ -1,0 +1,326 @@
+"""Information of the calibration parameters: Schur complement, scaling, singular directions.
+
+The information matrix ``A = J^T W J`` of the linearised problem is split into the trajectory
+group (spline, biases, gravity) and the calibration group (extrinsics, time offset, intrinsics).
+The trajectory block is eliminated (Schur complement) to give the calibration information ``S``,
+which is then made dimensionless with the per-coordinate characteristic scales ``d`` of the
+parameter blocks: ``S_d = D S D`` with ``D = diag(d)`` (e.g. metres / 0.01 m, radians /
+0.001 rad, seconds / 0.001 s). An eigenvalue ``s`` of ``S_d`` (its singular value: ``S_d`` is
+symmetric positive semi-definite) means that the standard deviation along the corresponding unit
+direction is ``1 / sqrt(s)`` characteristic scales; ``s = 1`` is "known to one characteristic
+scale". Singular vectors are unit vectors in these scaled coordinates; within a block with a
+uniform scale they are also the physical direction.
+
+Metrics (comparable only within one bag and one scaling): minimum singular value (E-optimality,
+the paper's choice), trace (A-), log-determinant (D-), and maximum eigenvalue.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+import numpy.typing as npt
+
+if TYPE_CHECKING:
+    from licalib_cli.solver.problem import Linearization, Problem, ResidualBlock
+
+__all__ = [
+    "TRAJECTORY_REGULARISATION",
+    "DirectionDescription",
+    "InformationSummary",
+    "calibration_information",
+    "describe_direction",
+    "summarize_information",
+    "truncation_mask",
+    "undamped_schur",
+]
+
+F64 = npt.NDArray[np.float64]
+
+TRAJECTORY_REGULARISATION = 1e-10
+"""Relative diagonal regularisation of ``H_tt`` when computing the undamped ``S`` (guards against
+gauge freedoms of the trajectory; negligible for a well-posed trajectory block)."""
+
+_RCOND = 1e-12
+"""Singular values below ``_RCOND * max`` are always treated as zero (numerical rank)."""
+
+_MAX_BLOCK_LISTING = 6
+
+
+@dataclass(frozen=True)
+class DirectionDescription:
+    """A direction in calibration space, named in parameter terms.
+
+    Attributes:
+        vector: (Nc,) unit vector in scaled coordinates; sign chosen so that its largest
+            component is positive.
+        components: Dominant ``(coordinate name, weight)`` pairs, largest ``|weight|`` first.
+        blocks: ``(block name, share)`` of the squared norm per block, largest first.
+        text: Human description, e.g. ``"extrinsic.translation along [0.00, -0.19, 0.98]:
+            unobservable, kept at its initial value"``.
+    """
+
+    vector: F64
+    components: tuple[tuple[str, float], ...]
+    blocks: tuple[tuple[str, float], ...]
+    text: str
+
+
+def _owner_of(name: str) -> str:
+    base = name.split("[", 1)[0] if "[" in name else name
+    return base.rsplit(".", 1)[0] if "." in base else base
+
+
+def describe_direction(
+    vector: npt.ArrayLike,
+    names: Sequence[str],
+    owners: Sequence[str] | None = None,
+    *,
+    verdict: str = "unobservable, kept at its initial value",
+    min_weight: float = 0.1,
+) -> DirectionDescription:
+    """Name a calibration-space direction in parameter terms.
+
+    Blocks holding at least 1 % of the squared norm are listed, largest share first; a block with
+    at most six coordinates is written as ``"<block> along [v0, v1, ...]"`` (its components of the
+    unit vector), a larger one by its dominant coordinates ``"name weight"``.
+
+    Args:
+        vector: (Nc,) direction (any norm, non-zero).
+        names: (Nc,) coordinate names.
+        owners: (Nc,) owning block names; default: the name up to its last ``.``.
+        verdict: Text appended after a colon.
+        min_weight: Smallest ``|weight|`` listed among the dominant components (the largest one
+            is always listed).
+
+    Returns:
+        The description.
+    """
+    v = np.asarray(vector, dtype=np.float64).reshape(-1)
+    if v.size != len(names):
+        msg = f"Direction has {v.size} components but {len(names)} names were given."
+        raise ValueError(msg)
+    v = v / np.linalg.norm(v)
+    if v[np.argmax(np.abs(v))] < 0.0:
+        v = -v
+    owner = list(owners) if owners is not None else [_owner_of(n) for n in names]
+    order = np.argsort(-np.abs(v), kind="stable")
+    dominant = [int(i) for i in order if abs(v[i]) >= min_weight] or [int(order[0])]
+    components = tuple((names[i], float(v[i])) for i in dominant)
+    block_names = list(dict.fromkeys(owner))
+    owner_arr = np.asarray(owner, dtype=object)
+    shares = {b: float(np.sum(v[owner_arr == b] ** 2)) for b in block_names}
+    ranked = sorted(((b, s) for b, s in shares.items() if s >= 0.01), key=lambda x: -x[1])
+    parts = []
+    for b, _ in ranked:
+        sel = np.flatnonzero(owner_arr == b)
+        if sel.size <= _MAX_BLOCK_LISTING:
+            parts.append(f"{b} along [{', '.join(f'{x:.2f}' for x in v[sel] + 0.0)}]")
+        else:
+            ranked_sel = sel[np.argsort(-np.abs(v[sel]), kind="stable")]
+            shown = [i for i in ranked_sel if abs(v[i]) >= min_weight] or [ranked_sel[0]]
+            parts.append(f"{b} ({', '.join(f'{names[i]} {v[i]:+.2f}' for i in shown)})")
+    text = f"{' + '.join(parts)}: {verdict}" if verdict else " + ".join(parts)
+    return DirectionDescription(v, components, tuple(ranked), text)
+
+
+def truncation_mask(
+    singular_values: npt.ArrayLike, threshold: float, *, relative: bool = False
+) -> npt.NDArray[np.bool_]:
+    """Which singular values are kept by the truncated SVD.
+
+    Args:
+        singular_values: (k,) singular values of the scaled information ``S_d``.
+        threshold: ``epsilon``; absolute (in scaled information units, i.e. a standard deviation
+            of ``1 / sqrt(epsilon)`` characteristic scales) or, when ``relative``, a fraction of
+            the largest singular value.
+        relative: Interpret ``threshold`` relative to the largest singular value.
+
+    Returns:
+        (k,) True for kept values: ``s > epsilon`` and ``s > 1e-12 * max(s)``.
+    """
+    s = np.asarray(singular_values, dtype=np.float64)
+    if s.size == 0:
+        return np.zeros(0, dtype=bool)
+    smax = max(float(s.max()), 0.0)
+    thr = threshold * smax if relative else threshold
+    return (s > thr) & (s > _RCOND * smax)
+
+
+@dataclass(frozen=True)
+class InformationSummary:
+    """Scaled calibration information and its spectrum.
+
+    Attributes:
+        names: (Nc,) calibration coordinate names.
+        owners: (Nc,) owning block of each coordinate.
+        scale: (Nc,) characteristic scales ``d`` used (``S_d = D S D``).
+        scaling: Statement of the scaling.
+        information: (Nc, Nc) scaled Schur complement ``S_d``.
+        singular_values: (Nc,) singular values of ``S_d``, descending.
+        singular_vectors: (Nc, Nc) matching unit vectors (columns), scaled coordinates.
+        num_residuals: Scalar residuals that contributed.
+    """
+
+    names: tuple[str, ...]
+    owners: tuple[str, ...]
+    scale: F64
+    scaling: str
+    information: F64
+    singular_values: F64
+    singular_vectors: F64
+    num_residuals: int
+
+    @property
+    def min_singular_value(self) -> float:
+        """Smallest singular value (0 when there are no calibration coordinates)."""
+        return float(self.singular_values[-1]) if self.singular_values.size else 0.0
+
+    @property
+    def max_eigenvalue(self) -> float:
+        """Largest eigenvalue (= singular value) of ``S_d``."""
+        return float(self.singular_values[0]) if self.singular_values.size else 0.0
+
+    @property
+    def trace(self) -> float:
+        """Trace of ``S_d``."""
+        return float(np.sum(self.singular_values))
+
+    @property
+    def log_determinant(self) -> float:
+        """``log det S_d`` (``-inf`` when singular)."""
+        s = self.singular_values
+        if s.size == 0:
+            return 0.0
+        if np.any(s <= 0.0):
+            return float("-inf")
+        return float(np.sum(np.log(s)))
+
+    @property
+    def condition_number(self) -> float:
+        """``max / min`` singular value (``inf`` when singular)."""
+        smin = self.min_singular_value
+        return float("inf") if smin <= 0.0 else self.max_eigenvalue / smin
+
+    def metrics(self) -> dict[str, float]:
+        """The ranking metrics: min singular value, trace, log-determinant, max eigenvalue."""
+        return {
+            "min_singular_value": self.min_singular_value,
+            "trace": self.trace,
+            "log_determinant": self.log_determinant,
+            "max_eigenvalue": self.max_eigenvalue,
+        }
+
+    def kept(self, threshold: float, *, relative: bool = False) -> npt.NDArray[np.bool_]:
+        """(Nc,) mask of singular values kept by a TSVD with ``threshold`` (see
+        :func:`truncation_mask`)."""
+        return truncation_mask(self.singular_values, threshold, relative=relative)
+
+    def describe(self, index: int, verdict: str = "") -> DirectionDescription:
+        """Describe singular vector ``index`` (0 = strongest, -1 = weakest)."""
+        return describe_direction(
+            self.singular_vectors[:, index], self.names, self.owners, verdict=verdict
+        )
+
+
+def scaling_statement(names: Sequence[str], scale: F64) -> str:
+    """One-line statement of the calibration scaling used, grouped by value."""
+    if len(names) == 0:
+        return "no calibration coordinates"
+    groups: dict[float, list[str]] = {}
+    for n, d in zip(names, scale, strict=True):
+        groups.setdefault(float(d), []).append(n)
+    parts = []
+    for d, ns in groups.items():
+        shown = ", ".join(ns[:3]) + (f" and {len(ns) - 3} more" if len(ns) > 3 else "")
+        parts.append(f"{d:g} ({shown})")
+    return "S_d = D S D, D = diag of characteristic scales in each coordinate's unit: " + "; ".join(
+        parts
+    )
+
+
+def summarize_information(
+    S: F64,
+    names: Sequence[str],
+    owners: Sequence[str],
+    scale: F64,
+    num_residuals: int = 0,
+) -> InformationSummary:
+    """Scale a calibration information matrix and decompose it.
+
+    Args:
+        S: (Nc, Nc) Schur complement in physical units (whitened residuals).
+        names: (Nc,) coordinate names.
+        owners: (Nc,) owning block names.
+        scale: (Nc,) characteristic scales ``d``.
+        num_residuals: Number of scalar residuals behind ``S``.
+
+    Returns:
+        The summary (singular values descending; tiny negative round-off clipped to zero).
+    """
+    scale = np.asarray(scale, dtype=np.float64)
+    sd = scale[:, None] * np.asarray(S, dtype=np.float64) * scale[None, :]
+    sd = 0.5 * (sd + sd.T)
+    if sd.size:
+        w, u = np.linalg.eigh(sd)
+        w, u = np.clip(w[::-1], 0.0, None), u[:, ::-1]
+    else:
+        w, u = np.zeros(0), np.zeros((0, 0))
+    return InformationSummary(
+        names=tuple(names),
+        owners=tuple(owners),
+        scale=scale.copy(),
+        scaling=scaling_statement(names, scale),
+        information=sd,
+        singular_values=w,
+        singular_vectors=u,
+        num_residuals=num_residuals,
+    )
+
+
+def undamped_schur(lin: Linearization) -> F64:
+    """Calibration Schur complement ``S`` of a linearisation, without damping.
+
+    ``H_tt`` gets the relative regularisation :data:`TRAJECTORY_REGULARISATION` on its diagonal.
+
+    Args:
+        lin: Normal equations.
+
+    Returns:
+        (Nc, Nc) ``S``.
+    """
+    # Imported here: licalib_cli.solver imports this module, so a top-level import would cycle.
+    from licalib_cli.solver.problem import schur_complement
+
+    reg = TRAJECTORY_REGULARISATION * lin.H_tt.diagonal()
+    return schur_complement(lin, reg).S
+
+
+def calibration_information(
+    problem: Problem, residual_blocks: Iterable[ResidualBlock] | None = None
+) -> InformationSummary:
+    """Scaled calibration information of (a subset of) the residual blocks at the current estimate.
+
+    Trajectory coordinates no chosen residual touches drop out (e.g. the spline outside a
+    segment), so the result describes what the chosen data alone determine.
+
+    Args:
+        problem: The problem (its current values, fixed masks, scales and robust losses are used).
+        residual_blocks: Residual blocks to include (default: all of the problem's).
+
+    Returns:
+        The information summary.
+    """
+    layout = problem.layout()
+    evaluation = problem.evaluate(jacobians=True, residual_blocks=residual_blocks)
+    lin = problem.linearize(evaluation, layout)
+    return summarize_information(
+        undamped_schur(lin),
+        layout.calibration_names,
+        layout.calibration_owner,
+        layout.calibration_scale,
+        evaluation.num_residuals,
+    )

@@ -1,0 +1,421 @@
+"""Levenberg-Marquardt with a Schur complement and an observability-aware (TSVD) update.
+
+Each iteration solves the damped normal equations ``(H + lambda diag(D)) dx = -g`` where
+``D = clip(diag(H), min_diagonal, max_diagonal)`` (Marquardt scaling):
+
+1. Eliminate the trajectory group: sparse LU of ``H_tt + lambda D_t``, Schur complement
+   ``S = H_cc - H_ct (H_tt + lambda D_t)^-1 H_tc`` and right-hand side ``b`` (method.md section 8).
+2. Scale the calibration system by the characteristic scales ``d`` (``S_d = D S D``, see
+   :mod:`licalib_cli.observability`) and take its eigen-decomposition ``S_d = U diag(s) U^T``.
+3. TSVD: keep the directions with ``s_i > epsilon`` (``LMParams.tsvd_threshold``; absolute in
+   scaled information units, or relative to ``max s`` with ``tsvd_relative``) and solve the
+   damped system restricted to them: ``dx_c = D U_l (diag(s_l) + lambda U_l^T D_c' U_l)^-1
+   U_l^T D b``, which is the paper's ``sum_{i<=l} u_i^T b u_i / s_i`` at ``lambda = 0``. The
+   calibration step has no component along truncated directions (in the scaled metric): those
+   stay at their current value.
+4. Back-substitute the trajectory step, retract every block, and accept the step when the actual
+   cost reduction is at least ``1e-3`` of the reduction predicted by the quadratic model; update
+   ``lambda`` as in Nielsen (1999).
+
+At the final estimate the report holds the undamped ``S_d`` spectrum, the truncated directions
+named in parameter terms, and the standard deviation of every calibration coordinate from the
+TSVD pseudo-inverse ``D U_l diag(1/s_l) U_l^T D`` (whitened residuals: unit covariance).
+Coordinates with a weight of at least ``_NOT_OBSERVABLE_WEIGHT`` (squared) in a truncated direction
+are reported as not observable (standard deviation ``inf``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+import scipy.linalg as sla
+
+from licalib_cli.errors import SolverError
+from licalib_cli.observability import (
+    DirectionDescription,
+    InformationSummary,
+    describe_direction,
+    summarize_information,
+    truncation_mask,
+    undamped_schur,
+)
+from licalib_cli.solver.problem import Linearization, Problem, schur_complement
+
+__all__ = ["IterationSummary", "LMParams", "SolverReport", "Step", "compute_step", "solve"]
+
+F64 = npt.NDArray[np.float64]
+
+logger = logging.getLogger(__name__)
+
+_NOT_OBSERVABLE_WEIGHT = 1e-4
+"""A coordinate whose squared components over the truncated directions sum to at least this is
+reported as not observable."""
+
+_MIN_GAIN_RATIO = 1e-3
+
+
+@dataclass(frozen=True)
+class LMParams:
+    """Levenberg-Marquardt settings.
+
+    Attributes:
+        max_iterations: Maximum number of iterations (accepted or rejected steps).
+        initial_lambda: Initial damping ``lambda`` (relative to ``diag(H)``).
+        max_lambda: Give up (status ``failed``) when ``lambda`` exceeds this.
+        min_diagonal: Lower clip of ``diag(H)`` in the damping matrix.
+        max_diagonal: Upper clip of ``diag(H)`` in the damping matrix.
+        function_tolerance: Converged when an accepted step (or the model's prediction) reduces
+            the cost by less than this fraction.
+        step_tolerance: Converged when ``max_i |dx_i| / scale_i`` is below this (steps measured
+            in characteristic scales).
+        gradient_tolerance: Converged when ``max_i |g_i| * scale_i`` is below this (cost per
+            characteristic scale).
+        use_tsvd: Solve the calibration step with the truncated SVD (else a plain damped solve).
+        tsvd_threshold: ``epsilon`` on the singular values of the scaled Schur complement
+            ``S_d``; absolute by default (1.0 = standard deviation of one characteristic scale).
+        tsvd_relative: Interpret ``tsvd_threshold`` as a fraction of the largest singular value.
+        verbose: Log every iteration at INFO (else DEBUG).
+    """
+
+    max_iterations: int = 50
+    initial_lambda: float = 1e-4
+    max_lambda: float = 1e16
+    min_diagonal: float = 1e-6
+    max_diagonal: float = 1e32
+    function_tolerance: float = 1e-8
+    step_tolerance: float = 1e-6
+    gradient_tolerance: float = 1e-10
+    use_tsvd: bool = True
+    tsvd_threshold: float = 1.0
+    tsvd_relative: bool = False
+    verbose: bool = False
+
+
+@dataclass(frozen=True)
+class IterationSummary:
+    """One LM iteration, as passed to the progress callback.
+
+    Attributes:
+        iteration: 1-based iteration number.
+        cost: Cost before the step.
+        trial_cost: Cost at the trial point (``nan`` when no trial was evaluated).
+        lambda_: Damping used.
+        step_norm: ``max |dx_i| / scale_i``.
+        gain_ratio: Actual / predicted cost reduction.
+        accepted: Whether the step was taken.
+        num_truncated: Calibration directions truncated by the TSVD in this step.
+        elapsed_s: Wall time since the start of :func:`solve`.
+    """
+
+    iteration: int
+    cost: float
+    trial_cost: float
+    lambda_: float
+    step_norm: float
+    gain_ratio: float
+    accepted: bool
+    num_truncated: int
+    elapsed_s: float
+
+
+@dataclass(frozen=True)
+class Step:
+    """A solved LM step.
+
+    Attributes:
+        dx: (Nt + Nc,) step in solver order.
+        predicted_reduction: Cost reduction predicted by the undamped quadratic model.
+        num_truncated: Calibration directions truncated.
+    """
+
+    dx: F64
+    predicted_reduction: float
+    num_truncated: int
+
+
+@dataclass(frozen=True)
+class SolverReport:
+    """Why and where the solver stopped, and what the data determine.
+
+    Attributes:
+        status: ``"converged"``, ``"max_iterations"`` or ``"failed"``.
+        reason: Why it stopped, in words.
+        iterations: Iterations run (accepted or rejected steps).
+        cost_history: Cost at the start and after every accepted step.
+        initial_cost: ``cost_history[0]``.
+        final_cost: ``cost_history[-1]``.
+        num_residuals: Scalar residuals at the final estimate.
+        num_parameters: Free tangent coordinates (trajectory + calibration).
+        variance_factor: A-posteriori variance factor ``2 cost / (num_residuals -
+            num_parameters)`` (``nan`` without redundancy); 1 when the noise model fits.
+        calibration_names: (Nc,) free calibration coordinates.
+        information: Undamped scaled calibration information at the final estimate (singular
+            values, vectors and the scaling used).
+        singular_values: (Nc,) same as ``information.singular_values`` (descending).
+        scaling: Statement of the scaling used.
+        tsvd_threshold: ``epsilon`` in absolute scaled units as applied.
+        truncated: Truncated (not observable) directions, weakest first, named in parameter
+            terms.
+        std: (Nc,) standard deviation of each calibration coordinate in its own unit, from the
+            TSVD pseudo-inverse of the undamped Schur complement; ``inf`` where not observable.
+        observable: (Nc,) False for coordinates lying in a truncated direction.
+        elapsed_s: Wall time of :func:`solve`.
+    """
+
+    status: Literal["converged", "max_iterations", "failed"]
+    reason: str
+    iterations: int
+    cost_history: tuple[float, ...]
+    initial_cost: float
+    final_cost: float
+    num_residuals: int
+    num_parameters: int
+    variance_factor: float
+    calibration_names: tuple[str, ...]
+    information: InformationSummary
+    singular_values: F64
+    scaling: str
+    tsvd_threshold: float
+    truncated: tuple[DirectionDescription, ...]
+    std: F64
+    observable: npt.NDArray[np.bool_]
+    elapsed_s: float
+
+    @property
+    def converged(self) -> bool:
+        """Whether the status is ``"converged"``."""
+        return self.status == "converged"
+
+    def std_of(self, name: str) -> float:
+        """Standard deviation of the calibration coordinate called ``name``."""
+        return float(self.std[self.calibration_names.index(name)])
+
+
+def _damping_diagonal(diag: F64, params: LMParams) -> F64:
+    return np.clip(diag, params.min_diagonal, params.max_diagonal)
+
+
+def compute_step(lin: Linearization, lam: float, params: LMParams) -> Step:
+    """Solve one damped step with the Schur complement and (optionally) the TSVD.
+
+    Args:
+        lin: Normal equations at the current estimate.
+        lam: Damping ``lambda`` (0 for a Gauss-Newton step).
+        params: Solver settings (damping clips, TSVD threshold).
+
+    Returns:
+        The step.
+    """
+    layout = lin.layout
+    nc = layout.num_calibration
+    d_t = lam * _damping_diagonal(lin.H_tt.diagonal(), params)
+    sch = schur_complement(lin, d_t)
+    num_truncated = 0
+    if nc:
+        scale = layout.calibration_scale
+        s_d = scale[:, None] * sch.S * scale[None, :]
+        b_d = scale * sch.b
+        damp = lam * _damping_diagonal(np.diag(lin.H_cc), params) * scale**2
+        if params.use_tsvd:
+            w, u = np.linalg.eigh(0.5 * (s_d + s_d.T))
+            keep = truncation_mask(w, params.tsvd_threshold, relative=params.tsvd_relative)
+            num_truncated = int(nc - np.count_nonzero(keep))
+            u_k = u[:, keep]
+            reduced = np.diag(w[keep]) + (u_k.T * damp) @ u_k
+            y = u_k @ _solve_spd(reduced, u_k.T @ b_d)
+        else:
+            y = _solve_spd(s_d + np.diag(damp), b_d)
+        dc = scale * y
+    else:
+        dc = np.zeros(0)
+    dx = np.concatenate([sch.back_substitute(dc), dc])
+    predicted = -(float(lin.g @ dx) + 0.5 * lin.quadratic(dx))
+    return Step(dx, predicted, num_truncated)
+
+
+def _solve_spd(a: F64, b: F64) -> F64:
+    if a.size == 0:
+        return np.zeros(0)
+    try:
+        return sla.solve(a, b, assume_a="pos")
+    except (np.linalg.LinAlgError, sla.LinAlgError):
+        return np.linalg.lstsq(a, b, rcond=None)[0]
+
+
+def solve(
+    problem: Problem,
+    params: LMParams | None = None,
+    callback: Callable[[IterationSummary], None] | None = None,
+) -> SolverReport:
+    """Minimise the problem's cost in place with Levenberg-Marquardt.
+
+    Args:
+        problem: The problem; its parameter blocks hold the initial values and receive the
+            estimate.
+        params: Solver settings (default :class:`LMParams`).
+        callback: Called after every iteration (progress hook).
+
+    Returns:
+        The solver report.
+
+    Raises:
+        SolverError: When the initial cost is not finite.
+    """
+    params = LMParams() if params is None else params
+    start = time.perf_counter()
+    log = logger.info if params.verbose else logger.debug
+    layout = problem.layout()
+    evaluation = problem.evaluate(jacobians=True)
+    if not math.isfinite(evaluation.cost):
+        msg = (
+            "The residuals are not finite at the initial estimate; check the initial values "
+            "and the input data for NaN or infinite numbers."
+        )
+        raise SolverError(msg)
+    lin = problem.linearize(evaluation, layout)
+    cost = evaluation.cost
+    history = [cost]
+    lam, nu = params.initial_lambda, 2.0
+    scale = layout.scale
+    status: Literal["converged", "max_iterations", "failed"] = "max_iterations"
+    reason = f"reached max_iterations={params.max_iterations}"
+    iteration = 0
+    while iteration < params.max_iterations:
+        grad_norm = float(np.max(np.abs(lin.g * scale))) if lin.g.size else 0.0
+        if grad_norm <= params.gradient_tolerance:
+            status = "converged"
+            reason = f"gradient {grad_norm:.3g} below gradient_tolerance"
+            break
+        iteration += 1
+        step = compute_step(lin, lam, params)
+        step_norm = float(np.max(np.abs(step.dx / scale))) if step.dx.size else 0.0
+        if step_norm <= params.step_tolerance:
+            status = "converged"
+            reason = f"step {step_norm:.3g} below step_tolerance"
+            break
+        if step.predicted_reduction <= params.function_tolerance * cost:
+            status = "converged"
+            reason = "predicted cost reduction below function_tolerance"
+            break
+        trial_values = problem.retracted_values(step.dx, layout)
+        trial = problem.evaluate(trial_values, jacobians=True)
+        actual = cost - trial.cost
+        gain = actual / step.predicted_reduction if math.isfinite(trial.cost) else -math.inf
+        accepted = gain > _MIN_GAIN_RATIO
+        summary = IterationSummary(
+            iteration,
+            cost,
+            trial.cost,
+            lam,
+            step_norm,
+            gain,
+            accepted,
+            step.num_truncated,
+            time.perf_counter() - start,
+        )
+        log(
+            "LM %3d cost %.6e -> %.6e lambda %.1e step %.2e gain %.2f %s truncated %d",
+            iteration,
+            cost,
+            trial.cost,
+            lam,
+            step_norm,
+            gain,
+            "accepted" if accepted else "rejected",
+            step.num_truncated,
+        )
+        if callback is not None:
+            callback(summary)
+        if accepted:
+            problem.set_values(trial_values)
+            lin = problem.linearize(trial, layout)
+            old_cost, cost = cost, trial.cost
+            history.append(cost)
+            lam *= max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
+            nu = 2.0
+            if actual <= params.function_tolerance * old_cost:
+                status = "converged"
+                relative = actual / max(old_cost, 1e-300)
+                reason = f"relative cost reduction {relative:.3g} below function_tolerance"
+                break
+        else:
+            lam *= nu
+            nu *= 2.0
+            if lam > params.max_lambda:
+                status = "failed"
+                reason = f"no step reduced the cost before lambda exceeded {params.max_lambda:g}"
+                break
+    return _report(lin, params, status, reason, iteration, history, start)
+
+
+def _report(
+    lin: Linearization,
+    params: LMParams,
+    status: Literal["converged", "max_iterations", "failed"],
+    reason: str,
+    iterations: int,
+    history: list[float],
+    start: float,
+) -> SolverReport:
+    layout = lin.layout
+    info = summarize_information(
+        undamped_schur(lin),
+        layout.calibration_names,
+        layout.calibration_owner,
+        layout.calibration_scale,
+        lin.num_residuals,
+    )
+    s, u = info.singular_values, info.singular_vectors
+    keep = truncation_mask(s, params.tsvd_threshold, relative=params.tsvd_relative)
+    verdict = (
+        "unobservable, kept at its initial value"
+        if params.use_tsvd
+        else "unobservable (below the TSVD threshold), updated without truncation"
+    )
+    truncated = tuple(
+        describe_direction(
+            u[:, i], layout.calibration_names, layout.calibration_owner, verdict=verdict
+        )
+        for i in np.flatnonzero(~keep)[::-1]
+    )
+    weight = np.sum(u[:, ~keep] ** 2, axis=1) if u.size else np.zeros(0)
+    observable = weight < _NOT_OBSERVABLE_WEIGHT
+    scale = layout.calibration_scale
+    if s.size:
+        cov_d = (u[:, keep] / s[keep]) @ u[:, keep].T
+        std = scale * np.sqrt(np.clip(np.diag(cov_d), 0.0, None))
+    else:
+        std = np.zeros(0)
+    std = np.where(observable, std, np.inf)
+    redundancy = lin.num_residuals - layout.num_free
+    variance_factor = 2.0 * history[-1] / redundancy if redundancy > 0 else math.nan
+    threshold = params.tsvd_threshold * (float(s[0]) if params.tsvd_relative and s.size else 1.0)
+    for d in truncated:
+        logger.info("calibration direction %s", d.text)
+    return SolverReport(
+        status=status,
+        reason=reason,
+        iterations=iterations,
+        cost_history=tuple(history),
+        initial_cost=history[0],
+        final_cost=history[-1],
+        num_residuals=lin.num_residuals,
+        num_parameters=layout.num_free,
+        variance_factor=variance_factor,
+        calibration_names=layout.calibration_names,
+        information=info,
+        singular_values=s,
+        scaling=info.scaling,
+        tsvd_threshold=threshold,
+        truncated=truncated,
+        std=std,
+        observable=observable,
+        elapsed_s=time.perf_counter() - start,
+    )
