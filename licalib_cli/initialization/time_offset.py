@@ -1,0 +1,372 @@
+"""Coarse time offset by cross-correlating angular speed from the gyro and from LiDAR odometry.
+
+Conventions:
+    - ``time_offset_s``: a LiDAR stamp ``tau`` corresponds to IMU time ``t = tau + time_offset_s``
+      (the IMU sees an event ``time_offset_s`` later on its clock than the LiDAR does).
+    - The LiDAR angular speed is ``|log(R_k^T R_{k+1})| / (t_{k+1} - t_k)`` at the interval
+      midpoints, i.e. the mean rotation rate over each pose interval. The gyro signal is made
+      comparable by averaging the gyro *vector* over a window of the same length (the exact
+      integral of the rate, linear between samples) before taking its norm.
+    - Both signals are resampled on one uniform grid (``rate_hz``) of absolute time; the
+      normalised (Pearson) correlation is evaluated for every lag within ``+-max_lag_s`` over the
+      overlap of the two signals, using FFT sums; the peak is refined by a parabola.
+    - A whole-bag clock difference (for example LiDAR stamps on UNIX time and IMU stamps on boot
+      time) is estimated separately by :func:`estimate_clock_shift`; it is a property of the
+      recording, not a calibration result.
+    - Times are int64 nanoseconds at the interface; float seconds inside.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+
+import numpy as np
+import numpy.typing as npt
+from scipy.signal import correlate
+
+from licalib_cli.errors import ExcitationError, TimestampError
+from licalib_cli.measurements import ImuSamples
+from licalib_cli.odometry import PoseSeries
+
+__all__ = [
+    "ClockShift",
+    "TimeOffsetConfig",
+    "TimeOffsetEstimate",
+    "angular_speed_from_gyro",
+    "angular_speed_from_poses",
+    "correlate_angular_speed",
+    "estimate_clock_shift",
+    "estimate_time_offset",
+]
+
+logger = logging.getLogger(__name__)
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class TimeOffsetConfig:
+    """Settings of the angular-speed cross-correlation.
+
+    Attributes:
+        rate_hz: rate of the common resampling grid, Hz.
+        max_lag_s: lags searched are within ``+-max_lag_s``; raise it (seconds or more) when the
+            sensors may be far apart.
+        min_peak_correlation: peaks below this normalised correlation are flagged not ok.
+        min_speed_std: an angular-speed signal whose standard deviation over the overlap is
+            below this (rad/s) is considered flat (no usable motion).
+        min_overlap_fraction: a lag is only evaluated if the two signals overlap over at least
+            this fraction of the shorter one.
+    """
+
+    rate_hz: float = 100.0
+    max_lag_s: float = 0.2
+    min_peak_correlation: float = 0.7
+    min_speed_std: float = 0.05
+    min_overlap_fraction: float = 0.5
+
+
+@dataclass(frozen=True)
+class TimeOffsetEstimate:
+    """Result of the cross-correlation.
+
+    Attributes:
+        time_offset_s: ``t_imu = t_lidar + time_offset_s``, seconds.
+        peak_correlation: normalised correlation at the peak, in [-1, 1].
+        ok: True when the peak is high enough and not at the edge of the lag window.
+        reason: why ``ok`` is False ("" when ok).
+        lags_s: (L,) lags evaluated, seconds.
+        correlation: (L,) normalised correlation per lag (NaN where the overlap is too short).
+    """
+
+    time_offset_s: float
+    peak_correlation: float
+    ok: bool
+    reason: str
+    lags_s: FloatArray
+    correlation: FloatArray
+
+
+@dataclass(frozen=True)
+class ClockShift:
+    """Whole-bag clock difference between the sensors (not a calibration result).
+
+    Attributes:
+        shift_ns: ``t_imu = t_lidar + shift_ns`` to apply to LiDAR stamps before calibrating,
+            nanoseconds (0 when the stamp ranges already overlap).
+        method: "none" (stamp ranges overlap), "correlation" (start difference refined by the
+            angular-speed correlation) or "stamp_ranges" (start difference only; the
+            correlation was inconclusive).
+        peak_correlation: correlation at the refined shift, NaN when not computed.
+        overlap_fraction: overlap of the raw stamp ranges relative to the shorter one.
+    """
+
+    shift_ns: int
+    method: str
+    peak_correlation: float
+    overlap_fraction: float
+
+
+def angular_speed_from_poses(poses: PoseSeries) -> tuple[IntArray, FloatArray]:
+    """Mean angular speed over each pose interval.
+
+    Args:
+        poses: K >= 2 poses with strictly increasing stamps.
+
+    Returns:
+        (K-1,) int64 interval midpoints (ns) and (K-1,) float64 speeds (rad/s).
+
+    Raises:
+        TimestampError: fewer than two poses or stamps not increasing.
+    """
+    t = poses.t_ns
+    if t.shape[0] < 2 or np.any(np.diff(t) <= 0):
+        msg = "Angular speed from odometry needs at least two poses with increasing stamps."
+        raise TimestampError(msg)
+    rot = poses.rotations
+    angle = (rot[:-1].inv() * rot[1:]).magnitude()
+    dt = np.diff(t).astype(np.float64) * 1e-9
+    mid = t[:-1] + np.diff(t) // 2
+    return mid, np.asarray(angle / dt, dtype=np.float64)
+
+
+def _gyro_integral(imu: ImuSamples) -> tuple[FloatArray, FloatArray]:
+    """Cumulative trapezoidal integral of the gyro vector: times (s, rel. to first) and (N, 3)."""
+    t = (imu.t_ns - imu.t_ns[0]).astype(np.float64) * 1e-9
+    dt = np.diff(t)
+    inc = 0.5 * (imu.gyro[1:] + imu.gyro[:-1]) * dt[:, None]
+    return t, np.concatenate([np.zeros((1, 3)), np.cumsum(inc, axis=0)])
+
+
+def angular_speed_from_gyro(imu: ImuSamples, t_ns: IntArray, window_s: float) -> FloatArray:
+    """Gyro angular speed ``|mean(w)|`` over a window centred at each query time.
+
+    Args:
+        imu: IMU samples, strictly increasing stamps.
+        t_ns: (M,) int64 query times, nanoseconds (clamped to the IMU range).
+        window_s: averaging window, seconds (0 gives the interpolated ``|w|``).
+
+    Returns:
+        (M,) float64 rad/s.
+    """
+    t_rel = (np.asarray(t_ns) - imu.t_ns[0]).astype(np.float64) * 1e-9
+    if window_s <= 0.0:
+        t_imu = (imu.t_ns - imu.t_ns[0]).astype(np.float64) * 1e-9
+        w = np.stack([np.interp(t_rel, t_imu, imu.gyro[:, j]) for j in range(3)], axis=1)
+        return np.asarray(np.linalg.norm(w, axis=1), dtype=np.float64)
+    tg, cum = _gyro_integral(imu)
+    lo = np.clip(t_rel - 0.5 * window_s, tg[0], tg[-1])
+    hi = np.clip(t_rel + 0.5 * window_s, tg[0], tg[-1])
+    span = np.maximum(hi - lo, 1e-12)
+    delta = np.stack(
+        [np.interp(hi, tg, cum[:, j]) - np.interp(lo, tg, cum[:, j]) for j in range(3)], axis=1
+    )
+    return np.asarray(np.linalg.norm(delta, axis=1) / span, dtype=np.float64)
+
+
+def _to_grid(
+    t_ns: IntArray, x: FloatArray, t0_ns: int, h_ns: float, n: int
+) -> tuple[FloatArray, FloatArray]:
+    """Linear resampling of ``x(t)`` on the grid ``t0 + i h``; the mask is 1 inside its range."""
+    grid = np.arange(n) * h_ns  # relative to t0, float64 stays exact enough (< 1 ns)
+    rel = (np.asarray(t_ns) - t0_ns).astype(np.float64)
+    inside = (grid >= rel[0]) & (grid <= rel[-1])
+    vals = np.where(inside, np.interp(grid, rel, x), 0.0)
+    return vals, inside.astype(np.float64)
+
+
+def correlate_angular_speed(
+    t_lidar_ns: IntArray,
+    speed_lidar: FloatArray,
+    t_imu_ns: IntArray,
+    speed_imu: FloatArray,
+    cfg: TimeOffsetConfig | None = None,
+) -> TimeOffsetEstimate:
+    """Normalised cross-correlation of two angular-speed signals on different clocks.
+
+    Finds ``c`` maximising the correlation of ``speed_lidar(tau)`` with ``speed_imu(tau + c)``.
+
+    Args:
+        t_lidar_ns: (A,) int64 increasing sample times of the LiDAR signal, LiDAR clock.
+        speed_lidar: (A,) float64 rad/s.
+        t_imu_ns: (B,) int64 increasing sample times of the IMU signal, IMU clock.
+        speed_imu: (B,) float64 rad/s.
+        cfg: settings; defaults when None.
+
+    Returns:
+        The offset in the convention ``t_imu = t_lidar + time_offset_s``.
+
+    Raises:
+        ExcitationError: either signal is flat (no varying rotation).
+        TimestampError: the signals cannot overlap within the lag window.
+    """
+    cfg = cfg or TimeOffsetConfig()
+    h_ns = 1e9 / cfg.rate_hz
+    max_lag = int(np.ceil(cfg.max_lag_s * cfg.rate_hz))
+    t0 = int(min(t_lidar_ns[0], t_imu_ns[0]))
+    t1 = int(max(t_lidar_ns[-1], t_imu_ns[-1]))
+    n = int((t1 - t0) // h_ns) + 1
+    if n > 50_000_000:
+        msg = (
+            "The IMU and LiDAR stamps are too far apart to correlate on one grid; estimate the "
+            "whole-bag clock shift first (estimate_clock_shift)."
+        )
+        raise TimestampError(msg)
+    a, ma = _to_grid(t_lidar_ns, speed_lidar, t0, h_ns, n)
+    b, mb = _to_grid(t_imu_ns, speed_imu, t0, h_ns, n)
+    # Normalise scales for numerical comfort (correlation is scale invariant).
+    a = a / max(float(np.abs(a).max()), 1e-12)
+    b = b / max(float(np.abs(b).max()), 1e-12)
+
+    def xc(u: FloatArray, v: FloatArray) -> FloatArray:
+        """sum_i u[i] v[i + L] for L = -(n-1) .. n-1."""
+        return np.asarray(correlate(v, u, mode="full", method="auto"), dtype=np.float64)
+
+    lags = np.arange(-(n - 1), n)
+    sel = np.abs(lags) <= max_lag
+    cnt = np.rint(xc(ma, mb))[sel]
+    s_a = xc(a, mb)[sel]
+    s_aa = xc(a * a, mb)[sel]
+    s_b = xc(ma, b)[sel]
+    s_bb = xc(ma, b * b)[sel]
+    s_ab = xc(a, b)[sel]
+    lags = lags[sel]
+    need = cfg.min_overlap_fraction * min(ma.sum(), mb.sum())
+    valid = cnt >= max(need, 3.0)
+    if not np.any(valid):
+        msg = (
+            "The IMU and LiDAR angular-speed signals do not overlap within the lag window of "
+            f"+-{cfg.max_lag_s:g} s; estimate the whole-bag clock shift first or raise max_lag_s."
+        )
+        raise TimestampError(msg)
+    cnt_safe = np.where(valid, cnt, 1.0)
+    var_a = (s_aa - s_a**2 / cnt_safe) / cnt_safe
+    var_b = (s_bb - s_b**2 / cnt_safe) / cnt_safe
+    std_a = float(np.std(speed_lidar))
+    std_b = float(np.std(speed_imu))
+    if std_a < cfg.min_speed_std or std_b < cfg.min_speed_std:
+        msg = (
+            "Rotation excitation is too weak for the time offset: the angular speed hardly varies "
+            f"(std {std_a:.3f} rad/s LiDAR, {std_b:.3f} rad/s IMU, need {cfg.min_speed_std:g}); "
+            "rotate the rig with changing speed during the recording."
+        )
+        raise ExcitationError(msg)
+    cov = (s_ab - s_a * s_b / cnt_safe) / cnt_safe
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = cov / np.sqrt(var_a * var_b)
+    r = np.where(valid & (var_a > 0) & (var_b > 0), r, np.nan)
+    if np.all(np.isnan(r)):
+        msg = "The angular-speed signals are constant over every overlap; rotate the rig."
+        raise ExcitationError(msg)
+    i = int(np.nanargmax(r))
+    frac = 0.0
+    if 0 < i < r.size - 1 and np.isfinite(r[i - 1]) and np.isfinite(r[i + 1]):
+        den = r[i - 1] - 2.0 * r[i] + r[i + 1]
+        if den < 0.0:
+            frac = float(np.clip(0.5 * (r[i - 1] - r[i + 1]) / den, -0.5, 0.5))
+    offset = (lags[i] + frac) * h_ns * 1e-9
+    peak = float(r[i])
+    reason = ""
+    if abs(lags[i]) >= max_lag:
+        reason = f"the peak is at the edge of the +-{cfg.max_lag_s:g} s lag window"
+    elif peak < cfg.min_peak_correlation:
+        reason = f"the peak correlation {peak:.2f} is below {cfg.min_peak_correlation:g}"
+    logger.info("time offset %.4f s (peak correlation %.3f) %s", offset, peak, reason)
+    return TimeOffsetEstimate(
+        time_offset_s=float(offset),
+        peak_correlation=peak,
+        ok=not reason,
+        reason=reason,
+        lags_s=lags * h_ns * 1e-9,
+        correlation=r,
+    )
+
+
+def estimate_time_offset(
+    imu: ImuSamples,
+    poses: PoseSeries,
+    cfg: TimeOffsetConfig | None = None,
+) -> TimeOffsetEstimate:
+    """Coarse time offset from gyro and odometry angular speed.
+
+    Args:
+        imu: IMU samples (gyro in rad/s).
+        poses: LiDAR odometry poses stamped with the times they refer to.
+        cfg: settings; defaults when None.
+
+    Returns:
+        ``t_imu = t_lidar + time_offset_s``, with the peak correlation and a quality flag.
+
+    Raises:
+        ExcitationError: the rotation speed is flat in either sensor.
+        TimestampError: the streams do not overlap within the lag window.
+    """
+    cfg = cfg or TimeOffsetConfig()
+    t_mid, w_lidar = angular_speed_from_poses(poses)
+    window_s = float(np.median(np.diff(poses.t_ns))) * 1e-9
+    h_ns = 1e9 / cfg.rate_hz
+    n = int((imu.t_ns[-1] - imu.t_ns[0]) // h_ns) + 1
+    t_grid = imu.t_ns[0] + np.rint(np.arange(n) * h_ns).astype(np.int64)
+    w_imu = angular_speed_from_gyro(imu, t_grid, window_s)
+    # Drop the grid ends where the window is cut short.
+    half = int(np.ceil(0.5 * window_s * 1e9 / h_ns))
+    if n > 2 * half + 3:
+        t_grid, w_imu = t_grid[half:-half], w_imu[half:-half]
+    return correlate_angular_speed(t_mid, w_lidar, t_grid, w_imu, cfg)
+
+
+def estimate_clock_shift(
+    imu: ImuSamples,
+    poses: PoseSeries,
+    cfg: TimeOffsetConfig | None = None,
+    *,
+    max_search_s: float = 30.0,
+    min_overlap_fraction: float = 0.5,
+) -> ClockShift:
+    """Whole-bag clock difference when the IMU and LiDAR stamp ranges do not overlap.
+
+    When the raw stamp ranges overlap over at least ``min_overlap_fraction`` of the shorter
+    stream, no shift is applied. Otherwise the starts are aligned (``shift = imu_start -
+    lidar_start``) and the shift is refined by correlating angular speed over lags up to
+    ``max_search_s`` (bounded by half the shorter stream), rounded to whole milliseconds. The
+    remaining sub-millisecond part is left to :func:`estimate_time_offset` and the optimiser.
+
+    Args:
+        imu: IMU samples.
+        poses: LiDAR odometry poses (LiDAR clock).
+        cfg: correlation settings (its ``max_lag_s`` is replaced by the search range).
+        max_search_s: largest refinement searched around the start alignment, seconds.
+        min_overlap_fraction: stamp-range overlap regarded as "same clock".
+
+    Returns:
+        The shift to add to LiDAR stamps; ``method`` tells how it was found.
+    """
+    cfg = cfg or TimeOffsetConfig()
+    i0, i1 = int(imu.t_ns[0]), int(imu.t_ns[-1])
+    l0, l1 = int(poses.t_ns[0]), int(poses.t_ns[-1])
+    shorter = max(min(i1 - i0, l1 - l0), 1)
+    overlap = max(0, min(i1, l1) - max(i0, l0)) / shorter
+    if overlap >= min_overlap_fraction:
+        return ClockShift(0, "none", float("nan"), float(overlap))
+    coarse = i0 - l0
+    shifted = replace(poses, t_ns=poses.t_ns + np.int64(coarse))
+    search = min(max_search_s, 0.5 * shorter * 1e-9)
+    try:
+        est = estimate_time_offset(
+            imu, shifted, replace(cfg, max_lag_s=search, min_overlap_fraction=0.3)
+        )
+    except (ExcitationError, TimestampError) as err:
+        logger.warning("clock shift from stamp ranges only (%s)", err)
+        return ClockShift(int(coarse), "stamp_ranges", float("nan"), float(overlap))
+    if not est.ok:
+        logger.warning("clock shift from stamp ranges only (%s)", est.reason)
+        return ClockShift(int(coarse), "stamp_ranges", est.peak_correlation, float(overlap))
+    refine_ns = round(est.time_offset_s * 1e3) * 1_000_000
+    logger.info(
+        "clock shift %.3f s between LiDAR and IMU stamps (peak correlation %.2f)",
+        (coarse + refine_ns) * 1e-9,
+        est.peak_correlation,
+    )
+    return ClockShift(int(coarse + refine_ns), "correlation", est.peak_correlation, float(overlap))
