@@ -36,7 +36,8 @@ class LidarInputConfig(_Section):
     topic: str | None = None
     """``sensor_msgs/PointCloud2`` topic; found automatically when the bag has exactly one."""
     time_field: str | None = None
-    """Per-point time field name (``t``, ``time``, ``timestamp``, ``offset_time``, ...); detected."""
+    """Per-point time field name (``t``, ``time``, ``timestamp``, ``offset_time``, ...); detected.
+    ``none`` ignores any time field and estimates per-point times from azimuth."""
     time_unit: Literal["s", "ms", "us", "ns"] | None = None
     """Unit of the per-point time field; detected from the data when unset."""
     time_reference: Literal["relative", "absolute"] | None = None
@@ -44,7 +45,8 @@ class LidarInputConfig(_Section):
     stamp_position: Literal["start", "end"] | None = None
     """Whether the header stamp marks the sweep start or end (used when times are estimated)."""
     ring_field: str | None = None
-    """Beam index field (``ring`` or ``line``); detected. Recovered from elevation if absent."""
+    """Beam index field (``ring`` or ``line``); detected. Recovered from elevation if absent;
+    ``none`` forces recovery from elevation."""
     num_beams: int | None = Field(default=None, ge=1, le=512)
     """Number of beams, needed only when there is no ring field and elevations are ambiguous."""
     scan_period_s: float | None = Field(default=None, gt=0.0, le=1.0)
@@ -53,6 +55,8 @@ class LidarInputConfig(_Section):
     """Spin direction used when per-point times are estimated from azimuth."""
     min_range_m: float = Field(default=0.5, ge=0.0)
     max_range_m: float = Field(default=100.0, gt=0.0)
+    nominal_elevation_deg: list[float] | None = None
+    """Beam table: nominal elevation of each ring, degrees; estimated from the data when unset."""
 
 
 class BagConfig(_Section):
@@ -64,12 +68,108 @@ class BagConfig(_Section):
     """Length of the segment; the whole bag when unset."""
 
 
+class NoiseConfig(_Section):
+    """Sensor noise used to weight the residuals (continuous-time densities)."""
+
+    gyro_noise_density: float = Field(default=1.75e-4, gt=0.0)
+    """Gyro white noise, rad/s/sqrt(Hz) (Xsens MTi-100: 0.01 deg/s/sqrt(Hz))."""
+    accel_noise_density: float = Field(default=5.9e-4, gt=0.0)
+    """Accelerometer white noise, m/s^2/sqrt(Hz) (Xsens MTi-100: 60 ug/sqrt(Hz))."""
+    range_sigma_m: float = Field(default=0.02, gt=0.0)
+    """LiDAR range noise, one sigma, metres."""
+    huber_sigmas: float = Field(default=2.0, gt=0.0)
+    """Huber threshold of the point-to-plane residuals, in sigmas."""
+
+
+class OdometrySection(_Section):
+    """kiss-icp LiDAR odometry used for initialisation."""
+
+    voxel_size_m: float | None = Field(default=None, gt=0.0)
+    """kiss-icp voxel size; max_range/100 when unset."""
+    min_range_m: float = Field(default=0.5, ge=0.0)
+    max_range_m: float = Field(default=60.0, gt=0.0)
+    max_points_per_voxel: int = Field(default=20, ge=1)
+    deskew: bool = True
+
+
+class InitializationConfig(_Section):
+    """Initial guesses and the checks on them."""
+
+    time_offset_max_lag_s: float = Field(default=0.2, gt=0.0, le=30.0)
+    """Largest |time offset| searched by cross-correlating angular speeds."""
+    min_peak_correlation: float = Field(default=0.7, ge=0.0, le=1.0)
+    min_rotation_deg: float = Field(default=0.5, ge=0.0)
+    """Scan-to-scan rotations smaller than this are not used for hand-eye alignment."""
+    max_singular_ratio: float = Field(default=0.3, gt=0.0, le=1.0)
+    """Hand-eye is refused when the ratio of its two smallest singular values exceeds this."""
+    min_axis_ratio: float = Field(default=0.1, gt=0.0, le=1.0)
+    """Hand-eye needs rotation about a second axis of at least this fraction of the first."""
+    rotation_rpy_deg: list[float] | None = Field(default=None, min_length=3, max_length=3)
+    """Optional initial extrinsic rotation; hand-eye alignment is used when unset."""
+    translation_m: list[float] | None = Field(default=None, min_length=3, max_length=3)
+    """Optional initial extrinsic translation; zero when unset."""
+    time_offset_s: float | None = None
+    """Optional initial time offset; cross-correlation is used when unset."""
+
+
+class SplineConfig(_Section):
+    """Continuous-time trajectory."""
+
+    knot_spacing_s: float = Field(default=0.02, ge=0.005, le=0.2)
+    time_offset_padding_s: float = Field(default=0.05, ge=0.0, le=1.0)
+    """Extra spline length at both ends so that ``tau + time_offset_s`` stays inside."""
+
+
+class SurfelSection(_Section):
+    """Surfel map and point-to-plane association."""
+
+    cell_sizes_m: list[float] = Field(default=[1.0, 0.5], min_length=1)
+    """Voxel sizes, coarse to fine; non-planar coarse cells are split."""
+    min_points: int = Field(default=10, ge=4)
+    min_planarity: float = Field(default=0.6, ge=0.0, le=1.0)
+    """Plane-likeness P = 2 (l1 - l0) / (l0 + l1 + l2) a cell needs to become a surfel."""
+    max_thickness_m: float = Field(default=0.1, gt=0.0)
+    max_distance_m: float = Field(default=0.05, gt=0.0)
+    """Points further from their surfel's plane are not associated."""
+    points_per_scan: int = Field(default=1500, ge=50)
+    """Points kept per scan for the optimisation (uniformly over the sweep)."""
+
+
+class ScheduleConfig(_Section):
+    """Refinement rounds (method.md section 7)."""
+
+    max_rounds: int = Field(default=6, ge=1, le=50)
+    iterations_per_round: int = Field(default=8, ge=1, le=200)
+    imu_intrinsics_from_round: int = Field(default=0, ge=0)
+    """Round (1-based) from which IMU intrinsics are estimated; 0 keeps them at their defaults."""
+    lidar_intrinsics_from_round: int = Field(default=0, ge=0)
+    """Round (1-based) from which LiDAR intrinsics are estimated; 0 keeps them at defaults."""
+    translation_tolerance_m: float = Field(default=1e-4, gt=0.0)
+    rotation_tolerance_deg: float = Field(default=0.002, gt=0.0)
+    time_offset_tolerance_s: float = Field(default=1e-5, gt=0.0)
+
+
+class SolverSection(_Section):
+    """Levenberg-Marquardt and the observability-aware update."""
+
+    use_tsvd: bool = True
+    tsvd_threshold: float = Field(default=1.0, gt=0.0)
+    """Eigenvalue threshold of the scaled calibration information (see the README)."""
+
+
 class CalibConfig(_Section):
     """The whole configuration."""
 
     bag: BagConfig = BagConfig()
     imu: ImuInputConfig = ImuInputConfig()
     lidar: LidarInputConfig = LidarInputConfig()
+    noise: NoiseConfig = NoiseConfig()
+    odometry: OdometrySection = OdometrySection()
+    initialization: InitializationConfig = InitializationConfig()
+    spline: SplineConfig = SplineConfig()
+    surfels: SurfelSection = SurfelSection()
+    schedule: ScheduleConfig = ScheduleConfig()
+    solver: SolverSection = SolverSection()
 
 
 def yaml_error_summary(err: yaml.YAMLError) -> str:
