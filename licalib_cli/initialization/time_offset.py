@@ -184,15 +184,17 @@ def correlate_angular_speed(
     speed_imu: FloatArray,
     cfg: TimeOffsetConfig | None = None,
 ) -> TimeOffsetEstimate:
-    """Normalised cross-correlation of two angular-speed signals on different clocks.
+    """Normalised cross-correlation of two angular-rate signals on different clocks.
 
     Finds ``c`` maximising the correlation of ``speed_lidar(tau)`` with ``speed_imu(tau + c)``.
+    The signals are scalar speeds (A,) / (B,) or vectors (A, k) / (B, k) in a common frame; for
+    vectors the covariances and variances of the components are summed.
 
     Args:
         t_lidar_ns: (A,) int64 increasing sample times of the LiDAR signal, LiDAR clock.
-        speed_lidar: (A,) float64 rad/s.
+        speed_lidar: (A,) or (A, k) float64 rad/s.
         t_imu_ns: (B,) int64 increasing sample times of the IMU signal, IMU clock.
-        speed_imu: (B,) float64 rad/s.
+        speed_imu: (B,) or (B, k) float64 rad/s.
         cfg: settings; defaults when None.
 
     Returns:
@@ -203,6 +205,10 @@ def correlate_angular_speed(
         TimestampError: the signals cannot overlap within the lag window.
     """
     cfg = cfg or TimeOffsetConfig()
+    sig_a = np.asarray(speed_lidar, dtype=np.float64)
+    sig_b = np.asarray(speed_imu, dtype=np.float64)
+    sig_a = sig_a[:, None] if sig_a.ndim == 1 else sig_a
+    sig_b = sig_b[:, None] if sig_b.ndim == 1 else sig_b
     h_ns = 1e9 / cfg.rate_hz
     max_lag = int(np.ceil(cfg.max_lag_s * cfg.rate_hz))
     t0 = int(min(t_lidar_ns[0], t_imu_ns[0]))
@@ -214,11 +220,17 @@ def correlate_angular_speed(
             "whole-bag clock shift first (estimate_clock_shift)."
         )
         raise TimestampError(msg)
-    a, ma = _to_grid(t_lidar_ns, speed_lidar, t0, h_ns, n)
-    b, mb = _to_grid(t_imu_ns, speed_imu, t0, h_ns, n)
-    # Normalise scales for numerical comfort (correlation is scale invariant).
-    a = a / max(float(np.abs(a).max()), 1e-12)
-    b = b / max(float(np.abs(b).max()), 1e-12)
+    std_a = float(np.sqrt(np.sum(np.var(sig_a, axis=0))))
+    std_b = float(np.sqrt(np.sum(np.var(sig_b, axis=0))))
+    if std_a < cfg.min_speed_std or std_b < cfg.min_speed_std:
+        msg = (
+            "Rotation excitation is too weak for the time offset: the angular rate hardly varies "
+            f"(std {std_a:.3f} rad/s LiDAR, {std_b:.3f} rad/s IMU, need {cfg.min_speed_std:g}); "
+            "rotate the rig with changing speed during the recording."
+        )
+        raise ExcitationError(msg)
+    scale_a = max(float(np.abs(sig_a).max()), 1e-12)
+    scale_b = max(float(np.abs(sig_b).max()), 1e-12)
 
     def xc(u: FloatArray, v: FloatArray) -> FloatArray:
         """sum_i u[i] v[i + L] for L = -(n-1) .. n-1."""
@@ -226,12 +238,24 @@ def correlate_angular_speed(
 
     lags = np.arange(-(n - 1), n)
     sel = np.abs(lags) <= max_lag
-    cnt = np.rint(xc(ma, mb))[sel]
-    s_a = xc(a, mb)[sel]
-    s_aa = xc(a * a, mb)[sel]
-    s_b = xc(ma, b)[sel]
-    s_bb = xc(ma, b * b)[sel]
-    s_ab = xc(a, b)[sel]
+    ma = mb = None
+    cnt = s_ab_sum = var_a_sum = var_b_sum = None
+    for j in range(sig_a.shape[1]):  # loop over the (at most 3) components
+        a, ma = _to_grid(t_lidar_ns, sig_a[:, j] / scale_a, t0, h_ns, n)
+        b, mb = _to_grid(t_imu_ns, sig_b[:, j] / scale_b, t0, h_ns, n)
+        if cnt is None:
+            cnt = np.rint(xc(ma, mb))[sel]
+        cnt_safe = np.where(cnt > 0, cnt, 1.0)
+        s_a = xc(a, mb)[sel]
+        s_b = xc(ma, b)[sel]
+        var_a = (xc(a * a, mb)[sel] - s_a**2 / cnt_safe) / cnt_safe
+        var_b = (xc(ma, b * b)[sel] - s_b**2 / cnt_safe) / cnt_safe
+        cov = (xc(a, b)[sel] - s_a * s_b / cnt_safe) / cnt_safe
+        s_ab_sum = cov if s_ab_sum is None else s_ab_sum + cov
+        var_a_sum = var_a if var_a_sum is None else var_a_sum + var_a
+        var_b_sum = var_b if var_b_sum is None else var_b_sum + var_b
+    assert cnt is not None and ma is not None and mb is not None
+    assert s_ab_sum is not None and var_a_sum is not None and var_b_sum is not None
     lags = lags[sel]
     need = cfg.min_overlap_fraction * min(ma.sum(), mb.sum())
     valid = cnt >= max(need, 3.0)
@@ -241,22 +265,9 @@ def correlate_angular_speed(
             f"+-{cfg.max_lag_s:g} s; estimate the whole-bag clock shift first or raise max_lag_s."
         )
         raise TimestampError(msg)
-    cnt_safe = np.where(valid, cnt, 1.0)
-    var_a = (s_aa - s_a**2 / cnt_safe) / cnt_safe
-    var_b = (s_bb - s_b**2 / cnt_safe) / cnt_safe
-    std_a = float(np.std(speed_lidar))
-    std_b = float(np.std(speed_imu))
-    if std_a < cfg.min_speed_std or std_b < cfg.min_speed_std:
-        msg = (
-            "Rotation excitation is too weak for the time offset: the angular speed hardly varies "
-            f"(std {std_a:.3f} rad/s LiDAR, {std_b:.3f} rad/s IMU, need {cfg.min_speed_std:g}); "
-            "rotate the rig with changing speed during the recording."
-        )
-        raise ExcitationError(msg)
-    cov = (s_ab - s_a * s_b / cnt_safe) / cnt_safe
     with np.errstate(invalid="ignore", divide="ignore"):
-        r = cov / np.sqrt(var_a * var_b)
-    r = np.where(valid & (var_a > 0) & (var_b > 0), r, np.nan)
+        r = s_ab_sum / np.sqrt(var_a_sum * var_b_sum)
+    r = np.where(valid & (var_a_sum > 0) & (var_b_sum > 0), r, np.nan)
     if np.all(np.isnan(r)):
         msg = "The angular-speed signals are constant over every overlap; rotate the rig."
         raise ExcitationError(msg)
@@ -282,6 +293,67 @@ def correlate_angular_speed(
         lags_s=lags * h_ns * 1e-9,
         correlation=r,
     )
+
+
+def angular_velocity_from_poses(poses: PoseSeries) -> tuple[IntArray, FloatArray]:
+    """Mean body angular velocity of the LiDAR over each pose interval.
+
+    Returns:
+        (K-1,) int64 interval midpoints (ns) and (K-1, 3) rad/s in the LiDAR frame.
+    """
+    t = poses.t_ns
+    if t.shape[0] < 2 or np.any(np.diff(t) <= 0):
+        msg = "Angular velocity from odometry needs at least two poses with increasing stamps."
+        raise TimestampError(msg)
+    rot = poses.rotations
+    rotvec = (rot[:-1].inv() * rot[1:]).as_rotvec()
+    dt = np.diff(t).astype(np.float64) * 1e-9
+    return t[:-1] + np.diff(t) // 2, np.asarray(rotvec / dt[:, None], dtype=np.float64)
+
+
+def angular_velocity_from_gyro(imu: ImuSamples, t_ns: IntArray, window_s: float) -> FloatArray:
+    """Gyro angular velocity averaged over a window centred at each query time, (M, 3) rad/s."""
+    t_rel = (np.asarray(t_ns) - imu.t_ns[0]).astype(np.float64) * 1e-9
+    tg, cum = _gyro_integral(imu)
+    lo = np.clip(t_rel - 0.5 * window_s, tg[0], tg[-1])
+    hi = np.clip(t_rel + 0.5 * window_s, tg[0], tg[-1])
+    span = np.maximum(hi - lo, 1e-12)
+    delta = np.stack(
+        [np.interp(hi, tg, cum[:, j]) - np.interp(lo, tg, cum[:, j]) for j in range(3)], axis=1
+    )
+    return np.asarray(delta / span[:, None], dtype=np.float64)
+
+
+def estimate_time_offset_aligned(
+    imu: ImuSamples,
+    poses: PoseSeries,
+    R_imu_lidar: FloatArray,
+    cfg: TimeOffsetConfig | None = None,
+) -> TimeOffsetEstimate:
+    """Coarse time offset from the angular-velocity *vectors* once the rotation is known.
+
+    The LiDAR body rate from odometry is rotated into the IMU frame with ``R_imu_lidar`` and
+    correlated component-wise with the gyro. Unlike the angular speed, this works when the
+    speed is nearly constant but the rotation axis changes (e.g. a tumbling motion).
+
+    Args:
+        imu: IMU samples (gyro in rad/s).
+        poses: LiDAR odometry poses.
+        R_imu_lidar: (3, 3) extrinsic rotation (LiDAR vectors -> IMU frame).
+        cfg: settings; defaults when None.
+
+    Returns:
+        ``t_imu = t_lidar + time_offset_s``, with the peak correlation and a quality flag.
+    """
+    cfg = cfg or TimeOffsetConfig()
+    t_mid, w_lidar = angular_velocity_from_poses(poses)
+    w_lidar_imu = w_lidar @ np.asarray(R_imu_lidar, dtype=np.float64).T
+    window_s = float(np.median(np.diff(poses.t_ns))) * 1e-9
+    h_ns = 1e9 / cfg.rate_hz
+    n = int((imu.t_ns[-1] - imu.t_ns[0]) // h_ns) + 1
+    t_grid = imu.t_ns[0] + np.rint(np.arange(n) * h_ns).astype(np.int64)
+    w_imu = angular_velocity_from_gyro(imu, t_grid, window_s)
+    return correlate_angular_speed(t_mid, w_lidar_imu, t_grid, w_imu, cfg)
 
 
 def estimate_time_offset(

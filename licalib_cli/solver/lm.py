@@ -68,6 +68,9 @@ class LMParams:
     Attributes:
         max_iterations: Maximum number of iterations (accepted or rejected steps).
         initial_lambda: Initial damping ``lambda`` (relative to ``diag(H)``).
+        min_decrease: Smallest factor by which ``lambda`` shrinks after a good step (Nielsen's
+            rule uses 1/3; problems with weak, well-modelled directions converge faster with a
+            smaller factor).
         max_lambda: Give up (status ``failed``) when ``lambda`` exceeds this.
         min_diagonal: Lower clip of ``diag(H)`` in the damping matrix.
         max_diagonal: Upper clip of ``diag(H)`` in the damping matrix.
@@ -86,6 +89,7 @@ class LMParams:
 
     max_iterations: int = 50
     initial_lambda: float = 1e-4
+    min_decrease: float = 1.0 / 3.0
     max_lambda: float = 1e16
     min_diagonal: float = 1e-6
     max_diagonal: float = 1e32
@@ -338,7 +342,8 @@ def solve(
             lin = problem.linearize(trial, layout)
             old_cost, cost = cost, trial.cost
             history.append(cost)
-            lam *= max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
+            lam *= max(params.min_decrease, 1.0 - (2.0 * gain - 1.0) ** 3)
+            lam = max(lam, 1e-15)
             nu = 2.0
             if actual <= params.function_tolerance * old_cost:
                 status = "converged"

@@ -86,7 +86,7 @@ def test_flat_angular_speed_is_refused() -> None:
     spin = np.tile([0.0, 0.0, 0.8], (t.size, 1))  # constant rate: |w| flat
     imu = ImuSamples(t, spin, np.zeros_like(spin))
     tau = T0_NS + np.arange(0, 9_000_000_000, 100_000_000, dtype=np.int64)
-    with pytest.raises(ExcitationError, match="angular speed hardly varies"):
+    with pytest.raises(ExcitationError, match="angular rate hardly varies"):
         correlate_angular_speed(tau, np.full(tau.size, 0.8), t, np.full(t.size, 0.8))
     w = angular_speed_from_gyro(imu, tau, 0.1)
     np.testing.assert_allclose(w[1:-1], 0.8, rtol=1e-9)
