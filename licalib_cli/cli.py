@@ -55,12 +55,14 @@ def _root(
 
     handler = RichHandler(console=console_err(), show_path=False, show_time=False)
     logging.basicConfig(level=logging.WARNING, handlers=[handler], format="%(message)s", force=True)
-    logging.getLogger("licalib_cli").setLevel(level if (verbose or debug or quiet) else logging.INFO)
+    explicit = verbose or debug or quiet
+    logging.getLogger("licalib_cli").setLevel(level if explicit else logging.INFO)
 
 
 def _register() -> None:
-    from licalib_cli.commands import config_cmd, info, simulate
+    from licalib_cli.commands import calibrate, config_cmd, info, simulate
 
+    app.command("calibrate")(calibrate.calibrate_command)
     app.command("info")(info.info_command)
     app.command("simulate")(simulate.simulate_command)
     app.add_typer(config_cmd.app, name="config")

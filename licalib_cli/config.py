@@ -195,7 +195,8 @@ def load_config(path: Path | None, overrides: dict[str, Any] | None = None) -> C
             msg = f"The config file {path} does not exist; check the path."
             raise ConfigError(msg) from err
         except yaml.YAMLError as err:
-            msg = f"The config file {path} is not valid YAML ({yaml_error_summary(err)}); fix the syntax."
+            why = yaml_error_summary(err)
+            msg = f"The config file {path} is not valid YAML ({why}); fix the syntax."
             raise ConfigError(msg) from err
         if loaded is not None and not isinstance(loaded, dict):
             msg = f"The config file {path} must be a YAML mapping of sections."

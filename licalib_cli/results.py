@@ -179,7 +179,8 @@ def lidar_intrinsics_from_dict(d: dict[str, Any]) -> LidarIntrinsics:
             range_offset=arr("range_offset_m"),
         )
     except KeyError as err:
-        msg = f"lidar_intrinsics is missing the key {err.args[0]!r}; see the README's result schema."
+        key = err.args[0]
+        msg = f"lidar_intrinsics is missing the key {key!r}; see the README's result schema."
         raise ConfigError(msg) from err
 
 
@@ -235,7 +236,8 @@ class CalibrationResult:
             msg = f"The result file {path} does not exist; check the path."
             raise ConfigError(msg) from err
         except yaml.YAMLError as err:
-            msg = f"The result file {path} is not valid YAML ({yaml_error_summary(err)}); regenerate it."
+            why = yaml_error_summary(err)
+            msg = f"The result file {path} is not valid YAML ({why}); regenerate it."
             raise ConfigError(msg) from err
         if not isinstance(data, dict):
             msg = f"The result file {path} is not a YAML mapping; regenerate it."
