@@ -23,7 +23,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
-from scipy.signal import correlate
 
 from licalib_cli.errors import ExcitationError, TimestampError
 from licalib_cli.measurements import ImuSamples
@@ -177,6 +176,18 @@ def _to_grid(
     return vals, inside.astype(np.float64)
 
 
+def _full_correlation(v: FloatArray, u: FloatArray) -> FloatArray:
+    """``scipy.signal.correlate(v, u, "full")`` for equal-length real signals, by FFT.
+
+    Entry ``k`` is ``sum_i v[i + k - (n - 1)] u[i]`` (lags ``-(n-1) .. n-1``).
+    """
+    n = v.shape[0]
+    size = 1 << int(np.ceil(np.log2(max(2 * n - 1, 1))))
+    spec = np.fft.rfft(v, size) * np.conj(np.fft.rfft(u, size))
+    circ = np.fft.irfft(spec, size)
+    return np.concatenate([circ[size - (n - 1) :], circ[:n]]) if n > 1 else circ[:1]
+
+
 def correlate_angular_speed(
     t_lidar_ns: IntArray,
     speed_lidar: FloatArray,
@@ -234,7 +245,7 @@ def correlate_angular_speed(
 
     def xc(u: FloatArray, v: FloatArray) -> FloatArray:
         """sum_i u[i] v[i + L] for L = -(n-1) .. n-1."""
-        return np.asarray(correlate(v, u, mode="full", method="auto"), dtype=np.float64)
+        return _full_correlation(v, u)
 
     lags = np.arange(-(n - 1), n)
     sel = np.abs(lags) <= max_lag

@@ -1,0 +1,336 @@
+"""``licalib simulate``: write a synthetic bag and its ground truth ``truth.yaml``.
+
+Thin wiring: options -> :class:`~licalib_cli.simulation.SimulationSpec` ->
+:func:`~licalib_cli.simulation.simulate` -> a short summary on stdout whose last line is the
+bag's path (so scripts can capture it).
+"""
+
+from __future__ import annotations
+
+import shlex
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated
+
+import typer
+
+from licalib_cli.io.writer import BagFormat
+from licalib_cli.simulation.spec import (
+    ImuEffect,
+    IntrinsicsMode,
+    LidarKind,
+    LidarStamp,
+    Mounting,
+    Scenario,
+    SimulationSpec,
+)
+
+if TYPE_CHECKING:
+    from licalib_cli.simulation.simulate import SimulationOutput
+
+_SCENE = "Scenario"
+_SENSORS = "Sensors"
+_CALIB = "Extrinsic, time and intrinsics"
+_IMU = "IMU noise and effects"
+_OUT = "Output"
+
+
+def _command_line(ctx: typer.Context) -> str:
+    """The options given on the command line, in a canonical order."""
+    words = ["licalib", "simulate"]
+    for param in ctx.command.params:
+        name = param.name or ""
+        source = ctx.get_parameter_source(name)
+        if getattr(source, "name", None) != "COMMANDLINE":
+            continue
+        value = ctx.params.get(name)
+        if getattr(param, "param_type_name", "") == "argument":
+            words.append(str(value))
+            continue
+        flag = max(param.opts, key=len)
+        if getattr(param, "is_flag", False):
+            if value:
+                words.append(flag)
+            continue
+        values = value if isinstance(value, (list, tuple)) else [value]
+        if getattr(param, "multiple", False):
+            for v in values:
+                words += [flag, str(getattr(v, "value", v))]
+        else:
+            words += [flag, *(str(getattr(v, "value", v)) for v in values)]
+    return " ".join(shlex.quote(w) for w in words)
+
+
+def simulate_command(
+    ctx: typer.Context,
+    out_dir: Annotated[Path, typer.Argument(help="Output folder for the bag and truth.yaml.")],
+    scenario: Annotated[
+        Scenario, typer.Option("--scenario", help="Motion of the rig.", rich_help_panel=_SCENE)
+    ] = Scenario.SINUSOID,
+    duration: Annotated[
+        float | None,
+        typer.Option(
+            "--duration", help="Seconds (default: 10; walk: 120).", rich_help_panel=_SCENE
+        ),
+    ] = None,
+    seed: Annotated[
+        int, typer.Option("--seed", help="Seed of every random draw.", rich_help_panel=_SCENE)
+    ] = 0,
+    mounting: Annotated[
+        Mounting, typer.Option("--mounting", help="Figure-8 mounting case.", rich_help_panel=_SCENE)
+    ] = Mounting.A,
+    lidar: Annotated[
+        LidarKind, typer.Option("--lidar", help="LiDAR model.", rich_help_panel=_SENSORS)
+    ] = LidarKind.VLP16,
+    lidar_rate: Annotated[
+        float, typer.Option("--lidar-rate", help="Sweeps per second.", rich_help_panel=_SENSORS)
+    ] = 10.0,
+    imu_rate: Annotated[
+        float, typer.Option("--imu-rate", help="IMU samples per second.", rich_help_panel=_SENSORS)
+    ] = 400.0,
+    range_noise: Annotated[
+        float | None,
+        typer.Option(
+            "--range-noise",
+            help="Range noise sigma, m (default: 0.01 vlp16, 0.015 os1-64).",
+            rich_help_panel=_SENSORS,
+        ),
+    ] = None,
+    azimuth_resolution_deg: Annotated[
+        float | None,
+        typer.Option(
+            "--azimuth-resolution-deg",
+            help="Thin the sweep to about this azimuth step (small bags).",
+            rich_help_panel=_SENSORS,
+        ),
+    ] = None,
+    lidar_stamp: Annotated[
+        LidarStamp,
+        typer.Option(
+            "--lidar-stamp",
+            help="Velodyne header stamp at the first (times >= 0) or last firing (times <= 0).",
+            rich_help_panel=_SENSORS,
+        ),
+    ] = LidarStamp.START,
+    dropout: Annotated[
+        float,
+        typer.Option(
+            "--dropout", help="Probability of a ray without return.", rich_help_panel=_SENSORS
+        ),
+    ] = 0.001,
+    translation: Annotated[
+        tuple[float, float, float],
+        typer.Option(
+            "--translation",
+            help="t of T_imu_lidar (LiDAR origin in the IMU frame), m.",
+            rich_help_panel=_CALIB,
+        ),
+    ] = (0.3, 0.15, 0.05),
+    rpy_deg: Annotated[
+        tuple[float, float, float],
+        typer.Option(
+            "--rpy-deg",
+            help="Rotation of T_imu_lidar, R = Rz(yaw) Ry(pitch) Rx(roll), deg.",
+            rich_help_panel=_CALIB,
+        ),
+    ] = (1.0, 2.0, 5.0),
+    random_extrinsic: Annotated[
+        bool,
+        typer.Option(
+            "--random-extrinsic",
+            help="Draw any rotation (incl. 90/180 deg flips) and |t| <= 0.5 m.",
+            rich_help_panel=_CALIB,
+        ),
+    ] = False,
+    time_offset: Annotated[
+        float,
+        typer.Option(
+            "--time-offset", help="t_imu = t_lidar + time_offset, s.", rich_help_panel=_CALIB
+        ),
+    ] = 0.0,
+    lidar_clock_offset: Annotated[
+        float,
+        typer.Option(
+            "--lidar-clock-offset",
+            help="Whole-bag shift of the LiDAR clock (LiDAR minus IMU), s.",
+            rich_help_panel=_CALIB,
+        ),
+    ] = 0.0,
+    intrinsics: Annotated[
+        IntrinsicsMode,
+        typer.Option(
+            "--intrinsics",
+            help="Ideal sensors or intrinsics drawn from the paper's table.",
+            rich_help_panel=_CALIB,
+        ),
+    ] = IntrinsicsMode.RANDOM,
+    intrinsics_scale: Annotated[
+        float,
+        typer.Option(
+            "--intrinsics-scale",
+            help="Multiply every std of the random intrinsics.",
+            rich_help_panel=_CALIB,
+        ),
+    ] = 1.0,
+    intrinsics_file: Annotated[
+        Path | None,
+        typer.Option(
+            "--intrinsics-file",
+            help="Take imu_intrinsics/lidar_intrinsics from this result or truth YAML.",
+            rich_help_panel=_CALIB,
+        ),
+    ] = None,
+    gyro_bias: Annotated[
+        tuple[float, float, float] | None,
+        typer.Option("--gyro-bias", help="Constant gyro bias, rad/s.", rich_help_panel=_CALIB),
+    ] = None,
+    accel_bias: Annotated[
+        tuple[float, float, float] | None,
+        typer.Option(
+            "--accel-bias", help="Constant accelerometer bias, m/s^2.", rich_help_panel=_CALIB
+        ),
+    ] = None,
+    noise_free: Annotated[
+        bool,
+        typer.Option(
+            "--noise-free", help="No IMU noise, bias walk or range noise.", rich_help_panel=_IMU
+        ),
+    ] = False,
+    bias_walk_scale: Annotated[
+        float,
+        typer.Option(
+            "--bias-walk-scale",
+            help="Multiply the MTi-100 bias random-walk densities (0: constant biases).",
+            rich_help_panel=_IMU,
+        ),
+    ] = 1.0,
+    effect: Annotated[
+        list[ImuEffect] | None,
+        typer.Option("--effect", help="Optional IMU effect (repeatable).", rich_help_panel=_IMU),
+    ] = None,
+    g_sensitivity: Annotated[
+        float,
+        typer.Option(
+            "--g-sensitivity",
+            help="Std of each g-sensitivity entry, deg/s per g.",
+            rich_help_panel=_IMU,
+        ),
+    ] = 0.1,
+    imu_clock_drift_ppm: Annotated[
+        float,
+        typer.Option(
+            "--imu-clock-drift-ppm",
+            help="IMU stamps run at (1 + ppm 1e-6) times the true rate.",
+            rich_help_panel=_IMU,
+        ),
+    ] = 0.0,
+    fmt: Annotated[
+        BagFormat, typer.Option("--format", help="Bag format.", rich_help_panel=_OUT)
+    ] = BagFormat.ROS1,
+    imu_topic: Annotated[str, typer.Option("--imu-topic", rich_help_panel=_OUT)] = "/imu/data",
+    lidar_topic: Annotated[
+        str | None,
+        typer.Option(
+            "--lidar-topic",
+            help="(default: /points_raw for vlp16, /ouster/points for os1-64)",
+            rich_help_panel=_OUT,
+        ),
+    ] = None,
+    imu_frame: Annotated[str, typer.Option("--imu-frame", rich_help_panel=_OUT)] = "imu_link",
+    lidar_frame: Annotated[
+        str | None,
+        typer.Option(
+            "--lidar-frame",
+            help="(default: velodyne for vlp16, os_sensor for os1-64)",
+            rich_help_panel=_OUT,
+        ),
+    ] = None,
+    base_time_ns: Annotated[
+        int,
+        typer.Option(
+            "--base-time-ns",
+            help="Absolute time of the first IMU sample, ns.",
+            rich_help_panel=_OUT,
+        ),
+    ] = 1_700_000_000_000_000_000,
+    force: Annotated[
+        bool,
+        typer.Option("--force", help="Overwrite an existing bag in OUT_DIR.", rich_help_panel=_OUT),
+    ] = False,
+) -> None:
+    """Simulate a LiDAR-IMU bag (the paper's Sec. VI room) and write its ground truth."""
+    spec = SimulationSpec(
+        scenario=scenario,
+        lidar=lidar,
+        fmt=fmt,
+        duration_s=duration,
+        seed=seed,
+        mounting=mounting,
+        imu_rate_hz=imu_rate,
+        lidar_rate_hz=lidar_rate,
+        translation=tuple(translation),  # type: ignore[arg-type]
+        rpy_deg=tuple(rpy_deg),  # type: ignore[arg-type]
+        random_extrinsic=random_extrinsic,
+        time_offset_s=time_offset,
+        lidar_clock_offset_s=lidar_clock_offset,
+        intrinsics=intrinsics,
+        intrinsics_scale=intrinsics_scale,
+        intrinsics_file=intrinsics_file,
+        gyro_bias=tuple(gyro_bias) if gyro_bias else None,  # type: ignore[arg-type]
+        accel_bias=tuple(accel_bias) if accel_bias else None,  # type: ignore[arg-type]
+        range_noise_m=range_noise,
+        azimuth_resolution_deg=azimuth_resolution_deg,
+        lidar_stamp=lidar_stamp,
+        dropout=dropout,
+        noise_free=noise_free,
+        bias_walk_scale=bias_walk_scale,
+        effects=tuple(effect or ()),
+        g_sensitivity_dps_per_g=g_sensitivity,
+        imu_clock_drift_ppm=imu_clock_drift_ppm,
+        imu_topic=imu_topic,
+        lidar_topic=lidar_topic,
+        imu_frame=imu_frame,
+        lidar_frame=lidar_frame,
+        base_time_ns=base_time_ns,
+        command_line=_command_line(ctx),
+    )
+    out = _run(spec, out_dir, force)
+    ext = out.truth.extrinsic
+    rpy = out.truth.to_dict()["extrinsic"]["rotation_rpy_deg"]
+    typer.echo(
+        f"Simulated {spec.scenario.value} for {spec.resolved_duration_s:g} s: "
+        f"{out.num_scans} {spec.lidar.value} scans ({out.num_points:,} points), "
+        f"{out.num_imu} IMU samples, in {out.elapsed_s:.1f} s."
+    )
+    typer.echo(
+        f"T_imu_lidar: t = [{', '.join(f'{v:.4f}' for v in ext.translation)}] m, "
+        f"rpy = [{', '.join(f'{v:.3f}' for v in rpy)}] deg; "
+        f"time_offset_s = {ext.time_offset_s:g}."
+    )
+    typer.echo(f"Ground truth: {out.truth_path}")
+    typer.echo(str(out.bag_path))
+
+
+def _run(spec: SimulationSpec, out_dir: Path, force: bool) -> SimulationOutput:
+    """Call the library, with a progress bar on an interactive stderr."""
+    from licalib_cli.commands.render import console_err
+    from licalib_cli.simulation.simulate import simulate
+
+    console = console_err()
+    if not console.is_terminal:
+        return simulate(spec, out_dir, force=force)
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    with Progress(
+        TextColumn("simulating"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total} scans"),
+        TimeRemainingColumn(),
+        console=console,
+        transient=True,
+    ) as bar:
+        task = bar.add_task("scans", total=None)
+
+        def progress(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total)
+
+        return simulate(spec, out_dir, force=force, progress=progress)

@@ -1,0 +1,238 @@
+"""The true quantities of a run: trajectory, extrinsic, IMU and LiDAR intrinsics.
+
+Every random draw comes from its own stream ``SeedSequence([seed, stream])`` so that, for
+example, changing the duration or the LiDAR model does not change the drawn extrinsic.
+
+Random intrinsics follow the paper's Table (sensor_intrinsic_setting), with its "(%)" entries
+read as percent (std of ``s - 1`` = value / 100) and angles in degrees:
+
+=========================  ===========  ==========================  ===========
+LiDAR elevation ``dphi``   0.1 deg      vertical offset ``V``       0.005 m
+LiDAR azimuth ``dtheta``   0.05 deg     horizontal offset ``H``     0.005 m
+range scale ``s``          0.005 %      range offset ``drho``       0.01 m
+gyro scale                 0.01 %       accel scale                 0.1 %
+gyro non-orthogonality     0.05 deg     accel non-orthogonality     0.05 deg
+=========================  ===========  ==========================  ===========
+
+plus the gyro-to-IMU rotation ``R_wI`` (0.5 deg per Euler angle, the size of the paper's IMU
+intrinsics table), constant biases (gyro 0.2 deg/s, accel 0.03 m/s^2 per axis) and, with the
+``g-sensitivity`` effect, ``A_w`` entries of ``g_sensitivity_dps_per_g`` deg/s per g.
+``intrinsics_scale`` multiplies all of these. Beam 0 gets zero ``dphi, dtheta, V, H``: the
+calibration fixes them as the gauge (method.md section 4), so the truth uses the same gauge.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial.transform import Rotation
+
+from licalib_cli.errors import ConfigError
+from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
+from licalib_cli.results import CalibrationResult, Extrinsic, matrix_from_rpy_deg
+from licalib_cli.simulation.lidar_models import LidarModel, lidar_model
+from licalib_cli.simulation.scenarios import ScenarioMotion, make_motion
+from licalib_cli.simulation.spec import (
+    STANDARD_GRAVITY,
+    ImuEffect,
+    IntrinsicsMode,
+    SimulationSpec,
+)
+from licalib_cli.simulation.trajectories import EulerTrajectory
+from licalib_cli.simulation.world import World, default_world
+
+F64 = npt.NDArray[np.float64]
+
+# Standard deviations of the random intrinsics (see the module docstring).
+LIDAR_ELEVATION_STD_DEG = 0.1
+LIDAR_AZIMUTH_STD_DEG = 0.05
+LIDAR_VERTICAL_STD_M = 0.005
+LIDAR_HORIZONTAL_STD_M = 0.005
+LIDAR_RANGE_SCALE_STD = 0.005 / 100.0
+LIDAR_RANGE_OFFSET_STD_M = 0.01
+GYRO_SCALE_STD = 0.01 / 100.0
+ACCEL_SCALE_STD = 0.1 / 100.0
+GYRO_MISALIGNMENT_STD_DEG = 0.05
+ACCEL_MISALIGNMENT_STD_DEG = 0.05
+GYRO_ROTATION_STD_DEG = 0.5
+GYRO_BIAS_STD = float(np.radians(0.2))  # rad/s
+ACCEL_BIAS_STD = 0.03  # m/s^2
+RANDOM_TRANSLATION_MAX_M = 0.5
+
+
+class Stream(IntEnum):
+    """Independent random streams of a run."""
+
+    EXTRINSIC = 1
+    IMU_INTRINSICS = 2
+    LIDAR_INTRINSICS = 3
+    TRAJECTORY = 4
+    IMU_NOISE = 5
+    LIDAR_NOISE = 6
+
+
+def rng_for(seed: int, stream: Stream, *extra: int) -> np.random.Generator:
+    """The generator of one stream (``extra`` e.g. a scan index)."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed), int(stream), *extra]))
+
+
+@dataclass(frozen=True)
+class SimulationSetup:
+    """Resolved truth of a run.
+
+    Attributes:
+        spec: the options.
+        world: the room.
+        motion: trajectory of the IMU and scenario annotations.
+        extrinsic: ``T_imu_lidar`` and ``time_offset_s`` (rounded to ns).
+        imu_intrinsics: IMU model incl. constant biases (the biases at ``t = 0``).
+        lidar_intrinsics: per-beam model, beams indexed by ring.
+        lidar_model: the LiDAR's firing pattern and layout.
+    """
+
+    spec: SimulationSpec
+    world: World
+    motion: ScenarioMotion
+    extrinsic: Extrinsic
+    imu_intrinsics: ImuIntrinsics
+    lidar_intrinsics: LidarIntrinsics
+    lidar_model: LidarModel
+
+    @property
+    def trajectory(self) -> EulerTrajectory:
+        return self.motion.trajectory
+
+    @property
+    def time_offset_ns(self) -> int:
+        return round(self.extrinsic.time_offset_s * 1e9)
+
+    @property
+    def lidar_clock_offset_ns(self) -> int:
+        return round(self.spec.lidar_clock_offset_s * 1e9)
+
+    def lidar_pose_at(self, t: npt.ArrayLike) -> tuple[F64, F64]:
+        """``T_W_L(t) = T_W_I(t) T_I_L`` at true times ``t`` (N,) s: ``(R (N,3,3), p (N,3))``."""
+        r_wi, p_wi = self.trajectory.pose_at(t)
+        r_wl = r_wi @ self.extrinsic.rotation
+        p_wl = p_wi + r_wi @ self.extrinsic.translation
+        return r_wl, p_wl
+
+
+def draw_extrinsic(spec: SimulationSpec) -> Extrinsic:
+    """The extrinsic from the options, or a random one (any rotation, |t| <= 0.5 m)."""
+    offset = round(spec.time_offset_s * 1e9) / 1e9
+    if not spec.random_extrinsic:
+        return Extrinsic(
+            rotation=matrix_from_rpy_deg(spec.rpy_deg),
+            translation=np.asarray(spec.translation, dtype=np.float64),
+            time_offset_s=offset,
+        )
+    rng = rng_for(spec.seed, Stream.EXTRINSIC)
+    if rng.uniform() < 0.5:
+        # One of the 24 axis-aligned mountings (90/180 deg flips) with a small perturbation.
+        cube = Rotation.create_group("O")[int(rng.integers(24))]
+        small = Rotation.from_rotvec(np.radians(rng.normal(0.0, 5.0, 3)))
+        rot = (cube * small).as_matrix()
+    else:
+        rot = Rotation.random(random_state=rng).as_matrix()
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    radius = RANDOM_TRANSLATION_MAX_M * rng.uniform() ** (1.0 / 3.0)
+    return Extrinsic(rotation=rot, translation=direction * radius, time_offset_s=offset)
+
+
+def _load_intrinsics_file(path: Path) -> CalibrationResult:
+    return CalibrationResult.load(Path(path))
+
+
+def draw_imu_intrinsics(spec: SimulationSpec) -> ImuIntrinsics:
+    """IMU intrinsics from a file, the paper's Table (random) or identity; biases included."""
+    rng = rng_for(spec.seed, Stream.IMU_INTRINSICS)
+    k = spec.intrinsics_scale
+    # Always draw in the same order so every field is reproducible on its own.
+    d_gs = rng.normal(0.0, GYRO_SCALE_STD, 3)
+    d_as = rng.normal(0.0, ACCEL_SCALE_STD, 3)
+    m_g = rng.normal(0.0, np.radians(GYRO_MISALIGNMENT_STD_DEG), 3)
+    m_a = rng.normal(0.0, np.radians(ACCEL_MISALIGNMENT_STD_DEG), 3)
+    r_g = rng.normal(0.0, GYRO_ROTATION_STD_DEG, 3)
+    b_g = rng.normal(0.0, GYRO_BIAS_STD, 3)
+    b_a = rng.normal(0.0, ACCEL_BIAS_STD, 3)
+    a_w = rng.normal(0.0, 1.0, (3, 3))
+    if spec.intrinsics_file is not None:
+        base = _load_intrinsics_file(spec.intrinsics_file).imu_intrinsics
+    elif spec.intrinsics is IntrinsicsMode.RANDOM:
+        q = Rotation.from_euler("ZYX", k * r_g[::-1], degrees=True).as_quat()
+        base = ImuIntrinsics(
+            gyro_scale=1.0 + k * d_gs,
+            gyro_misalignment=k * m_g,
+            gyro_rotation=q,
+            accel_scale=1.0 + k * d_as,
+            accel_misalignment=k * m_a,
+            gyro_bias=k * b_g,
+            accel_bias=k * b_a,
+        )
+    else:
+        base = ImuIntrinsics()
+    if ImuEffect.G_SENSITIVITY in spec.effects:
+        sigma = np.radians(spec.g_sensitivity_dps_per_g) / STANDARD_GRAVITY
+        base = base.with_(gyro_g_sensitivity=sigma * a_w)
+    if spec.gyro_bias is not None:
+        base = base.with_(gyro_bias=np.asarray(spec.gyro_bias, dtype=np.float64))
+    if spec.accel_bias is not None:
+        base = base.with_(accel_bias=np.asarray(spec.accel_bias, dtype=np.float64))
+    return base
+
+
+def draw_lidar_intrinsics(spec: SimulationSpec, model: LidarModel) -> LidarIntrinsics:
+    """Per-beam intrinsics from a file, the paper's Table (random) or nominal."""
+    b = model.num_beams
+    if spec.intrinsics_file is not None:
+        loaded = _load_intrinsics_file(spec.intrinsics_file).lidar_intrinsics
+        if loaded is None or loaded.num_beams != b:
+            got = "none" if loaded is None else f"{loaded.num_beams} beams"
+            msg = (
+                f"{spec.intrinsics_file} has lidar_intrinsics for {got}, but the "
+                f"{model.kind.value} has {b} beams; use a file written for this LiDAR."
+            )
+            raise ConfigError(msg)
+        return loaded.with_(nominal_elevation=model.nominal_elevation.copy())
+    nominal = LidarIntrinsics.nominal(model.nominal_elevation)
+    if spec.intrinsics is IntrinsicsMode.NONE:
+        return nominal
+    rng = rng_for(spec.seed, Stream.LIDAR_INTRINSICS)
+    k = spec.intrinsics_scale
+    d_phi = np.radians(rng.normal(0.0, LIDAR_ELEVATION_STD_DEG, b)) * k
+    d_theta = np.radians(rng.normal(0.0, LIDAR_AZIMUTH_STD_DEG, b)) * k
+    v = rng.normal(0.0, LIDAR_VERTICAL_STD_M, b) * k
+    h = rng.normal(0.0, LIDAR_HORIZONTAL_STD_M, b) * k
+    s = 1.0 + rng.normal(0.0, LIDAR_RANGE_SCALE_STD, b) * k
+    d_rho = rng.normal(0.0, LIDAR_RANGE_OFFSET_STD_M, b) * k
+    for arr in (d_phi, d_theta, v, h):
+        arr[0] = 0.0  # gauge: beam 0 keeps its angles and offsets
+    return nominal.with_(
+        elevation_correction=d_phi,
+        azimuth_correction=d_theta,
+        vertical_offset=v,
+        horizontal_offset=h,
+        range_scale=s,
+        range_offset=d_rho,
+    )
+
+
+def build_setup(spec: SimulationSpec) -> SimulationSetup:
+    """Resolve every true quantity of a run (deterministic in ``spec``)."""
+    model = lidar_model(spec.lidar)
+    motion = make_motion(spec, rng_for(spec.seed, Stream.TRAJECTORY))
+    return SimulationSetup(
+        spec=spec,
+        world=default_world(),
+        motion=motion,
+        extrinsic=draw_extrinsic(spec),
+        imu_intrinsics=draw_imu_intrinsics(spec),
+        lidar_intrinsics=draw_lidar_intrinsics(spec, model),
+        lidar_model=model,
+    )
