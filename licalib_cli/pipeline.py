@@ -309,9 +309,8 @@ def initialise(
             return estimate_rotation_extrinsic(gyro, poses, time_offset_s=t_c, cfg=he_cfg)
         except ExcitationError as err:
             msg = (
-                f"{str(err).rstrip('.')}; without it the extrinsic rotation cannot be "
-                "initialised: record with rotation about two or more axes, or give "
-                "initialization.rotation_rpy_deg in the config."
+                f"{str(err).rstrip('.')}, or give initialization.rotation_rpy_deg in the config "
+                "to start from a known rotation."
             )
             raise ExcitationError(msg) from err
 
