@@ -3,7 +3,9 @@
 Each iteration solves the damped normal equations ``(H + lambda diag(D)) dx = -g`` where
 ``D = clip(diag(H), min_diagonal, max_diagonal)`` (Marquardt scaling):
 
-1. Eliminate the trajectory group: sparse LU of ``H_tt + lambda D_t``, Schur complement
+1. Eliminate the trajectory group: factorise ``H_tt + lambda D_t`` (banded Cholesky of the
+   reordered spline coordinates plus a dense border of biases and gravity; sparse LU when that
+   does not apply, see :func:`licalib_cli.solver.problem.schur_complement`), Schur complement
    ``S = H_cc - H_ct (H_tt + lambda D_t)^-1 H_tc`` and right-hand side ``b`` (method.md section 8).
 2. Scale the calibration system by the characteristic scales ``d`` (``S_d = D S D``, see
    :mod:`licalib_cli.observability`) and take its eigen-decomposition ``S_d = U diag(s) U^T``.
