@@ -11,7 +11,12 @@ Exit codes: 0 success; 1 generic error; 2 bag unreadable; 3 topic problem; 4 unu
 from __future__ import annotations
 
 import logging
+import os
 import sys
+
+# The dense products of the solver are small; OpenBLAS threads only add contention on them.
+# Set before numpy is imported; an explicit setting in the environment wins.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import typer
 

@@ -1,0 +1,713 @@
+"""Calibration state, its parameter blocks, and the problem builder.
+
+The state is everything the batch optimisation estimates for one segment: the trajectory
+``T_G_I(t)`` (rotation and position splines), IMU biases, gravity in ``{G}``, the extrinsic
+``T_imu_lidar`` (``p_I = R p_L + t``), the time offset ``t_c`` (``t_imu = t_lidar + t_c``), the
+IMU intrinsics and the per-beam LiDAR intrinsics. :func:`build_problem` turns a state plus
+measurements into a :class:`licalib_cli.solver.Problem` whose parameter blocks are named as in
+:mod:`licalib_cli.residuals`; :func:`state_from_values` reads an estimate back.
+
+Times: ``t0_ns`` is the reference; IMU sample times are IMU-clock seconds since ``t0_ns``, point
+times LiDAR-clock seconds since ``t0_ns``; a point is evaluated on the trajectory at
+``tau + t_c``. The splines must cover every such time (a clear ``ValueError`` otherwise).
+
+Characteristic scales (the solver compares singular values of the calibration block after
+dividing each coordinate by its scale, and measures steps in these units):
+
+========================================  ==========================
+coordinates                               scale
+========================================  ==========================
+``ext.rotation``                          1e-3 rad (0.057 deg)
+``ext.translation``                       0.01 m
+``ext.time_offset``                       1e-3 s
+``imu.gyro_scale``, ``imu.accel_scale``   1e-3
+``imu.*_misalignment``                    1e-3
+``imu.gyro_rotation``                     1e-3 rad
+``imu.gyro_g_sensitivity``                1e-4 rad/s per m/s^2
+``lidar.intrinsics`` dphi, dtheta         1e-3 rad
+``lidar.intrinsics`` V, H                 0.005 m
+``lidar.intrinsics`` s                    1e-4
+``lidar.intrinsics`` drho                 0.01 m
+trajectory: so3 / r3 control points       1e-3 rad / 1e-3 m
+trajectory: gyro / accel bias, gravity    1e-4 rad/s / 1e-3 m/s^2 / 1e-3 rad
+========================================  ==========================
+
+Gauge: the first beam with enough points keeps ``dphi, dtheta, V, H`` fixed (only ``s`` and
+``drho`` free, method.md section 4); beams with fewer than ``min_points_per_beam`` points stay
+fixed. Without LiDAR residuals and with a free trajectory, the first rotation control point and
+the first two position control points are held (global rotation, position and velocity are not
+observable from an IMU alone; gravity should then be free).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import numpy.typing as npt
+
+from licalib_cli.geometry.so3 import matrix_to_quat, quat_to_matrix
+from licalib_cli.measurements import ImuSamples
+from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
+from licalib_cli.models.lidar import INTRINSIC_NAMES, intrinsics_from_array, intrinsics_to_array
+from licalib_cli.residuals import (
+    ACCEL_BIAS,
+    ACCEL_MISALIGNMENT,
+    ACCEL_SCALE,
+    EXT_ROTATION,
+    EXT_TRANSLATION,
+    GRAVITY,
+    GYRO_BIAS,
+    GYRO_G_SENSITIVITY,
+    GYRO_MISALIGNMENT,
+    GYRO_ROTATION,
+    GYRO_SCALE,
+    LIDAR_INTRINSICS,
+    TIME_OFFSET,
+    TRAJ_R3,
+    TRAJ_SO3,
+    AccelResidual,
+    GyroResidual,
+    PointToPlaneResidual,
+)
+from licalib_cli.solver.loss import HuberLoss
+from licalib_cli.solver.parameters import ParameterBlock
+from licalib_cli.solver.problem import Problem, ResidualBlock
+from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
+
+__all__ = [
+    "CALIBRATION_SCALES",
+    "CalibrationState",
+    "FreeParameters",
+    "ImuData",
+    "LidarPoints",
+    "NoiseModel",
+    "Planes",
+    "beam_point_counts",
+    "build_problem",
+    "parameter_blocks",
+    "state_from_problem",
+    "state_from_values",
+    "state_to_values",
+]
+
+F64 = npt.NDArray[np.float64]
+
+logger = logging.getLogger(__name__)
+
+#: Characteristic scale of every coordinate, per block (per tangent coordinate of one element).
+CALIBRATION_SCALES: Mapping[str, tuple[float, ...]] = {
+    TRAJ_SO3: (1e-3,) * 3,
+    TRAJ_R3: (1e-3,) * 3,
+    GYRO_BIAS: (1e-4,) * 3,
+    ACCEL_BIAS: (1e-3,) * 3,
+    GRAVITY: (1e-3,) * 2,
+    EXT_ROTATION: (1e-3,) * 3,
+    EXT_TRANSLATION: (0.01,) * 3,
+    TIME_OFFSET: (1e-3,),
+    GYRO_SCALE: (1e-3,) * 3,
+    GYRO_MISALIGNMENT: (1e-3,) * 3,
+    GYRO_ROTATION: (1e-3,) * 3,
+    ACCEL_SCALE: (1e-3,) * 3,
+    ACCEL_MISALIGNMENT: (1e-3,) * 3,
+    GYRO_G_SENSITIVITY: (1e-4,) * 9,
+    LIDAR_INTRINSICS: (1e-3, 1e-3, 0.005, 0.005, 1e-4, 0.01),
+}
+
+_XYZ = ("x", "y", "z")
+_MISALIGNMENT = ("xy", "xz", "yz")  # M[0, 1], M[0, 2], M[1, 2]
+_G_SENS = tuple(f"{a}{b}" for a in "xyz" for b in "xyz")
+
+
+def _f64(x: npt.ArrayLike) -> F64:
+    out = np.array(x, dtype=np.float64)
+    out.setflags(write=False)
+    return out
+
+
+# ---------------------------------------------------------------------------------- data types
+
+
+@dataclass(frozen=True)
+class CalibrationState:
+    """Everything estimated for one segment.
+
+    Attributes:
+        so3_spline: rotation spline ``R_G_I(t)``.
+        r3_spline: position spline ``G p_I(t)``, m (same knots).
+        gyro_bias: (3,) ``b_w``, rad/s.
+        accel_bias: (3,) ``b_a``, m/s^2.
+        gravity_G: (3,) gravity in ``{G}``, m/s^2 (its norm is kept).
+        R_imu_lidar: (3, 3) extrinsic rotation (LiDAR -> IMU).
+        t_imu_lidar: (3,) LiDAR origin in the IMU frame, m.
+        time_offset_s: ``t_c``, seconds (``t_imu = t_lidar + t_c``).
+        imu_intrinsics: scale, misalignment, gyro rotation, g-sensitivity; its bias fields are
+            overwritten with ``gyro_bias`` / ``accel_bias`` so that
+            :func:`~licalib_cli.models.intrinsics.imu_measure` reproduces the model.
+        lidar_intrinsics: per-beam intrinsics.
+        t0_ns: reference time of the splines' time axis, int nanoseconds (IMU clock).
+    """
+
+    so3_spline: SO3Spline
+    r3_spline: R3Spline
+    gyro_bias: F64
+    accel_bias: F64
+    gravity_G: F64
+    R_imu_lidar: F64
+    t_imu_lidar: F64
+    time_offset_s: float
+    imu_intrinsics: ImuIntrinsics = field(default_factory=ImuIntrinsics)
+    lidar_intrinsics: LidarIntrinsics = field(
+        default_factory=lambda: LidarIntrinsics.nominal([0.0])
+    )
+    t0_ns: int = 0
+
+    def __post_init__(self) -> None:
+        if self.so3_spline.knots != self.r3_spline.knots:
+            msg = "the rotation and position splines must share one knot vector"
+            raise ValueError(msg)
+        for name, shape in (
+            ("gyro_bias", (3,)),
+            ("accel_bias", (3,)),
+            ("gravity_G", (3,)),
+            ("R_imu_lidar", (3, 3)),
+            ("t_imu_lidar", (3,)),
+        ):
+            value = _f64(getattr(self, name))
+            if value.shape != shape:
+                msg = f"CalibrationState.{name} must have shape {shape}, got {value.shape}"
+                raise ValueError(msg)
+            object.__setattr__(self, name, value)
+        object.__setattr__(self, "time_offset_s", float(self.time_offset_s))
+        object.__setattr__(self, "t0_ns", int(self.t0_ns))
+        object.__setattr__(
+            self,
+            "imu_intrinsics",
+            replace(self.imu_intrinsics, gyro_bias=self.gyro_bias, accel_bias=self.accel_bias),
+        )
+
+    @property
+    def knots(self) -> UniformKnots:
+        """The shared knot vector."""
+        return self.so3_spline.knots
+
+    def with_(self, **changes: object) -> CalibrationState:
+        """Copy with some fields replaced."""
+        return replace(self, **changes)  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True)
+class ImuData:
+    """IMU readings on the problem's time axis.
+
+    Attributes:
+        t_s: (N,) IMU-clock seconds relative to ``t0_ns``.
+        gyro: (N, 3) rad/s.
+        accel: (N, 3) m/s^2.
+    """
+
+    t_s: F64
+    gyro: F64
+    accel: F64
+
+    @classmethod
+    def from_samples(cls, samples: ImuSamples, t0_ns: int) -> ImuData:
+        """Convert int64-ns samples to seconds relative to ``t0_ns``."""
+        t = (samples.t_ns - np.int64(t0_ns)).astype(np.float64) * 1e-9
+        return cls(t, np.asarray(samples.gyro, np.float64), np.asarray(samples.accel, np.float64))
+
+    def __len__(self) -> int:
+        return int(np.asarray(self.t_s).shape[0])
+
+
+@dataclass(frozen=True)
+class LidarPoints:
+    """Raw LiDAR measurements with their plane associations.
+
+    Attributes:
+        t_s: (N,) point times ``tau``, LiDAR-clock seconds relative to ``t0_ns``.
+        beam: (N,) beam index.
+        rho: (N,) raw range, m.
+        theta: (N,) raw azimuth, rad.
+        plane: (N,) index of the associated plane in :class:`Planes`.
+    """
+
+    t_s: F64
+    beam: npt.NDArray[np.integer]
+    rho: F64
+    theta: F64
+    plane: npt.NDArray[np.integer]
+
+    def __len__(self) -> int:
+        return int(np.asarray(self.t_s).shape[0])
+
+
+@dataclass(frozen=True)
+class Planes:
+    """Planes ``n^T x + d = 0`` in ``{G}``, held fixed within an optimisation round.
+
+    Attributes:
+        normal: (P, 3) unit normals.
+        offset: (P,) offsets ``d``, m.
+        thickness: (P,) RMS point-to-plane spread of each surfel, m, or None.
+    """
+
+    normal: F64
+    offset: F64
+    thickness: F64 | None = None
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Measurement noise and robust-loss settings.
+
+    Attributes:
+        gyro_sigma: discrete gyro noise std, rad/s (scalar or (3,)).
+        accel_sigma: discrete accelerometer noise std, m/s^2 (scalar or (3,)).
+        range_sigma: LiDAR range noise std, m (point-to-plane sigma before inflation).
+        thickness_weight: the point sigma is ``sqrt(range_sigma^2 + (w * thickness)^2)``.
+        huber_threshold: Huber threshold on the whitened point residual (None: plain squares).
+    """
+
+    gyro_sigma: float | F64 = 1e-3
+    accel_sigma: float | F64 = 1e-2
+    range_sigma: float = 0.02
+    thickness_weight: float = 0.0
+    huber_threshold: float | None = 3.0
+
+    @classmethod
+    def from_densities(
+        cls,
+        gyro_noise_density: float,
+        accel_noise_density: float,
+        rate_hz: float,
+        range_sigma: float = 0.02,
+        **kwargs: float | None,
+    ) -> NoiseModel:
+        """Discrete sigmas ``density * sqrt(rate)`` from continuous noise densities.
+
+        Args:
+            gyro_noise_density: rad/s/sqrt(Hz).
+            accel_noise_density: m/s^2/sqrt(Hz).
+            rate_hz: IMU sample rate, Hz.
+            range_sigma: LiDAR range noise std, m.
+            **kwargs: other fields of :class:`NoiseModel`.
+
+        Returns:
+            The noise model.
+        """
+        root = float(np.sqrt(rate_hz))
+        return cls(
+            gyro_sigma=gyro_noise_density * root,
+            accel_sigma=accel_noise_density * root,
+            range_sigma=range_sigma,
+            **kwargs,  # type: ignore[arg-type]
+        )
+
+
+@dataclass(frozen=True)
+class FreeParameters:
+    """Which parameter groups the optimiser may change in a round.
+
+    Attributes:
+        trajectory: spline control points (and, with ``biases``/``gravity``, those blocks).
+        biases: IMU biases.
+        gravity: gravity direction.
+        extrinsic_rotation: ``ext.rotation``.
+        extrinsic_translation: ``ext.translation``.
+        time_offset: ``ext.time_offset``.
+        imu_intrinsics: the 15 IMU intrinsics (scale, misalignment, gyro rotation).
+        g_sensitivity: the 9 gyro g-sensitivity parameters (adds the ``A_w a_I`` term).
+        lidar_intrinsics: the per-beam LiDAR intrinsics.
+        min_points_per_beam: beams with fewer points keep their intrinsics fixed.
+    """
+
+    trajectory: bool = True
+    biases: bool = True
+    gravity: bool = True
+    extrinsic_rotation: bool = True
+    extrinsic_translation: bool = True
+    time_offset: bool = True
+    imu_intrinsics: bool = False
+    g_sensitivity: bool = False
+    lidar_intrinsics: bool = False
+    min_points_per_beam: int = 100
+
+
+# ----------------------------------------------------------------------- state <-> parameters
+
+
+def state_to_values(state: CalibrationState, g_sensitivity: bool | None = None) -> dict[str, F64]:
+    """Parameter block values of a state.
+
+    Args:
+        state: the state.
+        g_sensitivity: include ``imu.gyro_g_sensitivity`` (default: when non-zero).
+
+    Returns:
+        Block name -> value (construction shapes of :func:`parameter_blocks`).
+    """
+    imu = state.imu_intrinsics
+    if g_sensitivity is None:
+        g_sensitivity = bool(np.any(np.asarray(imu.gyro_g_sensitivity) != 0.0))
+    values: dict[str, F64] = {
+        TRAJ_SO3: np.array(state.so3_spline.control_quats),
+        TRAJ_R3: np.array(state.r3_spline.control_points),
+        GYRO_BIAS: np.array(state.gyro_bias),
+        ACCEL_BIAS: np.array(state.accel_bias),
+        GRAVITY: np.array(state.gravity_G),
+        EXT_ROTATION: matrix_to_quat(state.R_imu_lidar),
+        EXT_TRANSLATION: np.array(state.t_imu_lidar),
+        TIME_OFFSET: np.array([state.time_offset_s]),
+        GYRO_SCALE: np.array(imu.gyro_scale, dtype=np.float64),
+        GYRO_MISALIGNMENT: np.array(imu.gyro_misalignment, dtype=np.float64),
+        GYRO_ROTATION: np.array(imu.gyro_rotation, dtype=np.float64),
+        ACCEL_SCALE: np.array(imu.accel_scale, dtype=np.float64),
+        ACCEL_MISALIGNMENT: np.array(imu.accel_misalignment, dtype=np.float64),
+        LIDAR_INTRINSICS: intrinsics_to_array(state.lidar_intrinsics),
+    }
+    if g_sensitivity:
+        values[GYRO_G_SENSITIVITY] = np.array(imu.gyro_g_sensitivity, dtype=np.float64).reshape(9)
+    return values
+
+
+def state_from_values(
+    state: CalibrationState, values: Mapping[str, npt.ArrayLike]
+) -> CalibrationState:
+    """A new state with the blocks present in ``values`` replaced (others kept from ``state``).
+
+    Args:
+        state: the state the values refer to (knots, nominal elevations, ``t0_ns``).
+        values: block name -> value, e.g. ``problem.values()`` after solving.
+
+    Returns:
+        The updated state.
+    """
+
+    def get(name: str) -> F64 | None:
+        v = values.get(name)
+        return None if v is None else np.asarray(v, dtype=np.float64)
+
+    knots = state.knots
+    so3 = state.so3_spline if (v := get(TRAJ_SO3)) is None else SO3Spline(knots, v)
+    r3 = state.r3_spline if (v := get(TRAJ_R3)) is None else R3Spline(knots, v)
+    imu = state.imu_intrinsics
+    imu_changes: dict[str, object] = {}
+    for block, attr in (
+        (GYRO_SCALE, "gyro_scale"),
+        (GYRO_MISALIGNMENT, "gyro_misalignment"),
+        (GYRO_ROTATION, "gyro_rotation"),
+        (ACCEL_SCALE, "accel_scale"),
+        (ACCEL_MISALIGNMENT, "accel_misalignment"),
+    ):
+        if (v := get(block)) is not None:
+            imu_changes[attr] = v.reshape(-1).copy()
+    if (v := get(GYRO_G_SENSITIVITY)) is not None:
+        imu_changes["gyro_g_sensitivity"] = v.reshape(3, 3).copy()
+    lidar = state.lidar_intrinsics
+    if (v := get(LIDAR_INTRINSICS)) is not None:
+        lidar = intrinsics_from_array(lidar.nominal_elevation, v)
+    rot = get(EXT_ROTATION)
+    tc = get(TIME_OFFSET)
+    return CalibrationState(
+        so3_spline=so3,
+        r3_spline=r3,
+        gyro_bias=state.gyro_bias if (v := get(GYRO_BIAS)) is None else v.reshape(3),
+        accel_bias=state.accel_bias if (v := get(ACCEL_BIAS)) is None else v.reshape(3),
+        gravity_G=state.gravity_G if (v := get(GRAVITY)) is None else v.reshape(3),
+        R_imu_lidar=state.R_imu_lidar if rot is None else quat_to_matrix(rot.reshape(4)),
+        t_imu_lidar=state.t_imu_lidar if (v := get(EXT_TRANSLATION)) is None else v.reshape(3),
+        time_offset_s=state.time_offset_s if tc is None else float(tc.reshape(-1)[0]),
+        imu_intrinsics=imu.with_(**imu_changes) if imu_changes else imu,
+        lidar_intrinsics=lidar,
+        t0_ns=state.t0_ns,
+    )
+
+
+def state_from_problem(state: CalibrationState, problem: Problem) -> CalibrationState:
+    """:func:`state_from_values` with the problem's current block values."""
+    return state_from_values(state, problem.values())
+
+
+def beam_point_counts(lidar: LidarPoints | None, num_beams: int) -> npt.NDArray[np.int64]:
+    """(B,) number of points per beam."""
+    if lidar is None or len(lidar) == 0:
+        return np.zeros(num_beams, dtype=np.int64)
+    return np.bincount(np.asarray(lidar.beam, dtype=np.intp), minlength=num_beams)[:num_beams]
+
+
+def _lidar_fixed_mask(counts: npt.NDArray[np.int64], free: FreeParameters) -> npt.NDArray[np.bool_]:
+    """(B * 6,) fixed mask of ``lidar.intrinsics`` (gauge beam + under-observed beams)."""
+    b = counts.shape[0]
+    fixed = np.ones((b, 6), dtype=bool)
+    if free.lidar_intrinsics:
+        enough = counts >= free.min_points_per_beam
+        fixed[enough] = False
+        if np.any(enough):
+            gauge = int(np.argmax(enough))
+            fixed[gauge, :4] = True
+        weak = np.flatnonzero(~enough)
+        if weak.size:
+            logger.info(
+                "LiDAR intrinsics of beam(s) %s stay fixed (fewer than %d points)",
+                weak.tolist(),
+                free.min_points_per_beam,
+            )
+    return fixed.reshape(-1)
+
+
+def parameter_blocks(
+    state: CalibrationState,
+    free: FreeParameters | None = None,
+    *,
+    beam_counts: npt.ArrayLike | None = None,
+    fix_gauge: bool = False,
+) -> list[ParameterBlock]:
+    """Parameter blocks of a state, trajectory group first.
+
+    Args:
+        state: the state (initial values).
+        free: what may change (default :class:`FreeParameters`).
+        beam_counts: (B,) points per beam, for the LiDAR intrinsics mask (default: all beams
+            fixed unless ``free.lidar_intrinsics`` and counts are given).
+        fix_gauge: hold the first rotation and first two position control points (IMU-only
+            problems with a free trajectory).
+
+    Returns:
+        The blocks (``imu.gyro_g_sensitivity`` only when enabled or non-zero).
+    """
+    free = FreeParameters() if free is None else free
+    values = state_to_values(state, g_sensitivity=free.g_sensitivity or None)
+    n_cp = state.knots.num_control_points
+    counts = (
+        np.zeros(state.lidar_intrinsics.num_beams, dtype=np.int64)
+        if beam_counts is None
+        else np.asarray(beam_counts, dtype=np.int64)
+    )
+
+    def scale(name: str) -> F64:
+        return np.asarray(CALIBRATION_SCALES[name], dtype=np.float64)
+
+    so3_fixed: bool | npt.NDArray[np.bool_] = not free.trajectory
+    r3_fixed: bool | npt.NDArray[np.bool_] = not free.trajectory
+    if free.trajectory and fix_gauge:
+        so3_fixed = np.zeros(3 * n_cp, dtype=bool)
+        so3_fixed[:3] = True
+        r3_fixed = np.zeros(3 * n_cp, dtype=bool)
+        r3_fixed[:6] = True
+
+    def names(block: str, suffixes: Sequence[str]) -> list[str]:
+        return [f"{block}.{s}" for s in suffixes]
+
+    blocks = [
+        ParameterBlock(
+            TRAJ_SO3,
+            values[TRAJ_SO3],
+            manifold="so3",
+            group="trajectory",
+            scale=scale(TRAJ_SO3),
+            fixed=so3_fixed,
+        ),
+        ParameterBlock(
+            TRAJ_R3, values[TRAJ_R3], group="trajectory", scale=scale(TRAJ_R3), fixed=r3_fixed
+        ),
+        ParameterBlock(
+            GYRO_BIAS,
+            values[GYRO_BIAS],
+            group="trajectory",
+            coord_names=names(GYRO_BIAS, _XYZ),
+            scale=scale(GYRO_BIAS),
+            fixed=not free.biases,
+        ),
+        ParameterBlock(
+            ACCEL_BIAS,
+            values[ACCEL_BIAS],
+            group="trajectory",
+            coord_names=names(ACCEL_BIAS, _XYZ),
+            scale=scale(ACCEL_BIAS),
+            fixed=not free.biases,
+        ),
+        ParameterBlock(
+            GRAVITY,
+            values[GRAVITY],
+            manifold="s2",
+            group="trajectory",
+            scale=scale(GRAVITY),
+            fixed=not free.gravity,
+        ),
+        ParameterBlock(
+            EXT_ROTATION,
+            values[EXT_ROTATION],
+            manifold="so3",
+            group="calibration",
+            coord_names=names(EXT_ROTATION, ("rx", "ry", "rz")),
+            scale=scale(EXT_ROTATION),
+            fixed=not free.extrinsic_rotation,
+        ),
+        ParameterBlock(
+            EXT_TRANSLATION,
+            values[EXT_TRANSLATION],
+            group="calibration",
+            coord_names=names(EXT_TRANSLATION, _XYZ),
+            scale=scale(EXT_TRANSLATION),
+            fixed=not free.extrinsic_translation,
+        ),
+        ParameterBlock(
+            TIME_OFFSET,
+            values[TIME_OFFSET],
+            group="calibration",
+            coord_names=[TIME_OFFSET],
+            scale=scale(TIME_OFFSET),
+            fixed=not free.time_offset,
+        ),
+    ]
+    imu_fixed = not free.imu_intrinsics
+    for block, suffixes, manifold in (
+        (GYRO_SCALE, _XYZ, "euclidean"),
+        (GYRO_MISALIGNMENT, _MISALIGNMENT, "euclidean"),
+        (GYRO_ROTATION, ("rx", "ry", "rz"), "so3"),
+        (ACCEL_SCALE, _XYZ, "euclidean"),
+        (ACCEL_MISALIGNMENT, _MISALIGNMENT, "euclidean"),
+    ):
+        blocks.append(
+            ParameterBlock(
+                block,
+                values[block],
+                manifold=manifold,
+                group="calibration",  # type: ignore[arg-type]
+                coord_names=names(block, suffixes),
+                scale=scale(block),
+                fixed=imu_fixed,
+            )
+        )
+    if GYRO_G_SENSITIVITY in values:
+        blocks.append(
+            ParameterBlock(
+                GYRO_G_SENSITIVITY,
+                values[GYRO_G_SENSITIVITY],
+                group="calibration",
+                coord_names=names(GYRO_G_SENSITIVITY, _G_SENS),
+                scale=scale(GYRO_G_SENSITIVITY),
+                fixed=not free.g_sensitivity,
+            )
+        )
+    n_beams = state.lidar_intrinsics.num_beams
+    blocks.append(
+        ParameterBlock(
+            LIDAR_INTRINSICS,
+            values[LIDAR_INTRINSICS],
+            group="calibration",
+            coord_names=[
+                f"{LIDAR_INTRINSICS}[{b}].{s}" for b in range(n_beams) for s in INTRINSIC_NAMES
+            ],
+            scale=scale(LIDAR_INTRINSICS),
+            fixed=_lidar_fixed_mask(counts, free),
+        )
+    )
+    return blocks
+
+
+# -------------------------------------------------------------------------------- builder
+
+
+def _check_coverage(knots: UniformKnots, t_s: F64, what: str) -> None:
+    if t_s.size == 0:
+        return
+    inside = knots.contains(t_s)
+    if not np.all(inside):
+        lo, hi = float(np.min(t_s)), float(np.max(t_s))
+        msg = (
+            f"{int(np.count_nonzero(~inside))} {what} fall outside the trajectory spline "
+            f"[{knots.t0_s:.6f}, {knots.t_end_s:.6f}] s (they span [{lo:.6f}, {hi:.6f}] s); "
+            "build the spline over a longer interval (with time-offset padding) or drop them"
+        )
+        raise ValueError(msg)
+
+
+def build_problem(
+    state: CalibrationState,
+    imu: ImuData | None,
+    lidar: LidarPoints | None,
+    planes: Planes | None,
+    noise: NoiseModel | None = None,
+    free: FreeParameters | None = None,
+    *,
+    fix_gauge: bool | None = None,
+    extra_residuals: Sequence[ResidualBlock] = (),
+) -> Problem:
+    """Build the least-squares problem of one round.
+
+    Args:
+        state: initial values (and knots, nominal elevations).
+        imu: IMU readings (seconds relative to ``state.t0_ns``), or None.
+        lidar: LiDAR points with plane associations, or None.
+        planes: the planes the points refer to (required with ``lidar``).
+        noise: noise model (default :class:`NoiseModel`).
+        free: what may change (default :class:`FreeParameters`).
+        fix_gauge: hold the first control points (default: when there are no LiDAR points and
+            the trajectory is free).
+        extra_residuals: further residual blocks (e.g.
+            :class:`~licalib_cli.residuals.GaussianPrior`), added without a robust loss.
+
+    Returns:
+        The problem: parameter blocks (names in :mod:`licalib_cli.residuals`) and residual blocks
+        ``imu.gyro``, ``imu.accel`` and ``lidar.point_to_plane`` (Huber).
+
+    Raises:
+        ValueError: when an IMU time or a point time ``tau + t_c`` is outside the spline range,
+            on inconsistent array shapes, or when points are given without planes.
+    """
+    noise = NoiseModel() if noise is None else noise
+    free = FreeParameters() if free is None else free
+    knots = state.knots
+    has_lidar = lidar is not None and len(lidar) > 0
+    if fix_gauge is None:
+        fix_gauge = free.trajectory and not has_lidar
+    counts = beam_point_counts(lidar, state.lidar_intrinsics.num_beams)
+    problem = Problem()
+    for block in parameter_blocks(state, free, beam_counts=counts, fix_gauge=fix_gauge):
+        problem.add_parameter_block(block)
+    use_gs = GYRO_G_SENSITIVITY in problem
+
+    if imu is not None and len(imu) > 0:
+        t_imu = np.asarray(imu.t_s, dtype=np.float64)
+        _check_coverage(knots, t_imu, "IMU sample times")
+        problem.add_residual_block(
+            GyroResidual(knots, t_imu, imu.gyro, noise.gyro_sigma, g_sensitivity=use_gs)
+        )
+        problem.add_residual_block(AccelResidual(knots, t_imu, imu.accel, noise.accel_sigma))
+
+    if has_lidar:
+        assert lidar is not None
+        if planes is None:
+            msg = "LiDAR points need their planes: pass the Planes their plane indices refer to"
+            raise ValueError(msg)
+        t_pts = np.asarray(lidar.t_s, dtype=np.float64)
+        _check_coverage(knots, t_pts + state.time_offset_s, "point times (tau + time offset)")
+        plane = np.asarray(lidar.plane, dtype=np.intp)
+        normal = np.asarray(planes.normal, dtype=np.float64)
+        if plane.min() < 0 or plane.max() >= normal.shape[0]:
+            msg = f"plane indices must lie in [0, {normal.shape[0]})"
+            raise ValueError(msg)
+        sigma2 = np.full(plane.shape[0], noise.range_sigma**2)
+        if planes.thickness is not None and noise.thickness_weight > 0.0:
+            sigma2 += (noise.thickness_weight * np.asarray(planes.thickness)[plane]) ** 2
+        residual = PointToPlaneResidual(
+            knots,
+            t_pts,
+            lidar.beam,
+            lidar.rho,
+            lidar.theta,
+            normal[plane],
+            np.asarray(planes.offset, dtype=np.float64)[plane],
+            np.sqrt(sigma2),
+            state.lidar_intrinsics.nominal_elevation,
+        )
+        loss = None if noise.huber_threshold is None else HuberLoss(noise.huber_threshold)
+        problem.add_residual_block(residual, loss)
+
+    for extra in extra_residuals:
+        problem.add_residual_block(extra)
+    return problem

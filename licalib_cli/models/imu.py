@@ -1,0 +1,194 @@
+"""IMU measurement model with analytic Jacobians (method.md sections 2-3).
+
+Conventions::
+
+    a_I = R(t)^T (p_ddot(t) - g_G)                       specific force, IMU frame, m/s^2
+    w_m = S_w M_w R_wI w_I(t) + A_w a_I(t) + b_w          gyro reading, rad/s
+    a_m = S_a M_a a_I(t) + b_a                            accelerometer reading, m/s^2
+
+``R(t) = R_G_I(t)``, ``w_I`` the body rate (IMU frame), ``g_G`` gravity in ``{G}`` (e.g.
+``[0, 0, -9.81]`` when z is up). ``S = diag(scale)``, ``M = [[1, m0, m1], [0, 1, m2], [0, 0, 1]]``
+from ``misalignment = [m0, m1, m2]``, ``R_wI`` (quaternion ``[x, y, z, w]``) rotates IMU-frame
+vectors into the gyro frame and is perturbed on the right (``R_wI Exp(delta)``), ``A_w`` is the
+(3, 3) g-sensitivity flattened row-major into 9 numbers. The same forward model is
+:func:`licalib_cli.models.intrinsics.imu_measure`; this module adds the derivatives.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from licalib_cli.geometry.so3 import hat, quat_to_matrix
+from licalib_cli.models.intrinsics import misalignment_matrix
+
+__all__ = [
+    "AccelModel",
+    "GyroModel",
+    "SpecificForce",
+    "accel_model",
+    "gyro_model",
+    "specific_force",
+]
+
+F64 = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class SpecificForce:
+    """Specific force ``a_I = R^T (p_ddot - g)`` and its derivatives.
+
+    Attributes:
+        value: (N, 3) ``a_I``, m/s^2, IMU frame.
+        d_rotation: (N, 3, 3) derivative w.r.t. a right perturbation ``R Exp(eps)``
+            (``hat(a_I)``).
+        d_acceleration: (N, 3, 3) derivative w.r.t. ``p_ddot`` (``R^T``); that w.r.t. gravity
+            is its negative.
+    """
+
+    value: F64
+    d_rotation: F64
+    d_acceleration: F64
+
+
+def specific_force(rotation: F64, acceleration: F64, gravity: F64) -> SpecificForce:
+    """Specific force in the IMU frame with derivatives.
+
+    Args:
+        rotation: (N, 3, 3) ``R_G_I(t)``.
+        acceleration: (N, 3) ``p_ddot(t)`` in ``{G}``, m/s^2.
+        gravity: (3,) ``g_G``, m/s^2.
+
+    Returns:
+        :class:`SpecificForce`.
+    """
+    rt = np.swapaxes(rotation, -1, -2)
+    a = np.einsum("nij,nj->ni", rt, acceleration - gravity)
+    # (R Exp(eps))^T v = Exp(-eps) R^T v ~= a - eps x a = a + hat(a) eps
+    return SpecificForce(a, hat(a), rt)
+
+
+def _scale_misalignment_jacobians(scale: F64, misalignment: F64, v: F64) -> tuple[F64, F64, F64]:
+    """``y = S M v`` and its derivatives w.r.t. ``scale`` and ``misalignment`` (each (N, 3, 3))."""
+    mv = v @ misalignment_matrix(misalignment).T
+    y = mv * scale
+    n = v.shape[0]
+    d_scale = np.zeros((n, 3, 3))
+    d_scale[:, 0, 0] = mv[:, 0]
+    d_scale[:, 1, 1] = mv[:, 1]
+    d_scale[:, 2, 2] = mv[:, 2]
+    d_mis = np.zeros((n, 3, 3))
+    d_mis[:, 0, 0] = scale[0] * v[:, 1]
+    d_mis[:, 0, 1] = scale[0] * v[:, 2]
+    d_mis[:, 1, 2] = scale[1] * v[:, 2]
+    return y, d_scale, d_mis
+
+
+@dataclass(frozen=True)
+class GyroModel:
+    """Predicted gyro readings and derivatives.
+
+    Attributes:
+        value: (N, 3) predicted readings, rad/s.
+        d_omega: (3, 3) derivative w.r.t. ``w_I`` (``S_w M_w R_wI``).
+        d_accel: (3, 3) derivative w.r.t. ``a_I`` (``A_w``).
+        d_scale: (N, 3, 3) w.r.t. ``gyro_scale``, or None.
+        d_misalignment: (N, 3, 3) w.r.t. ``gyro_misalignment``, or None.
+        d_rotation: (N, 3, 3) w.r.t. the right perturbation of ``R_wI``, rad/s per rad, or None.
+        d_g_sensitivity: (N, 3, 9) w.r.t. the row-major ``A_w``, or None.
+    """
+
+    value: F64
+    d_omega: F64
+    d_accel: F64
+    d_scale: F64 | None
+    d_misalignment: F64 | None
+    d_rotation: F64 | None
+    d_g_sensitivity: F64 | None
+
+
+def gyro_model(
+    omega: F64,
+    accel: F64 | None,
+    scale: F64,
+    misalignment: F64,
+    rotation: F64,
+    bias: F64,
+    g_sensitivity: F64 | None = None,
+    jacobians: bool = True,
+) -> GyroModel:
+    """Gyro prediction ``S_w M_w R_wI w_I + A_w a_I + b_w``.
+
+    Args:
+        omega: (N, 3) body rate ``w_I``, rad/s.
+        accel: (N, 3) specific force ``a_I``, m/s^2 (needed only with g-sensitivity).
+        scale: (3,) ``S_w`` diagonal.
+        misalignment: (3,) ``[m0, m1, m2]`` of ``M_w``.
+        rotation: (4,) quaternion ``[x, y, z, w]`` of ``R_wI``.
+        bias: (3,) ``b_w``, rad/s (derivative: identity).
+        g_sensitivity: (9,) or (3, 3) ``A_w`` (rad/s per m/s^2), or None for none.
+        jacobians: also return the intrinsic derivatives.
+
+    Returns:
+        :class:`GyroModel`.
+    """
+    r_wi = quat_to_matrix(rotation)
+    v = omega @ r_wi.T
+    y, d_scale, d_mis = _scale_misalignment_jacobians(scale, misalignment, v)
+    k = np.diag(scale) @ misalignment_matrix(misalignment)
+    a_w = np.zeros((3, 3)) if g_sensitivity is None else np.reshape(g_sensitivity, (3, 3))
+    if g_sensitivity is not None and accel is not None:
+        y = y + accel @ a_w.T
+    y = y + bias
+    if not jacobians:
+        return GyroModel(y, k @ r_wi, a_w, None, None, None, None)
+    # R_wI Exp(d) w ~= R_wI (w + d x w) = R_wI w - R_wI hat(w) d
+    d_rot = -np.einsum("ij,njk->nik", k @ r_wi, hat(omega))
+    d_gs = None
+    if g_sensitivity is not None and accel is not None:
+        n = omega.shape[0]
+        d_gs = np.zeros((n, 3, 9))
+        for i in range(3):  # the three rows of A_w
+            d_gs[:, i, 3 * i : 3 * i + 3] = accel
+    return GyroModel(y, k @ r_wi, a_w, d_scale, d_mis, d_rot, d_gs)
+
+
+@dataclass(frozen=True)
+class AccelModel:
+    """Predicted accelerometer readings and derivatives.
+
+    Attributes:
+        value: (N, 3) predicted readings, m/s^2.
+        d_accel: (3, 3) derivative w.r.t. ``a_I`` (``S_a M_a``).
+        d_scale: (N, 3, 3) w.r.t. ``accel_scale``, or None.
+        d_misalignment: (N, 3, 3) w.r.t. ``accel_misalignment``, or None.
+    """
+
+    value: F64
+    d_accel: F64
+    d_scale: F64 | None
+    d_misalignment: F64 | None
+
+
+def accel_model(
+    accel: F64, scale: F64, misalignment: F64, bias: F64, jacobians: bool = True
+) -> AccelModel:
+    """Accelerometer prediction ``S_a M_a a_I + b_a``.
+
+    Args:
+        accel: (N, 3) specific force ``a_I``, m/s^2.
+        scale: (3,) ``S_a`` diagonal.
+        misalignment: (3,) ``[m0, m1, m2]`` of ``M_a``.
+        bias: (3,) ``b_a``, m/s^2 (derivative: identity).
+        jacobians: also return the intrinsic derivatives.
+
+    Returns:
+        :class:`AccelModel`.
+    """
+    y, d_scale, d_mis = _scale_misalignment_jacobians(scale, misalignment, accel)
+    k = np.diag(scale) @ misalignment_matrix(misalignment)
+    if not jacobians:
+        return AccelModel(y + bias, k, None, None)
+    return AccelModel(y + bias, k, d_scale, d_mis)

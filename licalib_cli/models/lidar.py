@@ -1,0 +1,305 @@
+"""Per-beam LiDAR point model with analytic Jacobians (method.md section 4).
+
+Conventions:
+
+* A raw measurement is ``(beam i, range rho (m), azimuth theta (rad))``; the point in the LiDAR
+  frame ``{L}`` is (see :func:`licalib_cli.models.intrinsics.lidar_point`)::
+
+      rho_bar = s_i rho + drho_i,  phi_bar = phi_i + dphi_i,  theta_bar = theta + dtheta_i
+      p_L = [rho_bar cos(phi_bar) cos(theta_bar) + H_i sin(theta_bar),
+             rho_bar cos(phi_bar) sin(theta_bar) - H_i cos(theta_bar),
+             rho_bar sin(phi_bar) + V_i]
+
+* The six estimated intrinsics of a beam are stored as one row, in the order
+  :data:`INTRINSIC_NAMES` = ``[dphi (rad), dtheta (rad), V (m), H (m), s (-), drho (m)]``. The
+  nominal elevation ``phi_i`` is not estimated.
+* Point-to-plane geometry (:func:`point_to_plane`): a point ``p_L`` seen at IMU time ``t`` maps to
+  ``p_G = R(t) (R_IL p_L + t_IL) + p(t)`` with ``R(t) = R_G_I(t)``, ``p(t) = G p_I(t)`` and
+  ``T_imu_lidar = (R_IL, t_IL)``; its signed distance to the plane ``n^T x + d = 0`` (``{G}``,
+  unit ``n``) is ``n^T p_G + d``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from licalib_cli.models.intrinsics import LidarIntrinsics
+
+__all__ = [
+    "INTRINSIC_NAMES",
+    "NUM_BEAM_INTRINSICS",
+    "LidarPointTerms",
+    "PointToPlaneGeometry",
+    "intrinsics_from_array",
+    "intrinsics_to_array",
+    "lidar_point_terms",
+    "lidar_point_with_jacobian",
+    "point_to_plane",
+]
+
+F64 = npt.NDArray[np.float64]
+
+#: Names of the per-beam intrinsic coordinates, in storage order.
+INTRINSIC_NAMES: tuple[str, ...] = ("dphi", "dtheta", "V", "H", "s", "drho")
+NUM_BEAM_INTRINSICS = 6
+
+
+def intrinsics_to_array(intrinsics: LidarIntrinsics) -> F64:
+    """Per-beam intrinsics as a (B, 6) array ``[dphi, dtheta, V, H, s, drho]``."""
+    k = intrinsics
+    return np.stack(
+        [
+            k.elevation_correction,
+            k.azimuth_correction,
+            k.vertical_offset,
+            k.horizontal_offset,
+            k.range_scale,
+            k.range_offset,
+        ],
+        axis=-1,
+    ).astype(np.float64)
+
+
+def intrinsics_from_array(
+    nominal_elevation: npt.ArrayLike, values: npt.ArrayLike
+) -> LidarIntrinsics:
+    """Inverse of :func:`intrinsics_to_array`.
+
+    Args:
+        nominal_elevation: (B,) nominal beam elevations ``phi_i``, rad.
+        values: (B, 6) ``[dphi, dtheta, V, H, s, drho]`` per beam.
+
+    Returns:
+        The intrinsics (arrays are copies).
+    """
+    phi = np.array(nominal_elevation, dtype=np.float64)
+    v = np.array(values, dtype=np.float64).reshape(phi.shape[0], NUM_BEAM_INTRINSICS)
+    return LidarIntrinsics(
+        nominal_elevation=phi,
+        elevation_correction=v[:, 0].copy(),
+        azimuth_correction=v[:, 1].copy(),
+        vertical_offset=v[:, 2].copy(),
+        horizontal_offset=v[:, 3].copy(),
+        range_scale=v[:, 4].copy(),
+        range_offset=v[:, 5].copy(),
+    )
+
+
+@dataclass(frozen=True)
+class LidarPointTerms:
+    """Points in ``{L}`` with the intermediate terms of the model, for cheap derivatives.
+
+    Attributes:
+        point: (N, 3) ``p_L``, m.
+        rho: (N,) raw range, m.
+        rho_bar: (N,) corrected range ``s rho + drho``, m.
+        cos_phi: (N,) ``cos(phi_bar)``.
+        sin_phi: (N,) ``sin(phi_bar)``.
+        cos_theta: (N,) ``cos(theta_bar)``.
+        sin_theta: (N,) ``sin(theta_bar)``.
+    """
+
+    point: F64
+    rho: F64
+    rho_bar: F64
+    cos_phi: F64
+    sin_phi: F64
+    cos_theta: F64
+    sin_theta: F64
+
+    def jacobian(self) -> F64:
+        """(N, 3, 6) ``d p_L / d [dphi, dtheta, V, H, s, drho]`` of each point's beam."""
+        rb, cp, sp, ct, st = (
+            self.rho_bar,
+            self.cos_phi,
+            self.sin_phi,
+            self.cos_theta,
+            self.sin_theta,
+        )
+        ux, uy = cp * ct, cp * st
+        n = rb.shape[0]
+        jac = np.zeros((n, 3, NUM_BEAM_INTRINSICS))
+        jac[:, 0, 0] = -rb * sp * ct  # dphi
+        jac[:, 1, 0] = -rb * sp * st
+        jac[:, 2, 0] = rb * cp
+        jac[:, 0, 1] = -self.point[:, 1]  # dtheta: the offset term turns with the azimuth
+        jac[:, 1, 1] = self.point[:, 0]
+        jac[:, 2, 2] = 1.0  # V
+        jac[:, 0, 3] = st  # H
+        jac[:, 1, 3] = -ct
+        jac[:, 0, 4] = self.rho * ux  # s
+        jac[:, 1, 4] = self.rho * uy
+        jac[:, 2, 4] = self.rho * sp
+        jac[:, 0, 5] = ux  # drho
+        jac[:, 1, 5] = uy
+        jac[:, 2, 5] = sp
+        return jac
+
+    def vjp(self, v: F64) -> F64:
+        """(N, 6) ``v_k^T d p_L / d intrinsics`` for (N, 3) row vectors ``v`` (no (N, 3, 6))."""
+        vx, vy, vz = v[:, 0], v[:, 1], v[:, 2]
+        cp, sp, ct, st = self.cos_phi, self.sin_phi, self.cos_theta, self.sin_theta
+        horizontal = vx * ct + vy * st
+        along = cp * horizontal + sp * vz  # v . u
+        out = np.empty((v.shape[0], NUM_BEAM_INTRINSICS))
+        out[:, 0] = self.rho_bar * (cp * vz - sp * horizontal)
+        out[:, 1] = vy * self.point[:, 0] - vx * self.point[:, 1]
+        out[:, 2] = vz
+        out[:, 3] = vx * st - vy * ct
+        out[:, 4] = self.rho * along
+        out[:, 5] = along
+        return out
+
+
+def lidar_point_terms(
+    nominal_elevation: F64,
+    values: F64,
+    beam: npt.NDArray[np.integer],
+    rho: F64,
+    theta: F64,
+    cos_sin_theta: tuple[F64, F64] | None = None,
+) -> LidarPointTerms:
+    """Points in ``{L}`` from raw measurements, keeping the terms needed for derivatives.
+
+    Trigonometric functions of the elevation are evaluated once per beam.
+
+    Args:
+        nominal_elevation: (B,) nominal elevations ``phi_i``, rad.
+        values: (B, 6) intrinsics ``[dphi, dtheta, V, H, s, drho]``.
+        beam: (N,) beam index of each point.
+        rho: (N,) raw range, m.
+        theta: (N,) raw azimuth, rad.
+        cos_sin_theta: precomputed ``(cos(theta), sin(theta))`` of the raw azimuths; the
+            azimuth corrections are then applied with the angle-addition formulas.
+
+    Returns:
+        :class:`LidarPointTerms`.
+    """
+    phi_bar = nominal_elevation + values[:, 0]
+    cos_phi = np.cos(phi_bar)[beam]
+    sin_phi = np.sin(phi_bar)[beam]
+    if cos_sin_theta is None:
+        theta_bar = theta + values[beam, 1]
+        c_th, s_th = np.cos(theta_bar), np.sin(theta_bar)
+    else:
+        c0, s0 = cos_sin_theta
+        c_d, s_d = np.cos(values[:, 1])[beam], np.sin(values[:, 1])[beam]
+        c_th = c0 * c_d - s0 * s_d
+        s_th = s0 * c_d + c0 * s_d
+    rho_bar = values[beam, 4] * rho + values[beam, 5]
+    h = values[beam, 3]
+    n = rho.shape[0]
+    horizontal = rho_bar * cos_phi
+    p = np.empty((n, 3))
+    p[:, 0] = horizontal * c_th + h * s_th
+    p[:, 1] = horizontal * s_th - h * c_th
+    p[:, 2] = rho_bar * sin_phi + values[beam, 2]
+    return LidarPointTerms(p, rho, rho_bar, cos_phi, sin_phi, c_th, s_th)
+
+
+def lidar_point_with_jacobian(
+    nominal_elevation: F64,
+    values: F64,
+    beam: npt.NDArray[np.integer],
+    rho: F64,
+    theta: F64,
+    jacobian: bool = True,
+) -> tuple[F64, F64 | None]:
+    """Points in ``{L}`` from raw measurements, and their derivatives w.r.t. the beam intrinsics.
+
+    Args:
+        nominal_elevation: (B,) nominal elevations ``phi_i``, rad.
+        values: (B, 6) intrinsics ``[dphi, dtheta, V, H, s, drho]``.
+        beam: (N,) beam index of each point.
+        rho: (N,) raw range, m.
+        theta: (N,) raw azimuth, rad.
+        jacobian: also return the Jacobian.
+
+    Returns:
+        ``(p_L (N, 3) m, J (N, 3, 6) or None)`` with ``J[k, :, j] = d p_L / d values[beam_k, j]``.
+    """
+    terms = lidar_point_terms(nominal_elevation, values, beam, rho, theta)
+    return terms.point, (terms.jacobian() if jacobian else None)
+
+
+@dataclass(frozen=True)
+class PointToPlaneGeometry:
+    """Signed point-to-plane distances and their derivatives (not whitened).
+
+    Attributes:
+        distance: (N,) ``n^T p_G + d``, m.
+        p_imu: (N, 3) points in the IMU frame ``R_IL p_L + t_IL``, m.
+        d_rotation: (N, 3) derivative w.r.t. a right perturbation ``R(t) Exp(eps)``, m/rad.
+        d_position: (N, 3) derivative w.r.t. ``p(t)`` (equals ``n``).
+        d_ext_rotation: (N, 3) derivative w.r.t. a right perturbation ``R_IL Exp(delta)``, m/rad.
+        d_ext_translation: (N, 3) derivative w.r.t. ``t_IL`` (``R^T n``).
+        d_point: (N, 3) derivative w.r.t. ``p_L`` (``R_IL^T R^T n``).
+        d_time: (N,) derivative w.r.t. the query time ``t``, m/s, or None without rates.
+    """
+
+    distance: F64
+    p_imu: F64
+    d_rotation: F64
+    d_position: F64
+    d_ext_rotation: F64
+    d_ext_translation: F64
+    d_point: F64
+    d_time: F64 | None
+
+
+def point_to_plane(
+    rotation: F64,
+    position: F64,
+    R_imu_lidar: F64,
+    t_imu_lidar: F64,
+    p_lidar: F64,
+    normal: F64,
+    offset: F64,
+    angular_velocity: F64 | None = None,
+    velocity: F64 | None = None,
+) -> PointToPlaneGeometry:
+    """Signed distance of LiDAR points to their planes in ``{G}`` with all first derivatives.
+
+    ``d(t) = n^T (R(t) (R_IL p_L + t_IL) + p(t)) + d``; the time derivative is
+    ``n^T (R hat(w) p_I + v)``.
+
+    Args:
+        rotation: (N, 3, 3) ``R_G_I(t)``.
+        position: (N, 3) ``G p_I(t)``, m.
+        R_imu_lidar: (3, 3) extrinsic rotation ``R_IL``.
+        t_imu_lidar: (3,) extrinsic translation ``t_IL``, m.
+        p_lidar: (N, 3) points in ``{L}``, m.
+        normal: (N, 3) unit plane normals in ``{G}``.
+        offset: (N,) plane offsets ``d``, m.
+        angular_velocity: (N, 3) body rate ``w_I(t)``, rad/s (for ``d_time``), or None.
+        velocity: (N, 3) ``p_dot(t)`` in ``{G}``, m/s (for ``d_time``), or None.
+
+    Returns:
+        :class:`PointToPlaneGeometry`.
+    """
+    p_imu = p_lidar @ R_imu_lidar.T + t_imu_lidar
+    # n_I = R^T n (normal in the IMU frame)
+    n_imu = np.einsum("nji,nj->ni", rotation, normal)
+    n_lidar = n_imu @ R_imu_lidar
+    distance = np.einsum("ni,ni->n", n_imu, p_imu) + np.einsum("ni,ni->n", normal, position)
+    distance += offset
+    # d/d eps of n^T R Exp(eps) p_I = -n_I^T hat(p_I) = (p_I x n_I)^T
+    d_rotation = np.cross(p_imu, n_imu)
+    d_ext_rotation = np.cross(p_lidar, n_lidar)
+    d_time = None
+    if angular_velocity is not None and velocity is not None:
+        d_time = np.einsum("ni,ni->n", n_imu, np.cross(angular_velocity, p_imu))
+        d_time += np.einsum("ni,ni->n", normal, velocity)
+    return PointToPlaneGeometry(
+        distance=distance,
+        p_imu=p_imu,
+        d_rotation=d_rotation,
+        d_position=normal,
+        d_ext_rotation=d_ext_rotation,
+        d_ext_translation=n_imu,
+        d_point=n_lidar,
+        d_time=d_time,
+    )

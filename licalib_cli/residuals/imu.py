@@ -1,0 +1,262 @@
+"""Gyroscope and accelerometer residual blocks (method.md section 3).
+
+Each IMU sample gives a 3-vector residual ``(prediction - reading) / sigma`` (one robust-loss
+group per sample), with ``sigma`` the discrete noise standard deviation
+``noise_density * sqrt(rate)`` per axis, supplied by the caller. Sample times are IMU-clock
+seconds relative to the problem's reference time; they do not depend on the time offset.
+Predictions follow :mod:`licalib_cli.models.imu`; trajectory Jacobians chain the model derivatives
+with the spline's control-point Jacobians (right perturbations for ``traj.so3``, linear weights for
+``traj.r3``) and gravity uses the s2 retraction Jacobian of the solver.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+import numpy.typing as npt
+
+from licalib_cli.models.imu import accel_model, gyro_model, specific_force
+from licalib_cli.residuals import (
+    ACCEL_BIAS,
+    ACCEL_MISALIGNMENT,
+    ACCEL_SCALE,
+    GRAVITY,
+    GYRO_BIAS,
+    GYRO_G_SENSITIVITY,
+    GYRO_MISALIGNMENT,
+    GYRO_ROTATION,
+    GYRO_SCALE,
+    TRAJ_R3,
+    TRAJ_SO3,
+)
+from licalib_cli.solver.parameters import s2_retraction_jacobian
+from licalib_cli.solver.problem import DenseJacobian, ResidualEval
+from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
+
+__all__ = ["AccelResidual", "GyroResidual"]
+
+F64 = npt.NDArray[np.float64]
+
+_OFFSETS = np.arange(4, dtype=np.intp)
+_IDENTITY_QUAT = np.array([0.0, 0.0, 0.0, 1.0])
+
+
+def _per_axis_inverse(sigma: float | npt.ArrayLike, what: str) -> F64:
+    s = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (3,)).copy()
+    if not np.all(np.isfinite(s) & (s > 0.0)):
+        msg = f"{what} noise sigma must be positive and finite, got {sigma!r}"
+        raise ValueError(msg)
+    return 1.0 / s
+
+
+def _check_samples(t_s: npt.ArrayLike, values: npt.ArrayLike, what: str) -> tuple[F64, F64]:
+    t = np.ascontiguousarray(t_s, dtype=np.float64).reshape(-1)
+    v = np.ascontiguousarray(values, dtype=np.float64)
+    if v.shape != (t.shape[0], 3):
+        msg = f"{what} readings must have shape ({t.shape[0]}, 3), got {v.shape}"
+        raise ValueError(msg)
+    return t, v
+
+
+def _get(params: Mapping[str, F64], name: str, default: F64) -> F64:
+    value = params.get(name)
+    return default if value is None else np.asarray(value, dtype=np.float64)
+
+
+class GyroResidual:
+    """Gyro residuals ``(S_w M_w R_wI w_I(t) [+ A_w a_I(t)] + b_w - w_m) / sigma_w``.
+
+    Touches ``traj.so3`` (4 control points per sample), ``imu.gyro_bias``, ``imu.gyro_scale``,
+    ``imu.gyro_misalignment``, ``imu.gyro_rotation`` and, with g-sensitivity, ``traj.r3``,
+    ``gravity`` and ``imu.gyro_g_sensitivity``.
+    """
+
+    def __init__(
+        self,
+        knots: UniformKnots,
+        t_s: npt.ArrayLike,
+        gyro: npt.ArrayLike,
+        sigma: float | npt.ArrayLike,
+        *,
+        g_sensitivity: bool = False,
+        name: str = "imu.gyro",
+    ) -> None:
+        """Create the block.
+
+        Args:
+            knots: knot vector of the trajectory splines.
+            t_s: (N,) sample times, IMU-clock seconds relative to the reference time.
+            gyro: (N, 3) gyro readings, rad/s.
+            sigma: discrete noise standard deviation, rad/s (scalar or (3,) per axis).
+            g_sensitivity: include the ``A_w a_I`` term.
+            name: residual block name.
+
+        Raises:
+            ValueError: on shape mismatches, a bad sigma or times outside the spline range.
+        """
+        self.name = name
+        self.knots = knots
+        self.t_s, self.gyro = _check_samples(t_s, gyro, "gyro")
+        knots.locate(self.t_s)  # range check
+        self.inv_sigma = _per_axis_inverse(sigma, "gyro")
+        self.g_sensitivity = g_sensitivity
+        self._zeros = np.zeros((self.t_s.shape[0], 1), dtype=np.intp)
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
+
+    def evaluate(self, params: Mapping[str, F64], jacobians: bool = True) -> ResidualEval:
+        """Whitened residuals (N, 3) and their Jacobians (see :class:`GyroResidual`)."""
+        n = self.t_s.shape[0]
+        ev = SO3Spline(self.knots, params[TRAJ_SO3]).evaluate(
+            self.t_s, order=1, jacobians=jacobians
+        )
+        assert ev.angular_velocity is not None
+        use_gs = self.g_sensitivity and GYRO_G_SENSITIVITY in params
+        sf = None
+        pos = None
+        if use_gs:
+            pos = R3Spline(self.knots, params[TRAJ_R3]).evaluate(self.t_s, order=2)
+            assert pos.acceleration is not None
+            sf = specific_force(ev.rotation, pos.acceleration, params[GRAVITY])
+        model = gyro_model(
+            ev.angular_velocity,
+            None if sf is None else sf.value,
+            _get(params, GYRO_SCALE, np.ones(3)),
+            _get(params, GYRO_MISALIGNMENT, np.zeros(3)),
+            _get(params, GYRO_ROTATION, _IDENTITY_QUAT),
+            _get(params, GYRO_BIAS, np.zeros(3)),
+            params[GYRO_G_SENSITIVITY] if use_gs else None,
+            jacobians=jacobians,
+        )
+        w = self.inv_sigma
+        r = (model.value - self.gyro) * w
+        if not jacobians:
+            return ResidualEval(r)
+        assert ev.jac_angular_velocity is not None and ev.jac_rotation is not None
+        dw = w[:, None] * model.d_omega  # (3, 3) whitened
+        j_so3 = np.einsum("ij,nkjl->nikl", dw, ev.jac_angular_velocity, optimize=True)
+        elements = ev.index[:, None] + _OFFSETS
+        jacs: list[DenseJacobian] = [DenseJacobian(TRAJ_SO3, elements, j_so3)]
+        if use_gs:
+            assert sf is not None and pos is not None and pos.acceleration_weights is not None
+            da = w[:, None] * model.d_accel  # A_w, whitened
+            j_so3 += np.einsum(
+                "ij,njm,nkml->nikl", da, sf.d_rotation, ev.jac_rotation, optimize=True
+            )
+            a_rt = np.einsum("ij,njl->nil", da, sf.d_acceleration)  # (n, 3, 3)
+            if TRAJ_R3 in params:
+                j_r3 = a_rt[:, :, None, :] * pos.acceleration_weights[:, None, :, None]
+                jacs.append(DenseJacobian(TRAJ_R3, elements, j_r3))
+            if GRAVITY in params:
+                j_g = -(a_rt @ s2_retraction_jacobian(params[GRAVITY]))[:, :, None, :]
+                jacs.append(DenseJacobian(GRAVITY, self._zeros, j_g))
+            assert model.d_g_sensitivity is not None
+            jacs.append(
+                DenseJacobian(
+                    GYRO_G_SENSITIVITY,
+                    self._zeros,
+                    (model.d_g_sensitivity * w[None, :, None])[:, :, None, :],
+                )
+            )
+        if GYRO_BIAS in params:
+            jacs.append(DenseJacobian(GYRO_BIAS, self._zeros, _bias_jacobian(n, w)))
+        for block, d in (
+            (GYRO_SCALE, model.d_scale),
+            (GYRO_MISALIGNMENT, model.d_misalignment),
+            (GYRO_ROTATION, model.d_rotation),
+        ):
+            if block in params:
+                assert d is not None
+                jacs.append(
+                    DenseJacobian(block, self._zeros, (d * w[None, :, None])[:, :, None, :])
+                )
+        return ResidualEval(r, tuple(jacs))
+
+
+class AccelResidual:
+    """Accelerometer residuals ``(S_a M_a R(t)^T (p_ddot(t) - g) + b_a - a_m) / sigma_a``.
+
+    Touches ``traj.so3`` and ``traj.r3`` (4 control points each per sample), ``gravity``,
+    ``imu.accel_bias``, ``imu.accel_scale`` and ``imu.accel_misalignment``.
+    """
+
+    def __init__(
+        self,
+        knots: UniformKnots,
+        t_s: npt.ArrayLike,
+        accel: npt.ArrayLike,
+        sigma: float | npt.ArrayLike,
+        *,
+        name: str = "imu.accel",
+    ) -> None:
+        """Create the block.
+
+        Args:
+            knots: knot vector of the trajectory splines.
+            t_s: (N,) sample times, IMU-clock seconds relative to the reference time.
+            accel: (N, 3) accelerometer readings, m/s^2.
+            sigma: discrete noise standard deviation, m/s^2 (scalar or (3,) per axis).
+            name: residual block name.
+
+        Raises:
+            ValueError: on shape mismatches, a bad sigma or times outside the spline range.
+        """
+        self.name = name
+        self.knots = knots
+        self.t_s, self.accel = _check_samples(t_s, accel, "accelerometer")
+        knots.locate(self.t_s)
+        self.inv_sigma = _per_axis_inverse(sigma, "accelerometer")
+        self._zeros = np.zeros((self.t_s.shape[0], 1), dtype=np.intp)
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
+
+    def evaluate(self, params: Mapping[str, F64], jacobians: bool = True) -> ResidualEval:
+        """Whitened residuals (N, 3) and their Jacobians (see :class:`AccelResidual`)."""
+        n = self.t_s.shape[0]
+        ev = SO3Spline(self.knots, params[TRAJ_SO3]).evaluate(
+            self.t_s, order=0, jacobians=jacobians
+        )
+        pos = R3Spline(self.knots, params[TRAJ_R3]).evaluate(self.t_s, order=2)
+        assert pos.acceleration is not None
+        sf = specific_force(ev.rotation, pos.acceleration, params[GRAVITY])
+        model = accel_model(
+            sf.value,
+            _get(params, ACCEL_SCALE, np.ones(3)),
+            _get(params, ACCEL_MISALIGNMENT, np.zeros(3)),
+            _get(params, ACCEL_BIAS, np.zeros(3)),
+            jacobians=jacobians,
+        )
+        w = self.inv_sigma
+        r = (model.value - self.accel) * w
+        if not jacobians:
+            return ResidualEval(r)
+        assert ev.jac_rotation is not None and pos.acceleration_weights is not None
+        k = w[:, None] * model.d_accel  # whitened S_a M_a
+        elements = ev.index[:, None] + _OFFSETS
+        j_so3 = np.einsum("ij,njm,nkml->nikl", k, sf.d_rotation, ev.jac_rotation, optimize=True)
+        k_rt = np.einsum("ij,njl->nil", k, sf.d_acceleration)  # (n, 3, 3)
+        j_r3 = k_rt[:, :, None, :] * pos.acceleration_weights[:, None, :, None]
+        jacs: list[DenseJacobian] = [
+            DenseJacobian(TRAJ_SO3, elements, j_so3),
+            DenseJacobian(TRAJ_R3, elements, j_r3),
+        ]
+        if GRAVITY in params:
+            j_g = -(k_rt @ s2_retraction_jacobian(params[GRAVITY]))[:, :, None, :]
+            jacs.append(DenseJacobian(GRAVITY, self._zeros, j_g))
+        if ACCEL_BIAS in params:
+            jacs.append(DenseJacobian(ACCEL_BIAS, self._zeros, _bias_jacobian(n, w)))
+        for block, d in ((ACCEL_SCALE, model.d_scale), (ACCEL_MISALIGNMENT, model.d_misalignment)):
+            if block in params:
+                assert d is not None
+                jacs.append(
+                    DenseJacobian(block, self._zeros, (d * w[None, :, None])[:, :, None, :])
+                )
+        return ResidualEval(r, tuple(jacs))
+
+
+def _bias_jacobian(n: int, w: F64) -> F64:
+    """(n, 3, 1, 3) whitened identity."""
+    return np.broadcast_to(np.diag(w)[None, :, None, :], (n, 3, 1, 3)).copy()

@@ -1,0 +1,205 @@
+"""Point-to-plane residual block (method.md section 4, paper eq. point2planedis).
+
+For point ``k`` with raw measurement ``(beam, rho, theta)``, LiDAR time ``tau_k`` (LiDAR-clock
+seconds relative to the problem's reference time) and associated plane ``n^T x + d = 0`` in
+``{G}`` (held fixed within an optimisation round)::
+
+    p_L = lidar_point(intrinsics, beam, rho, theta)
+    t   = tau_k + t_c
+    p_G = R(t) (R_IL p_L + t_IL) + p(t)
+    r   = (n^T p_G + d) / sigma_k
+
+One scalar robust-loss group per point (use the solver's Huber loss). Jacobians: ``traj.so3``
+and ``traj.r3`` (4 control points around ``t``), ``ext.rotation`` (right perturbation of
+``R_IL``), ``ext.translation``, ``ext.time_offset`` (``n^T (R hat(w) p_I + v)``) and
+``lidar.intrinsics`` (the 6 coordinates of the point's own beam).
+
+If a time-offset step moves a query time outside the spline range, that point's residual is
+``inf`` so that the solver rejects the step (the builder checks the initial state).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+
+import numpy as np
+import numpy.typing as npt
+
+from licalib_cli.geometry.so3 import quat_to_matrix
+from licalib_cli.models.lidar import NUM_BEAM_INTRINSICS, lidar_point_terms, point_to_plane
+from licalib_cli.residuals import (
+    EXT_ROTATION,
+    EXT_TRANSLATION,
+    LIDAR_INTRINSICS,
+    TIME_OFFSET,
+    TRAJ_R3,
+    TRAJ_SO3,
+)
+from licalib_cli.solver.problem import DenseJacobian, ResidualEval
+from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
+
+__all__ = ["PointToPlaneResidual"]
+
+F64 = npt.NDArray[np.float64]
+
+logger = logging.getLogger(__name__)
+
+_OFFSETS = np.arange(4, dtype=np.intp)
+
+
+class PointToPlaneResidual:
+    """Whitened signed distances of LiDAR points to their associated planes in ``{G}``."""
+
+    def __init__(
+        self,
+        knots: UniformKnots,
+        t_lidar_s: npt.ArrayLike,
+        beam: npt.ArrayLike,
+        rho: npt.ArrayLike,
+        theta: npt.ArrayLike,
+        normal: npt.ArrayLike,
+        offset: npt.ArrayLike,
+        sigma: float | npt.ArrayLike,
+        nominal_elevation: npt.ArrayLike,
+        *,
+        name: str = "lidar.point_to_plane",
+    ) -> None:
+        """Create the block.
+
+        Args:
+            knots: knot vector of the trajectory splines.
+            t_lidar_s: (N,) point times ``tau_k``, LiDAR-clock seconds relative to the reference.
+            beam: (N,) beam index of each point, in ``[0, B)``.
+            rho: (N,) raw range, m.
+            theta: (N,) raw azimuth, rad.
+            normal: (N, 3) unit normal of each point's plane, ``{G}``.
+            offset: (N,) offset ``d`` of each point's plane, m.
+            sigma: (N,) or scalar standard deviation of the distance, m (e.g. the range noise,
+                a conservative bound: the distance noise is the range noise times the cosine of
+                the incidence angle).
+            nominal_elevation: (B,) nominal beam elevations ``phi_i``, rad.
+            name: residual block name.
+
+        Raises:
+            ValueError: on inconsistent shapes, beam indices out of range or bad sigmas.
+        """
+        self.name = name
+        self.knots = knots
+        self.t_s = np.ascontiguousarray(t_lidar_s, dtype=np.float64).reshape(-1)
+        n = self.t_s.shape[0]
+        self.beam = np.ascontiguousarray(beam, dtype=np.intp).reshape(-1)
+        self.rho = np.ascontiguousarray(rho, dtype=np.float64).reshape(-1)
+        self.theta = np.ascontiguousarray(theta, dtype=np.float64).reshape(-1)
+        self._cos_sin_theta = (np.cos(self.theta), np.sin(self.theta))
+        self.normal = np.ascontiguousarray(normal, dtype=np.float64)
+        self.offset = np.ascontiguousarray(offset, dtype=np.float64).reshape(-1)
+        self.nominal_elevation = np.ascontiguousarray(nominal_elevation, dtype=np.float64)
+        sig = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (n,))
+        if not (
+            self.beam.shape == self.rho.shape == self.theta.shape == self.offset.shape == (n,)
+            and self.normal.shape == (n, 3)
+        ):
+            msg = (
+                "point arrays disagree in length "
+                "(need t, beam, rho, theta, offset (N,) and normal (N, 3))"
+            )
+            raise ValueError(msg)
+        if n and (self.beam.min() < 0 or self.beam.max() >= self.nominal_elevation.shape[0]):
+            msg = f"beam indices must lie in [0, {self.nominal_elevation.shape[0]})"
+            raise ValueError(msg)
+        if not np.all(np.isfinite(sig) & (sig > 0.0)):
+            msg = "point-to-plane sigmas must be positive and finite"
+            raise ValueError(msg)
+        self.inv_sigma = 1.0 / sig
+        self._zeros = np.zeros((n, 1), dtype=np.intp)
+        self._beam_elements = self.beam[:, None].copy()
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
+
+    def query_times(self, time_offset_s: float) -> F64:
+        """(N,) IMU-clock query times ``tau_k + t_c``, seconds."""
+        return self.t_s + time_offset_s
+
+    def distances(self, params: Mapping[str, F64]) -> F64:
+        """(N,) signed point-to-plane distances in metres (not whitened)."""
+        ev = self.evaluate(params, jacobians=False)
+        return ev.residuals[:, 0] / self.inv_sigma
+
+    def evaluate(self, params: Mapping[str, F64], jacobians: bool = True) -> ResidualEval:
+        """Whitened residuals (N, 1) and their Jacobians (see the module docstring)."""
+        n = self.t_s.shape[0]
+        tc = float(np.asarray(params.get(TIME_OFFSET, 0.0)).reshape(-1)[0])
+        t = self.t_s + tc
+        inside = self.knots.contains(t)
+        all_inside = bool(np.all(inside))
+        if not all_inside:
+            logger.debug("%d point times outside the spline range", n - int(inside.sum()))
+            t = np.clip(t, self.knots.t0_s, self.knots.t_end_s)
+        intr = params.get(LIDAR_INTRINSICS)
+        if intr is None:
+            intr = np.zeros((self.nominal_elevation.shape[0], NUM_BEAM_INTRINSICS))
+            intr[:, 4] = 1.0
+        want_time = jacobians and TIME_OFFSET in params
+        terms = lidar_point_terms(
+            self.nominal_elevation,
+            np.asarray(intr, dtype=np.float64).reshape(-1, NUM_BEAM_INTRINSICS),
+            self.beam,
+            self.rho,
+            self.theta,
+            self._cos_sin_theta,
+        )
+        rot_ev = SO3Spline(self.knots, params[TRAJ_SO3]).evaluate(
+            t, order=1 if want_time else 0, jacobians=jacobians
+        )
+        pos_ev = R3Spline(self.knots, params[TRAJ_R3]).evaluate(t, order=1 if want_time else 0)
+        geo = point_to_plane(
+            rot_ev.rotation,
+            pos_ev.position,
+            quat_to_matrix(params[EXT_ROTATION]),
+            np.asarray(params[EXT_TRANSLATION], dtype=np.float64),
+            terms.point,
+            self.normal,
+            self.offset,
+            rot_ev.angular_velocity,
+            pos_ev.velocity,
+        )
+        w = self.inv_sigma
+        r = geo.distance * w
+        if not all_inside:
+            r = np.where(inside, r, np.inf)
+        if not jacobians:
+            return ResidualEval(r[:, None])
+        assert rot_ev.jac_rotation is not None
+        elements = rot_ev.index[:, None] + _OFFSETS
+        d_rot = geo.d_rotation * w[:, None]
+        j_so3 = np.einsum("ni,nkil->nkl", d_rot, rot_ev.jac_rotation, optimize=True)[:, None]
+        j_r3 = (pos_ev.weights * w[:, None])[:, None, :, None] * self.normal[:, None, None, :]
+        jacs: list[DenseJacobian] = [
+            DenseJacobian(TRAJ_SO3, elements, j_so3),
+            DenseJacobian(TRAJ_R3, elements, j_r3),
+        ]
+        if EXT_ROTATION in params:
+            jacs.append(
+                DenseJacobian(
+                    EXT_ROTATION, self._zeros, (geo.d_ext_rotation * w[:, None])[:, None, None]
+                )
+            )
+        if EXT_TRANSLATION in params:
+            jacs.append(
+                DenseJacobian(
+                    EXT_TRANSLATION,
+                    self._zeros,
+                    (geo.d_ext_translation * w[:, None])[:, None, None],
+                )
+            )
+        if want_time:
+            assert geo.d_time is not None
+            jacs.append(
+                DenseJacobian(TIME_OFFSET, self._zeros, (geo.d_time * w)[:, None, None, None])
+            )
+        if LIDAR_INTRINSICS in params:
+            d_int = terms.vjp(geo.d_point * w[:, None])
+            jacs.append(DenseJacobian(LIDAR_INTRINSICS, self._beam_elements, d_int[:, None, None]))
+        return ResidualEval(r[:, None], tuple(jacs))

@@ -1,0 +1,344 @@
+"""Calibration state <-> parameter blocks, the problem builder, and two synthetic recoveries:
+IMU intrinsics on a known trajectory, and the LiDAR-IMU extrinsic and time offset with known
+planes."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from licalib_cli.estimation import (
+    CalibrationState,
+    FreeParameters,
+    ImuData,
+    LidarPoints,
+    NoiseModel,
+    Planes,
+    build_problem,
+    parameter_blocks,
+    state_from_problem,
+    state_from_values,
+    state_to_values,
+)
+from licalib_cli.geometry.so3 import exp as so3_exp
+from licalib_cli.geometry.so3 import log as so3_log
+from licalib_cli.geometry.so3 import quat_exp, quat_to_matrix
+from licalib_cli.measurements import ImuSamples
+from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics, imu_measure
+from licalib_cli.models.lidar import intrinsics_to_array
+from licalib_cli.residuals import (
+    EXT_ROTATION,
+    GYRO_G_SENSITIVITY,
+    LIDAR_INTRINSICS,
+    TIME_OFFSET,
+    TRAJ_R3,
+    TRAJ_SO3,
+    GaussianPrior,
+)
+from licalib_cli.solver import LMParams, solve
+from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
+
+GRAVITY = np.array([0.0, 0.0, -9.81])
+BEAMS = np.deg2rad(np.linspace(-15.0, 15.0, 16))
+
+
+def _true_splines(duration: float, dt: float) -> tuple[SO3Spline, R3Spline]:
+    """Splines fitted to a smooth analytic trajectory with rotation about every axis."""
+    knots = UniformKnots.for_interval(0.0, duration, dt)
+    t = np.linspace(0.0, knots.t_end_s, int(knots.t_end_s * 200) + 1)
+    f = 2.0 * np.pi
+    rotvec = np.column_stack(
+        [
+            0.5 * np.sin(f * 0.31 * t),
+            0.4 * np.sin(f * 0.23 * t + 1.0),
+            0.8 * np.sin(f * 0.17 * t + 2.0),
+        ]
+    )
+    pos = np.column_stack(
+        [
+            2.0 * np.sin(f * 0.2 * t),
+            1.5 * np.sin(f * 0.27 * t + 0.5),
+            0.5 * np.sin(f * 0.35 * t),
+        ]
+    )
+    return SO3Spline.from_rotations(knots, t, so3_exp(rotvec)), R3Spline.fit(knots, t, pos)
+
+
+def _imu(
+    so3: SO3Spline,
+    r3: R3Spline,
+    intr: ImuIntrinsics,
+    rate: float,
+    sigmas: tuple[float, float],
+    rng: np.random.Generator,
+) -> ImuData:
+    t = np.arange(0.0, so3.knots.t_end_s, 1.0 / rate)
+    ev = so3.evaluate(t, order=1)
+    assert ev.angular_velocity is not None
+    a_i = np.einsum("nji,nj->ni", ev.rotation, r3.acceleration(t) - GRAVITY)
+    gyro, accel = imu_measure(intr, ev.angular_velocity, a_i)
+    gyro = gyro + sigmas[0] * rng.standard_normal(gyro.shape)
+    accel = accel + sigmas[1] * rng.standard_normal(accel.shape)
+    return ImuData(t, gyro, accel)
+
+
+def _state(so3: SO3Spline, r3: R3Spline, **kw: object) -> CalibrationState:
+    args: dict[str, object] = dict(
+        so3_spline=so3,
+        r3_spline=r3,
+        gyro_bias=np.zeros(3),
+        accel_bias=np.zeros(3),
+        gravity_G=GRAVITY,
+        R_imu_lidar=np.eye(3),
+        t_imu_lidar=np.zeros(3),
+        time_offset_s=0.0,
+        lidar_intrinsics=LidarIntrinsics.nominal(BEAMS),
+        t0_ns=1_000_000_000,
+    )
+    args.update(kw)
+    return CalibrationState(**args)  # type: ignore[arg-type]
+
+
+# ----------------------------------------------------------------------------- conversions
+
+
+def test_state_values_round_trip() -> None:
+    rng = np.random.default_rng(0)
+    so3, r3 = _true_splines(1.0, 0.1)
+    intr = ImuIntrinsics(
+        gyro_scale=np.array([1.01, 0.99, 1.0]),
+        gyro_rotation=quat_exp([0.01, 0.02, -0.01]),
+        gyro_g_sensitivity=1e-3 * rng.standard_normal((3, 3)),
+    )
+    lidar = LidarIntrinsics.nominal(BEAMS).with_(range_offset=0.01 * rng.standard_normal(16))
+    state = _state(
+        so3,
+        r3,
+        imu_intrinsics=intr,
+        lidar_intrinsics=lidar,
+        time_offset_s=0.003,
+        R_imu_lidar=so3_exp(np.array([0.1, 0.2, 0.3])),
+        t_imu_lidar=np.ones(3),
+    )
+    values = state_to_values(state)
+    assert GYRO_G_SENSITIVITY in values  # non-zero g-sensitivity is kept
+    back = state_from_values(state, values)
+    np.testing.assert_allclose(back.R_imu_lidar, state.R_imu_lidar, atol=1e-14)
+    np.testing.assert_allclose(back.imu_intrinsics.gyro_g_sensitivity, intr.gyro_g_sensitivity)
+    np.testing.assert_allclose(back.lidar_intrinsics.range_offset, lidar.range_offset)
+    np.testing.assert_allclose(back.so3_spline.control_quats, so3.control_quats, atol=1e-15)
+    assert back.time_offset_s == 0.003 and back.t0_ns == state.t0_ns
+    # changing one block changes only that field
+    moved = state_from_values(state, {TIME_OFFSET: np.array([0.01])})
+    assert moved.time_offset_s == 0.01
+    np.testing.assert_array_equal(moved.t_imu_lidar, state.t_imu_lidar)
+    # biases are authoritative in the state and copied into the intrinsics
+    b = _state(so3, r3, gyro_bias=np.array([0.1, 0.2, 0.3]))
+    np.testing.assert_array_equal(b.imu_intrinsics.gyro_bias, [0.1, 0.2, 0.3])
+
+
+def test_parameter_blocks_gauge_and_weak_beams() -> None:
+    so3, r3 = _true_splines(1.0, 0.1)
+    state = _state(so3, r3)
+    counts = np.full(16, 500)
+    counts[0] = 3  # too few points: fixed, the gauge moves to beam 1
+    counts[7] = 10
+    blocks = {
+        b.name: b
+        for b in parameter_blocks(
+            state, FreeParameters(lidar_intrinsics=True, imu_intrinsics=True), beam_counts=counts
+        )
+    }
+    fixed = blocks[LIDAR_INTRINSICS].fixed_mask.reshape(16, 6)
+    assert fixed[0].all() and fixed[7].all()
+    np.testing.assert_array_equal(fixed[1], [True, True, True, True, False, False])
+    assert not fixed[2:7].any() and not fixed[8:].any()
+    assert blocks[LIDAR_INTRINSICS].coord_names[6 * 3 + 5] == "lidar.intrinsics[3].drho"
+    assert GYRO_G_SENSITIVITY not in blocks
+    groups = {name: b.group for name, b in blocks.items()}
+    assert groups[TRAJ_SO3] == groups[TRAJ_R3] == groups["gravity"] == "trajectory"
+    assert groups[EXT_ROTATION] == groups[TIME_OFFSET] == "calibration"
+    # intrinsics not asked for: every beam fixed
+    blocks2 = {b.name: b for b in parameter_blocks(state, beam_counts=counts)}
+    assert blocks2[LIDAR_INTRINSICS].num_free == 0
+    assert blocks2["imu.gyro_scale"].num_free == 0
+
+
+def test_imu_only_free_trajectory_holds_the_gauge() -> None:
+    so3, r3 = _true_splines(1.0, 0.1)
+    state = _state(so3, r3)
+    imu = ImuData(np.linspace(0.0, 0.9, 10), np.zeros((10, 3)), np.zeros((10, 3)))
+    problem = build_problem(state, imu, None, None)
+    so3_fixed = problem[TRAJ_SO3].fixed_mask
+    r3_fixed = problem[TRAJ_R3].fixed_mask
+    assert so3_fixed[:3].all() and not so3_fixed[3:].any()
+    assert r3_fixed[:6].all() and not r3_fixed[6:].any()
+    pts = LidarPoints(
+        np.array([0.5]), np.array([0]), np.array([5.0]), np.zeros(1), np.zeros(1, int)
+    )
+    planes = Planes(np.array([[0.0, 0.0, 1.0]]), np.array([1.0]))
+    with_lidar = build_problem(state, imu, pts, planes)
+    assert with_lidar[TRAJ_SO3].num_free == with_lidar[TRAJ_SO3].size
+
+
+def test_build_problem_checks_spline_coverage() -> None:
+    so3, r3 = _true_splines(1.0, 0.1)
+    state = _state(so3, r3, time_offset_s=0.02)
+    t_end = state.knots.t_end_s
+    imu = ImuData(np.array([0.0, 0.5]), np.zeros((2, 3)), np.zeros((2, 3)))
+    planes = Planes(np.array([[0.0, 0.0, 1.0]]), np.array([1.0]))
+    pts = LidarPoints(
+        np.array([0.1, t_end - 0.01]),
+        np.array([0, 1]),
+        np.array([5.0, 5.0]),
+        np.zeros(2),
+        np.zeros(2, int),
+    )
+    with pytest.raises(ValueError, match="tau \\+ time offset"):
+        build_problem(state, imu, pts, planes)
+    late = ImuData(np.array([0.0, t_end + 0.1]), np.zeros((2, 3)), np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="IMU sample times"):
+        build_problem(state, late, None, None)
+    with pytest.raises(ValueError, match="need their planes"):
+        build_problem(state.with_(time_offset_s=0.0), imu, pts, None)
+    ok = build_problem(state.with_(time_offset_s=0.0), imu, pts, planes)
+    assert [r.name for r in ok.residual_blocks] == ["imu.gyro", "imu.accel", "lidar.point_to_plane"]
+
+
+def test_imu_data_from_samples() -> None:
+    samples = ImuSamples(
+        np.array([1_000_000_000, 1_002_500_000], np.int64), np.ones((2, 3)), np.ones((2, 3))
+    )
+    data = ImuData.from_samples(samples, 1_000_000_000)
+    np.testing.assert_allclose(data.t_s, [0.0, 0.0025], atol=1e-15)
+
+
+# ----------------------------------------------------------------------------- recoveries
+
+
+def test_imu_only_recovers_intrinsics_and_biases() -> None:
+    rng = np.random.default_rng(1)
+    so3, r3 = _true_splines(8.0, 0.05)
+    truth = ImuIntrinsics(
+        gyro_scale=np.array([1.01, 0.99, 1.005]),
+        gyro_misalignment=np.array([0.01, -0.005, 0.008]),
+        gyro_rotation=quat_exp([0.01, -0.02, 0.015]),
+        accel_scale=np.array([0.98, 1.02, 1.01]),
+        accel_misalignment=np.array([-0.01, 0.004, 0.006]),
+        gyro_bias=np.array([0.01, -0.02, 0.005]),
+        accel_bias=np.array([0.1, -0.05, 0.2]),
+    )
+    sig = (1e-4, 1e-3)
+    imu = _imu(so3, r3, truth, 200.0, sig, rng)
+    state = _state(so3, r3)  # identity intrinsics, zero biases
+    free = FreeParameters(
+        trajectory=False,
+        gravity=False,
+        extrinsic_rotation=False,
+        extrinsic_translation=False,
+        time_offset=False,
+        imu_intrinsics=True,
+    )
+    problem = build_problem(state, imu, None, None, NoiseModel(sig[0], sig[1]), free)
+    report = solve(problem, LMParams(max_iterations=30))
+    assert report.converged, report.reason
+    est = state_from_problem(state, problem)
+    k = est.imu_intrinsics
+    np.testing.assert_allclose(k.gyro_scale, truth.gyro_scale, atol=1e-4)
+    np.testing.assert_allclose(k.accel_scale, truth.accel_scale, atol=1e-4)
+    np.testing.assert_allclose(k.gyro_misalignment, truth.gyro_misalignment, atol=1e-4)
+    np.testing.assert_allclose(k.accel_misalignment, truth.accel_misalignment, atol=1e-4)
+    rot_err = so3_log(quat_to_matrix(truth.gyro_rotation).T @ quat_to_matrix(k.gyro_rotation))
+    assert np.linalg.norm(rot_err) < 1e-4
+    np.testing.assert_allclose(est.gyro_bias, truth.gyro_bias, atol=1e-5)
+    np.testing.assert_allclose(est.accel_bias, truth.accel_bias, atol=1e-3)
+    assert 0.5 < report.variance_factor < 1.5  # residuals at the noise level
+
+
+@dataclass(frozen=True)
+class _Room:
+    planes: Planes
+    points: LidarPoints
+
+
+def _room_planes() -> Planes:
+    """Box room in {G}: floor, ceiling and four walls, ``n^T x + d = 0``."""
+    normal = np.array(
+        [[0, 0, 1], [0, 0, -1], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]], dtype=float
+    )
+    offset = np.array([1.5, 3.0, 6.0, 7.0, 5.0, 4.5])
+    return Planes(normal, offset)
+
+
+def _scan_room(
+    so3: SO3Spline,
+    r3: R3Spline,
+    R_il: np.ndarray,
+    t_il: np.ndarray,
+    tc: float,
+    n: int,
+    range_sigma: float,
+    rng: np.random.Generator,
+) -> _Room:
+    planes = _room_planes()
+    t_end = so3.knots.t_end_s
+    tau = np.sort(rng.uniform(0.3, t_end - 0.3, n))
+    beam = rng.integers(0, BEAMS.shape[0], n)
+    theta = rng.uniform(-np.pi, np.pi, n)
+    phi = BEAMS[beam]
+    u_l = np.column_stack([np.cos(phi) * np.cos(theta), np.cos(phi) * np.sin(theta), np.sin(phi)])
+    t = tau + tc
+    rot = so3.rotation(t)
+    origin = np.einsum("nij,j->ni", rot, t_il) + r3.position(t)
+    u_g = np.einsum("nij,nj->ni", rot @ R_il, u_l)
+    num = -(origin @ planes.normal.T + planes.offset)  # (n, P)
+    den = u_g @ planes.normal.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(den != 0.0, num / den, np.inf)
+    s = np.where(s > 0.0, s, np.inf)
+    plane = np.argmin(s, axis=1)
+    rho = s[np.arange(n), plane] + range_sigma * rng.standard_normal(n)
+    return _Room(planes, LidarPoints(tau, beam, rho, theta, plane))
+
+
+def test_lidar_imu_recovers_extrinsic_and_time_offset() -> None:
+    rng = np.random.default_rng(2)
+    so3, r3 = _true_splines(6.0, 0.05)
+    R_true = so3_exp(np.deg2rad([30.0, -20.0, 95.0]))
+    t_true = np.array([0.12, -0.05, 0.2])
+    tc_true = 0.005
+    sig = (2e-4, 2e-3)
+    imu = _imu(so3, r3, ImuIntrinsics(), 200.0, sig, rng)
+    room = _scan_room(so3, r3, R_true, t_true, tc_true, 20_000, 0.002, rng)
+    state = _state(
+        so3,
+        r3,
+        R_imu_lidar=R_true @ so3_exp(np.deg2rad([2.0, -3.0, 1.5])),
+        t_imu_lidar=t_true + np.array([0.03, -0.04, 0.02]),
+        time_offset_s=0.0,
+    )
+    noise = NoiseModel(sig[0], sig[1], range_sigma=0.002)
+    problem = build_problem(state, imu, room.points, room.planes, noise)
+    report = solve(problem, LMParams(max_iterations=40))
+    assert report.converged, report.reason
+    est = state_from_problem(state, problem)
+    rot_err_deg = np.rad2deg(np.linalg.norm(so3_log(R_true.T @ est.R_imu_lidar)))
+    assert rot_err_deg < 0.01
+    assert np.linalg.norm(est.t_imu_lidar - t_true) < 1e-3
+    assert abs(est.time_offset_s - tc_true) < 5e-5
+    assert report.truncated == ()
+    # the reported standard deviations are consistent with the errors (about 0.2-0.4 mm here)
+    std_t = np.array([report.std_of(f"ext.translation.{a}") for a in "xyz"])
+    assert np.all(std_t < 5e-4)
+    assert np.all(np.abs(est.t_imu_lidar - t_true) < 4.0 * std_t)
+
+
+def test_lidar_intrinsics_prior_enters_problem() -> None:
+    so3, r3 = _true_splines(1.0, 0.1)
+    state = _state(so3, r3)
+    prior = GaussianPrior(LIDAR_INTRINSICS, intrinsics_to_array(state.lidar_intrinsics), 1e-2)
+    problem = build_problem(state, None, None, None, extra_residuals=[prior])
+    ev = problem.evaluate(jacobians=False)
+    assert ev.cost == 0.0 and ev.num_residuals == 16 * 6

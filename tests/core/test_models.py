@@ -1,0 +1,259 @@
+"""Sensor models: forward values against the contract models, analytic Jacobians against central
+finite differences (relative error < 1e-6)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from licalib_cli.geometry.so3 import exp as so3_exp
+from licalib_cli.geometry.so3 import quat_exp, quat_multiply
+from licalib_cli.models.imu import accel_model, gyro_model, specific_force
+from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics, imu_measure, lidar_point
+from licalib_cli.models.lidar import (
+    PointToPlaneGeometry,
+    intrinsics_from_array,
+    intrinsics_to_array,
+    lidar_point_terms,
+    lidar_point_with_jacobian,
+    point_to_plane,
+)
+from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
+
+EPS = 1e-6
+RTOL = 1e-6
+ZERO3 = np.zeros(3)
+
+
+def _fd(f: Callable[[np.ndarray], np.ndarray], x: np.ndarray, eps: float = EPS) -> np.ndarray:
+    """Central differences of f (returning (..., k)) w.r.t. each coordinate of x.
+
+    Returns (..., k, len(x)).
+    """
+    cols = []
+    for j in range(x.size):
+        d = np.zeros_like(x)
+        d[j] = eps
+        cols.append((f(x + d) - f(x - d)) / (2 * eps))
+    return np.stack(cols, axis=-1)
+
+
+def _rel(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.linalg.norm(a - b) / max(np.linalg.norm(b), 1e-300))
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(7)
+
+
+def _random_imu_intrinsics(rng: np.random.Generator) -> ImuIntrinsics:
+    return ImuIntrinsics(
+        gyro_scale=1.0 + 0.05 * rng.standard_normal(3),
+        gyro_misalignment=0.02 * rng.standard_normal(3),
+        gyro_rotation=quat_exp(0.03 * rng.standard_normal(3)),
+        accel_scale=1.0 + 0.05 * rng.standard_normal(3),
+        accel_misalignment=0.02 * rng.standard_normal(3),
+        gyro_g_sensitivity=1e-3 * rng.standard_normal((3, 3)),
+        gyro_bias=0.01 * rng.standard_normal(3),
+        accel_bias=0.1 * rng.standard_normal(3),
+    )
+
+
+def test_imu_models_match_contract_forward_model(rng: np.random.Generator) -> None:
+    k = _random_imu_intrinsics(rng)
+    omega = rng.standard_normal((20, 3))
+    accel = rng.standard_normal((20, 3)) * 5.0
+    g_ref, a_ref = imu_measure(k, omega, accel)
+    g = gyro_model(
+        omega,
+        accel,
+        k.gyro_scale,
+        k.gyro_misalignment,
+        k.gyro_rotation,
+        k.gyro_bias,
+        k.gyro_g_sensitivity.reshape(9),
+    )
+    a = accel_model(accel, k.accel_scale, k.accel_misalignment, k.accel_bias)
+    np.testing.assert_allclose(g.value, g_ref, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(a.value, a_ref, rtol=0, atol=1e-13)
+
+
+def test_gyro_model_jacobians(rng: np.random.Generator) -> None:
+    k = _random_imu_intrinsics(rng)
+    omega = rng.standard_normal((6, 3))
+    accel = rng.standard_normal((6, 3)) * 5.0
+    gs = k.gyro_g_sensitivity.reshape(9)
+    m = gyro_model(
+        omega, accel, k.gyro_scale, k.gyro_misalignment, k.gyro_rotation, k.gyro_bias, gs
+    )
+
+    def pred(**kw: np.ndarray) -> np.ndarray:
+        args = dict(
+            omega=omega,
+            accel=accel,
+            scale=k.gyro_scale,
+            misalignment=k.gyro_misalignment,
+            rotation=k.gyro_rotation,
+            bias=k.gyro_bias,
+            g_sensitivity=gs,
+        )
+        args.update(kw)
+        return gyro_model(**args, jacobians=False).value  # type: ignore[arg-type]
+
+    assert _rel(m.d_scale, _fd(lambda x: pred(scale=x), k.gyro_scale)) < RTOL
+    assert _rel(m.d_misalignment, _fd(lambda x: pred(misalignment=x), k.gyro_misalignment)) < RTOL
+    rot = _fd(lambda x: pred(rotation=quat_multiply(k.gyro_rotation, quat_exp(x))), np.zeros(3))
+    assert _rel(m.d_rotation, rot) < RTOL
+    assert _rel(m.d_g_sensitivity, _fd(lambda x: pred(g_sensitivity=x), gs)) < RTOL
+    # rate and specific-force derivatives (same for every sample)
+    d_om = _fd(lambda x: pred(omega=np.broadcast_to(x, (6, 3)))[0], omega[0])
+    assert _rel(np.broadcast_to(m.d_omega, (3, 3)), d_om) < RTOL
+    d_acc = _fd(lambda x: pred(accel=np.broadcast_to(x, (6, 3)))[0], accel[0])
+    assert _rel(m.d_accel, d_acc) < RTOL
+
+
+def test_accel_model_and_specific_force_jacobians(rng: np.random.Generator) -> None:
+    k = _random_imu_intrinsics(rng)
+    acc = rng.standard_normal((5, 3)) * 5.0
+    m = accel_model(acc, k.accel_scale, k.accel_misalignment, k.accel_bias)
+    f = lambda s: accel_model(acc, s, k.accel_misalignment, k.accel_bias).value  # noqa: E731
+    assert _rel(m.d_scale, _fd(f, k.accel_scale)) < RTOL
+    f = lambda x: accel_model(acc, k.accel_scale, x, k.accel_bias).value  # noqa: E731
+    assert _rel(m.d_misalignment, _fd(f, k.accel_misalignment)) < RTOL
+
+    rot = so3_exp(rng.standard_normal((5, 3)))
+    p_ddot = rng.standard_normal((5, 3))
+    g = np.array([0.3, -0.2, -9.8])
+    sf = specific_force(rot, p_ddot, g)
+    np.testing.assert_allclose(
+        sf.value, np.einsum("nji,nj->ni", rot, p_ddot - g), rtol=0, atol=1e-13
+    )
+    d_rot = _fd(lambda e: specific_force(rot @ so3_exp(e), p_ddot, g).value, np.zeros(3))
+    assert _rel(sf.d_rotation, d_rot) < RTOL
+    d_g = _fd(lambda x: specific_force(rot, p_ddot, x).value, g)
+    assert _rel(-sf.d_acceleration, d_g) < RTOL
+
+
+def _random_lidar(rng: np.random.Generator, beams: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    phi = np.deg2rad(np.linspace(-15.0, 15.0, beams))
+    values = np.column_stack(
+        [
+            1e-3 * rng.standard_normal(beams),
+            1e-3 * rng.standard_normal(beams),
+            0.01 * rng.standard_normal(beams),
+            0.01 * rng.standard_normal(beams),
+            1.0 + 1e-3 * rng.standard_normal(beams),
+            0.02 * rng.standard_normal(beams),
+        ]
+    )
+    return phi, values
+
+
+def test_lidar_point_matches_contract_and_jacobian(rng: np.random.Generator) -> None:
+    phi, values = _random_lidar(rng)
+    intr = intrinsics_from_array(phi, values)
+    np.testing.assert_array_equal(intrinsics_to_array(intr), values)
+    beam = rng.integers(0, 4, 40)
+    rho = rng.uniform(1.0, 50.0, 40)
+    theta = rng.uniform(-np.pi, np.pi, 40)
+    p, jac = lidar_point_with_jacobian(phi, values, beam, rho, theta)
+    np.testing.assert_allclose(p, lidar_point(intr, beam, rho, theta), rtol=0, atol=1e-12)
+    assert jac is not None
+    for b in range(4):
+        sel = beam == b
+
+        def f(x: np.ndarray, b: int = b, sel: np.ndarray = sel) -> np.ndarray:
+            v = values.copy()
+            v[b] = x
+            return lidar_point_with_jacobian(phi, v, beam[sel], rho[sel], theta[sel], False)[0]
+
+        assert _rel(jac[sel], _fd(f, values[b].copy())) < RTOL
+    # the vector-Jacobian product used by the residuals equals v^T J
+    v = rng.standard_normal((40, 3))
+    terms = lidar_point_terms(phi, values, beam, rho, theta, (np.cos(theta), np.sin(theta)))
+    np.testing.assert_allclose(terms.point, p, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        terms.vjp(v), np.einsum("ni,nij->nj", v, jac), rtol=1e-12, atol=1e-12
+    )
+    # the horizontal offset is perpendicular to the beam (method.md: minus sign on y)
+    zero = np.zeros((1, 6))
+    zero[0, 3], zero[0, 4] = 0.1, 1.0
+    q, _ = lidar_point_with_jacobian(
+        np.zeros(1), zero, np.zeros(1, int), np.array([10.0]), np.array([np.pi / 4]), False
+    )
+    ray = np.array([np.cos(np.pi / 4), np.sin(np.pi / 4), 0.0])
+    assert abs((q[0] - 10.0 * ray) @ ray) < 1e-12
+
+
+def test_nominal_intrinsics_round_trip() -> None:
+    intr = LidarIntrinsics.nominal(np.deg2rad([-15.0, 0.0, 15.0]))
+    arr = intrinsics_to_array(intr)
+    np.testing.assert_array_equal(arr[:, 4], 1.0)
+    back = intrinsics_from_array(intr.nominal_elevation, arr)
+    for name in ("elevation_correction", "range_scale", "range_offset", "horizontal_offset"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(intr, name))
+
+
+def test_point_to_plane_jacobians(rng: np.random.Generator) -> None:
+    knots = UniformKnots(0.0, 0.1, 12)
+    so3 = SO3Spline(knots, quat_exp(np.cumsum(0.2 * rng.standard_normal((12, 3)), axis=0)))
+    r3 = R3Spline(knots, np.cumsum(0.3 * rng.standard_normal((12, 3)), axis=0))
+    n = 10
+    t = rng.uniform(0.05, 0.85, n)
+    R_il = so3_exp(rng.standard_normal(3))
+    t_il = rng.standard_normal(3) * 0.2
+    p_l = rng.standard_normal((n, 3)) * 5.0
+    normal = rng.standard_normal((n, 3))
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    offset = rng.standard_normal(n)
+
+    def geo(
+        tt: np.ndarray,
+        rot_pert: np.ndarray = ZERO3,
+        ext: np.ndarray = ZERO3,
+        trans: np.ndarray = t_il,
+        pl: np.ndarray = p_l,
+        pos_shift: np.ndarray = ZERO3,
+    ) -> PointToPlaneGeometry:
+        rev = so3.evaluate(tt, order=1)
+        pev = r3.evaluate(tt, order=1)
+        return point_to_plane(
+            rev.rotation @ so3_exp(rot_pert),
+            pev.position + pos_shift,
+            R_il @ so3_exp(ext),
+            trans,
+            pl,
+            normal,
+            offset,
+            rev.angular_velocity,
+            pev.velocity,
+        )
+
+    g = geo(t)
+    expected = (
+        np.einsum(
+            "ni,ni->n",
+            normal,
+            np.einsum("nij,nj->ni", so3.rotation(t), p_l @ R_il.T + t_il) + r3.position(t),
+        )
+        + offset
+    )
+    np.testing.assert_allclose(g.distance, expected, rtol=0, atol=1e-12)
+    d = lambda **kw: geo(t, **kw).distance  # noqa: E731
+    pairs = [
+        (g.d_rotation, _fd(lambda x: d(rot_pert=x), np.zeros(3))),
+        (g.d_position, _fd(lambda x: d(pos_shift=x), np.zeros(3))),
+        (g.d_ext_rotation, _fd(lambda x: d(ext=x), np.zeros(3))),
+        (g.d_ext_translation, _fd(lambda x: d(trans=x), t_il.copy())),
+    ]
+    for analytic, numeric in pairs:
+        # a shared perturbation of all points: compare row by row
+        assert _rel(analytic, numeric) < RTOL
+    d_pl = _fd(lambda x: geo(t[:1], pl=x[None]).distance, p_l[0].copy())[0]
+    assert _rel(g.d_point[0], d_pl) < RTOL
+    d_t = (geo(t + EPS).distance - geo(t - EPS).distance) / (2 * EPS)
+    assert g.d_time is not None
+    assert _rel(g.d_time, d_t) < RTOL

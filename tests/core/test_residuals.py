@@ -1,0 +1,239 @@
+"""Residual blocks: every analytic Jacobian (every parameter block it touches) equals a central
+finite difference through the block's retraction, relative error < 1e-6, for random states."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+import pytest
+
+from licalib_cli.geometry.so3 import quat_exp
+from licalib_cli.residuals import (
+    ACCEL_BIAS,
+    ACCEL_MISALIGNMENT,
+    ACCEL_SCALE,
+    EXT_ROTATION,
+    EXT_TRANSLATION,
+    GRAVITY,
+    GYRO_BIAS,
+    GYRO_G_SENSITIVITY,
+    GYRO_MISALIGNMENT,
+    GYRO_ROTATION,
+    GYRO_SCALE,
+    LIDAR_INTRINSICS,
+    TIME_OFFSET,
+    TRAJ_R3,
+    TRAJ_SO3,
+    AccelResidual,
+    GaussianPrior,
+    GyroResidual,
+    PointToPlaneResidual,
+)
+from licalib_cli.solver import DenseJacobian, ResidualEval, dense_to_coo, retract
+from licalib_cli.spline import UniformKnots
+
+EPS = 1e-6
+RTOL = 1e-6
+
+MANIFOLD = {TRAJ_SO3: "so3", EXT_ROTATION: "so3", GYRO_ROTATION: "so3", GRAVITY: "s2"}
+TANGENT = {"so3": 3, "s2": 2}
+
+KNOTS = UniformKnots(0.0, 0.1, 14)  # valid on [0, 1.1] s
+
+
+def _random_params(rng: np.random.Generator, beams: int = 3) -> dict[str, np.ndarray]:
+    n = KNOTS.num_control_points
+    return {
+        TRAJ_SO3: quat_exp(np.cumsum(0.25 * rng.standard_normal((n, 3)), axis=0)),
+        TRAJ_R3: np.cumsum(0.3 * rng.standard_normal((n, 3)), axis=0),
+        GYRO_BIAS: 0.01 * rng.standard_normal(3),
+        ACCEL_BIAS: 0.1 * rng.standard_normal(3),
+        GRAVITY: 9.81 * np.array([0.1, -0.2, -0.97]) / np.linalg.norm([0.1, -0.2, -0.97]),
+        EXT_ROTATION: quat_exp(rng.standard_normal(3)),
+        EXT_TRANSLATION: 0.2 * rng.standard_normal(3),
+        TIME_OFFSET: np.array([0.004]),
+        GYRO_SCALE: 1.0 + 0.05 * rng.standard_normal(3),
+        GYRO_MISALIGNMENT: 0.02 * rng.standard_normal(3),
+        GYRO_ROTATION: quat_exp(0.05 * rng.standard_normal(3)),
+        ACCEL_SCALE: 1.0 + 0.05 * rng.standard_normal(3),
+        ACCEL_MISALIGNMENT: 0.02 * rng.standard_normal(3),
+        GYRO_G_SENSITIVITY: 1e-3 * rng.standard_normal(9),
+        LIDAR_INTRINSICS: np.column_stack(
+            [
+                1e-3 * rng.standard_normal(beams),
+                1e-3 * rng.standard_normal(beams),
+                0.01 * rng.standard_normal(beams),
+                0.01 * rng.standard_normal(beams),
+                1.0 + 1e-3 * rng.standard_normal(beams),
+                0.02 * rng.standard_normal(beams),
+            ]
+        ),
+    }
+
+
+def _analytic(ev: ResidualEval, block: str, size: int) -> np.ndarray:
+    n, m = ev.residuals.shape
+    out = np.zeros((n * m, size))
+    for jac in ev.jacobians:
+        if jac.block == block:
+            assert isinstance(jac, DenseJacobian)
+            rows, cols, vals = dense_to_coo(jac.values, jac.elements)
+            np.add.at(out, (rows, cols), vals)
+    return out
+
+
+def _numeric(residual: object, params: Mapping[str, np.ndarray], block: str) -> np.ndarray:
+    manifold = MANIFOLD.get(block, "euclidean")
+    x = np.asarray(params[block], dtype=np.float64)
+    amb = (
+        4
+        if manifold == "so3"
+        else (3 if manifold == "s2" else (x.shape[-1] if x.ndim == 2 else x.size))
+    )
+    elements = x.reshape(-1, amb)
+    tdim = TANGENT.get(manifold, amb)
+    size = elements.shape[0] * tdim
+    cols = []
+    for j in range(size):
+        delta = np.zeros(size)
+        delta[j] = EPS
+        r = []
+        for sgn in (1.0, -1.0):
+            xp = retract(manifold, elements, (sgn * delta).reshape(-1, tdim)).reshape(x.shape)
+            p = dict(params)
+            p[block] = xp
+            r.append(residual.evaluate(p, jacobians=False).residuals.reshape(-1))  # type: ignore[attr-defined]
+        cols.append((r[0] - r[1]) / (2 * EPS))
+    return np.stack(cols, axis=1)
+
+
+def _check_all(residual: object, params: Mapping[str, np.ndarray], blocks: list[str]) -> None:
+    ev = residual.evaluate(params, jacobians=True)  # type: ignore[attr-defined]
+    ev0 = residual.evaluate(params, jacobians=False)  # type: ignore[attr-defined]
+    np.testing.assert_array_equal(ev.residuals, ev0.residuals)
+    assert ev0.jacobians == ()
+    touched = {j.block for j in ev.jacobians}
+    assert touched == set(blocks), touched ^ set(blocks)
+    for block in blocks:
+        numeric = _numeric(residual, params, block)
+        analytic = _analytic(ev, block, numeric.shape[1])
+        err = np.linalg.norm(analytic - numeric) / np.linalg.norm(numeric)
+        assert err < RTOL, f"{block}: relative error {err:.2e}"
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_gyro_residual_jacobians(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    params = _random_params(rng)
+    del params[GYRO_G_SENSITIVITY]
+    t = rng.uniform(0.0, KNOTS.t_end_s, 25)
+    res = GyroResidual(KNOTS, t, rng.standard_normal((25, 3)), np.array([0.5, 1.0, 2.0]))
+    _check_all(res, params, [TRAJ_SO3, GYRO_BIAS, GYRO_SCALE, GYRO_MISALIGNMENT, GYRO_ROTATION])
+
+
+def test_gyro_residual_with_g_sensitivity_jacobians() -> None:
+    rng = np.random.default_rng(3)
+    params = _random_params(rng)
+    t = rng.uniform(0.0, KNOTS.t_end_s, 25)
+    res = GyroResidual(KNOTS, t, rng.standard_normal((25, 3)), 0.7, g_sensitivity=True)
+    _check_all(
+        res,
+        params,
+        [
+            TRAJ_SO3,
+            TRAJ_R3,
+            GRAVITY,
+            GYRO_BIAS,
+            GYRO_SCALE,
+            GYRO_MISALIGNMENT,
+            GYRO_ROTATION,
+            GYRO_G_SENSITIVITY,
+        ],
+    )
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_accel_residual_jacobians(seed: int) -> None:
+    rng = np.random.default_rng(10 + seed)
+    params = _random_params(rng)
+    t = rng.uniform(0.0, KNOTS.t_end_s, 25)
+    res = AccelResidual(KNOTS, t, rng.standard_normal((25, 3)) * 9.0, np.array([0.3, 0.5, 1.0]))
+    _check_all(
+        res, params, [TRAJ_SO3, TRAJ_R3, GRAVITY, ACCEL_BIAS, ACCEL_SCALE, ACCEL_MISALIGNMENT]
+    )
+
+
+def _points(rng: np.random.Generator, n: int, beams: int = 3) -> dict[str, np.ndarray]:
+    normal = rng.standard_normal((n, 3))
+    return {
+        "t": rng.uniform(0.0, KNOTS.t_end_s - 0.01, n),
+        "beam": rng.integers(0, beams, n),
+        "rho": rng.uniform(2.0, 30.0, n),
+        "theta": rng.uniform(-np.pi, np.pi, n),
+        "normal": normal / np.linalg.norm(normal, axis=1, keepdims=True),
+        "offset": rng.standard_normal(n) * 3.0,
+        "sigma": rng.uniform(0.5, 2.0, n),
+    }
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_point_to_plane_residual_jacobians(seed: int) -> None:
+    rng = np.random.default_rng(20 + seed)
+    params = _random_params(rng)
+    pts = _points(rng, 30)
+    res = PointToPlaneResidual(
+        KNOTS,
+        pts["t"],
+        pts["beam"],
+        pts["rho"],
+        pts["theta"],
+        pts["normal"],
+        pts["offset"],
+        pts["sigma"],
+        np.deg2rad([-10.0, 0.0, 10.0]),
+    )
+    _check_all(
+        res,
+        params,
+        [TRAJ_SO3, TRAJ_R3, EXT_ROTATION, EXT_TRANSLATION, TIME_OFFSET, LIDAR_INTRINSICS],
+    )
+    # distances are the unwhitened residuals
+    d = res.distances(params)
+    np.testing.assert_allclose(d / pts["sigma"], res.evaluate(params, False).residuals[:, 0])
+
+
+def test_point_to_plane_outside_spline_is_infinite() -> None:
+    rng = np.random.default_rng(5)
+    params = _random_params(rng)
+    pts = _points(rng, 10)
+    pts["t"][0] = KNOTS.t_end_s - 1e-3
+    res = PointToPlaneResidual(
+        KNOTS,
+        pts["t"],
+        pts["beam"],
+        pts["rho"],
+        pts["theta"],
+        pts["normal"],
+        pts["offset"],
+        1.0,
+        np.deg2rad([-10.0, 0.0, 10.0]),
+    )
+    params[TIME_OFFSET] = np.array([0.01])  # pushes point 0 past the end
+    r = res.evaluate(params, jacobians=False).residuals[:, 0]
+    assert np.isinf(r[0]) and np.all(np.isfinite(r[1:]))
+
+
+def test_priors_jacobians_and_values() -> None:
+    rng = np.random.default_rng(30)
+    params = _random_params(rng)
+    mean = params[LIDAR_INTRINSICS] + 0.01 * rng.standard_normal(params[LIDAR_INTRINSICS].shape)
+    prior = GaussianPrior(LIDAR_INTRINSICS, mean, np.array([1e-3, 1e-3, 0.01, 0.01, 1e-3, 0.02]))
+    _check_all(prior, params, [LIDAR_INTRINSICS])
+    r = prior.evaluate(params, False).residuals
+    np.testing.assert_allclose(r[:, 2], (params[LIDAR_INTRINSICS][:, 2] - mean[:, 2]) / 0.01)
+    rot_prior = GaussianPrior(EXT_ROTATION, quat_exp(rng.standard_normal(3)), 0.1, manifold="so3")
+    _check_all(rot_prior, params, [EXT_ROTATION])
+    bias_prior = GaussianPrior(GYRO_BIAS, np.zeros(3), 0.02)
+    _check_all(bias_prior, params, [GYRO_BIAS])
+    assert bias_prior.evaluate(params, False).residuals.shape == (1, 3)
