@@ -1,4 +1,10 @@
-"""LiDAR odometry with kiss-icp: scans in, one pose per scan out.
+"""LiDAR odometry: kiss-icp, then a point-to-plane refinement; scans in, one pose per scan out.
+
+:func:`run_odometry` registers the scans with kiss-icp. Its point-to-point ICP on sparse
+multi-beam rings is biased (rings lock onto rings) and its constant-velocity deskew lags fast
+motion, so its scan-to-scan rotations can be off by degrees. :func:`refine_odometry` re-registers
+every scan against a local map with point-to-plane ICP (open3d), seeded by the kiss-icp poses,
+and deskews with the refined motion, or with a rotation prior such as the gyro when given.
 
 Conventions:
     - ``T_map_lidar[k]`` maps points of scan ``k`` (LiDAR frame at time ``t_ns[k]``) into the map
@@ -12,6 +18,8 @@ Conventions:
       zero time span makes kiss-icp divide 0/0 and abort the process.
     - The kiss-icp configuration is built field by field, so ``kiss_icp_*`` environment variables
       cannot change it.
+    - :func:`refine_odometry` refers every pose to the latest point time of its scan and
+      stamps it with that time, whether or not kiss-icp deskewed.
     - Optional rotation pre-deskew: given the LiDAR orientation ``R_w_lidar(t)`` in any fixed frame
       (for example from the gyro and the rotation extrinsic), every point is rotated into the LiDAR
       frame at the latest point time before registration, and kiss-icp's own constant-velocity
@@ -40,8 +48,10 @@ __all__ = [
     "OdometryConfig",
     "PoseSeries",
     "ProgressFn",
+    "RefineConfig",
     "RotationAt",
     "kiss_icp_config",
+    "refine_odometry",
     "run_odometry",
 ]
 
@@ -286,6 +296,448 @@ def run_odometry(
         n_points=n_points,
         n_keypoints=n_keys,
         threshold_m=thresholds,
+        deviation_m=dev_m,
+        deviation_deg=dev_deg,
+    )
+
+
+# ------------------------------------------------------------------ point-to-plane refinement
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """Settings of :func:`refine_odometry` (point-to-plane scan-to-local-map registration).
+
+    Attributes:
+        voxel_size: keypoint voxel, metres; the first point of each voxel is kept, with its time.
+        map_voxel_size: voxel of the points a scan contributes to the local map, metres.
+        map_scans: registered scans kept in the local map.
+        normal_neighbors: most neighbours of a map point used for its normal.
+        normal_radius: neighbours farther than this are ignored for normals, metres.
+        max_correspondence: correspondence distance of the first pass, metres.
+        fine_correspondence: correspondence distance of the later passes, metres.
+        robust_scale: Tukey kernel scale of the point-to-plane residuals, metres.
+        max_iterations: ICP iterations per registration.
+        passes: passes over all scans; the first deskews with a prediction, every later one
+            with the motion the previous pass found around each sweep.
+        self_iterations: with a rotation prior only, extra registrations of each scan in the
+            first pass, each deskewing the translation with the scan's own motion found by the
+            previous one (without a prior the constant-velocity rotation dominates the deskew
+            error and they do not pay).
+        warmup_scans: the first scans are registered twice (two passes) before the first
+            pass, whose seeds for them come from that; 0 switches the warm-up off.
+        min_fitness: a registration matching fewer than this fraction of the keypoints is
+            rejected and the seed relative pose kept for that scan.
+    """
+
+    voxel_size: float = 0.4
+    map_voxel_size: float = 0.25
+    map_scans: int = 3
+    normal_neighbors: int = 15
+    normal_radius: float = 0.6
+    max_correspondence: float = 0.6
+    fine_correspondence: float = 0.3
+    robust_scale: float = 0.1
+    max_iterations: int = 10
+    passes: int = 2
+    self_iterations: int = 1
+    warmup_scans: int = 6
+    min_fitness: float = 0.3
+
+
+@dataclass(frozen=True)
+class _Sweep:
+    """Points of one scan prepared for deskewing and registration.
+
+    Attributes:
+        n_points: points of the scan left after the range filter.
+        xyz: (N, 3) float64 map points, LiDAR frame at their own times, metres.
+        normals: (N, 3) float64 unit normals of the map points, same frame.
+        dt_ns: (N,) int64 point time minus the scan's reference (latest) time, <= 0.
+        rot_to_end: (N, 3, 3) ``R_end^T R(t)`` from the rotation prior, or None.
+        keys: (M,) int64 indices of the keypoints among the map points.
+    """
+
+    n_points: int
+    xyz: npt.NDArray[np.float64]
+    normals: npt.NDArray[np.float64]
+    dt_ns: npt.NDArray[np.int64]
+    rot_to_end: npt.NDArray[np.float64] | None
+    keys: npt.NDArray[np.int64]
+
+
+def _voxel_first(xyz: npt.NDArray[np.float64], voxel: float) -> npt.NDArray[np.int64]:
+    """Indices of the first point of every occupied voxel of size ``voxel``, ascending."""
+    keys = np.floor(xyz / voxel).astype(np.int64)
+    keys -= keys.min(axis=0)
+    span = keys.max(axis=0) + 1
+    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    _, first = np.unique(flat, return_index=True)
+    return np.sort(first)
+
+
+def _log(T: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """(6,) ``[rotation vector, translation]`` of a (4, 4) pose."""
+    return np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]])
+
+
+def _deskew(
+    sweep: _Sweep,
+    node_dt_ns: npt.NDArray[np.float64],
+    node_xi: npt.NDArray[np.float64],
+    keys_only: bool,
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Move points (and normals) into the LiDAR frame at the scan's reference (latest) time.
+
+    The motion within the sweep is the polynomial through M poses relative to the reference
+    pose: ``node_xi`` (M, 6) holds ``[rotation vector, translation]`` of ``T_end^-1 T(t_j)`` at
+    ``node_dt_ns`` (M,) = ``t_j - t_end``. Each point moves by the Lagrange interpolation at its
+    time, ``p_end = Exp(r(t)) p + tau(t)``; ``sweep.rot_to_end`` replaces ``Exp(r(t))`` when
+    set. Two nodes (the previous pose and the identity) give constant velocity.
+
+    Returns:
+        (N, 3) points and (N, 3) normals, float64 (the keypoints only if ``keys_only``).
+    """
+    sel = sweep.keys if keys_only else slice(None)
+    x = sweep.dt_ns[sel].astype(np.float64)
+    nodes = np.asarray(node_dt_ns, dtype=np.float64)
+    w = np.ones((x.shape[0], nodes.shape[0]))
+    for j in range(nodes.shape[0]):
+        for m in range(nodes.shape[0]):
+            if m != j:
+                w[:, j] *= (x - nodes[m]) / (nodes[j] - nodes[m])
+    xi = w @ node_xi
+    if sweep.rot_to_end is not None:
+        rot = sweep.rot_to_end[sel]
+    else:
+        rot = np.asarray(Rotation.from_rotvec(xi[:, :3]).as_matrix())
+    pts = np.einsum("nij,nj->ni", rot, sweep.xyz[sel]) + xi[:, 3:]
+    nrm = np.einsum("nij,nj->ni", rot, sweep.normals[sel])
+    return pts, nrm
+
+
+def _registration_pass(
+    sweeps: list[_Sweep],
+    t_ns: npt.NDArray[np.int64],
+    seed_rel: npt.NDArray[np.float64],
+    previous: npt.NDArray[np.float64] | None,
+    refine: RefineConfig,
+    progress: Callable[[int], None] | None,
+) -> tuple[npt.NDArray[np.float64], int]:
+    """One pass of scan-to-local-map point-to-plane ICP over all K >= 2 scans.
+
+    Args:
+        sweeps: the K prepared scans.
+        t_ns: (K,) reference time of every scan, ns.
+        seed_rel: (K-1, 4, 4) relative poses whose rotations seed the first pass (and whose
+            first one is the motion assumed for scans 0 and 1).
+        previous: (K, 4, 4) poses of the previous pass, or None for the first pass. They give
+            the motion within every sweep (cubic through the poses around it) and the starting
+            relative poses. Without them a sweep is deskewed with the constant velocity of the
+            two previous poses of this pass (rotation) and with its own motion after
+            ``refine.self_iterations`` re-registrations (translation).
+        refine: settings.
+        progress: optional callback with the number of scans done.
+
+    Returns:
+        (K, 4, 4) poses (the first is the identity) and the number of rejected registrations.
+    """
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    estimation = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=refine.robust_scale))
+    criteria = reg.ICPConvergenceCriteria(
+        relative_fitness=1e-4, relative_rmse=1e-4, max_iteration=refine.max_iterations
+    )
+    first = previous is None
+    correspondence = refine.max_correspondence if first else refine.fine_correspondence
+    k_total = len(sweeps)
+    out = np.empty((k_total, 4, 4), dtype=np.float64)
+    out[0] = np.eye(4)
+    window: list[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]] = []
+
+    def add_to_map(i: int, nodes: tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]) -> None:
+        pts, nrm = _deskew(sweeps[i], *nodes, keys_only=False)
+        rot = out[i, :3, :3]
+        window.append((pts @ rot.T + out[i, :3, 3], nrm @ rot.T))
+        if len(window) > refine.map_scans:
+            del window[0]
+
+    def target() -> o3d.geometry.PointCloud:
+        cloud = o3d.geometry.PointCloud(
+            o3d.utility.Vector3dVector(np.concatenate([w[0] for w in window]))
+        )
+        cloud.normals = o3d.utility.Vector3dVector(np.concatenate([w[1] for w in window]))
+        return cloud
+
+    def linear_nodes(
+        i: int,
+        rel: npt.NDArray[np.float64],
+        rel_span: float,
+        rel_own: npt.NDArray[np.float64] | None = None,
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        # Constant velocity over sweep i from rel (the motion over rel_span ns); rel_own (the
+        # sweep's own motion) replaces the translation when given.
+        span = float(t_ns[max(i, 1)] - t_ns[max(i, 1) - 1])
+        xi = _log(np.linalg.inv(rel)) * (span / rel_span)
+        if rel_own is not None:
+            xi[3:] = _log(np.linalg.inv(rel_own))[3:]
+        return np.array([-span, 0.0]), np.stack([xi, np.zeros(6)])
+
+    def prediction(i: int) -> tuple[npt.NDArray[np.float64], float]:
+        """Motion assumed for sweep ``i`` in the first pass and the time it spans, ns."""
+        if i <= 1:
+            return seed_rel[0], float(t_ns[1] - t_ns[0])
+        return np.linalg.inv(out[i - 2]) @ out[i - 1], float(t_ns[i - 1] - t_ns[i - 2])
+
+    def sweep_nodes(i: int) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        if previous is not None:
+            idx = np.arange(0, 2) if i == 0 else np.arange(max(0, i - 2), min(k_total, i + 2))
+            rel = np.linalg.inv(previous[i]) @ previous[idx]
+            xi = np.concatenate(
+                [Rotation.from_matrix(rel[:, :3, :3]).as_rotvec(), rel[:, :3, 3]], axis=1
+            )
+            return (t_ns[idx] - t_ns[i]).astype(np.float64), xi
+        return linear_nodes(i, *prediction(i))
+
+    add_to_map(0, sweep_nodes(0))
+    n_rejected = 0
+    for i in range(1, k_total):
+        if previous is not None:
+            guess = out[i - 1] @ np.linalg.inv(previous[i - 1]) @ previous[i]
+        elif i >= 2:
+            # Translation from the constant velocity, rotation from the seed.
+            step = np.linalg.inv(out[i - 2]) @ out[i - 1]
+            step[:3, 3] *= float(t_ns[i] - t_ns[i - 1]) / float(t_ns[i - 1] - t_ns[i - 2])
+            step[:3, :3] = seed_rel[i - 1, :3, :3]
+            guess = out[i - 1] @ step
+        else:
+            guess = seed_rel[0]
+        nodes = sweep_nodes(i)
+        tgt = target()
+        pose = guess
+        fitness = 0.0
+        n_self = refine.self_iterations if first and sweeps[i].rot_to_end is not None else 0
+        for it in range(1 + n_self):
+            if it > 0:
+                # Re-deskew the translation with this sweep's own motion.
+                nodes = linear_nodes(i, *prediction(i), np.linalg.inv(out[i - 1]) @ pose)
+            src, _ = _deskew(sweeps[i], *nodes, keys_only=True)
+            result = reg.registration_icp(
+                o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src)),
+                tgt,
+                correspondence,
+                pose,
+                estimation,
+                criteria,
+            )
+            pose = np.asarray(result.transformation, dtype=np.float64)
+            fitness = float(result.fitness)
+        if fitness >= refine.min_fitness:
+            out[i] = pose
+        else:
+            out[i] = guess
+            n_rejected += 1
+        add_to_map(i, nodes)
+        if progress is not None:
+            progress(i + 1)
+    return out, n_rejected
+
+
+def _prepare_sweeps(
+    scans: Sequence[LidarScan],
+    t_ref: npt.NDArray[np.int64],
+    kcfg: KISSConfig,
+    refine: RefineConfig,
+    rotation_at: RotationAt | None,
+) -> list[_Sweep]:
+    """Range filter, map points with normals, keypoints and rotation priors of every scan.
+
+    Normals come from the raw points of the scan itself: neighbouring points of a spinning
+    LiDAR are fired within microseconds, so motion does not bend a neighbourhood.
+    """
+    import open3d as o3d
+
+    search = o3d.geometry.KDTreeSearchParamHybrid(
+        radius=refine.normal_radius, max_nn=refine.normal_neighbors
+    )
+    sweeps = []
+    for i, scan in enumerate(scans):
+        rng = np.linalg.norm(scan.xyz, axis=1)
+        keep = (rng >= kcfg.data.min_range) & (rng <= kcfg.data.max_range)
+        if not np.any(keep):
+            msg = (
+                f"LiDAR scan {i} (stamp {scan.stamp_ns} ns) has no point between "
+                f"{kcfg.data.min_range:g} m and {kcfg.data.max_range:g} m; check the range "
+                "limits of the odometry and the point units."
+            )
+            raise DataError(msg)
+        xyz = np.asarray(scan.xyz[keep], dtype=np.float64)
+        n_points = xyz.shape[0]
+        sel = _voxel_first(xyz, refine.map_voxel_size)
+        xyz = xyz[sel]
+        dt = np.asarray(scan.t_ns[keep][sel], dtype=np.int64) - t_ref[i]
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
+        cloud.estimate_normals(search)
+        rot = None
+        if rotation_at is not None and np.any(dt):
+            r_pts = rotation_at(dt + t_ref[i])
+            r_end = rotation_at(t_ref[i : i + 1])
+            rot = np.asarray((r_end.inv() * r_pts).as_matrix(), dtype=np.float64)
+        sweeps.append(
+            _Sweep(
+                n_points=n_points,
+                xyz=xyz,
+                normals=np.asarray(cloud.normals, dtype=np.float64),
+                dt_ns=dt,
+                rot_to_end=rot,
+                keys=_voxel_first(xyz, refine.voxel_size),
+            )
+        )
+    return sweeps
+
+
+def refine_odometry(
+    scans: Sequence[LidarScan],
+    poses: PoseSeries,
+    cfg: OdometryConfig,
+    refine: RefineConfig | None = None,
+    *,
+    rotation_at: RotationAt | None = None,
+    progress: ProgressFn | None = None,
+) -> PoseSeries:
+    """Re-register every scan against a local map with point-to-plane ICP, seeded by ``poses``.
+
+    Point-to-point ICP on sparse multi-beam rings is biased (rings lock onto rings), which
+    leaves kiss-icp's scan-to-scan rotations off by a degree or more; point-to-plane residuals
+    let the rings slide along the surfaces. Each pass goes through the scans in order; for
+    scan ``k``:
+
+    1. deskew the keypoints (range filter of ``cfg``, then ``refine.map_voxel_size`` and
+       ``refine.voxel_size`` voxels, each point keeping its own time) into the LiDAR frame at
+       the scan's latest point time. First pass: rotation with the constant velocity of the two
+       previous refined poses (a prediction: an error of this scan's pose cannot feed back into
+       its own deskew, which for a spinning LiDAR hardly constrains the rate about its spin
+       axis), translation with the prediction and then, for ``refine.self_iterations``
+       re-registrations, with the scan's own motion. Later passes: cubic through the previous
+       pass's poses around the sweep. With ``rotation_at`` the rotation within every sweep
+       comes from it instead;
+    2. point-to-plane ICP (open3d, Tukey kernel) against the local map, starting from pose
+       ``k - 1`` times the seed relative pose: in the first pass kiss-icp's rotation (or
+       ``rotation_at``'s) with the constant-velocity translation, later the previous pass's;
+    3. the deskewed map points and their normals, mapped with the new pose, join the local
+       map (the last ``refine.map_scans`` scans).
+
+    Before the first pass the first ``refine.warmup_scans`` scans are refined on their own
+    (two passes) and seed it, since kiss-icp's first motions deskew them poorly and the first
+    map holds a single scan. A registration matching fewer than ``refine.min_fitness`` of the
+    keypoints keeps the seed relative pose for that scan.
+
+    Args:
+        scans: the K scans given to :func:`run_odometry`, in time order.
+        poses: kiss-icp poses of those scans (:func:`run_odometry`).
+        cfg: odometry settings (the range filter is shared with kiss-icp).
+        refine: refinement settings; defaults when None.
+        rotation_at: optional ``R_w_lidar(t)`` (e.g. the gyro with a rotation extrinsic, see
+            :func:`licalib_cli.initialization.rotation.lidar_rotation_at`) giving the rotation
+            within each sweep and the first pass's seed rotations. An extrinsic a few degrees
+            off still deskews far better than any constant velocity on fast motion.
+        progress: optional ``progress(done, total)`` callback; ``total`` is K times the passes.
+
+    Returns:
+        One pose per scan in the frame of scan 0, each referring to (and stamped with) the
+        latest point time of its scan. ``threshold_m`` holds the correspondence distance of the
+        last pass, ``n_keypoints`` the keypoints registered, and ``deviation_m``/
+        ``deviation_deg`` the difference between the refined and the kiss-icp relative pose
+        from the previous scan (0 for scan 0).
+
+    Raises:
+        DataError: the scans and poses differ in number, there are no scans, a scan has no
+            point in range, or the scans are out of time order.
+        ConfigError: inconsistent range limits.
+    """
+    refine = refine or RefineConfig()
+    k_total = len(scans)
+    if k_total != len(poses):
+        msg = (
+            f"Odometry refinement got {k_total} scans but {len(poses)} poses; pass the scans "
+            "that run_odometry registered."
+        )
+        raise DataError(msg)
+    if k_total == 0:
+        msg = "No LiDAR scans to run odometry on; check the LiDAR topic and the time window."
+        raise DataError(msg)
+    if any(len(s) == 0 for s in scans):
+        msg = "A LiDAR scan has no points; drop empty scans before odometry."
+        raise DataError(msg)
+    kcfg = kiss_icp_config(cfg)
+    t_out = np.array([int(s.t_ns.max()) for s in scans], dtype=np.int64)
+    bad = np.flatnonzero(np.diff(t_out) <= 0)
+    if bad.size:
+        i = int(bad[0]) + 1
+        msg = (
+            f"LiDAR scan {i} refers to time {t_out[i]} ns, not after scan {i - 1} "
+            f"({t_out[i - 1]} ns); sort the scans by time and drop duplicates."
+        )
+        raise DataError(msg)
+    sweeps = _prepare_sweeps(scans, t_out, kcfg, refine, rotation_at)
+
+    kiss_rel = np.linalg.inv(poses.T_map_lidar[:-1]) @ poses.T_map_lidar[1:]
+    seed_rel = kiss_rel.copy()
+    if rotation_at is not None and k_total > 1:
+        r_w = rotation_at(t_out)
+        seed_rel[:, :3, :3] = (r_w[:-1].inv() * r_w[1:]).as_matrix()
+    n_passes = max(int(refine.passes), 1)
+    n_warm = min(k_total, int(refine.warmup_scans))
+    if n_warm > 2:
+        # Warm-up on the first scans: kiss-icp's first motions deskew them poorly and the
+        # first map has a single scan, so register them twice and seed the pass with that.
+        head = (sweeps[:n_warm], t_out[:n_warm], seed_rel[: n_warm - 1])
+        warm, _ = _registration_pass(*head, None, refine, None)
+        warm, _ = _registration_pass(*head, warm, refine, None)
+        seed_rel[: n_warm - 1] = np.linalg.inv(warm[:-1]) @ warm[1:]
+    out = np.eye(4)[None].repeat(k_total, axis=0)
+    previous: npt.NDArray[np.float64] | None = None
+    n_rejected = 0
+    for p in range(n_passes if k_total > 1 else 0):
+
+        def tick(done: int, p: int = p) -> None:
+            if progress is not None:
+                progress(p * k_total + done, n_passes * k_total)
+
+        out, n_rejected = _registration_pass(sweeps, t_out, seed_rel, previous, refine, tick)
+        previous = out
+    if progress is not None:
+        progress(n_passes * k_total, n_passes * k_total)
+    if n_rejected:
+        logger.warning(
+            "odometry refinement: %d of %d registrations matched too few keypoints; kept the "
+            "seed motion there",
+            n_rejected,
+            k_total - 1,
+        )
+    deviation = np.linalg.inv(kiss_rel) @ (np.linalg.inv(out[:-1]) @ out[1:])
+    dev_m = np.zeros(k_total, dtype=np.float64)
+    dev_deg = np.zeros(k_total, dtype=np.float64)
+    if k_total > 1:
+        dev_m[1:] = np.linalg.norm(deviation[:, :3, 3], axis=1)
+        dev_deg[1:] = np.degrees(Rotation.from_matrix(deviation[:, :3, :3]).magnitude())
+    logger.info(
+        "refined odometry: %d scans, %d passes, %.1f m path, max deviation from kiss-icp "
+        "%.3f m / %.2f deg",
+        k_total,
+        n_passes,
+        float(np.linalg.norm(np.diff(out[:, :3, 3], axis=0), axis=1).sum()),
+        float(dev_m.max()),
+        float(dev_deg.max()),
+    )
+    last = refine.max_correspondence if n_passes == 1 else refine.fine_correspondence
+    return PoseSeries(
+        t_ns=t_out,
+        T_map_lidar=out,
+        n_points=np.array([s.n_points for s in sweeps], dtype=np.int64),
+        n_keypoints=np.array([s.keys.shape[0] for s in sweeps], dtype=np.int64),
+        threshold_m=np.full(k_total, last, dtype=np.float64),
         deviation_m=dev_m,
         deviation_deg=dev_deg,
     )

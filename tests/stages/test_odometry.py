@@ -1,6 +1,8 @@
-"""kiss-icp odometry on a ray-cast synthetic room under a known smooth motion."""
+"""kiss-icp odometry and its point-to-plane refinement on ray-cast and simulated scans."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
@@ -8,14 +10,27 @@ import pytest
 from scipy.spatial.transform import Rotation
 from stages_motion import body_rate_from_rotvec
 
+from licalib_cli.config import load_config
 from licalib_cli.errors import ConfigError, DataError
 from licalib_cli.initialization import (
     HandEyeConfig,
     estimate_rotation_extrinsic,
     estimate_time_offset,
 )
+from licalib_cli.initialization.rotation import GyroIntegrator, lidar_rotation_at
+from licalib_cli.io.reader import read_segment
 from licalib_cli.measurements import ImuSamples, LidarScan
-from licalib_cli.odometry import OdometryConfig, kiss_icp_config, run_odometry
+from licalib_cli.odometry import (
+    OdometryConfig,
+    PoseSeries,
+    RefineConfig,
+    kiss_icp_config,
+    refine_odometry,
+    run_odometry,
+)
+from licalib_cli.simulation.ground_truth import build_setup
+from licalib_cli.simulation.simulate import simulate
+from licalib_cli.simulation.spec import IntrinsicsMode, Scenario, SimulationSpec
 
 SCAN_PERIOD_NS = 100_000_000
 T0_NS = 1_700_000_000_000_000_000
@@ -225,3 +240,76 @@ def test_odometry_feeds_time_offset_and_hand_eye() -> None:
     )
     err = (Rotation.from_matrix(hand_eye.R_imu_lidar).inv() * r_imu_lidar).magnitude()
     assert np.degrees(err) < 0.5
+
+
+def _step_errors_deg(poses: PoseSeries, r_true: Rotation) -> npt.NDArray[np.float64]:
+    """Angle between estimated and true scan-to-scan rotations, (K-1,) degrees."""
+    rel = poses.rotations[:-1].inv() * poses.rotations[1:]
+    rel_true = r_true[:-1].inv() * r_true[1:]
+    return np.degrees((rel_true.inv() * rel).magnitude())
+
+
+def test_refinement_without_rotation_prior(scans: list[LidarScan]) -> None:
+    kiss = run_odometry(scans, _CFG)
+    calls: list[tuple[int, int]] = []
+    poses = refine_odometry(scans, kiss, _CFG, progress=lambda d, n: calls.append((d, n)))
+    np.testing.assert_array_equal(poses.t_ns, [s.t_ns.max() for s in scans])
+    np.testing.assert_allclose(poses.T_map_lidar[0], np.eye(4), atol=1e-12)
+    assert calls[-1] == (40, 40)  # two passes of 20 scans
+    r_true, p_true = _relative_truth(poses.t_ns)
+    step = _step_errors_deg(poses, r_true)
+    # Measured: per-step median 0.04 deg, max 0.14 deg; absolute 0.14 deg and 6 mm over 2 s.
+    assert np.median(step) < 0.08, step
+    assert step.max() < 0.3, step
+    assert np.degrees((r_true.inv() * poses.rotations).magnitude()).max() < 0.3
+    assert np.linalg.norm(poses.positions - p_true, axis=1).max() < 0.02
+    assert poses.n_keypoints.min() > 100
+    assert np.all(poses.n_points == [len(s) for s in scans])
+
+    with pytest.raises(DataError, match="pass the scans"):
+        refine_odometry(scans[:5], kiss, _CFG)
+    with pytest.raises(DataError, match="sort the scans"):
+        refine_odometry([scans[1], scans[0]], run_odometry(scans[:2], _CFG), _CFG)
+
+
+@pytest.fixture(scope="module")
+def shake_bag(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, SimulationSpec]:
+    """2 s of the simulator's hand-held shaking with a VLP-16 and ideal sensors."""
+    spec = SimulationSpec(
+        scenario=Scenario.SHAKE, duration_s=2.0, seed=3, intrinsics=IntrinsicsMode.NONE
+    )
+    out = simulate(spec, tmp_path_factory.mktemp("shake"))
+    return out.bag_path, spec
+
+
+def test_refinement_with_gyro_on_simulated_shake(shake_bag: tuple[Path, SimulationSpec]) -> None:
+    """Fast shaking (about 8 deg per sweep, the rate changing by as much within one sweep).
+
+    kiss-icp's constant-velocity deskew and point-to-point registration are off by degrees per
+    scan here. With the gyro deskewing the sweeps through a rotation extrinsic 1 deg off (what a
+    first hand-eye round gives), the refined scan-to-scan rotations are within about 0.1 deg.
+    """
+    bag, spec = shake_bag
+    rec = read_segment(bag, load_config(None))
+    setup = build_setup(spec)
+    base = spec.base_time_ns
+
+    def true_rotations(t_ns: npt.NDArray[np.int64]) -> Rotation:
+        r_wl, _ = setup.lidar_pose_at((t_ns - base) * 1e-9 + spec.time_offset_s)
+        return Rotation.from_matrix(r_wl)
+
+    cfg = OdometryConfig(max_range=60.0)
+    kiss = run_odometry(rec.scans, cfg)
+    r_off = Rotation.from_rotvec(np.radians(1.0) * np.array([0.6, 0.0, 0.8]))
+    r_guess = (r_off * Rotation.from_matrix(setup.extrinsic.rotation)).as_matrix()
+    gyro = GyroIntegrator.from_imu(rec.imu)
+    rotation_at = lidar_rotation_at(gyro, r_guess, spec.time_offset_s)
+    poses = refine_odometry(rec.scans, kiss, cfg, RefineConfig(), rotation_at=rotation_at)
+    np.testing.assert_array_equal(poses.t_ns, [s.t_ns.max() for s in rec.scans])
+
+    step = _step_errors_deg(poses, true_rotations(poses.t_ns))
+    step_kiss = _step_errors_deg(kiss, true_rotations(kiss.t_ns))
+    # Measured: refined median 0.11 deg, max 0.25 deg; kiss-icp median 5.6 deg.
+    assert np.median(step) < 0.15, step
+    assert step.max() < 0.5, step
+    assert np.median(step_kiss) > 1.0, step_kiss
