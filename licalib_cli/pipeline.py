@@ -43,11 +43,13 @@ from licalib_cli.estimation import (
     build_problem,
     state_from_problem,
 )
+from licalib_cli.geometry import so3
 from licalib_cli.initialization.rotation import (
     GyroIntegrator,
     HandEyeConfig,
     HandEyeRotation,
     estimate_rotation_extrinsic,
+    lidar_rotation_at,
 )
 from licalib_cli.initialization.time_offset import (
     TimeOffsetConfig,
@@ -58,7 +60,7 @@ from licalib_cli.initialization.time_offset import (
 from licalib_cli.io.reader import Recording, read_segment
 from licalib_cli.measurements import LidarScan
 from licalib_cli.models.intrinsics import LidarIntrinsics, lidar_point, nominal_point
-from licalib_cli.odometry import OdometryConfig, PoseSeries, run_odometry
+from licalib_cli.odometry import OdometryConfig, PoseSeries, refine_odometry, run_odometry
 from licalib_cli.progress import NullProgress, Progress
 from licalib_cli.results import CalibrationResult, Extrinsic, matrix_from_rpy_deg
 from licalib_cli.solver.lm import LMParams, SolverReport, solve
@@ -353,6 +355,52 @@ def initialise(
             hand_eye = hand_eye_at(t_c)
             rot = hand_eye.R_imu_lidar
     return rot, t_c, r_source, t_source, correlation, hand_eye
+
+
+def gyro_aided_rotation(
+    rec: Recording,
+    kiss: PoseSeries,
+    ocfg: OdometryConfig,
+    gyro: GyroIntegrator,
+    rot: F64,
+    t_c: float,
+    hand_eye: HandEyeRotation | None,
+    cfg: CalibConfig,
+    max_rounds: int = 3,
+) -> tuple[F64, PoseSeries, HandEyeRotation | None]:
+    """Re-run the odometry with scans deskewed by the gyro, alternating with hand-eye.
+
+    A LiDAR-only odometry cannot deskew violent motion (the rotation rate changes a lot within a
+    sweep); once a rotation extrinsic is known, the gyro can. Each round deskews with the current
+    rotation, re-registers (seeded by kiss-icp), and re-solves hand-eye, until the rotation moves
+    less than 0.05 deg. With a rotation from the config the rounds start from it.
+
+    Returns:
+        ``(R_imu_lidar, poses, hand_eye)`` after the last round.
+    """
+    ini = cfg.initialization
+    he_cfg = HandEyeConfig(
+        min_angle_deg=ini.min_rotation_deg,
+        max_singular_ratio=ini.max_singular_ratio,
+        min_axis_ratio=ini.min_axis_ratio,
+    )
+    poses = kiss
+    for _ in range(max_rounds):
+        poses = refine_odometry(
+            rec.scans, kiss, ocfg, rotation_at=lidar_rotation_at(gyro, rot, t_c)
+        )
+        if ini.rotation_rpy_deg is not None:
+            return rot, poses, hand_eye
+        try:
+            new = estimate_rotation_extrinsic(gyro, poses, time_offset_s=t_c, cfg=he_cfg)
+        except ExcitationError:
+            break
+        step = float(np.degrees(so3.log(rot.T @ new.R_imu_lidar).__abs__().max()))
+        rot, hand_eye = new.R_imu_lidar, new
+        logger.info("Gyro-aided hand-eye round: rotation moved %.3f deg.", step)
+        if step < 0.05:
+            break
+    return rot, poses, hand_eye
 
 
 def initial_state(
@@ -687,14 +735,15 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
         (rec.end_ns - rec.start_ns) / _NS,
     )
 
+    ocfg = odometry_config(cfg)
     with timer.stage("odometry", progress, total=len(rec.scans)):
-        poses = run_odometry(
-            rec.scans, odometry_config(cfg), progress=lambda d, n: progress.advance(d, n)
-        )
+        kiss = run_odometry(rec.scans, ocfg, progress=lambda d, n: progress.advance(d, n))
+        poses = refine_odometry(rec.scans, kiss, ocfg)
 
     with timer.stage("initialisation", progress):
         gyro = GyroIntegrator.from_imu(rec.imu)
         rot, t_c, r_src, t_src, corr, hand_eye = initialise(rec, poses, cfg, gyro)
+        rot, poses, hand_eye = gyro_aided_rotation(rec, kiss, ocfg, gyro, rot, t_c, hand_eye, cfg)
         ini = cfg.initialization
         t_init = np.asarray(ini.translation_m if ini.translation_m else [0.0, 0.0, 0.0], float)
         phi = nominal_elevations(rec.scans, cfg)

@@ -181,13 +181,17 @@ def lidar_rotation_at(
         time_offset_s: ``t_imu = t_lidar + time_offset_s``, seconds.
 
     Returns:
-        A function of (M,) int64 LiDAR times (ns) returning M rotations.
+        A function of (M,) int64 LiDAR times (ns) returning M rotations; times beyond the IMU
+        data are clamped to its first or last sample.
     """
     r_x = Rotation.from_matrix(np.asarray(R_imu_lidar, dtype=np.float64))
     shift = np.int64(round(time_offset_s * 1e9))
 
+    lo, hi = gyro.t_ns[0], gyro.t_ns[-1]
+
     def rotation_at(t_ns: npt.NDArray[np.int64]) -> Rotation:
-        return gyro(np.asarray(t_ns, dtype=np.int64) + shift) * r_x
+        # Points a little outside the IMU data (first/last sweep) take the nearest orientation.
+        return gyro(np.clip(np.asarray(t_ns, dtype=np.int64) + shift, lo, hi)) * r_x
 
     return rotation_at
 
