@@ -75,7 +75,7 @@ class NoiseConfig(_Section):
     """Gyro white noise, rad/s/sqrt(Hz) (Xsens MTi-100: 0.01 deg/s/sqrt(Hz))."""
     accel_noise_density: float = Field(default=5.9e-4, gt=0.0)
     """Accelerometer white noise, m/s^2/sqrt(Hz) (Xsens MTi-100: 60 ug/sqrt(Hz))."""
-    range_sigma_m: float = Field(default=0.02, gt=0.0)
+    range_sigma_m: float = Field(default=0.015, gt=0.0)
     """LiDAR range noise, one sigma, metres."""
     huber_sigmas: float = Field(default=2.0, gt=0.0)
     """Huber threshold of the point-to-plane residuals, in sigmas."""
@@ -126,12 +126,13 @@ class SurfelSection(_Section):
     cell_sizes_m: list[float] = Field(default=[1.0, 0.5], min_length=1)
     """Voxel sizes, coarse to fine; non-planar coarse cells are split."""
     min_points: int = Field(default=10, ge=4)
-    min_planarity: float = Field(default=0.6, ge=0.0, le=1.0)
+    min_planarity: float = Field(default=0.8, ge=0.0, le=1.0)
     """Plane-likeness P = 2 (l1 - l0) / (l0 + l1 + l2) a cell needs to become a surfel."""
-    max_thickness_m: float = Field(default=0.1, gt=0.0)
-    max_distance_m: float = Field(default=0.05, gt=0.0)
+    max_thickness_m: float = Field(default=0.03, gt=0.0)
+    """Cells whose points spread more than this off their plane (RMS) are not surfels."""
+    max_distance_m: float = Field(default=0.03, gt=0.0)
     """Points further from their surfel's plane are not associated."""
-    points_per_scan: int = Field(default=1500, ge=50)
+    points_per_scan: int = Field(default=1000, ge=50)
     """Points kept per scan for the optimisation (uniformly over the sweep)."""
 
 
@@ -139,14 +140,15 @@ class ScheduleConfig(_Section):
     """Refinement rounds (method.md section 7)."""
 
     max_rounds: int = Field(default=6, ge=1, le=50)
-    iterations_per_round: int = Field(default=8, ge=1, le=200)
+    iterations_per_round: int = Field(default=6, ge=1, le=200)
     imu_intrinsics_from_round: int = Field(default=0, ge=0)
     """Round (1-based) from which IMU intrinsics are estimated; 0 keeps them at their defaults."""
     lidar_intrinsics_from_round: int = Field(default=0, ge=0)
     """Round (1-based) from which LiDAR intrinsics are estimated; 0 keeps them at defaults."""
-    translation_tolerance_m: float = Field(default=1e-4, gt=0.0)
-    rotation_tolerance_deg: float = Field(default=0.002, gt=0.0)
-    time_offset_tolerance_s: float = Field(default=1e-5, gt=0.0)
+    translation_tolerance_m: float = Field(default=5e-4, gt=0.0)
+    """Stop when a round moves the translation less than this (and the others below theirs)."""
+    rotation_tolerance_deg: float = Field(default=0.005, gt=0.0)
+    time_offset_tolerance_s: float = Field(default=5e-5, gt=0.0)
 
 
 class SolverSection(_Section):

@@ -360,6 +360,7 @@ def initialise(
 def gyro_aided_rotation(
     rec: Recording,
     kiss: PoseSeries,
+    lidar_only: PoseSeries,
     ocfg: OdometryConfig,
     gyro: GyroIntegrator,
     rot: F64,
@@ -371,9 +372,11 @@ def gyro_aided_rotation(
     """Re-run the odometry with scans deskewed by the gyro, alternating with hand-eye.
 
     A LiDAR-only odometry cannot deskew violent motion (the rotation rate changes a lot within a
-    sweep); once a rotation extrinsic is known, the gyro can. Each round deskews with the current
-    rotation, re-registers (seeded by kiss-icp), and re-solves hand-eye, until the rotation moves
-    less than 0.05 deg. With a rotation from the config the rounds start from it.
+    sweep); once a rotation extrinsic is known, the gyro can. When the LiDAR-only odometry
+    (``lidar_only``) already agrees with the gyro (hand-eye residual under 0.1 deg) it is kept.
+    Otherwise each round deskews with the current rotation, re-registers (seeded by kiss-icp) and
+    re-solves hand-eye, until the rotation moves less than 0.05 deg. With a rotation from the
+    config the rounds start from it.
 
     Returns:
         ``(R_imu_lidar, poses, hand_eye)`` after the last round.
@@ -385,6 +388,8 @@ def gyro_aided_rotation(
         min_axis_ratio=ini.min_axis_ratio,
     )
     poses = kiss
+    if hand_eye is not None and hand_eye.residual_rms_deg < 0.1:
+        return rot, lidar_only, hand_eye  # the LiDAR-only odometry already agrees with the gyro
     for _ in range(max_rounds):
         poses = refine_odometry(
             rec.scans, kiss, ocfg, rotation_at=lidar_rotation_at(gyro, rot, t_c)
@@ -743,7 +748,9 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
     with timer.stage("initialisation", progress):
         gyro = GyroIntegrator.from_imu(rec.imu)
         rot, t_c, r_src, t_src, corr, hand_eye = initialise(rec, poses, cfg, gyro)
-        rot, poses, hand_eye = gyro_aided_rotation(rec, kiss, ocfg, gyro, rot, t_c, hand_eye, cfg)
+        rot, poses, hand_eye = gyro_aided_rotation(
+            rec, kiss, poses, ocfg, gyro, rot, t_c, hand_eye, cfg
+        )
         ini = cfg.initialization
         t_init = np.asarray(ini.translation_m if ini.translation_m else [0.0, 0.0, 0.0], float)
         phi = nominal_elevations(rec.scans, cfg)
