@@ -4,12 +4,13 @@ Every known failure is a :class:`~licalib_cli.errors.LicalibError`; ``main`` pri
 message and exits with its code. Tracebacks appear only with ``--debug``.
 
 Exit codes: 0 success; 1 generic error; 2 bag unreadable; 3 topic problem; 4 unusable data;
-5 timestamp problem; 6 configuration; 7 insufficient excitation; 8 solver failure;
-130 interrupted.
+5 timestamp problem; 6 invalid configuration or option (command-line usage errors included);
+7 insufficient excitation; 8 solver failure; 130 interrupted.
 """
 
 from __future__ import annotations
 
+import importlib
 import logging
 import os
 import sys
@@ -21,7 +22,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import typer
 
 from licalib_cli import __version__
-from licalib_cli.errors import LicalibError
+from licalib_cli.errors import ConfigError, LicalibError
 
 app = typer.Typer(
     name="licalib",
@@ -32,6 +33,9 @@ app = typer.Typer(
 )
 
 _state = {"debug": False}
+
+USAGE_ERROR_EXIT_CODE = ConfigError.exit_code
+"""Exit code of a command-line usage error: an invalid option is an invalid configuration."""
 
 
 def _version(value: bool) -> None:
@@ -76,11 +80,58 @@ def _register() -> None:
 _register()
 
 
+def _click_exception_types() -> tuple[tuple[type, ...], tuple[type, ...], tuple[type, ...]]:
+    """``(ClickException, UsageError, Abort)`` classes of typer's bundled click and of click.
+
+    Typer >= 0.24 raises its own copy (``typer._click``); older typer raises the standalone
+    ``click`` package's classes. Both are recognised, whichever is installed.
+    """
+    exc: list[type] = []
+    usage: list[type] = []
+    abort: list[type] = [typer.Abort]
+    for name in ("typer._click.exceptions", "click.exceptions"):
+        try:
+            mod = importlib.import_module(name)
+        except ImportError:
+            continue
+        for found, attr in ((exc, "ClickException"), (usage, "UsageError"), (abort, "Abort")):
+            cls = getattr(mod, attr, None)
+            if isinstance(cls, type):
+                found.append(cls)
+    return tuple(exc), tuple(usage), tuple(abort)
+
+
+def _usage_message(err: Exception) -> str:
+    """Click's message of a usage error as one sentence (pydantic's prefix removed)."""
+    fmt = getattr(err, "format_message", None)
+    text = str(fmt() if callable(fmt) else err).strip()
+    text = text.replace("Value error, ", "").rstrip(".")
+    return text + "."
+
+
+def _show_usage_error(err: Exception) -> None:
+    """Print the usage line, the help hint and ``Error: <message>`` on standard error."""
+    ctx = getattr(err, "ctx", None)
+    if ctx is not None:
+        typer.echo(ctx.get_usage(), err=True)
+        if ctx.command.get_help_option(ctx) is not None:
+            typer.echo(f"Try '{ctx.command_path} {ctx.help_option_names[0]}' for help.", err=True)
+        typer.echo("", err=True)
+    typer.echo(f"Error: {_usage_message(err)}", err=True)
+
+
 def main(argv: list[str] | None = None) -> None:
-    """Console-script entry point."""
-    debug = "--debug" in (argv if argv is not None else sys.argv)
+    """Console-script entry point.
+
+    Exits with 0 on success (and after printing help when called without arguments), with
+    the code of the :class:`LicalibError` raised, with :data:`USAGE_ERROR_EXIT_CODE` for a
+    command-line usage error (unknown option, missing argument, invalid value) and 130 on
+    Ctrl-C.
+    """
+    args = list(argv) if argv is not None else sys.argv[1:]
+    debug = "--debug" in args
     try:
-        app(args=argv, standalone_mode=False)
+        app(args=args, prog_name="licalib", standalone_mode=False)
     except KeyboardInterrupt:
         typer.echo("Interrupted.", err=True)
         sys.exit(130)
@@ -92,12 +143,26 @@ def main(argv: list[str] | None = None) -> None:
     except typer.Exit as err:
         sys.exit(err.exit_code)
     except Exception as err:  # click usage errors and the unexpected
-        import click
-
-        if isinstance(err, click.exceptions.ClickException):
-            err.show()
-            sys.exit(err.exit_code)
-        if isinstance(err, click.exceptions.Abort):
+        click_exc, usage_exc, abort_exc = _click_exception_types()
+        if type(err).__name__ == "NoArgsIsHelpError":
+            # The help text was rendered when the error was built (rich help prints it);
+            # plain help comes back as the message.
+            text = getattr(err, "format_message", lambda: "")()
+            if text.strip():
+                typer.echo(text)
+            sys.exit(0)
+        if isinstance(err, usage_exc) or (
+            isinstance(err, click_exc) and getattr(err, "ctx", None) is not None
+        ):
+            _show_usage_error(err)
+            sys.exit(USAGE_ERROR_EXIT_CODE)
+        if isinstance(err, click_exc) or (
+            callable(getattr(err, "show", None)) and isinstance(getattr(err, "exit_code", None), int)
+        ):
+            err.show()  # type: ignore[attr-defined]
+            sys.exit(err.exit_code)  # type: ignore[attr-defined]
+        if isinstance(err, abort_exc):
+            typer.echo("Aborted.", err=True)
             sys.exit(1)
         if debug:
             raise

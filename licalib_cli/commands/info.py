@@ -28,6 +28,7 @@ def info_command(
     bag: Annotated[
         Path,
         typer.Argument(
+            metavar="BAG",
             help="ROS1 .bag (or folder of split .bag files), ROS2 bag folder, or .db3/.mcap."
         ),
     ],

@@ -62,7 +62,7 @@ def _command_line(ctx: typer.Context) -> str:
 
 def simulate_command(
     ctx: typer.Context,
-    out_dir: Annotated[Path, typer.Argument(help="Output folder for the bag and truth.yaml.")],
+    out_dir: Annotated[Path, typer.Argument(metavar="OUT_DIR", help="Output folder for the bag and truth.yaml.")],
     scenario: Annotated[
         Scenario, typer.Option("--scenario", help="Motion of the rig.", rich_help_panel=_SCENE)
     ] = Scenario.SINUSOID,
