@@ -8,7 +8,8 @@ module's table), so a bag that ``info`` calls usable can be read by the other co
 
 Unlike the reader, topic and data problems do not raise: they are collected so that the whole
 report can be shown; :meth:`BagReport.error` gives the exception for the first fatal one.
-Only unreadable inputs (missing, not a bag, corrupt) raise :class:`BagError`.
+Only unreadable inputs (missing, not a bag, corrupt) raise :class:`BagError`, and a segment
+starting after the end of the bag raises :class:`ConfigError`.
 
 Times: int64 ns in the data; the report's ``*_s`` values are seconds, relative to the first
 stamp of the stream concerned unless stated otherwise. ``clock_offset_s`` is the coarse
@@ -27,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from licalib_cli.config import CalibConfig
-from licalib_cli.errors import DataError, LicalibError, TimestampError, TopicError
+from licalib_cli.errors import ConfigError, DataError, LicalibError, TimestampError, TopicError
 from licalib_cli.io import reader as rd
 from licalib_cli.io.bag import CLOUD_TYPE, IMU_TYPE, BagHandle, open_bag, select_topic
 
@@ -374,7 +375,7 @@ def _inspect_lidar(
         return base, off
     try:
         layout = rd.detect_layout(bag, topic.name, window, off, cfg)
-    except (DataError, TimestampError) as err:
+    except (DataError, TimestampError, ConfigError) as err:
         problems.append(rd.Problem(str(err), True, type(err)))
         return base, off
     clock_off = off + layout.sweep_end_offset_ns
@@ -443,7 +444,7 @@ def inspect_bag(path: Path, cfg: CalibConfig) -> BagReport:
 
     Raises:
         BagError: the path is missing, not a bag, or corrupt/truncated.
-        DataError: the segment starts after the end of the bag.
+        ConfigError: the segment starts after the end of the bag.
     """
     problems: list[rd.Problem] = []
     notes: list[str] = []

@@ -50,7 +50,7 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig
-from licalib_cli.errors import DataError, LicalibError, TimestampError
+from licalib_cli.errors import ConfigError, DataError, LicalibError, TimestampError
 from licalib_cli.io.bag import (
     CLOUD_TYPE,
     IMU_TYPE,
@@ -118,6 +118,26 @@ _DEFAULT_PERIOD_NS = 100_000_000
 
 # --------------------------------------------------------------------------------------------
 # Problems and stamp statistics (shared with ``licalib info``)
+
+
+def _count(n: int, noun: str, plural: str | None = None) -> str:
+    """``"1 gap"``, ``"3 gaps"``: a number with its noun in agreement."""
+    return f"{n} {noun if n == 1 else (plural or noun + 's')}"
+
+
+def _times(n: int) -> str:
+    """``"once"``, ``"twice"``, ``"3 times"``."""
+    return {1: "once", 2: "twice"}.get(n, f"{n} times")
+
+
+def _first(n: int) -> str:
+    """``"first "`` before the position of the first of several events, else nothing."""
+    return "first " if n > 1 else ""
+
+
+def _verb(n: int, singular: str, plural: str) -> str:
+    """The verb form agreeing with a count."""
+    return singular if n == 1 else plural
 
 
 @dataclass(frozen=True)
@@ -233,7 +253,7 @@ def imu_problems(stats: StampStats, exact_duplicates: int = 0) -> list[Problem]:
     if stats.count < 10:
         out.append(
             Problem(
-                f"Only {stats.count} IMU samples in the segment; choose a longer segment with "
+                f"Only {_count(stats.count, 'IMU sample')} in the segment; choose a longer segment with "
                 "--start/--duration or check the IMU topic.",
                 True,
                 DataError,
@@ -243,8 +263,8 @@ def imu_problems(stats: StampStats, exact_duplicates: int = 0) -> list[Problem]:
     if stats.backwards:
         out.append(
             Problem(
-                f"IMU stamps go backwards {stats.backwards} times (first at "
-                f"{stats.first_backwards_s:.3f} s); re-record, or rewrite the bag in stamp "
+                f"IMU stamps go backwards {_times(stats.backwards)} "
+                f"({_first(stats.backwards)}at {stats.first_backwards_s:.3f} s); re-record, or rewrite the bag in stamp "
                 "order (e.g. with `rosbags-convert` and a script), or pick a segment without "
                 "it with --start/--duration.",
                 True,
@@ -255,8 +275,8 @@ def imu_problems(stats: StampStats, exact_duplicates: int = 0) -> list[Problem]:
     if real_dups > 0:
         out.append(
             Problem(
-                f"IMU stamps are duplicated {real_dups} times with different values (first at "
-                f"{stats.first_duplicate_s:.3f} s); the IMU driver stamps messages wrongly, "
+                f"IMU stamps are duplicated {_times(real_dups)} with different values "
+                f"({_first(real_dups)}at {stats.first_duplicate_s:.3f} s); the IMU driver stamps messages wrongly, "
                 "fix its time stamping and re-record.",
                 True,
                 TimestampError,
@@ -265,7 +285,9 @@ def imu_problems(stats: StampStats, exact_duplicates: int = 0) -> list[Problem]:
     if exact_duplicates > 0:
         out.append(
             Problem(
-                f"{exact_duplicates} IMU messages were recorded twice; the copies are dropped.",
+                f"{_count(exact_duplicates, 'IMU message')} "
+                f"{'was' if exact_duplicates == 1 else 'were'} recorded twice; the copies are "
+                "dropped.",
                 False,
                 TimestampError,
             )
@@ -273,7 +295,8 @@ def imu_problems(stats: StampStats, exact_duplicates: int = 0) -> list[Problem]:
     if stats.gaps:
         out.append(
             Problem(
-                f"The IMU stream has {stats.gaps} gaps longer than {IMU_GAP_FACTOR:g}x its "
+                f"The IMU stream has {_count(stats.gaps, 'gap')} longer than "
+                f"{IMU_GAP_FACTOR:g}x its "
                 f"period of {stats.period_ns / 1e6:.2f} ms (largest {stats.max_gap_s:.3f} s at "
                 f"{stats.max_gap_at_s:.3f} s); choose a segment without gaps with "
                 "--start/--duration.",
@@ -299,8 +322,8 @@ def lidar_stamp_problems(stats: StampStats) -> list[Problem]:
     if stats.backwards:
         out.append(
             Problem(
-                f"LiDAR stamps go backwards {stats.backwards} times (first at "
-                f"{stats.first_backwards_s:.3f} s); re-record, or pick a segment without it "
+                f"LiDAR stamps go backwards {_times(stats.backwards)} "
+                f"({_first(stats.backwards)}at {stats.first_backwards_s:.3f} s); re-record, or pick a segment without it "
                 "with --start/--duration.",
                 True,
                 TimestampError,
@@ -309,8 +332,8 @@ def lidar_stamp_problems(stats: StampStats) -> list[Problem]:
     if stats.duplicates:
         out.append(
             Problem(
-                f"LiDAR stamps are duplicated {stats.duplicates} times (first at "
-                f"{stats.first_duplicate_s:.3f} s); the driver stamps clouds wrongly, fix it "
+                f"LiDAR stamps are duplicated {_times(stats.duplicates)} "
+                f"({_first(stats.duplicates)}at {stats.first_duplicate_s:.3f} s); the driver stamps clouds wrongly, fix it "
                 "and re-record, or pick another segment with --start/--duration.",
                 True,
                 TimestampError,
@@ -319,7 +342,8 @@ def lidar_stamp_problems(stats: StampStats) -> list[Problem]:
     if stats.gaps:
         out.append(
             Problem(
-                f"The LiDAR stream has {stats.gaps} gaps longer than {LIDAR_GAP_FACTOR:g}x "
+                f"The LiDAR stream has {_count(stats.gaps, 'gap')} longer than "
+                f"{LIDAR_GAP_FACTOR:g}x "
                 f"its period (largest {stats.max_gap_s:.3f} s at {stats.max_gap_at_s:.3f} s); "
                 "clouds were dropped while recording.",
                 False,
@@ -361,15 +385,16 @@ def segment_window(bag: BagHandle, cfg: CalibConfig) -> SegmentWindow:
     """Record-time window of ``cfg.bag`` (start and duration after the first message).
 
     Raises:
-        DataError: the start lies after the end of the bag.
+        ConfigError: the start lies after the end of the bag (an invalid option).
     """
     start = bag.start_ns + round(cfg.bag.start_s * _NS)
     if start >= bag.end_ns:
         msg = (
             f"The segment starts at {cfg.bag.start_s:g} s but the bag lasts only "
-            f"{(bag.end_ns - bag.start_ns) / _NS:.3f} s; choose a smaller --start."
+            f"{(bag.end_ns - bag.start_ns) / _NS:.3f} s; choose a smaller --start "
+            "(`bag.start_s`)."
         )
-        raise DataError(msg)
+        raise ConfigError(msg)
     stop = None
     if cfg.bag.duration_s is not None:
         stop = start + round(cfg.bag.duration_s * _NS)
@@ -467,6 +492,7 @@ def read_imu(path: Path, cfg: CalibConfig) -> tuple[ImuSamples, ImuUnits, tuple[
 
     Raises:
         BagError, TopicError, DataError, TimestampError: see the module table.
+        ConfigError: the segment starts after the end of the bag.
     """
     with open_bag(path) as bag:
         topic = select_topic(bag, IMU_TYPE, cfg.imu.topic, "--imu-topic", "imu.topic")
@@ -561,6 +587,7 @@ def detect_layout(
     Raises:
         DataError: no cloud of the segment has valid points.
         TimestampError: the time field has zero span in the clouds checked.
+        ConfigError: the configured time or ring field is not in the clouds.
     """
     lo = cfg.lidar
     period = _cloud_period_ns(bag, topic, window, off, cfg)
@@ -648,18 +675,19 @@ def detect_layout(
 
 
 def _all_skipped_message(total: int, reasons: dict[str, int]) -> str:
+    every = "The only LiDAR cloud" if total == 1 else f"All {total} LiDAR clouds"
     if reasons["empty"] == total:
         return (
-            f"All {total} LiDAR clouds of the segment are empty; check the LiDAR driver and "
-            "topic, or choose another segment with --start/--duration."
+            f"{every} of the segment {'is' if total == 1 else 'are'} empty; check the LiDAR "
+            "driver and topic, or choose another segment with --start/--duration."
         )
     if reasons["invalid"] + reasons["empty"] == total:
         return (
-            f"All {total} LiDAR clouds of the segment have only NaN or zero points; check the "
-            "LiDAR driver (or its return mode) and re-record."
+            f"{every} of the segment {'has' if total == 1 else 'have'} only NaN or zero "
+            "points; check the LiDAR driver (or its return mode) and re-record."
         )
     return (
-        f"No point of the {total} LiDAR clouds of the segment lies between "
+        f"No point of the {_count(total, 'LiDAR cloud')} of the segment lies between "
         "`lidar.min_range_m` and `lidar.max_range_m`; widen that range in the config."
     )
 
@@ -733,7 +761,8 @@ class ScanTally:
         if self.skipped["zero span"] and (fatal or self.skipped["zero span"] == self.total):
             out.append(
                 Problem(
-                    f"{self.skipped['zero span']} of {self.total} LiDAR clouds have a per-point "
+                    f"{self.skipped['zero span']} of {_count(self.total, 'LiDAR cloud')} "
+                    f"{_verb(self.skipped['zero span'], 'has', 'have')} a per-point "
                     "time field with zero span; set `lidar.time_field: none` to estimate times "
                     "from the azimuth instead.",
                     True,
@@ -745,15 +774,16 @@ class ScanTally:
             if n == 0:
                 continue
             what = {
-                "empty": "are empty",
-                "invalid": "have only NaN or zero points",
-                "out of range": "have no point within the range limits",
-                "zero span": "have a time field with zero span",
-                "no time field": "lack the time field",
+                "empty": _verb(n, "is", "are") + " empty",
+                "invalid": _verb(n, "has", "have") + " only NaN or zero points",
+                "out of range": _verb(n, "has", "have") + " no point within the range limits",
+                "zero span": _verb(n, "has", "have") + " a time field with zero span",
+                "no time field": _verb(n, "lacks", "lack") + " the time field",
             }[reason]
             out.append(
                 Problem(
-                    f"{n} of {self.total} LiDAR clouds {what} and were skipped"
+                    f"{n} of {_count(self.total, 'LiDAR cloud')} {what} and "
+                    f"{_verb(n, 'was', 'were')} skipped"
                     + ("; check the LiDAR driver and re-record." if fatal else "."),
                     fatal,
                     DataError,
@@ -861,6 +891,8 @@ def read_segment(path: Path, cfg: CalibConfig) -> Recording:
         TopicError: missing, ambiguous or wrongly typed topics.
         DataError: unusable clouds or too little data.
         TimestampError: unsorted or duplicated stamps, IMU gaps, zero-span time fields.
+        ConfigError: the segment starts after the end of the bag, or a configured time or
+            ring field is not in the clouds.
     """
     with open_bag(path) as bag:
         imu_t = select_topic(bag, IMU_TYPE, cfg.imu.topic, "--imu-topic", "imu.topic")
@@ -924,7 +956,7 @@ def iter_scans(
         :class:`LidarScan` in stamp order.
 
     Raises:
-        BagError, TopicError, DataError, TimestampError: as :func:`read_segment`.
+        BagError, TopicError, DataError, TimestampError, ConfigError: as :func:`read_segment`.
     """
     with open_bag(path) as bag:
         lid_t = select_topic(bag, CLOUD_TYPE, cfg.lidar.topic, "--lidar-topic", "lidar.topic")

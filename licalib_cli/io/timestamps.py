@@ -36,7 +36,7 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
-from licalib_cli.errors import DataError, TimestampError
+from licalib_cli.errors import ConfigError, DataError, TimestampError
 
 __all__ = [
     "RING_FIELD_CANDIDATES",
@@ -115,7 +115,7 @@ def find_time_field(names: Sequence[str], override: str | None) -> str | None:
         The field name, or None when there is none (times will be estimated).
 
     Raises:
-        DataError: the configured field is not in the cloud.
+        ConfigError: the configured field is not in the cloud.
     """
     if override is not None:
         if override.lower() == "none":
@@ -125,7 +125,7 @@ def find_time_field(names: Sequence[str], override: str | None) -> str | None:
                 f"The configured time field '{override}' is not in the cloud (fields: "
                 f"{', '.join(names)}); fix `lidar.time_field` or remove it to detect the field."
             )
-            raise DataError(msg)
+            raise ConfigError(msg)
         return override
     for cand in TIME_FIELD_CANDIDATES:
         if cand in names:
@@ -137,7 +137,7 @@ def find_ring_field(names: Sequence[str], override: str | None) -> str | None:
     """The beam index field to use (``ring`` or ``line``), or None.
 
     Raises:
-        DataError: the configured field is not in the cloud.
+        ConfigError: the configured field is not in the cloud.
     """
     if override is not None:
         if override.lower() == "none":
@@ -147,7 +147,7 @@ def find_ring_field(names: Sequence[str], override: str | None) -> str | None:
                 f"The configured ring field '{override}' is not in the cloud (fields: "
                 f"{', '.join(names)}); fix `lidar.ring_field` or remove it to detect the field."
             )
-            raise DataError(msg)
+            raise ConfigError(msg)
         return override
     for cand in RING_FIELD_CANDIDATES:
         if cand in names:

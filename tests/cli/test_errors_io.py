@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from licalib_cli.cli import main
-from licalib_cli.errors import BagError, DataError, TimestampError, TopicError
+from licalib_cli.errors import BagError, ConfigError, DataError, TimestampError, TopicError
 
 _spec = importlib.util.spec_from_file_location(
     "licalib_test_layouts", Path(__file__).parents[1] / "io" / "_layouts.py"
@@ -125,7 +125,7 @@ def test_unsorted_imu_stamps(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     t[100] -= 20_000_000
     layouts.write_custom_bag(tmp_path / "x", imu_t=t)
     msg = _fail(["info", str(tmp_path / "x")], capsys, TimestampError.exit_code)
-    assert "IMU stamps go backwards 1 times (first at 0.480 s)" in msg
+    assert "IMU stamps go backwards once (at 0.480 s)" in msg
 
 
 def test_duplicated_cloud_stamps(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -133,7 +133,7 @@ def test_duplicated_cloud_stamps(tmp_path: Path, capsys: pytest.CaptureFixture[s
     clouds[3] = (clouds[2][0], clouds[3][1])
     layouts.write_custom_bag(tmp_path / "x", clouds=clouds)
     msg = _fail(["info", str(tmp_path / "x")], capsys, TimestampError.exit_code)
-    assert "LiDAR stamps are duplicated 1 times" in msg
+    assert "LiDAR stamps are duplicated once (at " in msg
 
 
 def test_imu_gap(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -141,7 +141,7 @@ def test_imu_gap(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     t = np.delete(t, np.arange(80, 120))
     layouts.write_custom_bag(tmp_path / "x", imu_t=t)
     msg = _fail(["info", str(tmp_path / "x")], capsys, TimestampError.exit_code)
-    assert "gaps longer than 5x" in msg and "--start/--duration" in msg
+    assert "has 1 gap longer than 5x" in msg and "--start/--duration" in msg
 
 
 def test_zero_span_time_field(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -157,3 +157,24 @@ def test_bad_config_value(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
     layouts.write_custom_bag(tmp_path / "x")
     msg = _fail(["info", str(tmp_path / "x"), "--start", "-3"], capsys, 6)
     assert "bag.start_s" in msg
+
+
+def test_start_after_end_of_bag_is_an_option_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    layouts.write_custom_bag(tmp_path / "x")
+    msg = _fail(["info", str(tmp_path / "x"), "--start", "100"], capsys, ConfigError.exit_code)
+    assert "bag lasts only 1.1" in msg and "smaller --start" in msg
+
+
+@pytest.mark.parametrize(
+    ("key", "option"), [("time_field", "lidar.time_field"), ("ring_field", "lidar.ring_field")]
+)
+def test_configured_field_missing_from_cloud_is_a_config_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], key: str, option: str
+) -> None:
+    layouts.write_custom_bag(tmp_path / "x")
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"lidar:\n  {key}: foo\n")
+    msg = _fail(["info", str(tmp_path / "x"), "-c", str(cfg)], capsys, ConfigError.exit_code)
+    assert "'foo' is not in the cloud" in msg and f"`{option}`" in msg

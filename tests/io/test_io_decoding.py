@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from _layouts import NS, OUSTER, spinning_sweep
 
-from licalib_cli.errors import DataError, TimestampError
+from licalib_cli.errors import ConfigError, DataError, TimestampError
 from licalib_cli.io.imu_units import GRAVITY, convert_imu, detect_imu_units
 from licalib_cli.io.pointcloud2 import decode_cloud, to_structured, valid_mask
 from licalib_cli.io.timestamps import (
@@ -127,7 +127,7 @@ def test_zero_span_raises() -> None:
 def test_find_time_field_override_and_none() -> None:
     assert find_time_field(("x", "y", "z", "t"), None) == "t"
     assert find_time_field(("x", "y", "z", "t"), "none") is None
-    with pytest.raises(DataError, match="configured time field 'time'"):
+    with pytest.raises(ConfigError, match="configured time field 'time'"):
         find_time_field(("x", "y", "z", "t"), "time")
 
 
