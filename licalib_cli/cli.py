@@ -156,9 +156,10 @@ def main(argv: list[str] | None = None) -> None:
         ):
             _show_usage_error(err)
             sys.exit(USAGE_ERROR_EXIT_CODE)
-        if isinstance(err, click_exc) or (
-            callable(getattr(err, "show", None)) and isinstance(getattr(err, "exit_code", None), int)
-        ):
+        duck = callable(getattr(err, "show", None)) and isinstance(
+            getattr(err, "exit_code", None), int
+        )
+        if isinstance(err, click_exc) or duck:
             err.show()  # type: ignore[attr-defined]
             sys.exit(err.exit_code)  # type: ignore[attr-defined]
         if isinstance(err, abort_exc):

@@ -253,8 +253,8 @@ def imu_problems(stats: StampStats, exact_duplicates: int = 0) -> list[Problem]:
     if stats.count < 10:
         out.append(
             Problem(
-                f"Only {_count(stats.count, 'IMU sample')} in the segment; choose a longer segment with "
-                "--start/--duration or check the IMU topic.",
+                f"Only {_count(stats.count, 'IMU sample')} in the segment; choose a longer "
+                "segment with --start/--duration or check the IMU topic.",
                 True,
                 DataError,
             )
@@ -264,9 +264,9 @@ def imu_problems(stats: StampStats, exact_duplicates: int = 0) -> list[Problem]:
         out.append(
             Problem(
                 f"IMU stamps go backwards {_times(stats.backwards)} "
-                f"({_first(stats.backwards)}at {stats.first_backwards_s:.3f} s); re-record, or rewrite the bag in stamp "
-                "order (e.g. with `rosbags-convert` and a script), or pick a segment without "
-                "it with --start/--duration.",
+                f"({_first(stats.backwards)}at {stats.first_backwards_s:.3f} s); re-record, or "
+                "rewrite the bag in stamp order (e.g. with `rosbags-convert` and a script), or "
+                "pick a segment without it with --start/--duration.",
                 True,
                 TimestampError,
             )
@@ -276,8 +276,8 @@ def imu_problems(stats: StampStats, exact_duplicates: int = 0) -> list[Problem]:
         out.append(
             Problem(
                 f"IMU stamps are duplicated {_times(real_dups)} with different values "
-                f"({_first(real_dups)}at {stats.first_duplicate_s:.3f} s); the IMU driver stamps messages wrongly, "
-                "fix its time stamping and re-record.",
+                f"({_first(real_dups)}at {stats.first_duplicate_s:.3f} s); the IMU driver "
+                "stamps messages wrongly, fix its time stamping and re-record.",
                 True,
                 TimestampError,
             )
@@ -296,9 +296,8 @@ def imu_problems(stats: StampStats, exact_duplicates: int = 0) -> list[Problem]:
         out.append(
             Problem(
                 f"The IMU stream has {_count(stats.gaps, 'gap')} longer than "
-                f"{IMU_GAP_FACTOR:g}x its "
-                f"period of {stats.period_ns / 1e6:.2f} ms (largest {stats.max_gap_s:.3f} s at "
-                f"{stats.max_gap_at_s:.3f} s); choose a segment without gaps with "
+                f"{IMU_GAP_FACTOR:g}x its period of {stats.period_ns / 1e6:.2f} ms (largest "
+                f"{stats.max_gap_s:.3f} s at {stats.max_gap_at_s:.3f} s); choose a segment without gaps with "
                 "--start/--duration.",
                 True,
                 TimestampError,
@@ -323,8 +322,8 @@ def lidar_stamp_problems(stats: StampStats) -> list[Problem]:
         out.append(
             Problem(
                 f"LiDAR stamps go backwards {_times(stats.backwards)} "
-                f"({_first(stats.backwards)}at {stats.first_backwards_s:.3f} s); re-record, or pick a segment without it "
-                "with --start/--duration.",
+                f"({_first(stats.backwards)}at {stats.first_backwards_s:.3f} s); re-record, or "
+                "pick a segment without it with --start/--duration.",
                 True,
                 TimestampError,
             )
@@ -333,8 +332,9 @@ def lidar_stamp_problems(stats: StampStats) -> list[Problem]:
         out.append(
             Problem(
                 f"LiDAR stamps are duplicated {_times(stats.duplicates)} "
-                f"({_first(stats.duplicates)}at {stats.first_duplicate_s:.3f} s); the driver stamps clouds wrongly, fix it "
-                "and re-record, or pick another segment with --start/--duration.",
+                f"({_first(stats.duplicates)}at {stats.first_duplicate_s:.3f} s); the driver "
+                "stamps clouds wrongly, fix it and re-record, or pick another segment with "
+                "--start/--duration.",
                 True,
                 TimestampError,
             )
