@@ -15,6 +15,9 @@ import typer
 
 from licalib_cli.io.writer import BagFormat
 from licalib_cli.simulation.spec import (
+    DEFAULT_G_SENSITIVITY_DPS_PER_G,
+    EFFECT_BIAS_WALK_SCALE,
+    EFFECT_IMU_CLOCK_DRIFT_PPM,
     ImuEffect,
     IntrinsicsMode,
     LidarKind,
@@ -62,7 +65,10 @@ def _command_line(ctx: typer.Context) -> str:
 
 def simulate_command(
     ctx: typer.Context,
-    out_dir: Annotated[Path, typer.Argument(metavar="OUT_DIR", help="Output folder for the bag and truth.yaml.")],
+    out_dir: Annotated[
+        Path,
+        typer.Argument(metavar="OUT_DIR", help="Output folder for the bag and truth.yaml."),
+    ],
     scenario: Annotated[
         Scenario, typer.Option("--scenario", help="Motion of the rig.", rich_help_panel=_SCENE)
     ] = Scenario.SINUSOID,
@@ -147,6 +153,14 @@ def simulate_command(
             "--time-offset", help="t_imu = t_lidar + time_offset, s.", rich_help_panel=_CALIB
         ),
     ] = 0.0,
+    random_time_offset: Annotated[
+        bool,
+        typer.Option(
+            "--random-time-offset",
+            help="Draw the time offset uniformly within +-50 ms from the seed.",
+            rich_help_panel=_CALIB,
+        ),
+    ] = False,
     lidar_clock_offset: Annotated[
         float,
         typer.Option(
@@ -196,33 +210,41 @@ def simulate_command(
         ),
     ] = False,
     bias_walk_scale: Annotated[
-        float,
+        float | None,
         typer.Option(
             "--bias-walk-scale",
-            help="Multiply the MTi-100 bias random-walk densities (0: constant biases).",
+            help="Multiply the MTi-100 bias random-walk densities (0: constant biases; "
+            f"default 1, or {EFFECT_BIAS_WALK_SCALE:g} with --effect bias-random-walk).",
             rich_help_panel=_IMU,
         ),
-    ] = 1.0,
+    ] = None,
     effect: Annotated[
         list[ImuEffect] | None,
-        typer.Option("--effect", help="Optional IMU effect (repeatable).", rich_help_panel=_IMU),
+        typer.Option(
+            "--effect",
+            help="Optional IMU effect (repeatable): g-sensitivity (strength "
+            "--g-sensitivity), bias-random-walk (stronger walk, strength --bias-walk-scale), "
+            "imu-clock-drift (strength --imu-clock-drift-ppm).",
+            rich_help_panel=_IMU,
+        ),
     ] = None,
     g_sensitivity: Annotated[
         float,
         typer.Option(
             "--g-sensitivity",
-            help="Std of each g-sensitivity entry, deg/s per g.",
+            help="Std of each g-sensitivity entry, deg/s per g (with --effect g-sensitivity).",
             rich_help_panel=_IMU,
         ),
-    ] = 0.1,
+    ] = DEFAULT_G_SENSITIVITY_DPS_PER_G,
     imu_clock_drift_ppm: Annotated[
-        float,
+        float | None,
         typer.Option(
             "--imu-clock-drift-ppm",
-            help="IMU stamps run at (1 + ppm 1e-6) times the true rate.",
+            help="IMU stamps run at (1 + ppm 1e-6) times the true rate (default 0, or "
+            f"{EFFECT_IMU_CLOCK_DRIFT_PPM:g} with --effect imu-clock-drift).",
             rich_help_panel=_IMU,
         ),
-    ] = 0.0,
+    ] = None,
     fmt: Annotated[
         BagFormat, typer.Option("--format", help="Bag format.", rich_help_panel=_OUT)
     ] = BagFormat.ROS1,
@@ -271,6 +293,7 @@ def simulate_command(
         rpy_deg=tuple(rpy_deg),  # type: ignore[arg-type]
         random_extrinsic=random_extrinsic,
         time_offset_s=time_offset,
+        random_time_offset=random_time_offset,
         lidar_clock_offset_s=lidar_clock_offset,
         intrinsics=intrinsics,
         intrinsics_scale=intrinsics_scale,

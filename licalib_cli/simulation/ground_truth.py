@@ -17,6 +17,7 @@ gyro non-orthogonality     0.05 deg     accel non-orthogonality     0.05 deg
 plus the gyro-to-IMU rotation ``R_wI`` (0.5 deg per Euler angle, the size of the paper's IMU
 intrinsics table), constant biases (gyro 0.2 deg/s, accel 0.03 m/s^2 per axis) and, with the
 ``g-sensitivity`` effect, ``A_w`` entries of ``g_sensitivity_dps_per_g`` deg/s per g.
+With ``random_time_offset`` the time offset is drawn uniformly within +-50 ms.
 ``intrinsics_scale`` multiplies all of these. Beam 0 gets zero ``dphi, dtheta, V, H``: the
 calibration fixes them as the gauge (method.md section 4), so the truth uses the same gauge.
 """
@@ -37,6 +38,7 @@ from licalib_cli.results import CalibrationResult, Extrinsic, matrix_from_rpy_de
 from licalib_cli.simulation.lidar_models import LidarModel, lidar_model
 from licalib_cli.simulation.scenarios import ScenarioMotion, make_motion
 from licalib_cli.simulation.spec import (
+    RANDOM_TIME_OFFSET_MAX_S,
     STANDARD_GRAVITY,
     ImuEffect,
     IntrinsicsMode,
@@ -122,9 +124,26 @@ class SimulationSetup:
         return r_wl, p_wl
 
 
+def draw_time_offset(spec: SimulationSpec) -> float:
+    """``time_offset_s`` from the options, or drawn uniformly within +-50 ms; rounded to ns.
+
+    The draw comes from the extrinsic stream's sub-stream ``SeedSequence([seed, EXTRINSIC, 1])``,
+    so it is the same for a seed whether or not the extrinsic is drawn too, and it leaves every
+    other draw of the run unchanged.
+    """
+    if not spec.random_time_offset:
+        return round(spec.time_offset_s * 1e9) / 1e9
+    rng = rng_for(spec.seed, Stream.EXTRINSIC, 1)
+    drawn = rng.uniform(-RANDOM_TIME_OFFSET_MAX_S, RANDOM_TIME_OFFSET_MAX_S)
+    return round(drawn * 1e9) / 1e9
+
+
 def draw_extrinsic(spec: SimulationSpec) -> Extrinsic:
-    """The extrinsic from the options, or a random one (any rotation, |t| <= 0.5 m)."""
-    offset = round(spec.time_offset_s * 1e9) / 1e9
+    """The extrinsic from the options, or a random one (any rotation, |t| <= 0.5 m).
+
+    The time offset comes from :func:`draw_time_offset`.
+    """
+    offset = draw_time_offset(spec)
     if not spec.random_extrinsic:
         return Extrinsic(
             rotation=matrix_from_rpy_deg(spec.rpy_deg),

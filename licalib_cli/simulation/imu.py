@@ -55,7 +55,8 @@ def imu_sample_times(spec: SimulationSpec) -> tuple[npt.NDArray[np.int64], F64]:
     """Stamps relative to the base time (int64 ns) and true times (s) of every IMU sample."""
     n = int(np.floor(spec.resolved_duration_s * spec.imu_rate_hz + 1e-9)) + 1
     stamp_rel_ns = np.round(np.arange(n) * (1e9 / spec.imu_rate_hz)).astype(np.int64)
-    t_true = stamp_rel_ns.astype(np.float64) * 1e-9 / (1.0 + spec.imu_clock_drift_ppm * 1e-6)
+    rate_factor = 1.0 + spec.resolved_imu_clock_drift_ppm * 1e-6
+    t_true = stamp_rel_ns.astype(np.float64) * 1e-9 / rate_factor
     return stamp_rel_ns, t_true
 
 
@@ -83,7 +84,7 @@ def generate_imu(
     walk = rng.standard_normal((n, 6))
     rate = spec.imu_rate_hz
     noise_scale = 0.0 if spec.noise_free else 1.0
-    walk_scale = 0.0 if spec.noise_free else spec.bias_walk_scale
+    walk_scale = 0.0 if spec.noise_free else spec.resolved_bias_walk_scale
     sig_g = noise_scale * spec.gyro_noise_density * np.sqrt(rate)
     sig_a = noise_scale * spec.accel_noise_density * np.sqrt(rate)
     step_g = walk_scale * spec.gyro_bias_walk_density / np.sqrt(rate)

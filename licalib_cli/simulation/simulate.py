@@ -10,9 +10,10 @@
       gravity_in_first_imu_frame: [gx, gy, gz]    # g_G = R_W_I(t_first_imu)^T g_W
       initial_imu_pose: {stamp_ns, position, rotation_quaternion, velocity, angular_velocity}
       imu: {topic, frame_id, rate_hz, num_samples, noise densities and discrete sigmas,
-            bias_walk_scale, effects, clock_drift_ppm, gyro_bias_mean, accel_bias_mean, ...}
+            bias_walk_scale, effects, g_sensitivity_dps_per_g, clock_drift_ppm,
+            gyro_bias_mean, accel_bias_mean, ...}
       lidar: {model, topic, frame_id, rate_hz, num_beams, num_scans, stamp, range_noise_m, ...}
-      clock: {base_time_ns, time_offset_s, lidar_clock_offset_s, relation}
+      clock: {base_time_ns, time_offset_s, time_offset_drawn, lidar_clock_offset_s, relation}
       bag: {format, path}
       command_line: "licalib simulate ..."
       licalib_version: "0.1.0"
@@ -41,7 +42,7 @@ from licalib_cli.results import CalibrationResult, write_text_atomic
 from licalib_cli.simulation.ground_truth import SimulationSetup, build_setup
 from licalib_cli.simulation.imu import ImuTruth, generate_imu
 from licalib_cli.simulation.lidar import generate_scans, num_scans
-from licalib_cli.simulation.spec import Scenario, SimulationSpec
+from licalib_cli.simulation.spec import ImuEffect, Scenario, SimulationSpec
 
 logger = logging.getLogger(__name__)
 
@@ -124,9 +125,12 @@ def build_truth(
             "gyro_noise_sigma": imu_truth.gyro_noise_sigma,  # density * sqrt(rate)
             "accel_noise_sigma": imu_truth.accel_noise_sigma,
             "noise_free": spec.noise_free,
-            "bias_walk_scale": float(spec.bias_walk_scale),
-            "effects": [e.value for e in spec.effects],
-            "clock_drift_ppm": float(spec.imu_clock_drift_ppm),
+            "bias_walk_scale": float(spec.resolved_bias_walk_scale),
+            "effects": [e.value for e in spec.active_effects],
+            "g_sensitivity_dps_per_g": float(spec.g_sensitivity_dps_per_g)
+            if ImuEffect.G_SENSITIVITY in spec.active_effects
+            else 0.0,
+            "clock_drift_ppm": float(spec.resolved_imu_clock_drift_ppm),
             "gyro_bias_mean": _list(imu_truth.gyro_bias.mean(axis=0), 12),
             "accel_bias_mean": _list(imu_truth.accel_bias.mean(axis=0), 12),
             "gyro_bias_end": _list(imu_truth.gyro_bias[-1], 12),
@@ -155,6 +159,7 @@ def build_truth(
         "clock": {
             "base_time_ns": int(spec.base_time_ns),
             "time_offset_s": float(setup.time_offset_ns * 1e-9),
+            "time_offset_drawn": spec.random_time_offset,
             "lidar_clock_offset_s": float(setup.lidar_clock_offset_ns * 1e-9),
             "relation": "t_imu = t_lidar - lidar_clock_offset_s + time_offset_s",
         },

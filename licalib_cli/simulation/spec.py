@@ -84,9 +84,31 @@ class LidarStamp(str, Enum):
 
 
 class ImuEffect(str, Enum):
-    """Optional IMU effects beyond the model of method.md section 3."""
+    """Optional IMU effects beyond the MTi-100 model of method.md section 3.
+
+    * ``g-sensitivity``: gyro g-sensitivity ``A_w``, entries with std
+      ``g_sensitivity_dps_per_g`` (default :data:`DEFAULT_G_SENSITIVITY_DPS_PER_G`).
+    * ``bias-random-walk``: a stronger bias random walk, the MTi-100 densities times
+      ``bias_walk_scale`` (default :data:`EFFECT_BIAS_WALK_SCALE`, a consumer-grade MEMS IMU);
+      without the effect the walk is the MTi-100's (scale 1).
+    * ``imu-clock-drift``: the IMU clock runs fast by ``imu_clock_drift_ppm`` (default
+      :data:`EFFECT_IMU_CLOCK_DRIFT_PPM`, a typical uncompensated crystal); without the effect
+      there is no drift unless ``imu_clock_drift_ppm`` is set.
+    """
 
     G_SENSITIVITY = "g-sensitivity"
+    BIAS_RANDOM_WALK = "bias-random-walk"
+    IMU_CLOCK_DRIFT = "imu-clock-drift"
+
+
+DEFAULT_G_SENSITIVITY_DPS_PER_G = 0.1
+"""Std of each g-sensitivity entry with the ``g-sensitivity`` effect, deg/s per g."""
+EFFECT_BIAS_WALK_SCALE = 10.0
+"""Bias random-walk strength of the ``bias-random-walk`` effect, times the MTi-100 densities."""
+EFFECT_IMU_CLOCK_DRIFT_PPM = 50.0
+"""IMU clock drift of the ``imu-clock-drift`` effect, ppm (IMU stamps run fast)."""
+RANDOM_TIME_OFFSET_MAX_S = 0.05
+"""``random_time_offset`` draws the time offset uniformly in +-this, s."""
 
 
 Vec3 = tuple[float, float, float]
@@ -109,6 +131,8 @@ class SimulationSpec:
         rpy_deg: rotation of ``T_imu_lidar``, ``R = Rz(yaw) Ry(pitch) Rx(roll)``, deg.
         random_extrinsic: draw the extrinsic instead (any rotation, translation within 0.5 m).
         time_offset_s: ``t_imu = t_lidar + time_offset_s`` (stored rounded to ns).
+        random_time_offset: draw ``time_offset_s`` uniformly within +-50 ms from the seed
+            instead (``time_offset_s`` must then stay 0).
         lidar_clock_offset_s: whole-bag shift of the LiDAR clock (LiDAR minus IMU), s.
         intrinsics: ideal sensors or random intrinsics.
         intrinsics_scale: multiplies every standard deviation of the random intrinsics.
@@ -120,10 +144,13 @@ class SimulationSpec:
         lidar_stamp: Velodyne header stamp at the first or the last firing.
         dropout: probability that a ray returns nothing.
         noise_free: zero IMU white noise, bias random walk and range noise.
-        bias_walk_scale: multiplies the bias random-walk densities (0 disables the walk).
-        effects: optional IMU effects.
-        g_sensitivity_dps_per_g: sigma of each g-sensitivity entry, deg/s per g.
-        imu_clock_drift_ppm: IMU stamps run at ``1 + ppm 1e-6`` times the true rate.
+        bias_walk_scale: multiplies the bias random-walk densities (0 disables the walk); None
+            for 1, or :data:`EFFECT_BIAS_WALK_SCALE` with the ``bias-random-walk`` effect.
+        effects: optional IMU effects (:class:`ImuEffect`, names or members).
+        g_sensitivity_dps_per_g: sigma of each g-sensitivity entry, deg/s per g (used with the
+            ``g-sensitivity`` effect).
+        imu_clock_drift_ppm: IMU stamps run at ``1 + ppm 1e-6`` times the true rate; None for
+            0, or :data:`EFFECT_IMU_CLOCK_DRIFT_PPM` with the ``imu-clock-drift`` effect.
         gyro_noise_density: rad/s/sqrt(Hz).
         accel_noise_density: m/s^2/sqrt(Hz).
         gyro_bias_walk_density: rad/s^2/sqrt(Hz).
@@ -149,6 +176,7 @@ class SimulationSpec:
     rpy_deg: Vec3 = (1.0, 2.0, 5.0)
     random_extrinsic: bool = False
     time_offset_s: float = 0.0
+    random_time_offset: bool = False
     lidar_clock_offset_s: float = 0.0
     intrinsics: IntrinsicsMode = IntrinsicsMode.RANDOM
     intrinsics_scale: float = 1.0
@@ -160,10 +188,10 @@ class SimulationSpec:
     lidar_stamp: LidarStamp = LidarStamp.START
     dropout: float = 0.001
     noise_free: bool = False
-    bias_walk_scale: float = 1.0
+    bias_walk_scale: float | None = None
     effects: tuple[ImuEffect, ...] = field(default_factory=tuple)
-    g_sensitivity_dps_per_g: float = 0.1
-    imu_clock_drift_ppm: float = 0.0
+    g_sensitivity_dps_per_g: float = DEFAULT_G_SENSITIVITY_DPS_PER_G
+    imu_clock_drift_ppm: float | None = None
     gyro_noise_density: float = GYRO_NOISE_DENSITY
     accel_noise_density: float = ACCEL_NOISE_DENSITY
     gyro_bias_walk_density: float = GYRO_BIAS_WALK_DENSITY
@@ -213,8 +241,13 @@ class SimulationSpec:
                 f"--imu-rate {self.imu_rate_hz} Hz is outside 50-2000 Hz; use e.g. 400.",
             ),
             (
-                self.intrinsics_scale >= 0 and self.bias_walk_scale >= 0,
+                self.intrinsics_scale >= 0 and self.resolved_bias_walk_scale >= 0,
                 "--intrinsics-scale and --bias-walk-scale must not be negative.",
+            ),
+            (
+                not (self.random_time_offset and self.time_offset_s != 0.0),
+                "--random-time-offset draws the time offset, so do not also pass "
+                "--time-offset; drop one of them.",
             ),
             (
                 self.range_noise_m is None or self.range_noise_m >= 0,
@@ -229,7 +262,7 @@ class SimulationSpec:
                 "--azimuth-resolution-deg must be in (0, 10] degrees.",
             ),
             (
-                abs(self.imu_clock_drift_ppm) < 1e4,
+                abs(self.resolved_imu_clock_drift_ppm) < 1e4,
                 "--imu-clock-drift-ppm must be below 10000 in magnitude.",
             ),
             (self.gravity > 0, "gravity must be positive."),
@@ -269,6 +302,34 @@ class SimulationSpec:
         if self.lidar_frame:
             return self.lidar_frame
         return "velodyne" if self.lidar is LidarKind.VLP16 else "os_sensor"
+
+    @property
+    def resolved_bias_walk_scale(self) -> float:
+        """Multiplier of the MTi-100 bias random-walk densities actually used."""
+        if self.bias_walk_scale is not None:
+            return float(self.bias_walk_scale)
+        return EFFECT_BIAS_WALK_SCALE if ImuEffect.BIAS_RANDOM_WALK in self.effects else 1.0
+
+    @property
+    def resolved_imu_clock_drift_ppm(self) -> float:
+        """IMU clock drift actually used, ppm."""
+        if self.imu_clock_drift_ppm is not None:
+            return float(self.imu_clock_drift_ppm)
+        return EFFECT_IMU_CLOCK_DRIFT_PPM if ImuEffect.IMU_CLOCK_DRIFT in self.effects else 0.0
+
+    @property
+    def active_effects(self) -> tuple[ImuEffect, ...]:
+        """Effects in force: those named, plus those the numeric options imply.
+
+        ``imu-clock-drift`` when a drift is set, ``bias-random-walk`` when the walk is stronger
+        than the MTi-100's (scale above 1). Ordered as :class:`ImuEffect`.
+        """
+        out = set(self.effects)
+        if self.resolved_imu_clock_drift_ppm != 0.0:
+            out.add(ImuEffect.IMU_CLOCK_DRIFT)
+        if self.resolved_bias_walk_scale > 1.0:
+            out.add(ImuEffect.BIAS_RANDOM_WALK)
+        return tuple(e for e in ImuEffect if e in out)
 
     @property
     def resolved_range_noise_m(self) -> float:

@@ -8,7 +8,10 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
+from licalib_cli.cli import main
 from licalib_cli.commands.simulate import simulate_command
+from licalib_cli.simulation import SimulationSpec
+from licalib_cli.simulation.ground_truth import draw_time_offset
 from licalib_cli.errors import ConfigError
 from licalib_cli.results import CalibrationResult
 
@@ -65,8 +68,9 @@ def test_invalid_option_is_a_clear_error(tmp_path: Path) -> None:
     result = CliRunner().invoke(_app(), ["simulate", str(tmp_path), "--duration", "-1"])
     assert isinstance(result.exception, ConfigError)
     assert "--duration" in str(result.exception)
-    bad = CliRunner().invoke(_app(), ["simulate", str(tmp_path), "--scenario", "spiral"])
-    assert bad.exit_code == 2 and "spiral" in bad.output
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", str(tmp_path), "--scenario", "spiral"])
+    assert exc.value.code == ConfigError.exit_code
 
 
 def test_registered_in_the_licalib_app(tmp_path: Path) -> None:
@@ -91,3 +95,39 @@ def test_registered_in_the_licalib_app(tmp_path: Path) -> None:
     )
     assert result.exit_code == 0, result.output
     assert result.output.strip().splitlines()[-1] == str(tmp_path / "bag")
+
+
+def test_effects_by_name_and_random_time_offset(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out_dir = tmp_path / "fx"
+    argv = [
+        "simulate",
+        str(out_dir),
+        "--duration",
+        "0.2",
+        "--azimuth-resolution-deg",
+        "4",
+        "--seed",
+        "4",
+        "--effect",
+        "bias-random-walk",
+        "--effect",
+        "imu-clock-drift",
+        "--random-time-offset",
+        "--format",
+        "ros2-mcap",
+    ]
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+        raise SystemExit(0)
+    assert exc.value.code == 0, capsys.readouterr().err
+    truth = CalibrationResult.load(out_dir / "truth.yaml")
+    sim = truth.extra["simulation"]
+    assert sim["imu"]["effects"] == ["bias-random-walk", "imu-clock-drift"]
+    assert sim["imu"]["bias_walk_scale"] == 10.0 and sim["imu"]["clock_drift_ppm"] == 50.0
+    expected = draw_time_offset(SimulationSpec(seed=4, random_time_offset=True))
+    assert truth.extrinsic.time_offset_s == pytest.approx(expected, abs=1e-12)
+    assert 0 < abs(expected) <= 0.05 and sim["clock"]["time_offset_drawn"] is True
+    assert "--random-time-offset" in sim["command_line"]
+    assert "--effect bias-random-walk --effect imu-clock-drift" in sim["command_line"]
