@@ -104,6 +104,11 @@ class InitializationConfig(_Section):
     """Hand-eye is refused when the ratio of its two smallest singular values exceeds this."""
     min_axis_ratio: float = Field(default=0.1, gt=0.0, le=1.0)
     """Hand-eye needs rotation about a second axis of at least this fraction of the first."""
+    max_hand_eye_residual_deg: float = Field(default=1.0, gt=0.0)
+    """Hand-eye on the LiDAR-only odometry is trusted below this RMS residual; above it (or when
+    it is refused) the rotation is searched over all of SO(3) by map sharpness with the gyro."""
+    rotation_search: bool = True
+    """Allow that search (it needs rotation about two axes within half a second)."""
     rotation_rpy_deg: list[float] | None = Field(default=None, min_length=3, max_length=3)
     """Optional initial extrinsic rotation; hand-eye alignment is used when unset."""
     translation_m: list[float] | None = Field(default=None, min_length=3, max_length=3)

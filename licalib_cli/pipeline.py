@@ -51,6 +51,7 @@ from licalib_cli.initialization.rotation import (
     estimate_rotation_extrinsic,
     lidar_rotation_at,
 )
+from licalib_cli.initialization.rotation_search import search_rotation_extrinsic
 from licalib_cli.initialization.time_offset import (
     TimeOffsetConfig,
     TimeOffsetEstimate,
@@ -286,43 +287,153 @@ def sample_points(
     return PointSample(t_ns, beam, rho, theta, offset)
 
 
-def initialise(
-    rec: Recording, poses: PoseSeries, cfg: CalibConfig, gyro: GyroIntegrator
-) -> tuple[F64, float, str, str, float, HandEyeRotation | None]:
-    """Initial extrinsic rotation and time offset (method.md 5.3-5.4).
-
-    Order: hand-eye rotation with a zero offset (robust to offsets of tens of ms), then the
-    time offset by cross-correlating the angular-velocity vectors (the LiDAR's rotated into the
-    IMU frame; the angular speed alone when that fails), then hand-eye again at that offset.
-
-    Returns:
-        ``(R_imu_lidar, time_offset_s, rotation_source, time_offset_source, correlation,
-        hand_eye)``.
-    """
+def _hand_eye_config(cfg: CalibConfig) -> HandEyeConfig:
     ini = cfg.initialization
-    he_cfg = HandEyeConfig(
+    return HandEyeConfig(
         min_angle_deg=ini.min_rotation_deg,
         max_singular_ratio=ini.max_singular_ratio,
         min_axis_ratio=ini.min_axis_ratio,
     )
 
-    def hand_eye_at(t_c: float) -> HandEyeRotation:
-        try:
-            return estimate_rotation_extrinsic(gyro, poses, time_offset_s=t_c, cfg=he_cfg)
-        except ExcitationError as err:
-            msg = (
-                f"{str(err).rstrip('.')}, or give initialization.rotation_rpy_deg in the config "
-                "to start from a known rotation."
-            )
-            raise ExcitationError(msg) from err
 
+def _with_rotation_hint(err: ExcitationError) -> ExcitationError:
+    msg = (
+        f"{str(err).rstrip('.')}, or give initialization.rotation_rpy_deg in the config to "
+        "start from a known rotation."
+    )
+    return ExcitationError(msg)
+
+
+def searched_rotation(
+    rec: Recording,
+    kiss: PoseSeries,
+    ocfg: OdometryConfig,
+    gyro: GyroIntegrator,
+    t_c: float,
+    cfg: CalibConfig,
+    max_rounds: int = 4,
+) -> tuple[F64, PoseSeries, HandEyeRotation]:
+    """Rotation extrinsic when the LiDAR-only odometry cannot follow the motion.
+
+    A global search over SO(3) by map sharpness (:mod:`rotation_search`) gives a rotation within
+    a few degrees without any odometry; then rounds of gyro-aided odometry (deskew and seed
+    rotations from the gyro through the current rotation) and hand-eye bring it to the accuracy
+    of hand-eye on good odometry.
+
+    Returns:
+        ``(R_imu_lidar, poses, hand_eye)``.
+
+    Raises:
+        ExcitationError: the search is ambiguous (rotation about one axis only) or hand-eye on the
+            gyro-aided odometry is still refused.
+    """
+    found = search_rotation_extrinsic(rec.scans, gyro, t_c)
+    if found.ambiguity < 1.02:
+        msg = (
+            "Rotation excitation is too weak: the LiDAR odometry did not follow the motion and "
+            "no rotation extrinsic makes the map clearly sharper than others (the rig turned "
+            "about one axis only); rotate the rig about at least two axes during the recording"
+        )
+        raise ExcitationError(msg)
+    rot = found.R_imu_lidar
     hand_eye: HandEyeRotation | None = None
+    poses = kiss
+    for _ in range(max_rounds):
+        poses = refine_odometry(
+            rec.scans, kiss, ocfg, rotation_at=lidar_rotation_at(gyro, rot, t_c)
+        )
+        new = estimate_rotation_extrinsic(gyro, poses, time_offset_s=t_c, cfg=_hand_eye_config(cfg))
+        step = float(np.degrees(np.abs(so3.log(rot.T @ new.R_imu_lidar)).max()))
+        rot, hand_eye = new.R_imu_lidar, new
+        logger.info("Gyro-aided hand-eye round after the search: rotation moved %.3f deg.", step)
+        if step < 0.5:  # the rounds at the coarse time offset that follow do the rest
+            break
+    assert hand_eye is not None
+    return rot, poses, hand_eye
+
+
+def initial_rotation(
+    rec: Recording,
+    kiss: PoseSeries,
+    poses: PoseSeries,
+    ocfg: OdometryConfig,
+    gyro: GyroIntegrator,
+    t_c: float,
+    cfg: CalibConfig,
+) -> tuple[F64, PoseSeries, HandEyeRotation, str]:
+    """Hand-eye rotation on the LiDAR-only odometry, or the sharpness search when that fails.
+
+    Hand-eye is trusted when it is well conditioned and its residual is below
+    ``initialization.max_hand_eye_residual_deg``; otherwise (violent motion that the LiDAR-only
+    odometry cannot follow) :func:`searched_rotation` takes over, and the better-fitting of the
+    two is kept when both succeed.
+
+    Returns:
+        ``(R_imu_lidar, poses, hand_eye, source)`` with ``source`` ``"hand-eye"`` or
+        ``"search + gyro-aided hand-eye"``; ``poses`` are the odometry the rotation rests on.
+
+    Raises:
+        ExcitationError: neither way determines the rotation.
+    """
+    ini = cfg.initialization
+    first: HandEyeRotation | None = None
+    try:
+        first = estimate_rotation_extrinsic(
+            gyro, poses, time_offset_s=t_c, cfg=_hand_eye_config(cfg)
+        )
+    except ExcitationError as err:
+        if not ini.rotation_search:
+            raise _with_rotation_hint(err) from err
+        logger.info("Hand-eye on the LiDAR-only odometry refused (%s); searching.", err)
+        failure: ExcitationError = err
+    else:
+        if first.residual_rms_deg <= ini.max_hand_eye_residual_deg or not ini.rotation_search:
+            return first.R_imu_lidar, poses, first, "hand-eye"
+        logger.info(
+            "Hand-eye residual %.2f deg: the LiDAR-only odometry may not follow the motion; "
+            "searching.",
+            first.residual_rms_deg,
+        )
+    try:
+        rot, searched_poses, hand_eye = searched_rotation(rec, kiss, ocfg, gyro, t_c, cfg)
+    except ExcitationError as err:
+        if first is not None:
+            return first.R_imu_lidar, poses, first, "hand-eye"
+        raise _with_rotation_hint(failure) from err
+    if first is not None and first.residual_rms_deg <= hand_eye.residual_rms_deg:
+        return first.R_imu_lidar, poses, first, "hand-eye"
+    return rot, searched_poses, hand_eye, "search + gyro-aided hand-eye"
+
+
+def initialise(
+    rec: Recording,
+    kiss: PoseSeries,
+    poses: PoseSeries,
+    ocfg: OdometryConfig,
+    cfg: CalibConfig,
+    gyro: GyroIntegrator,
+) -> tuple[F64, float, str, str, float, HandEyeRotation | None, PoseSeries]:
+    """Initial extrinsic rotation and time offset (method.md 5.3-5.4).
+
+    Order: the rotation with a zero offset (hand-eye, robust to offsets of tens of ms, or the
+    sharpness search when the LiDAR-only odometry cannot follow the motion), then the time
+    offset by cross-correlating the angular-velocity vectors (the LiDAR's rotated into the IMU
+    frame; the angular speed alone when that fails), then hand-eye again at that offset.
+
+    Returns:
+        ``(R_imu_lidar, time_offset_s, rotation_source, time_offset_source, correlation,
+        hand_eye, poses)``.
+    """
+    ini = cfg.initialization
+    he_cfg = _hand_eye_config(cfg)
+    hand_eye: HandEyeRotation | None = None
+    t_guess = 0.0 if ini.time_offset_s is None else float(ini.time_offset_s)
     if ini.rotation_rpy_deg is not None:
         rot, r_source = matrix_from_rpy_deg(ini.rotation_rpy_deg), "config"
     else:
-        t_guess = 0.0 if ini.time_offset_s is None else float(ini.time_offset_s)
-        hand_eye = hand_eye_at(t_guess)
-        rot, r_source = hand_eye.R_imu_lidar, "hand-eye"
+        rot, poses, hand_eye, r_source = initial_rotation(
+            rec, kiss, poses, ocfg, gyro, t_guess, cfg
+        )
 
     correlation = float("nan")
     if ini.time_offset_s is not None:
@@ -352,9 +463,12 @@ def initialise(
             logger.warning("Coarse time offset not found (%s); starting from 0 s.", reason)
             t_c, t_source = 0.0, "zero"
         if hand_eye is not None and t_c != 0.0:
-            hand_eye = hand_eye_at(t_c)
+            try:
+                hand_eye = estimate_rotation_extrinsic(gyro, poses, time_offset_s=t_c, cfg=he_cfg)
+            except ExcitationError as err:
+                raise _with_rotation_hint(err) from err
             rot = hand_eye.R_imu_lidar
-    return rot, t_c, r_source, t_source, correlation, hand_eye
+    return rot, t_c, r_source, t_source, correlation, hand_eye, poses
 
 
 def gyro_aided_rotation(
@@ -367,45 +481,59 @@ def gyro_aided_rotation(
     t_c: float,
     hand_eye: HandEyeRotation | None,
     cfg: CalibConfig,
+    reestimate_offset: bool = False,
     max_rounds: int = 3,
-) -> tuple[F64, PoseSeries, HandEyeRotation | None]:
+) -> tuple[F64, float, PoseSeries, HandEyeRotation | None]:
     """Re-run the odometry with scans deskewed by the gyro, alternating with hand-eye.
 
     A LiDAR-only odometry cannot deskew violent motion (the rotation rate changes a lot within a
-    sweep); once a rotation extrinsic is known, the gyro can. When the LiDAR-only odometry
+    sweep); once a rotation extrinsic is known, the gyro can. When the odometry given
     (``lidar_only``) already agrees with the gyro (hand-eye residual under 0.1 deg) it is kept.
-    Otherwise each round deskews with the current rotation, re-registers (seeded by kiss-icp) and
-    re-solves hand-eye, until the rotation moves less than 0.05 deg. With a rotation from the
-    config the rounds start from it.
+    Otherwise each round deskews with the current rotation and time offset, re-registers (seeded
+    by kiss-icp and the gyro), re-estimates the coarse time offset when ``reestimate_offset``
+    (the gyro's timing leaks into odometry it deskews, pulling the correlation towards the
+    offset assumed, so it is iterated), and re-solves hand-eye, until the rotation moves less
+    than 0.05 deg and the offset less than 0.5 ms. With a rotation from the config the rounds
+    start from it.
 
     Returns:
-        ``(R_imu_lidar, poses, hand_eye)`` after the last round.
+        ``(R_imu_lidar, time_offset_s, poses, hand_eye)`` after the last round.
     """
     ini = cfg.initialization
-    he_cfg = HandEyeConfig(
-        min_angle_deg=ini.min_rotation_deg,
-        max_singular_ratio=ini.max_singular_ratio,
-        min_axis_ratio=ini.min_axis_ratio,
+    he_cfg = _hand_eye_config(cfg)
+    toc = TimeOffsetConfig(
+        max_lag_s=ini.time_offset_max_lag_s, min_peak_correlation=ini.min_peak_correlation
     )
-    poses = kiss
+    poses = lidar_only
     if hand_eye is not None and hand_eye.residual_rms_deg < 0.1:
-        return rot, lidar_only, hand_eye  # the LiDAR-only odometry already agrees with the gyro
+        return rot, t_c, lidar_only, hand_eye  # the odometry already agrees with the gyro
     for _ in range(max_rounds):
         poses = refine_odometry(
             rec.scans, kiss, ocfg, rotation_at=lidar_rotation_at(gyro, rot, t_c)
         )
         if ini.rotation_rpy_deg is not None:
-            return rot, poses, hand_eye
+            return rot, t_c, poses, hand_eye
+        t_step = 0.0
+        if reestimate_offset:
+            try:
+                est = estimate_time_offset_aligned(rec.imu, poses, rot, toc)
+            except ExcitationError:
+                est = None
+            if est is not None and est.ok:
+                t_step = abs(est.time_offset_s - t_c)
+                t_c = float(est.time_offset_s)
         try:
             new = estimate_rotation_extrinsic(gyro, poses, time_offset_s=t_c, cfg=he_cfg)
         except ExcitationError:
             break
-        step = float(np.degrees(so3.log(rot.T @ new.R_imu_lidar).__abs__().max()))
+        step = float(np.degrees(np.abs(so3.log(rot.T @ new.R_imu_lidar)).max()))
         rot, hand_eye = new.R_imu_lidar, new
-        logger.info("Gyro-aided hand-eye round: rotation moved %.3f deg.", step)
-        if step < 0.05:
+        logger.info(
+            "Gyro-aided hand-eye round: rotation moved %.3f deg, time offset %+.4f s.", step, t_c
+        )
+        if step < 0.05 and t_step < 5e-4:
             break
-    return rot, poses, hand_eye
+    return rot, t_c, poses, hand_eye
 
 
 def initial_state(
@@ -747,9 +875,20 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
 
     with timer.stage("initialisation", progress):
         gyro = GyroIntegrator.from_imu(rec.imu)
-        rot, t_c, r_src, t_src, corr, hand_eye = initialise(rec, poses, cfg, gyro)
-        rot, poses, hand_eye = gyro_aided_rotation(
-            rec, kiss, poses, ocfg, gyro, rot, t_c, hand_eye, cfg
+        rot, t_c, r_src, t_src, corr, hand_eye, poses = initialise(
+            rec, kiss, poses, ocfg, cfg, gyro
+        )
+        rot, t_c, poses, hand_eye = gyro_aided_rotation(
+            rec,
+            kiss,
+            poses,
+            ocfg,
+            gyro,
+            rot,
+            t_c,
+            hand_eye,
+            cfg,
+            reestimate_offset=t_src == "cross-correlation",
         )
         ini = cfg.initialization
         t_init = np.asarray(ini.translation_m if ini.translation_m else [0.0, 0.0, 0.0], float)
