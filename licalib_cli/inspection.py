@@ -71,6 +71,8 @@ class ImuReport:
         gyro_unit_source: ``detected``, ``assumed`` or ``config``.
         accel_unit_source: ``detected``, ``assumed`` or ``config``.
         gyro_p99: 99th percentile of the raw rate norm.
+        gyro_gravity_factor: how fast gravity turns in the IMU frame per raw gyro unit (about 1
+            for rad/s, 0.0175 for deg/s), or None when the motion does not tell.
         accel_norm_median: median raw accelerometer norm.
         gaps: stamp differences longer than 5x the period.
         max_gap_s: largest stamp difference, s.
@@ -94,6 +96,7 @@ class ImuReport:
     backwards: int
     duplicates: int
     first_stamp_ns: int
+    gyro_gravity_factor: float | None = None
 
 
 @dataclass(frozen=True)
@@ -227,6 +230,9 @@ class BagReport:
                 "gyro_unit_source": i.gyro_unit_source,
                 "accel_unit_source": i.accel_unit_source,
                 "gyro_p99": round(i.gyro_p99, 6),
+                "gyro_gravity_factor": None
+                if i.gyro_gravity_factor is None
+                else round(i.gyro_gravity_factor, 6),
                 "accel_norm_median": round(i.accel_norm_median, 6),
                 "gaps": i.gaps,
                 "max_gap_s": round(i.max_gap_s, 6),
@@ -318,9 +324,10 @@ def _inspect_imu(
     problems.extend(rd.imu_problems(stats, int(dup.sum())))
     keep = ~dup
     units = rd.detect_imu_units(
-        raw.gyro[keep], raw.accel[keep], cfg.imu.gyro_unit, cfg.imu.accel_unit
+        raw.gyro[keep], raw.accel[keep], cfg.imu.gyro_unit, cfg.imu.accel_unit, raw.t_ns[keep]
     )
     notes.extend(units.messages())
+    problems.extend(rd.Problem(w, False, DataError) for w in units.warnings())
     report = ImuReport(
         topic=topic.name,
         count=stats.count,
@@ -337,6 +344,7 @@ def _inspect_imu(
         backwards=stats.backwards,
         duplicates=stats.duplicates,
         first_stamp_ns=stats.first_ns,
+        gyro_gravity_factor=units.gravity_turn_factor,
     )
     return report, off
 

@@ -118,7 +118,10 @@ def render_report(report: BagReport) -> None:
         imu.add_column("value")
         imu.add_row("samples", f"{i.count} over {i.duration_s:.3f} s")
         imu.add_row("rate", f"{i.rate_hz:.1f} Hz")
-        imu.add_row("gyro unit", f"{i.gyro_unit} ({i.gyro_unit_source}, p99 |w| {i.gyro_p99:.3g})")
+        evidence = f"p99 |w| {i.gyro_p99:.3g}"
+        if i.gyro_gravity_factor is not None:
+            evidence += f", gravity turns at {i.gyro_gravity_factor:.3g} x w"
+        imu.add_row("gyro unit", f"{i.gyro_unit} ({i.gyro_unit_source}, {evidence})")
         imu.add_row(
             "accel unit",
             f"{i.accel_unit} ({i.accel_unit_source}, median |a| {i.accel_norm_median:.3f})",

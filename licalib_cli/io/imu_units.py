@@ -4,9 +4,17 @@ Detection from the data of a segment:
 
 * accelerometer: the median norm of ``linear_acceleration`` is close to gravity, so it is
   about 9.8 in m/s^2 and about 1.0 in g (Livox IMUs publish g);
-* gyro: rates above ~12 rad/s (690 deg/s) do not occur when a rig is moved by hand or on a
-  vehicle, so a 99th-percentile ``|angular_velocity|`` above 12 means deg/s. Slow data is
-  ambiguous and assumed rad/s (the message says so).
+* gyro, from physics first: while the rig tilts, the direction ``u = a / |a|`` of the
+  measured specific force (mostly gravity) turns in the IMU frame as ``du/dt = -w x u`` with
+  ``w`` in rad/s. The least-squares factor ``k`` in ``du/dt = -k (w_raw x u)`` (on 50 ms
+  averages) is about 1 for rad/s data and about pi/180 for deg/s data; it decides when the
+  tilting explains the turning of ``u`` (correlation above 0.2) and ``k`` lies within a factor
+  of 3 of either value.
+* gyro, from magnitude otherwise: rates above ~12 rad/s (690 deg/s) do not occur when a rig is
+  moved by hand or on a vehicle, so a 99th-percentile ``|angular_velocity|`` above 12 means
+  deg/s. Below that both units are plausible (5 may be brisk rad/s or slow deg/s): the unit is
+  *assumed* rad/s and :meth:`ImuUnits.warnings` asks the user to set ``imu.gyro_unit`` if the
+  data is in deg/s.
 
 The config (``imu.gyro_unit``, ``imu.accel_unit``) overrides detection. Converted samples are
 always rad/s and m/s^2.
@@ -20,12 +28,16 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["GRAVITY", "ImuUnits", "convert_imu", "detect_imu_units"]
+__all__ = ["GRAVITY", "ImuUnits", "convert_imu", "detect_imu_units", "gravity_turn_factor"]
 
 GRAVITY = 9.80665
 """Standard gravity, m/s^2 (used to convert g)."""
 
 _GYRO_DEG_THRESHOLD = 12.0
+_GRAVITY_BIN_S = 0.05  # averaging window of the gravity-direction check, s
+_GRAVITY_MIN_BINS = 20  # at least 1 s of data for the gravity-direction check
+_GRAVITY_MIN_CORR = 0.2
+_GRAVITY_FACTOR_TOL = 3.0
 
 GyroUnit = Literal["rad/s", "deg/s"]
 AccelUnit = Literal["m/s^2", "g"]
@@ -42,6 +54,9 @@ class ImuUnits:
         accel_source: ``config``, ``detected`` or ``assumed``.
         gyro_p99: 99th percentile of ``|angular_velocity|`` in the raw unit.
         accel_norm_median: median ``|linear_acceleration|`` in the raw unit.
+        gravity_turn_factor: least-squares ``k`` of ``du/dt = -k (w_raw x u)`` (about 1 for
+            rad/s, 0.0175 for deg/s), or None when the data could not tell (too short, no
+            tilting, or no stamps given).
     """
 
     gyro_unit: GyroUnit
@@ -50,31 +65,85 @@ class ImuUnits:
     accel_source: Literal["config", "detected", "assumed"]
     gyro_p99: float
     accel_norm_median: float
+    gravity_turn_factor: float | None = None
 
     def messages(self) -> list[str]:
-        """Sentences telling the user what was detected (for logs and ``info``)."""
+        """Sentences telling the user what was detected and converted (informative notes)."""
         out = []
         if self.gyro_source == "detected" and self.gyro_unit == "deg/s":
             out.append(
                 f"IMU gyro is in deg/s (99th percentile {self.gyro_p99:.1f}); converted to "
                 "rad/s (set `imu.gyro_unit` to override)."
             )
-        if self.gyro_source == "assumed":
-            out.append(
-                f"IMU gyro unit assumed rad/s (rates too low to tell, 99th percentile "
-                f"{self.gyro_p99:.3f}); set `imu.gyro_unit` if it is deg/s."
-            )
         if self.accel_source == "detected" and self.accel_unit == "g":
             out.append(
                 f"IMU accelerometer is in g (median norm {self.accel_norm_median:.3f}); "
                 "converted to m/s^2 (set `imu.accel_unit` to override)."
             )
+        return out
+
+    def warnings(self) -> list[str]:
+        """Sentences about units that were assumed rather than detected (user action advised)."""
+        out = []
+        if self.gyro_source == "assumed":
+            out.append(
+                f"The IMU gyro unit cannot be told from the data (99th percentile of |w| "
+                f"{self.gyro_p99:.3g}, plausible in rad/s and in deg/s, and the tilting does not "
+                "settle it); it is assumed rad/s, set `imu.gyro_unit: deg/s` in the config if "
+                "the data is in deg/s."
+            )
         if self.accel_source == "assumed":
             out.append(
-                f"IMU accelerometer median norm is {self.accel_norm_median:.3f}, neither ~9.8 "
-                "(m/s^2) nor ~1 (g); assumed m/s^2, set `imu.accel_unit` if that is wrong."
+                f"The IMU accelerometer median norm is {self.accel_norm_median:.3f}, neither ~9.8 "
+                "(m/s^2) nor ~1 (g); it is assumed m/s^2, set `imu.accel_unit` in the config if "
+                "that is wrong."
             )
         return out
+
+
+def gravity_turn_factor(
+    t_ns: npt.NDArray[np.int64], gyro: npt.NDArray[np.float64], accel: npt.NDArray[np.float64]
+) -> float | None:
+    """How fast the specific-force direction turns per raw gyro unit (see the module docstring).
+
+    Args:
+        t_ns: (N,) stamps, ns.
+        gyro: (N, 3) raw angular velocity.
+        accel: (N, 3) raw linear acceleration (any unit).
+
+    Returns:
+        ``k`` of ``du/dt = -k (w_raw x u)``: about 1 for rad/s data, about pi/180 for deg/s;
+        None when the data does not tell (under 1 s, or the tilting does not explain the turning
+        of ``u``: correlation below 0.2).
+    """
+    t = np.asarray(t_ns, dtype=np.int64)
+    if t.size < 3 or gyro.shape[0] != t.size:
+        return None
+    ts = (t - t.min()).astype(np.float64) * 1e-9
+    idx = np.floor(ts / _GRAVITY_BIN_S).astype(np.int64)
+    cnt = np.bincount(idx)
+    ok = cnt > 0
+    if int(ok.sum()) < _GRAVITY_MIN_BINS:
+        return None
+
+    def binned(x: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        cols = [np.bincount(idx, x[:, j])[ok] / cnt[ok] for j in range(x.shape[1])]
+        return np.stack(cols, axis=1)
+
+    tb = np.bincount(idx, ts)[ok] / cnt[ok]
+    wb, ab = binned(np.asarray(gyro, np.float64)), binned(np.asarray(accel, np.float64))
+    norm = np.linalg.norm(ab, axis=1)
+    if not np.all(np.isfinite(norm)) or np.any(norm <= 0):
+        return None
+    u = ab / norm[:, None]
+    du = (u[2:] - u[:-2]) / (tb[2:] - tb[:-2])[:, None]
+    pred = -np.cross(wb[1:-1], u[1:-1])
+    pp, dd, dp = float(np.sum(pred * pred)), float(np.sum(du * du)), float(np.sum(du * pred))
+    if not (np.isfinite(pp) and np.isfinite(dd) and np.isfinite(dp)) or pp <= 0 or dd <= 0:
+        return None
+    if dp / np.sqrt(pp * dd) < _GRAVITY_MIN_CORR:
+        return None
+    return dp / pp
 
 
 def detect_imu_units(
@@ -82,6 +151,7 @@ def detect_imu_units(
     accel: npt.NDArray[np.float64],
     gyro_override: GyroUnit | None = None,
     accel_override: AccelUnit | None = None,
+    t_ns: npt.NDArray[np.int64] | None = None,
 ) -> ImuUnits:
     """Decide the units of raw IMU data.
 
@@ -90,6 +160,7 @@ def detect_imu_units(
         accel: (N, 3) raw linear acceleration.
         gyro_override: ``imu.gyro_unit`` from the config, or None to detect.
         accel_override: ``imu.accel_unit`` from the config, or None to detect.
+        t_ns: (N,) stamps, ns; enables the gravity-direction check of the gyro unit.
 
     Returns:
         The decided units with their evidence.
@@ -98,14 +169,19 @@ def detect_imu_units(
     anorm = np.linalg.norm(accel, axis=1) if len(accel) else np.zeros(1)
     p99 = float(np.percentile(gnorm, 99))
     amed = float(np.median(anorm))
+    factor = None
+    if t_ns is not None and len(gyro) == len(accel):
+        factor = gravity_turn_factor(t_ns, gyro, accel)
     gyro_unit: GyroUnit
     gsrc: Literal["config", "detected", "assumed"]
     if gyro_override is not None:
         gyro_unit, gsrc = gyro_override, "config"
+    elif factor is not None and _within(factor, 1.0):
+        gyro_unit, gsrc = "rad/s", "detected"
+    elif factor is not None and _within(factor, np.pi / 180.0):
+        gyro_unit, gsrc = "deg/s", "detected"
     elif p99 > _GYRO_DEG_THRESHOLD:
         gyro_unit, gsrc = "deg/s", "detected"
-    elif p99 > 0.2:
-        gyro_unit, gsrc = "rad/s", "detected"
     else:
         gyro_unit, gsrc = "rad/s", "assumed"
     accel_unit: AccelUnit
@@ -118,7 +194,12 @@ def detect_imu_units(
         accel_unit, asrc = "m/s^2", "detected"
     else:
         accel_unit, asrc = "m/s^2", "assumed"
-    return ImuUnits(gyro_unit, accel_unit, gsrc, asrc, p99, amed)
+    return ImuUnits(gyro_unit, accel_unit, gsrc, asrc, p99, amed, factor)
+
+
+def _within(value: float, target: float) -> bool:
+    """Whether ``value`` lies within a factor :data:`_GRAVITY_FACTOR_TOL` of ``target``."""
+    return target / _GRAVITY_FACTOR_TOL <= value <= target * _GRAVITY_FACTOR_TOL
 
 
 def convert_imu(

@@ -475,7 +475,10 @@ def _imu_from_raw(raw: RawImu, cfg: CalibConfig) -> tuple[ImuSamples, ImuUnits, 
     stats = stamp_stats(raw.t_ns, IMU_GAP_FACTOR)
     problems = imu_problems(stats, int(dup.sum()))
     keep = ~dup
-    units = detect_imu_units(raw.gyro[keep], raw.accel[keep], cfg.imu.gyro_unit, cfg.imu.accel_unit)
+    units = detect_imu_units(
+        raw.gyro[keep], raw.accel[keep], cfg.imu.gyro_unit, cfg.imu.accel_unit, raw.t_ns[keep]
+    )
+    problems += [Problem(w, False, DataError) for w in units.warnings()]
     gyro, accel = convert_imu(raw.gyro[keep], raw.accel[keep], units)
     return ImuSamples(raw.t_ns[keep].copy(), gyro, accel), units, problems
 

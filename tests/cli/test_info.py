@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from licalib_cli.cli import main
@@ -145,3 +146,49 @@ def test_info_shows_coarse_clock_difference(
     line = next(ln for ln in out.splitlines() if ln.startswith("Clock difference"))
     shown = float(line.split(":")[1].split()[0])
     assert shown == pytest.approx((boot - t0) / 1e9, abs=2e-3)
+
+
+def _bag_with_imu(path: Path, gyro: np.ndarray, accel: np.ndarray) -> None:
+    from licalib_cli.io.writer import BagWriter
+
+    t0 = 1_700_000_000 * layouts.NS
+    with BagWriter(path, "ros2-mcap") as w:
+        for i in range(len(gyro)):
+            w.write_imu("/imu", t0 + i * 5_000_000, gyro[i], accel[i])
+        for k in range(10):
+            stamp = t0 + k * PERIOD
+            w.write_cloud(
+                "/points", stamp, layouts.velodyne_points(stamp), record_ns=stamp + PERIOD
+            )
+
+
+def test_info_slow_deg_s_gyro_detected(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    s = np.arange(240) / 200.0
+    gyro, accel = layouts.tilting_imu(0.2 * s)
+    gyro_deg = np.rad2deg(0.2 * gyro)  # slow tilting, p99 |w| of a few deg/s
+    _bag_with_imu(tmp_path / "x", gyro_deg, accel)
+    code, out, err = _run(["info", str(tmp_path / "x"), "--json"], capsys)
+    assert code == 0, err
+    imu = json.loads(out)["imu"]
+    assert (imu["gyro_unit"], imu["gyro_unit_source"]) == ("deg/s", "detected")
+    assert 1 < imu["gyro_p99"] < 12
+
+
+def test_info_ambiguous_gyro_unit_warns_but_stays_usable(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    s = np.arange(240) / 200.0
+    gyro = np.stack([0 * s, 0 * s, 5.0 * np.sin(2.0 * s)], 1)  # yaw only: cannot tell
+    accel = np.tile([0.0, 0.0, 9.81], (240, 1))
+    _bag_with_imu(tmp_path / "x", gyro, accel)
+    code, out, err = _run(["info", str(tmp_path / "x"), "--json"], capsys)
+    assert code == 0, err
+    data = json.loads(out)
+    assert data["usable"] is True and data["exit_code"] == 0
+    assert (data["imu"]["gyro_unit"], data["imu"]["gyro_unit_source"]) == ("rad/s", "assumed")
+    (problem,) = data["problems"]
+    assert problem["severity"] == "warning" and "`imu.gyro_unit: deg/s`" in problem["message"]
+    code, out, _ = _run(["info", str(tmp_path / "x")], capsys)
+    assert code == 0
+    assert "rad/s (assumed" in out and "warning: The IMU gyro unit cannot be told" in out
+    assert "usable" in out

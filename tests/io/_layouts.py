@@ -206,6 +206,27 @@ def fill(sweep: Sweep, dt: np.dtype) -> np.ndarray:
     return pts
 
 
+def tilting_imu(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gyro (rad/s) and accelerometer (m/s^2) of a rig tilting in place, physically consistent.
+
+    The orientation is ``R = Rz(yaw) Ry(pitch) Rx(roll)`` with smooth angles of a few tenths of
+    a radian; the gyro is the body rate of ``R`` and the accelerometer the specific force
+    ``R^T [0, 0, 9.81]`` of a rig that does not translate. Args: ``s`` (N,) seconds.
+    """
+    from scipy.spatial.transform import Rotation
+
+    def rot(x: np.ndarray) -> Rotation:
+        yaw = 0.8 * np.sin(0.7 * x + 0.3)
+        pitch = 0.25 * np.cos(1.3 * x)
+        roll = 0.3 * np.sin(2.1 * x)
+        return Rotation.from_euler("ZYX", np.stack([yaw, pitch, roll], 1))
+
+    h = 1e-4
+    gyro = (rot(s - h).inv() * rot(s + h)).as_rotvec() / (2 * h)
+    accel = rot(s).inv().apply([0.0, 0.0, 9.81])
+    return gyro, accel
+
+
 def write_imu_stream(
     w: BagWriter,
     t0_ns: int,
@@ -215,12 +236,10 @@ def write_imu_stream(
     accel_scale: float = 1.0,
     topic: str = "/imu",
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Write a smooth IMU stream (rad/s and m/s^2 times the scales); returns t, gyro, accel."""
+    """Write a tilting IMU stream (rad/s and m/s^2 times the scales); returns t, gyro, accel."""
     n = int(duration_s * rate_hz)
     t = t0_ns + np.round(np.arange(n) * NS / rate_hz).astype(np.int64)
-    s = (t - t0_ns) / NS
-    gyro = np.stack([0.8 * np.sin(2.1 * s), 0.6 * np.cos(1.3 * s), 1.1 * np.sin(0.7 * s + 0.3)], 1)
-    accel = np.stack([0.5 * np.sin(1.7 * s), 0.3 * np.cos(2.3 * s), 9.81 + 0.2 * np.sin(s)], 1)
+    gyro, accel = tilting_imu((t - t0_ns) / NS)
     gyro = gyro * gyro_scale
     accel = accel * accel_scale
     for i in range(n):
@@ -278,16 +297,12 @@ def write_custom_bag(
         clouds = [
             (t0_ns + k * 100_000_000, velodyne_points(t0_ns + k * 100_000_000)) for k in range(10)
         ]
+    gyro, accel = tilting_imu(np.arange(len(imu_t)) / 200.0)
     with BagWriter(path, fmt) as w:
         for topic in imu_topics:
             for i, t in enumerate(imu_t):
-                s = i / 200.0
                 w.write_imu(
-                    topic,
-                    int(t),
-                    [0.5 * np.sin(3 * s), 0.2, 0.1],
-                    [0.1, 0.0, 9.81],
-                    record_ns=t0_ns + i * 5_000_000,
+                    topic, int(t), gyro[i], accel[i], record_ns=t0_ns + i * 5_000_000
                 )
         for k, (stamp, pts) in enumerate(clouds):
             # published when the sweep ends, in the original order

@@ -6,7 +6,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from _layouts import NS, OUSTER, spinning_sweep
+from _layouts import NS, OUSTER, spinning_sweep, tilting_imu
 
 from licalib_cli.errors import ConfigError, DataError, TimestampError
 from licalib_cli.io.imu_units import GRAVITY, convert_imu, detect_imu_units
@@ -164,14 +164,16 @@ def test_beams_from_elevation(n_beams: int, spread_deg: float) -> None:
 
 def test_imu_units_detected_and_converted() -> None:
     rng = np.random.default_rng(2)
-    s = np.linspace(0, 4, 800)
-    gyro = np.stack([np.sin(2 * s), np.cos(s), 0.5 * np.sin(3 * s)], 1) * 1.5  # rad/s
-    accel = np.tile([0.0, 0.0, GRAVITY], (800, 1)) + 0.3 * rng.standard_normal((800, 3))
-    u = detect_imu_units(gyro, accel)
+    t = np.arange(800, dtype=np.int64) * 5_000_000
+    gyro, accel = tilting_imu(t / NS)
+    accel = accel + 0.3 * rng.standard_normal((800, 3))
+    u = detect_imu_units(gyro, accel, t_ns=t)
     assert (u.gyro_unit, u.accel_unit, u.gyro_source) == ("rad/s", "m/s^2", "detected")
-    u = detect_imu_units(np.rad2deg(gyro), accel / GRAVITY)
-    assert (u.gyro_unit, u.accel_unit) == ("deg/s", "g")
-    assert len(u.messages()) == 2
+    assert u.gravity_turn_factor == pytest.approx(1.0, rel=0.2)
+    assert u.messages() == [] and u.warnings() == []
+    u = detect_imu_units(np.rad2deg(gyro), accel / GRAVITY, t_ns=t)
+    assert (u.gyro_unit, u.accel_unit, u.gyro_source) == ("deg/s", "g", "detected")
+    assert len(u.messages()) == 2 and u.warnings() == []
     g, a = convert_imu(np.rad2deg(gyro), accel / GRAVITY, u)
     np.testing.assert_allclose(g, gyro, rtol=1e-12)
     np.testing.assert_allclose(a, accel, rtol=1e-12)
@@ -182,5 +184,39 @@ def test_imu_units_detected_and_converted() -> None:
         "config",
         "config",
     )
-    u = detect_imu_units(gyro * 0.01, accel)
-    assert u.gyro_source == "assumed" and "assumed rad/s" in u.messages()[0]
+    # without stamps only the magnitude speaks: fast deg/s is clear, the rest is assumed
+    u = detect_imu_units(np.rad2deg(gyro), accel)
+    assert (u.gyro_unit, u.gyro_source) == ("deg/s", "detected")
+    u = detect_imu_units(gyro, accel)
+    assert (u.gyro_unit, u.gyro_source) == ("rad/s", "assumed")
+    assert "imu.gyro_unit: deg/s" in u.warnings()[0]
+
+
+def test_slow_gyro_in_deg_s_is_detected_from_the_tilting() -> None:
+    """p99 |w| around 5 is plausible in both units; gravity turning at w/57 means deg/s."""
+    t = np.arange(2000, dtype=np.int64) * 5_000_000
+    gyro, accel = tilting_imu(0.1 * t / NS)  # the tilting of the helper, 10x slower
+    gyro = 0.1 * gyro  # rad/s of the slowed-down motion
+    gyro_deg = np.rad2deg(gyro)
+    p99 = np.percentile(np.linalg.norm(gyro_deg, axis=1), 99)
+    assert 2 < p99 < 12
+    u = detect_imu_units(gyro_deg, accel, t_ns=t)
+    assert (u.gyro_unit, u.gyro_source) == ("deg/s", "detected")
+    assert u.gravity_turn_factor == pytest.approx(np.pi / 180, rel=0.2)
+    g, _ = convert_imu(gyro_deg, accel, u)
+    np.testing.assert_allclose(g, gyro, rtol=1e-12)
+
+
+def test_ambiguous_gyro_unit_is_assumed_with_a_warning() -> None:
+    """Turning about gravity only (yaw) cannot tell rad/s from deg/s."""
+    rng = np.random.default_rng(4)
+    t = np.arange(800, dtype=np.int64) * 5_000_000
+    s = t / NS
+    gyro = np.stack([np.zeros_like(s), np.zeros_like(s), 5.0 * np.sin(1.5 * s)], 1)
+    accel = np.tile([0.0, 0.0, GRAVITY], (800, 1)) + 0.05 * rng.standard_normal((800, 3))
+    u = detect_imu_units(gyro, accel, t_ns=t)
+    assert (u.gyro_unit, u.gyro_source, u.gravity_turn_factor) == ("rad/s", "assumed", None)
+    assert u.messages() == []
+    (warning,) = u.warnings()
+    assert "cannot be told" in warning and "`imu.gyro_unit: deg/s`" in warning
+    assert warning.endswith(".") and warning.count(". ") == 0
