@@ -40,6 +40,11 @@ _NS = 1_000_000_000
 _MAX_DECODED = 200
 
 
+def _round(value: float, digits: int) -> float:
+    """``round`` for JSON, with ``-0.0`` written as ``0.0``."""
+    return round(value, digits) + 0.0
+
+
 @dataclass(frozen=True)
 class TopicReport:
     """One topic of the bag (whole bag, not only the segment).
@@ -223,19 +228,19 @@ class BagReport:
             imu = {
                 "topic": i.topic,
                 "count": i.count,
-                "rate_hz": round(i.rate_hz, 3),
-                "duration_s": round(i.duration_s, 6),
+                "rate_hz": _round(i.rate_hz, 3),
+                "duration_s": _round(i.duration_s, 6),
                 "gyro_unit": i.gyro_unit,
                 "accel_unit": i.accel_unit,
                 "gyro_unit_source": i.gyro_unit_source,
                 "accel_unit_source": i.accel_unit_source,
-                "gyro_p99": round(i.gyro_p99, 6),
+                "gyro_p99": _round(i.gyro_p99, 6),
                 "gyro_gravity_factor": None
                 if i.gyro_gravity_factor is None
-                else round(i.gyro_gravity_factor, 6),
-                "accel_norm_median": round(i.accel_norm_median, 6),
+                else _round(i.gyro_gravity_factor, 6),
+                "accel_norm_median": _round(i.accel_norm_median, 6),
                 "gaps": i.gaps,
-                "max_gap_s": round(i.max_gap_s, 6),
+                "max_gap_s": _round(i.max_gap_s, 6),
                 "backwards": i.backwards,
                 "duplicates": i.duplicates,
                 "first_stamp_ns": i.first_stamp_ns,
@@ -246,8 +251,8 @@ class BagReport:
             lidar = {
                 "topic": li.topic,
                 "count": li.count,
-                "rate_hz": round(li.rate_hz, 3),
-                "duration_s": round(li.duration_s, 6),
+                "rate_hz": _round(li.rate_hz, 3),
+                "duration_s": _round(li.duration_s, 6),
                 "time_field": li.time_field,
                 "time_unit": li.time_unit,
                 "time_reference": li.time_reference,
@@ -265,7 +270,7 @@ class BagReport:
                 "clouds_checked": li.clouds_checked,
                 "clouds_skipped": dict(li.clouds_skipped),
                 "gaps": li.gaps,
-                "max_gap_s": round(li.max_gap_s, 6),
+                "max_gap_s": _round(li.max_gap_s, 6),
                 "backwards": li.backwards,
                 "duplicates": li.duplicates,
                 "first_stamp_ns": li.first_stamp_ns,
@@ -273,7 +278,7 @@ class BagReport:
         return {
             "path": self.path,
             "format": self.format,
-            "duration_s": round(self.duration_s, 6),
+            "duration_s": _round(self.duration_s, 6),
             "start_ns": self.start_ns,
             "end_ns": self.end_ns,
             "segment": {"start_s": self.segment_start_s, "duration_s": self.segment_duration_s},
@@ -282,7 +287,7 @@ class BagReport:
                     "name": t.name,
                     "type": t.msgtype,
                     "count": t.count,
-                    "rate_hz": round(t.rate_hz, 3),
+                    "rate_hz": _round(t.rate_hz, 3),
                 }
                 for t in self.topics
             ],
@@ -290,7 +295,7 @@ class BagReport:
             "lidar": lidar,
             "clock_offset_s": None
             if self.clock_offset_s is None
-            else round(self.clock_offset_s, 6),
+            else _round(self.clock_offset_s, 6),
             "usable": self.usable,
             "exit_code": self.exit_code,
             "problems": [
@@ -388,6 +393,7 @@ def _inspect_lidar(
         return base, off
     clock_off = off + layout.sweep_end_offset_ns
     notes.extend(layout.time.notes)
+    problems.extend(rd.Problem(w, False, ConfigError) for w in layout.time.warnings)
     # Check the content of up to _MAX_DECODED clouds spread over the segment.
     step = max(1, int(np.ceil(stats.count / _MAX_DECODED)))
     tally = rd.ScanTally()

@@ -175,7 +175,7 @@ def render_report(report: BagReport) -> None:
     if report.clock_offset_s is not None:
         out.print(
             f"Clock difference IMU - LiDAR (coarse, from record times): "
-            f"{report.clock_offset_s:+.6f} s"
+            f"{round(report.clock_offset_s, 6) + 0.0:+.6f} s"
         )
     for note in report.notes:
         out.print(f"[cyan]note[/cyan]: {escape(note)}")

@@ -297,8 +297,8 @@ def imu_problems(stats: StampStats, exact_duplicates: int = 0) -> list[Problem]:
             Problem(
                 f"The IMU stream has {_count(stats.gaps, 'gap')} longer than "
                 f"{IMU_GAP_FACTOR:g}x its period of {stats.period_ns / 1e6:.2f} ms (largest "
-                f"{stats.max_gap_s:.3f} s at {stats.max_gap_at_s:.3f} s); choose a segment without gaps with "
-                "--start/--duration.",
+                f"{stats.max_gap_s:.3f} s at {stats.max_gap_at_s:.3f} s); choose a segment "
+                "without gaps with --start/--duration.",
                 True,
                 TimestampError,
             )
@@ -913,7 +913,12 @@ def read_segment(path: Path, cfg: CalibConfig) -> Recording:
     lstats = stamp_stats(np.asarray(tally.stamps, np.int64), LIDAR_GAP_FACTOR)
     problems += lidar_stamp_problems(lstats) + tally.problems()
     _raise_fatal(problems)
-    warnings = [p.message for p in problems] + units.messages() + list(layout.time.notes)
+    warnings = (
+        [p.message for p in problems]
+        + list(layout.time.warnings)
+        + units.messages()
+        + list(layout.time.notes)
+    )
     if shift:
         warnings.append(
             f"The LiDAR and IMU clocks differ by {clock_offset / _NS:+.3f} s; LiDAR times were "

@@ -76,6 +76,9 @@ Unit = Literal["s", "ms", "us", "ns"]
 _NS = 1_000_000_000
 _EPOCH_NS = 1e15  # ~11.6 days: relative per-point offsets are never this large
 _ABS_TOL_NS = 10_000_000  # rko_lio: max time within 10 ms of the header stamp
+_FAR_FROM_STAMP_NS = 1e9  # per-point times farther than this from the stamp are implausible
+_FAR_FROM_STAMP_PERIODS = 10.0  # ... or than this many scan periods
+_LONG_SWEEP_PERIODS = 3.0  # a cloud spanning more than this many periods is implausible
 
 
 @dataclass(frozen=True)
@@ -92,6 +95,9 @@ class TimeLayout:
         method: for estimated times, ``azimuth`` or ``index``; None otherwise.
         clockwise: spin direction used by azimuth estimation; None otherwise.
         notes: human-readable remarks (overrides used, clock mismatch, ...).
+        warnings: implausible results that usually mean a wrong unit or reference (per-point
+            times far from the header stamp, or a sweep much longer than the scan period),
+            one sentence each.
     """
 
     field: str | None
@@ -102,6 +108,7 @@ class TimeLayout:
     method: Literal["azimuth", "index"] | None = None
     clockwise: bool | None = None
     notes: tuple[str, ...] = field(default=())
+    warnings: tuple[str, ...] = field(default=())
 
 
 def find_time_field(names: Sequence[str], override: str | None) -> str | None:
@@ -215,6 +222,7 @@ def classify_time_field(
         return float(np.mean((stamps >= lo) & (stamps <= hi)))
 
     by_span = min(candidates, key=span_score)
+    other_clock = False
     chosen_ref: Literal["relative", "absolute"]
     chosen_unit: Unit
     if reference is not None:
@@ -233,6 +241,7 @@ def classify_time_field(
             chosen_unit = by_span
             magnitude = float(np.median(np.abs(vmax))) * UNIT_TO_NS[chosen_unit]
             if magnitude > _EPOCH_NS:
+                other_clock = True
                 chosen_ref = "absolute"
                 diff_s = (float(np.median(vmin)) * UNIT_TO_NS[chosen_unit] - stamps[0]) / _NS
                 notes.append(
@@ -245,7 +254,8 @@ def classify_time_field(
     ref = stamps.astype(np.float64) if chosen_ref == "absolute" else 0.0
     first = float(np.median(vmin * scale - ref))
     last = float(np.median(vmax * scale - ref))
-    tol = max(1e6, 0.05 * float(np.median(span)) * scale)
+    sweep = float(np.median(span)) * scale
+    tol = max(1e6, 0.05 * sweep)
     position: Literal["start", "end", "middle", "unknown"]
     if abs(first) <= tol:
         position = "start"
@@ -255,6 +265,7 @@ def classify_time_field(
         position = "middle"
     else:
         position = "unknown"
+    warnings = _plausibility_warnings(field_name, first, last, sweep, period, other_clock)
     return TimeLayout(
         field=field_name,
         unit=chosen_unit,
@@ -262,7 +273,38 @@ def classify_time_field(
         stamp_position=position,
         scan_period_ns=int(period),
         notes=tuple(notes),
+        warnings=tuple(warnings),
     )
+
+
+def _plausibility_warnings(
+    field_name: str, first: float, last: float, sweep: float, period: float, other_clock: bool
+) -> list[str]:
+    """Warnings for converted per-point times that cannot be right for a LiDAR sweep.
+
+    Args:
+        field_name: the time field.
+        first: median first point time minus header stamp, ns.
+        last: median last point time minus header stamp, ns.
+        sweep: median time span of a cloud, ns.
+        period: scan period, ns.
+        other_clock: the times were detected as absolute on another clock than the stamps
+            (already explained by a note).
+    """
+    out = []
+    distance = max(first, -last, 0.0)  # 0 when the stamp lies within the sweep
+    if not other_clock and distance > max(_FAR_FROM_STAMP_NS, _FAR_FROM_STAMP_PERIODS * period):
+        out.append(
+            f"Per-point times ('{field_name}') lie {distance / _NS:.4g} s from the header "
+            "stamps; check `lidar.time_unit` and `lidar.time_reference` in the config."
+        )
+    if sweep > _LONG_SWEEP_PERIODS * period:
+        out.append(
+            f"Per-point times ('{field_name}') span {sweep / _NS:.4g} s per cloud, "
+            f"{sweep / period:.3g} times the scan period of {period / _NS:.3g} s; check "
+            "`lidar.time_unit` in the config."
+        )
+    return out
 
 
 def time_values_to_ns(

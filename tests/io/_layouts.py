@@ -28,6 +28,10 @@ Field names, datatypes, offsets and point_step of each driver, as published by i
   header stamp = base time (first point).
 * Livox, ``Livox-SDK/livox_ros_driver`` v1 ``lddc.cpp`` (``LivoxPointXyzrtl``, packed):
   x @0, y @4, z @8, intensity f32 @12, tag u8 @16, line u8 @17, point_step 18, no time field.
+* Livox ``CustomMsg`` converted to PointCloud2 (the usual CustomMsg -> PointCloud2 converter
+  nodes keep the ``CustomPoint`` fields): x @0, y @4, z @8, intensity f32 @12,
+  offset_time u32 @16 (ns since ``timebase``, the header stamp), tag u8 @20, line u8 @21,
+  point_step 24 (2 bytes of padding).
 """
 
 from __future__ import annotations
@@ -136,6 +140,18 @@ LIVOX1 = dtype_of(
         ("line", "u1", 17),
     ],
     18,
+)
+LIVOX_OFFSET = dtype_of(
+    [
+        ("x", "f4", 0),
+        ("y", "f4", 4),
+        ("z", "f4", 8),
+        ("intensity", "f4", 12),
+        ("offset_time", "u4", 16),
+        ("tag", "u1", 20),
+        ("line", "u1", 21),
+    ],
+    24,
 )
 XYZI = dtype_of([("x", "f4", 0), ("y", "f4", 4), ("z", "f4", 8), ("intensity", "f4", 12)], 16)
 

@@ -6,7 +6,8 @@ velodyne_pointcloud PointcloudXYZIRT (packed, point_step 22) and velodyne_pcl::P
 (point_step 32); ouster-ros ouster_ros::Point (point_step 48, organised) and Point_LEGACY;
 HesaiLidar_ROS_2.0 and rslidar_sdk XYZIRT (packed, point_step 26, timestamp f64 s);
 livox_ros_driver2 PointCloud2 xfer_format 0 (packed, point_step 26, timestamp f64 ns);
-livox_ros_driver v1 PointCloud2 (point_step 18, no time field).
+livox_ros_driver v1 PointCloud2 (point_step 18, no time field); Livox CustomMsg converted to
+PointCloud2 (offset_time u32 ns, point_step 24).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from _layouts import (
     HESAI,
     LIVOX1,
     LIVOX2,
+    LIVOX_OFFSET,
     NS,
     OUSTER,
     OUSTER_LEGACY,
@@ -31,6 +33,7 @@ from _layouts import (
     dtype_of,
     fill,
     spinning_sweep,
+    tilting_imu,
     write_imu_stream,
 )
 
@@ -114,6 +117,16 @@ def _livox2(k: int) -> Truth:
     return Truth(pts, start, xyz, t, pts["line"].astype(np.int64))
 
 
+def _livox_offset(k: int) -> Truth:
+    xyz, t, start = _livox_cone(k)
+    pts = np.zeros(xyz.shape[0], LIVOX_OFFSET)
+    pts["x"], pts["y"], pts["z"] = xyz.T
+    pts["line"] = np.arange(xyz.shape[0]) % 4
+    pts["tag"] = 0x10
+    pts["offset_time"] = t - start  # ns since the timebase (= header stamp)
+    return Truth(pts, start, xyz, t, pts["line"].astype(np.int64))
+
+
 def _livox1(k: int) -> Truth:
     xyz, t, start = _livox_cone(k)
     pts = np.zeros(xyz.shape[0], LIVOX1)
@@ -173,6 +186,12 @@ CASES = [
         ("timestamp", "s", "absolute", "end"),
     ),
     Case("livox2", _livox2, "ros2-mcap", ("timestamp", "ns", "absolute", "start")),
+    Case(
+        "livox_offset_time",
+        _livox_offset,
+        "ros2-db3",
+        ("offset_time", "ns", "relative", "start"),
+    ),
     Case("livox1", _livox1, "ros2-mcap", (None, None, "estimated", "start")),
 ]
 
@@ -205,7 +224,7 @@ def test_driver_layout_decodes(tmp_path: Path, case: Case) -> None:
 
 def test_ouster_organised_layout_reported(tmp_path: Path) -> None:
     path = tmp_path / "o"
-    _write(path, CASES[2])
+    _write(path, next(c for c in CASES if c.name == "ouster"))
     rec = read_segment(path, load_config(None))
     lay = rec.layout
     assert (lay.height, lay.width, lay.point_step, lay.ring_field, lay.beams) == (
@@ -247,7 +266,7 @@ def test_no_time_field_stamp_at_end_override(tmp_path: Path) -> None:
 
 def test_livox_v1_index_estimate(tmp_path: Path) -> None:
     path = tmp_path / "x"
-    truths = _write(path, CASES[-1])
+    truths = _write(path, next(c for c in CASES if c.name == "livox1"))
     rec = read_segment(path, load_config(None, {"lidar.min_range_m": 0.0}))
     assert rec.layout.time.method == "index"
     assert rec.layout.ring_field == "line" and rec.layout.beams == 4
@@ -258,10 +277,201 @@ def test_livox_v1_index_estimate(tmp_path: Path) -> None:
 def test_time_overrides(tmp_path: Path) -> None:
     """Config forces the unit/reference; a wrong override gives wrong times (it is obeyed)."""
     path = tmp_path / "x"
-    truths = _write(path, CASES[2])
+    truths = _write(path, next(c for c in CASES if c.name == "ouster"))
     cfg = load_config(None, {"lidar.time_unit": "us", "lidar.min_range_m": 0.0})
     rec = read_segment(path, cfg)
     assert rec.layout.time.unit == "us"
     tr = truths[1]
     rel = tr.t_ns - tr.stamp_ns
     np.testing.assert_array_equal(rec.scans[1].t_ns - tr.stamp_ns, rel * 1000)
+    # ... and is flagged: a sweep of 100 s at 10 Hz cannot be right
+    assert rec.layout.time.warnings
+    assert any("span 99.22 s per cloud" in w and "`lidar.time_unit`" in w for w in rec.warnings)
+    # the detected layout has no such warning
+    assert read_segment(path, load_config(None)).layout.time.warnings == ()
+
+
+def _case(name: str) -> Case:
+    return next(c for c in CASES if c.name == name)
+
+
+def test_time_reference_override_is_obeyed_and_flagged(tmp_path: Path) -> None:
+    """Absolute Hesai seconds forced relative: stamp + value, far from the stamp, warned."""
+    path = tmp_path / "x"
+    truths = _write(path, _case("hesai"))
+    cfg = load_config(None, {"lidar.time_reference": "relative", "lidar.min_range_m": 0.0})
+    rec = read_segment(path, cfg)
+    tl = rec.layout.time
+    assert (tl.field, tl.unit, tl.reference) == ("timestamp", "s", "relative")
+    assert "time reference 'relative' set in the config" in tl.notes
+    tr = truths[2]
+    expected = tr.stamp_ns + np.round(tr.points["timestamp"] * NS).astype(np.int64)
+    np.testing.assert_array_equal(rec.scans[2].t_ns, expected)
+    (warning,) = tl.warnings
+    assert warning.startswith("Per-point times ('timestamp') lie 1.7e+09 s from the header")
+    assert "`lidar.time_unit` and `lidar.time_reference`" in warning
+    assert warning in rec.warnings
+
+
+def test_wrong_unit_and_reference_overrides_are_reported_by_info(tmp_path: Path) -> None:
+    """The wrong override ``time_unit: ns`` + ``time_reference: absolute`` on a Hesai bag."""
+    from licalib_cli.inspection import inspect_bag
+
+    path = tmp_path / "x"
+    _write(path, _case("hesai"))
+    cfg = load_config(None, {"lidar.time_unit": "ns", "lidar.time_reference": "absolute"})
+    report = inspect_bag(path, cfg)
+    assert report.usable  # a warning: the overrides are obeyed
+    messages = [p.message for p in report.problems if not p.fatal]
+    assert any(
+        m.startswith("Per-point times ('timestamp') lie 1.7e+09 s from the header stamps")
+        for m in messages
+    ), messages
+    detected = inspect_bag(path, load_config(None))
+    assert not [p for p in detected.problems if "Per-point" in p.message]
+
+
+def _channel_cloud(k: int) -> Truth:
+    """Velodyne-like cloud whose beam index is in a 'channel' field, numbered top first."""
+    sw = spinning_sweep(T0 + k * PERIOD, columns=90, ring_top_first=True)
+    dt = dtype_of(
+        [
+            ("x", "f4", 0),
+            ("y", "f4", 4),
+            ("z", "f4", 8),
+            ("intensity", "f4", 12),
+            ("channel", "u2", 16),
+            ("time", "f4", 18),
+        ],
+        22,
+    )
+    pts = fill(sw, dt)
+    pts["channel"] = sw.ring
+    pts["time"] = (sw.t_ns - sw.start_ns) / NS
+    return Truth(pts, sw.start_ns, sw.xyz, sw.t_ns, sw.ring)
+
+
+def test_ring_field_override(tmp_path: Path) -> None:
+    path = tmp_path / "x"
+    truths = _write(path, Case("channel", _channel_cloud, "ros2-mcap", ()))
+    base = {"lidar.min_range_m": 0.0}
+    # not a known beam field name: beams recovered from elevation, ring 0 = lowest
+    rec = read_segment(path, load_config(None, base))
+    assert rec.layout.ring_field is None and rec.layout.beams == 16
+    lowest_first = 15 - truths[0].ring
+    np.testing.assert_array_equal(rec.scans[0].ring, lowest_first)
+    # named in the config: the driver's own numbering is used
+    rec = read_segment(path, load_config(None, {**base, "lidar.ring_field": "channel"}))
+    assert rec.layout.ring_field == "channel" and rec.layout.beams == 16
+    for scan, tr in zip(rec.scans, truths, strict=True):
+        np.testing.assert_array_equal(scan.ring, tr.ring)
+    # `none` ignores a ring field that is present
+    path2 = tmp_path / "v.bag"
+    _write(path2, _case("velodyne"))
+    rec = read_segment(path2, load_config(None, {**base, "lidar.ring_field": "none"}))
+    assert rec.layout.ring_field is None and rec.layout.beams == 16
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "ros2-db3"])
+def test_ouster_bigendian_padded_bag_written_with_rosbags(tmp_path: Path, fmt: str) -> None:
+    """A bag written by rosbags itself (not licalib's writer): organised big-endian Ouster
+    clouds with 16 bytes of garbage at the end of every row, and IMU messages."""
+    from rosbags.rosbag1 import Writer as Writer1
+    from rosbags.rosbag2 import StoragePlugin
+    from rosbags.rosbag2 import Writer as Writer2
+    from rosbags.typesys import Stores, get_typestore
+
+    ros1 = fmt == "ros1"
+    ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    ty = ts.types
+    ser = ts.serialize_ros1 if ros1 else ts.serialize_cdr
+    big = dtype_of(
+        [
+            ("x", "f4", 0),
+            ("y", "f4", 4),
+            ("z", "f4", 8),
+            ("intensity", "f4", 16),
+            ("t", "u4", 20),
+            ("reflectivity", "u2", 24),
+            ("ring", "u2", 26),
+            ("ambient", "u2", 28),
+            ("range", "u4", 32),
+        ],
+        48,
+        big=True,
+    )
+    codes = {"f4": 7, "u4": 6, "u2": 4}
+    fields = [
+        ty["sensor_msgs/msg/PointField"](
+            name=name, offset=big.fields[name][1], datatype=codes[big.fields[name][0].str[1:]],
+            count=1,
+        )
+        for name in big.names
+    ]
+    pad = 16
+
+    def header(seq: int, t_ns: int, frame: str) -> object:
+        sec, nsec = divmod(t_ns, NS)
+        stamp = ty["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec)
+        if ros1:
+            return ty["std_msgs/msg/Header"](seq=seq, stamp=stamp, frame_id=frame)
+        return ty["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
+
+    truths = [_ouster(k, big) for k in range(N_CLOUDS)]
+    t_imu = T0 - 50_000_000 + np.arange(120, dtype=np.int64) * 5_000_000
+    gyro, accel = tilting_imu((t_imu - t_imu[0]) / NS)
+    path = tmp_path / ("x.bag" if ros1 else "x")
+    writer = (
+        Writer1(path)
+        if ros1
+        else Writer2(path, version=Writer2.VERSION_LATEST, storage_plugin=StoragePlugin.SQLITE3)
+    )
+    vec3 = ty["geometry_msgs/msg/Vector3"]
+    with writer:
+        c_imu = writer.add_connection("/os/imu", "sensor_msgs/msg/Imu", typestore=ts)
+        c_pts = writer.add_connection("/os/points", "sensor_msgs/msg/PointCloud2", typestore=ts)
+        events = [(int(t), "imu", i) for i, t in enumerate(t_imu)]
+        events += [(tr.stamp_ns + PERIOD, "cloud", k) for k, tr in enumerate(truths)]
+        for rec_ns, kind, i in sorted(events):
+            if kind == "imu":
+                msg = ty["sensor_msgs/msg/Imu"](
+                    header=header(i, rec_ns, "os_imu"),
+                    orientation=ty["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+                    orientation_covariance=np.zeros(9),
+                    angular_velocity=vec3(x=gyro[i, 0], y=gyro[i, 1], z=gyro[i, 2]),
+                    angular_velocity_covariance=np.zeros(9),
+                    linear_acceleration=vec3(x=accel[i, 0], y=accel[i, 1], z=accel[i, 2]),
+                    linear_acceleration_covariance=np.zeros(9),
+                )
+                writer.write(c_imu, rec_ns, ser(msg, "sensor_msgs/msg/Imu"))
+                continue
+            tr = truths[i]
+            h, w = tr.points.shape
+            rows = np.full((h, w * big.itemsize + pad), 0xAB, dtype=np.uint8)
+            rows[:, : w * big.itemsize] = tr.points.view(np.uint8).reshape(h, -1)
+            msg = ty["sensor_msgs/msg/PointCloud2"](
+                header=header(i, tr.stamp_ns, "os_sensor"),
+                height=h,
+                width=w,
+                fields=fields,
+                is_bigendian=True,
+                point_step=big.itemsize,
+                row_step=w * big.itemsize + pad,
+                data=rows.reshape(-1),
+                is_dense=False,
+            )
+            writer.write(c_pts, rec_ns, ser(msg, "sensor_msgs/msg/PointCloud2"))
+
+    rec = read_segment(path, load_config(None, {"lidar.min_range_m": 0.0}))
+    lay = rec.layout
+    assert (lay.is_bigendian, lay.height, lay.width, lay.point_step) == (True, 16, 128, 48)
+    assert (lay.time.field, lay.time.unit, lay.time.reference) == ("t", "ns", "relative")
+    assert lay.ring_field == "ring" and lay.beams == 16
+    assert rec.imu_topic == "/os/imu" and len(rec.imu.t_ns) == 120
+    np.testing.assert_allclose(rec.imu.gyro, gyro, rtol=1e-12)
+    assert len(rec.scans) == N_CLOUDS
+    for scan, tr in zip(rec.scans, truths, strict=True):
+        assert scan.stamp_ns == tr.stamp_ns
+        np.testing.assert_allclose(scan.xyz, tr.xyz, atol=4e-5)
+        np.testing.assert_array_equal(scan.t_ns, tr.t_ns)
+        np.testing.assert_array_equal(scan.ring, tr.ring)
