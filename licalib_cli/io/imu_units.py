@@ -7,9 +7,9 @@ Detection from the data of a segment:
 * gyro, from physics first: while the rig tilts, the direction ``u = a / |a|`` of the
   measured specific force (mostly gravity) turns in the IMU frame as ``du/dt = -w x u`` with
   ``w`` in rad/s. The least-squares factor ``k`` in ``du/dt = -k (w_raw x u)`` (on 50 ms
-  averages) is about 1 for rad/s data and about pi/180 for deg/s data; it decides when the
-  tilting explains the turning of ``u`` (correlation above 0.2) and ``k`` lies within a factor
-  of 3 of either value.
+  averages, at least 0.5 s of data) is about 1 for rad/s data and about pi/180 for deg/s data;
+  it decides when the tilting explains the turning of ``u`` (correlation above 0.2 and above
+  4 sigma of chance) and ``k`` lies within a factor of 3 of either value.
 * gyro, from magnitude otherwise: rates above ~12 rad/s (690 deg/s) do not occur when a rig is
   moved by hand or on a vehicle, so a 99th-percentile ``|angular_velocity|`` above 12 means
   deg/s. Below that both units are plausible (5 may be brisk rad/s or slow deg/s): the unit is
@@ -35,8 +35,8 @@ GRAVITY = 9.80665
 
 _GYRO_DEG_THRESHOLD = 12.0
 _GRAVITY_BIN_S = 0.05  # averaging window of the gravity-direction check, s
-_GRAVITY_MIN_BINS = 20  # at least 1 s of data for the gravity-direction check
-_GRAVITY_MIN_CORR = 0.2
+_GRAVITY_MIN_BINS = 10  # at least 0.5 s of data for the gravity-direction check
+_GRAVITY_MIN_CORR = 0.2  # and at least 4 sigma of the correlation of noise
 _GRAVITY_FACTOR_TOL = 3.0
 
 GyroUnit = Literal["rad/s", "deg/s"]
@@ -113,8 +113,8 @@ def gravity_turn_factor(
 
     Returns:
         ``k`` of ``du/dt = -k (w_raw x u)``: about 1 for rad/s data, about pi/180 for deg/s;
-        None when the data does not tell (under 1 s, or the tilting does not explain the turning
-        of ``u``: correlation below 0.2).
+        None when the data does not tell (under 0.5 s, or the tilting does not explain the
+        turning of ``u``: correlation below 0.2 or within 4 sigma of chance).
     """
     t = np.asarray(t_ns, dtype=np.int64)
     if t.size < 3 or gyro.shape[0] != t.size:
@@ -141,7 +141,8 @@ def gravity_turn_factor(
     pp, dd, dp = float(np.sum(pred * pred)), float(np.sum(du * du)), float(np.sum(du * pred))
     if not (np.isfinite(pp) and np.isfinite(dd) and np.isfinite(dp)) or pp <= 0 or dd <= 0:
         return None
-    if dp / np.sqrt(pp * dd) < _GRAVITY_MIN_CORR:
+    min_corr = max(_GRAVITY_MIN_CORR, 4.0 / np.sqrt(du.size))
+    if dp / np.sqrt(pp * dd) < min_corr:
         return None
     return dp / pp
 
