@@ -14,13 +14,20 @@ from licalib_cli.spline.knots import (
     cumulative_blending,
 )
 from licalib_cli.spline.r3_spline import R3Spline, R3SplineEval
-from licalib_cli.spline.so3_spline import SO3Spline, SO3SplineEval
+from licalib_cli.spline.so3_spline import (
+    SO3EvaluationCache,
+    SO3RotationVJP,
+    SO3Spline,
+    SO3SplineEval,
+)
 
 __all__ = [
     "BASIS_MATRIX",
     "CUMULATIVE_BASIS_MATRIX",
     "R3Spline",
     "R3SplineEval",
+    "SO3EvaluationCache",
+    "SO3RotationVJP",
     "SO3Spline",
     "SO3SplineEval",
     "UniformKnots",

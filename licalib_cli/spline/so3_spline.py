@@ -22,6 +22,10 @@ Conventions:
 * Jacobians use right perturbations: of a control point ``R_k <- R_k Exp(delta_k)`` and of the
   output rotation ``R(t) <- R(t) Exp(eps)``. The Jacobians with respect to the query time are
   ``d eps / dt = w`` and ``d w / dt = alpha``.
+* Limit: there is no query-time derivative of the angular acceleration (``d alpha / dt``, the
+  angular jerk) and no evaluation of it. Nothing in licalib needs it (no residual uses
+  ``alpha`` together with the time offset); a residual built on ``alpha`` whose query time
+  depends on an estimated parameter would have to add it first.
 * Times are float seconds relative to the problem's reference time.
 
 Evaluation is vectorised over queries; internally arrays are stored component-major
@@ -49,7 +53,7 @@ from licalib_cli.geometry.so3 import (
 )
 from licalib_cli.spline.knots import UniformKnots, cumulative_blending
 
-__all__ = ["SO3Spline", "SO3SplineEval"]
+__all__ = ["SO3EvaluationCache", "SO3RotationVJP", "SO3Spline", "SO3SplineEval"]
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -84,6 +88,14 @@ def _mtv(a: FloatArray, v: FloatArray) -> FloatArray:
     out = a[0] * v[0]
     out += a[1] * v[1]
     out += a[2] * v[2]
+    return out
+
+
+def _mv(a: FloatArray, v: FloatArray) -> FloatArray:
+    """a @ v."""
+    out = a[:, 0] * v[0]
+    out += a[:, 1] * v[1]
+    out += a[:, 2] * v[2]
     return out
 
 
@@ -175,6 +187,65 @@ def _soa(m: FloatArray) -> FloatArray:
 
 
 @dataclass(frozen=True)
+class SO3RotationVJP:
+    """Row-vector products with the rotation Jacobians, without forming the Jacobians.
+
+    For (M, 3) vectors ``v`` (e.g. the derivative of a scalar residual with respect to the
+    rotation perturbation ``eps``), ``vjp(v)[m, k] = v_m^T d eps / d delta_{i+k}`` equals
+    ``np.einsum("mi,mkil->mkl", v, jac_rotation)`` at a fraction of the cost: with the
+    factorisation ``J_k = Q^T F`` of the evaluation, ``J_k^T v = F^T (Q v)`` where every ``F`` is
+    ``a I + b hat(d_j) + c d_j d_j^T``.
+
+    Attributes:
+        d: (3, 3, M) ``d_j`` per query, component-major (``d[j, :, m]``).
+        q0: (3, 3, M) ``A_1 A_2`` per query.
+        q1: (3, 3, M) ``A_2`` per query.
+        coef: (6, 3, M) ``(a, b, c)`` of ``C_0, F_0^+, F_1^-, F_1^+, F_2^-, F_2^+``.
+    """
+
+    d: FloatArray
+    q0: FloatArray
+    q1: FloatArray
+    coef: FloatArray
+
+    def __call__(self, v: npt.ArrayLike) -> FloatArray:
+        """(M, 4, 3) products ``v_m^T J_{m,k}`` for (M, 3) row vectors ``v``."""
+        vt = np.ascontiguousarray(np.asarray(v, dtype=np.float64).T)
+        m = vt.shape[1]
+        if vt.shape[0] != 3 or m != self.d.shape[2]:
+            msg = f"v must have shape ({self.d.shape[2]}, 3), got {np.shape(v)}"
+            raise ValueError(msg)
+        out = np.empty((m, 4, 3))
+        for start in range(0, m, _BLOCK):
+            sl = slice(start, min(start + _BLOCK, m))
+            _store(out[sl], self._block(vt[:, sl], sl))
+        return out
+
+    def _block(self, v: FloatArray, sl: slice) -> FloatArray:
+        """(4, 3, m) products for one block of (3, m) vectors."""
+        d = self.d[..., sl]
+        coef = self.coef[..., sl]
+        us = (_mv(self.q0[..., sl], v), _mv(self.q1[..., sl], v), v)
+        xs = [_cross(d[j], us[j]) for j in range(3)]
+        dots = [_mtv(d[j][:, None], us[j])[0] for j in range(3)]
+
+        def ft(slot: int, j: int) -> FloatArray:
+            """``F_slot^T u_j = a u - b (d_j x u) + c (d_j . u) d_j``."""
+            a, b, c = coef[slot]
+            res = a * us[j]
+            res -= b * xs[j]
+            res += (c * dots[j]) * d[j]
+            return res
+
+        out = np.empty((4, 3, v.shape[1]))
+        out[0] = ft(0, 0)
+        out[1] = ft(1, 0) - ft(2, 1)
+        out[2] = ft(3, 1) - ft(4, 2)
+        out[3] = ft(5, 2)
+        return out
+
+
+@dataclass(frozen=True)
 class SO3SplineEval:
     """Rotation, body rates and Jacobians of an :class:`SO3Spline` at M query times.
 
@@ -183,10 +254,13 @@ class SO3SplineEval:
             control point ``i + k``.
         rotation: (M, 3, 3) ``R_G_I(t)``.
         angular_velocity: (M, 3) body rate ``w_I(t)``, rad/s, or None when not requested.
-        angular_acceleration: (M, 3) ``alpha_I(t) = w_dot``, rad/s^2, or None.
+        angular_acceleration: (M, 3) ``alpha_I(t) = w_dot``, rad/s^2, or None. Its derivative
+            with respect to the query time is not available (see the module docstring).
         jac_rotation: (M, 4, 3, 3) ``d eps / d delta_{i+k}`` (right perturbations), or None.
         jac_angular_velocity: (M, 4, 3, 3) ``d w / d delta_{i+k}``, rad/s, or None.
         jac_angular_acceleration: (M, 4, 3, 3) ``d alpha / d delta_{i+k}``, rad/s^2, or None.
+        rotation_vjp: products of row vectors with ``jac_rotation`` (see
+            :class:`SO3RotationVJP`), or None when not requested.
 
     The Jacobian arrays are (M, 4, 3, 3) views of component-major (4, 3, 3, M) storage (the
     layout the evaluation computes in); ``np.ascontiguousarray`` gives a query-major copy.
@@ -199,6 +273,7 @@ class SO3SplineEval:
     jac_rotation: FloatArray | None
     jac_angular_velocity: FloatArray | None
     jac_angular_acceleration: FloatArray | None
+    rotation_vjp: SO3RotationVJP | None = None
 
     def quaternions(self) -> FloatArray:
         """(M, 4) rotations as unit quaternions ``[x, y, z, w]`` with ``w >= 0``."""
@@ -299,31 +374,51 @@ class SO3Spline:
         return w
 
     def angular_acceleration(self, t_s: npt.ArrayLike) -> FloatArray:
-        """(M, 3) body angular acceleration ``alpha_I(t)``, rad/s^2."""
+        """(M, 3) body angular acceleration ``alpha_I(t)``, rad/s^2.
+
+        Its derivative with respect to ``t`` (the angular jerk) is not provided.
+        """
         a = self.evaluate(t_s, order=2).angular_acceleration
         assert a is not None
         return a
 
     def evaluate(
-        self, t_s: npt.ArrayLike, order: int = 1, jacobians: bool = False
+        self,
+        t_s: npt.ArrayLike,
+        order: int = 1,
+        jacobians: bool = False,
+        *,
+        jacobian_order: int | None = None,
+        rotation_vjp: bool = False,
     ) -> SO3SplineEval:
         """Evaluate rotation, body rates and optionally their control-point Jacobians.
 
         Args:
             t_s: (M,) query times, seconds.
             order: 0 rotation only, 1 + angular velocity, 2 + angular acceleration.
-            jacobians: also return the (M, 4, 3, 3) Jacobians of every requested quantity with
-                respect to right perturbations of the 4 active control points.
+            jacobians: also return the (M, 4, 3, 3) Jacobians with respect to right
+                perturbations of the 4 active control points.
+            jacobian_order: highest derivative whose Jacobians are returned (default
+                ``order``); e.g. ``order=1, jacobian_order=0`` gives the angular velocity but
+                only the rotation Jacobians, which costs about half of the velocity Jacobians.
+            rotation_vjp: also return :class:`SO3RotationVJP`, the products of row vectors with
+                the rotation Jacobians (independent of ``jacobians``; much cheaper than forming
+                and contracting ``jac_rotation`` when only such products are needed).
 
         Returns:
             :class:`SO3SplineEval`; fields not requested are None. The Jacobians are
             (M, 4, 3, 3) views of component-major storage.
 
         Raises:
-            ValueError: if a time is outside the spline range or ``order`` is not 0, 1 or 2.
+            ValueError: if a time is outside the spline range, ``order`` is not 0, 1 or 2, or
+                ``jacobian_order`` is not in ``[0, order]``.
         """
         if order not in (0, 1, 2):
             msg = f"order must be 0, 1 or 2, got {order}"
+            raise ValueError(msg)
+        jac_order = order if jacobian_order is None else jacobian_order
+        if not 0 <= jac_order <= order:
+            msg = f"jacobian_order must lie in [0, order={order}], got {jacobian_order}"
             raise ValueError(msg)
         index, u = self.knots.locate(t_s)
         m = index.shape[0]
@@ -331,16 +426,26 @@ class SO3Spline:
         vel = np.empty((m, 3)) if order >= 1 else None
         acc = np.empty((m, 3)) if order >= 2 else None
         # Jacobians are stored component-major (4, 3, 3, M) and returned as (M, 4, 3, 3) views.
-        jac_buf = [np.empty((4, 3, 3, m)) if jacobians and order >= k else None for k in range(3)]
+        jac_buf = [
+            np.empty((4, 3, 3, m)) if jacobians and jac_order >= k else None for k in range(3)
+        ]
+        vjp = None
+        if rotation_vjp:
+            vjp = SO3RotationVJP(
+                np.empty((3, 3, m)), np.empty((3, 3, m)), np.empty((3, 3, m)), np.empty((6, 3, m))
+            )
         for start in range(0, m, _BLOCK):
             sl = slice(start, min(start + _BLOCK, m))
             jac_out = [None if b is None else b[..., sl] for b in jac_buf]
-            res = self._evaluate_block(index[sl], u[sl], order, jac_out)
+            vjp_out = None
+            if vjp is not None:
+                vjp_out = (vjp.d[..., sl], vjp.q0[..., sl], vjp.q1[..., sl], vjp.coef[..., sl])
+            res = self._evaluate_block(index[sl], u[sl], order, jac_out, vjp_out)
             for out, val in zip((rot, vel, acc), res, strict=True):
                 if out is not None and val is not None:
                     _store(out[sl], val)
         j_rot, j_vel, j_acc = (None if b is None else np.moveaxis(b, -1, 0) for b in jac_buf)
-        return SO3SplineEval(index, rot, vel, acc, j_rot, j_vel, j_acc)
+        return SO3SplineEval(index, rot, vel, acc, j_rot, j_vel, j_acc, vjp)
 
     def _evaluate_block(
         self,
@@ -348,6 +453,7 @@ class SO3Spline:
         u: FloatArray,
         order: int,
         jac_out: Sequence[FloatArray | None],
+        vjp_out: tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None = None,
     ) -> tuple[FloatArray, FloatArray | None, FloatArray | None]:
         """Component-major evaluation of one block; see :meth:`evaluate` for the quantities.
 
@@ -362,6 +468,7 @@ class SO3Spline:
             order: highest derivative (0, 1, 2).
             jac_out: three (4, 3, 3, m) arrays (or None) receiving the Jacobians of rotation,
                 angular velocity and angular acceleration.
+            vjp_out: ``(d, q0, q1, coef)`` arrays of :class:`SO3RotationVJP` to fill, or None.
 
         Returns:
             ``(R (3, 3, m), w (3, m) or None, alpha (3, m) or None)``.
@@ -413,7 +520,12 @@ class SO3Spline:
                     pre_a.append(pa)
             vel = w
             acc = alpha if order >= 2 else None
-        if not jacobians:
+        if vjp_out is not None:
+            for j in range(3):
+                vjp_out[0][j] = d[j]
+            vjp_out[1][...] = q0
+            vjp_out[2][...] = q1
+        if not (jacobians or vjp_out is not None):
             return rot, vel, acc
 
         # d eps / d d_j = lambda_j Q_j^T Jr(lambda_j d_j); d d_j / d delta_{i+j+1} = Jr_inv(d_j),
@@ -437,17 +549,22 @@ class SO3Spline:
                 if j == 0 and s < 0:
                     # Only A_0^T - F_0^- is needed: the direct dependence on R_i
                     # (P^T = Q_0^T A_0^T) folded with the d_0 term.
-                    dest.append(np.empty(0))  # placeholder, F_0^- itself is never used
-                    c0 = _fn_of_hat(
-                        d[0],
-                        outer[0],
-                        th2[0],
-                        1.0 - lj,
-                        -coef_a[0] * lj - g1,
-                        coef_b[0] * lj * lj - g2,
-                    )
+                    f = (1.0 - lj, -coef_a[0] * lj - g1, coef_b[0] * lj * lj - g2)
+                    if jacobians:
+                        dest.append(np.empty(0))  # placeholder, F_0^- itself is never used
+                        c0 = _fn_of_hat(d[0], outer[0], th2[0], *f)
                 else:
-                    dest.append(_fn_of_hat(d[j], outer[j], th2[j], lj, g1, g2))
+                    f = (lj, g1, g2)
+                    if jacobians:
+                        dest.append(_fn_of_hat(d[j], outer[j], th2[j], *f))
+                if vjp_out is not None:  # slots C_0, F_0^+, F_1^-, F_1^+, F_2^-, F_2^+
+                    slot = 2 * j + int(s > 0)
+                    coef = vjp_out[3][slot]
+                    np.subtract(f[0], f[2] * th2[j], out=coef[0])
+                    coef[1] = f[1]
+                    coef[2] = f[2]
+        if not jacobians:
+            return rot, vel, acc
         assert c0 is not None
 
         def combine(
@@ -466,7 +583,7 @@ class SO3Spline:
 
         assert jac_out[0] is not None
         combine(f_plus, c0, f_minus, jac_out[0])
-        if order == 0:
+        if jac_out[1] is None:
             return rot, vel, acc
 
         # d w / d d_j = Q_j^T (lambda_j' I + lambda_j hat(A_j^T w^(j-1)) Jr(lambda_j d_j)), so
@@ -483,7 +600,7 @@ class SO3Spline:
                 dest.append(x)
         assert jac_out[1] is not None
         combine(x_plus, -x_minus[0], x_minus, jac_out[1])
-        if order == 1:
+        if jac_out[2] is None:
             return rot, vel, acc
 
         # Angular acceleration: derivatives w.r.t. d_j propagated forward through the
@@ -584,3 +701,80 @@ class SO3Spline:
             delta = spla.spsolve(normal, -(J.T @ r0.ravel()))
             spline = spline.retract(np.asarray(delta).reshape(n, 3))
         return spline
+
+
+class SO3EvaluationCache:
+    """One :meth:`SO3Spline.evaluate` result shared by residual blocks with the same query times.
+
+    The gyroscope and the accelerometer residuals are evaluated at the same IMU sample times;
+    with a common cache the rotation spline (its construction and its evaluation with
+    Jacobians) is computed once per state instead of once per block. :meth:`evaluate` returns
+    the stored result when the control points and the times are equal to the stored ones and
+    the stored evaluation holds everything requested; otherwise it evaluates the union of what
+    was asked at these times (the highest order seen, Jacobians when requested) and stores it.
+    Results are read-only views shared between the callers.
+    """
+
+    def __init__(self) -> None:
+        """Create an empty cache."""
+        self._t: FloatArray | None = None
+        self._quats: FloatArray | None = None
+        self._knots: UniformKnots | None = None
+        self._spline: SO3Spline | None = None
+        self._eval: SO3SplineEval | None = None
+        self._order = 0
+        self._jacobians = False
+
+    def spline(self, knots: UniformKnots, control_quats: npt.ArrayLike) -> SO3Spline:
+        """The spline with these knots and (N, 4) control quaternions (built once per value)."""
+        q = np.asarray(control_quats, dtype=np.float64)
+        if (
+            self._spline is None
+            or self._knots != knots
+            or self._quats is None
+            or self._quats.shape != q.shape
+            or not np.array_equal(self._quats, q)
+        ):
+            self._spline = SO3Spline(knots, q)
+            self._knots = knots
+            self._quats = q.copy()
+            self._eval = None
+        return self._spline
+
+    def evaluate(
+        self,
+        knots: UniformKnots,
+        control_quats: npt.ArrayLike,
+        t_s: FloatArray,
+        order: int,
+        jacobians: bool,
+    ) -> SO3SplineEval:
+        """:meth:`SO3Spline.evaluate` at ``t_s`` (order ``>= order``, Jacobians up to it).
+
+        Args:
+            knots: Knot vector of the spline.
+            control_quats: (N, 4) control quaternions ``[x, y, z, w]``.
+            t_s: (M,) query times, seconds.
+            order: Highest derivative needed (0, 1 or 2).
+            jacobians: Whether the control-point Jacobians are needed.
+
+        Returns:
+            The evaluation (possibly of a higher order, with Jacobians of every returned
+            quantity).
+        """
+        spline = self.spline(knots, control_quats)
+        same_times = self._t is not None and (
+            self._t is t_s or (self._t.shape == t_s.shape and np.array_equal(self._t, t_s))
+        )
+        if not same_times:
+            self._t = np.array(t_s, dtype=np.float64)
+            self._eval = None
+            self._order = 0
+            self._jacobians = False
+        stored = self._eval
+        if stored is not None and self._order >= order and (self._jacobians or not jacobians):
+            return stored
+        self._order = max(self._order, order)
+        self._jacobians = jacobians or (stored is not None and self._jacobians)
+        self._eval = spline.evaluate(t_s, order=self._order, jacobians=self._jacobians)
+        return self._eval

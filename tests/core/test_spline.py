@@ -10,6 +10,7 @@ from licalib_cli.spline import (
     BASIS_MATRIX,
     CUMULATIVE_BASIS_MATRIX,
     R3Spline,
+    SO3EvaluationCache,
     SO3Spline,
     UniformKnots,
     blending,
@@ -301,6 +302,57 @@ def test_so3_retract_and_errors(rng: np.random.Generator) -> None:
         SO3Spline(spline.knots, np.zeros((n, 4)))
     with pytest.raises(ValueError):
         SO3Spline(spline.knots, np.ones((n + 1, 4)))
+
+
+def test_so3_jacobian_order_and_rotation_vjp(rng: np.random.Generator) -> None:
+    """Jacobians of lower derivatives only, and row-vector products with the rotation Jacobian,
+    agree with the full evaluation (also across internal blocks)."""
+    spline = _random_so3(rng, 0.6, n=30)
+    t = rng.uniform(spline.knots.t0_s, spline.knots.t_end_s, 9000)
+    full = spline.evaluate(t, order=2, jacobians=True)
+    part = spline.evaluate(t, order=2, jacobians=True, jacobian_order=0)
+    assert part.jac_angular_velocity is None and part.jac_angular_acceleration is None
+    np.testing.assert_array_equal(part.jac_rotation, full.jac_rotation)
+    np.testing.assert_array_equal(part.angular_acceleration, full.angular_acceleration)
+    one = spline.evaluate(t, order=2, jacobians=True, jacobian_order=1)
+    np.testing.assert_array_equal(one.jac_angular_velocity, full.jac_angular_velocity)
+    assert one.jac_angular_acceleration is None
+    with pytest.raises(ValueError, match="jacobian_order"):
+        spline.evaluate(t, order=1, jacobians=True, jacobian_order=2)
+    v = rng.normal(size=(9000, 3))
+    expected = np.einsum("mi,mkil->mkl", v, full.jac_rotation)
+    for ev in (
+        spline.evaluate(t, order=0, rotation_vjp=True),
+        spline.evaluate(t, order=1, jacobians=True, rotation_vjp=True),
+    ):
+        assert ev.rotation_vjp is not None
+        np.testing.assert_allclose(ev.rotation_vjp(v), expected, rtol=0, atol=1e-13)
+        np.testing.assert_array_equal(ev.rotation, full.rotation)
+    assert spline.evaluate(t, order=0).rotation_vjp is None
+    with pytest.raises(ValueError, match="shape"):
+        spline.evaluate(t[:5], rotation_vjp=True).rotation_vjp(v)  # type: ignore[misc]
+
+
+def test_so3_evaluation_cache_shares_and_refreshes(rng: np.random.Generator) -> None:
+    spline = _random_so3(rng, 0.4)
+    knots, quats = spline.knots, spline.control_quats
+    t = rng.uniform(knots.t0_s, knots.t_end_s, 50)
+    cache = SO3EvaluationCache()
+    first = cache.evaluate(knots, quats, t, 1, True)
+    assert cache.evaluate(knots, quats.copy(), t.copy(), 0, True) is first  # equal values: shared
+    assert cache.evaluate(knots, quats, t, 1, False) is first  # a superset is fine
+    higher = cache.evaluate(knots, quats, t, 2, False)  # more than stored: evaluated again
+    assert higher is not first and higher.angular_acceleration is not None
+    np.testing.assert_array_equal(higher.jac_angular_velocity, first.jac_angular_velocity)
+    moved = spline.retract(0.01 * rng.normal(size=(knots.num_control_points, 3)))
+    new = cache.evaluate(knots, moved.control_quats, t, 0, True)
+    # (the cache builds its spline from the quaternions again: equal up to round-off)
+    reference = SO3Spline(knots, moved.control_quats).evaluate(t, order=2, jacobians=True)
+    assert new.angular_acceleration is not None  # the highest order asked at these times
+    np.testing.assert_array_equal(new.rotation, reference.rotation)
+    np.testing.assert_array_equal(new.jac_angular_velocity, reference.jac_angular_velocity)
+    other_t = cache.evaluate(knots, moved.control_quats, t[:10], 0, False)
+    np.testing.assert_array_equal(other_t.rotation, reference.rotation[:10])
 
 
 # ---------------------------------------------------------------------------------------------
