@@ -44,19 +44,23 @@ Trajectory elimination
     nearly dense (IMU biases, gravity) form a border; the rest, reordered by reverse
     Cuthill-McKee (which interleaves the so3 and r3 control points by knot), is banded with about
     ``6 * 4`` coordinates of bandwidth and gets a banded Cholesky factorisation; the border is
-    eliminated by a small dense Schur complement. When the structure is not banded or ``A_tt`` is
-    not numerically positive definite, a sparse LU (SuperLU, COLAMD) is used instead.
+    eliminated by a small dense Schur complement. The calibration system needs only the forward
+    substitution with the Cholesky factor (LAPACK ``tbtrs``): ``S = H_cc - W^T W`` with
+    ``W = L^-1 H_tc``. When the structure is not banded or ``A_tt`` is not numerically positive
+    definite, a sparse LU (SuperLU, COLAMD) is used instead.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from functools import cached_property
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 import numpy.typing as npt
 import scipy.linalg as sla
+import scipy.linalg.lapack as lapack
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import reverse_cuthill_mckee
@@ -356,18 +360,29 @@ class SchurSystem:
     Attributes:
         S: (Nc, Nc) Schur complement (no damping on the calibration block).
         b: (Nc,) right-hand side.
-        X: (Nt, Nc) ``A_tt^-1 H_tc``.
         y_t: (Nt,) ``-A_tt^-1 g_t``.
+        X: (Nt, Nc) ``A_tt^-1 H_tc``, formed on first access (the step does not need it:
+            :meth:`back_substitute` solves with ``H_tc dc`` instead).
     """
 
     S: F64
     b: F64
-    X: F64
     y_t: F64
+    solve_tt: Callable[[F64], F64] = field(repr=False, compare=False)
+    H_tc: F64 = field(repr=False, compare=False)
+
+    @cached_property
+    def X(self) -> F64:
+        """(Nt, Nc) ``A_tt^-1 H_tc``."""
+        if self.H_tc.size == 0:
+            return np.zeros(self.H_tc.shape)
+        return self.solve_tt(self.H_tc)
 
     def back_substitute(self, dc: F64) -> F64:
-        """(Nt,) trajectory step for the (Nc,) calibration step ``dc``."""
-        return self.y_t - self.X @ dc
+        """(Nt,) trajectory step ``y_t - A_tt^-1 H_tc dc`` for the (Nc,) calibration step ``dc``."""
+        if self.y_t.size == 0:
+            return np.zeros(0)
+        return self.y_t - self.solve_tt(self.H_tc @ dc)
 
 
 def schur_complement(lin: Linearization, trajectory_damping: F64 | float = 0.0) -> SchurSystem:
@@ -375,8 +390,10 @@ def schur_complement(lin: Linearization, trajectory_damping: F64 | float = 0.0) 
 
     ``A_tt`` is factorised by :class:`_BandedCholesky` (banded Cholesky plus a dense border) when
     its structure allows and it is numerically positive definite, and by a sparse LU otherwise.
-    Trajectory coordinates that no residual touches (zero diagonal) get a unit diagonal so the
-    factorisation exists; their step is zero.
+    With the Cholesky factor ``A_tt = L L^T`` only the forward substitution ``W = L^-1 H_tc`` is
+    needed (``S = H_cc - W^T W``), half the work of solving with ``A_tt``. Trajectory coordinates
+    that no residual touches (zero diagonal) get a unit diagonal so the factorisation exists;
+    their step is zero.
 
     Args:
         lin: Normal equations.
@@ -391,18 +408,29 @@ def schur_complement(lin: Linearization, trajectory_damping: F64 | float = 0.0) 
     nt = lin.layout.num_trajectory
     nc = lin.layout.num_calibration
     if nt == 0:
-        return SchurSystem(lin.H_cc.copy(), -lin.g_c.copy(), np.zeros((0, nc)), np.zeros(0))
+        return SchurSystem(
+            lin.H_cc.copy(), -lin.g_c.copy(), np.zeros(0), lambda r: r, np.zeros((0, nc))
+        )
     add = _trajectory_diagonal(lin.H_tt, trajectory_damping)
-    rhs = np.empty((nt, nc + 1))
+    rhs = np.empty((nt, nc + 1), order="F")
     rhs[:, :nc] = lin.H_tc
     rhs[:, nc] = -lin.g_t
     factor = _BandedCholesky.factorize(lin.H_tt, add)
-    sol = factor.solve(rhs) if factor is not None else _sparse_lu_solve(lin.H_tt, add, rhs)
-    x, y_t = sol[:, :nc], sol[:, nc]
-    s = lin.H_cc - lin.H_tc.T @ x
+    if factor is not None:
+        w = factor.forward(rhs)
+        w_x, w_g = w[:, :nc], w[:, nc]
+        s = lin.H_cc - w_x.T @ w_x
+        b = -lin.g_c - w_x.T @ w_g
+        y_t = factor.backward(w_g)
+        solve: Callable[[F64], F64] = factor.solve
+    else:
+        solve = _sparse_lu_solver(lin.H_tt, add)
+        sol = solve(rhs)
+        x, y_t = sol[:, :nc], sol[:, nc]
+        s = lin.H_cc - lin.H_tc.T @ x
+        b = -lin.g_c - lin.H_tc.T @ y_t
     s = 0.5 * (s + s.T)
-    b = -lin.g_c - lin.H_tc.T @ y_t
-    return SchurSystem(s, b, x, y_t)
+    return SchurSystem(s, b, y_t, solve, lin.H_tc)
 
 
 def _trajectory_diagonal(h_tt: sp.spmatrix, trajectory_damping: F64 | float) -> F64:
@@ -413,16 +441,15 @@ def _trajectory_diagonal(h_tt: sp.spmatrix, trajectory_damping: F64 | float) -> 
     return add
 
 
-def _sparse_lu_solve(h_tt: sp.spmatrix, add: F64, rhs: F64) -> F64:
-    """``(H_tt + diag(add))^-1 rhs`` by SuperLU (COLAMD ordering).
+def _sparse_lu_solver(h_tt: sp.spmatrix, add: F64) -> Callable[[F64], F64]:
+    """``rhs -> (H_tt + diag(add))^-1 rhs`` by SuperLU (COLAMD ordering).
 
     Args:
         h_tt: (Nt, Nt) sparse trajectory block.
         add: (Nt,) diagonal addition.
-        rhs: (Nt, k) right-hand sides.
 
     Returns:
-        (Nt, k) solution.
+        The solver for (Nt,) or (Nt, k) right-hand sides.
 
     Raises:
         numpy.linalg.LinAlgError: When the matrix is exactly singular.
@@ -433,7 +460,7 @@ def _sparse_lu_solve(h_tt: sp.spmatrix, add: F64, rhs: F64) -> F64:
     except RuntimeError as err:
         msg = "The trajectory block of the normal equations is singular; add damping or priors."
         raise np.linalg.LinAlgError(msg) from err
-    return lu.solve(rhs)
+    return lu.solve  # type: ignore[no-any-return]
 
 
 # Border detection: a trajectory coordinate whose row of H_tt holds more than
@@ -465,7 +492,8 @@ class _BandedCholesky:
     The coordinates split into a *band* part, reordered by reverse Cuthill-McKee so that its
     block ``A_bb`` is banded (the interleaved so3 / r3 control points of the splines), and a small
     *border* part ``c`` (coordinates whose rows are nearly dense). ``A_bb = L L^T`` is factorised
-    by LAPACK ``pbtrf`` and applied by ``pbtrs``; the border is eliminated with the dense Schur
+    by LAPACK ``pbtrf`` and applied by ``pbtrs`` (or ``tbtrs`` for one triangular factor at a
+    time, :meth:`forward` and :meth:`backward`); the border is eliminated with the dense Schur
     complement ``S_c = A_cc - A_cb A_bb^-1 A_bc``, which is positive definite whenever ``A`` is.
 
     ``pbtrs`` uses level-2 BLAS (one right-hand side at a time). A blocked level-3 substitution
@@ -565,6 +593,46 @@ class _BandedCholesky:
         if not np.all(np.isfinite(border_factor)):
             return None
         return cls(order, border, factor, coupling, solved, border_factor)
+
+    def forward(self, rhs: F64) -> F64:
+        """``W = L_A^-1 rhs`` with ``A = L_A L_A^T`` (so ``W^T W = rhs^T A^-1 rhs``).
+
+        ``L_A = [[L, 0], [A_cb L^-T, L_c]]`` in (band, border) order, with ``S_c = L_c L_c^T``.
+
+        Args:
+            rhs: (Nt, k) right-hand sides in H_tt order.
+
+        Returns:
+            (Nt, k) ``W``, rows in (band, border) order.
+        """
+        r_b = np.asfortranarray(rhs[self.order])
+        w_b, info = lapack.dtbtrs(self.band_factor, r_b, uplo="L", overwrite_b=1)
+        if info != 0:
+            msg = f"banded triangular solve failed (info {info})"
+            raise np.linalg.LinAlgError(msg)
+        if not self.border.size:
+            return w_b  # type: ignore[no-any-return]
+        r_c = rhs[self.border] - self.coupling_solved.T @ rhs[self.order]
+        w_c = sla.solve_triangular(self.border_factor, r_c, lower=True, check_finite=False)
+        return np.concatenate([w_b, w_c])
+
+    def backward(self, w: F64) -> F64:
+        """``L_A^-T w`` in H_tt order for (Nt,) ``w`` in (band, border) order."""
+        nb = self.order.size
+        out = np.empty(w.shape[0])
+        y_b, info = lapack.dtbtrs(self.band_factor, w[:nb, None], uplo="L", trans="T")
+        if info != 0:
+            msg = f"banded triangular solve failed (info {info})"
+            raise np.linalg.LinAlgError(msg)
+        y_b = y_b[:, 0]
+        if self.border.size:
+            y_c = sla.solve_triangular(
+                self.border_factor, w[nb:], lower=True, trans="T", check_finite=False
+            )
+            y_b = y_b - self.coupling_solved @ y_c
+            out[self.border] = y_c
+        out[self.order] = y_b
+        return out
 
     def solve(self, rhs: F64) -> F64:
         """``A^-1 rhs``.

@@ -17,7 +17,7 @@ from licalib_cli.solver.problem import (
     Layout,
     Linearization,
     _BandedCholesky,
-    _sparse_lu_solve,
+    _sparse_lu_solver,
     _trajectory_diagonal,
     schur_complement,
 )
@@ -110,12 +110,18 @@ def test_banded_schur_matches_dense_and_sparse_lu(damping: float | str) -> None:
         _assert_rel(actual, expected)
     # the former SuperLU path gives the same system
     rhs = np.column_stack([lin.H_tc, -lin.g_t])
-    lu = _sparse_lu_solve(lin.H_tt, add, rhs)
+    lu = _sparse_lu_solver(lin.H_tt, add)(rhs)
     _assert_rel(sch.X, lu[:, :-1])
     _assert_rel(sch.y_t, lu[:, -1])
     np.testing.assert_array_equal(sch.S, sch.S.T)
     dc = rng.normal(size=NUM_CALIB)
     _assert_rel(sch.back_substitute(dc), y - x @ dc)
+    # the factor's forward and backward substitutions: W^T W = r^T A^-1 r, L^-T L^-1 r = A^-1 r
+    a_inv = np.linalg.inv(h[:nt, :nt] + np.diag(add))
+    w = factor.forward(rhs)
+    _assert_rel(w.T @ w, rhs.T @ a_inv @ rhs)
+    _assert_rel(factor.backward(w[:, -1]), a_inv @ rhs[:, -1])
+    _assert_rel(factor.solve(rhs), a_inv @ rhs)
 
 
 def test_untouched_trajectory_coordinates_get_a_zero_step() -> None:
