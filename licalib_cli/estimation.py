@@ -75,7 +75,7 @@ from licalib_cli.residuals import (
 from licalib_cli.solver.loss import HuberLoss
 from licalib_cli.solver.parameters import ParameterBlock
 from licalib_cli.solver.problem import Problem, ResidualBlock
-from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
+from licalib_cli.spline import R3Spline, SO3EvaluationCache, SO3Spline, UniformKnots
 
 __all__ = [
     "CALIBRATION_SCALES",
@@ -674,10 +674,15 @@ def build_problem(
     if imu is not None and len(imu) > 0:
         t_imu = np.asarray(imu.t_s, dtype=np.float64)
         _check_coverage(knots, t_imu, "IMU sample times")
+        shared = SO3EvaluationCache()  # gyro and accelerometer: one rotation-spline evaluation
         problem.add_residual_block(
-            GyroResidual(knots, t_imu, imu.gyro, noise.gyro_sigma, g_sensitivity=use_gs)
+            GyroResidual(
+                knots, t_imu, imu.gyro, noise.gyro_sigma, g_sensitivity=use_gs, so3_cache=shared
+            )
         )
-        problem.add_residual_block(AccelResidual(knots, t_imu, imu.accel, noise.accel_sigma))
+        problem.add_residual_block(
+            AccelResidual(knots, t_imu, imu.accel, noise.accel_sigma, so3_cache=shared)
+        )
 
     if has_lidar:
         assert lidar is not None

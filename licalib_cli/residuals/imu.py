@@ -6,7 +6,9 @@ group per sample), with ``sigma`` the discrete noise standard deviation
 seconds relative to the problem's reference time; they do not depend on the time offset.
 Predictions follow :mod:`licalib_cli.models.imu`; trajectory Jacobians chain the model derivatives
 with the spline's control-point Jacobians (right perturbations for ``traj.so3``, linear weights for
-``traj.r3``) and gravity uses the s2 retraction Jacobian of the solver.
+``traj.r3``) and gravity uses the s2 retraction Jacobian of the solver. A gyroscope and an
+accelerometer block built with the same :class:`~licalib_cli.spline.SO3EvaluationCache` (as
+:func:`licalib_cli.estimation.build_problem` does) evaluate the rotation spline once per state.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from licalib_cli.residuals import (
 )
 from licalib_cli.solver.parameters import s2_retraction_jacobian
 from licalib_cli.solver.problem import DenseJacobian, ResidualEval
-from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
+from licalib_cli.spline import R3Spline, SO3EvaluationCache, UniformKnots
 
 __all__ = ["AccelResidual", "GyroResidual"]
 
@@ -81,6 +83,7 @@ class GyroResidual:
         *,
         g_sensitivity: bool = False,
         name: str = "imu.gyro",
+        so3_cache: SO3EvaluationCache | None = None,
     ) -> None:
         """Create the block.
 
@@ -91,6 +94,9 @@ class GyroResidual:
             sigma: discrete noise standard deviation, rad/s (scalar or (3,) per axis).
             g_sensitivity: include the ``A_w a_I`` term.
             name: residual block name.
+            so3_cache: rotation-spline evaluation shared with an :class:`AccelResidual` at the
+                same sample times (see :class:`~licalib_cli.spline.SO3EvaluationCache`);
+                default: a private one.
 
         Raises:
             ValueError: on shape mismatches, a bad sigma or times outside the spline range.
@@ -101,6 +107,7 @@ class GyroResidual:
         knots.locate(self.t_s)  # range check
         self.inv_sigma = _per_axis_inverse(sigma, "gyro")
         self.g_sensitivity = g_sensitivity
+        self.so3_cache = SO3EvaluationCache() if so3_cache is None else so3_cache
         self._zeros = np.zeros((self.t_s.shape[0], 1), dtype=np.intp)
 
     def __len__(self) -> int:
@@ -109,9 +116,7 @@ class GyroResidual:
     def evaluate(self, params: Mapping[str, F64], jacobians: bool = True) -> ResidualEval:
         """Whitened residuals (N, 3) and their Jacobians (see :class:`GyroResidual`)."""
         n = self.t_s.shape[0]
-        ev = SO3Spline(self.knots, params[TRAJ_SO3]).evaluate(
-            self.t_s, order=1, jacobians=jacobians
-        )
+        ev = self.so3_cache.evaluate(self.knots, params[TRAJ_SO3], self.t_s, 1, jacobians)
         assert ev.angular_velocity is not None
         use_gs = self.g_sensitivity and GYRO_G_SENSITIVITY in params
         sf = None
@@ -190,6 +195,7 @@ class AccelResidual:
         sigma: float | npt.ArrayLike,
         *,
         name: str = "imu.accel",
+        so3_cache: SO3EvaluationCache | None = None,
     ) -> None:
         """Create the block.
 
@@ -199,6 +205,8 @@ class AccelResidual:
             accel: (N, 3) accelerometer readings, m/s^2.
             sigma: discrete noise standard deviation, m/s^2 (scalar or (3,) per axis).
             name: residual block name.
+            so3_cache: rotation-spline evaluation shared with a :class:`GyroResidual` at the
+                same sample times; default: a private one.
 
         Raises:
             ValueError: on shape mismatches, a bad sigma or times outside the spline range.
@@ -208,6 +216,7 @@ class AccelResidual:
         self.t_s, self.accel = _check_samples(t_s, accel, "accelerometer")
         knots.locate(self.t_s)
         self.inv_sigma = _per_axis_inverse(sigma, "accelerometer")
+        self.so3_cache = SO3EvaluationCache() if so3_cache is None else so3_cache
         self._zeros = np.zeros((self.t_s.shape[0], 1), dtype=np.intp)
 
     def __len__(self) -> int:
@@ -216,9 +225,7 @@ class AccelResidual:
     def evaluate(self, params: Mapping[str, F64], jacobians: bool = True) -> ResidualEval:
         """Whitened residuals (N, 3) and their Jacobians (see :class:`AccelResidual`)."""
         n = self.t_s.shape[0]
-        ev = SO3Spline(self.knots, params[TRAJ_SO3]).evaluate(
-            self.t_s, order=0, jacobians=jacobians
-        )
+        ev = self.so3_cache.evaluate(self.knots, params[TRAJ_SO3], self.t_s, 0, jacobians)
         pos = R3Spline(self.knots, params[TRAJ_R3]).evaluate(self.t_s, order=2)
         assert pos.acceleration is not None
         sf = specific_force(ev.rotation, pos.acceleration, params[GRAVITY])

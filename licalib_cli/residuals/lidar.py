@@ -151,7 +151,7 @@ class PointToPlaneResidual:
             self._cos_sin_theta,
         )
         rot_ev = SO3Spline(self.knots, params[TRAJ_SO3]).evaluate(
-            t, order=1 if want_time else 0, jacobians=jacobians
+            t, order=1 if want_time else 0, rotation_vjp=jacobians
         )
         pos_ev = R3Spline(self.knots, params[TRAJ_R3]).evaluate(t, order=1 if want_time else 0)
         geo = point_to_plane(
@@ -171,11 +171,15 @@ class PointToPlaneResidual:
             r = np.where(inside, r, np.inf)
         if not jacobians:
             return ResidualEval(r[:, None])
-        assert rot_ev.jac_rotation is not None
+        assert rot_ev.rotation_vjp is not None
         elements = rot_ev.index[:, None] + _OFFSETS
-        d_rot = geo.d_rotation * w[:, None]
-        j_so3 = np.einsum("ni,nkil->nkl", d_rot, rot_ev.jac_rotation, optimize=True)[:, None]
-        j_r3 = (pos_ev.weights * w[:, None])[:, None, :, None] * self.normal[:, None, None, :]
+        j_so3 = rot_ev.rotation_vjp(geo.d_rotation * w[:, None])[:, None]
+        j_r3 = np.empty((n, 1, 4, 3))
+        np.multiply(
+            (np.ascontiguousarray(pos_ev.weights) * w[:, None])[:, :, None],
+            self.normal[:, None, :],
+            out=j_r3[:, 0],
+        )
         jacs: list[DenseJacobian] = [
             DenseJacobian(TRAJ_SO3, elements, j_so3),
             DenseJacobian(TRAJ_R3, elements, j_r3),
