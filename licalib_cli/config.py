@@ -139,6 +139,9 @@ class SurfelSection(_Section):
     """Points further from their surfel's plane are not associated."""
     points_per_scan: int = Field(default=1000, ge=50)
     """Points kept per scan for the optimisation (uniformly over the sweep)."""
+    final_points_per_scan: int | None = Field(default=4000, ge=50)
+    """Points per scan of one last round once the others have settled (the uncertainty of the
+    time offset and translation shrinks with the number of points); None skips it."""
 
 
 class ScheduleConfig(_Section):

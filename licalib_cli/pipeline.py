@@ -52,6 +52,7 @@ from licalib_cli.initialization.rotation import (
     lidar_rotation_at,
 )
 from licalib_cli.initialization.rotation_search import search_rotation_extrinsic
+from licalib_cli.initialization.single_axis import rotation_axes, single_axis_rotation
 from licalib_cli.initialization.time_offset import (
     TimeOffsetConfig,
     TimeOffsetEstimate,
@@ -352,6 +353,9 @@ def searched_rotation(
     return rot, poses, hand_eye
 
 
+SINGLE_AXIS = "single axis + accelerations"
+
+
 def initial_rotation(
     rec: Recording,
     kiss: PoseSeries,
@@ -360,45 +364,55 @@ def initial_rotation(
     gyro: GyroIntegrator,
     t_c: float,
     cfg: CalibConfig,
-) -> tuple[F64, PoseSeries, HandEyeRotation, str]:
-    """Hand-eye rotation on the LiDAR-only odometry, or the sharpness search when that fails.
+) -> tuple[F64, PoseSeries, HandEyeRotation | None, str]:
+    """Hand-eye rotation on the LiDAR-only odometry, or another way when that fails.
 
     Hand-eye is trusted when it is well conditioned and its residual is below
-    ``initialization.max_hand_eye_residual_deg``; otherwise (violent motion that the LiDAR-only
-    odometry cannot follow) :func:`searched_rotation` takes over, and the better-fitting of the
-    two is kept when both succeed.
+    ``initialization.max_hand_eye_residual_deg``. Otherwise: when the rig turned about one axis
+    only (planar, vehicle-like motion) the axis and the accelerations in the plane give the
+    rotation (:func:`single_axis_rotation`); else the LiDAR-only odometry did not follow a
+    violent motion and :func:`searched_rotation` takes over, the better-fitting of the two being
+    kept when both succeed.
 
     Returns:
-        ``(R_imu_lidar, poses, hand_eye, source)`` with ``source`` ``"hand-eye"`` or
-        ``"search + gyro-aided hand-eye"``; ``poses`` are the odometry the rotation rests on.
+        ``(R_imu_lidar, poses, hand_eye, source)`` with ``source`` ``"hand-eye"``,
+        ``"search + gyro-aided hand-eye"`` or :data:`SINGLE_AXIS` (``hand_eye`` None then);
+        ``poses`` are the odometry the rotation rests on.
 
     Raises:
-        ExcitationError: neither way determines the rotation.
+        ExcitationError: no way determines the rotation.
     """
     ini = cfg.initialization
     first: HandEyeRotation | None = None
+    failure: ExcitationError | None = None
     try:
         first = estimate_rotation_extrinsic(
             gyro, poses, time_offset_s=t_c, cfg=_hand_eye_config(cfg)
         )
     except ExcitationError as err:
-        if not ini.rotation_search:
-            raise _with_rotation_hint(err) from err
-        logger.info("Hand-eye on the LiDAR-only odometry refused (%s); searching.", err)
-        failure: ExcitationError = err
+        failure = err
+        logger.info("Hand-eye on the LiDAR-only odometry refused: %s", err)
     else:
         if first.residual_rms_deg <= ini.max_hand_eye_residual_deg or not ini.rotation_search:
             return first.R_imu_lidar, poses, first, "hand-eye"
         logger.info(
-            "Hand-eye residual %.2f deg: the LiDAR-only odometry may not follow the motion; "
-            "searching.",
+            "Hand-eye residual %.2f deg: the LiDAR-only odometry may not follow the motion.",
             first.residual_rms_deg,
         )
+    t_imu = poses.t_ns + np.int64(round(t_c * 1e9))
+    t_imu = t_imu[(t_imu >= gyro.t_ns[0]) & (t_imu <= gyro.t_ns[-1])]
+    if first is None and rotation_axes(gyro, t_imu).second_to_first < ini.min_axis_ratio:
+        found = single_axis_rotation(rec.imu, gyro, poses, t_c, ini.min_rotation_deg)
+        return found.R_imu_lidar, poses, None, SINGLE_AXIS
+    if not ini.rotation_search:
+        assert failure is not None
+        raise _with_rotation_hint(failure)
     try:
         rot, searched_poses, hand_eye = searched_rotation(rec, kiss, ocfg, gyro, t_c, cfg)
     except ExcitationError as err:
         if first is not None:
             return first.R_imu_lidar, poses, first, "hand-eye"
+        assert failure is not None
         raise _with_rotation_hint(failure) from err
     if first is not None and first.residual_rms_deg <= hand_eye.residual_rms_deg:
         return first.R_imu_lidar, poses, first, "hand-eye"
@@ -462,6 +476,8 @@ def initialise(
             reason = est.reason if est is not None else "the angular rate hardly varies"
             logger.warning("Coarse time offset not found (%s); starting from 0 s.", reason)
             t_c, t_source = 0.0, "zero"
+        if r_source == SINGLE_AXIS and t_c != 0.0:
+            rot = single_axis_rotation(rec.imu, gyro, poses, t_c, ini.min_rotation_deg).R_imu_lidar
         if hand_eye is not None and t_c != 0.0:
             try:
                 hand_eye = estimate_rotation_extrinsic(gyro, poses, time_offset_s=t_c, cfg=he_cfg)
@@ -505,6 +521,8 @@ def gyro_aided_rotation(
         max_lag_s=ini.time_offset_max_lag_s, min_peak_correlation=ini.min_peak_correlation
     )
     poses = lidar_only
+    if hand_eye is None and ini.rotation_rpy_deg is None:
+        return rot, t_c, lidar_only, hand_eye  # single-axis motion: hand-eye cannot help
     if hand_eye is not None and hand_eye.residual_rms_deg < 0.1:
         return rot, t_c, lidar_only, hand_eye  # the odometry already agrees with the gyro
     for _ in range(max_rounds):
@@ -766,10 +784,15 @@ def judge(
     rounds: tuple[RoundSummary, ...],
     unc: dict[str, Any],
     cfg: CalibConfig,
+    notes: tuple[str, ...] = (),
 ) -> Verdict:
-    """Pass / warn / fail from observability, uncertainty, convergence and fit quality."""
-    reasons: list[str] = []
-    status = "pass"
+    """Pass / warn / fail from observability, uncertainty, convergence and fit quality.
+
+    ``notes`` are findings of earlier stages that make the result less trustworthy (a warning
+    each).
+    """
+    reasons: list[str] = list(notes)
+    status = "warn" if notes else "pass"
     ext_truncated = [
         d.text for d in report.truncated if any(b.startswith("ext.") for b in d.blocks)
     ]
@@ -942,11 +965,38 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
             )
             if index >= 2 and settled and not intrinsics_pending:
                 break
+        final = cfg.surfels.final_points_per_scan
+        if final is not None and final > cfg.surfels.points_per_scan:
+            # One more round on a denser sample from the settled estimate: the uncertainty of
+            # the time offset and the translation shrinks with the number of points.
+            dense = sample_points(rec.scans, phi, final, cfg, seed=1)
+            index = len(rounds) + 1
+            state, summary, report = run_round(
+                state, dense, imu, cfg, index, cfg.surfels.max_distance_m
+            )
+            rounds.append(summary)
+            dt, dr, dc = _change(rounds[-2].extrinsic, summary.extrinsic)
+            logger.info(
+                "Final round: %d points on %d surfels, RMS %.2f cm, change %.2f mm / %.4f deg / "
+                "%.3f ms.",
+                summary.points,
+                summary.surfels,
+                100 * summary.rms_m,
+                1e3 * dt,
+                dr,
+                1e3 * dc,
+            )
     assert report is not None
 
     unc = uncertainty(report)
     obs = observability(report)
-    verdict = judge(report, tuple(rounds), unc, cfg)
+    notes = []
+    if r_src == SINGLE_AXIS:
+        notes.append(
+            "The rig turned about one axis only; the rotation about it rests on the "
+            "accelerations, and the translation along it is not observable."
+        )
+    verdict = judge(report, tuple(rounds), unc, cfg, tuple(notes))
     recording = {
         "bag": str(bag),
         "imu_topic": rec.imu_topic,

@@ -55,7 +55,9 @@ class RichProgress:
 
 def calibrate_command(
     bag: Path = typer.Argument(
-        ..., help="ROS1 .bag (or folder of split bags), ROS2 bag folder, .db3 or .mcap."
+        ...,
+        metavar="BAG",
+        help="ROS1 .bag (or folder of split bags), ROS2 bag folder, .db3 or .mcap.",
     ),
     config: Path | None = typer.Option(
         None, "--config", "-c", help="YAML config.", rich_help_panel=_IO

@@ -9,17 +9,20 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from licalib_cli.config import load_config
+from licalib_cli.errors import ExcitationError
 from licalib_cli.initialization.rotation import GyroIntegrator
 from licalib_cli.initialization.rotation_search import (
     search_rotation_extrinsic,
     super_fibonacci_rotations,
 )
+from licalib_cli.initialization.single_axis import single_axis_rotation
 from licalib_cli.io.reader import read_segment
-from licalib_cli.odometry import refine_odometry, run_odometry
-from licalib_cli.pipeline import gyro_aided_rotation, initialise, odometry_config
+from licalib_cli.measurements import ImuSamples
+from licalib_cli.odometry import PoseSeries, refine_odometry, run_odometry
+from licalib_cli.pipeline import SINGLE_AXIS, gyro_aided_rotation, initialise, odometry_config
 from licalib_cli.simulation.ground_truth import build_setup
 from licalib_cli.simulation.simulate import simulate
-from licalib_cli.simulation.spec import IntrinsicsMode, Scenario, SimulationSpec
+from licalib_cli.simulation.spec import IntrinsicsMode, Mounting, Scenario, SimulationSpec
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -106,3 +109,59 @@ def test_initialisation_falls_back_to_the_search(shake: tuple[Path, SimulationSp
     assert _angle_deg(rot, truth) < 1.0
     assert hand_eye is not None
     assert hand_eye.residual_rms_deg < 0.3
+
+
+def test_single_axis_motion_takes_the_rotation_from_the_accelerations(tmp_path: Path) -> None:
+    """Figure-8 with mounting C: yaw only (in the robot frame); hand-eye cannot fix the angle
+    about the axis, the accelerations within the plane do."""
+    spec = SimulationSpec(
+        scenario=Scenario.FIGURE8,
+        duration_s=6.0,
+        seed=2,
+        intrinsics=IntrinsicsMode.NONE,
+        azimuth_resolution_deg=0.8,
+        mounting=Mounting.C,
+    )
+    out = simulate(spec, tmp_path)
+    truth = build_setup(spec).extrinsic.rotation
+    cfg = load_config(None)
+    rec = read_segment(out.bag_path, cfg)
+    ocfg = odometry_config(cfg)
+    kiss = run_odometry(rec.scans, ocfg)
+    poses = refine_odometry(rec.scans, kiss, ocfg)
+    gyro = GyroIntegrator.from_imu(rec.imu)
+    rot, _, source, _, _, hand_eye, _ = initialise(rec, kiss, poses, ocfg, cfg, gyro)
+    assert source == SINGLE_AXIS
+    assert hand_eye is None
+    # Measured: 1.2 deg (10 s, seed 0); the optimisation refines it.
+    assert _angle_deg(rot, truth) < 4.0
+    # The axis found is the robot's vertical in the IMU frame.
+    found = single_axis_rotation(rec.imu, gyro, poses, 0.0)
+    vertical = np.array([0.5, 0.433, 0.75]) / np.linalg.norm([0.5, 0.433, 0.75])
+    assert abs(abs(found.axis_imu @ vertical) - 1.0) < 1e-3
+
+
+def test_single_axis_rotation_refuses_a_rig_that_does_not_turn(tmp_path: Path) -> None:
+    spec = SimulationSpec(
+        scenario=Scenario.FIGURE8,
+        duration_s=1.0,
+        seed=2,
+        intrinsics=IntrinsicsMode.NONE,
+        azimuth_resolution_deg=1.0,
+    )
+    out = simulate(spec, tmp_path)
+    rec = read_segment(out.bag_path, load_config(None))
+    k = len(rec.scans)
+    # A rig standing still: the gyro reads zero and the LiDAR poses never change.
+    imu = ImuSamples(rec.imu.t_ns, np.zeros_like(rec.imu.gyro), rec.imu.accel)
+    still = PoseSeries(
+        t_ns=np.array([s.t_ns.max() for s in rec.scans]),
+        T_map_lidar=np.tile(np.eye(4), (k, 1, 1)),
+        n_points=np.zeros(k, np.int64),
+        n_keypoints=np.zeros(k, np.int64),
+        threshold_m=np.zeros(k),
+        deviation_m=np.zeros(k),
+        deviation_deg=np.zeros(k),
+    )
+    with pytest.raises(ExcitationError, match="hardly turns"):
+        single_axis_rotation(imu, GyroIntegrator.from_imu(imu), still, 0.0)
