@@ -141,21 +141,19 @@ class GyroResidual:
             return ResidualEval(r)
         assert ev.jac_angular_velocity is not None and ev.jac_rotation is not None
         dw = w[:, None] * model.d_omega  # (3, 3) whitened
-        j_so3 = np.einsum("ij,nkjl->nikl", dw, ev.jac_angular_velocity, optimize=True)
+        j_so3 = _left_multiply(dw, ev.jac_angular_velocity)
         elements = ev.index[:, None] + _OFFSETS
         jacs: list[DenseJacobian] = [DenseJacobian(TRAJ_SO3, elements, j_so3)]
         if use_gs:
             assert sf is not None and pos is not None and pos.acceleration_weights is not None
             da = w[:, None] * model.d_accel  # A_w, whitened
-            j_so3 += np.einsum(
-                "ij,njm,nkml->nikl", da, sf.d_rotation, ev.jac_rotation, optimize=True
-            )
-            a_rt = np.einsum("ij,njl->nil", da, sf.d_acceleration)  # (n, 3, 3)
+            j_so3 += _left_multiply(_matmul_const(da, sf.d_rotation), ev.jac_rotation)
+            a_rt = _matmul_const(da, sf.d_acceleration)  # (n, 3, 3)
             if TRAJ_R3 in params:
-                j_r3 = a_rt[:, :, None, :] * pos.acceleration_weights[:, None, :, None]
+                j_r3 = _times_weights(a_rt, pos.acceleration_weights)
                 jacs.append(DenseJacobian(TRAJ_R3, elements, j_r3))
             if GRAVITY in params:
-                j_g = -(a_rt @ s2_retraction_jacobian(params[GRAVITY]))[:, :, None, :]
+                j_g = -_times_const(a_rt, s2_retraction_jacobian(params[GRAVITY]))[:, :, None]
                 jacs.append(DenseJacobian(GRAVITY, self._zeros, j_g))
             assert model.d_g_sensitivity is not None
             jacs.append(
@@ -243,15 +241,15 @@ class AccelResidual:
         assert ev.jac_rotation is not None and pos.acceleration_weights is not None
         k = w[:, None] * model.d_accel  # whitened S_a M_a
         elements = ev.index[:, None] + _OFFSETS
-        j_so3 = np.einsum("ij,njm,nkml->nikl", k, sf.d_rotation, ev.jac_rotation, optimize=True)
-        k_rt = np.einsum("ij,njl->nil", k, sf.d_acceleration)  # (n, 3, 3)
-        j_r3 = k_rt[:, :, None, :] * pos.acceleration_weights[:, None, :, None]
+        j_so3 = _left_multiply(_matmul_const(k, sf.d_rotation), ev.jac_rotation)
+        k_rt = _matmul_const(k, sf.d_acceleration)  # (n, 3, 3)
+        j_r3 = _times_weights(k_rt, pos.acceleration_weights)
         jacs: list[DenseJacobian] = [
             DenseJacobian(TRAJ_SO3, elements, j_so3),
             DenseJacobian(TRAJ_R3, elements, j_r3),
         ]
         if GRAVITY in params:
-            j_g = -(k_rt @ s2_retraction_jacobian(params[GRAVITY]))[:, :, None, :]
+            j_g = -_times_const(k_rt, s2_retraction_jacobian(params[GRAVITY]))[:, :, None]
             jacs.append(DenseJacobian(GRAVITY, self._zeros, j_g))
         if ACCEL_BIAS in params:
             jacs.append(DenseJacobian(ACCEL_BIAS, self._zeros, _bias_jacobian(n, w)))
@@ -267,3 +265,37 @@ class AccelResidual:
 def _bias_jacobian(n: int, w: F64) -> F64:
     """(n, 3, 1, 3) whitened identity."""
     return np.broadcast_to(np.diag(w)[None, :, None, :], (n, 3, 1, 3)).copy()
+
+
+def _left_multiply(m: F64, jac: F64) -> F64:
+    """(n, 3, 4, 3) ``out[n, i, k] = m[n] @ jac[n, k]`` for (3, 3) or (n, 3, 3) ``m``.
+
+    ``jac`` is a spline Jacobian, an (n, 4, 3, 3) view of component-major (4, 3, 3, n) storage;
+    the products run on that storage and the result is written query-major once.
+    """
+    jc = np.moveaxis(jac, 0, -1)  # (4, 3, 3, n)
+    if m.ndim == 2:
+        out = np.tensordot(m, jc, axes=([1], [1]))  # (3, 4, 3, n)
+    else:
+        out = np.einsum("ijn,kjln->ikln", np.ascontiguousarray(np.moveaxis(m, 0, -1)), jc)
+    return np.ascontiguousarray(np.moveaxis(out, -1, 0))
+
+
+def _times_weights(m: F64, weights: F64) -> F64:
+    """(n, 3, 4, 3) ``out[n, :, k, :] = weights[n, k] m[n]`` (linear spline Jacobians)."""
+    out = np.empty((m.shape[0], 3, 4, 3))
+    np.multiply(m[:, :, None, :], np.ascontiguousarray(weights)[:, None, :, None], out=out)
+    return out
+
+
+def _matmul_const(k: F64, m: F64) -> F64:
+    """(n, 3, 3) ``k @ m[n]`` for a constant (3, 3) ``k``, as one BLAS product."""
+    # k m_n = (m_n^T k^T)^T: stack the m_n^T as rows
+    n = m.shape[0]
+    prod = np.swapaxes(m, 1, 2).reshape(n * 3, 3) @ k.T
+    return np.ascontiguousarray(np.swapaxes(prod.reshape(n, 3, 3), 1, 2))
+
+
+def _times_const(m: F64, b: F64) -> F64:
+    """(n, 3, q) ``m[n] @ b`` for a constant (3, q) ``b``, as one BLAS product."""
+    return (m.reshape(-1, 3) @ b).reshape(m.shape[0], 3, b.shape[1])

@@ -870,7 +870,6 @@ class _GroupPlan:
         np.cumsum(counts[:-1], out=starts[1:])
         self.rep = starts if order is None else order[starts]
         self.num_groups = num_groups
-        self.m = m
         self.chunk = _choose_chunk(counts, m, left, right) if n else 1
         chunks_per_group = -(-counts // self.chunk)
         chunk_start = np.zeros(num_groups, dtype=np.intp)
@@ -886,25 +885,25 @@ class _GroupPlan:
                 ),
                 shape=(num_groups, self.num_chunks),
             )
-        # destination row of each measurement (in group order) in the padded buffer
-        shift = np.repeat(chunk_start * self.chunk - starts, counts)
-        self.prefix = order is None and not np.any(shift)  # measurements stay in place
-        self.pos = np.arange(n, dtype=np.intp) + shift
-        if order is not None:
-            self.pos = self.pos[np.argsort(order)]
+        # source measurement of each row of the padded buffer (rows in group order)
+        rows = self.num_chunks * self.chunk
+        dest = np.arange(n, dtype=np.intp) + np.repeat(chunk_start * self.chunk - starts, counts)
+        self.identity = order is None and rows == n  # no padding and no reordering
+        self.source = np.zeros(rows, dtype=np.intp)
+        self.source[dest] = np.arange(n, dtype=np.intp) if order is None else order
+        padding = np.ones(rows, dtype=bool)
+        padding[dest] = False
+        self.padding = np.flatnonzero(padding)
 
     def pad(self, stacked: F64) -> F64:
         """(n, m, W) stacked values -> (num_chunks, chunk * m, W) buffer, padding rows zero."""
-        n, m, width = stacked.shape
-        rows = self.num_chunks * self.chunk
-        if self.prefix and rows == n:
-            out = stacked
+        _, m, width = stacked.shape
+        if self.identity:
+            out = np.ascontiguousarray(stacked)
         else:
-            out = np.zeros((rows, m, width))
-            if self.prefix:
-                out[:n] = stacked
-            else:
-                out[self.pos] = stacked
+            out = np.empty((self.source.shape[0], m, width))
+            np.take(stacked, self.source, axis=0, out=out, mode="clip")
+            out[self.padding] = 0.0
         return out.reshape(self.num_chunks, self.chunk * m, width)
 
     def gram(self, buf: F64, left: slice, right: slice) -> F64:
@@ -1170,7 +1169,8 @@ def _add_encoded_pair(
         data *= (table >= 0)[p_group][:, None, :]
         table = np.maximum(table, 0)
     index_dtype = np.int32 if big * q.key.num_groups < 2**31 else np.int64
-    rows = table.astype(index_dtype)[p_group] + (big * q.key.key).astype(index_dtype)[:, None]
+    rows = np.take(table.astype(index_dtype), p_group, axis=0)
+    rows += (big * q.key.key).astype(index_dtype)[:, None]
     a_t = sp.csc_matrix(
         (
             data.reshape(-1),
