@@ -69,20 +69,18 @@ _OFFSETS = np.arange(4, dtype=np.int64)
 # --------------------------------------------------------------------------------------------
 
 
+# The 3x3 products go through einsum: its sum-of-products loop runs along the contiguous query
+# axis without temporaries, several times faster than broadcasting (3, 3, m) products.
+
+
 def _mm(a: FloatArray, b: FloatArray) -> FloatArray:
     """a @ b."""
-    out = a[:, 0, None] * b[None, 0]
-    out += a[:, 1, None] * b[None, 1]
-    out += a[:, 2, None] * b[None, 2]
-    return out
+    return np.einsum("ikm,kjm->ijm", a, b)
 
 
 def _mtm(a: FloatArray, b: FloatArray) -> FloatArray:
     """a^T @ b."""
-    out = a[0, :, None] * b[None, 0]
-    out += a[1, :, None] * b[None, 1]
-    out += a[2, :, None] * b[None, 2]
-    return out
+    return np.einsum("kim,kjm->ijm", a, b)
 
 
 def _mtv(a: FloatArray, v: FloatArray) -> FloatArray:
