@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fd_check import assert_jacobian, central_difference
 from scipy.spatial.transform import Rotation
 
 from licalib_cli.geometry import so3
@@ -179,26 +180,24 @@ def test_jacobians_continuous_at_series_switch(rng: np.random.Generator) -> None
 
 
 @pytest.mark.parametrize("angle", [1e-8, 0.05, 0.3, 1.5, 3.0])
-def test_right_jacobian_finite_difference(rng: np.random.Generator, angle: float) -> None:
-    """Exp(phi + d) ~= Exp(phi) Exp(Jr d) and Log(Exp(phi) Exp(d)) ~= phi + Jr_inv d."""
+def test_jacobians_are_derivatives(rng: np.random.Generator, angle: float) -> None:
+    """Every Jacobian as the derivative it stands for, by central differences per entry::
+
+    Exp(phi + d) ~= Exp(phi) Exp(Jr d)       Log(Exp(phi) Exp(d)) ~= phi + Jr_inv d
+    Exp(phi + d) ~= Exp(Jl d) Exp(phi)       Log(Exp(d) Exp(phi)) ~= phi + Jl_inv d
+    """
     phi = angle * _unit(rng, 10)
-    h = 1e-6
-    jr = so3.Jr(phi)
-    jr_inv = so3.Jr_inv(phi)
-    for k in range(3):
-        e = np.zeros(3)
-        e[k] = h
-        plus = so3.log(np.swapaxes(so3.exp(phi), -1, -2) @ so3.exp(phi + e))
-        minus = so3.log(np.swapaxes(so3.exp(phi), -1, -2) @ so3.exp(phi - e))
-        np.testing.assert_allclose((plus - minus) / (2 * h), jr[:, :, k], atol=1e-8)
-        fd_inv = (so3.log(so3.exp(phi) @ so3.exp(e)) - so3.log(so3.exp(phi) @ so3.exp(-e))) / (
-            2 * h
-        )
-        np.testing.assert_allclose(fd_inv, jr_inv[:, :, k], atol=1e-8)
-        # left Jacobian: Exp(phi + d) ~= Exp(Jl d) Exp(phi)
-        left = so3.log(so3.exp(phi + e) @ np.swapaxes(so3.exp(phi), -1, -2))
-        left_m = so3.log(so3.exp(phi - e) @ np.swapaxes(so3.exp(phi), -1, -2))
-        np.testing.assert_allclose((left - left_m) / (2 * h), so3.Jl(phi)[:, :, k], atol=1e-8)
+    rot = so3.exp(phi)
+    rot_t = np.swapaxes(rot, -1, -2)
+    scale = max(1.0, angle)  # rotation entries and the angle
+    cases = {
+        "Jr": (so3.Jr(phi), lambda d: so3.log(rot_t @ so3.exp(phi + d))),
+        "Jr_inv": (so3.Jr_inv(phi), lambda d: so3.log(rot @ so3.exp(d))),
+        "Jl": (so3.Jl(phi), lambda d: so3.log(so3.exp(phi + d) @ rot_t)),
+        "Jl_inv": (so3.Jl_inv(phi), lambda d: so3.log(so3.exp(d) @ rot)),
+    }
+    for name, (analytic, f) in cases.items():
+        assert_jacobian(analytic, central_difference(f, np.zeros(3)), scale, what=name)
 
 
 def test_rpy_convention_against_explicit_product(rng: np.random.Generator) -> None:

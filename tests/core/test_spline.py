@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fd_check import STEP, assert_jacobian
 
 from licalib_cli.geometry import so3
 from licalib_cli.spline import (
@@ -16,9 +17,9 @@ from licalib_cli.spline import (
     blending,
     cumulative_blending,
 )
+from licalib_cli.spline.so3_spline import _fit_residuals
 
-FD_STEP = 1e-6  # central differences: truncation ~h^2, round-off ~1e-16/h
-FD_RTOL = 1e-6  # relative error allowed between analytic and finite-difference Jacobians
+FD_STEP = STEP  # central differences; the entry-wise criterion is that of fd_check
 
 
 @pytest.fixture
@@ -26,8 +27,10 @@ def rng() -> np.random.Generator:
     return np.random.default_rng(7)
 
 
-def _rel_err(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.abs(a - b).max() / max(np.abs(b).max(), 1.0))
+def _scale(values: np.ndarray | None) -> float:
+    """Magnitude of differentiated values (at least 1: rotation entries are of order 1)."""
+    assert values is not None
+    return max(float(np.abs(values).max()), 1.0)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -49,10 +52,10 @@ def test_cumulative_basis_matches_paper_and_partition_of_unity() -> None:
     np.testing.assert_allclose(lam[0], [1, 5 / 6, 1 / 6, 0], atol=1e-16)
     np.testing.assert_allclose(lam[-1], [1, 1, 5 / 6, 1 / 6], atol=1e-15)
     # u-derivatives against finite differences
-    h = 1e-6
+    h = FD_STEP
     for k in (1, 2):
         fd = (cumulative_blending(u + h, k - 1) - cumulative_blending(u - h, k - 1)) / (2 * h)
-        np.testing.assert_allclose(cumulative_blending(u, k), fd, atol=1e-8)
+        assert_jacobian(cumulative_blending(u, k), fd, 1.0, what=f"d^{k}/du^{k}")
 
 
 def test_knots_locate_and_range() -> None:
@@ -120,7 +123,8 @@ def test_r3_jacobians_match_finite_differences(rng: np.random.Generator) -> None
                     fd[m] = (plus - minus)[0] / (2 * h)
                 expected = np.zeros((t.size, 3))
                 expected[:, c] = weights[:, k]
-                assert _rel_err(fd, expected) < FD_RTOL, (name, k, c)
+                scale = _scale(getattr(ev, name))
+                assert_jacobian(expected, fd, scale, what=f"{name} {k} {c}")
     # weights reproduce the values and sum to 1 (0 for derivatives)
     cps = spline.control_points[ev.index[:, None] + np.arange(4)]
     np.testing.assert_allclose(np.einsum("mj,mjk->mk", ev.weights, cps), ev.position, atol=1e-14)
@@ -134,7 +138,7 @@ def test_r3_time_derivatives_match_finite_differences(rng: np.random.Generator) 
     # keep queries away from knots, where the jerk is discontinuous
     seg = rng.integers(0, spline.knots.num_segments, 30)
     t = spline.knots.t0_s + (seg + rng.uniform(0.05, 0.95, 30)) * dt
-    h = 1e-6
+    h = FD_STEP
     ev = spline.evaluate(t, order=3)
     plus, minus = spline.evaluate(t + h, order=3), spline.evaluate(t - h, order=3)
     for value, deriv in (
@@ -143,9 +147,32 @@ def test_r3_time_derivatives_match_finite_differences(rng: np.random.Generator) 
         ("acceleration", "jerk"),
     ):
         fd = (getattr(plus, value) - getattr(minus, value)) / (2 * h)
-        assert _rel_err(fd, getattr(ev, deriv)) < FD_RTOL, value
-    B = spline.design_matrix(t, derivative=2)
-    np.testing.assert_allclose(B @ spline.control_points, ev.acceleration, atol=1e-9)
+        assert_jacobian(getattr(ev, deriv), fd, _scale(getattr(ev, value)), what=value)
+
+
+@pytest.mark.parametrize("derivative", [0, 1, 2])
+def test_r3_design_matrix_is_the_control_point_jacobian(
+    rng: np.random.Generator, derivative: int
+) -> None:
+    """``B[m, n] = d p^(k)(t_m) / d c_n`` (the same for each coordinate), by central differences."""
+    spline = _random_r3(rng)
+    t = rng.uniform(spline.knots.t0_s, spline.knots.t_end_s, 25)
+    name = ("position", "velocity", "acceleration")[derivative]
+    B = spline.design_matrix(t, derivative=derivative).toarray()  # (M, N)
+    values = getattr(spline.evaluate(t, order=derivative), name)
+    np.testing.assert_allclose(B @ spline.control_points, values, rtol=1e-13, atol=1e-12)
+    h = FD_STEP
+    n = spline.knots.num_control_points
+    for c in range(3):
+        fd = np.empty((t.size, n))
+        for k in range(n):  # one control-point coordinate at a time, all queries at once
+            cp = np.array(spline.control_points)
+            cp[k, c] += h
+            plus = getattr(spline.with_control_points(cp).evaluate(t, order=derivative), name)
+            cp[k, c] -= 2 * h
+            minus = getattr(spline.with_control_points(cp).evaluate(t, order=derivative), name)
+            fd[:, k] = (plus - minus)[:, c] / (2 * h)
+        assert_jacobian(B, fd, _scale(values), what=f"d^{derivative} coordinate {c}")
 
 
 def test_r3_linear_control_points_give_constant_velocity() -> None:
@@ -202,12 +229,19 @@ def test_so3_jacobians_match_finite_differences(rng: np.random.Generator, scale:
     assert ev.jac_rotation is not None
     assert ev.jac_angular_velocity is not None
     assert ev.jac_angular_acceleration is not None
+    # w and alpha come from rotation entries (rounded at order 1) divided by dt and dt^2
+    dt = spline.knots.dt_s
+    w_scale = max(_scale(ev.angular_velocity), 1.0 / dt)
+    a_scale = max(_scale(ev.angular_acceleration), 1.0 / dt**2)
     for k in range(4):
         for c in range(3):
             fd_rot, fd_w, fd_a = _fd_control_jacobians(spline, t, ev.index, k, c, ev.rotation)
-            assert _rel_err(ev.jac_rotation[:, k, :, c], fd_rot) < FD_RTOL, ("rot", k, c)
-            assert _rel_err(ev.jac_angular_velocity[:, k, :, c], fd_w) < FD_RTOL, ("w", k, c)
-            assert _rel_err(ev.jac_angular_acceleration[:, k, :, c], fd_a) < FD_RTOL, ("a", k, c)
+            # the rotation's differences round like its matrix entries (of order 1)
+            assert_jacobian(ev.jac_rotation[:, k, :, c], fd_rot, 1.0, what=f"rot {k} {c}")
+            assert_jacobian(ev.jac_angular_velocity[:, k, :, c], fd_w, w_scale, what=f"w {k} {c}")
+            assert_jacobian(
+                ev.jac_angular_acceleration[:, k, :, c], fd_a, a_scale, what=f"alpha {k} {c}"
+            )
     # lower orders return the same Jacobians
     ev0 = spline.evaluate(t, order=0, jacobians=True)
     ev1 = spline.evaluate(t, order=1, jacobians=True)
@@ -223,14 +257,15 @@ def test_so3_time_derivatives_match_finite_differences(
     spline = _random_so3(rng, scale)
     kn = spline.knots
     t = rng.uniform(kn.t0_s + 1e-3, kn.t_end_s - 1e-3, 50)
-    h = 1e-6
+    h = FD_STEP
     ev = spline.evaluate(t, order=2)
     plus, minus = spline.evaluate(t + h, order=2), spline.evaluate(t - h, order=2)
     # d eps / dt = w with eps the right perturbation of R(t)
     fd_w = so3.log(np.swapaxes(minus.rotation, -1, -2) @ plus.rotation) / (2 * h)
-    assert _rel_err(fd_w, ev.angular_velocity) < FD_RTOL
+    assert_jacobian(ev.angular_velocity, fd_w, 1.0, what="w")
     fd_a = (plus.angular_velocity - minus.angular_velocity) / (2 * h)
-    assert _rel_err(fd_a, ev.angular_acceleration) < FD_RTOL
+    w_scale = max(_scale(ev.angular_velocity), 1.0 / kn.dt_s)  # rotation entries over dt
+    assert_jacobian(ev.angular_acceleration, fd_a, w_scale, what="alpha")
 
 
 def test_so3_value_matches_cumulative_formula(rng: np.random.Generator) -> None:
@@ -468,3 +503,27 @@ def test_so3_from_rotations_with_sparse_samples(rng: np.random.Generator) -> Non
     assert np.all(np.isfinite(spline.control_quats))
     single = SO3Spline.from_rotations(knots, [0.5], R[:1], iterations=1)
     np.testing.assert_allclose(single.rotation([0.5])[0], R[0], atol=1e-6)
+
+
+@pytest.mark.parametrize("scale", [0.05, 0.8])
+def test_so3_fit_residual_jacobian_matches_finite_differences(
+    rng: np.random.Generator, scale: float
+) -> None:
+    """The Gauss-Newton Jacobian of :meth:`SO3Spline.from_rotations`,
+    ``d Log(R_m^T R(t_m)) / d delta = Jr_inv(r) d eps / d delta``, by central differences."""
+    spline = _random_so3(rng, scale)
+    t = rng.uniform(spline.knots.t0_s, spline.knots.t_end_s, 12)
+    samples = spline.rotation(t) @ so3.exp(0.3 * rng.normal(size=(12, 3)))  # r of ~0.5 rad
+    r0, jac, index = _fit_residuals(spline, t, samples)
+    n = spline.knots.num_control_points
+    h = FD_STEP
+    for k in range(4):
+        for c in range(3):
+            fd = np.empty((t.size, 3))
+            for m in range(t.size):
+                delta = np.zeros((n, 3))
+                delta[index[m] + k, c] = h
+                plus = _fit_residuals(spline.retract(delta), t[m : m + 1], samples[m : m + 1])[0]
+                minus = _fit_residuals(spline.retract(-delta), t[m : m + 1], samples[m : m + 1])[0]
+                fd[m] = (plus - minus)[0] / (2 * h)
+            assert_jacobian(jac[:, k, :, c], fd, _scale(r0), what=f"slot {k} coordinate {c}")
