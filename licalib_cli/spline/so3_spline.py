@@ -698,17 +698,35 @@ class SO3Spline:
         rows = np.arange(m)[:, None, None, None] * 3 + np.arange(3)[None, None, :, None]
         rows = np.broadcast_to(rows, (m, 4, 3, 3))
         for _ in range(iterations):
-            ev = spline.evaluate(t, order=0, jacobians=True)
-            assert ev.jac_rotation is not None
-            r0 = so3.log(np.swapaxes(rots, -1, -2) @ ev.rotation)  # (M, 3)
-            jac = so3.Jr_inv(r0)[:, None] @ ev.jac_rotation  # (M, 4, 3, 3)
-            cols = 3 * (ev.index[:, None, None, None] + _OFFSETS[None, :, None, None])
+            r0, jac, index = _fit_residuals(spline, t, rots)
+            cols = 3 * (index[:, None, None, None] + _OFFSETS[None, :, None, None])
             cols = np.broadcast_to(cols + np.arange(3)[None, None, None, :], (m, 4, 3, 3))
             J = sp.csr_matrix((jac.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * m, 3 * n))
             normal = (J.T @ J + damping * sp.identity(3 * n)).tocsc()
             delta = spla.spsolve(normal, -(J.T @ r0.ravel()))
             spline = spline.retract(np.asarray(delta).reshape(n, 3))
         return spline
+
+
+def _fit_residuals(
+    spline: SO3Spline, t_s: FloatArray, rotations: FloatArray
+) -> tuple[FloatArray, FloatArray, IntArray]:
+    """Residuals of :meth:`SO3Spline.from_rotations` and their control-point Jacobians.
+
+    Args:
+        spline: Current spline.
+        t_s: (M,) sample times, seconds.
+        rotations: (M, 3, 3) sampled ``R_G_I``.
+
+    Returns:
+        ``(r, J, index)``: (M, 3) ``r = Log(R_m^T R(t_m))``, (M, 4, 3, 3)
+        ``J = d r / d delta_{i+k} = Jr_inv(r) d eps / d delta_{i+k}`` (right perturbations) and
+        (M,) first active control points ``i``.
+    """
+    ev = spline.evaluate(t_s, order=0, jacobians=True)
+    assert ev.jac_rotation is not None
+    r0 = so3.log(np.swapaxes(rotations, -1, -2) @ ev.rotation)  # (M, 3)
+    return r0, so3.Jr_inv(r0)[:, None] @ ev.jac_rotation, ev.index
 
 
 class SO3EvaluationCache:
