@@ -13,12 +13,17 @@ uniform scale they are also the physical direction.
 
 Metrics (comparable only within one bag and one scaling): minimum singular value (E-optimality,
 the paper's choice), trace (A-), log-determinant (D-), and maximum eigenvalue.
+
+Directions are named in parameter terms, with the frame their components are expressed in
+(:data:`BLOCK_FRAMES`), e.g. ``"ext.translation along [0.00, 0.00, 1.00] in the IMU frame:
+unobservable, kept at its initial value"``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from types import MappingProxyType
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -28,6 +33,7 @@ if TYPE_CHECKING:
     from licalib_cli.solver.problem import Linearization, Problem, ResidualBlock
 
 __all__ = [
+    "BLOCK_FRAMES",
     "TRAJECTORY_REGULARISATION",
     "DirectionDescription",
     "InformationSummary",
@@ -49,6 +55,16 @@ _RCOND = 1e-12
 
 _MAX_BLOCK_LISTING = 6
 
+BLOCK_FRAMES: Mapping[str, str] = MappingProxyType(
+    {
+        "ext.translation": "the IMU frame",  # t_imu_lidar: the LiDAR origin in {I}
+        "ext.rotation": "the LiDAR frame",  # right perturbation R_IL Exp(delta): delta in {L}
+        "imu.gyro_rotation": "the IMU frame",  # right perturbation R_wI Exp(delta): delta in {I}
+    }
+)
+"""Frame of the tangent coordinates of the calibration blocks (names of
+:mod:`licalib_cli.residuals`) that have one; :func:`describe_direction` states it."""
+
 
 @dataclass(frozen=True)
 class DirectionDescription:
@@ -59,8 +75,8 @@ class DirectionDescription:
             component is positive.
         components: Dominant ``(coordinate name, weight)`` pairs, largest ``|weight|`` first.
         blocks: ``(block name, share)`` of the squared norm per block, largest first.
-        text: Human description, e.g. ``"extrinsic.translation along [0.00, -0.19, 0.98]:
-            unobservable, kept at its initial value"``.
+        text: Human description, e.g. ``"ext.translation along [0.00, -0.19, 0.98] in the IMU
+            frame: unobservable, kept at its initial value"``.
     """
 
     vector: F64
@@ -81,12 +97,14 @@ def describe_direction(
     *,
     verdict: str = "unobservable, kept at its initial value",
     min_weight: float = 0.1,
+    frames: Mapping[str, str] | None = None,
 ) -> DirectionDescription:
     """Name a calibration-space direction in parameter terms.
 
     Blocks holding at least 1 % of the squared norm are listed, largest share first; a block with
     at most six coordinates is written as ``"<block> along [v0, v1, ...]"`` (its components of the
-    unit vector), a larger one by its dominant coordinates ``"name weight"``.
+    unit vector) followed by ``" in <frame>"`` when the block's coordinates have a frame, a
+    larger one by its dominant coordinates ``"name weight"``.
 
     Args:
         vector: (Nc,) direction (any norm, non-zero).
@@ -95,6 +113,7 @@ def describe_direction(
         verdict: Text appended after a colon.
         min_weight: Smallest ``|weight|`` listed among the dominant components (the largest one
             is always listed).
+        frames: Block name -> frame of its coordinates (default :data:`BLOCK_FRAMES`).
 
     Returns:
         The description.
@@ -114,11 +133,13 @@ def describe_direction(
     owner_arr = np.asarray(owner, dtype=object)
     shares = {b: float(np.sum(v[owner_arr == b] ** 2)) for b in block_names}
     ranked = sorted(((b, s) for b, s in shares.items() if s >= 0.01), key=lambda x: -x[1])
+    frame_of = BLOCK_FRAMES if frames is None else frames
     parts = []
     for b, _ in ranked:
         sel = np.flatnonzero(owner_arr == b)
         if sel.size <= _MAX_BLOCK_LISTING:
-            parts.append(f"{b} along [{', '.join(f'{x:.2f}' for x in v[sel] + 0.0)}]")
+            frame = f" in {frame_of[b]}" if b in frame_of else ""
+            parts.append(f"{b} along [{', '.join(f'{x:.2f}' for x in v[sel] + 0.0)}]{frame}")
         else:
             ranked_sel = sel[np.argsort(-np.abs(v[sel]), kind="stable")]
             shown = [i for i in ranked_sel if abs(v[i]) >= min_weight] or [ranked_sel[0]]

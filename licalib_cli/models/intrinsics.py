@@ -83,9 +83,7 @@ class ImuIntrinsics:
         return replace(self, **changes)
 
 
-def imu_measure(
-    intrinsics: ImuIntrinsics, omega_imu: F64, accel_imu: F64
-) -> tuple[F64, F64]:
+def imu_measure(intrinsics: ImuIntrinsics, omega_imu: F64, accel_imu: F64) -> tuple[F64, F64]:
     """Noise-free IMU readings from the true body rate and specific force.
 
     Args:
@@ -132,6 +130,11 @@ class LidarIntrinsics:
 
     @property
     def num_beams(self) -> int:
+        """Number of beams (rings) ``B``, the length of every per-beam array.
+
+        Beam ``i`` is the ring index of the driver's points; ``nominal_elevation[i]`` is its
+        elevation ``phi_i``.
+        """
         return int(self.nominal_elevation.shape[0])
 
     def with_(self, **changes: object) -> LidarIntrinsics:

@@ -127,24 +127,28 @@ def test_information_detects_an_unseen_coordinate() -> None:
 
 
 def test_describe_direction_paper_example() -> None:
-    names = [f"extrinsic.rotation.r{a}" for a in "xyz"] + [
-        f"extrinsic.translation.{a}" for a in "xyz"
-    ]
+    names = [f"ext.rotation.r{a}" for a in "xyz"] + [f"ext.translation.{a}" for a in "xyz"]
     v = np.array([0.0, 0.0, 0.0, 0.007, -0.187, 0.982])
     for sign in (1.0, -1.0):
         d = describe_direction(sign * v, names)
         assert d.text == (
-            "extrinsic.translation along [0.01, -0.19, 0.98]: "
+            "ext.translation along [0.01, -0.19, 0.98] in the IMU frame: "
             "unobservable, kept at its initial value"
         )
-        assert d.components[0][0] == "extrinsic.translation.z"
+        assert d.components[0][0] == "ext.translation.z"
         assert d.components[0][1] == pytest.approx(0.982 / np.linalg.norm(v), abs=1e-12)
-        assert [c[0] for c in d.components] == [
-            "extrinsic.translation.z",
-            "extrinsic.translation.y",
-        ]
-        assert d.blocks[0][0] == "extrinsic.translation"
+        assert [c[0] for c in d.components] == ["ext.translation.z", "ext.translation.y"]
+        assert d.blocks[0][0] == "ext.translation"
         assert np.linalg.norm(d.vector) == pytest.approx(1.0)
+    # the extrinsic rotation's coordinates are a right perturbation: the LiDAR frame
+    mixed = describe_direction([0.0, 0.6, 0.0, 0.0, 0.0, 0.8], names, verdict="weak")
+    assert mixed.text == (
+        "ext.translation along [0.00, 0.00, 0.80] in the IMU frame "
+        "+ ext.rotation along [0.00, 0.60, 0.00] in the LiDAR frame: weak"
+    )
+    # blocks without a frame, or an explicit (empty) table
+    plain = describe_direction(v, names, frames={})
+    assert plain.text.startswith("ext.translation along [0.01, -0.19, 0.98]: ")
 
 
 def test_describe_direction_large_block_and_mixture() -> None:
