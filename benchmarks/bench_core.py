@@ -17,8 +17,14 @@ Figures (best of ``--repeat`` runs):
   ``compute_step``, the retraction, the trial evaluation with Jacobians and the assembly at the
   new point (so (b) includes (a)).
 
-Run: ``.venv/bin/python benchmarks/bench_core.py`` (``--quick`` for the 15 s case only,
-``--profile`` to print a cProfile of one LM step, ``--solve`` to time a full solve).
+Every cell is the best of ``--repeat`` runs (all of them, for every segment length: a time budget
+that cut the long segments to two or three runs made the 60 s row inconsistent before). The table
+is followed by a consistency check ((a) about evaluate + assemble, (b) at least (a)) and the
+machine: CPU, versions and the load average before and after (the machine may be shared).
+
+Run: ``OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_core.py`` (``--quick`` for the
+15 s case only, ``--profile`` to print a cProfile of one LM step, ``--solve`` to time a full
+solve).
 """
 
 from __future__ import annotations
@@ -26,11 +32,14 @@ from __future__ import annotations
 import argparse
 import cProfile
 import io
+import os
+import platform
 import pstats
 import time
 from collections.abc import Callable
 
 import numpy as np
+import scipy
 
 from licalib_cli.estimation import (
     CalibrationState,
@@ -145,19 +154,36 @@ def build(duration: float, seed: int = 0) -> Problem:
     return build_problem(state, imu, lidar, planes, NoiseModel(1e-3, 1e-2, 0.01), free)
 
 
-def _best(fn: Callable[[], object], repeat: int, budget_s: float = 4.0) -> float:
-    """Best wall time of up to ``repeat`` runs (fewer once ``budget_s`` is spent)."""
+def _best(fn: Callable[[], object], repeat: int) -> float:
+    """Best wall time of ``repeat`` runs."""
     best = np.inf
-    spent = 0.0
     for _ in range(repeat):
         t0 = time.perf_counter()
         fn()
-        elapsed = time.perf_counter() - t0
-        best = min(best, elapsed)
-        spent += elapsed
-        if spent > budget_s:
-            break
+        best = min(best, time.perf_counter() - t0)
     return best
+
+
+def _machine() -> str:
+    """CPU model, logical CPUs, Python / numpy / scipy versions."""
+    model = "unknown CPU"
+    try:
+        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    model = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return (
+        f"{model}, {os.cpu_count()} logical CPUs, Python {platform.python_version()}, "
+        f"numpy {np.__version__}, scipy {scipy.__version__}, "
+        f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}"
+    )
+
+
+def _load() -> str:
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
 def measure(problem: Problem, repeat: int) -> dict[str, float]:
@@ -203,6 +229,7 @@ def main() -> None:
     args = parser.parse_args()
 
     durations = (15.0,) if args.quick else (5.0, 15.0, 60.0)
+    load_before = _load()
     rows = []
     for duration in durations:
         problem = build(duration)
@@ -239,6 +266,18 @@ def main() -> None:
             f"{duration:7.0f}s {int(res['num_residuals']):10d} {int(res['num_trajectory']):6d} "
             f"{int(res['num_calibration']):4d} " + " ".join(f"{res[k]:19.3f}s" for k in keys)
         )
+    for duration, res in rows:
+        parts = res["evaluate"] + res["assemble"]
+        notes = []
+        if res["(a) eval+assemble"] > 1.15 * parts:
+            notes.append(f"(a) exceeds evaluate + assemble ({parts:.3f} s) by more than 15 %")
+        if res["(b) LM step"] < res["(a) eval+assemble"]:
+            notes.append("(b) below (a) although it includes it")
+        status = "; ".join(notes) if notes else "consistent"
+        per_second = res["(b) LM step"] / duration
+        print(f"{duration:.0f} s: {status}; (b) per second of data {per_second:.4f} s")
+    print(f"machine: {_machine()}")
+    print(f"load average (1, 5, 15 min): before {load_before}, after {_load()}")
 
 
 if __name__ == "__main__":
