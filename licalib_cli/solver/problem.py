@@ -856,6 +856,11 @@ class _GroupPlan:
         num_groups: ``G``.
         chunk: Measurements per chunk.
         num_chunks: Total number of chunks.
+        summer: (G, num_chunks) sparse indicator of the chunks of each group, or None when every
+            group is one chunk.
+        source: (num_chunks * chunk,) measurement copied to each buffer row (0 for padding).
+        padding: Buffer rows that are padding.
+        identity: Whether the buffer is the measurements in their own order (no copy needed).
     """
 
     def __init__(self, key: _GroupKey, n: int, m: int, left: int, right: int) -> None:
