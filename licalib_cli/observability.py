@@ -47,8 +47,12 @@ __all__ = [
 F64 = npt.NDArray[np.float64]
 
 TRAJECTORY_REGULARISATION = 1e-10
-"""Relative diagonal regularisation of ``H_tt`` when computing the undamped ``S`` (guards against
-gauge freedoms of the trajectory; negligible for a well-posed trajectory block)."""
+"""Relative diagonal regularisation of ``H_tt``, used for the undamped ``S`` only when ``H_tt``
+itself cannot be factorised (a gauge freedom of the trajectory). It is a fallback and not the
+default because even this little damping of the trajectory is not negligible for a calibration
+direction that a trajectory direction can absorb: it charges the trajectory for taking it over and
+so makes the calibration direction look observable (``S`` grows by orders of magnitude, e.g. a
+translation along the rotation axis of planar motion)."""
 
 _RCOND = 1e-12
 """Singular values below ``_RCOND * max`` are always treated as zero (numerical rank)."""
@@ -305,7 +309,9 @@ def summarize_information(
 def undamped_schur(lin: Linearization) -> F64:
     """Calibration Schur complement ``S`` of a linearisation, without damping.
 
-    ``H_tt`` gets the relative regularisation :data:`TRAJECTORY_REGULARISATION` on its diagonal.
+    ``H_tt`` is factorised as it is; only when that fails (exactly singular, or a result that is
+    not finite) is the relative regularisation :data:`TRAJECTORY_REGULARISATION` added to its
+    diagonal.
 
     Args:
         lin: Normal equations.
@@ -316,6 +322,12 @@ def undamped_schur(lin: Linearization) -> F64:
     # Imported here: licalib_cli.solver imports this module, so a top-level import would cycle.
     from licalib_cli.solver.problem import schur_complement
 
+    try:
+        s = schur_complement(lin, 0.0).S
+        if np.all(np.isfinite(s)):
+            return s
+    except np.linalg.LinAlgError:
+        pass
     reg = TRAJECTORY_REGULARISATION * lin.H_tt.diagonal()
     return schur_complement(lin, reg).S
 

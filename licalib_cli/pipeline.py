@@ -794,7 +794,7 @@ def judge(
     reasons: list[str] = list(notes)
     status = "warn" if notes else "pass"
     ext_truncated = [
-        d.text for d in report.truncated if any(b.startswith("ext.") for b in d.blocks)
+        d.text for d in report.truncated if any(b.startswith("ext.") for b, _ in d.blocks)
     ]
     if ext_truncated:
         status = "warn"

@@ -8,11 +8,14 @@ Each iteration solves the damped normal equations ``(H + lambda diag(D)) dx = -g
    does not apply, see :func:`licalib_cli.solver.problem.schur_complement`), Schur complement
    ``S = H_cc - H_ct (H_tt + lambda D_t)^-1 H_tc`` and right-hand side ``b`` (method.md section 8).
 2. Scale the calibration system by the characteristic scales ``d`` (``S_d = D S D``, see
-   :mod:`licalib_cli.observability`) and take its eigen-decomposition ``S_d = U diag(s) U^T``.
+   :mod:`licalib_cli.observability`). The eigen-decomposition ``S0_d = U diag(s) U^T`` of the
+   *undamped* Schur complement (computed once per linearisation) decides the truncation: damping
+   ``H_tt`` would charge the trajectory for absorbing a calibration direction and make such a
+   direction look observable.
 3. TSVD: keep the directions with ``s_i > epsilon`` (``LMParams.tsvd_threshold``; absolute in
    scaled information units, or relative to ``max s`` with ``tsvd_relative``) and solve the
-   damped system restricted to them: ``dx_c = D U_l (diag(s_l) + lambda U_l^T D_c' U_l)^-1
-   U_l^T D b``, which is the paper's ``sum_{i<=l} u_i^T b u_i / s_i`` at ``lambda = 0``. The
+   damped system restricted to them: ``dx_c = D U_l (U_l^T (S_d + lambda D_c') U_l)^-1 U_l^T D
+   b``, which is the paper's ``sum_{i<=l} u_i^T b u_i / s_i`` at ``lambda = 0``. The
    calibration step has no component along truncated directions (in the scaled metric): those
    stay at their current value.
 4. Back-substitute the trajectory step, retract every block, and accept the step when the actual
@@ -50,7 +53,15 @@ from licalib_cli.observability import (
 )
 from licalib_cli.solver.problem import Linearization, Problem, schur_complement
 
-__all__ = ["IterationSummary", "LMParams", "SolverReport", "Step", "compute_step", "solve"]
+__all__ = [
+    "IterationSummary",
+    "LMParams",
+    "SolverReport",
+    "Step",
+    "compute_step",
+    "observable_basis",
+    "solve",
+]
 
 F64 = npt.NDArray[np.float64]
 
@@ -208,36 +219,72 @@ def _damping_diagonal(diag: F64, params: LMParams) -> F64:
     return np.clip(diag, params.min_diagonal, params.max_diagonal)
 
 
-def compute_step(lin: Linearization, lam: float, params: LMParams) -> Step:
+def observable_basis(information: InformationSummary, params: LMParams) -> F64:
+    """Directions the TSVD keeps, decided on the undamped information.
+
+    Args:
+        information: Undamped scaled calibration information (:func:`undamped_schur`).
+        params: Solver settings (TSVD threshold).
+
+    Returns:
+        (Nc, l) orthonormal columns in scaled coordinates: the singular vectors kept (all
+        coordinates when ``params.use_tsvd`` is False).
+    """
+    if not params.use_tsvd:
+        return np.eye(information.singular_values.size)
+    keep = truncation_mask(
+        information.singular_values, params.tsvd_threshold, relative=params.tsvd_relative
+    )
+    return information.singular_vectors[:, keep]
+
+
+def _undamped_information(lin: Linearization) -> InformationSummary:
+    layout = lin.layout
+    return summarize_information(
+        undamped_schur(lin),
+        layout.calibration_names,
+        layout.calibration_owner,
+        layout.calibration_scale,
+        lin.num_residuals,
+    )
+
+
+def compute_step(
+    lin: Linearization, lam: float, params: LMParams, basis: F64 | None = None
+) -> Step:
     """Solve one damped step with the Schur complement and (optionally) the TSVD.
+
+    The truncation is decided on the undamped Schur complement: damping the trajectory block
+    charges the trajectory for absorbing a calibration direction and so makes a direction that
+    the trajectory can absorb look observable. The damped system is then solved restricted to the
+    kept directions.
 
     Args:
         lin: Normal equations at the current estimate.
         lam: Damping ``lambda`` (0 for a Gauss-Newton step).
         params: Solver settings (damping clips, TSVD threshold).
+        basis: (Nc, l) kept directions in scaled coordinates (:func:`observable_basis`); computed
+            from ``lin`` when omitted.
 
     Returns:
         The step.
     """
     layout = lin.layout
     nc = layout.num_calibration
+    if nc and basis is None:
+        basis = observable_basis(_undamped_information(lin), params)
     d_t = lam * _damping_diagonal(lin.H_tt.diagonal(), params)
     sch = schur_complement(lin, d_t)
     num_truncated = 0
     if nc:
+        assert basis is not None
         scale = layout.calibration_scale
         s_d = scale[:, None] * sch.S * scale[None, :]
         b_d = scale * sch.b
         damp = lam * _damping_diagonal(np.diag(lin.H_cc), params) * scale**2
-        if params.use_tsvd:
-            w, u = np.linalg.eigh(0.5 * (s_d + s_d.T))
-            keep = truncation_mask(w, params.tsvd_threshold, relative=params.tsvd_relative)
-            num_truncated = int(nc - np.count_nonzero(keep))
-            u_k = u[:, keep]
-            reduced = np.diag(w[keep]) + (u_k.T * damp) @ u_k
-            y = u_k @ _solve_spd(reduced, u_k.T @ b_d)
-        else:
-            y = _solve_spd(s_d + np.diag(damp), b_d)
+        num_truncated = int(nc - basis.shape[1])
+        reduced = basis.T @ s_d @ basis + (basis.T * damp) @ basis
+        y = basis @ _solve_spd(0.5 * (reduced + reduced.T), basis.T @ b_d)
         dc = scale * y
     else:
         dc = np.zeros(0)
@@ -286,6 +333,8 @@ def solve(
         )
         raise SolverError(msg)
     lin = problem.linearize(evaluation, layout)
+    info = _undamped_information(lin)
+    basis = observable_basis(info, params)
     cost = evaluation.cost
     history = [cost]
     lam, nu = params.initial_lambda, 2.0
@@ -300,7 +349,7 @@ def solve(
             reason = f"gradient {grad_norm:.3g} below gradient_tolerance"
             break
         iteration += 1
-        step = compute_step(lin, lam, params)
+        step = compute_step(lin, lam, params, basis)
         step_norm = float(np.max(np.abs(step.dx / scale))) if step.dx.size else 0.0
         if step_norm <= params.step_tolerance:
             status = "converged"
@@ -342,6 +391,8 @@ def solve(
         if accepted:
             problem.set_values(trial_values)
             lin = problem.linearize(trial, layout)
+            info = _undamped_information(lin)
+            basis = observable_basis(info, params)
             old_cost, cost = cost, trial.cost
             history.append(cost)
             lam *= max(params.min_decrease, 1.0 - (2.0 * gain - 1.0) ** 3)
@@ -359,11 +410,12 @@ def solve(
                 status = "failed"
                 reason = f"no step reduced the cost before lambda exceeded {params.max_lambda:g}"
                 break
-    return _report(lin, params, status, reason, iteration, history, start)
+    return _report(lin, info, params, status, reason, iteration, history, start)
 
 
 def _report(
     lin: Linearization,
+    info: InformationSummary,
     params: LMParams,
     status: Literal["converged", "max_iterations", "failed"],
     reason: str,
@@ -372,13 +424,6 @@ def _report(
     start: float,
 ) -> SolverReport:
     layout = lin.layout
-    info = summarize_information(
-        undamped_schur(lin),
-        layout.calibration_names,
-        layout.calibration_owner,
-        layout.calibration_scale,
-        lin.num_residuals,
-    )
     s, u = info.singular_values, info.singular_vectors
     keep = truncation_mask(s, params.tsvd_threshold, relative=params.tsvd_relative)
     verdict = (

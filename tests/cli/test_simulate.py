@@ -10,10 +10,10 @@ from typer.testing import CliRunner
 
 from licalib_cli.cli import main
 from licalib_cli.commands.simulate import simulate_command
-from licalib_cli.simulation import SimulationSpec
-from licalib_cli.simulation.ground_truth import draw_time_offset
 from licalib_cli.errors import ConfigError
 from licalib_cli.results import CalibrationResult
+from licalib_cli.simulation import SimulationSpec
+from licalib_cli.simulation.ground_truth import draw_time_offset
 
 
 def _app() -> typer.Typer:

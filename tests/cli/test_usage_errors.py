@@ -73,7 +73,7 @@ def test_standalone_click_usage_error_is_recognised(
         raise click.exceptions.UsageError("Got unexpected extra argument (y)")
 
     monkeypatch.setattr(cli, "app", fake_app)
-    code, out, err = _run(["info", "x", "y"], capsys)
+    code, _out, err = _run(["info", "x", "y"], capsys)
     assert code == 6 and "Internal error" not in err
     assert err.strip().splitlines()[-1] == "Error: Got unexpected extra argument (y)."
 

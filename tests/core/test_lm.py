@@ -432,3 +432,79 @@ def test_reported_std_matches_monte_carlo_spread() -> None:
     spread = np.std(np.asarray(estimates), axis=0, ddof=1)
     assert names == ("rot.rx", "rot.ry", "rot.rz", "trans.x", "trans.y", "trans.z", "scale")
     np.testing.assert_allclose(spread, report.std, rtol=0.2)
+
+
+# ------------------------------------------- a calibration direction the trajectory absorbs
+class ShiftedResidual:
+    """``y = x_k + a``: the sensor sees the chain shifted by the calibration offset ``a``."""
+
+    def __init__(self, k: np.ndarray, y: np.ndarray, sigma: float) -> None:
+        self.name = "shifted"
+        self.k, self.y, self.sigma = k, y, sigma
+
+    def evaluate(self, params: Mapping[str, np.ndarray], jacobians: bool = True) -> ResidualEval:
+        r = (params["chain"][self.k, 0] + float(params["a"]) - self.y) / self.sigma
+        n = r.size
+        ones = np.full((n, 1, 1, 1), 1.0 / self.sigma)
+        return ResidualEval(
+            r,
+            (
+                DenseJacobian("chain", self.k[:, None], ones),
+                DenseJacobian("a", np.zeros((n, 1), dtype=int), ones.copy()),
+            ),
+        )
+
+
+class DifferenceResidual:
+    """``d_k = x_{k+1} - x_k``: only the shape of the chain, not its level (like an IMU)."""
+
+    def __init__(self, d: np.ndarray, sigma: float) -> None:
+        self.name = "difference"
+        self.d, self.sigma = d, sigma
+
+    def evaluate(self, params: Mapping[str, np.ndarray], jacobians: bool = True) -> ResidualEval:
+        x = params["chain"][:, 0]
+        r = (np.diff(x) - self.d) / self.sigma
+        n = r.size
+        jac = np.zeros((n, 1, 2, 1))
+        jac[:, 0, 0, 0], jac[:, 0, 1, 0] = -1.0 / self.sigma, 1.0 / self.sigma
+        el = np.stack([np.arange(n), np.arange(1, n + 1)], axis=1)
+        return ResidualEval(r, (DenseJacobian("chain", el, jac),))
+
+
+def make_absorbed(rng: np.random.Generator) -> tuple[Problem, np.ndarray]:
+    """The offset ``a`` and a common shift of the chain are one and the same: ``S_aa = 0`` although
+    ``H_tt`` is regular (the sensor fixes the chain's level once ``a`` is given)."""
+    n, sigma = 40, 1e-3
+    x_true = np.cumsum(rng.normal(0, 1, n))
+    k = rng.integers(0, n, 400)
+    pr = Problem()
+    pr.add_parameter_block(ParameterBlock("chain", x_true[:, None] + rng.normal(0, 0.1, (n, 1))))
+    pr.add_parameter_block(ParameterBlock("a", 0.25, group="calibration", scale=0.1))
+    pr.add_residual_block(ShiftedResidual(k, x_true[k] + 0.1 + rng.normal(0, sigma, k.size), sigma))
+    pr.add_residual_block(DifferenceResidual(np.diff(x_true) + rng.normal(0, sigma, n - 1), sigma))
+    return pr, x_true
+
+
+def test_direction_absorbed_by_trajectory_is_truncated_under_damping() -> None:
+    """The truncation is decided on the undamped Schur complement: damping ``H_tt`` charges the
+    chain for the shift and makes ``a`` look determined (here ``S_d`` ~ 1e3 at lambda 1e-4)."""
+    pr, x_true = make_absorbed(np.random.default_rng(18))
+    lin = pr.linearize(pr.evaluate())
+    nt = lin.layout.num_trajectory
+    step = compute_step(lin, 1e-4, LMParams(tsvd_threshold=1.0))
+    assert step.num_truncated == 1
+    assert abs(step.dx[nt]) < 1e-12
+    # what the damped Schur complement alone would have said
+    from licalib_cli.solver.problem import schur_complement
+
+    damped = schur_complement(lin, 1e-4 * lin.H_tt.diagonal()).S
+    assert float(damped[0, 0]) * 0.1**2 > 100.0
+
+    report = solve(pr, LMParams(max_iterations=30))
+    assert float(pr["a"].value) == 0.25
+    assert report.truncated and report.truncated[0].text.startswith("a along [1.00]")
+    assert not report.observable[0] and np.isinf(report.std[0])
+    assert report.singular_values[0] < 1e-6
+    # the chain takes up the whole shift: x_true + 0.1 - 0.25
+    np.testing.assert_allclose(pr["chain"].value[:, 0], x_true - 0.15, atol=2e-3)

@@ -45,7 +45,9 @@ def test_calibrate_recovers_extrinsic_and_time_offset(short_bag, tmp_path, capsy
     assert abs(ext["time_offset_s"] - ext_true["time_offset_s"]) < 0.0005
     # Uncertainty, observability and verdict are reported; the resolved config is beside it.
     assert set(result["uncertainty"]) == {
-        "translation_std_m", "rotation_std_deg", "time_offset_std_s"
+        "translation_std_m",
+        "rotation_std_deg",
+        "time_offset_std_s",
     }
     assert result["verdict"]["status"] in ("pass", "warn")
     assert (out.parent / "result.config.yaml").exists()

@@ -317,9 +317,7 @@ def write_custom_bag(
     with BagWriter(path, fmt) as w:
         for topic in imu_topics:
             for i, t in enumerate(imu_t):
-                w.write_imu(
-                    topic, int(t), gyro[i], accel[i], record_ns=t0_ns + i * 5_000_000
-                )
+                w.write_imu(topic, int(t), gyro[i], accel[i], record_ns=t0_ns + i * 5_000_000)
         for k, (stamp, pts) in enumerate(clouds):
             # published when the sweep ends, in the original order
             w.write_cloud(cloud_topic, stamp, pts, record_ns=t0_ns + k * 100_000_000 + 99_000_000)

@@ -403,7 +403,9 @@ def test_ouster_bigendian_padded_bag_written_with_rosbags(tmp_path: Path, fmt: s
     codes = {"f4": 7, "u4": 6, "u2": 4}
     fields = [
         ty["sensor_msgs/msg/PointField"](
-            name=name, offset=big.fields[name][1], datatype=codes[big.fields[name][0].str[1:]],
+            name=name,
+            offset=big.fields[name][1],
+            datatype=codes[big.fields[name][0].str[1:]],
             count=1,
         )
         for name in big.names

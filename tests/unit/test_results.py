@@ -51,9 +51,13 @@ def test_yaml_round_trip_is_exact_to_printed_precision(tmp_path):
     assert err["translation_m"] < 1e-9
     assert err["rotation_deg"] < 1e-8
     assert err["time_offset_s"] < 1e-12
-    np.testing.assert_allclose(back.imu_intrinsics.gyro_scale, res.imu_intrinsics.gyro_scale, atol=1e-9)
     np.testing.assert_allclose(
-        back.lidar_intrinsics.elevation_correction, res.lidar_intrinsics.elevation_correction, atol=1e-9
+        back.imu_intrinsics.gyro_scale, res.imu_intrinsics.gyro_scale, atol=1e-9
+    )
+    np.testing.assert_allclose(
+        back.lidar_intrinsics.elevation_correction,
+        res.lidar_intrinsics.elevation_correction,
+        atol=1e-9,
     )
     assert back.extra == {"gravity": [0.0, 0.0, -9.81]}
     # Saving the loaded result reproduces the same text.
@@ -66,11 +70,16 @@ def test_schema_keys_and_conventions():
     d = yaml.safe_load(res.to_yaml())
     assert d["schema_version"] == 1
     assert set(d["extrinsic"]) == {
-        "translation", "rotation_quaternion", "rotation_rpy_deg", "time_offset_s"
+        "translation",
+        "rotation_quaternion",
+        "rotation_rpy_deg",
+        "time_offset_s",
     }
     q = np.array(d["extrinsic"]["rotation_quaternion"])
     assert q[3] >= 0  # [x, y, z, w], canonical sign
-    np.testing.assert_allclose(Rotation.from_quat(q).as_matrix(), res.extrinsic.rotation, atol=1e-10)
+    np.testing.assert_allclose(
+        Rotation.from_quat(q).as_matrix(), res.extrinsic.rotation, atol=1e-10
+    )
     # The quaternion and the rpy describe the same rotation: R = Rz(yaw) Ry(pitch) Rx(roll).
     r, p, y = np.radians(d["extrinsic"]["rotation_rpy_deg"])
     rz = Rotation.from_rotvec([0, 0, y]).as_matrix()
