@@ -10,7 +10,7 @@ Examples::
     .venv/bin/python benchmarks/bench_calibrate.py --seeds 0 1 2 3 4
 
     # Random mountings, shaking motion, OS1-64, ROS2 mcap
-    .venv/bin/python benchmarks/bench_calibrate.py --scenario shake --random-extrinsic \\
+    .venv/bin/python benchmarks/bench_calibrate.py --scenario shake --random-extrinsic --random-time-offset \\
         --lidar os1-64 --format ros2-mcap --seeds 0 1 2
 
 Each run happens in a fresh subprocess so that its peak memory is its own.
@@ -61,6 +61,7 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
         time_offset_s=args.time_offset,
         intrinsics="none",
         random_extrinsic=args.random_extrinsic,
+        random_time_offset=args.random_time_offset,
         mounting=args.mounting,
     )
     t = time.perf_counter()
@@ -96,6 +97,7 @@ def main() -> None:
     p.add_argument("--duration", type=float, default=10.0)
     p.add_argument("--time-offset", type=float, default=0.005)
     p.add_argument("--random-extrinsic", action="store_true")
+    p.add_argument("--random-time-offset", action="store_true", help="within +-50 ms")
     p.add_argument("--mounting", default="A")
     p.add_argument("--config", default=None, help="calibration config YAML")
     p.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)

@@ -16,7 +16,7 @@ the paper's choice), trace (A-), log-determinant (D-), and maximum eigenvalue.
 
 Directions are named in parameter terms, with the frame their components are expressed in
 (:data:`BLOCK_FRAMES`), e.g. ``"ext.translation along [0.00, 0.00, 1.00] in the IMU frame:
-unobservable, kept at its initial value"``.
+unobservable, not estimated (stays near its initial value)"``.
 """
 
 from __future__ import annotations
@@ -80,7 +80,7 @@ class DirectionDescription:
         components: Dominant ``(coordinate name, weight)`` pairs, largest ``|weight|`` first.
         blocks: ``(block name, share)`` of the squared norm per block, largest first.
         text: Human description, e.g. ``"ext.translation along [0.00, -0.19, 0.98] in the IMU
-            frame: unobservable, kept at its initial value"``.
+            frame: unobservable, not estimated (stays near its initial value)"``.
     """
 
     vector: F64
@@ -99,7 +99,7 @@ def describe_direction(
     names: Sequence[str],
     owners: Sequence[str] | None = None,
     *,
-    verdict: str = "unobservable, kept at its initial value",
+    verdict: str = "unobservable, not estimated (stays near its initial value)",
     min_weight: float = 0.1,
     frames: Mapping[str, str] | None = None,
 ) -> DirectionDescription:

@@ -21,7 +21,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -58,6 +58,7 @@ from licalib_cli.initialization.time_offset import (
     TimeOffsetEstimate,
     estimate_time_offset,
     estimate_time_offset_aligned,
+    estimate_time_offset_joint,
 )
 from licalib_cli.io.reader import Recording, read_segment
 from licalib_cli.measurements import LidarScan
@@ -456,19 +457,7 @@ def initialise(
         toc = TimeOffsetConfig(
             max_lag_s=ini.time_offset_max_lag_s, min_peak_correlation=ini.min_peak_correlation
         )
-        est: TimeOffsetEstimate | None = None
-        for method in (estimate_time_offset_aligned, None):
-            try:
-                est = (
-                    estimate_time_offset_aligned(rec.imu, poses, rot, toc)
-                    if method is not None
-                    else estimate_time_offset(rec.imu, poses, toc)
-                )
-            except ExcitationError as err:
-                logger.info("Time-offset correlation not possible: %s", err)
-                continue
-            if est.ok:
-                break
+        est = coarse_time_offset(rec, poses, rot, toc)
         if est is not None and est.ok:
             t_c, t_source = float(est.time_offset_s), "cross-correlation"
             correlation = float(est.peak_correlation)
@@ -485,6 +474,35 @@ def initialise(
                 raise _with_rotation_hint(err) from err
             rot = hand_eye.R_imu_lidar
     return rot, t_c, r_source, t_source, correlation, hand_eye, poses
+
+
+_AGREEING_HAND_EYE_DEG = 0.25
+"""Hand-eye RMS residual (deg) under which the LiDAR-only odometry is taken to follow the motion
+(no gyro-aided re-registration; the optimisation absorbs the rest)."""
+
+
+def coarse_time_offset(
+    rec: Recording, poses: PoseSeries, rot: F64, toc: TimeOffsetConfig
+) -> TimeOffsetEstimate | None:
+    """Coarse time offset from the angular rates: jointly with the rotation (robust to a
+    rotation that absorbed part of the offset), else with ``rot`` fixed, else from the angular
+    speed alone. Returns the first estimate that is ok, else the last one (None when none was
+    possible)."""
+    est: TimeOffsetEstimate | None = None
+    attempts: tuple[Callable[[], TimeOffsetEstimate], ...] = (
+        lambda: estimate_time_offset_joint(rec.imu, poses, toc)[0],
+        lambda: estimate_time_offset_aligned(rec.imu, poses, rot, toc),
+        lambda: estimate_time_offset(rec.imu, poses, toc),
+    )
+    for attempt in attempts:
+        try:
+            est = attempt()
+        except ExcitationError as err:
+            logger.info("Time-offset correlation not possible: %s", err)
+            continue
+        if est.ok:
+            break
+    return est
 
 
 def gyro_aided_rotation(
@@ -504,7 +522,8 @@ def gyro_aided_rotation(
 
     A LiDAR-only odometry cannot deskew violent motion (the rotation rate changes a lot within a
     sweep); once a rotation extrinsic is known, the gyro can. When the odometry given
-    (``lidar_only``) already agrees with the gyro (hand-eye residual under 0.1 deg) it is kept.
+    (``lidar_only``) already agrees with the gyro (hand-eye residual under
+    ``_AGREEING_HAND_EYE_DEG``) it is kept.
     Otherwise each round deskews with the current rotation and time offset, re-registers (seeded
     by kiss-icp and the gyro), re-estimates the coarse time offset when ``reestimate_offset``
     (the gyro's timing leaks into odometry it deskews, pulling the correlation towards the
@@ -523,7 +542,7 @@ def gyro_aided_rotation(
     poses = lidar_only
     if hand_eye is None and ini.rotation_rpy_deg is None:
         return rot, t_c, lidar_only, hand_eye  # single-axis motion: hand-eye cannot help
-    if hand_eye is not None and hand_eye.residual_rms_deg < 0.1:
+    if hand_eye is not None and hand_eye.residual_rms_deg < _AGREEING_HAND_EYE_DEG:
         return rot, t_c, lidar_only, hand_eye  # the odometry already agrees with the gyro
     for _ in range(max_rounds):
         poses = refine_odometry(
@@ -533,10 +552,7 @@ def gyro_aided_rotation(
             return rot, t_c, poses, hand_eye
         t_step = 0.0
         if reestimate_offset:
-            try:
-                est = estimate_time_offset_aligned(rec.imu, poses, rot, toc)
-            except ExcitationError:
-                est = None
+            est = coarse_time_offset(rec, poses, rot, toc)
             if est is not None and est.ok:
                 t_step = abs(est.time_offset_s - t_c)
                 t_c = float(est.time_offset_s)
@@ -799,6 +815,10 @@ def judge(
     if ext_truncated:
         status = "warn"
         reasons.extend(f"Not observable from this data: {t}" for t in ext_truncated)
+        reasons.append(
+            "Record with rotation about more axes, or set what is not observable from a "
+            "measurement (initialization.translation_m, rotation_rpy_deg, time_offset_s)."
+        )
     t_std = np.asarray(unc["translation_std_m"])
     r_std = np.asarray(unc["rotation_std_deg"])
     c_std = float(unc["time_offset_std_s"])

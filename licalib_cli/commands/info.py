@@ -29,7 +29,7 @@ def info_command(
         Path,
         typer.Argument(
             metavar="BAG",
-            help="ROS1 .bag (or folder of split .bag files), ROS2 bag folder, or .db3/.mcap."
+            help="ROS1 .bag (or folder of split .bag files), ROS2 bag folder, or .db3/.mcap.",
         ),
     ],
     imu_topic: Annotated[

@@ -37,6 +37,7 @@ __all__ = [
     "correlate_angular_speed",
     "estimate_clock_shift",
     "estimate_time_offset",
+    "estimate_time_offset_joint",
 ]
 
 logger = logging.getLogger(__name__)
@@ -365,6 +366,123 @@ def estimate_time_offset_aligned(
     t_grid = imu.t_ns[0] + np.rint(np.arange(n) * h_ns).astype(np.int64)
     w_imu = angular_velocity_from_gyro(imu, t_grid, window_s)
     return correlate_angular_speed(t_mid, w_lidar_imu, t_grid, w_imu, cfg)
+
+
+_JOINT_LAG_STEP_S = 0.001
+_JOINT_MIN_INTERVALS = 10
+_JOINT_TRIM_FACTOR = 3.0
+
+
+def _procrustes_fit(w_imu: FloatArray, w_lidar: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Best rotations ``w_imu ~ R w_lidar`` for a batch of lags.
+
+    Args:
+        w_imu: (L, K, 3) gyro rates at each lag.
+        w_lidar: (K, 3) LiDAR rates.
+
+    Returns:
+        (L,) normalised fit ``sum w_imu . R w_lidar / sqrt(sum |w_imu|^2 sum |w_lidar|^2)`` and
+        (L, 3, 3) the rotations.
+    """
+    m = np.einsum("lki,kj->lij", w_imu, w_lidar)
+    u, sv, vt = np.linalg.svd(m)
+    sign = np.sign(np.linalg.det(u @ vt))
+    sv[:, 2] *= sign
+    u[:, :, 2] *= sign[:, None]
+    norm = np.sqrt(np.sum(w_imu**2, axis=(1, 2)) * np.sum(w_lidar**2))
+    return sv.sum(axis=1) / np.maximum(norm, 1e-300), u @ vt
+
+
+def estimate_time_offset_joint(
+    imu: ImuSamples,
+    poses: PoseSeries,
+    cfg: TimeOffsetConfig | None = None,
+) -> tuple[TimeOffsetEstimate, FloatArray]:
+    """Coarse time offset and rotation together, from the angular-velocity vectors.
+
+    For every lag ``c`` within ``+-max_lag_s`` (1 ms steps) the rotation best mapping the LiDAR
+    body rates onto the gyro rates at ``tau + c`` is solved in closed form (Procrustes) and the
+    lag with the best fit wins (refined by a parabola). Solving the rotation first at a zero
+    offset and correlating afterwards is biased: when the rotation axis turns steadily (a
+    constant yaw rate with rocking), a small rotation of the extrinsic mimics a time shift, so
+    that rotation absorbs much of the offset. Intervals whose fit is much worse than the median
+    (odometry glitches) are dropped once.
+
+    Args:
+        imu: IMU samples (gyro in rad/s).
+        poses: LiDAR odometry poses.
+        cfg: settings; defaults when None.
+
+    Returns:
+        The estimate (``peak_correlation`` is the normalised fit at the best lag) and the (3, 3)
+        rotation ``R_imu_lidar`` at that lag.
+
+    Raises:
+        ExcitationError: too few intervals, or the LiDAR rate hardly varies.
+    """
+    cfg = cfg or TimeOffsetConfig()
+    t_mid, w_lidar = angular_velocity_from_poses(poses)
+    window_s = float(np.median(np.diff(poses.t_ns))) * 1e-9
+    t_rel = (t_mid - imu.t_ns[0]).astype(np.float64) * 1e-9
+    span = float(imu.t_ns[-1] - imu.t_ns[0]) * 1e-9
+    reach = cfg.max_lag_s + 0.5 * window_s
+    inside = (t_rel - reach >= 0.0) & (t_rel + reach <= span)
+    if np.count_nonzero(inside) < _JOINT_MIN_INTERVALS:
+        msg = (
+            f"Only {np.count_nonzero(inside)} odometry intervals lie inside the IMU data within "
+            f"+-{cfg.max_lag_s:g} s; record longer or check the clock offset between the sensors."
+        )
+        raise ExcitationError(msg)
+    t_mid, w_lidar = t_mid[inside], w_lidar[inside]
+    if float(np.sqrt(np.sum(np.var(w_lidar, axis=0)))) < cfg.min_speed_std:
+        msg = (
+            "Rotation excitation is too weak for the time offset: the LiDAR angular velocity "
+            "hardly varies; rotate the rig with changing speed during the recording."
+        )
+        raise ExcitationError(msg)
+    n_lag = int(np.ceil(cfg.max_lag_s / _JOINT_LAG_STEP_S))
+    lags = np.arange(-n_lag, n_lag + 1) * _JOINT_LAG_STEP_S
+    lag_ns = np.rint(lags * 1e9).astype(np.int64)
+    queries = (t_mid[None, :] + lag_ns[:, None]).reshape(-1)
+    w_imu = angular_velocity_from_gyro(imu, queries, window_s).reshape(lags.size, -1, 3)
+    keep = np.ones(t_mid.shape[0], dtype=bool)
+    for _ in range(2):
+        fit, rots = _procrustes_fit(w_imu[:, keep], w_lidar[keep])
+        i = int(np.argmax(fit))
+        err = np.linalg.norm(w_imu[i] - w_lidar @ rots[i].T, axis=1)
+        keep_next = err <= _JOINT_TRIM_FACTOR * max(float(np.median(err)), 1e-9)
+        if np.array_equal(keep_next, keep) or np.count_nonzero(keep_next) < _JOINT_MIN_INTERVALS:
+            break
+        keep = keep_next
+    frac = 0.0
+    if 0 < i < fit.size - 1:
+        den = fit[i - 1] - 2.0 * fit[i] + fit[i + 1]
+        if den < 0.0:
+            frac = float(np.clip(0.5 * (fit[i - 1] - fit[i + 1]) / den, -0.5, 0.5))
+    offset = lags[i] + frac * _JOINT_LAG_STEP_S
+    peak = float(fit[i])
+    reason = ""
+    if i in (0, fit.size - 1):
+        reason = f"the best fit is at the edge of the +-{cfg.max_lag_s:g} s lag window"
+    elif peak < cfg.min_peak_correlation:
+        reason = f"the best fit {peak:.2f} is below {cfg.min_peak_correlation:g}"
+    logger.info(
+        "time offset and rotation together: %.4f s (fit %.4f, %d/%d intervals) %s",
+        offset,
+        peak,
+        np.count_nonzero(keep),
+        keep.size,
+        reason,
+    )
+    est = TimeOffsetEstimate(
+        time_offset_s=float(offset),
+        peak_correlation=peak,
+        ok=not reason,
+        reason=reason,
+        lags_s=lags,
+        correlation=fit,
+    )
+    return est, rots[i]
 
 
 def estimate_time_offset(

@@ -25,8 +25,14 @@ CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 
 # numpy kind+size -> sensor_msgs/PointField datatype code
 _POINTFIELD_CODE = {
-    ("i", 1): 1, ("u", 1): 2, ("i", 2): 3, ("u", 2): 4,
-    ("i", 4): 5, ("u", 4): 6, ("f", 4): 7, ("f", 8): 8,
+    ("i", 1): 1,
+    ("u", 1): 2,
+    ("i", 2): 3,
+    ("u", 2): 4,
+    ("i", 4): 5,
+    ("u", 4): 6,
+    ("f", 4): 7,
+    ("f", 8): 8,
 }
 
 
@@ -171,7 +177,8 @@ class BagWriter:
                 )
             )
         bigendian = any(
-            dt.fields[n][0].byteorder == ">" for n in (dt.names or ())  # type: ignore[index]
+            dt.fields[n][0].byteorder == ">"
+            for n in (dt.names or ())  # type: ignore[index]
         )
         point_step = dt.itemsize
         row_step = point_step * width + row_padding

@@ -11,6 +11,8 @@
 * ``walk``: calm walking on an ellipse around (2.5, 5) at 1.4 m (one lap in 40 s, heading along
   the path, gait bob and sway) with short shaking bursts (3-6 s, every 15-30 s) whose intervals
   are returned so they can be written to ``truth.yaml``.
+* ``translation``: the sinusoid's translation at a constant orientation, a degenerate recording
+  with no rotation at all (the rotation extrinsic and the lever arm are not observable from it).
 """
 
 from __future__ import annotations
@@ -82,6 +84,19 @@ def sinusoid() -> EulerTrajectory:
             Signal.sines(0.6, 1.0, 0.0),
             Signal(slope=0.7),
         ),
+    )
+
+
+def translation() -> EulerTrajectory:
+    """The sinusoid's translation without any rotation (constant roll, pitch and yaw)."""
+    w = np.pi / 5.0
+    return EulerTrajectory(
+        position=(
+            Signal.sines(2.0, w, np.pi / 2, offset=5.0),
+            Signal.sines(1.5, w, 0.0, offset=5.0),
+            Signal.sines(0.8, 4 * w, np.pi / 2, offset=5.0),
+        ),
+        euler=(Signal(offset=0.05), Signal(offset=-0.1), Signal(offset=0.6)),
     )
 
 
@@ -184,5 +199,7 @@ def make_motion(spec: SimulationSpec, rng: np.random.Generator) -> ScenarioMotio
         return ScenarioMotion(figure8(spec.mounting), none, v / np.linalg.norm(v))
     if spec.scenario is Scenario.SHAKE:
         return ScenarioMotion(shake(rng), none)
+    if spec.scenario is Scenario.TRANSLATION:
+        return ScenarioMotion(translation(), none)
     traj, bursts = walk(rng, spec.resolved_duration_s)
     return ScenarioMotion(traj, bursts)

@@ -52,6 +52,7 @@ class Scenario(str, Enum):
     FIGURE8 = "figure8"
     SHAKE = "shake"
     WALK = "walk"
+    TRANSLATION = "translation"
 
 
 class LidarKind(str, Enum):

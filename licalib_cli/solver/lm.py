@@ -427,7 +427,7 @@ def _report(
     s, u = info.singular_values, info.singular_vectors
     keep = truncation_mask(s, params.tsvd_threshold, relative=params.tsvd_relative)
     verdict = (
-        "unobservable, kept at its initial value"
+        "unobservable, not estimated (stays near its initial value)"
         if params.use_tsvd
         else "unobservable (below the TSVD threshold), updated without truncation"
     )

@@ -377,7 +377,10 @@ def test_tsvd_keeps_unobservable_directions_and_names_them() -> None:
     weakest, second = report.truncated  # weakest first: the exact null direction
     np.testing.assert_allclose(weakest.vector, np.array([2.0, -1.0, 0.0]) / np.sqrt(5), atol=1e-6)
     np.testing.assert_allclose(second.vector, [0.0, 0.0, 1.0], atol=1e-6)
-    assert weakest.text == "offset along [0.89, -0.45]: unobservable, kept at its initial value"
+    assert (
+        weakest.text
+        == "offset along [0.89, -0.45]: unobservable, not estimated (stays near its initial value)"
+    )
     assert second.text.startswith("weak along [1.00]")
     assert [c[0] for c in weakest.components] == ["offset.a", "offset.b"]
     assert not report.observable.any()

@@ -133,7 +133,7 @@ def test_describe_direction_paper_example() -> None:
         d = describe_direction(sign * v, names)
         assert d.text == (
             "ext.translation along [0.01, -0.19, 0.98] in the IMU frame: "
-            "unobservable, kept at its initial value"
+            "unobservable, not estimated (stays near its initial value)"
         )
         assert d.components[0][0] == "ext.translation.z"
         assert d.components[0][1] == pytest.approx(0.982 / np.linalg.norm(v), abs=1e-12)

@@ -53,3 +53,41 @@ def test_calibrate_recovers_extrinsic_and_time_offset(short_bag, tmp_path, capsy
     assert (out.parent / "result.config.yaml").exists()
     assert "Error against truth" in printed
     assert "Verdict" in printed
+
+
+@pytest.mark.slow
+def test_planar_motion_reports_the_unobservable_lever_arm(tmp_path, capsys):
+    """Figure-8 (rotation about the vertical only): the translation along the vertical cannot be
+    told from a shift of the trajectory; it is reported as not observable, kept, and the verdict
+    warns, while the horizontal components are still estimated."""
+    spec = SimulationSpec(
+        scenario="figure8",
+        lidar="vlp16",
+        fmt="ros1",
+        duration_s=8.0,
+        seed=3,
+        time_offset_s=0.005,
+        intrinsics="none",
+        azimuth_resolution_deg=0.4,
+    )
+    sim = simulate(spec, tmp_path / "sim")
+    out = tmp_path / "result.yaml"
+    main(["calibrate", str(sim.bag_path), "-c", str(CONFIG), "-o", str(out)])
+    result = yaml.safe_load(out.read_text())
+    true = yaml.safe_load((sim.bag_path.parent / "truth.yaml").read_text())
+    assert result["verdict"]["status"] == "warn"
+    texts = result["observability"]["unobservable"]
+    assert any(
+        t.startswith("ext.translation along [") and "1.00] in the IMU frame" in t for t in texts
+    )
+    t_std = result["uncertainty"]["translation_std_m"]
+    assert t_std[2] == float("inf") and all(s < 0.005 for s in t_std[:2])
+    ext, ext_true = result["extrinsic"], true["extrinsic"]
+    for i in range(2):
+        assert abs(ext["translation"][i] - ext_true["translation"][i]) < 0.01
+    # not estimated: near its initial value (0), far from the truth (0.05)
+    assert abs(ext["translation"][2]) < 0.02
+    for i in range(3):
+        assert abs(ext["rotation_rpy_deg"][i] - ext_true["rotation_rpy_deg"][i]) < 0.2
+    assert abs(ext["time_offset_s"] - ext_true["time_offset_s"]) < 0.001
+    assert "not observable" in capsys.readouterr().out.lower()
