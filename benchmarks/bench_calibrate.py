@@ -58,7 +58,7 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
         fmt=args.format,
         duration_s=args.duration,
         seed=seed,
-        time_offset_s=args.time_offset,
+        time_offset_s=0.0 if args.random_time_offset else args.time_offset,
         intrinsics="none",
         random_extrinsic=args.random_extrinsic,
         random_time_offset=args.random_time_offset,

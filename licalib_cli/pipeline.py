@@ -476,6 +476,11 @@ def initialise(
     return rot, t_c, r_source, t_source, correlation, hand_eye, poses
 
 
+THICKNESS_PER_RANGE_SIGMA = 1.5
+"""Default ``surfels.max_thickness_m`` in units of ``noise.range_sigma_m``: range noise alone
+gives an RMS of at most one sigma off a plane; a cell much thicker than that straddles
+surfaces."""
+
 _AGREEING_HAND_EYE_DEG = 0.25
 """Hand-eye RMS residual (deg) under which the LiDAR-only odometry is taken to follow the motion
 (no gyro-aided re-registration; the optimisation absorbs the rest)."""
@@ -674,6 +679,14 @@ def _change(a: Extrinsic, b: Extrinsic) -> tuple[float, float, float]:
     return err["translation_m"], err["rotation_deg"], err["time_offset_s"]
 
 
+def surfel_thickness(cfg: CalibConfig) -> float:
+    """``surfels.max_thickness_m``, or its default from the range noise."""
+    s = cfg.surfels
+    if s.max_thickness_m is not None:
+        return s.max_thickness_m
+    return THICKNESS_PER_RANGE_SIGMA * cfg.noise.range_sigma_m
+
+
 def run_round(
     state: CalibrationState,
     sample: PointSample,
@@ -692,7 +705,8 @@ def run_round(
         cell_sizes=tuple(s.cell_sizes_m),
         min_points=s.min_points,
         min_planarity=s.min_planarity,
-        max_thickness_m=s.max_thickness_m,
+        # as loose as the association (the first map is blurred by the initial guess)
+        max_thickness_m=surfel_thickness(cfg) * max_distance_m / s.max_distance_m,
         max_distance_m=max_distance_m,
     )
     surfels = build_surfels(p_g, scfg)
