@@ -10,12 +10,14 @@ Figures (best of ``--repeat`` runs):
 * ``evaluate``: all residuals and analytic Jacobians (``Problem.evaluate(jacobians=True)``).
 * ``assemble``: the normal equations ``H_tt, H_tc, H_cc, g`` (``Problem.linearize``).
 * ``(a) eval+assemble``: the two above.
-* ``schur+tsvd l=...``: ``compute_step`` at damping ``lambda`` (factorisation of ``H_tt``, Schur
-  complement, TSVD of the scaled calibration block, back-substitution); ``1e-4`` is the initial
+* ``schur+tsvd l=...``: ``compute_step`` at damping ``lambda`` without a precomputed basis, i.e.
+  as after an accepted step: the undamped Schur complement and its eigen-decomposition (which
+  decide the truncation), then the factorisation of the damped ``H_tt``, Schur complement, the
+  solve restricted to the kept directions and the back-substitution; ``1e-4`` is the initial
   damping, ``1e-6`` typical near convergence.
-* ``(b) LM step``: one iteration as in :func:`licalib_cli.solver.solve` at ``lambda = 1e-6``:
-  ``compute_step``, the retraction, the trial evaluation with Jacobians and the assembly at the
-  new point (so (b) includes (a)).
+* ``(b) LM step``: one accepted iteration as in :func:`licalib_cli.solver.solve` at
+  ``lambda = 1e-6``: ``compute_step`` (as above), the retraction, the trial evaluation with
+  Jacobians and the assembly at the new point (so (b) includes (a)).
 
 Every cell is the best of ``--repeat`` runs (all of them, for every segment length: a time budget
 that cut the long segments to two or three runs made the 60 s row inconsistent before). The table
