@@ -65,7 +65,11 @@ class BagConfig(_Section):
     start_s: float = Field(default=0.0, ge=0.0)
     """Seconds after the first message at which the segment starts."""
     duration_s: float | None = Field(default=None, gt=0.0)
-    """Length of the segment; the whole bag when unset."""
+    """Length of the segment; the whole bag (up to ``max_duration_s``) when unset."""
+    max_duration_s: float = Field(default=60.0, gt=0.0)
+    """Without ``duration_s``, a longer bag is cut to this many seconds after ``start_s`` (with
+    a warning): 15-60 s of well-excited motion determine the calibration, and memory and time
+    grow with the length."""
 
 
 class NoiseConfig(_Section):
@@ -141,6 +145,9 @@ class SurfelSection(_Section):
     """Points further from their surfel's plane are not associated."""
     points_per_scan: int = Field(default=1000, ge=50)
     """Points kept per scan for the optimisation (uniformly over the sweep)."""
+    max_points: int = Field(default=600_000, ge=1000)
+    """Cap on the points of a round over all scans (memory and time); ``points_per_scan`` and
+    ``final_points_per_scan`` shrink on long segments to respect it."""
     final_points_per_scan: int | None = Field(default=4000, ge=50)
     """Points per scan of one last round once the others have settled (the uncertainty of the
     time offset and translation shrinks with the number of points); None skips it."""

@@ -265,6 +265,13 @@ def nominal_elevations(scans: tuple[LidarScan, ...], cfg: CalibConfig) -> F64:
     return out
 
 
+def points_per_scan(cfg: CalibConfig, num_scans: int, wanted: int | None = None) -> int:
+    """Points kept per scan: ``wanted`` (default ``surfels.points_per_scan``), lowered so that
+    all scans together keep at most ``surfels.max_points``."""
+    per_scan = cfg.surfels.points_per_scan if wanted is None else wanted
+    return max(1, min(per_scan, cfg.surfels.max_points // max(num_scans, 1)))
+
+
 def sample_points(
     scans: tuple[LidarScan, ...], phi: F64, per_scan: int, cfg: CalibConfig, seed: int = 0
 ) -> PointSample:
@@ -951,7 +958,7 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
         t_init = np.asarray(ini.translation_m if ini.translation_m else [0.0, 0.0, 0.0], float)
         phi = nominal_elevations(rec.scans, cfg)
         state = initial_state(rec, poses, gyro, rot, t_init, t_c, phi, cfg)
-        sample = sample_points(rec.scans, phi, cfg.surfels.points_per_scan, cfg)
+        sample = sample_points(rec.scans, phi, points_per_scan(cfg, len(rec.scans)), cfg)
         imu = ImuData.from_samples(rec.imu, state.t0_ns)
     initial = InitialGuess(
         R_imu_lidar=rot,
@@ -1000,7 +1007,9 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
             if index >= 2 and settled and not intrinsics_pending:
                 break
         final = cfg.surfels.final_points_per_scan
-        if final is not None and final > cfg.surfels.points_per_scan:
+        if final is not None:
+            final = points_per_scan(cfg, len(rec.scans), final)
+        if final is not None and final > points_per_scan(cfg, len(rec.scans)):
             # One more round on a denser sample from the settled estimate: the uncertainty of
             # the time offset and the translation shrinks with the number of points.
             dense = sample_points(rec.scans, phi, final, cfg, seed=1)

@@ -381,8 +381,11 @@ class SegmentWindow:
         )
 
 
-def segment_window(bag: BagHandle, cfg: CalibConfig) -> SegmentWindow:
+def segment_window(bag: BagHandle, cfg: CalibConfig, *, cap: bool = False) -> SegmentWindow:
     """Record-time window of ``cfg.bag`` (start and duration after the first message).
+
+    With ``cap`` and no ``bag.duration_s``, the window ends ``bag.max_duration_s`` after its
+    start (when the bag is longer).
 
     Raises:
         ConfigError: the start lies after the end of the bag (an invalid option).
@@ -398,6 +401,8 @@ def segment_window(bag: BagHandle, cfg: CalibConfig) -> SegmentWindow:
     stop = None
     if cfg.bag.duration_s is not None:
         stop = start + round(cfg.bag.duration_s * _NS)
+    elif cap and bag.end_ns - start > round(cfg.bag.max_duration_s * _NS):
+        stop = start + round(cfg.bag.max_duration_s * _NS)
     return SegmentWindow(start, stop)
 
 
@@ -900,7 +905,8 @@ def read_segment(path: Path, cfg: CalibConfig) -> Recording:
     with open_bag(path) as bag:
         imu_t = select_topic(bag, IMU_TYPE, cfg.imu.topic, "--imu-topic", "imu.topic")
         lid_t = select_topic(bag, CLOUD_TYPE, cfg.lidar.topic, "--lidar-topic", "lidar.topic")
-        window = segment_window(bag, cfg)
+        window = segment_window(bag, cfg, cap=True)
+        bag_start, bag_end = bag.start_ns, bag.end_ns
         off_imu = stamp_record_offset(bag, imu_t.name, window)
         off_lid = stamp_record_offset(bag, lid_t.name, window)
         imu, units, problems = _imu_from_raw(read_raw_imu(bag, imu_t.name, window, off_imu), cfg)
@@ -919,6 +925,12 @@ def read_segment(path: Path, cfg: CalibConfig) -> Recording:
         + units.messages()
         + list(layout.time.notes)
     )
+    if cfg.bag.duration_s is None and window.stop_ns is not None:
+        warnings.append(
+            f"The bag lasts {(bag_end - bag_start) / _NS:.0f} s; only {cfg.bag.max_duration_s:g} "
+            f"s from {cfg.bag.start_s:g} s are used. Choose the part with the most varied motion "
+            "with --start/--duration (or raise bag.max_duration_s)."
+        )
     if shift:
         warnings.append(
             f"The LiDAR and IMU clocks differ by {clock_offset / _NS:+.3f} s; LiDAR times were "

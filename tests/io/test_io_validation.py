@@ -168,3 +168,21 @@ def test_start_after_end(tmp_path: Path) -> None:
     write_custom_bag(tmp_path / "x")
     with pytest.raises(ConfigError, match="bag lasts only"):
         read_segment(tmp_path / "x", load_config(None, {"bag.start_s": 50.0}))
+
+
+def test_long_bag_is_cut_to_max_duration_with_a_warning(tmp_path: Path) -> None:
+    """Without --duration a long bag is cut to bag.max_duration_s; info-style reads are not."""
+    write_custom_bag(tmp_path / "x", imu_t=_imu_t(440), clouds=_clouds(n=20))  # 2.2 s of IMU
+    cut = read_segment(tmp_path / "x", load_config(None, {"bag.max_duration_s": 1.0}))
+    span = (cut.imu.t_ns[-1] - cut.imu.t_ns[0]) / NS
+    assert 0.9 < span < 1.05
+    assert len(cut.scans) in (10, 11)
+    assert any("only 1 s from 0 s are used" in w for w in cut.warnings), cut.warnings
+    whole = read_segment(tmp_path / "x", load_config(None))
+    assert len(whole.scans) == 20
+    assert not any("are used" in w for w in whole.warnings)
+    chosen = read_segment(
+        tmp_path / "x", load_config(None, {"bag.max_duration_s": 1.0, "bag.duration_s": 1.5})
+    )
+    assert 1.4 < (chosen.imu.t_ns[-1] - chosen.imu.t_ns[0]) / NS < 1.55
+    assert not any("are used" in w for w in chosen.warnings)
