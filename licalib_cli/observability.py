@@ -143,7 +143,8 @@ def describe_direction(
         sel = np.flatnonzero(owner_arr == b)
         if sel.size <= _MAX_BLOCK_LISTING:
             frame = f" in {frame_of[b]}" if b in frame_of else ""
-            parts.append(f"{b} along [{', '.join(f'{x:.2f}' for x in v[sel] + 0.0)}]{frame}")
+            shown = np.round(v[sel], 2) + 0.0  # no "-0.00"
+            parts.append(f"{b} along [{', '.join(f'{x:.2f}' for x in shown)}]{frame}")
         else:
             ranked_sel = sel[np.argsort(-np.abs(v[sel]), kind="stable")]
             shown = [i for i in ranked_sel if abs(v[i]) >= min_weight] or [ranked_sel[0]]

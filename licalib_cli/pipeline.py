@@ -23,7 +23,7 @@ import logging
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -73,6 +73,7 @@ from licalib_cli.surfels import SurfelConfig, associate_points, build_surfels
 logger = logging.getLogger(__name__)
 
 F64 = npt.NDArray[np.float64]
+F32 = npt.NDArray[np.float32]
 _NS = 1_000_000_000
 GRAVITY_NORM = 9.81
 
@@ -123,6 +124,9 @@ class RoundSummary:
         iterations: LM iterations.
         extrinsic: estimate after the round.
         seconds: wall time of the round.
+        distances_before_m: (P,) float32 signed point-to-plane distances of the associated points
+            at the start of the round (their own map), m.
+        distances_after_m: (P,) float32 the same after the round (same map), m.
     """
 
     index: int
@@ -136,6 +140,8 @@ class RoundSummary:
     iterations: int
     extrinsic: Extrinsic
     seconds: float
+    distances_before_m: F32 = field(default_factory=lambda: np.zeros(0, np.float32), repr=False)
+    distances_after_m: F32 = field(default_factory=lambda: np.zeros(0, np.float32), repr=False)
 
 
 @dataclass(frozen=True)
@@ -765,6 +771,8 @@ def run_round(
     new_state = state_from_problem(state, problem)
     p_after = points_in_global(new_state, used)
     dist = np.einsum("ij,ij->i", surfels.normal[plane_of], p_after) + surfels.d[plane_of]
+    p_before = p_g[np.sort(assoc.point_index)]
+    dist0 = np.einsum("ij,ij->i", surfels.normal[plane_of], p_before) + surfels.d[plane_of]
     summary = RoundSummary(
         index=index,
         free=_free_names(free),
@@ -777,6 +785,8 @@ def run_round(
         iterations=int(report.iterations),
         extrinsic=_extrinsic(new_state),
         seconds=time.perf_counter() - start,
+        distances_before_m=dist0.astype(np.float32),
+        distances_after_m=dist.astype(np.float32),
     )
     return new_state, summary, report
 

@@ -84,6 +84,13 @@ def calibrate_command(
     truth: Path | None = typer.Option(
         None, "--truth", help="A truth.yaml to compare with (simulated bags).", rich_help_panel=_OUT
     ),
+    plots: Path | None = typer.Option(
+        None,
+        "--plots",
+        metavar="DIR",
+        help="Write figures (fit, observability) as PNG files into this folder.",
+        rich_help_panel=_OUT,
+    ),
 ) -> None:
     """Calibrate T_imu_lidar and the time offset from a bag; write the result file."""
     from licalib_cli.pipeline import calibrate
@@ -97,6 +104,10 @@ def calibrate_command(
             "bag.duration_s": duration,
         },
     )
+    if plots is not None:
+        from licalib_cli.plots import require_matplotlib
+
+        require_matplotlib()
     progress = RichProgress()
     try:
         run = calibrate(bag, cfg, progress)
@@ -107,6 +118,11 @@ def calibrate_command(
     write_text_atomic(config_out, dump_config(cfg))
     render_run(run, truth)
     console().print(f"Result: {out}  (resolved config: {config_out})")
+    if plots is not None:
+        from licalib_cli.plots import save_plots
+
+        files = save_plots(run, plots)
+        console().print("Plots: " + ", ".join(str(f) for f in files))
 
 
 def _fmt(v: float, unit: str, scale: float = 1.0, digits: int = 4) -> str:

@@ -450,7 +450,7 @@ def _report(
     variance_factor = 2.0 * history[-1] / redundancy if redundancy > 0 else math.nan
     threshold = params.tsvd_threshold * (float(s[0]) if params.tsvd_relative and s.size else 1.0)
     for d in truncated:
-        logger.info("calibration direction %s", d.text)
+        logger.debug("calibration direction %s", d.text)
     return SolverReport(
         status=status,
         reason=reason,

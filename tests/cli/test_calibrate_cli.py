@@ -93,3 +93,18 @@ def test_no_motion_is_refused_with_a_reason(tmp_path, capsys):
     assert "rotat" in err.lower()
     assert "Traceback" not in err
     assert not out.exists()  # nothing written on failure
+
+
+def test_plots_without_matplotlib_fail_before_any_work(tmp_path, capsys, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
+
+    def not_reached(*args, **kwargs):
+        raise AssertionError("calibration started although plots cannot be drawn")
+
+    monkeypatch.setattr("licalib_cli.pipeline.calibrate", not_reached)
+    bag = write_static_bag(tmp_path / "s.bag", 1.0)
+    code, _, err = run(["calibrate", str(bag), "--plots", str(tmp_path / "p")], capsys)
+    assert code == 6, err
+    assert "matplotlib" in err and "Traceback" not in err

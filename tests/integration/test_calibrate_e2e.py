@@ -72,8 +72,11 @@ def test_planar_motion_reports_the_unobservable_lever_arm(tmp_path, capsys):
     )
     sim = simulate(spec, tmp_path / "sim")
     out = tmp_path / "result.yaml"
-    main(["calibrate", str(sim.bag_path), "-c", str(CONFIG), "-o", str(out)])
+    plots = tmp_path / "plots"
+    main(["calibrate", str(sim.bag_path), "-c", str(CONFIG), "-o", str(out), "--plots", str(plots)])
     result = yaml.safe_load(out.read_text())
+    for name in ("fit.png", "observability.png"):
+        assert (plots / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     true = yaml.safe_load((sim.bag_path.parent / "truth.yaml").read_text())
     assert result["verdict"]["status"] == "warn"
     texts = result["observability"]["unobservable"]

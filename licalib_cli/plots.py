@@ -1,0 +1,175 @@
+"""Figures of a calibration run, for people who would rather look than read.
+
+:func:`save_plots` writes PNG files into a folder:
+
+* ``fit.png``: the point-to-plane distances before the first round and after the last one
+  (histograms; a good calibration gives a narrow peak about as wide as the range noise), and
+  per round the RMS distance and how much the extrinsic and the time offset moved.
+* ``observability.png``: the singular values of the scaled calibration information (the
+  spectrum the truncated SVD acts on) against the truncation threshold, each labelled with the
+  coordinate that dominates its direction; truncated directions in red.
+
+matplotlib is an optional dependency (the ``plot`` extra); it is imported here only, with the
+non-interactive Agg backend, so plots work without a display.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from licalib_cli.errors import ConfigError
+from licalib_cli.results import Extrinsic
+
+if TYPE_CHECKING:
+    from licalib_cli.pipeline import CalibrationRun
+
+__all__ = ["require_matplotlib", "save_plots"]
+
+_DPI = 110
+
+
+def _pyplot() -> Any:
+    try:
+        import matplotlib
+    except ImportError as err:
+        msg = (
+            "Plots need matplotlib, which is not installed; install it with "
+            "`.venv/bin/pip install matplotlib` (or the package's `plot` extra)."
+        )
+        raise ConfigError(msg) from err
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def require_matplotlib() -> None:
+    """Raise :class:`ConfigError` now, before a long run, when plots cannot be drawn."""
+    _pyplot()
+
+
+def save_plots(run: CalibrationRun, folder: Path) -> list[Path]:
+    """Write the figures of ``run`` into ``folder`` (created if needed).
+
+    Args:
+        run: a finished calibration.
+        folder: output folder.
+
+    Returns:
+        The files written.
+
+    Raises:
+        ConfigError: matplotlib is not installed.
+    """
+    plt = _pyplot()
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name, draw in (("fit.png", _fit_figure), ("observability.png", _spectrum_figure)):
+        fig = draw(plt, run)
+        path = folder / name
+        tmp = path.with_name(f".{path.name}.tmp")
+        fig.savefig(tmp, dpi=_DPI, format="png")
+        plt.close(fig)
+        tmp.replace(path)
+        written.append(path)
+    return written
+
+
+def _fit_figure(plt: Any, run: CalibrationRun) -> Any:
+    rounds = run.rounds
+    fig, (ax_h, ax_r) = plt.subplots(1, 2, figsize=(12, 4.5))
+    first, last = rounds[0].distances_before_m, rounds[-1].distances_after_m
+    both = np.concatenate([first, last]) if first.size + last.size else np.zeros(1)
+    lim = float(np.percentile(np.abs(both), 99.5)) if both.size else 0.05
+    lim = max(lim * 1e2, 0.5)  # cm
+    bins = np.linspace(-lim, lim, 81)
+    for d, label, colour in (
+        (first, "before round 1 (initial guess)", "tab:orange"),
+        (last, f"after round {rounds[-1].index} (result)", "tab:blue"),
+    ):
+        if d.size:
+            rms = float(np.sqrt(np.mean(np.square(d, dtype=np.float64)))) * 1e2
+            ax_h.hist(
+                np.clip(d * 1e2, -lim, lim),
+                bins=bins,
+                density=True,
+                alpha=0.55,
+                color=colour,
+                label=f"{label}: RMS {rms:.2f} cm, {d.size} points",
+            )
+    ax_h.set_xlabel(f"signed point-to-plane distance (cm; beyond +-{lim:.1f} piled at the ends)")
+    ax_h.set_ylabel("density")
+    ax_h.set_title("Point-to-plane distances")
+    ax_h.legend(fontsize=8)
+
+    idx = [r.index for r in rounds]
+    ini = run.initial
+    prev = Extrinsic(ini.R_imu_lidar, ini.t_imu_lidar, ini.time_offset_s)
+    moves_t, moves_r, moves_c = [], [], []
+    for r in rounds:
+        err = r.extrinsic.error_to(prev)
+        moves_t.append(1e3 * err["translation_m"])
+        moves_r.append(err["rotation_deg"])
+        moves_c.append(1e3 * err["time_offset_s"])
+        prev = r.extrinsic
+    ax_r.semilogy(idx, np.maximum(moves_t, 1e-4), "o-", label="translation moved (mm)")
+    ax_r.semilogy(idx, np.maximum(np.multiply(moves_r, 1e3), 1e-4), "s-", label="rotation (mdeg)")
+    ax_r.semilogy(idx, np.maximum(np.multiply(moves_c, 1e3), 1e-4), "^-", label="time offset (us)")
+    ax_r.set_xlabel("round")
+    ax_r.set_ylabel("change in the round")
+    ax_r.set_xticks(idx)
+    ax_r.grid(True, which="both", alpha=0.3)
+    ax_rms = ax_r.twinx()
+    ax_rms.plot(idx, [1e2 * r.rms_m for r in rounds], "k--", label="RMS distance (cm)")
+    ax_rms.set_ylabel("RMS point-to-plane distance (cm)")
+    lines = ax_r.get_legend_handles_labels()
+    more = ax_rms.get_legend_handles_labels()
+    ax_r.legend(lines[0] + more[0], lines[1] + more[1], fontsize=8, loc="upper right")
+    ax_r.set_title("Convergence over the rounds")
+    fig.suptitle(f"Fit: verdict {run.verdict.status.upper()}")
+    fig.tight_layout()
+    return fig
+
+
+def _dominant_labels(vectors: np.ndarray, names: Sequence[str]) -> list[str]:
+    labels = []
+    for j in range(vectors.shape[1]):
+        v = vectors[:, j]
+        i = int(np.argmax(np.abs(v)))
+        labels.append(f"{names[i]} ({abs(v[i]):.2f})")
+    return labels
+
+
+def _spectrum_figure(plt: Any, run: CalibrationRun) -> Any:
+    info = run.solver.information
+    s = np.asarray(info.singular_values, dtype=np.float64)
+    fig, ax = plt.subplots(figsize=(max(8.0, 0.45 * s.size + 2.0), 4.8))
+    if s.size == 0:
+        ax.text(0.5, 0.5, "no calibration coordinates", ha="center", va="center")
+        return fig
+    thr = float(run.solver.tsvd_threshold)
+    floor = max(float(s[s > 0].min()) if np.any(s > 0) else 1e-12, 1e-12) * 0.1
+    kept = s > thr
+    colours = np.where(kept, "tab:blue", "tab:red")
+    x = np.arange(s.size)
+    ax.bar(x, np.maximum(s, floor), color=colours)
+    ax.set_yscale("log")
+    ax.axhline(thr, color="k", linestyle="--", label=f"truncation threshold {thr:g}")
+    ax.set_xticks(x)
+    ax.set_xticklabels(
+        _dominant_labels(info.singular_vectors, info.names), rotation=60, ha="right", fontsize=7
+    )
+    ax.set_ylabel("singular value of the scaled information")
+    ax.set_title(
+        "Observability: one bar per direction in calibration space (labelled by its largest\n"
+        "coordinate); red: not observable, not updated; 1 = known to one characteristic scale",
+        fontsize=9,
+    )
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
