@@ -70,15 +70,20 @@ def mount_rotation(vertical_in_imu: npt.ArrayLike) -> F64:
     return r_i_b.T
 
 
+def _sinusoid_position() -> tuple[Signal, Signal, Signal]:
+    """The translation of eq. simu_traj1, centred at (5, 5, 5)."""
+    w = np.pi / 5.0
+    return (
+        Signal.sines(2.0, w, np.pi / 2, offset=5.0),
+        Signal.sines(1.5, w, 0.0, offset=5.0),
+        Signal.sines(0.8, 4 * w, np.pi / 2, offset=5.0),
+    )
+
+
 def sinusoid() -> EulerTrajectory:
     """The paper's sinusoidal trajectory (eq. simu_traj1)."""
-    w = np.pi / 5.0
     return EulerTrajectory(
-        position=(
-            Signal.sines(2.0, w, np.pi / 2, offset=5.0),
-            Signal.sines(1.5, w, 0.0, offset=5.0),
-            Signal.sines(0.8, 4 * w, np.pi / 2, offset=5.0),
-        ),
+        position=_sinusoid_position(),
         euler=(
             Signal.sines(0.4, 1.0, np.pi / 2),
             Signal.sines(0.6, 1.0, 0.0),
@@ -89,13 +94,8 @@ def sinusoid() -> EulerTrajectory:
 
 def translation() -> EulerTrajectory:
     """The sinusoid's translation without any rotation (constant roll, pitch and yaw)."""
-    w = np.pi / 5.0
     return EulerTrajectory(
-        position=(
-            Signal.sines(2.0, w, np.pi / 2, offset=5.0),
-            Signal.sines(1.5, w, 0.0, offset=5.0),
-            Signal.sines(0.8, 4 * w, np.pi / 2, offset=5.0),
-        ),
+        position=_sinusoid_position(),
         euler=(Signal(offset=0.05), Signal(offset=-0.1), Signal(offset=0.6)),
     )
 
