@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import os
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -107,6 +107,18 @@ class Extrinsic:
             "rotation_deg": float(np.degrees(d_rot)),
             "time_offset_s": float(abs(self.time_offset_s - other.time_offset_s)),
         }
+
+    def on_shifted_clock(self, lidar_clock_offset_s: float, applied_shift_s: float) -> Extrinsic:
+        """This (true) extrinsic with its time offset expressed on a calibration's clock.
+
+        A simulated LiDAR clock may run ``lidar_clock_offset_s`` ahead of the IMU clock
+        (``t_imu = t_lidar - lidar_clock_offset_s + time_offset_s``); a calibration that shifted
+        the LiDAR times by ``applied_shift_s`` (``recording.lidar_clock_shift_s``) reports the
+        time offset on top of that shift. Both splits of the same total are arbitrary; this
+        gives the true offset in the calibration's split so that the two compare.
+        """
+        total = self.time_offset_s - lidar_clock_offset_s
+        return replace(self, time_offset_s=total - applied_shift_s)
 
 
 def imu_intrinsics_to_dict(k: ImuIntrinsics) -> dict[str, Any]:

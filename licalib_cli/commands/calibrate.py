@@ -138,7 +138,14 @@ def render_run(run: object, truth_path: Path | None) -> None:
     r = run.result  # type: ignore[attr-defined]
     ext = r.extrinsic
     unc = r.extra["uncertainty"]
-    truth = CalibrationResult.load(truth_path).extrinsic if truth_path else None
+    shift = float(r.extra.get("recording", {}).get("lidar_clock_shift_s", 0.0))
+    truth = None
+    if truth_path is not None:
+        true = CalibrationResult.load(truth_path)
+        clock = true.extra.get("simulation", {}).get("clock", {})
+        truth = true.extrinsic.on_shifted_clock(
+            float(clock.get("lidar_clock_offset_s", 0.0)), shift
+        )
     table = Table(
         title="T_imu_lidar (p_imu = R p_lidar + t) and time offset (t_imu = t_lidar + dt)"
     )
@@ -184,6 +191,12 @@ def render_run(run: object, truth_path: Path | None) -> None:
     table.add_row(*row)
     out = console()
     out.print(table)
+    if shift:
+        out.print(
+            f"The LiDAR clock was {-shift:+.9f} s off the IMU clock and was shifted before "
+            f"calibrating: t_imu = t_lidar + ({shift:+.9f} s) + time offset"
+            + ("; the truth is shown on the same footing." if truth is not None else ".")
+        )
     if truth is not None:
         err = ext.error_to(truth)
         out.print(

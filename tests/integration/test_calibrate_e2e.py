@@ -24,6 +24,8 @@ def short_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
         time_offset_s=0.008,
         intrinsics="none",
         azimuth_resolution_deg=0.4,
+        lidar_stamp="end",
+        lidar_clock_offset_s=1_000_000.25,  # LiDAR on another clock: shifted, reported apart
     )
     return simulate(spec, tmp_path_factory.mktemp("sim")).bag_path
 
@@ -42,7 +44,12 @@ def test_calibrate_recovers_extrinsic_and_time_offset(short_bag, tmp_path, capsy
     for i in range(3):
         assert abs(ext["translation"][i] - ext_true["translation"][i]) < 0.01
         assert abs(ext["rotation_rpy_deg"][i] - ext_true["rotation_rpy_deg"][i]) < 0.1
-    assert abs(ext["time_offset_s"] - ext_true["time_offset_s"]) < 0.0005
+    # The whole-bag clock difference is reported apart; the time offset is on top of it.
+    shift = result["recording"]["lidar_clock_shift_s"]
+    assert shift == pytest.approx(-1_000_000.25 + 0.008, abs=0.002)
+    true_on_shift = ext_true["time_offset_s"] - 1_000_000.25 - shift
+    assert abs(ext["time_offset_s"] - true_on_shift) < 0.0005
+    assert abs(ext["time_offset_s"]) < 0.003
     # Uncertainty, observability and verdict are reported; the resolved config is beside it.
     assert set(result["uncertainty"]) == {
         "translation_std_m",

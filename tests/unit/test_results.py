@@ -107,3 +107,12 @@ def test_missing_and_malformed_result_files(tmp_path):
     bad.write_text("extrinsic: [1, 2\n")
     with pytest.raises(ConfigError, match="not valid YAML"):
         CalibrationResult.load(bad)
+
+
+def test_truth_on_a_shifted_clock_compares_totals() -> None:
+    """t_imu = t_lidar - L + c (simulator) and t_imu = t_lidar + shift + c' (calibration)."""
+    true = Extrinsic(np.eye(3), np.zeros(3), -0.012)
+    on = true.on_shifted_clock(lidar_clock_offset_s=1234.5, applied_shift_s=-1234.511)
+    assert on.time_offset_s == pytest.approx(-0.001, abs=1e-9)
+    assert true.on_shifted_clock(0.0, 0.0).time_offset_s == -0.012
+    np.testing.assert_array_equal(on.rotation, true.rotation)
