@@ -28,9 +28,17 @@ from typing import Any
 import numpy as np
 
 from licalib_cli.config import CalibConfig
-from licalib_cli.errors import ConfigError, DataError, LicalibError, TimestampError, TopicError
+from licalib_cli.errors import (
+    ConfigError,
+    DataError,
+    ExcitationError,
+    LicalibError,
+    TimestampError,
+    TopicError,
+)
 from licalib_cli.io import reader as rd
 from licalib_cli.io.bag import CLOUD_TYPE, IMU_TYPE, BagHandle, open_bag, select_topic
+from licalib_cli.io.imu_units import convert_imu
 
 __all__ = ["BagReport", "ImuReport", "LidarReport", "TopicReport", "inspect_bag"]
 
@@ -62,6 +70,82 @@ class TopicReport:
     rate_hz: float
 
 
+MIN_ROTATION_RMS_DEG_S = 5.0
+"""Below this RMS angular rate the recording is too calm to calibrate."""
+SINGLE_AXIS_RATIO = 0.1
+"""Rotation about a second axis weaker than this fraction of the first counts as one axis."""
+
+
+@dataclass(frozen=True)
+class Excitation:
+    """How the IMU moved in the segment (a pre-flight check before calibrating).
+
+    Attributes:
+        rotation_rms_deg_s: (3,) RMS angular rate about the IMU's x, y, z axes, deg/s.
+        rotation_axis_strength: (3,) RMS angular rate along the principal axes of rotation,
+            strongest first, deg/s (square roots of the eigenvalues of ``mean(w w^T)``).
+        strongest_axis: (3,) unit principal axis of rotation in the IMU frame.
+        accel_std_m_s2: (3,) standard deviation of the specific force per IMU axis, m/s^2.
+        summary: one sentence: what the motion lets the calibration determine.
+        ok: False when the rotation is too weak or about one axis only.
+    """
+
+    rotation_rms_deg_s: tuple[float, float, float]
+    rotation_axis_strength: tuple[float, float, float]
+    strongest_axis: tuple[float, float, float]
+    accel_std_m_s2: tuple[float, float, float]
+    summary: str
+    ok: bool
+
+
+def motion_excitation(gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray) -> Excitation:
+    """Per-axis rotation and acceleration of an IMU recording (gyro in rad/s, accel in m/s^2).
+
+    Rotation about all three axes makes the extrinsic fully observable; about one axis only
+    (a vehicle on flat ground) the translation along that axis is not; without rotation neither
+    the rotation extrinsic nor the lever arm can be found.
+    """
+    w = np.degrees(np.asarray(gyro_rad_s, dtype=np.float64))
+    a = np.asarray(accel_m_s2, dtype=np.float64)
+    rms = np.sqrt(np.mean(w**2, axis=0))
+    lam, vec = np.linalg.eigh(w.T @ w / max(w.shape[0], 1))
+    strength = np.sqrt(np.clip(lam[::-1], 0.0, None))
+    axis = vec[:, -1] * (1.0 if vec[np.argmax(np.abs(vec[:, -1])), -1] >= 0 else -1.0)
+    first = max(float(strength[0]), 1e-12)
+    total = float(np.sqrt(np.sum(strength**2)))
+    if total < MIN_ROTATION_RMS_DEG_S:
+        summary = (
+            f"hardly any rotation (RMS {total:.1f} deg/s): the rotation extrinsic and the lever "
+            "arm cannot be determined; rotate the rig about all three axes"
+        )
+        ok = False
+    elif strength[1] / first < SINGLE_AXIS_RATIO:
+        ax = ", ".join(f"{x:.2f}" for x in np.round(axis, 2) + 0.0)
+        summary = (
+            f"rotation about one axis only ([{ax}] in the IMU frame, planar motion): the "
+            "translation along it will not be observable"
+        )
+        ok = False
+    elif strength[2] / first < SINGLE_AXIS_RATIO:
+        summary = (
+            "rotation about two axes only: the extrinsic is observable but weakly along the "
+            "third; rotate about all three axes for the best result"
+        )
+        ok = True
+    else:
+        summary = "rotation about all three axes: the extrinsic is fully observable"
+        ok = True
+    std_a = np.std(a, axis=0)
+    return Excitation(
+        rotation_rms_deg_s=(float(rms[0]), float(rms[1]), float(rms[2])),
+        rotation_axis_strength=(float(strength[0]), float(strength[1]), float(strength[2])),
+        strongest_axis=(float(axis[0]), float(axis[1]), float(axis[2])),
+        accel_std_m_s2=(float(std_a[0]), float(std_a[1]), float(std_a[2])),
+        summary=summary,
+        ok=ok,
+    )
+
+
 @dataclass(frozen=True)
 class ImuReport:
     """The IMU stream of the segment.
@@ -84,6 +168,7 @@ class ImuReport:
         backwards: stamps smaller than the previous one.
         duplicates: stamps equal to the previous one.
         first_stamp_ns: first stamp, ns.
+        excitation: how the IMU moved, or None without samples.
     """
 
     topic: str
@@ -102,6 +187,7 @@ class ImuReport:
     duplicates: int
     first_stamp_ns: int
     gyro_gravity_factor: float | None = None
+    excitation: Excitation | None = None
 
 
 @dataclass(frozen=True)
@@ -244,6 +330,7 @@ class BagReport:
                 "backwards": i.backwards,
                 "duplicates": i.duplicates,
                 "first_stamp_ns": i.first_stamp_ns,
+                "excitation": None if i.excitation is None else _excitation_dict(i.excitation),
             }
         lidar = None
         if self.lidar is not None:
@@ -333,6 +420,12 @@ def _inspect_imu(
     )
     notes.extend(units.messages())
     problems.extend(rd.Problem(w, False, DataError) for w in units.warnings())
+    excitation = None
+    if np.count_nonzero(keep) >= 10:
+        excitation = motion_excitation(*convert_imu(raw.gyro[keep], raw.accel[keep], units))
+        if not excitation.ok:
+            msg = f"The IMU shows {excitation.summary}."
+            problems.append(rd.Problem(msg, False, ExcitationError))
     report = ImuReport(
         topic=topic.name,
         count=stats.count,
@@ -350,6 +443,7 @@ def _inspect_imu(
         duplicates=stats.duplicates,
         first_stamp_ns=stats.first_ns,
         gyro_gravity_factor=units.gravity_turn_factor,
+        excitation=excitation,
     )
     return report, off
 
@@ -443,6 +537,17 @@ def _inspect_lidar(
         first_stamp_ns=stats.first_ns,
     )
     return report, clock_off
+
+
+def _excitation_dict(e: Excitation) -> dict[str, Any]:
+    return {
+        "rotation_rms_deg_s": [_round(x, 3) for x in e.rotation_rms_deg_s],
+        "rotation_axis_strength_deg_s": [_round(x, 3) for x in e.rotation_axis_strength],
+        "strongest_axis": [_round(x, 4) for x in e.strongest_axis],
+        "accel_std_m_s2": [_round(x, 4) for x in e.accel_std_m_s2],
+        "summary": e.summary,
+        "ok": e.ok,
+    }
 
 
 def inspect_bag(path: Path, cfg: CalibConfig) -> BagReport:

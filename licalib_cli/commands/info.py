@@ -131,6 +131,23 @@ def render_report(report: BagReport) -> None:
         )
         imu.add_row("stamps going backwards", _problem_cell(i.backwards))
         imu.add_row("duplicated stamps", _problem_cell(i.duplicates))
+        if i.excitation is not None:
+            e = i.excitation
+            imu.add_row(
+                "rotation RMS x, y, z",
+                ", ".join(f"{v:.1f}" for v in e.rotation_rms_deg_s) + " deg/s",
+            )
+            imu.add_row(
+                "rotation axes",
+                "principal axes "
+                + " : ".join(f"{v:.1f}" for v in e.rotation_axis_strength)
+                + " deg/s RMS",
+            )
+            imu.add_row(
+                "accel std x, y, z", ", ".join(f"{v:.2f}" for v in e.accel_std_m_s2) + " m/s^2"
+            )
+            colour = "green" if e.ok else "yellow"
+            imu.add_row("excitation", f"[{colour}]{escape(e.summary)}[/]")
         out.print(imu)
 
     if report.lidar is not None:

@@ -186,8 +186,9 @@ def test_info_ambiguous_gyro_unit_warns_but_stays_usable(
     data = json.loads(out)
     assert data["usable"] is True and data["exit_code"] == 0
     assert (data["imu"]["gyro_unit"], data["imu"]["gyro_unit_source"]) == ("rad/s", "assumed")
-    (problem,) = data["problems"]
+    problem, motion = data["problems"]  # the unit, and the yaw-only motion (planar)
     assert problem["severity"] == "warning" and "`imu.gyro_unit: deg/s`" in problem["message"]
+    assert motion["severity"] == "warning" and "rotation about one axis only" in motion["message"]
     code, out, _ = _run(["info", str(tmp_path / "x")], capsys)
     assert code == 0
     assert "rad/s (assumed" in out and "warning: The IMU gyro unit cannot be told" in out

@@ -73,3 +73,49 @@ def test_info_reads_simulated_bag_layout(
     assert imu["rate_hz"] == pytest.approx(400.0)
     assert (imu["gyro_unit"], imu["accel_unit"]) == ("rad/s", "m/s^2")
     assert abs(data["clock_offset_s"]) < 0.01
+
+
+@pytest.mark.parametrize(
+    ("scenario", "ok", "words"),
+    [
+        ("sinusoid", True, "all three axes"),
+        ("figure8", False, "one axis only ([0.00, 0.00, 1.00]"),
+        ("translation", False, "hardly any rotation"),
+    ],
+)
+def test_info_judges_the_motion(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], scenario: str, ok: bool, words: str
+) -> None:
+    """The pre-flight excitation check: rotation about 3 axes, one axis (planar), none."""
+    spec = SimulationSpec(
+        scenario=scenario, duration_s=3.0, seed=2, azimuth_resolution_deg=4.0, intrinsics="none"
+    )
+    out = simulate(spec, tmp_path / "sim")
+    with pytest.raises(SystemExit) as exc:
+        main(["info", str(out.bag_path), "--json"])
+        raise SystemExit(0)
+    captured = capsys.readouterr()
+    assert exc.value.code == 0, captured.err  # usable; a weak motion is a warning
+    data = json.loads(captured.out)
+    e = data["imu"]["excitation"]
+    assert e["ok"] is ok and words in e["summary"], e
+    warned = [p for p in data["problems"] if "The IMU shows" in p["message"]]
+    assert bool(warned) is (not ok)
+    if scenario == "figure8":
+        assert e["rotation_axis_strength_deg_s"][1] < 0.1 * e["rotation_axis_strength_deg_s"][0]
+
+
+def test_motion_excitation_two_axes_and_units() -> None:
+    import numpy as np
+
+    from licalib_cli.inspection import motion_excitation
+
+    t = np.linspace(0.0, 10.0, 4001)
+    gyro = np.stack([0.5 * np.sin(t), 0.4 * np.cos(1.3 * t), 0.001 * np.sin(7 * t)], axis=1)
+    accel = np.tile([0.0, 0.0, 9.81], (t.size, 1))
+    e = motion_excitation(gyro, accel)
+    assert e.ok and "two axes only" in e.summary
+    expected_x = np.degrees(np.sqrt(np.mean(gyro[:, 0] ** 2)))
+    assert e.rotation_rms_deg_s[0] == pytest.approx(expected_x, rel=1e-9)
+    assert e.rotation_axis_strength[2] < 0.1 * e.rotation_axis_strength[0]
+    assert e.accel_std_m_s2 == pytest.approx((0.0, 0.0, 0.0), abs=1e-9)
