@@ -96,14 +96,22 @@ class Signal:
         f = self.offset + self.slope * tt
         d1 = np.full_like(tt, self.slope)
         d2 = np.zeros_like(tt)
-        if self.amp.size == 0:
+        if self.amp.size == 0 or tt.size == 0:
             return f, d1, d2
-        arg = tt[:, None] * self.omega + self.phase  # (N, K)
-        s = self.amp * np.sin(arg)
-        s1 = self.amp * self.omega * np.cos(arg)
-        s2 = -(self.omega**2) * s
-        if np.isfinite(self.window).all(axis=1).any():
-            w, w1, w2 = _windows(tt, self.window)
+        # Windowed terms that do not overlap the queried times contribute exact zeros: skip them
+        # (a long walk has many bursts, a sweep spans 0.1 s).
+        bounded = np.isfinite(self.window).all(axis=1)
+        active = ~bounded | ((self.window[:, 1] >= tt.min()) & (self.window[:, 0] <= tt.max()))
+        if not active.any():
+            return f, d1, d2
+        amp, omega, phase = self.amp[active], self.omega[active], self.phase[active]
+        window = self.window[active]
+        arg = tt[:, None] * omega + phase  # (N, K)
+        s = amp * np.sin(arg)
+        s1 = amp * omega * np.cos(arg)
+        s2 = -(omega**2) * s
+        if bounded[active].any():
+            w, w1, w2 = _windows(tt, window)
             s2 = w2 * s + 2.0 * w1 * s1 + w * s2
             s1 = w1 * s + w * s1
             s = w * s
