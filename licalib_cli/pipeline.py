@@ -545,8 +545,9 @@ def gyro_aided_rotation(
     Otherwise each round deskews with the current rotation and time offset, re-registers (seeded
     by kiss-icp and the gyro), re-estimates the coarse time offset when ``reestimate_offset``
     (the gyro's timing leaks into odometry it deskews, pulling the correlation towards the
-    offset assumed, so it is iterated), and re-solves hand-eye, until the rotation moves less
-    than 0.05 deg and the offset less than 0.5 ms. With a rotation from the config the rounds
+    offset assumed, so it is iterated), and re-solves hand-eye, until the odometry agrees with
+    the gyro (hand-eye residual under ``_AGREEING_HAND_EYE_DEG``) or the rotation moves less than
+    0.05 deg and the offset less than 0.5 ms. With a rotation from the config the rounds
     start from it.
 
     Returns:
@@ -583,8 +584,8 @@ def gyro_aided_rotation(
         logger.info(
             "Gyro-aided hand-eye round: rotation moved %.3f deg, time offset %+.4f s.", step, t_c
         )
-        if step < 0.05 and t_step < 5e-4:
-            break
+        if new.residual_rms_deg < _AGREEING_HAND_EYE_DEG or (step < 0.05 and t_step < 5e-4):
+            break  # the odometry now agrees with the gyro; the optimisation does the rest
     return rot, t_c, poses, hand_eye
 
 
