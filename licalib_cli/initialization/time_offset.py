@@ -446,14 +446,14 @@ def estimate_time_offset_joint(
     queries = (t_mid[None, :] + lag_ns[:, None]).reshape(-1)
     w_imu = angular_velocity_from_gyro(imu, queries, window_s).reshape(lags.size, -1, 3)
     keep = np.ones(t_mid.shape[0], dtype=bool)
-    for _ in range(2):
+    fit, rots = _procrustes_fit(w_imu, w_lidar)
+    i = int(np.argmax(fit))
+    err = np.linalg.norm(w_imu[i] - w_lidar @ rots[i].T, axis=1)
+    trimmed = err <= _JOINT_TRIM_FACTOR * max(float(np.median(err)), 1e-9)
+    if not trimmed.all() and np.count_nonzero(trimmed) >= _JOINT_MIN_INTERVALS:
+        keep = trimmed
         fit, rots = _procrustes_fit(w_imu[:, keep], w_lidar[keep])
         i = int(np.argmax(fit))
-        err = np.linalg.norm(w_imu[i] - w_lidar @ rots[i].T, axis=1)
-        keep_next = err <= _JOINT_TRIM_FACTOR * max(float(np.median(err)), 1e-9)
-        if np.array_equal(keep_next, keep) or np.count_nonzero(keep_next) < _JOINT_MIN_INTERVALS:
-            break
-        keep = keep_next
     frac = 0.0
     if 0 < i < fit.size - 1:
         den = fit[i - 1] - 2.0 * fit[i] + fit[i + 1]

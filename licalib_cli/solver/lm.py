@@ -272,7 +272,9 @@ def compute_step(
     layout = lin.layout
     nc = layout.num_calibration
     if nc and basis is None:
-        basis = observable_basis(_undamped_information(lin), params)
+        basis = (
+            observable_basis(_undamped_information(lin), params) if params.use_tsvd else np.eye(nc)
+        )
     d_t = lam * _damping_diagonal(lin.H_tt.diagonal(), params)
     sch = schur_complement(lin, d_t)
     num_truncated = 0
@@ -333,8 +335,10 @@ def solve(
         )
         raise SolverError(msg)
     lin = problem.linearize(evaluation, layout)
-    info = _undamped_information(lin)
-    basis = observable_basis(info, params)
+    # The truncation is decided once per linearisation (without the TSVD only the report needs
+    # the undamped information, at the end).
+    info = _undamped_information(lin) if params.use_tsvd else None
+    basis = None if info is None else observable_basis(info, params)
     cost = evaluation.cost
     history = [cost]
     lam, nu = params.initial_lambda, 2.0
@@ -391,8 +395,8 @@ def solve(
         if accepted:
             problem.set_values(trial_values)
             lin = problem.linearize(trial, layout)
-            info = _undamped_information(lin)
-            basis = observable_basis(info, params)
+            info = _undamped_information(lin) if params.use_tsvd else None
+            basis = None if info is None else observable_basis(info, params)
             old_cost, cost = cost, trial.cost
             history.append(cost)
             lam *= max(params.min_decrease, 1.0 - (2.0 * gain - 1.0) ** 3)
@@ -410,6 +414,8 @@ def solve(
                 status = "failed"
                 reason = f"no step reduced the cost before lambda exceeded {params.max_lambda:g}"
                 break
+    if info is None:
+        info = _undamped_information(lin)
     return _report(lin, info, params, status, reason, iteration, history, start)
 
 
