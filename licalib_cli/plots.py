@@ -27,7 +27,7 @@ from licalib_cli.results import Extrinsic
 if TYPE_CHECKING:
     from licalib_cli.pipeline import CalibrationRun
 
-__all__ = ["require_matplotlib", "save_plots"]
+__all__ = ["prepare_plots", "save_plots"]
 
 _DPI = 110
 
@@ -47,9 +47,25 @@ def _pyplot() -> Any:
     return plt
 
 
-def require_matplotlib() -> None:
-    """Raise :class:`ConfigError` now, before a long run, when plots cannot be drawn."""
+def prepare_plots(folder: Path) -> None:
+    """Check, before a long run, that plots can be drawn into ``folder`` (created if needed).
+
+    Raises:
+        ConfigError: matplotlib is missing, or ``folder`` is a file or cannot be created.
+    """
     _pyplot()
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        msg = f"--plots needs a folder, but {folder} is a file; give a folder path."
+        raise ConfigError(msg)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        msg = (
+            f"The plot folder {folder} cannot be created ({err.strerror}); give a writable "
+            "folder to --plots."
+        )
+        raise ConfigError(msg) from err
 
 
 def save_plots(run: CalibrationRun, folder: Path) -> list[Path]:
@@ -67,7 +83,7 @@ def save_plots(run: CalibrationRun, folder: Path) -> list[Path]:
     """
     plt = _pyplot()
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    prepare_plots(folder)
     written = []
     for name, draw in (("fit.png", _fit_figure), ("observability.png", _spectrum_figure)):
         fig = draw(plt, run)

@@ -274,6 +274,31 @@ def dump_yaml(data: dict[str, Any]) -> str:
     return yaml.dump(data, Dumper=_Dumper, sort_keys=False, default_flow_style=False, width=120)
 
 
+def prepare_output(path: Path) -> None:
+    """Check, before a long run, that a result file can be written at ``path`` (its folder is
+    created if needed).
+
+    Raises:
+        ConfigError: ``path`` is a folder, or its folder is a file, cannot be created or is not
+            writable.
+    """
+    path = Path(path)
+    if path.is_dir():
+        msg = f"The output {path} is a folder; give a file name such as {path / 'calib.yaml'}."
+        raise ConfigError(msg)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError) as err:
+        msg = f"The output folder {path.parent} is a file; give another output path."
+        raise ConfigError(msg) from err
+    except OSError as err:
+        msg = f"The output folder {path.parent} cannot be created ({err.strerror}); give another."
+        raise ConfigError(msg) from err
+    if not os.access(path.parent, os.W_OK):
+        msg = f"The output folder {path.parent} is not writable; give another output path."
+        raise ConfigError(msg)
+
+
 def write_text_atomic(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` through a temporary file and a rename."""
     path = Path(path)

@@ -10,7 +10,7 @@ from rich.table import Table
 
 from licalib_cli.commands.render import console, console_err
 from licalib_cli.config import dump_config, load_config
-from licalib_cli.results import write_text_atomic
+from licalib_cli.results import prepare_output, write_text_atomic
 
 _IO = "Input"
 _OUT = "Output"
@@ -104,10 +104,11 @@ def calibrate_command(
             "bag.duration_s": duration,
         },
     )
+    prepare_output(out)
     if plots is not None:
-        from licalib_cli.plots import require_matplotlib
+        from licalib_cli.plots import prepare_plots
 
-        require_matplotlib()
+        prepare_plots(plots)
     progress = RichProgress()
     try:
         run = calibrate(bag, cfg, progress)

@@ -241,7 +241,14 @@ def simulate(
     bag_path = default_bag_path(out_dir, spec.fmt)
     truth_path = out_dir / "truth.yaml"
     _check_overwrite(bag_path, force)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError) as err:
+        msg = f"The output {out_dir} (or a folder above it) is a file; give a folder path."
+        raise ConfigError(msg) from err
+    except OSError as err:
+        msg = f"The output folder {out_dir} cannot be created ({err.strerror}); give another."
+        raise ConfigError(msg) from err
 
     setup = build_setup(spec)
     imu, imu_truth = generate_imu(spec, setup)

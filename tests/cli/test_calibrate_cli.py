@@ -108,3 +108,24 @@ def test_plots_without_matplotlib_fail_before_any_work(tmp_path, capsys, monkeyp
     code, _, err = run(["calibrate", str(bag), "--plots", str(tmp_path / "p")], capsys)
     assert code == 6, err
     assert "matplotlib" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (["--out", "{tmp}"], "is a folder; give a file name"),
+        (["--out", "{tmp}/file.txt/result.yaml"], "is a file; give another output path"),
+        (["--plots", "{tmp}/file.txt"], "--plots needs a folder"),
+    ],
+)
+def test_bad_output_paths_fail_before_any_work(tmp_path, capsys, monkeypatch, args, words):
+    def not_reached(*a, **k):
+        raise AssertionError("calibration started although its output cannot be written")
+
+    monkeypatch.setattr("licalib_cli.pipeline.calibrate", not_reached)
+    (tmp_path / "file.txt").write_text("x")
+    bag = write_static_bag(tmp_path / "s.bag", 1.0)
+    argv = ["calibrate", str(bag), *(a.format(tmp=tmp_path) for a in args)]
+    code, _, err = run(argv, capsys)
+    assert code == 6, err
+    assert words in err and "Traceback" not in err and "Internal error" not in err

@@ -131,3 +131,10 @@ def test_effects_by_name_and_random_time_offset(
     assert 0 < abs(expected) <= 0.05 and sim["clock"]["time_offset_drawn"] is True
     assert "--random-time-offset" in sim["command_line"]
     assert "--effect bias-random-walk --effect imu-clock-drift" in sim["command_line"]
+
+
+def test_output_that_is_a_file_is_a_clear_error(tmp_path: Path) -> None:
+    (tmp_path / "taken").write_text("x")
+    result = CliRunner().invoke(_app(), ["simulate", str(tmp_path / "taken"), "--duration", "0.2"])
+    assert isinstance(result.exception, ConfigError)
+    assert "is a file; give a folder path" in str(result.exception)
