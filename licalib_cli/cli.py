@@ -131,7 +131,10 @@ def main(argv: list[str] | None = None) -> None:
     args = list(argv) if argv is not None else sys.argv[1:]
     debug = "--debug" in args
     try:
-        app(args=args, prog_name="licalib", standalone_mode=False)
+        # Without standalone mode click returns (not raises) the code of a typer.Exit.
+        code = app(args=args, prog_name="licalib", standalone_mode=False)
+        if isinstance(code, int) and code != 0:
+            sys.exit(code)
     except KeyboardInterrupt:
         typer.echo("Interrupted.", err=True)
         sys.exit(130)

@@ -489,6 +489,9 @@ def initialise(
     return rot, t_c, r_source, t_source, correlation, hand_eye, poses
 
 
+MIN_SEGMENT_S = 2.0
+"""Shorter segments are refused: a few scans cannot determine the extrinsic."""
+
 THICKNESS_PER_RANGE_SIGMA = 1.5
 """Default ``surfels.max_thickness_m`` in units of ``noise.range_sigma_m``: range noise alone
 gives an RMS of at most one sigma off a plane; a cell much thicker than that straddles
@@ -884,6 +887,16 @@ def judge(
         )
     if report.status not in ("converged",) and len(rounds) >= cfg.schedule.max_rounds:
         reasons.append(f"The last round stopped on: {report.reason}.")
+    ext = [i for i, n in enumerate(report.calibration_names) if n.startswith("ext.")]
+    n_observable = int(np.count_nonzero(report.observable[ext])) if ext else 0
+    if ext and n_observable < (len(ext) + 1) // 2:
+        status = "fail"
+        reasons.insert(
+            0,
+            f"The data determine only {n_observable} of the {len(ext)} extrinsic coordinates; "
+            "the result is mostly the initial guess. Record 10-60 s with rotation about all "
+            "three axes.",
+        )
     if report.variance_factor > 25:
         status = "fail"
         reasons.append(
@@ -942,6 +955,13 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
         len(rec.scans),
         (rec.end_ns - rec.start_ns) / _NS,
     )
+    span_s = float(rec.imu.t_ns[-1] - rec.imu.t_ns[0]) / _NS
+    if span_s < MIN_SEGMENT_S:
+        msg = (
+            f"The segment holds only {span_s:.1f} s of data, too little to calibrate; use "
+            "10-60 s with rotation about all three axes (--start/--duration)."
+        )
+        raise ExcitationError(msg)
 
     ocfg = odometry_config(cfg)
     with timer.stage("odometry", progress, total=len(rec.scans)):

@@ -13,6 +13,8 @@ from licalib_cli.config import dump_config, load_config
 from licalib_cli.results import prepare_output, write_text_atomic
 
 _IO = "Input"
+VERDICT_FAIL_EXIT_CODE = 9
+"""Exit code when the calibration ran but its verdict is ``fail``."""
 _OUT = "Output"
 
 
@@ -124,6 +126,9 @@ def calibrate_command(
 
         files = save_plots(run, plots)
         console().print("Plots: " + ", ".join(str(f) for f in files))
+    if run.verdict.status == "fail":
+        # The result is written for inspection, but scripts must not take it.
+        raise typer.Exit(code=VERDICT_FAIL_EXIT_CODE)
 
 
 def _fmt(v: float, unit: str, scale: float = 1.0, digits: int = 4) -> str:

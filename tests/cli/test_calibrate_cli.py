@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from licalib_cli.cli import main
 from licalib_cli.io.writer import BagWriter
@@ -129,3 +130,17 @@ def test_bad_output_paths_fail_before_any_work(tmp_path, capsys, monkeypatch, ar
     code, _, err = run(argv, capsys)
     assert code == 6, err
     assert words in err and "Traceback" not in err and "Internal error" not in err
+
+
+@pytest.mark.slow
+def test_fail_verdict_exits_9_and_keeps_the_result(tmp_path, capsys):
+    """3 s of the sample determine only part of the extrinsic: verdict fail, exit code 9, the
+    result is still written for inspection. Too short a segment is refused outright."""
+    bag = Path(__file__).resolve().parents[2] / "sample_data" / "sinusoid_vlp16" / "bag.bag"
+    out = tmp_path / "r.yaml"
+    code, printed, err = run(["calibrate", str(bag), "--duration", "3", "-o", str(out)], capsys)
+    assert code == 9, err
+    assert "Verdict: FAIL" in printed and "The data determine only" in printed
+    assert yaml.safe_load(out.read_text())["verdict"]["status"] == "fail"
+    code, _, err = run(["calibrate", str(bag), "--duration", "1.5", "-o", str(out)], capsys)
+    assert code == 7 and "only 1.5 s of data" in err and "Traceback" not in err
