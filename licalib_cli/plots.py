@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from licalib_cli.errors import ConfigError
-from licalib_cli.results import Extrinsic
+from licalib_cli.results import Extrinsic, create_folder
 
 if TYPE_CHECKING:
     from licalib_cli.pipeline import CalibrationRun
@@ -58,14 +58,7 @@ def prepare_plots(folder: Path) -> None:
     if folder.exists() and not folder.is_dir():
         msg = f"--plots needs a folder, but {folder} is a file; give a folder path."
         raise ConfigError(msg)
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        msg = (
-            f"The plot folder {folder} cannot be created ({err.strerror}); give a writable "
-            "folder to --plots."
-        )
-        raise ConfigError(msg) from err
+    create_folder(folder, "The plot folder", "give a writable folder to --plots")
 
 
 def save_plots(run: CalibrationRun, folder: Path) -> list[Path]:

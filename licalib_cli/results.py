@@ -274,6 +274,27 @@ def dump_yaml(data: dict[str, Any]) -> str:
     return yaml.dump(data, Dumper=_Dumper, sort_keys=False, default_flow_style=False, width=120)
 
 
+def create_folder(folder: Path, label: str, fix: str) -> None:
+    """Create ``folder`` (and its parents) or raise one clear sentence.
+
+    Args:
+        folder: the folder.
+        label: how the message names it, e.g. ``"The output folder"``.
+        fix: what the user should do, e.g. ``"give another output path"``.
+
+    Raises:
+        ConfigError: ``folder`` or a folder above it is a file, or it cannot be created.
+    """
+    try:
+        Path(folder).mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError) as err:
+        msg = f"{label} {folder} (or a folder above it) is a file; {fix}."
+        raise ConfigError(msg) from err
+    except OSError as err:
+        msg = f"{label} {folder} cannot be created ({err.strerror}); {fix}."
+        raise ConfigError(msg) from err
+
+
 def prepare_output(path: Path) -> None:
     """Check, before a long run, that a result file can be written at ``path`` (its folder is
     created if needed).
@@ -286,14 +307,7 @@ def prepare_output(path: Path) -> None:
     if path.is_dir():
         msg = f"The output {path} is a folder; give a file name such as {path / 'calib.yaml'}."
         raise ConfigError(msg)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except (FileExistsError, NotADirectoryError) as err:
-        msg = f"The output folder {path.parent} is a file; give another output path."
-        raise ConfigError(msg) from err
-    except OSError as err:
-        msg = f"The output folder {path.parent} cannot be created ({err.strerror}); give another."
-        raise ConfigError(msg) from err
+    create_folder(path.parent, "The output folder", "give another output path")
     if not os.access(path.parent, os.W_OK):
         msg = f"The output folder {path.parent} is not writable; give another output path."
         raise ConfigError(msg)

@@ -38,7 +38,7 @@ from scipy.spatial.transform import Rotation
 from licalib_cli import __version__
 from licalib_cli.errors import ConfigError
 from licalib_cli.io.writer import BagWriter, default_bag_path
-from licalib_cli.results import CalibrationResult, write_text_atomic
+from licalib_cli.results import CalibrationResult, create_folder, write_text_atomic
 from licalib_cli.simulation.ground_truth import SimulationSetup, build_setup
 from licalib_cli.simulation.imu import ImuTruth, generate_imu
 from licalib_cli.simulation.lidar import generate_scans, num_scans
@@ -241,14 +241,7 @@ def simulate(
     bag_path = default_bag_path(out_dir, spec.fmt)
     truth_path = out_dir / "truth.yaml"
     _check_overwrite(bag_path, force)
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except (FileExistsError, NotADirectoryError) as err:
-        msg = f"The output {out_dir} (or a folder above it) is a file; give a folder path."
-        raise ConfigError(msg) from err
-    except OSError as err:
-        msg = f"The output folder {out_dir} cannot be created ({err.strerror}); give another."
-        raise ConfigError(msg) from err
+    create_folder(out_dir, "The output", "give a folder path")
 
     setup = build_setup(spec)
     imu, imu_truth = generate_imu(spec, setup)

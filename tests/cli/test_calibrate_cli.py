@@ -117,6 +117,7 @@ def test_plots_without_matplotlib_fail_before_any_work(tmp_path, capsys, monkeyp
         (["--out", "{tmp}"], "is a folder; give a file name"),
         (["--out", "{tmp}/file.txt/result.yaml"], "is a file; give another output path"),
         (["--plots", "{tmp}/file.txt"], "--plots needs a folder"),
+        (["--plots", "{tmp}/file.txt/plots"], "is a file; give a writable folder to --plots"),
     ],
 )
 def test_bad_output_paths_fail_before_any_work(tmp_path, capsys, monkeypatch, args, words):
