@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -69,6 +69,11 @@ class RotationSearchConfig:
         refine_samples: random perturbations per local search.
         min_separation_deg: candidates closer than this count as the same solution.
         seed: seed of the local-search perturbations (the result is deterministic).
+        normal_window_scans: consecutive scans per window of the surface-normal score.
+        normal_cell_m: cell size of the planar patches of one scan, metres.
+        normal_min_points: points a cell needs to give a patch.
+        normal_min_planarity: plane-likeness ``2 (l1 - l0) / (l0 + l1 + l2)`` a patch needs.
+        normal_bin: bin size of the normal directions on the unit sphere (about 6 deg).
     """
 
     window_scans: int = 5
@@ -83,6 +88,13 @@ class RotationSearchConfig:
     refine_samples: int = 40
     min_separation_deg: float = 30.0
     seed: int = 0
+    normal_window_scans: int = 10
+    normal_cell_m: float = 1.0
+    normal_min_points: int = 8
+    normal_min_planarity: float = 0.7
+    normal_bin: float = 0.1
+    use_points: bool = True
+    use_normals: bool = True
 
 
 @dataclass(frozen=True)
@@ -91,7 +103,8 @@ class RotationSearch:
 
     Attributes:
         R_imu_lidar: (3, 3) the sharpest rotation extrinsic.
-        score: occupied voxels with it (lower is sharper).
+        score: its sharpness score: occupied voxels of the points and occupied bins of the patch
+            normals, each relative to a random rotation's, summed (lower is sharper).
         ambiguity: score of the best candidate at least ``min_separation_deg`` away divided by
             ``score`` (close to 1: the data cannot tell them apart).
         smear_score: median score over the coarse grid (what a random rotation gives).
@@ -192,6 +205,80 @@ def _window_points(
     return np.asarray(xyz, dtype=np.float64), np.asarray((mid.inv() * rot).as_matrix())
 
 
+def _scan_normals(
+    scan: LidarScan, cfg: RotationSearchConfig
+) -> tuple[FloatArray, npt.NDArray[np.int64]]:
+    """Unit normals (M, 3) of the planar patches of one scan (LiDAR frame) and their times.
+
+    A patch is a cell of ``cfg.normal_cell_m`` with a plane-like point spread; its points were
+    fired within a few milliseconds, so its normal is not distorted by the motion during the
+    sweep. Normals face the sensor.
+    """
+    rho = np.linalg.norm(scan.xyz, axis=1)
+    ok = (rho >= cfg.min_range_m) & (rho <= cfg.max_range_m)
+    xyz, t = scan.xyz[ok], scan.t_ns[ok]
+    if xyz.shape[0] < cfg.normal_min_points:
+        return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+    key = np.floor(xyz / cfg.normal_cell_m).astype(np.int64)
+    _, cell, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    cell = cell.reshape(-1)
+    order = np.argsort(cell, kind="stable")
+    xyz, t, cell = xyz[order], t[order], cell[order]
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    n = counts[:, None].astype(np.float64)
+    mean = np.add.reduceat(xyz, starts, axis=0) / n
+    outer = np.add.reduceat(xyz[:, :, None] * xyz[:, None, :], starts, axis=0) / n[:, :, None]
+    cov = outer - mean[:, :, None] * mean[:, None, :]
+    t_mean = (np.add.reduceat((t - t[0]).astype(np.float64), starts) / n[:, 0]).astype(np.int64)
+    use = counts >= cfg.normal_min_points
+    lam, vec = np.linalg.eigh(cov[use])
+    planar = 2.0 * (lam[:, 1] - lam[:, 0]) / np.maximum(lam.sum(axis=1), 1e-12)
+    keep = planar >= cfg.normal_min_planarity
+    normal = vec[keep, :, 0]
+    flip = np.einsum("ij,ij->i", normal, mean[use][keep]) > 0.0
+    normal[flip] *= -1.0
+    return normal, t_mean[use][keep] + t[0]
+
+
+def _window_normals(
+    scans: Sequence[LidarScan],
+    window: tuple[int, int],
+    gyro: GyroIntegrator,
+    t_c_ns: int,
+    cfg: RotationSearchConfig,
+) -> tuple[FloatArray, FloatArray]:
+    """Patch normals (N, 3) of a window and their gyro orientations (N, 3, 3).
+
+    The orientations are relative to the IMU frame at the window's middle time. Normals do not
+    move when the rig translates, so the lever arm and the rig's translation do not blur them.
+    """
+    normals, times = [], []
+    for scan in scans[window[0] : window[1] + 1]:
+        nrm, t = _scan_normals(scan, cfg)
+        t_imu = t + t_c_ns
+        inside = (t_imu >= gyro.t_ns[0]) & (t_imu <= gyro.t_ns[-1])
+        normals.append(nrm[inside])
+        times.append(t_imu[inside])
+    nrm = np.concatenate(normals)
+    t_ns = np.concatenate(times).astype(np.int64)
+    if t_ns.size == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3, 3))
+    rot = gyro(t_ns)
+    mid = gyro(np.array([(int(t_ns.min()) + int(t_ns.max())) // 2], dtype=np.int64))
+    return np.asarray(nrm, dtype=np.float64), np.asarray((mid.inv() * rot).as_matrix())
+
+
+class _CombinedScorer:
+    """Sum of several scorers, each divided by its score of a random rotation."""
+
+    def __init__(self, scorers: list[_Scorer], reference: FloatArray) -> None:
+        self.scorers = scorers
+        self.norms = [float(np.median(_batched(sc, reference))) or 1.0 for sc in scorers]
+
+    def __call__(self, rotations: FloatArray) -> FloatArray:
+        return sum(sc(rotations) / n for sc, n in zip(self.scorers, self.norms, strict=True))
+
+
 class _Scorer:
     """Occupied-voxel count of the windows' clouds for candidate extrinsics."""
 
@@ -218,7 +305,9 @@ class _Scorer:
         return out
 
 
-def _batched(scorer: _Scorer, rotations: FloatArray, batch: int = 64) -> FloatArray:
+def _batched(
+    scorer: _Scorer | _CombinedScorer, rotations: FloatArray, batch: int = 64
+) -> FloatArray:
     return np.concatenate(
         [scorer(rotations[i : i + batch]) for i in range(0, rotations.shape[0], batch)]
     )
@@ -271,11 +360,23 @@ def search_rotation_extrinsic(
         )
         raise ExcitationError(msg)
     rng = np.random.default_rng(cfg.seed)
-    scorer = _Scorer(
-        [_window_points(scans, w, gyro, t_c_ns, cfg, rng) for w in spans], cfg.voxel_size_m
-    )
-
     coarse = Rotation.from_quat(super_fibonacci_rotations(cfg.coarse_candidates)).as_matrix()
+    normal_cfg = replace(cfg, window_scans=cfg.normal_window_scans)
+    normal_spans = _select_windows(scans, gyro, t_c_ns, normal_cfg)
+    normal_windows = [_window_normals(scans, w, gyro, t_c_ns, cfg) for w in normal_spans]
+    normal_windows = [w for w in normal_windows if w[0].shape[0] > 0]
+    scorers = []
+    if cfg.use_points:
+        scorers.append(
+            _Scorer(
+                [_window_points(scans, w, gyro, t_c_ns, cfg, rng) for w in spans],
+                cfg.voxel_size_m,
+            )
+        )
+    if normal_windows and cfg.use_normals:
+        scorers.append(_Scorer(normal_windows, cfg.normal_bin))
+    scorer = _CombinedScorer(scorers, coarse[:: max(1, coarse.shape[0] // 200)])
+
     coarse_scores = _batched(scorer, coarse)
     min_sep = np.radians(cfg.min_separation_deg)
     starts = _distinct_best(coarse, coarse_scores, cfg.refine_starts, min_sep)
@@ -314,7 +415,7 @@ def search_rotation_extrinsic(
         windows=np.asarray(spans, dtype=np.int64),
     )
     logger.info(
-        "rotation search: sharpest extrinsic scores %d voxels (next distinct %.3fx, random %.2fx) "
+        "rotation search: sharpest extrinsic scores %.3g (next distinct %.3fx, random %.2fx) "
         "over windows %s",
         result.score,
         result.ambiguity,
