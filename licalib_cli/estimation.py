@@ -232,6 +232,8 @@ class LidarPoints:
         rho: (N,) raw range, m.
         theta: (N,) raw azimuth, rad.
         plane: (N,) index of the associated plane in :class:`Planes`.
+        model_gap: (N, 3) published point minus the LiDAR model's nominal point (LiDAR frame,
+            m), or None (zero).
     """
 
     t_s: F64
@@ -239,6 +241,7 @@ class LidarPoints:
     rho: F64
     theta: F64
     plane: npt.NDArray[np.integer]
+    model_gap: F64 | None = None
 
     def __len__(self) -> int:
         return int(np.asarray(self.t_s).shape[0])
@@ -709,6 +712,7 @@ def build_problem(
             np.asarray(planes.offset, dtype=np.float64)[plane],
             np.sqrt(sigma2),
             state.lidar_intrinsics.nominal_elevation,
+            model_gap=lidar.model_gap,
         )
         loss = None if noise.huber_threshold is None else HuberLoss(noise.huber_threshold)
         problem.add_residual_block(residual, loss)

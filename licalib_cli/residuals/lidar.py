@@ -63,6 +63,7 @@ class PointToPlaneResidual:
         sigma: float | npt.ArrayLike,
         nominal_elevation: npt.ArrayLike,
         *,
+        model_gap: npt.ArrayLike | None = None,
         name: str = "lidar.point_to_plane",
     ) -> None:
         """Create the block.
@@ -79,6 +80,8 @@ class PointToPlaneResidual:
                 a conservative bound: the distance noise is the range noise times the cosine of
                 the incidence angle).
             nominal_elevation: (B,) nominal beam elevations ``phi_i``, rad.
+            model_gap: (N, 3) what the driver's published point adds to the LiDAR model's point
+                (LiDAR frame, m), added to the modelled point; None for zero.
             name: residual block name.
 
         Raises:
@@ -112,6 +115,11 @@ class PointToPlaneResidual:
             msg = "point-to-plane sigmas must be positive and finite"
             raise ValueError(msg)
         self.inv_sigma = 1.0 / sig
+        self.model_gap = (
+            None
+            if model_gap is None
+            else np.ascontiguousarray(model_gap, dtype=np.float64).reshape(n, 3)
+        )
         self._zeros = np.zeros((n, 1), dtype=np.intp)
         self._beam_elements = self.beam[:, None].copy()
 
@@ -159,7 +167,7 @@ class PointToPlaneResidual:
             pos_ev.position,
             quat_to_matrix(params[EXT_ROTATION]),
             np.asarray(params[EXT_TRANSLATION], dtype=np.float64),
-            terms.point,
+            terms.point if self.model_gap is None else terms.point + self.model_gap,
             self.normal,
             self.offset,
             rot_ev.angular_velocity,

@@ -35,7 +35,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -184,6 +184,8 @@ class SolverReport:
             TSVD pseudo-inverse of the undamped Schur complement; ``inf`` where not observable.
         observable: (Nc,) False for coordinates lying in a truncated direction.
         elapsed_s: Wall time of :func:`solve`.
+        covariance: (Nc, Nc) covariance of the calibration coordinates (own units), the TSVD
+            pseudo-inverse of the undamped Schur complement (zero along truncated directions).
     """
 
     status: Literal["converged", "max_iterations", "failed"]
@@ -204,6 +206,7 @@ class SolverReport:
     std: F64
     observable: npt.NDArray[np.bool_]
     elapsed_s: float
+    covariance: F64 = field(default_factory=lambda: np.zeros((0, 0)))
 
     @property
     def converged(self) -> bool:
@@ -449,8 +452,10 @@ def _report(
     if s.size:
         cov_d = (u[:, keep] / s[keep]) @ u[:, keep].T
         std = scale * np.sqrt(np.clip(np.diag(cov_d), 0.0, None))
+        covariance = scale[:, None] * cov_d * scale[None, :]
     else:
         std = np.zeros(0)
+        covariance = np.zeros((0, 0))
     std = np.where(observable, std, np.inf)
     redundancy = lin.num_residuals - layout.num_free
     variance_factor = 2.0 * history[-1] / redundancy if redundancy > 0 else math.nan
@@ -476,4 +481,5 @@ def _report(
         std=std,
         observable=observable,
         elapsed_s=time.perf_counter() - start,
+        covariance=covariance,
     )

@@ -1,0 +1,158 @@
+"""Sensor noise measured from the data alone, independently of the calibration model.
+
+A consistency check compares the fit's residuals with the noise the sensors actually have; a
+noise figure from a datasheet (or a default) is often off by a factor of two, and a real IMU
+filters its output, so its noise at the sample rate is not the datasheet density times the root
+of the rate. The estimates here use only smoothness, never the sensor models:
+
+* IMU: each axis of the gyro (accelerometer) is fitted on its own with the functions the
+  trajectory spline can produce for it: the first (second) derivative of a cubic B-spline with
+  the calibration's knot spacing. What the free fit cannot explain is noise in the band the
+  calibration's residuals live in; its variance, corrected for the fitted coordinates, is the
+  noise variance. A calibration model that explains the data as well as this free fit has
+  residuals of the same size; a model that lacks an effect has larger ones.
+* LiDAR range: consecutive returns of one beam along its sweep lie on locally smooth surfaces;
+  the second difference of the range over three consecutive azimuths is noise (times sqrt(6))
+  except at edges, which a median absolute deviation ignores. Per-beam intrinsic errors are
+  constant along a beam and cancel, so this is the noise without any model error.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+import scipy.sparse.linalg as spla
+
+from licalib_cli.spline import R3Spline, UniformKnots
+
+__all__ = ["NoiseEstimate", "imu_noise", "range_noise"]
+
+F64 = npt.NDArray[np.float64]
+
+_MAD_TO_SIGMA = 1.4826
+
+
+@dataclass(frozen=True)
+class NoiseEstimate:
+    """Noise standard deviation measured from the data.
+
+    Attributes:
+        sigma: (k,) standard deviation per axis (or per beam), in the data's unit.
+        samples: number of values that entered the estimate.
+        method: how it was measured, in words.
+    """
+
+    sigma: F64
+    samples: int
+    method: str
+
+    @property
+    def overall(self) -> float:
+        """Root mean square of ``sigma`` over the axes with an estimate."""
+        s = self.sigma[np.isfinite(self.sigma)]
+        return float(np.sqrt(np.mean(s**2))) if s.size else float("nan")
+
+
+def imu_noise(
+    t_s: npt.ArrayLike, values: npt.ArrayLike, knot_spacing_s: float, derivative: int
+) -> NoiseEstimate:
+    """White-noise standard deviation of an IMU signal per axis, from a free spline fit.
+
+    Args:
+        t_s: (N,) sample times, seconds.
+        values: (N, 3) readings (rad/s or m/s^2).
+        knot_spacing_s: knot spacing of the calibration's trajectory spline, s.
+        derivative: 1 for a gyro (angular rate of a rotation spline), 2 for an accelerometer
+            (second derivative of a position spline).
+
+    Returns:
+        The estimate (NaN per axis with too few samples).
+    """
+    t = np.asarray(t_s, dtype=np.float64).reshape(-1)
+    y = np.asarray(values, dtype=np.float64).reshape(t.shape[0], -1)
+    if t.shape[0] < 20:
+        return NoiseEstimate(np.full(y.shape[1], np.nan), int(t.shape[0]), "too few samples")
+    knots = UniformKnots.for_interval(float(t[0]), float(t[-1]), knot_spacing_s)
+    design = R3Spline(knots, np.zeros((knots.num_control_points, 3))).design_matrix(t, derivative)
+    # The derivative removes the constant (and linear) part of the basis: holding the first
+    # control point(s) at zero removes that null space without changing the fitted functions.
+    design = design.tocsc()[:, derivative:]
+    solve = spla.factorized((design.T @ design).tocsc())
+    fitted = np.column_stack([design @ solve(design.T @ y[:, j]) for j in range(y.shape[1])])
+    resid = y - fitted
+    dof = t.shape[0] - (knots.num_control_points - derivative)
+    sigma = np.sqrt(np.sum(resid**2, axis=0) / max(dof, 1))
+    return NoiseEstimate(
+        sigma,
+        int(t.shape[0]),
+        f"residual of a free spline fit per axis (knot spacing {knot_spacing_s:g} s)",
+    )
+
+
+def range_noise(
+    scan_index: npt.ArrayLike,
+    beam: npt.ArrayLike,
+    azimuth: npt.ArrayLike,
+    rho: npt.ArrayLike,
+    num_beams: int,
+    max_step_factor: float = 1.5,
+) -> NoiseEstimate:
+    """Range noise per beam from second differences along each beam's sweep.
+
+    Args:
+        scan_index: (N,) index of the sweep each return belongs to.
+        beam: (N,) beam index in ``[0, num_beams)``.
+        azimuth: (N,) azimuth, rad.
+        rho: (N,) range, m.
+        num_beams: number of beams.
+        max_step_factor: a triple is used only when both azimuth steps are within this factor
+            of the beam's median step (no gap, no dropped return in between).
+
+    Returns:
+        The estimate, one sigma per beam (NaN for beams with fewer than 30 usable triples).
+    """
+    scan = np.asarray(scan_index, dtype=np.int64).reshape(-1)
+    b = np.asarray(beam, dtype=np.int64).reshape(-1)
+    az = np.mod(np.asarray(azimuth, dtype=np.float64).reshape(-1), 2 * np.pi)
+    r = np.asarray(rho, dtype=np.float64).reshape(-1)
+    order = np.lexsort((az, b, scan))
+    scan, b, az, r = scan[order], b[order], az[order], r[order]
+    same = (scan[:-2] == scan[2:]) & (b[:-2] == b[2:])
+    step1 = az[1:-1] - az[:-2]
+    step2 = az[2:] - az[1:-1]
+    sigma = np.full(num_beams, np.nan)
+    if not np.any(same):
+        return NoiseEstimate(sigma, 0, "no consecutive returns")
+    beam_of = b[:-2]
+    pos_steps = np.concatenate([step1[same & (step1 > 0)], np.zeros(0)])
+    if pos_steps.size == 0:
+        return NoiseEstimate(sigma, 0, "no consecutive returns")
+    median_step = float(np.median(pos_steps))
+    ok = (
+        same
+        & (step1 > 0)
+        & (step2 > 0)
+        & (step1 < max_step_factor * median_step)
+        & (step2 < max_step_factor * median_step)
+    )
+    d2 = r[2:] - 2.0 * r[1:-1] + r[:-2]
+    d2, beam_of = d2[ok], beam_of[ok]
+    # Range changes smoothly with azimuth on a surface; the curvature term is removed by the
+    # median of the beam (it is the same sign over long stretches only on cylinders).
+    counts = np.bincount(beam_of, minlength=num_beams)
+    if d2.size:
+        srt = np.argsort(beam_of, kind="stable")
+        d2s, bs = d2[srt], beam_of[srt]
+        bounds = np.searchsorted(bs, np.arange(num_beams + 1))
+        for i in range(num_beams):  # loop over beams, not points
+            seg = d2s[bounds[i] : bounds[i + 1]]
+            if seg.size >= 30:
+                mad = float(np.median(np.abs(seg - np.median(seg))))
+                sigma[i] = _MAD_TO_SIGMA * mad / np.sqrt(6.0)
+    return NoiseEstimate(
+        sigma,
+        int(counts.sum()),
+        "second differences of the range along each beam (median absolute deviation)",
+    )

@@ -1,0 +1,237 @@
+"""Score (Lagrange-multiplier) tests of effects the model holds fixed, and what they would move.
+
+At the estimate of a model, the cost's gradient with respect to the estimated parameters is
+zero, but not with respect to a parameter the model holds fixed (an IMU scale, a per-beam range
+offset). The score test asks whether freeing such a group of parameters would reduce the cost
+more than noise explains, without refitting: with whitened residuals, the gradient ``g_e`` and
+the information of the group after profiling out everything estimated,
+
+    LM = g_e^T (S_ee - S_eb S_bb^-1 S_be)^+ g_e  ~  chi^2(rank)   when the group is zero,
+
+where ``S`` is the calibration block of the information after the trajectory has been
+eliminated (the Schur complement the solver uses; ``b`` the estimated calibration coordinates,
+``e`` the group). The same quantities give the Gauss-Newton step that freeing the group would
+take, and so how far the estimated coordinates would move with it (their *shift*), together
+with the variance that shift has when the group is truly zero (noise alone moves them when a
+group is freed). A significant score with a shift beyond the estimate's own uncertainty means
+the fixed model biases the result.
+
+Everything here is plain linear algebra on ``S`` and ``b`` (no I/O); the pipeline builds them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+from scipy import stats
+
+__all__ = ["EffectScore", "EffectSelection", "score_effects", "select_effects"]
+
+F64 = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.intp]
+
+
+@dataclass(frozen=True)
+class EffectScore:
+    """Score test of one group of fixed parameters.
+
+    Attributes:
+        name: the group (e.g. ``"gyro_scale"``).
+        statistic: LM statistic (divided by the variance factor).
+        rank: degrees of freedom (directions of the group the data determine).
+        p_value: probability of a statistic at least this large if the group is zero.
+        estimate: (k,) one Gauss-Newton estimate of the group's parameters (their own units).
+        sigma: (k,) its standard deviation (``inf`` along undetermined directions).
+        shift: (m,) change of the estimated coordinates if the group were freed (own units).
+        shift_sigma: (m,) standard deviation of that change when the group is zero.
+    """
+
+    name: str
+    statistic: float
+    rank: int
+    p_value: float
+    estimate: F64
+    sigma: F64
+    shift: F64
+    shift_sigma: F64
+
+    @property
+    def shift_z(self) -> F64:
+        """(m,) shift over its null standard deviation."""
+        return self.shift / np.maximum(self.shift_sigma, 1e-300)
+
+
+def _pinv_psd(a: F64, relative: float) -> tuple[F64, int]:
+    """Pseudo-inverse of a symmetric PSD matrix keeping eigenvalues above ``relative * max``."""
+    if a.size == 0:
+        return np.zeros_like(a), 0
+    w, v = np.linalg.eigh(0.5 * (a + a.T))
+    top = float(w.max()) if w.size else 0.0
+    keep = w > relative * max(top, 1e-300)
+    return (v[:, keep] / w[keep]) @ v[:, keep].T, int(keep.sum())
+
+
+def score_effects(
+    S: npt.ArrayLike,
+    b: npt.ArrayLike,
+    base: npt.ArrayLike,
+    groups: Mapping[str, npt.ArrayLike],
+    variance_factor: float = 1.0,
+    relative_rank: float = 1e-8,
+) -> list[EffectScore]:
+    """Score tests of several candidate groups against the same estimated coordinates.
+
+    Args:
+        S: (N, N) Schur complement (information) of the calibration coordinates: the estimated
+            ones and every candidate's, trajectory eliminated, whitened residuals.
+        b: (N,) right-hand side ``-g`` after the elimination (zero on estimated coordinates at
+            a converged estimate).
+        base: indices of the estimated coordinates in ``S``.
+        groups: name -> indices of each candidate group (disjoint from ``base``).
+        variance_factor: a-posteriori variance factor of the fit (chi-square per degree of
+            freedom): the statistic is divided by it and the shifts' sigmas multiplied by its
+            root, so that a noise level off by a constant factor does not make every group
+            significant.
+        relative_rank: eigenvalues below this fraction of a group's largest do not count
+            (directions the data cannot determine).
+
+    Returns:
+        One :class:`EffectScore` per group, in the order given.
+    """
+    s = np.asarray(S, dtype=np.float64)
+    rhs = np.asarray(b, dtype=np.float64)
+    bi = np.asarray(base, dtype=np.intp)
+    vf = max(float(variance_factor), 1e-12)
+    s_bb_inv, _ = _pinv_psd(s[np.ix_(bi, bi)], 1e-12)
+    step_base = s_bb_inv @ rhs[bi]
+    out = []
+    for name, idx in groups.items():
+        e = np.asarray(idx, dtype=np.intp)
+        s_eb = s[np.ix_(e, bi)]
+        s_ee_b = s[np.ix_(e, e)] - s_eb @ s_bb_inv @ s_eb.T
+        g_e = rhs[e] - s_eb @ step_base
+        inv, rank = _pinv_psd(s_ee_b, relative_rank)
+        statistic = float(g_e @ inv @ g_e) / vf
+        p_value = float(stats.chi2.sf(statistic, rank)) if rank else 1.0
+        d_e = inv @ g_e
+        shift = -s_bb_inv @ s_eb.T @ d_e
+        v_shift = s_bb_inv @ s_eb.T @ inv @ s_eb @ s_bb_inv * max(vf, 1.0)
+        var_e = np.diag(inv) * max(vf, 1.0)
+        w, v = (
+            np.linalg.eigh(0.5 * (s_ee_b + s_ee_b.T)) if e.size else (np.zeros(0), np.zeros((0, 0)))
+        )
+        weak = w <= relative_rank * max(float(w.max()) if w.size else 0.0, 1e-300)
+        undetermined = np.sum(v[:, weak] ** 2, axis=1) > 1e-4 if e.size else np.zeros(0, bool)
+        sigma_e = np.where(undetermined, np.inf, np.sqrt(np.clip(var_e, 0.0, None)))
+        out.append(
+            EffectScore(
+                name=name,
+                statistic=statistic,
+                rank=rank,
+                p_value=p_value,
+                estimate=d_e,
+                sigma=sigma_e,
+                shift=shift,
+                shift_sigma=np.sqrt(np.clip(np.diag(v_shift), 0.0, None)),
+            )
+        )
+    return out
+
+
+@dataclass(frozen=True)
+class EffectSelection:
+    """Forward selection of fixed effects by conditional score tests.
+
+    Attributes:
+        selected: the effects the data show, in the order added; each tested with the ones
+            before it freed (so an effect that only echoes a stronger one is not selected).
+        remaining: the other groups, tested with every selected effect freed (shifts of the
+            base coordinates only).
+        joint_shift: (m,) change of the estimated coordinates if every selected effect were
+            freed together.
+    """
+
+    selected: tuple[EffectScore, ...]
+    remaining: tuple[EffectScore, ...]
+    joint_shift: F64
+
+
+def select_effects(
+    S: npt.ArrayLike,
+    b: npt.ArrayLike,
+    base: npt.ArrayLike,
+    groups: Mapping[str, npt.ArrayLike],
+    p_value: float,
+    variance_factor: float = 1.0,
+    max_effects: int | None = None,
+) -> EffectSelection:
+    """Add the most significant group, re-test the others with it freed, repeat.
+
+    One effect present in the data makes the score tests of others significant too when they
+    partly explain the same residuals (a LiDAR range offset biases the trajectory, which a gyro
+    scale could partly absorb). Testing each further group with the already selected ones freed
+    separates them: only the groups that explain something the selected ones do not are added.
+
+    Args:
+        S, b, base, variance_factor: as for :func:`score_effects`.
+        groups: candidate groups.
+        p_value: a group is selected while its conditional p-value is below this.
+        max_effects: at most this many groups (default: no limit).
+
+    Returns:
+        The selection; ``joint_shift`` is in the order of ``base``.
+    """
+    bi = np.asarray(base, dtype=np.intp)
+    todo = {k: np.asarray(v, dtype=np.intp) for k, v in groups.items()}
+    chosen: list[EffectScore] = []
+    chosen_idx: list[npt.NDArray[np.intp]] = []
+    current = list(bi)
+    while todo and (max_effects is None or len(chosen) < max_effects):
+        scores = score_effects(S, b, current, todo, variance_factor)
+        best = max(scores, key=lambda s: -float(stats.chi2.logsf(s.statistic, max(s.rank, 1))))
+        if not best.p_value < p_value:
+            break
+        # Keep only the shift of the original base coordinates.
+        pos = [current.index(i) for i in bi]
+        chosen.append(
+            EffectScore(
+                best.name,
+                best.statistic,
+                best.rank,
+                best.p_value,
+                best.estimate,
+                best.sigma,
+                best.shift[pos],
+                best.shift_sigma[pos],
+            )
+        )
+        chosen_idx.append(todo.pop(best.name))
+        current = current + list(chosen_idx[-1])
+    pos = [current.index(i) for i in bi]
+    remaining = tuple(
+        EffectScore(
+            r.name,
+            r.statistic,
+            r.rank,
+            r.p_value,
+            r.estimate,
+            r.sigma,
+            r.shift[pos],
+            r.shift_sigma[pos],
+        )
+        for r in (score_effects(S, b, current, todo, variance_factor) if todo else [])
+    )
+    if chosen_idx:
+        freed = np.concatenate(chosen_idx)
+        s = np.asarray(S, dtype=np.float64)
+        rhs = np.asarray(b, dtype=np.float64)
+        full = np.concatenate([bi, freed])
+        inv_full, _ = _pinv_psd(s[np.ix_(full, full)], 1e-10)
+        inv_base, _ = _pinv_psd(s[np.ix_(bi, bi)], 1e-12)
+        joint = (inv_full @ rhs[full])[: bi.size] - inv_base @ rhs[bi]
+    else:
+        joint = np.zeros(bi.size)
+    return EffectSelection(tuple(chosen), remaining, joint)

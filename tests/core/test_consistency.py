@@ -1,0 +1,202 @@
+"""Noise measured from the data, chi-square and residual patterns."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from licalib_cli.consistency import (
+    group_pattern,
+    imu_noise,
+    normalised_chi2,
+    range_noise,
+    regression_pattern,
+)
+
+
+def _smooth_signal(t: np.ndarray) -> np.ndarray:
+    """Motion of a hand-held rig (what the free fit must not count as noise)."""
+    return np.stack(
+        [
+            2.0 * np.sin(2 * np.pi * 1.3 * t),
+            1.5 * np.sin(2 * np.pi * 0.7 * t + 1.0),
+            np.sin(2 * np.pi * 2.1 * t + 2.0) + 0.2 * t,
+        ],
+        axis=1,
+    )
+
+
+@pytest.mark.parametrize("derivative", [1, 2])
+@pytest.mark.parametrize("sigma", [0.003, 0.02])
+def test_imu_noise_recovers_white_noise_under_smooth_motion(derivative: int, sigma: float) -> None:
+    rng = np.random.default_rng(0)
+    t = np.arange(0.0, 10.0, 1.0 / 400.0)
+    truth = np.array([sigma, 2 * sigma, 0.5 * sigma])
+    # The accelerometer's basis (piecewise linear) follows slower signals than the gyro's.
+    y = _smooth_signal(t / derivative) + rng.normal(size=(t.size, 3)) * truth
+    est = imu_noise(t, y, 0.02, derivative)
+    assert np.allclose(est.sigma, truth, rtol=0.05)
+
+
+def test_imu_noise_does_not_count_the_motion_as_noise() -> None:
+    t = np.arange(0.0, 10.0, 1.0 / 400.0)
+    est = imu_noise(t, 10.0 * _smooth_signal(t), 0.02, 1)
+    assert np.all(est.sigma < 1e-3)
+
+
+def test_imu_noise_with_too_few_samples_says_so() -> None:
+    est = imu_noise(np.arange(5) * 0.01, np.zeros((5, 3)), 0.02, 1)
+    assert np.all(np.isnan(est.sigma))
+    assert est.method == "too few samples"
+
+
+def test_range_noise_per_beam_ignores_edges_and_constant_beam_errors() -> None:
+    rng = np.random.default_rng(1)
+    n_beams, n_az, n_scans = 4, 900, 3
+    az = np.linspace(-np.pi, np.pi, n_az, endpoint=False)
+    sig = np.array([0.005, 0.01, 0.02, 0.01])
+    scan, beam, azs, rho = [], [], [], []
+    for s in range(n_scans):
+        for b in range(n_beams):
+            # A square room seen from inside: range = d / max(|cos|, |sin|) (smooth but for the
+            # corners), a constant per-beam range offset, and noise.
+            base = 5.0 / np.maximum(np.abs(np.cos(az)), np.abs(np.sin(az)))
+            r = base + 0.03 * (b - 1.5) + rng.normal(scale=sig[b], size=n_az)
+            keep = rng.random(n_az) > 0.01  # dropped returns
+            scan.append(np.full(keep.sum(), s))
+            beam.append(np.full(keep.sum(), b))
+            azs.append(az[keep])
+            rho.append(r[keep])
+    est = range_noise(
+        np.concatenate(scan), np.concatenate(beam), np.concatenate(azs), np.concatenate(rho), 5
+    )
+    assert np.allclose(est.sigma[:4], sig, rtol=0.1)
+    assert np.isnan(est.sigma[4])
+
+
+def test_chi2_is_one_for_noise_of_the_stated_size() -> None:
+    rng = np.random.default_rng(2)
+    r = rng.normal(size=(20000, 3)) * np.array([1.0, 2.0, 3.0])
+    chi = normalised_chi2(r, np.array([1.0, 2.0, 3.0]))
+    assert chi.per_dof == pytest.approx(1.0, abs=0.03)
+    assert chi.samples == 60000
+    assert normalised_chi2(2 * r, np.array([1.0, 2.0, 3.0])).per_dof == pytest.approx(4.0, rel=0.03)
+    per_residual = normalised_chi2(r[:, 0], np.full(20000, 0.5))
+    assert per_residual.per_dof == pytest.approx(4.0, rel=0.05)
+
+
+def test_regression_pattern_finds_a_scale_error_and_not_noise() -> None:
+    rng = np.random.default_rng(3)
+    omega = rng.normal(size=(5000, 3))
+    noise = rng.normal(scale=0.01, size=(5000, 3))
+    clean = regression_pattern(noise, omega, "angular rate")
+    assert clean.p_value > 1e-3
+    assert clean.explained < 0.01
+    scaled = regression_pattern(noise + 0.02 * omega * np.array([1.0, 0.0, 0.0]), omega, "rate")
+    assert scaled.p_value < 1e-12
+    assert scaled.explained > 0.5
+    assert scaled.material(0.05)
+    assert not clean.material(0.05)
+
+
+def test_false_alarm_rate_of_the_f_test_matches_its_level() -> None:
+    rng = np.random.default_rng(4)
+    p = [
+        regression_pattern(rng.normal(size=(400, 2)), rng.normal(size=(400, 3)), "x").p_value
+        for _ in range(400)
+    ]
+    rate = np.mean(np.asarray(p) < 0.05)
+    assert 0.02 < rate < 0.09
+
+
+def test_group_pattern_finds_per_beam_offsets() -> None:
+    rng = np.random.default_rng(5)
+    beam = rng.integers(0, 16, size=50000)
+    noise = rng.normal(scale=0.01, size=beam.size)
+    assert group_pattern(noise, beam, "beam").p_value > 1e-3
+    offsets = rng.normal(scale=0.01, size=16)
+    found = group_pattern(noise + offsets[beam], beam, "beam")
+    assert found.p_value < 1e-12
+    assert found.explained == pytest.approx(np.var(offsets) / (np.var(offsets) + 1e-4), abs=0.1)
+    assert found.size == pytest.approx(np.sqrt(np.mean(offsets[beam] ** 2)), rel=0.2)
+
+
+def _linear_problem(rng: np.random.Generator, effect: np.ndarray, n: int = 400):
+    """y = A_b x_b + A_e x_e + noise, fitted with x_e held at zero."""
+    a_b = rng.normal(size=(n, 3))
+    a_e = rng.normal(size=(n, 2)) + 0.5 * a_b[:, :2]  # correlated with the estimated coordinates
+    x_b = np.array([1.0, -2.0, 0.5])
+    y = a_b @ x_b + a_e @ effect + rng.normal(size=n)
+    xb_hat = np.linalg.lstsq(a_b, y, rcond=None)[0]
+    j = np.hstack([a_b, a_e])
+    r = a_b @ xb_hat - y
+    return j.T @ j, -(j.T @ r), a_b, a_e, y, xb_hat
+
+
+def test_score_statistic_is_chi_square_without_the_effect() -> None:
+    from licalib_cli.consistency import score_effects
+
+    rng = np.random.default_rng(6)
+    stats_, shifts_z = [], []
+    for _ in range(300):
+        s, b, *_ = _linear_problem(rng, np.zeros(2))
+        (res,) = score_effects(s, b, [0, 1, 2], {"e": [3, 4]})
+        stats_.append(res.statistic)
+        shifts_z.append(res.shift_z)
+        assert res.rank == 2
+    stats_ = np.asarray(stats_)
+    assert np.mean(stats_) == pytest.approx(2.0, abs=0.3)  # chi^2(2) has mean 2
+    assert 0.02 < np.mean(stats_ > 5.991) < 0.09  # its 95 % quantile
+    assert np.std(np.asarray(shifts_z)) == pytest.approx(1.0, abs=0.15)
+
+
+def test_score_finds_the_effect_and_predicts_the_shift_of_a_linear_problem() -> None:
+    from licalib_cli.consistency import score_effects
+
+    rng = np.random.default_rng(7)
+    effect = np.array([0.4, -0.3])
+    s, b, a_b, a_e, y, xb_hat = _linear_problem(rng, effect)
+    (res,) = score_effects(s, b, [0, 1, 2], {"e": [3, 4]})
+    assert res.p_value < 1e-10
+    full = np.linalg.lstsq(np.hstack([a_b, a_e]), y, rcond=None)[0]
+    assert np.allclose(res.estimate, full[3:], atol=1e-9)
+    assert np.allclose(res.shift, full[:3] - xb_hat, atol=1e-9)
+    assert np.all(np.abs(res.estimate - effect) < 4 * res.sigma)
+
+
+def test_score_of_an_undetermined_direction_is_not_counted() -> None:
+    from licalib_cli.consistency import score_effects
+
+    rng = np.random.default_rng(8)
+    s, b, *_ = _linear_problem(rng, np.zeros(2))
+    # Add a third candidate coordinate that no residual touches.
+    s = np.pad(s, ((0, 1), (0, 1)))
+    b = np.pad(b, (0, 1))
+    (res,) = score_effects(s, b, [0, 1, 2], {"e": [3, 4, 5]})
+    assert res.rank == 2
+    assert np.isinf(res.sigma[2]) and np.all(np.isfinite(res.sigma[:2]))
+
+
+def test_forward_selection_keeps_the_true_effect_and_drops_its_echo() -> None:
+    """Two candidate groups; only the first is in the data, the second is correlated with it:
+    its plain score test is significant, its test with the first freed is not."""
+    from licalib_cli.consistency import score_effects, select_effects
+
+    rng = np.random.default_rng(9)
+    n = 2000
+    a_b = rng.normal(size=(n, 3))
+    a_e1 = rng.normal(size=(n, 2))
+    a_e2 = 0.8 * a_e1 + 0.6 * rng.normal(size=(n, 2))  # an echo of the first group
+    y = a_b @ np.array([1.0, -2.0, 0.5]) + a_e1 @ np.array([0.3, -0.2]) + rng.normal(size=n)
+    xb_hat = np.linalg.lstsq(a_b, y, rcond=None)[0]
+    j = np.hstack([a_b, a_e1, a_e2])
+    s, b = j.T @ j, -(j.T @ (a_b @ xb_hat - y))
+    groups = {"true": [3, 4], "echo": [5, 6]}
+    plain = {r.name: r for r in score_effects(s, b, [0, 1, 2], groups)}
+    assert plain["echo"].p_value < 1e-6  # alone it looks significant
+    sel = select_effects(s, b, [0, 1, 2], groups, p_value=1e-5)
+    assert [e.name for e in sel.selected] == ["true"]
+    assert [e.name for e in sel.remaining] == ["echo"]
+    assert sel.remaining[0].p_value > 1e-3
+    full = np.linalg.lstsq(j[:, :5], y, rcond=None)[0]
+    assert np.allclose(sel.joint_shift, full[:3] - xb_hat, atol=1e-8)
