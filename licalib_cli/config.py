@@ -73,14 +73,19 @@ class BagConfig(_Section):
 
 
 class NoiseConfig(_Section):
-    """Sensor noise used to weight the residuals (continuous-time densities)."""
+    """Sensor noise used to weight the residuals; measured from the data when unset.
 
-    gyro_noise_density: float = Field(default=1.75e-4, gt=0.0)
-    """Gyro white noise, rad/s/sqrt(Hz) (Xsens MTi-100: 0.01 deg/s/sqrt(Hz))."""
-    accel_noise_density: float = Field(default=5.9e-4, gt=0.0)
-    """Accelerometer white noise, m/s^2/sqrt(Hz) (Xsens MTi-100: 60 ug/sqrt(Hz))."""
-    range_sigma_m: float = Field(default=0.015, gt=0.0)
-    """LiDAR range noise, one sigma, metres."""
+    The fit checks compare the residuals with this noise (README, "Checks of the fit"): a value
+    given here is trusted as the sensor's noise, so a wrong value shows up as a misfit; leave a
+    value unset to have it measured from the recording itself.
+    """
+
+    gyro_noise_density: float | None = Field(default=None, gt=0.0)
+    """Gyro white noise, rad/s/sqrt(Hz) (Xsens MTi-100: 1.75e-4, i.e. 0.01 deg/s/sqrt(Hz))."""
+    accel_noise_density: float | None = Field(default=None, gt=0.0)
+    """Accelerometer white noise, m/s^2/sqrt(Hz) (Xsens MTi-100: 5.9e-4, i.e. 60 ug/sqrt(Hz))."""
+    range_sigma_m: float | None = Field(default=None, gt=0.0)
+    """LiDAR range noise, one sigma, metres (VLP-16: about 0.01)."""
     huber_sigmas: float = Field(default=2.0, gt=0.0)
     """Huber threshold of the point-to-plane residuals, in sigmas."""
 
@@ -156,14 +161,17 @@ class SurfelSection(_Section):
 class ScheduleConfig(_Section):
     """Refinement rounds (method.md section 7)."""
 
-    max_rounds: int = Field(default=6, ge=1, le=50)
+    max_rounds: int = Field(default=12, ge=1, le=50)
+    """Most refinement rounds (map rebuild + optimisation). Rounds run until the estimate
+    settles; reaching this cap while it still moves is a non-convergence (verdict fail)."""
     iterations_per_round: int = Field(default=6, ge=1, le=200)
     imu_intrinsics_from_round: int = Field(default=0, ge=0)
     """Round (1-based) from which IMU intrinsics are estimated; 0 keeps them at their defaults."""
     lidar_intrinsics_from_round: int = Field(default=0, ge=0)
     """Round (1-based) from which LiDAR intrinsics are estimated; 0 keeps them at defaults."""
     translation_tolerance_m: float = Field(default=5e-4, gt=0.0)
-    """Stop when a round moves the translation less than this (and the others below theirs)."""
+    """Settled when a round moves the translation less than this or than half its 1-sigma
+    (and the rotation and time offset likewise)."""
     rotation_tolerance_deg: float = Field(default=0.005, gt=0.0)
     time_offset_tolerance_s: float = Field(default=5e-5, gt=0.0)
 

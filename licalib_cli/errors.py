@@ -53,3 +53,15 @@ class SolverError(LicalibError):
     """The optimisation failed."""
 
     exit_code = 8
+
+
+class VerdictFailure(LicalibError):
+    """The calibration ran and its result was written, but its verdict is ``fail``."""
+
+    exit_code = 9
+
+
+class NotConverged(VerdictFailure):
+    """The calibration ran out of rounds while the estimate still moved (result written)."""
+
+    exit_code = 10

@@ -11,8 +11,10 @@ The same keys are used for a calibration result and for a simulator's ``truth.ya
     imu_intrinsics: {...}
     lidar_intrinsics: {...}
 
-Extra top-level keys (``gravity``, ``uncertainty``, ``observability``, ``provenance``, ...) are kept
-as they are in :attr:`CalibrationResult.extra`.
+A calibration adds ``gravity_G`` and the typed sections of :mod:`licalib_cli.sections`
+(``uncertainty``, ``observability``, ``verdict``, ``consistency``, ``initialization``, ``fit``,
+``recording``, ``provenance``); other top-level keys (a simulator's ``scenario``, ``seed``,
+``simulation``) are kept as they are in :attr:`CalibrationResult.extra`.
 """
 
 from __future__ import annotations
@@ -31,6 +33,16 @@ from scipy.spatial.transform import Rotation
 from licalib_cli.config import yaml_error_summary
 from licalib_cli.errors import ConfigError
 from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
+from licalib_cli.sections import (
+    Consistency,
+    FitSection,
+    InitializationSection,
+    Observability,
+    Provenance,
+    RecordingSection,
+    Uncertainty,
+    VerdictSection,
+)
 
 SCHEMA_VERSION = 1
 F64 = npt.NDArray[np.float64]
@@ -196,13 +208,46 @@ def lidar_intrinsics_from_dict(d: dict[str, Any]) -> LidarIntrinsics:
         raise ConfigError(msg) from err
 
 
+_SECTIONS: tuple[tuple[str, type], ...] = (
+    ("uncertainty", Uncertainty),
+    ("observability", Observability),
+    ("verdict", VerdictSection),
+    ("consistency", Consistency),
+    ("initialization", InitializationSection),
+    ("fit", FitSection),
+    ("recording", RecordingSection),
+    ("provenance", Provenance),
+)
+
+
 @dataclass(frozen=True)
 class CalibrationResult:
-    """A calibration (or a simulator's ground truth) in schema v1."""
+    """A calibration (or a simulator's ground truth) in schema v1.
+
+    Attributes:
+        extrinsic: ``T_imu_lidar`` and the time offset.
+        imu_intrinsics: the IMU model's parameters (biases included).
+        lidar_intrinsics: per-beam LiDAR intrinsics, or None when not part of the file.
+        gravity_G: (3,) gravity in the first IMU frame, m/s^2, or None.
+        uncertainty, observability, verdict, consistency, initialization, fit, recording,
+            provenance: the typed sections ``calibrate`` writes (:mod:`licalib_cli.sections`),
+            None when the file has none.
+        extra: top-level sections of other writers, kept as they are (a simulator's
+            ``truth.yaml`` carries ``scenario``, ``seed`` and ``simulation``).
+    """
 
     extrinsic: Extrinsic = field(default_factory=Extrinsic)
     imu_intrinsics: ImuIntrinsics = field(default_factory=ImuIntrinsics)
     lidar_intrinsics: LidarIntrinsics | None = None
+    gravity_G: tuple[float, float, float] | None = None
+    uncertainty: Uncertainty | None = None
+    observability: Observability | None = None
+    verdict: VerdictSection | None = None
+    consistency: Consistency | None = None
+    initialization: InitializationSection | None = None
+    fit: FitSection | None = None
+    recording: RecordingSection | None = None
+    provenance: Provenance | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
@@ -211,6 +256,12 @@ class CalibrationResult:
         out["imu_intrinsics"] = imu_intrinsics_to_dict(self.imu_intrinsics)
         if self.lidar_intrinsics is not None:
             out["lidar_intrinsics"] = lidar_intrinsics_to_dict(self.lidar_intrinsics)
+        if self.gravity_G is not None:
+            out["gravity_G"] = _list(self.gravity_G, 6)
+        for name, _ in _SECTIONS:
+            section = getattr(self, name)
+            if section is not None:
+                out[name] = section.to_dict()
         out.update(self.extra)
         return out
 
@@ -223,13 +274,29 @@ class CalibrationResult:
                 f"version {SCHEMA_VERSION}; regenerate it with this version."
             )
             raise ConfigError(msg)
-        known = {"schema_version", "extrinsic", "imu_intrinsics", "lidar_intrinsics"}
+        typed = {name for name, _ in _SECTIONS}
+        known = {"schema_version", "extrinsic", "imu_intrinsics", "lidar_intrinsics", "gravity_G"}
         lidar = d.get("lidar_intrinsics")
+        gravity = d.get("gravity_G")
+        sections: dict[str, Any] = {}
+        for name, kind in _SECTIONS:
+            value = d.get(name)
+            if isinstance(value, dict):
+                try:
+                    sections[name] = kind.from_dict(value)
+                except TypeError as err:
+                    msg = (
+                        f"The result's {name!r} section is incomplete or has unknown keys "
+                        f"({err}); regenerate the file with this licalib version."
+                    )
+                    raise ConfigError(msg) from err
         return cls(
             extrinsic=Extrinsic.from_dict(d.get("extrinsic", {})),
             imu_intrinsics=imu_intrinsics_from_dict(d.get("imu_intrinsics", {})),
             lidar_intrinsics=lidar_intrinsics_from_dict(lidar) if lidar else None,
-            extra={k: v for k, v in d.items() if k not in known},
+            gravity_G=None if gravity is None else tuple(float(x) for x in gravity),  # type: ignore[arg-type]
+            extra={k: v for k, v in d.items() if k not in known | typed},
+            **sections,
         )
 
     def to_yaml(self) -> str:

@@ -4,17 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import typer
-from rich.table import Table
 
-from licalib_cli.commands.render import console, console_err
+from licalib_cli.commands.render import console, console_err, render_run
 from licalib_cli.config import dump_config, load_config
-from licalib_cli.results import prepare_output, write_text_atomic
+from licalib_cli.errors import NotConverged, VerdictFailure
+from licalib_cli.results import CalibrationResult, prepare_output, write_text_atomic
 
 _IO = "Input"
-VERDICT_FAIL_EXIT_CODE = 9
-"""Exit code when the calibration ran but its verdict is ``fail``."""
 _OUT = "Output"
 
 
@@ -119,108 +116,17 @@ def calibrate_command(
     run.result.save(out)
     config_out = out.with_name(out.stem + ".config.yaml")
     write_text_atomic(config_out, dump_config(cfg))
-    render_run(run, truth)
+    render_run(run, CalibrationResult.load(truth) if truth is not None else None)
     console().print(f"Result: {out}  (resolved config: {config_out})")
     if plots is not None:
         from licalib_cli.plots import save_plots
 
         files = save_plots(run, plots)
         console().print("Plots: " + ", ".join(str(f) for f in files))
-    if run.verdict.status == "fail":
-        # The result is written for inspection, but scripts must not take it.
-        raise typer.Exit(code=VERDICT_FAIL_EXIT_CODE)
-
-
-def _fmt(v: float, unit: str, scale: float = 1.0, digits: int = 4) -> str:
-    if not np.isfinite(v):
-        return "unobservable"
-    return f"{v * scale:.{digits}f} {unit}"
-
-
-def render_run(run: object, truth_path: Path | None) -> None:
-    """Print the result table, the observability findings, the verdict and the stage timings."""
-    from licalib_cli.results import CalibrationResult
-
-    r = run.result  # type: ignore[attr-defined]
-    ext = r.extrinsic
-    unc = r.extra["uncertainty"]
-    shift = float(r.extra.get("recording", {}).get("lidar_clock_shift_s", 0.0))
-    truth = None
-    if truth_path is not None:
-        true = CalibrationResult.load(truth_path)
-        clock = true.extra.get("simulation", {}).get("clock", {})
-        truth = true.extrinsic.on_shifted_clock(
-            float(clock.get("lidar_clock_offset_s", 0.0)), shift
-        )
-    table = Table(
-        title="T_imu_lidar (p_imu = R p_lidar + t) and time offset (t_imu = t_lidar + dt)"
-    )
-    table.add_column("parameter")
-    table.add_column("estimate", justify="right")
-    table.add_column("1-sigma", justify="right")
-    if truth is not None:
-        table.add_column("truth", justify="right")
-        table.add_column("error", justify="right")
-    rpy = r.to_dict()["extrinsic"]["rotation_rpy_deg"]
-    truth_rpy = (
-        CalibrationResult.load(truth_path).to_dict()["extrinsic"]["rotation_rpy_deg"]
-        if truth_path
-        else None
-    )
-    for i, axis in enumerate("xyz"):
-        row = [
-            f"t_{axis}",
-            f"{ext.translation[i]:+.4f} m",
-            _fmt(unc["translation_std_m"][i], "mm", 1e3, 2),
-        ]
-        if truth is not None:
-            row += [
-                f"{truth.translation[i]:+.4f} m",
-                f"{1e3 * (ext.translation[i] - truth.translation[i]):+.2f} mm",
-            ]
-        table.add_row(*row)
-    for i, name in enumerate(("roll", "pitch", "yaw")):
-        row = [name, f"{rpy[i]:+.4f} deg", _fmt(unc["rotation_std_deg"][i], "deg", 1.0, 4)]
-        if truth_rpy is not None:
-            row += [f"{truth_rpy[i]:+.4f} deg", f"{rpy[i] - truth_rpy[i]:+.4f} deg"]
-        table.add_row(*row)
-    row = [
-        "time offset",
-        f"{1e3 * ext.time_offset_s:+.3f} ms",
-        _fmt(unc["time_offset_std_s"], "ms", 1e3, 3),
-    ]
-    if truth is not None:
-        row += [
-            f"{1e3 * truth.time_offset_s:+.3f} ms",
-            f"{1e3 * (ext.time_offset_s - truth.time_offset_s):+.3f} ms",
-        ]
-    table.add_row(*row)
-    out = console()
-    out.print(table)
-    if shift:
-        out.print(
-            f"The LiDAR clock was {-shift:+.9f} s off the IMU clock and was shifted before "
-            f"calibrating: t_imu = t_lidar + ({shift:+.9f} s) + time offset"
-            + ("; the truth is shown on the same footing." if truth is not None else ".")
-        )
-    if truth is not None:
-        err = ext.error_to(truth)
-        out.print(
-            f"Error against truth: translation {1e3 * err['translation_m']:.2f} mm, rotation "
-            f"{err['rotation_deg']:.4f} deg, time offset {1e3 * err['time_offset_s']:.3f} ms"
-        )
-    obs = r.extra["observability"]
-    for text in obs["unobservable"]:
-        out.print(f"[yellow]Not observable:[/] {text}")
-    verdict = run.verdict  # type: ignore[attr-defined]
-    colour = {"pass": "green", "warn": "yellow", "fail": "red"}[verdict.status]
-    out.print(f"Verdict: [bold {colour}]{verdict.status.upper()}[/]")
-    for reason in verdict.reasons:
-        out.print(f"  - {reason}")
-    timings = run.timings  # type: ignore[attr-defined]
-    total = sum(timings.values())
-    out.print(
-        "Stages: "
-        + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
-        + f" (total {total:.1f} s)"
-    )
+    # The result is written for inspection, but scripts must not take a failed one.
+    if run.checks.exit_status == "not converged":
+        msg = f"The calibration did not converge; the result in {out} is not trustworthy."
+        raise NotConverged(msg)
+    if run.checks.exit_status == "fail":
+        msg = f"The verdict is FAIL; the result in {out} is for inspection only."
+        raise VerdictFailure(msg)

@@ -1,10 +1,19 @@
-"""Console helpers shared by the commands (rich)."""
+"""Console output shared by the commands (rich): consoles, and how a calibration is shown."""
 
 from __future__ import annotations
 
 from functools import cache
+from typing import TYPE_CHECKING
 
+import numpy as np
 from rich.console import Console
+from rich.table import Table
+
+from licalib_cli.results import CalibrationResult, Extrinsic, rpy_deg_from_matrix
+from licalib_cli.sections import Consistency, SensorCheck
+
+if TYPE_CHECKING:
+    from licalib_cli.pipeline import CalibrationRun
 
 
 @cache
@@ -17,3 +26,148 @@ def console() -> Console:
 def console_err() -> Console:
     """Standard-error console (logs, progress)."""
     return Console(stderr=True, highlight=False)
+
+
+def _fmt(v: float, unit: str, scale: float = 1.0, digits: int = 4) -> str:
+    if not np.isfinite(v):
+        return "unobservable"
+    return f"{v * scale:.{digits}f} {unit}"
+
+
+def _truth_on_result_clock(result: CalibrationResult, truth: CalibrationResult) -> Extrinsic:
+    """The true extrinsic with its time offset on the result's footing (LiDAR clock shift)."""
+    shift = result.recording.lidar_clock_shift_s if result.recording else 0.0
+    clock = truth.extra.get("simulation", {}).get("clock", {})
+    return truth.extrinsic.on_shifted_clock(float(clock.get("lidar_clock_offset_s", 0.0)), shift)
+
+
+def render_estimate(result: CalibrationResult, truth: CalibrationResult | None) -> Table:
+    """The extrinsic and time offset with their 1-sigma (and the truth and error if given)."""
+    ext = result.extrinsic
+    unc = result.uncertainty
+    nan3 = (float("nan"),) * 3
+    t_std = unc.translation_std_m if unc else nan3
+    r_std = unc.rotation_std_deg if unc else nan3
+    c_std = unc.time_offset_std_s if unc else float("nan")
+    true_ext = _truth_on_result_clock(result, truth) if truth is not None else None
+    table = Table(
+        title="T_imu_lidar (p_imu = R p_lidar + t) and time offset (t_imu = t_lidar + dt)"
+    )
+    for name in ("parameter", "estimate", "1-sigma") + (("truth", "error") if truth else ()):
+        table.add_column(name, justify="left" if name == "parameter" else "right")
+    rpy = rpy_deg_from_matrix(ext.rotation)
+    true_rpy = rpy_deg_from_matrix(true_ext.rotation) if true_ext is not None else None
+    for i, axis in enumerate("xyz"):
+        row = [f"t_{axis}", f"{ext.translation[i]:+.4f} m", _fmt(t_std[i], "mm", 1e3, 2)]
+        if true_ext is not None:
+            row += [
+                f"{true_ext.translation[i]:+.4f} m",
+                f"{1e3 * (ext.translation[i] - true_ext.translation[i]):+.2f} mm",
+            ]
+        table.add_row(*row)
+    for i, name in enumerate(("roll", "pitch", "yaw")):
+        row = [name, f"{rpy[i]:+.4f} deg", _fmt(r_std[i], "deg", 1.0, 4)]
+        if true_rpy is not None:
+            row += [f"{true_rpy[i]:+.4f} deg", f"{rpy[i] - true_rpy[i]:+.4f} deg"]
+        table.add_row(*row)
+    row = ["time offset", f"{1e3 * ext.time_offset_s:+.3f} ms", _fmt(c_std, "ms", 1e3, 3)]
+    if true_ext is not None:
+        row += [
+            f"{1e3 * true_ext.time_offset_s:+.3f} ms",
+            f"{1e3 * (ext.time_offset_s - true_ext.time_offset_s):+.3f} ms",
+        ]
+    table.add_row(*row)
+    return table
+
+
+def _noise_text(s: SensorCheck) -> str:
+    scale, unit = (1e3, "mm") if s.unit == "m" else (1.0, s.unit)
+    value = float(np.sqrt(np.mean(np.square(s.noise)))) * scale
+    return f"{value:.3g} {unit} ({'measured' if s.noise_source == 'data' else s.noise_source})"
+
+
+def render_checks(consistency: Consistency) -> Table:
+    """One row per fit check: what was compared, the figure, the outcome."""
+    table = Table(title="Checks of the fit")
+    table.add_column("check")
+    table.add_column("figure")
+    table.add_column("outcome")
+    names = {"gyro": "gyro", "accelerometer": "accelerometer", "lidar": "LiDAR"}
+    for s in consistency.sensors:
+        patterns = [p.feature for p in s.patterns if p.material]
+        outcome = "ok" if s.status == "ok" and not patterns else "[yellow]misfit[/]"
+        if patterns:
+            outcome += " (depends on " + ", ".join(patterns) + ")"
+        table.add_row(
+            f"{names.get(s.sensor, s.sensor)} residuals",
+            f"chi2/sample {s.chi2_per_sample:.2f}, noise {_noise_text(s)}",
+            outcome,
+        )
+    material = [e for e in consistency.effects if e.material]
+    if consistency.effects:
+        if material:
+            worst = max(material, key=lambda e: e.statistic)
+            figure = (
+                f"{worst.name}: score {worst.statistic:.0f} (dof {worst.dof}), moves "
+                f"{1e3 * float(np.linalg.norm(worst.shift_translation_m)):.1f} mm / "
+                f"{float(np.linalg.norm(worst.shift_rotation_deg)):.3f} deg"
+            )
+            outcome = "[yellow]" + ", ".join(e.name for e in material) + "[/]"
+        else:
+            strongest = min(consistency.effects, key=lambda e: e.p_value)
+            figure = f"strongest {strongest.name}: p = {strongest.p_value:.2g}"
+            outcome = "none that moves the extrinsic"
+        table.add_row("effects held fixed", figure, outcome)
+    sh = consistency.split_half
+    if sh.status == "not run":
+        table.add_row("split halves", sh.reason, "[yellow]not run[/]")
+    else:
+        table.add_row(
+            "split halves",
+            f"{sh.halves_s:.1f} s each, chi-square {sh.chi2:.1f} on {sh.dof} "
+            f"(p = {sh.p_value:.2g})",
+            "agree" if sh.status == "agree" else "[yellow]disagree[/]",
+        )
+    return table
+
+
+def render_run(run: CalibrationRun, truth: CalibrationResult | None) -> None:
+    """Print the estimate table, the checks, the observability findings, the verdict and the
+    stage timings."""
+    r = run.result
+    out = console()
+    out.print(render_estimate(r, truth))
+    shift = r.recording.lidar_clock_shift_s if r.recording else 0.0
+    if shift:
+        out.print(
+            f"The LiDAR clock was {-shift:+.9f} s off the IMU clock and was shifted before "
+            f"calibrating: t_imu = t_lidar + ({shift:+.9f} s) + time offset"
+            + ("; the truth is shown on the same footing." if truth is not None else ".")
+        )
+    if truth is not None:
+        err = r.extrinsic.error_to(_truth_on_result_clock(r, truth))
+        out.print(
+            f"Error against truth: translation {1e3 * err['translation_m']:.2f} mm, rotation "
+            f"{err['rotation_deg']:.4f} deg, time offset {1e3 * err['time_offset_s']:.3f} ms"
+        )
+    if r.consistency is not None:
+        out.print(render_checks(r.consistency))
+        for why in r.consistency.inflation:
+            out.print(f"Sigmas enlarged {why}.")
+    if r.observability is not None:
+        for text in r.observability.unobservable:
+            out.print(f"[yellow]Not observable:[/] {text}")
+    for f in run.checks.findings:
+        if f.severity == "note":
+            out.print(f"Note: {f.text}")
+    verdict = run.checks.verdict
+    colour = {"pass": "green", "warn": "yellow", "fail": "red"}[verdict.status]
+    out.print(f"Verdict: [bold {colour}]{verdict.status.upper()}[/]")
+    for reason in verdict.reasons:
+        out.print(f"  - {reason}")
+    total = sum(run.timings.values())
+    out.print(
+        "Stages: "
+        + ", ".join(f"{k} {v:.1f} s" for k, v in run.timings.items())
+        + f" (total {total:.1f} s)"
+    )

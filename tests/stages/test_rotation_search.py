@@ -18,8 +18,13 @@ from licalib_cli.initialization.rotation_search import (
 from licalib_cli.initialization.single_axis import single_axis_rotation
 from licalib_cli.io.reader import read_segment
 from licalib_cli.measurements import ImuSamples
-from licalib_cli.odometry import PoseSeries, refine_odometry, run_odometry
-from licalib_cli.pipeline import SINGLE_AXIS, gyro_aided_rotation, initialise, odometry_config
+from licalib_cli.odometry import PoseSeries
+from licalib_cli.pipeline.initialise import (
+    SINGLE_AXIS,
+    align_rotation_and_time,
+    gyro_aided_alignment,
+    lidar_odometry,
+)
 from licalib_cli.simulation.ground_truth import build_setup
 from licalib_cli.simulation.simulate import simulate
 from licalib_cli.simulation.spec import IntrinsicsMode, Mounting, Scenario, SimulationSpec
@@ -91,24 +96,20 @@ def test_initialisation_falls_back_to_the_search(shake: tuple[Path, SimulationSp
     truth = build_setup(spec).extrinsic.rotation
     cfg = load_config(None)
     rec = read_segment(bag, cfg)
-    ocfg = odometry_config(cfg)
-    kiss = run_odometry(rec.scans, ocfg)
-    poses = refine_odometry(rec.scans, kiss, ocfg)
+    odo = lidar_odometry(rec, cfg)
     gyro = GyroIntegrator.from_imu(rec.imu)
-    rot, t_c, source, t_source, _, hand_eye, poses = initialise(rec, kiss, poses, ocfg, cfg, gyro)
-    assert source == "search + gyro-aided hand-eye"
-    assert t_source == "cross-correlation"
+    a = align_rotation_and_time(rec, odo, gyro, cfg)
+    assert a.rotation_source == "search + gyro-aided hand-eye"
+    assert a.time_offset_source == "cross-correlation"
     # The gyro's timing leaks into the odometry it deskews, so the first coarse offset is pulled
     # towards the zero assumed (measured 6.1 ms); the gyro-aided rounds re-estimate it.
-    assert abs(t_c - spec.time_offset_s) < 0.006
-    rot, t_c, _, hand_eye = gyro_aided_rotation(
-        rec, kiss, poses, ocfg, gyro, rot, t_c, hand_eye, cfg, reestimate_offset=True
-    )
+    assert abs(a.time_offset_s - spec.time_offset_s) < 0.006
+    a = gyro_aided_alignment(rec, odo, gyro, a, cfg)
     # Measured: 9.7 ms, 0.06 deg, hand-eye residual 0.05 deg.
-    assert abs(t_c - spec.time_offset_s) < 0.002
-    assert _angle_deg(rot, truth) < 1.0
-    assert hand_eye is not None
-    assert hand_eye.residual_rms_deg < 0.3
+    assert abs(a.time_offset_s - spec.time_offset_s) < 0.002
+    assert _angle_deg(a.rotation, truth) < 1.0
+    assert a.hand_eye is not None
+    assert a.hand_eye.residual_rms_deg < 0.3
 
 
 def test_single_axis_motion_takes_the_rotation_from_the_accelerations(tmp_path: Path) -> None:
@@ -126,17 +127,15 @@ def test_single_axis_motion_takes_the_rotation_from_the_accelerations(tmp_path: 
     truth = build_setup(spec).extrinsic.rotation
     cfg = load_config(None)
     rec = read_segment(out.bag_path, cfg)
-    ocfg = odometry_config(cfg)
-    kiss = run_odometry(rec.scans, ocfg)
-    poses = refine_odometry(rec.scans, kiss, ocfg)
+    odo = lidar_odometry(rec, cfg)
     gyro = GyroIntegrator.from_imu(rec.imu)
-    rot, _, source, _, _, hand_eye, _ = initialise(rec, kiss, poses, ocfg, cfg, gyro)
-    assert source == SINGLE_AXIS
-    assert hand_eye is None
+    a = align_rotation_and_time(rec, odo, gyro, cfg)
+    assert a.rotation_source == SINGLE_AXIS
+    assert a.hand_eye is None
     # Measured: 1.2 deg (10 s, seed 0); the optimisation refines it.
-    assert _angle_deg(rot, truth) < 4.0
+    assert _angle_deg(a.rotation, truth) < 4.0
     # The axis found is the robot's vertical in the IMU frame.
-    found = single_axis_rotation(rec.imu, gyro, poses, 0.0)
+    found = single_axis_rotation(rec.imu, gyro, odo.refined, 0.0)
     vertical = np.array([0.5, 0.433, 0.75]) / np.linalg.norm([0.5, 0.433, 0.75])
     assert abs(abs(found.axis_imu @ vertical) - 1.0) < 1e-3
 

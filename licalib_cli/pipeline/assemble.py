@@ -1,0 +1,115 @@
+"""Assemble stage: the result file from the estimate, the checks and what the data were."""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from pathlib import Path
+
+import numpy as np
+
+from licalib_cli import __version__
+from licalib_cli.config import CalibConfig
+from licalib_cli.io.reader import Recording
+from licalib_cli.pipeline.checks import Checks
+from licalib_cli.pipeline.initialise import InitialGuess
+from licalib_cli.pipeline.round import extrinsic_of
+from licalib_cli.pipeline.schedule import Fit
+from licalib_cli.results import CalibrationResult
+from licalib_cli.sections import (
+    FitSection,
+    InitializationSection,
+    Provenance,
+    RecordingSection,
+)
+
+__all__ = ["assemble", "bag_fingerprint", "recording_section"]
+
+_NS = 1_000_000_000
+
+
+def bag_fingerprint(path: Path) -> str:
+    """A quick content fingerprint: sha256 of the sizes and first/last MiB of the bag files."""
+    files = sorted(p for p in (path.rglob("*") if path.is_dir() else [path]) if p.is_file())
+    h = hashlib.sha256()
+    for f in files:
+        size = f.stat().st_size
+        h.update(f"{f.name}:{size}".encode())
+        with f.open("rb") as fh:
+            h.update(fh.read(1 << 20))
+            if size > 2 << 20:
+                fh.seek(-(1 << 20), 2)
+                h.update(fh.read())
+    return h.hexdigest()[:16]
+
+
+def recording_section(bag: Path, rec: Recording) -> RecordingSection:
+    """What data the calibration used."""
+    return RecordingSection(
+        bag=str(bag),
+        imu_topic=rec.imu_topic,
+        lidar_topic=rec.lidar_topic,
+        imu_samples=len(rec.imu),
+        scans=len(rec.scans),
+        duration_s=round((rec.end_ns - rec.start_ns) / _NS, 6),
+        start_ns=int(rec.start_ns),
+        clock_offset_s=round(rec.clock_offset_s, 9),
+        lidar_clock_shift_s=round(rec.lidar_shift_ns / _NS, 9),
+    )
+
+
+def assemble(
+    bag: Path,
+    rec: Recording,
+    guess: InitialGuess,
+    fit: Fit,
+    checks: Checks,
+    cfg: CalibConfig,
+) -> CalibrationResult:
+    """The result file's content (schema v1 with its typed sections)."""
+    state = fit.state
+    last = fit.rounds[-1]
+    c = fit.last_change
+    hand_eye = guess.hand_eye
+    return CalibrationResult(
+        extrinsic=extrinsic_of(state),
+        imu_intrinsics=state.imu_intrinsics,
+        lidar_intrinsics=state.lidar_intrinsics
+        if cfg.schedule.lidar_intrinsics_from_round
+        else None,
+        gravity_G=tuple(round(float(x), 6) for x in state.gravity_G),  # type: ignore[arg-type]
+        uncertainty=checks.uncertainty,
+        observability=checks.observability,
+        verdict=checks.verdict,
+        consistency=checks.consistency,
+        initialization=InitializationSection(
+            rotation_source=guess.rotation_source,
+            time_offset_source=guess.time_offset_source,
+            coarse_time_offset_s=round(guess.time_offset_s, 9),
+            angular_speed_correlation=None
+            if np.isnan(guess.correlation)
+            else round(guess.correlation, 4),
+            hand_eye_conditioning=None
+            if hand_eye is None
+            else float(f"{hand_eye.conditioning:.4g}"),
+            translation_source=guess.translation_source,
+            initial_translation_m=tuple(round(float(x), 6) for x in guess.t_imu_lidar),  # type: ignore[arg-type]
+        ),
+        fit=FitSection(
+            rounds=len(fit.rounds),
+            converged=bool(fit.converged),
+            last_change_translation_m=float(c.translation_m),
+            last_change_rotation_deg=float(c.rotation_deg),
+            last_change_time_offset_s=float(c.time_offset_s),
+            points=last.points,
+            surfels=last.surfels,
+            point_rms_m=round(last.rms_m, 6),
+            variance_factor=float(f"{fit.report.variance_factor:.4g}"),
+        ),
+        recording=recording_section(bag, rec),
+        provenance=Provenance(
+            licalib_version=__version__,
+            bag_fingerprint=bag_fingerprint(bag),
+            created_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        ),
+    )

@@ -1,0 +1,497 @@
+"""Checks stage: is the result trustworthy? The verdict, the sigmas and what the data cannot tell.
+
+Every finding is a function returning zero or more :class:`Finding` (a severity and one
+sentence); the verdict is the worst severity. A check that could not be computed says so (a
+``note``) instead of passing silently. The findings:
+
+* convergence: the rounds settled before ``schedule.max_rounds`` (else ``fail``);
+* observability: extrinsic directions the data do not determine (``warn``; ``fail`` when fewer
+  than half of the coordinates are determined);
+* uncertainty: sigmas above 1 cm / 0.1 deg / 2 ms (``warn``);
+* fit per sensor: residuals beyond the noise, structure left in them (``warn``);
+* fixed effects: an effect the model holds fixed that the data show and that would move the
+  extrinsic by more than its sigma (``warn``);
+* split-half: the two halves of the segment disagree beyond their sigmas (``warn``);
+* map: few points on planar surfaces (``warn``), a very poor overall fit (``fail``).
+
+The reported sigmas are the solver's, inflated so that they cover what the checks found: by the
+root of the largest chi-square per sample of the sensors, by half the disagreement of the two
+halves, by the shift a material fixed effect would cause, and by the last round's change when
+the rounds only settled to within their jitter.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from licalib_cli.config import CalibConfig
+from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
+from licalib_cli.pipeline.schedule import Fit
+from licalib_cli.pipeline.split import SplitResult
+from licalib_cli.sections import (
+    Consistency,
+    EffectCheck,
+    Observability,
+    SensorCheck,
+    SplitHalf,
+    Uncertainty,
+    VerdictSection,
+)
+from licalib_cli.solver.lm import SolverReport
+
+__all__ = [
+    "SPLIT_HALF_P",
+    "Checks",
+    "Finding",
+    "judge",
+    "observability_of",
+    "raw_uncertainty",
+]
+
+F64 = npt.NDArray[np.float64]
+
+SPLIT_HALF_P = 1e-3
+"""The halves disagree when the chi-square of their difference (with their combined covariance)
+has a p-value below this."""
+
+_SEVERITY = {"note": 0, "warn": 1, "fail": 2}
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One finding of a check: ``note`` (informational), ``warn`` or ``fail``."""
+
+    severity: str
+    text: str
+
+
+@dataclass(frozen=True)
+class Checks:
+    """The checks' outcome.
+
+    Attributes:
+        verdict: the verdict section (status and reasons).
+        uncertainty: the reported (inflated) sigmas.
+        raw_sigma: (7,) the solver's sigmas before inflation (t m, r rad, dt s).
+        observability: the observability section.
+        consistency: the consistency section.
+        findings: every finding, notes included.
+        exit_status: ``"ok"``, ``"fail"`` or ``"not converged"``.
+    """
+
+    verdict: VerdictSection
+    uncertainty: Uncertainty
+    raw_sigma: F64
+    observability: Observability
+    consistency: Consistency
+    findings: tuple[Finding, ...]
+    exit_status: str
+
+
+def _std(report: SolverReport, names: list[str]) -> F64:
+    out = []
+    for n in names:
+        try:
+            out.append(report.std_of(n))
+        except ValueError:
+            out.append(float("nan"))
+    return np.asarray(out, dtype=np.float64)
+
+
+def raw_uncertainty(report: SolverReport) -> F64:
+    """(7,) solver sigmas: translation (m), rotation (rad, LiDAR axes), time offset (s)."""
+    return _std(
+        report,
+        [f"ext.translation.{a}" for a in "xyz"]
+        + [f"ext.rotation.r{a}" for a in "xyz"]
+        + ["ext.time_offset"],
+    )
+
+
+def observability_of(report: SolverReport) -> Observability:
+    """Spectrum of the scaled calibration information and the truncated directions."""
+    return Observability(
+        scaling=report.scaling,
+        threshold=float(report.tsvd_threshold),
+        singular_values=tuple(float(f"{s:.6g}") for s in report.singular_values),
+        unobservable=tuple(d.text for d in report.truncated),
+    )
+
+
+# ----------------------------------------------------------------------------- the checks
+
+
+def _convergence(fit: Fit, cfg: CalibConfig) -> list[Finding]:
+    c = fit.last_change
+    if not fit.converged:
+        return [
+            Finding(
+                "fail",
+                f"The calibration did not converge: after schedule.max_rounds = "
+                f"{cfg.schedule.max_rounds} rounds the estimate still moved "
+                f"{1e3 * c.translation_m:.1f} mm / {c.rotation_deg:.3f} deg / "
+                f"{1e3 * c.time_offset_s:.2f} ms per round, so the result is not trustworthy; "
+                "record more varied motion in a structured scene, or raise schedule.max_rounds.",
+            )
+        ]
+    if fit.jitter:
+        return [
+            Finding(
+                "note",
+                f"The rounds settled to within {1e3 * c.translation_m:.2f} mm / "
+                f"{c.rotation_deg:.4f} deg / {1e3 * c.time_offset_s:.3f} ms (the map is "
+                "rebuilt each round); the sigmas include this.",
+            )
+        ]
+    return []
+
+
+def _observability(report: SolverReport) -> list[Finding]:
+    out: list[Finding] = []
+    ext_truncated = [
+        d.text for d in report.truncated if any(b.startswith("ext.") for b, _ in d.blocks)
+    ]
+    if ext_truncated:
+        out.extend(Finding("warn", f"Not observable from this data: {t}") for t in ext_truncated)
+        out.append(
+            Finding(
+                "warn",
+                "Record with rotation about more axes, or set what is not observable from a "
+                "measurement (initialization.translation_m, rotation_rpy_deg, time_offset_s).",
+            )
+        )
+    ext = [i for i, n in enumerate(report.calibration_names) if n.startswith("ext.")]
+    n_observable = int(np.count_nonzero(report.observable[ext])) if ext else 0
+    if ext and n_observable < (len(ext) + 1) // 2:
+        out.insert(
+            0,
+            Finding(
+                "fail",
+                f"The data determine only {n_observable} of the {len(ext)} extrinsic "
+                "coordinates; the result is mostly the initial guess. Record 10-60 s with "
+                "rotation about all three axes.",
+            ),
+        )
+    return out
+
+
+def _uncertainty(sigma: F64) -> list[Finding]:
+    out = []
+    t, r, c = sigma[:3], np.degrees(sigma[3:6]), float(sigma[6])
+    finite_t = t[np.isfinite(t)]
+    if finite_t.size and finite_t.max() > 0.01:
+        out.append(
+            Finding(
+                "warn",
+                f"Translation is uncertain (1-sigma up to {100 * finite_t.max():.1f} cm); "
+                "record with more rotation about all axes.",
+            )
+        )
+    finite_r = r[np.isfinite(r)]
+    if finite_r.size and finite_r.max() > 0.1:
+        out.append(
+            Finding("warn", f"Rotation is uncertain (1-sigma up to {finite_r.max():.2f} deg).")
+        )
+    if np.isfinite(c) and c > 0.002:
+        out.append(Finding("warn", f"Time offset is uncertain (1-sigma {1e3 * c:.1f} ms)."))
+    return out
+
+
+_SENSOR_NAME = {"gyro": "gyro", "accelerometer": "accelerometer", "lidar": "LiDAR"}
+_NOISE_KEY = {
+    "gyro": "noise.gyro_noise_density",
+    "accelerometer": "noise.accel_noise_density",
+    "lidar": "noise.range_sigma_m",
+}
+
+
+def _sensors(sensors: tuple[SensorCheck, ...]) -> list[Finding]:
+    out = []
+    for s in sensors:
+        name = _SENSOR_NAME[s.sensor]
+        if s.status == "excess":
+            where = (
+                f"check {_NOISE_KEY[s.sensor]} in the config, or"
+                if s.noise_source == "config"
+                else "the noise was measured from the data, so"
+            )
+            out.append(
+                Finding(
+                    "warn",
+                    f"The {name} residuals are {np.sqrt(s.chi2_per_sample):.2f} times their "
+                    f"noise (chi-square {s.chi2_per_sample:.2f} per sample): {where} the "
+                    f"{name} model does not explain the data.",
+                )
+            )
+        for p in s.patterns:
+            if p.material:
+                out.append(
+                    Finding(
+                        "warn",
+                        f"The {name} residuals depend on the {p.feature} ({100 * p.explained:.0f} "
+                        f"% of their variance, {_size(p.size, s.unit)}): the {name} model lacks "
+                        "an effect.",
+                    )
+                )
+    return out
+
+
+def _size(value: float, unit: str) -> str:
+    if unit == "m":
+        return f"{1e3 * value:.1f} mm"
+    return f"{value:.2g} {unit}"
+
+
+def effect_is_material(e: EffectEvidence, raw_sigma: F64) -> bool:
+    """Selected (significant beyond the stronger effects) and moving some extrinsic coordinate
+    by more than its sigma."""
+    if not e.selected or e.score.p_value >= EFFECT_P_VALUE:
+        return False
+    ratio = np.abs(e.shift) / np.where(np.isfinite(raw_sigma), raw_sigma, np.inf)
+    return bool(np.nanmax(ratio) > 1.0)
+
+
+def _effects(effects: list[EffectEvidence], raw_sigma: F64) -> list[Finding]:
+    """One finding per sensor whose data show material effects the model holds fixed."""
+    out = []
+    for sensor, label in (("imu", "IMU"), ("lidar", "LiDAR")):
+        material = sorted(
+            (e for e in effects if e.sensor == sensor and effect_is_material(e, raw_sigma)),
+            key=lambda e: -e.score.statistic,
+        )
+        if not material:
+            continue
+        top = material[0]
+        shift = (
+            f"{1e3 * float(np.linalg.norm(top.shift_translation_m)):.1f} mm / "
+            f"{float(np.degrees(np.linalg.norm(top.shift_rotation_rad))):.3f} deg / "
+            f"{1e3 * abs(top.shift_time_offset_s):.2f} ms"
+        )
+        others = ", ".join(e.score.name for e in material[1:])
+        also = f" (and beyond it: {others})" if others else ""
+        out.append(
+            Finding(
+                "warn",
+                f"The {label} data show an effect the model holds fixed, {top.score.name} "
+                f"(score test {top.score.statistic:.0f} on {top.score.rank} degrees of "
+                f"freedom){also}; estimating it would move the extrinsic by about {shift}, "
+                f"beyond its sigma. Calibrate the {label} intrinsics too, or treat the extrinsic "
+                "as off by at least that.",
+            )
+        )
+    return out
+
+
+def _split(split: SplitResult) -> list[Finding]:
+    if not split.ran:
+        return [Finding("note", f"Split-half check not run: {split.reason}.")]
+    if split.p_value >= SPLIT_HALF_P:
+        return []
+    names = [
+        "t_x",
+        "t_y",
+        "t_z",
+        "roll (LiDAR x)",
+        "pitch (LiDAR y)",
+        "yaw (LiDAR z)",
+        "time offset",
+    ]
+    most = ""
+    if np.any(np.isfinite(split.z)):
+        k = int(np.nanargmax(split.z))
+        value = split.difference[k]
+        text = (
+            f"{1e3 * value:+.2f} mm"
+            if k < 3
+            else f"{np.degrees(value):+.4f} deg"
+            if k < 6
+            else f"{1e3 * value:+.3f} ms"
+        )
+        most = f"; the most, {names[k]} by {text}, {split.z[k]:.1f} combined sigmas"
+    return [
+        Finding(
+            "warn",
+            f"The two halves of the segment disagree (chi-square {split.chi2:.0f} on {split.dof} "
+            f"degrees of freedom, p = {split.p_value:.1g}{most}): something changes over the "
+            "recording (a drifting bias, a clock running at another rate, a loose mount) that "
+            "the model does not describe.",
+        )
+    ]
+
+
+def _map(fit: Fit, report: SolverReport) -> list[Finding]:
+    out = []
+    last = fit.rounds[-1]
+    if last.associated_fraction < 0.2:
+        out.append(
+            Finding(
+                "warn",
+                f"Only {100 * last.associated_fraction:.0f} % of the points lie on planar "
+                "surfaces; the map may be poor.",
+            )
+        )
+    if report.variance_factor > 25:
+        out.append(
+            Finding(
+                "fail",
+                f"The fit is poor (residuals {np.sqrt(report.variance_factor):.0f}x their "
+                "expected size); the model does not explain the data.",
+            )
+        )
+    return out
+
+
+# ------------------------------------------------------------------------ inflation, verdict
+
+
+def inflate(
+    raw: F64,
+    sensors: tuple[SensorCheck, ...],
+    effects: list[EffectEvidence],
+    split: SplitResult,
+    fit: Fit,
+) -> tuple[F64, tuple[str, ...]]:
+    """The sigmas to report: the solver's, enlarged to cover what the checks found.
+
+    Returns:
+        ``(sigma (7,), reasons)`` with one sentence per enlargement applied.
+    """
+    sigma = raw.copy()
+    why: list[str] = []
+    chi = max((s.chi2_per_sample for s in sensors), default=1.0)
+    if chi > 1.0:
+        sigma = sigma * np.sqrt(chi)
+        worst = max(sensors, key=lambda s: s.chi2_per_sample)
+        why.append(
+            f"times {np.sqrt(chi):.2f}, the root of the {worst.sensor} residuals' chi-square "
+            "per sample"
+        )
+    if split.ran:
+        half_gap = 0.5 * np.abs(split.difference)
+        grown = np.maximum(sigma, half_gap)
+        if np.any(grown > sigma * (1 + 1e-9)):
+            why.append("at least half the difference between the two halves of the segment")
+        sigma = grown
+    for e in effects:
+        if effect_is_material(e, raw):
+            sigma = np.sqrt(sigma**2 + e.shift**2)
+            why.append(f"by the shift estimating {e.score.name} would cause")
+    if fit.jitter:
+        c = fit.last_change
+        jitter = np.array(
+            [c.translation_m] * 3 + [np.radians(c.rotation_deg)] * 3 + [c.time_offset_s]
+        )
+        sigma = np.sqrt(sigma**2 + jitter**2)
+        why.append("by the last round's change (the rounds settled only to within it)")
+    return sigma, tuple(why)
+
+
+def judge(findings: list[Finding]) -> tuple[VerdictSection, str]:
+    """Verdict from the findings: the worst severity; notes do not count.
+
+    Returns:
+        ``(verdict, exit_status)`` with ``exit_status`` ``"not converged"`` when the rounds did
+        not converge, ``"fail"`` for another failure, else ``"ok"``.
+    """
+    worst = max((_SEVERITY[f.severity] for f in findings), default=0)
+    status = {0: "pass", 1: "warn", 2: "fail"}[worst]
+    ordered = sorted(
+        (f for f in findings if f.severity != "note"), key=lambda f: -_SEVERITY[f.severity]
+    )
+    reasons = tuple(f.text for f in ordered)
+    if status != "fail":
+        exit_status = "ok"
+    elif any(f.text.startswith("The calibration did not converge") for f in findings):
+        exit_status = "not converged"
+    else:
+        exit_status = "fail"
+    return VerdictSection(status, reasons), exit_status
+
+
+def run_checks(
+    fit: Fit,
+    sensors: tuple[SensorCheck, ...],
+    effects: list[EffectEvidence],
+    split: SplitResult,
+    cfg: CalibConfig,
+    notes: tuple[str, ...] = (),
+) -> Checks:
+    """Every check on the fit, the inflated sigmas and the verdict.
+
+    Args:
+        fit: the rounds' outcome.
+        sensors: residual checks per sensor (:func:`~licalib_cli.pipeline.fitcheck.
+            sensor_checks`).
+        effects: score tests of the fixed effects.
+        split: the split-half comparison.
+        cfg: the configuration.
+        notes: warnings of earlier stages (one sentence each), e.g. single-axis motion.
+
+    Returns:
+        The checks' outcome.
+    """
+    report = fit.report
+    raw = raw_uncertainty(report)
+    sigma, why = inflate(raw, sensors, effects, split, fit)
+    findings = [Finding("warn", n) for n in notes]
+    findings += _convergence(fit, cfg)
+    findings += _observability(report)
+    findings += _uncertainty(sigma)
+    findings += _sensors(sensors)
+    findings += _effects(effects, raw)
+    findings += _split(split)
+    findings += _map(fit, report)
+    verdict, exit_status = judge(findings)
+    consistency = Consistency(
+        sensors=sensors,
+        effects=tuple(_effect_section(e, raw) for e in effects),
+        split_half=_split_section(split),
+        inflation=why,
+    )
+    return Checks(
+        verdict=verdict,
+        uncertainty=Uncertainty(
+            translation_std_m=tuple(float(x) for x in sigma[:3]),  # type: ignore[arg-type]
+            rotation_std_deg=tuple(float(np.degrees(x)) for x in sigma[3:6]),  # type: ignore[arg-type]
+            time_offset_std_s=float(sigma[6]),
+        ),
+        raw_sigma=raw,
+        observability=observability_of(report),
+        consistency=consistency,
+        findings=tuple(findings),
+        exit_status=exit_status,
+    )
+
+
+def _effect_section(e: EffectEvidence, raw: F64) -> EffectCheck:
+    return EffectCheck(
+        name=e.score.name,
+        sensor=e.sensor,
+        statistic=float(e.score.statistic),
+        dof=int(e.score.rank),
+        p_value=float(e.score.p_value),
+        shift_translation_m=tuple(float(x) for x in e.shift_translation_m),  # type: ignore[arg-type]
+        shift_rotation_deg=tuple(float(np.degrees(x)) for x in e.shift_rotation_rad),  # type: ignore[arg-type]
+        shift_time_offset_s=float(e.shift_time_offset_s),
+        selected=e.selected,
+        material=effect_is_material(e, raw),
+    )
+
+
+def _split_section(s: SplitResult) -> SplitHalf:
+    if not s.ran:
+        return SplitHalf("not run", reason=s.reason, halves_s=s.half_s)
+    return SplitHalf(
+        status="disagree" if s.p_value < SPLIT_HALF_P else "agree",
+        halves_s=s.half_s,
+        max_z=s.max_z,
+        chi2=s.chi2,
+        dof=s.dof,
+        p_value=s.p_value,
+        difference_translation_m=tuple(float(x) for x in s.difference[:3]),
+        difference_rotation_deg=tuple(float(np.degrees(x)) for x in s.difference[3:6]),
+        difference_time_offset_s=float(s.difference[6]),
+    )

@@ -1,0 +1,358 @@
+"""Evidence that the fitted model explains the data (or not), computed at the final estimate.
+
+Three kinds of evidence, each naming the sensor it concerns:
+
+* per sensor, the residuals against the noise the fit was weighted with (chi-square per
+  sample) and the structure left in them: their dependence on the angular rate, the specific
+  force and time (IMU), on the beam, range, azimuth, elevation, incidence angle and the time
+  within the sweep (LiDAR);
+* per effect the model holds fixed (IMU scale, misalignment, gyro-to-IMU rotation,
+  g-sensitivity, the six per-beam LiDAR intrinsics), a score test and how far estimating the
+  effect would move the extrinsic (:mod:`licalib_cli.consistency.score`), from one
+  linearisation of the final problem with those effects freed;
+* the split-half agreement (:mod:`licalib_cli.pipeline.split`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+
+import numpy as np
+import numpy.typing as npt
+
+from licalib_cli.consistency import (
+    EffectScore,
+    group_pattern,
+    normalised_chi2,
+    regression_pattern,
+    select_effects,
+)
+from licalib_cli.estimation import CalibrationState, LidarPoints, build_problem
+from licalib_cli.pipeline.round import RoundInputs
+from licalib_cli.pipeline.settings import NoiseLevels
+from licalib_cli.residuals import TIME_OFFSET, AccelResidual, GyroResidual, PointToPlaneResidual
+from licalib_cli.sections import PatternCheck, SensorCheck
+from licalib_cli.solver.problem import schur_complement
+
+__all__ = [
+    "CHI2_EXCESS",
+    "EFFECT_P_VALUE",
+    "PATTERN_EXPLAINED",
+    "EffectEvidence",
+    "effect_evidence",
+    "sensor_checks",
+]
+
+logger = logging.getLogger(__name__)
+
+F64 = npt.NDArray[np.float64]
+
+CHI2_EXCESS = 1.5
+"""A sensor whose chi-square per sample exceeds this (residual RMS 1.22 times the noise) is not
+explained by the model (or its noise setting is wrong)."""
+
+PATTERN_EXPLAINED = 0.01
+"""A residual pattern counts when it explains more than this share of the residual variance
+(and is significant, :data:`PATTERN_P_VALUE`)."""
+
+PATTERN_P_VALUE = 1e-9
+
+EFFECT_P_VALUE = 1e-5
+"""A fixed effect is significant below this p-value (about 1e-4 over all effects tested)."""
+
+MIN_INCIDENCE_COS = 0.3
+"""The point-to-plane noise is the range noise times the cosine of the incidence angle, but at
+least this fraction of it (grazing rays, plane-fit errors)."""
+
+MAX_EFFECT_POINTS = 80_000
+"""Points used for the score tests (a regular subset of the final round's): the tests have power
+to spare, and the linearisation with every intrinsic free costs in proportion."""
+
+
+def _every_kth(lidar: LidarPoints, at_most: int) -> LidarPoints:
+    """A regular subset of at most ``at_most`` points."""
+    n = len(lidar)
+    if n <= at_most:
+        return lidar
+    idx = np.arange(0, n, int(np.ceil(n / at_most)))
+    gap = None if lidar.model_gap is None else np.asarray(lidar.model_gap)[idx]
+    return LidarPoints(
+        t_s=np.asarray(lidar.t_s)[idx],
+        beam=np.asarray(lidar.beam)[idx],
+        rho=np.asarray(lidar.rho)[idx],
+        theta=np.asarray(lidar.theta)[idx],
+        plane=np.asarray(lidar.plane)[idx],
+        model_gap=gap,
+    )
+
+
+_LIDAR_EFFECTS = {
+    "dphi": "lidar_elevation",
+    "dtheta": "lidar_azimuth",
+    "V": "lidar_vertical_offset",
+    "H": "lidar_horizontal_offset",
+    "s": "lidar_range_scale",
+    "drho": "lidar_range_offset",
+}
+_IMU_EFFECTS = {
+    "imu.gyro_scale": "gyro_scale",
+    "imu.gyro_misalignment": "gyro_misalignment",
+    "imu.gyro_rotation": "gyro_rotation",
+    "imu.accel_scale": "accel_scale",
+    "imu.accel_misalignment": "accel_misalignment",
+    "imu.gyro_g_sensitivity": "g_sensitivity",
+}
+
+
+def _patterns(residuals: F64, features: list[tuple[str, F64, bool]]) -> tuple[PatternCheck, ...]:
+    out = []
+    for name, x, grouped in features:
+        p = group_pattern(residuals, x, name) if grouped else regression_pattern(residuals, x, name)
+        out.append(
+            PatternCheck(
+                feature=name,
+                explained=p.explained,
+                p_value=p.p_value,
+                size=p.size,
+                material=p.material(PATTERN_EXPLAINED, PATTERN_P_VALUE),
+            )
+        )
+    return tuple(out)
+
+
+def _sensor(
+    name: str,
+    unit: str,
+    residuals: F64,
+    sigma: F64,
+    noise: F64,
+    source: str,
+    patterns: tuple[PatternCheck, ...],
+) -> SensorCheck:
+    chi = normalised_chi2(residuals, sigma)
+    return SensorCheck(
+        sensor=name,
+        unit=unit,
+        noise=tuple(float(x) for x in np.atleast_1d(noise)),
+        noise_source=source,
+        chi2_per_sample=chi.per_dof,
+        rms=chi.rms,
+        samples=chi.samples,
+        status="excess" if chi.per_dof > CHI2_EXCESS else "ok",
+        patterns=patterns,
+    )
+
+
+def sensor_checks(
+    state: CalibrationState, inputs: RoundInputs, noise: NoiseLevels
+) -> tuple[SensorCheck, ...]:
+    """Residual size and structure per sensor at the final estimate.
+
+    Args:
+        state: the final estimate.
+        inputs: the final round's problem inputs.
+        noise: the noise the fit was weighted with.
+
+    Returns:
+        The gyro's, the accelerometer's and the LiDAR's checks.
+    """
+    problem = build_problem(
+        state, inputs.imu, inputs.lidar, inputs.planes, inputs.noise, inputs.free
+    )
+    params = problem.values()
+    gyro = next(b for b in problem.residual_blocks if isinstance(b, GyroResidual))
+    accel = next(b for b in problem.residual_blocks if isinstance(b, AccelResidual))
+    points = next(b for b in problem.residual_blocks if isinstance(b, PointToPlaneResidual))
+    r_g = gyro.evaluate(params, jacobians=False).residuals / gyro.inv_sigma
+    r_a = accel.evaluate(params, jacobians=False).residuals / accel.inv_sigma
+    t = gyro.t_s
+    out = [
+        _sensor(
+            "gyro",
+            "rad/s",
+            r_g,
+            noise.gyro_sigma,
+            noise.gyro_sigma,
+            noise.gyro_source,
+            _patterns(
+                r_g,
+                [
+                    ("angular rate", gyro.gyro, False),
+                    ("specific force", accel.accel, False),
+                    ("time", t, False),
+                ],
+            ),
+        ),
+        _sensor(
+            "accelerometer",
+            "m/s^2",
+            r_a,
+            noise.accel_sigma,
+            noise.accel_sigma,
+            noise.accel_source,
+            _patterns(
+                r_a,
+                [
+                    ("specific force", accel.accel, False),
+                    ("angular rate", gyro.gyro, False),
+                    ("time", t, False),
+                ],
+            ),
+        ),
+    ]
+    d = points.distances(params)
+    tc = float(np.asarray(params[TIME_OFFSET]).reshape(-1)[0])
+    rot = state.so3_spline.rotation(points.t_s + tc)
+    phi = state.lidar_intrinsics.nominal_elevation[points.beam]
+    ray_l = np.stack(
+        [np.cos(phi) * np.cos(points.theta), np.cos(phi) * np.sin(points.theta), np.sin(phi)],
+        axis=-1,
+    )
+    ray_g = np.einsum("nij,nj->ni", rot, ray_l @ state.R_imu_lidar.T)
+    cos_inc = np.abs(np.einsum("ij,ij->i", ray_g, points.normal))
+    per_beam = noise.range_sigma_per_beam
+    if noise.range_source == "data" and per_beam.shape[0] == state.lidar_intrinsics.num_beams:
+        beam_sigma = np.where(np.isfinite(per_beam), per_beam, noise.range_sigma_m)
+    else:
+        beam_sigma = np.full(state.lidar_intrinsics.num_beams, noise.range_sigma_m)
+    sigma = beam_sigma[points.beam] * np.maximum(cos_inc, MIN_INCIDENCE_COS)
+    t_sweep = (inputs.points.t_ns - inputs.points.sweep_start_ns) * 1e-9
+    out.append(
+        _sensor(
+            "lidar",
+            "m",
+            d,
+            sigma,
+            np.array([noise.range_sigma_m]),
+            noise.range_source,
+            _patterns(
+                d,
+                [
+                    ("beam", points.beam, True),
+                    ("range", points.rho, False),
+                    ("azimuth", np.stack([np.sin(points.theta), np.cos(points.theta)], -1), False),
+                    ("elevation", phi, False),
+                    ("incidence angle", cos_inc, False),
+                    ("time within sweep", t_sweep, False),
+                ],
+            ),
+        )
+    )
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class EffectEvidence:
+    """Score test of one fixed effect with its shift of the extrinsic in result units.
+
+    Attributes:
+        score: the test (shifts in solver coordinates).
+        sensor: ``imu`` or ``lidar``.
+        selected: whether the forward selection added it (it explains something the stronger
+            effects do not).
+        shift_translation_m: (3,) m.
+        shift_rotation_rad: (3,) about the LiDAR axes, rad.
+        shift_time_offset_s: s.
+    """
+
+    score: EffectScore
+    sensor: str
+    selected: bool
+    shift_translation_m: F64
+    shift_rotation_rad: F64
+    shift_time_offset_s: float
+
+    @property
+    def shift(self) -> F64:
+        """(7,) the shift as translation (m), rotation (rad), time offset (s)."""
+        return np.concatenate(
+            [self.shift_translation_m, self.shift_rotation_rad, [self.shift_time_offset_s]]
+        )
+
+
+def _effect_of(name: str) -> str | None:
+    if name.startswith("lidar.intrinsics"):
+        return _LIDAR_EFFECTS.get(name.rsplit(".", 1)[1])
+    block = name.rsplit(".", 1)[0]
+    return _IMU_EFFECTS.get(block)
+
+
+def effect_evidence(
+    state: CalibrationState, inputs: RoundInputs, variance_factor: float
+) -> list[EffectEvidence]:
+    """Score tests of every effect the final round held fixed, with forward selection.
+
+    The final problem is rebuilt with every IMU and LiDAR intrinsic free (the gauge beam and
+    beams with too few points stay fixed) and linearised once at the final estimate; the
+    trajectory is eliminated as in the solver, and the fixed groups are tested against the
+    coordinates the round estimated: the most significant is selected, the others re-tested
+    with it freed, and so on (:func:`~licalib_cli.consistency.select_effects`).
+
+    Args:
+        state: the final estimate.
+        inputs: the final round's problem inputs.
+        variance_factor: the fit's a-posteriori variance factor (clamped below at 1).
+
+    Returns:
+        One entry per fixed group with at least one free coordinate: the selected ones first,
+        in the order added, then the others (tested with the selected ones freed).
+    """
+    free = inputs.free
+    all_free = replace(free, imu_intrinsics=True, lidar_intrinsics=True, g_sensitivity=True)
+    problem = build_problem(
+        state,
+        inputs.imu,
+        _every_kth(inputs.lidar, MAX_EFFECT_POINTS),
+        inputs.planes,
+        inputs.noise,
+        all_free,
+    )
+    evaluation = problem.evaluate(jacobians=True)
+    lin = problem.linearize(evaluation, problem.layout())
+    sch = schur_complement(lin)
+    names = lin.layout.calibration_names
+    groups: dict[str, list[int]] = {}
+    base: list[int] = []
+    estimated = set()
+    if free.imu_intrinsics:
+        estimated |= {v for k, v in _IMU_EFFECTS.items() if k != "imu.gyro_g_sensitivity"}
+    if free.g_sensitivity:
+        estimated.add("g_sensitivity")
+    if free.lidar_intrinsics:
+        estimated |= set(_LIDAR_EFFECTS.values())
+    for i, n in enumerate(names):
+        effect = _effect_of(n)
+        if effect is None or effect in estimated:
+            base.append(i)
+        else:
+            groups.setdefault(effect, []).append(i)
+    selection = select_effects(
+        sch.S, sch.b, base, groups, EFFECT_P_VALUE, max(variance_factor, 1.0)
+    )
+    base_names = [names[i] for i in base]
+
+    def pick(prefix: str, shift: F64) -> F64:
+        return np.array([s for n, s in zip(base_names, shift, strict=True) if n.startswith(prefix)])
+
+    out = []
+    for sel, scores in ((True, selection.selected), (False, selection.remaining)):
+        for s in scores:
+            t = pick("ext.translation", s.shift)
+            r = pick("ext.rotation", s.shift)
+            c = pick("ext.time_offset", s.shift)
+            out.append(
+                EffectEvidence(
+                    score=s,
+                    sensor="lidar" if s.name.startswith("lidar") else "imu",
+                    selected=sel,
+                    shift_translation_m=t if t.size == 3 else np.zeros(3),
+                    shift_rotation_rad=r if r.size == 3 else np.zeros(3),
+                    shift_time_offset_s=float(c[0]) if c.size else 0.0,
+                )
+            )
+    logger.debug(
+        "effect scores: %s",
+        ", ".join(f"{e.score.name} {e.score.statistic:.1f} (dof {e.score.rank})" for e in out),
+    )
+    return out

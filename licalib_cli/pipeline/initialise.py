@@ -1,0 +1,506 @@
+"""Odometry and initialisation stages: from measurements to a first estimate of everything.
+
+Order (method.md section 5):
+
+1. LiDAR odometry (kiss-icp, then a refinement pass), poses stamped at each sweep's latest point.
+2. The rotation extrinsic: hand-eye on the odometry; when the LiDAR-only odometry cannot follow
+   the motion, a global search over SO(3) by map and surface-normal sharpness with the gyro,
+   followed by gyro-aided odometry and hand-eye; for rotation about one axis only, that axis
+   and the accelerations.
+3. The coarse time offset, jointly with the rotation (angular rates), then hand-eye again.
+4. Gyro-aided odometry rounds until hand-eye on them agrees with the gyro.
+5. The lever arm, gravity, accelerometer bias and the position spline by linear least squares
+   (:mod:`licalib_cli.initialization.translation`); the rotation spline from the gyro.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from licalib_cli.config import CalibConfig
+from licalib_cli.errors import ExcitationError
+from licalib_cli.estimation import CalibrationState
+from licalib_cli.geometry import so3
+from licalib_cli.initialization.rotation import (
+    GyroIntegrator,
+    HandEyeRotation,
+    estimate_rotation_extrinsic,
+    lidar_rotation_at,
+)
+from licalib_cli.initialization.rotation_search import search_rotation_extrinsic
+from licalib_cli.initialization.single_axis import rotation_axes, single_axis_rotation
+from licalib_cli.initialization.time_offset import (
+    TimeOffsetConfig,
+    TimeOffsetEstimate,
+    estimate_time_offset,
+    estimate_time_offset_aligned,
+    estimate_time_offset_joint,
+)
+from licalib_cli.initialization.translation import LeverArmEstimate, estimate_lever_arm
+from licalib_cli.io.reader import Recording
+from licalib_cli.models.intrinsics import LidarIntrinsics
+from licalib_cli.odometry import PoseSeries, refine_odometry, run_odometry
+from licalib_cli.pipeline.settings import (
+    NoiseLevels,
+    hand_eye_config,
+    lever_arm_config,
+    odometry_config,
+    time_offset_config,
+)
+from licalib_cli.results import matrix_from_rpy_deg
+from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
+
+__all__ = [
+    "SINGLE_AXIS",
+    "Alignment",
+    "InitialGuess",
+    "Odometry",
+    "align_rotation_and_time",
+    "gyro_aided_alignment",
+    "initialise",
+    "lidar_odometry",
+]
+
+logger = logging.getLogger(__name__)
+
+F64 = npt.NDArray[np.float64]
+
+GRAVITY_NORM = 9.81
+
+SINGLE_AXIS = "single axis + accelerations"
+
+_AGREEING_HAND_EYE_DEG = 0.25
+"""Hand-eye RMS residual (deg) under which the LiDAR-only odometry is taken to follow the motion
+(no gyro-aided re-registration; the optimisation absorbs the rest)."""
+
+
+@dataclass(frozen=True)
+class Odometry:
+    """LiDAR odometry of the segment.
+
+    Attributes:
+        kiss: kiss-icp's poses.
+        refined: the refined poses (a second registration pass seeded by kiss-icp).
+    """
+
+    kiss: PoseSeries
+    refined: PoseSeries
+
+
+@dataclass(frozen=True)
+class InitialGuess:
+    """What initialisation found before any optimisation.
+
+    Attributes:
+        state: the initial estimate of everything the optimisation estimates.
+        R_imu_lidar: (3, 3) initial extrinsic rotation.
+        t_imu_lidar: (3,) initial translation, m.
+        time_offset_s: initial ``t_imu = t_lidar + time_offset_s``.
+        rotation_source: ``"hand-eye"``, ``"search + gyro-aided hand-eye"``, :data:`SINGLE_AXIS`
+            or ``"config"``.
+        time_offset_source: ``"cross-correlation"``, ``"zero"`` or ``"config"``.
+        translation_source: ``"odometry + accelerometer"``, ``"config"`` or ``"zero"``.
+        correlation: peak normalised correlation of the angular rates (NaN when not used).
+        hand_eye: the hand-eye solution with its conditioning, or None.
+        lever_arm: the lever-arm least squares, or None.
+        poses: the odometry the rotation rests on.
+        nominal_elevation: (B,) nominal beam elevations, rad.
+    """
+
+    state: CalibrationState
+    R_imu_lidar: F64
+    t_imu_lidar: F64
+    time_offset_s: float
+    rotation_source: str
+    time_offset_source: str
+    translation_source: str
+    correlation: float
+    hand_eye: HandEyeRotation | None
+    lever_arm: LeverArmEstimate | None
+    poses: PoseSeries
+    nominal_elevation: F64
+
+    @property
+    def gravity_G(self) -> F64:
+        """(3,) initial gravity in ``{G}``, m/s^2."""
+        return self.state.gravity_G
+
+
+def lidar_odometry(
+    rec: Recording, cfg: CalibConfig, progress: Callable[[int, int], None] | None = None
+) -> Odometry:
+    """kiss-icp odometry of the segment and its refinement."""
+    ocfg = odometry_config(cfg)
+    kiss = run_odometry(rec.scans, ocfg, progress=progress)
+    return Odometry(kiss=kiss, refined=refine_odometry(rec.scans, kiss, ocfg))
+
+
+def _with_rotation_hint(err: ExcitationError) -> ExcitationError:
+    msg = (
+        f"{str(err).rstrip('.')}, or give initialization.rotation_rpy_deg in the config to "
+        "start from a known rotation."
+    )
+    return ExcitationError(msg)
+
+
+def _searched_rotation(
+    rec: Recording,
+    odo: Odometry,
+    gyro: GyroIntegrator,
+    t_c: float,
+    cfg: CalibConfig,
+    max_rounds: int = 4,
+) -> tuple[F64, PoseSeries, HandEyeRotation]:
+    """Rotation extrinsic when the LiDAR-only odometry cannot follow the motion.
+
+    A global search over SO(3) by map and surface-normal sharpness
+    (:mod:`~licalib_cli.initialization.rotation_search`) gives a rotation within a few degrees
+    without any odometry; then rounds of gyro-aided odometry and hand-eye bring it to the
+    accuracy of hand-eye on good odometry.
+
+    Raises:
+        ExcitationError: the search is ambiguous (rotation about one axis only) or hand-eye on the
+            gyro-aided odometry is still refused.
+    """
+    found = search_rotation_extrinsic(rec.scans, gyro, t_c)
+    if found.ambiguity < 1.02:
+        msg = (
+            "Rotation excitation is too weak: the LiDAR odometry did not follow the motion and "
+            "no rotation extrinsic makes the map clearly sharper than others (the rig turned "
+            "about one axis only); rotate the rig about at least two axes during the recording"
+        )
+        raise ExcitationError(msg)
+    rot = found.R_imu_lidar
+    ocfg = odometry_config(cfg)
+    hand_eye: HandEyeRotation | None = None
+    poses = odo.kiss
+    for _ in range(max_rounds):
+        poses = refine_odometry(
+            rec.scans, odo.kiss, ocfg, rotation_at=lidar_rotation_at(gyro, rot, t_c)
+        )
+        new = estimate_rotation_extrinsic(gyro, poses, time_offset_s=t_c, cfg=hand_eye_config(cfg))
+        step = float(np.degrees(np.abs(so3.log(rot.T @ new.R_imu_lidar)).max()))
+        rot, hand_eye = new.R_imu_lidar, new
+        logger.info("Gyro-aided hand-eye round after the search: rotation moved %.3f deg.", step)
+        if step < 0.5:  # the rounds at the coarse time offset that follow do the rest
+            break
+    assert hand_eye is not None
+    return rot, poses, hand_eye
+
+
+def _initial_rotation(
+    rec: Recording, odo: Odometry, gyro: GyroIntegrator, t_c: float, cfg: CalibConfig
+) -> tuple[F64, PoseSeries, HandEyeRotation | None, str]:
+    """Hand-eye rotation on the LiDAR-only odometry, or another way when that fails.
+
+    Hand-eye is trusted when it is well conditioned and its residual is below
+    ``initialization.max_hand_eye_residual_deg``. Otherwise: when the rig turned about one axis
+    only the axis and the accelerations in the plane give the rotation; else the search takes
+    over, the better-fitting of the two being kept when both succeed.
+
+    Returns:
+        ``(R_imu_lidar, poses, hand_eye, source)``.
+
+    Raises:
+        ExcitationError: no way determines the rotation.
+    """
+    ini = cfg.initialization
+    poses = odo.refined
+    first: HandEyeRotation | None = None
+    failure: ExcitationError | None = None
+    try:
+        first = estimate_rotation_extrinsic(
+            gyro, poses, time_offset_s=t_c, cfg=hand_eye_config(cfg)
+        )
+    except ExcitationError as err:
+        failure = err
+        logger.info("Hand-eye on the LiDAR-only odometry refused: %s", err)
+    else:
+        if first.residual_rms_deg <= ini.max_hand_eye_residual_deg or not ini.rotation_search:
+            return first.R_imu_lidar, poses, first, "hand-eye"
+        logger.info(
+            "Hand-eye residual %.2f deg: the LiDAR-only odometry may not follow the motion.",
+            first.residual_rms_deg,
+        )
+    t_imu = poses.t_ns + np.int64(round(t_c * 1e9))
+    t_imu = t_imu[(t_imu >= gyro.t_ns[0]) & (t_imu <= gyro.t_ns[-1])]
+    if first is None and rotation_axes(gyro, t_imu).second_to_first < ini.min_axis_ratio:
+        found = single_axis_rotation(rec.imu, gyro, poses, t_c, ini.min_rotation_deg)
+        return found.R_imu_lidar, poses, None, SINGLE_AXIS
+    if not ini.rotation_search:
+        assert failure is not None
+        raise _with_rotation_hint(failure)
+    try:
+        rot, searched_poses, hand_eye = _searched_rotation(rec, odo, gyro, t_c, cfg)
+    except ExcitationError as err:
+        if first is not None:
+            return first.R_imu_lidar, poses, first, "hand-eye"
+        assert failure is not None
+        raise _with_rotation_hint(failure) from err
+    if first is not None and first.residual_rms_deg <= hand_eye.residual_rms_deg:
+        return first.R_imu_lidar, poses, first, "hand-eye"
+    return rot, searched_poses, hand_eye, "search + gyro-aided hand-eye"
+
+
+def _coarse_time_offset(
+    rec: Recording, poses: PoseSeries, rot: F64, toc: TimeOffsetConfig
+) -> TimeOffsetEstimate | None:
+    """Coarse time offset from the angular rates: jointly with the rotation, else with ``rot``
+    fixed, else from the angular speed alone. Returns the first estimate that is ok, else the
+    last one (None when none was possible)."""
+    est: TimeOffsetEstimate | None = None
+    attempts: tuple[Callable[[], TimeOffsetEstimate], ...] = (
+        lambda: estimate_time_offset_joint(rec.imu, poses, toc)[0],
+        lambda: estimate_time_offset_aligned(rec.imu, poses, rot, toc),
+        lambda: estimate_time_offset(rec.imu, poses, toc),
+    )
+    for attempt in attempts:
+        try:
+            est = attempt()
+        except ExcitationError as err:
+            logger.info("Time-offset correlation not possible: %s", err)
+            continue
+        if est.ok:
+            break
+    return est
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """Rotation extrinsic and coarse time offset with where they came from."""
+
+    rotation: F64
+    time_offset_s: float
+    rotation_source: str
+    time_offset_source: str
+    correlation: float
+    hand_eye: HandEyeRotation | None
+    poses: PoseSeries
+
+
+def align_rotation_and_time(
+    rec: Recording, odo: Odometry, gyro: GyroIntegrator, cfg: CalibConfig
+) -> Alignment:
+    """Initial extrinsic rotation and coarse time offset (method.md 5.3-5.4)."""
+    ini = cfg.initialization
+    hand_eye: HandEyeRotation | None = None
+    poses = odo.refined
+    t_guess = 0.0 if ini.time_offset_s is None else float(ini.time_offset_s)
+    if ini.rotation_rpy_deg is not None:
+        rot, r_source = matrix_from_rpy_deg(ini.rotation_rpy_deg), "config"
+    else:
+        rot, poses, hand_eye, r_source = _initial_rotation(rec, odo, gyro, t_guess, cfg)
+    correlation = float("nan")
+    if ini.time_offset_s is not None:
+        t_c, t_source = float(ini.time_offset_s), "config"
+    else:
+        est = _coarse_time_offset(rec, poses, rot, time_offset_config(cfg))
+        if est is not None and est.ok:
+            t_c, t_source = float(est.time_offset_s), "cross-correlation"
+            correlation = float(est.peak_correlation)
+        else:
+            reason = est.reason if est is not None else "the angular rate hardly varies"
+            logger.warning("Coarse time offset not found (%s); starting from 0 s.", reason)
+            t_c, t_source = 0.0, "zero"
+        if r_source == SINGLE_AXIS and t_c != 0.0:
+            rot = single_axis_rotation(rec.imu, gyro, poses, t_c, ini.min_rotation_deg).R_imu_lidar
+        if hand_eye is not None and t_c != 0.0:
+            try:
+                hand_eye = estimate_rotation_extrinsic(
+                    gyro, poses, time_offset_s=t_c, cfg=hand_eye_config(cfg)
+                )
+            except ExcitationError as err:
+                raise _with_rotation_hint(err) from err
+            rot = hand_eye.R_imu_lidar
+    return Alignment(rot, t_c, r_source, t_source, correlation, hand_eye, poses)
+
+
+def gyro_aided_alignment(
+    rec: Recording, odo: Odometry, gyro: GyroIntegrator, a: Alignment, cfg: CalibConfig
+) -> Alignment:
+    """Re-run the odometry with scans deskewed by the gyro, alternating with hand-eye.
+
+    A LiDAR-only odometry cannot deskew violent motion; once a rotation extrinsic is known, the
+    gyro can. When the odometry already agrees with the gyro (hand-eye residual under
+    :data:`_AGREEING_HAND_EYE_DEG`) it is kept. Otherwise each round deskews with the current
+    rotation and time offset, re-registers, re-estimates the coarse time offset (when it came
+    from the correlation) and re-solves hand-eye, until the odometry agrees with the gyro or the
+    rotation moves less than 0.05 deg and the offset less than 0.5 ms.
+    """
+    ini = cfg.initialization
+    if a.hand_eye is None and ini.rotation_rpy_deg is None:
+        return a  # single-axis motion: hand-eye cannot help
+    if a.hand_eye is not None and a.hand_eye.residual_rms_deg < _AGREEING_HAND_EYE_DEG:
+        return a
+    rot, t_c, hand_eye, poses = a.rotation, a.time_offset_s, a.hand_eye, a.poses
+    ocfg = odometry_config(cfg)
+    toc = time_offset_config(cfg)
+    for _ in range(3):
+        poses = refine_odometry(
+            rec.scans, odo.kiss, ocfg, rotation_at=lidar_rotation_at(gyro, rot, t_c)
+        )
+        if ini.rotation_rpy_deg is not None:
+            break
+        t_step = 0.0
+        if a.time_offset_source == "cross-correlation":
+            est = _coarse_time_offset(rec, poses, rot, toc)
+            if est is not None and est.ok:
+                t_step = abs(est.time_offset_s - t_c)
+                t_c = float(est.time_offset_s)
+        try:
+            new = estimate_rotation_extrinsic(
+                gyro, poses, time_offset_s=t_c, cfg=hand_eye_config(cfg)
+            )
+        except ExcitationError:
+            break
+        step = float(np.degrees(np.abs(so3.log(rot.T @ new.R_imu_lidar)).max()))
+        rot, hand_eye = new.R_imu_lidar, new
+        logger.info(
+            "Gyro-aided hand-eye round: rotation moved %.3f deg, time offset %+.4f s.", step, t_c
+        )
+        if new.residual_rms_deg < _AGREEING_HAND_EYE_DEG or (step < 0.05 and t_step < 5e-4):
+            break
+    return Alignment(
+        rot, t_c, a.rotation_source, a.time_offset_source, a.correlation, hand_eye, poses
+    )
+
+
+def _initial_state(
+    rec: Recording,
+    poses: PoseSeries,
+    R_imu_lidar: F64,
+    time_offset_s: float,
+    phi: F64,
+    noise: NoiseLevels,
+    cfg: CalibConfig,
+) -> tuple[CalibrationState, LeverArmEstimate | None, str]:
+    """Splines, lever arm, gravity and biases from the gyro, the odometry and the accelerometer.
+
+    Rotation: the gyro integrated, ``R_G_I(t0) = I``. Lever arm, gravity and accelerometer
+    bias: the linear least squares of
+    :func:`~licalib_cli.initialization.translation.estimate_lever_arm`, with the prior (zero or
+    ``initialization.translation_m``) kept along directions the motion does not determine;
+    with ``initialization.translation_m`` set, that value is used and the least squares only
+    gives gravity and the bias. Position: a smoothing spline through the odometry's LiDAR
+    origins minus the lever arm turned with the gyro.
+
+    Returns:
+        ``(state, lever_arm, translation_source)``.
+
+    Raises:
+        ExcitationError: fewer than 4 poses overlap the IMU data.
+    """
+    ini = cfg.initialization
+    t0 = int(rec.imu.t_ns[0])
+    t_imu = (rec.imu.t_ns - t0) * 1e-9
+    knots = UniformKnots.for_interval(0.0, float(t_imu[-1]), cfg.spline.knot_spacing_s)
+    # The gyro bias starts at zero (the optimisation estimates it): taking it from the
+    # odometry's rotation would turn the odometry's tilt drift into a bias.
+    gyro_bias = np.zeros(3)
+    gyro = GyroIntegrator.from_imu(rec.imu)
+    so3_spline = SO3Spline.from_rotations(knots, t_imu, gyro(rec.imu.t_ns).as_matrix())
+
+    t_pose = (poses.t_ns - t0) * 1e-9 + time_offset_s
+    inside = knots.contains(t_pose)
+    if np.count_nonzero(inside) < 4:
+        msg = (
+            "Fewer than 4 LiDAR poses overlap the IMU data in time; check the topics, the "
+            "segment and the clock offset between the sensors."
+        )
+        raise ExcitationError(msg)
+    t_pose = t_pose[inside]
+    T_ml = poses.T_map_lidar[inside]
+    R_gi = so3_spline.rotation(t_pose)
+    # T_G_M from the first pose: R_G_M = R_G_I(t_first) R_IL R_M_L(first)^T, p_G_M = 0.
+    R_gm = R_gi[0] @ R_imu_lidar @ T_ml[0, :3, :3].T
+    p_gl = T_ml[:, :3, 3] @ R_gm.T
+    prior = np.asarray(ini.translation_m if ini.translation_m else [0.0, 0.0, 0.0], float)
+    lever: LeverArmEstimate | None = None
+    try:
+        lever = estimate_lever_arm(
+            knots,
+            so3_spline,
+            t_imu,
+            rec.imu.accel,
+            t_pose,
+            p_gl,
+            prior,
+            lever_arm_config(cfg, noise),
+        )
+    except ExcitationError as err:
+        logger.info("Lever-arm least squares not possible (%s); using the prior.", err)
+    if lever is not None and ini.translation_m is None:
+        translation, source = lever.t_imu_lidar, "odometry + accelerometer"
+    else:
+        translation = prior
+        source = "config" if ini.translation_m is not None else "zero"
+    # The position spline follows the odometry (the LiDAR origin minus the lever arm turned
+    # with the gyro), so the first map is the odometry's map whatever the lever arm; with the
+    # lever arm right, the motion within a sweep is the gyro's rotation about the IMU.
+    p_gi = p_gl - R_gi @ translation
+    spacing = float(t_pose[-1] - t_pose[0]) / max(len(t_pose) - 1, 1)
+    r3 = R3Spline.fit(knots, t_pose, p_gi, smoothing=1e-3 * spacing)
+    if lever is not None:
+        gravity, accel_bias = lever.gravity_G, lever.accel_bias
+    else:
+        rot_imu = so3_spline.rotation(t_imu)
+        acc = r3.acceleration(t_imu)
+        g = np.mean(acc - np.einsum("nij,nj->ni", rot_imu, rec.imu.accel), axis=0)
+        gravity, accel_bias = GRAVITY_NORM * g / max(np.linalg.norm(g), 1e-9), np.zeros(3)
+    state = CalibrationState(
+        so3_spline=so3_spline,
+        r3_spline=r3,
+        gyro_bias=gyro_bias,
+        accel_bias=accel_bias,
+        gravity_G=gravity,
+        R_imu_lidar=R_imu_lidar,
+        t_imu_lidar=translation,
+        time_offset_s=time_offset_s,
+        lidar_intrinsics=LidarIntrinsics.nominal(phi),
+        t0_ns=t0,
+    )
+    return state, lever, source
+
+
+def initialise(
+    rec: Recording, odo: Odometry, phi: F64, noise: NoiseLevels, cfg: CalibConfig
+) -> InitialGuess:
+    """The initial estimate of everything the optimisation estimates.
+
+    Raises:
+        ExcitationError: the motion does not determine the rotation, or the data do not overlap.
+    """
+    gyro = GyroIntegrator.from_imu(rec.imu)
+    a = align_rotation_and_time(rec, odo, gyro, cfg)
+    a = gyro_aided_alignment(rec, odo, gyro, a, cfg)
+    state, lever, t_source = _initial_state(
+        rec, a.poses, a.rotation, a.time_offset_s, phi, noise, cfg
+    )
+    logger.info(
+        "Initial guess: rotation from %s, time offset %+.4f s from %s, translation [%.3f %.3f "
+        "%.3f] m from %s.",
+        a.rotation_source,
+        a.time_offset_s,
+        a.time_offset_source,
+        *state.t_imu_lidar,
+        t_source,
+    )
+    return InitialGuess(
+        state=state,
+        R_imu_lidar=a.rotation,
+        t_imu_lidar=np.asarray(state.t_imu_lidar).copy(),
+        time_offset_s=a.time_offset_s,
+        rotation_source=a.rotation_source,
+        time_offset_source=a.time_offset_source,
+        translation_source=t_source,
+        correlation=a.correlation,
+        hand_eye=a.hand_eye,
+        lever_arm=lever,
+        poses=a.poses,
+        nominal_elevation=phi,
+    )

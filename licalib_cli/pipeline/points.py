@@ -1,0 +1,156 @@
+"""The LiDAR points the optimisation uses: raw measurements per point, sampled per sweep.
+
+A point is kept as the LiDAR model's raw measurement (beam, range, azimuth; method.md section 4)
+together with what the driver's published point adds to the nominal model point (``model_gap``:
+zero for a driver that converts with the nominal beam table, a per-beam correction otherwise),
+so that the map and the solver apply exactly the same point model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from licalib_cli.config import CalibConfig
+from licalib_cli.errors import ConfigError, DataError
+from licalib_cli.estimation import CalibrationState
+from licalib_cli.measurements import LidarScan
+from licalib_cli.models.intrinsics import lidar_point, nominal_point
+
+__all__ = [
+    "PointSample",
+    "nominal_elevations",
+    "points_in_global",
+    "points_per_scan",
+    "sample_points",
+    "usable_points",
+]
+
+F64 = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class PointSample:
+    """Points kept for the optimisation, with their raw measurements.
+
+    Attributes:
+        t_ns: (N,) LiDAR-clock time of each point, ns.
+        sweep_start_ns: (N,) LiDAR-clock time of the first point of the point's sweep, ns.
+        beam: (N,) beam index.
+        rho: (N,) raw range, m.
+        theta: (N,) raw azimuth, rad.
+        model_gap: (N, 3) published point minus the nominal model point, m (zero for an ideal
+            driver conversion); kept so that nominal intrinsics reproduce the published cloud.
+    """
+
+    t_ns: npt.NDArray[np.int64]
+    sweep_start_ns: npt.NDArray[np.int64]
+    beam: npt.NDArray[np.int64]
+    rho: F64
+    theta: F64
+    model_gap: F64
+
+    def __len__(self) -> int:
+        return int(self.t_ns.shape[0])
+
+    def subset(self, mask: npt.NDArray[Any]) -> PointSample:
+        """The points selected by a boolean mask or an index array."""
+        return PointSample(
+            self.t_ns[mask],
+            self.sweep_start_ns[mask],
+            self.beam[mask],
+            self.rho[mask],
+            self.theta[mask],
+            self.model_gap[mask],
+        )
+
+
+def nominal_elevations(scans: tuple[LidarScan, ...], cfg: CalibConfig) -> F64:
+    """Nominal elevation ``phi_i`` of each beam, rad: the config's table or the data's median.
+
+    Raises:
+        DataError: the clouds carry no beam index.
+        ConfigError: the configured beam table lists fewer beams than the data has.
+    """
+    rings = [s.ring for s in scans if s.ring is not None and len(s) > 0]
+    if not rings:
+        msg = "The LiDAR clouds carry no beam index; set lidar.ring_field or lidar.num_beams."
+        raise DataError(msg)
+    n_beams = int(max(int(r.max()) for r in rings)) + 1
+    if cfg.lidar.nominal_elevation_deg is not None:
+        table = np.radians(np.asarray(cfg.lidar.nominal_elevation_deg, dtype=np.float64))
+        if table.shape[0] < n_beams:
+            msg = (
+                f"lidar.nominal_elevation_deg lists {table.shape[0]} beams but the data has "
+                f"ring numbers up to {n_beams - 1}; list one elevation per ring."
+            )
+            raise ConfigError(msg)
+        return table
+    step = max(1, len(scans) // 20)
+    xyz = np.concatenate([s.xyz for s in scans[::step] if s.ring is not None])
+    ring = np.concatenate([s.ring for s in scans[::step] if s.ring is not None]).astype(np.int64)
+    elev = np.arcsin(np.clip(xyz[:, 2] / np.maximum(np.linalg.norm(xyz, axis=1), 1e-9), -1, 1))
+    order = np.argsort(ring, kind="stable")
+    ring, elev = ring[order], elev[order]
+    bounds = np.searchsorted(ring, np.arange(n_beams + 1))
+    out = np.zeros(n_beams)
+    for b in range(n_beams):  # loop over beams (at most a few hundred), not points
+        seg = elev[bounds[b] : bounds[b + 1]]
+        out[b] = float(np.median(seg)) if seg.size else 0.0
+    return out
+
+
+def points_per_scan(cfg: CalibConfig, num_scans: int, wanted: int | None = None) -> int:
+    """Points kept per scan: ``wanted`` (default ``surfels.points_per_scan``), lowered so that
+    all scans together keep at most ``surfels.max_points``."""
+    per_scan = cfg.surfels.points_per_scan if wanted is None else wanted
+    return max(1, min(per_scan, cfg.surfels.max_points // max(num_scans, 1)))
+
+
+def sample_points(
+    scans: tuple[LidarScan, ...], phi: F64, per_scan: int, cfg: CalibConfig, seed: int = 0
+) -> PointSample:
+    """Keep up to ``per_scan`` points of each sweep, spread uniformly over the sweep."""
+    rng = np.random.default_rng(seed)
+    parts: list[tuple[Any, ...]] = []
+    for scan in scans:  # loop over sweeps, not points
+        if scan.ring is None or len(scan) == 0:
+            continue
+        rho = np.linalg.norm(scan.xyz, axis=1)
+        ok = (rho >= cfg.lidar.min_range_m) & (rho <= cfg.lidar.max_range_m)
+        idx = np.flatnonzero(ok)
+        if idx.size > per_scan:
+            idx = np.sort(rng.choice(idx, per_scan, replace=False))
+        start = np.full(idx.size, int(scan.t_ns.min()), dtype=np.int64)
+        parts.append(
+            (scan.t_ns[idx], start, scan.ring[idx].astype(np.int64), scan.xyz[idx], rho[idx])
+        )
+    t_ns = np.concatenate([p[0] for p in parts])
+    start_ns = np.concatenate([p[1] for p in parts])
+    beam = np.concatenate([p[2] for p in parts])
+    xyz = np.concatenate([p[3] for p in parts])
+    rho = np.concatenate([p[4] for p in parts])
+    theta = np.arctan2(xyz[:, 1], xyz[:, 0])
+    gap = xyz - nominal_point(rho, theta, phi[beam])
+    return PointSample(t_ns, start_ns, beam, rho, theta, gap)
+
+
+def points_in_global(state: CalibrationState, sample: PointSample) -> F64:
+    """(N, 3) sampled points mapped into ``{G}`` with the state's trajectory and calibration."""
+    t = (sample.t_ns - state.t0_ns) * 1e-9 + state.time_offset_s
+    p_l = lidar_point(state.lidar_intrinsics, sample.beam, sample.rho, sample.theta)
+    p_i = (p_l + sample.model_gap) @ state.R_imu_lidar.T + state.t_imu_lidar
+    rot = state.so3_spline.rotation(t)
+    return np.einsum("nij,nj->ni", rot, p_i) + state.r3_spline.position(t)
+
+
+def usable_points(state: CalibrationState, sample: PointSample, margin_s: float) -> PointSample:
+    """Points whose trajectory time ``tau + t_c`` stays inside the spline with a margin."""
+    t = (sample.t_ns - state.t0_ns) * 1e-9 + state.time_offset_s
+    knots = state.knots
+    lo = knots.t0_s + margin_s
+    hi = knots.t_end_s - margin_s
+    return sample.subset((t >= lo) & (t <= hi))

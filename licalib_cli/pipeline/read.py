@@ -1,0 +1,122 @@
+"""Read stage: the segment of the bag as measurements, and the sensors' noise."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from licalib_cli.config import CalibConfig
+from licalib_cli.consistency import imu_noise, range_noise
+from licalib_cli.errors import ExcitationError
+from licalib_cli.io.reader import Recording, read_segment
+from licalib_cli.pipeline.settings import NoiseLevels
+
+__all__ = ["MIN_SEGMENT_S", "measure_noise", "read_recording"]
+
+logger = logging.getLogger(__name__)
+
+_NS = 1_000_000_000
+
+MIN_SEGMENT_S = 2.0
+"""Shorter segments are refused: a few scans cannot determine the extrinsic."""
+
+_NOISE_SCANS = 20
+"""Scans used to measure the range noise (spread over the segment)."""
+
+
+def read_recording(bag: Path, cfg: CalibConfig) -> Recording:
+    """The configured segment of ``bag`` (IMU samples and scans on one clock).
+
+    Raises:
+        BagError, TopicError, DataError, TimestampError: unreadable or unusable input.
+        ExcitationError: the segment is shorter than :data:`MIN_SEGMENT_S`.
+    """
+    rec = read_segment(Path(bag), cfg)
+    logger.info(
+        "Read %d IMU samples and %d scans (%.1f s).",
+        len(rec.imu),
+        len(rec.scans),
+        (rec.end_ns - rec.start_ns) / _NS,
+    )
+    span_s = float(rec.imu.t_ns[-1] - rec.imu.t_ns[0]) / _NS
+    if span_s < MIN_SEGMENT_S:
+        msg = (
+            f"The segment holds only {span_s:.1f} s of data, too little to calibrate; use "
+            "10-60 s with rotation about all three axes (--start/--duration)."
+        )
+        raise ExcitationError(msg)
+    return rec
+
+
+def measure_noise(rec: Recording, cfg: CalibConfig, num_beams: int) -> NoiseLevels:
+    """The noise the fit is weighted with: the config's where given, else measured.
+
+    The IMU noise is what a free spline with the calibration's knot spacing leaves of each axis
+    (:func:`licalib_cli.consistency.imu_noise`); the range noise comes from second differences
+    along each beam (:func:`licalib_cli.consistency.range_noise`). Both are measured even when
+    the config gives values (the checks report them side by side).
+    """
+    t_s = (rec.imu.t_ns - rec.imu.t_ns[0]) * 1e-9
+    rate = (len(rec.imu) - 1) / max(float(t_s[-1]), 1e-9)
+    dt = cfg.spline.knot_spacing_s
+    gyro_data = imu_noise(t_s, rec.imu.gyro, dt, 1).sigma
+    accel_data = imu_noise(t_s, rec.imu.accel, dt, 2).sigma
+    step = max(1, len(rec.scans) // _NOISE_SCANS)
+    scans = [s for s in rec.scans[::step] if s.ring is not None and len(s)]
+    if scans:
+        xyz = np.concatenate([s.xyz for s in scans])
+        rn = range_noise(
+            np.concatenate([np.full(len(s), i) for i, s in enumerate(scans)]),
+            np.concatenate([np.asarray(s.ring, dtype=np.int64) for s in scans]),
+            np.arctan2(xyz[:, 1], xyz[:, 0]),
+            np.linalg.norm(xyz, axis=1),
+            num_beams,
+        ).sigma
+    else:
+        rn = np.full(num_beams, np.nan)
+    range_data = float(np.nanmedian(rn)) if np.any(np.isfinite(rn)) else float("nan")
+
+    n = cfg.noise
+    root = float(np.sqrt(rate))
+    if n.gyro_noise_density is not None:
+        gyro, g_src = np.full(3, n.gyro_noise_density * root), "config"
+    else:
+        gyro, g_src = gyro_data, "data"
+    if n.accel_noise_density is not None:
+        accel, a_src = np.full(3, n.accel_noise_density * root), "config"
+    else:
+        accel, a_src = accel_data, "data"
+    if n.range_sigma_m is not None:
+        rng, r_src = float(n.range_sigma_m), "config"
+    elif np.isfinite(range_data):
+        rng, r_src = range_data, "data"
+    else:
+        rng, r_src = 0.02, "default"
+    # A measured noise can be zero only for noise-free (simulated) data: keep a floor so that
+    # the weights stay finite.
+    gyro = np.maximum(np.nan_to_num(gyro, nan=1e-3), 1e-6)
+    accel = np.maximum(np.nan_to_num(accel, nan=1e-2), 1e-5)
+    rng = max(rng, 1e-4)
+    logger.info(
+        "Noise: gyro %s rad/s (%s), accelerometer %s m/s^2 (%s), range %.4f m (%s).",
+        np.array2string(gyro, precision=5),
+        g_src,
+        np.array2string(accel, precision=4),
+        a_src,
+        rng,
+        r_src,
+    )
+    return NoiseLevels(
+        gyro_sigma=gyro,
+        accel_sigma=accel,
+        range_sigma_m=rng,
+        gyro_source=g_src,
+        accel_source=a_src,
+        range_source=r_src,
+        range_sigma_per_beam=rn,
+        gyro_measured=gyro_data,
+        accel_measured=accel_data,
+        range_measured_m=range_data,
+    )

@@ -1,0 +1,192 @@
+"""One refinement round: map from the estimate, surfels, associations, problem, solve.
+
+Between rounds the map is rebuilt from the latest estimate (EM fashion, method.md section 6);
+within a round the surfel planes are held fixed in ``{G}`` (method.md section 4, implementation
+note), so that a point's residual touches only the control points around its own time.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from licalib_cli.config import CalibConfig
+from licalib_cli.errors import ExcitationError, SolverError
+from licalib_cli.estimation import (
+    CalibrationState,
+    FreeParameters,
+    ImuData,
+    LidarPoints,
+    NoiseModel,
+    Planes,
+    build_problem,
+    state_from_problem,
+)
+from licalib_cli.pipeline.points import PointSample, points_in_global, usable_points
+from licalib_cli.pipeline.settings import (
+    NoiseLevels,
+    free_parameters,
+    lm_params,
+    noise_model,
+    surfel_config,
+)
+from licalib_cli.results import Extrinsic
+from licalib_cli.solver.lm import SolverReport, solve
+from licalib_cli.surfels import associate_points, build_surfels
+
+__all__ = ["RoundInputs", "RoundSummary", "extrinsic_of", "free_names", "run_round"]
+
+F32 = npt.NDArray[np.float32]
+
+
+@dataclass(frozen=True)
+class RoundInputs:
+    """What a round's problem was built from (for the checks, which rebuild variants of it).
+
+    Attributes:
+        imu: IMU readings on the problem's time axis.
+        lidar: associated points.
+        points: the same points as sampled (times, sweep starts, raw measurements).
+        planes: the surfel planes in ``{G}``.
+        noise: residual weights.
+        free: what the round estimated.
+    """
+
+    imu: ImuData
+    lidar: LidarPoints
+    points: PointSample
+    planes: Planes
+    noise: NoiseModel
+    free: FreeParameters
+
+
+@dataclass(frozen=True)
+class RoundSummary:
+    """One refinement round (map rebuild + LM).
+
+    Attributes:
+        index: 1-based round number.
+        free: names of the parameter groups estimated.
+        max_distance_m: association distance of the round, m.
+        points: associated points used.
+        surfels: surfels in the map.
+        associated_fraction: share of sampled points associated with a surfel.
+        rms_m: RMS point-to-plane distance after the round, m.
+        cost_start: cost before the round.
+        cost_end: cost after the round.
+        iterations: LM iterations.
+        extrinsic: estimate after the round.
+        seconds: wall time of the round.
+        distances_before_m: (P,) signed point-to-plane distances at the start of the round.
+        distances_after_m: (P,) the same after the round (same map), m.
+    """
+
+    index: int
+    free: tuple[str, ...]
+    max_distance_m: float
+    points: int
+    surfels: int
+    associated_fraction: float
+    rms_m: float
+    cost_start: float
+    cost_end: float
+    iterations: int
+    extrinsic: Extrinsic
+    seconds: float
+    distances_before_m: F32 = field(default_factory=lambda: np.zeros(0, np.float32), repr=False)
+    distances_after_m: F32 = field(default_factory=lambda: np.zeros(0, np.float32), repr=False)
+
+
+def extrinsic_of(state: CalibrationState) -> Extrinsic:
+    """The state's extrinsic and time offset."""
+    return Extrinsic(state.R_imu_lidar.copy(), state.t_imu_lidar.copy(), state.time_offset_s)
+
+
+def free_names(free: FreeParameters) -> tuple[str, ...]:
+    """Names of the parameter groups a round estimates."""
+    names = ["trajectory", "biases", "gravity", "extrinsic", "time offset"]
+    if free.imu_intrinsics:
+        names.append("IMU intrinsics")
+    if free.lidar_intrinsics:
+        names.append("LiDAR intrinsics")
+    return tuple(names)
+
+
+def run_round(
+    state: CalibrationState,
+    sample: PointSample,
+    imu: ImuData,
+    noise: NoiseLevels,
+    cfg: CalibConfig,
+    index: int,
+    max_distance_m: float,
+) -> tuple[CalibrationState, RoundSummary, SolverReport, RoundInputs]:
+    """Rebuild surfels and associations from ``state``, then one LM round.
+
+    Raises:
+        ExcitationError: the map has no planar surfaces, or too few points lie on them.
+        SolverError: the optimisation failed.
+    """
+    start = time.perf_counter()
+    margin = max(cfg.spline.time_offset_padding_s, 2 * cfg.spline.knot_spacing_s)
+    pts = usable_points(state, sample, margin)
+    p_g = points_in_global(state, pts)
+    scfg = surfel_config(cfg, noise, max_distance_m)
+    surfels = build_surfels(p_g, scfg)
+    if len(surfels.d) == 0:
+        msg = (
+            "No planar surfaces were found in the LiDAR map; calibrate in a structured scene "
+            "(walls, floor) or raise surfels.cell_sizes_m."
+        )
+        raise ExcitationError(msg)
+    assoc = associate_points(p_g, surfels, scfg)
+    if assoc.point_index.size < 100:
+        msg = (
+            f"Only {assoc.point_index.size} LiDAR points lie on planar surfaces; calibrate in a "
+            "structured scene or raise surfels.max_distance_m."
+        )
+        raise ExcitationError(msg)
+    order = np.argsort(assoc.point_index)
+    used = pts.subset(assoc.point_index[order])
+    plane_of = assoc.surfel_index[order]
+    lidar = LidarPoints(
+        t_s=(used.t_ns - state.t0_ns) * 1e-9,
+        beam=used.beam,
+        rho=used.rho,
+        theta=used.theta,
+        plane=plane_of,
+        model_gap=used.model_gap,
+    )
+    planes = Planes(normal=surfels.normal, offset=surfels.d, thickness=surfels.thickness)
+    weights = noise_model(cfg, noise)
+    free = free_parameters(cfg, index)
+    problem = build_problem(state, imu, lidar, planes, weights, free)
+    report = solve(problem, lm_params(cfg))
+    if report.status == "failed":
+        msg = f"The optimisation failed in round {index}: {report.reason}."
+        raise SolverError(msg)
+    new_state = state_from_problem(state, problem)
+    p_after = points_in_global(new_state, used)
+    dist = np.einsum("ij,ij->i", surfels.normal[plane_of], p_after) + surfels.d[plane_of]
+    p_before = p_g[assoc.point_index[order]]
+    dist0 = np.einsum("ij,ij->i", surfels.normal[plane_of], p_before) + surfels.d[plane_of]
+    summary = RoundSummary(
+        index=index,
+        free=free_names(free),
+        max_distance_m=max_distance_m,
+        points=len(used),
+        surfels=len(surfels.d),
+        associated_fraction=len(used) / max(len(pts), 1),
+        rms_m=float(np.sqrt(np.mean(dist**2))),
+        cost_start=float(report.initial_cost),
+        cost_end=float(report.final_cost),
+        iterations=int(report.iterations),
+        extrinsic=extrinsic_of(new_state),
+        seconds=time.perf_counter() - start,
+        distances_before_m=dist0.astype(np.float32),
+        distances_after_m=dist.astype(np.float32),
+    )
+    return new_state, summary, report, RoundInputs(imu, lidar, used, planes, weights, free)

@@ -1,0 +1,216 @@
+"""The refinement rounds: which thresholds when, and when to stop (method.md section 7).
+
+Coarse to fine: the first map is blurred by the initial guess, so the first round associates
+points up to :data:`COARSE_FACTOR` times ``surfels.max_distance_m`` from a surfel (and accepts
+surfels as much thicker); each later round tightens the distance to three times how far the
+previous round moved the points (at most halving it per round, never below the configured
+distance). Rounds run until one moves the estimate by less than the tolerances (or by less than
+half its own 1-sigma, whichever is larger) at the configured distance; a last, denser round
+then refines the settled estimate. Reaching ``schedule.max_rounds`` while the estimate still
+moves is a non-convergence, reported as such by the checks.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from licalib_cli.config import CalibConfig
+from licalib_cli.estimation import CalibrationState, ImuData
+from licalib_cli.io.reader import Recording
+from licalib_cli.pipeline.initialise import InitialGuess
+from licalib_cli.pipeline.points import points_per_scan, sample_points
+from licalib_cli.pipeline.round import RoundInputs, RoundSummary, extrinsic_of, run_round
+from licalib_cli.pipeline.settings import NoiseLevels
+from licalib_cli.progress import Progress
+from licalib_cli.solver.lm import SolverReport
+
+__all__ = ["COARSE_FACTOR", "Change", "Fit", "run_schedule"]
+
+logger = logging.getLogger(__name__)
+
+COARSE_FACTOR = 3.0
+"""The first round associates points up to this many times ``surfels.max_distance_m``."""
+
+TYPICAL_RANGE_M = 10.0
+"""Range at which a change of rotation is converted into a displacement of the points."""
+
+JITTER_FACTOR = 2.0
+"""At the round cap, a last change within this many times the settle threshold counts as the
+rounds' jitter (the map is rebuilt each round), not as a non-convergence; the sigmas then cover
+the last change."""
+
+
+@dataclass(frozen=True)
+class Change:
+    """How far a round moved the extrinsic.
+
+    Attributes:
+        translation_m: norm of the translation change, m.
+        rotation_deg: rotation angle, deg.
+        time_offset_s: absolute time-offset change, s.
+    """
+
+    translation_m: float
+    rotation_deg: float
+    time_offset_s: float
+
+
+@dataclass(frozen=True)
+class Fit:
+    """The rounds' outcome.
+
+    Attributes:
+        state: the final estimate.
+        rounds: one summary per round (the denser final round last).
+        report: the final round's solver report (spectrum and sigmas at the estimate).
+        inputs: what the final round's problem was built from.
+        converged: whether a regular round settled (or only jittered) before the cap.
+        jitter: the estimate moved within the jitter band at the cap (sigmas must cover it).
+        last_change: how far the last regular round moved the extrinsic.
+        settle_threshold: the tolerances that applied to that change.
+    """
+
+    state: CalibrationState
+    rounds: tuple[RoundSummary, ...]
+    report: SolverReport
+    inputs: RoundInputs
+    converged: bool
+    jitter: bool
+    last_change: Change
+    settle_threshold: Change
+
+
+def _change(before: CalibrationState, after: CalibrationState) -> Change:
+    err = extrinsic_of(before).error_to(extrinsic_of(after))
+    return Change(err["translation_m"], err["rotation_deg"], err["time_offset_s"])
+
+
+def _threshold(report: SolverReport, cfg: CalibConfig) -> Change:
+    """Settle tolerances: the configured ones or half the estimate's own 1-sigma."""
+    sch = cfg.schedule
+
+    def largest(prefix: str) -> float:
+        vals = [
+            s
+            for n, s in zip(report.calibration_names, report.std, strict=True)
+            if n.startswith(prefix) and np.isfinite(s)
+        ]
+        return float(max(vals)) if vals else 0.0
+
+    return Change(
+        max(sch.translation_tolerance_m, 0.5 * largest("ext.translation")),
+        max(sch.rotation_tolerance_deg, 0.5 * float(np.degrees(largest("ext.rotation")))),
+        max(sch.time_offset_tolerance_s, 0.5 * largest("ext.time_offset")),
+    )
+
+
+def _within(c: Change, t: Change, factor: float = 1.0) -> bool:
+    return (
+        c.translation_m < factor * t.translation_m
+        and c.rotation_deg < factor * t.rotation_deg
+        and c.time_offset_s < factor * t.time_offset_s
+    )
+
+
+def run_schedule(
+    rec: Recording,
+    guess: InitialGuess,
+    noise: NoiseLevels,
+    cfg: CalibConfig,
+    progress: Progress,
+) -> Fit:
+    """Run the rounds from the initial guess until the estimate settles, then a denser round.
+
+    Raises:
+        ExcitationError: a map without planar surfaces.
+        SolverError: the optimisation failed.
+    """
+    sch = cfg.schedule
+    state = guess.state
+    phi = guess.nominal_elevation
+    sample = sample_points(rec.scans, phi, points_per_scan(cfg, len(rec.scans)), cfg)
+    imu = ImuData.from_samples(rec.imu, state.t0_ns)
+    base = cfg.surfels.max_distance_m
+    max_dist = base * COARSE_FACTOR
+    rounds: list[RoundSummary] = []
+    report: SolverReport | None = None
+    inputs: RoundInputs | None = None
+    settled = False
+    change = Change(np.inf, np.inf, np.inf)
+    threshold = change
+    for index in range(1, sch.max_rounds + 1):
+        before = state
+        state, summary, report, inputs = run_round(state, sample, imu, noise, cfg, index, max_dist)
+        rounds.append(summary)
+        progress.advance(index, sch.max_rounds)
+        change = _change(before, state)
+        threshold = _threshold(report, cfg)
+        logger.info(
+            "Round %d: %d points on %d surfels (within %.1f cm), RMS %.2f cm, change %.2f mm / "
+            "%.4f deg / %.3f ms.",
+            index,
+            summary.points,
+            summary.surfels,
+            100 * max_dist,
+            100 * summary.rms_m,
+            1e3 * change.translation_m,
+            change.rotation_deg,
+            1e3 * change.time_offset_s,
+        )
+        settled = _within(change, threshold)
+        intrinsics_pending = any(
+            0 < k and index < k
+            for k in (sch.imu_intrinsics_from_round, sch.lidar_intrinsics_from_round)
+        )
+        if index >= 2 and settled and not intrinsics_pending and max_dist <= base:
+            break
+        movement = change.translation_m + np.radians(change.rotation_deg) * TYPICAL_RANGE_M
+        max_dist = max(base, min(max_dist, 3.0 * movement))
+    assert report is not None and inputs is not None
+    jitter = not settled and _within(change, threshold, JITTER_FACTOR)
+    converged = settled or jitter
+    if not converged:
+        logger.warning(
+            "The estimate still moved %.2f mm / %.4f deg / %.3f ms in round %d of %d.",
+            1e3 * change.translation_m,
+            change.rotation_deg,
+            1e3 * change.time_offset_s,
+            len(rounds),
+            sch.max_rounds,
+        )
+    final = cfg.surfels.final_points_per_scan
+    if final is not None:
+        final = points_per_scan(cfg, len(rec.scans), final)
+    if final is not None and final > points_per_scan(cfg, len(rec.scans)):
+        # One more round on a denser sample from the settled estimate: the uncertainty of the
+        # time offset and the translation shrinks with the number of points.
+        dense = sample_points(rec.scans, phi, final, cfg, seed=1)
+        before = state
+        state, summary, report, inputs = run_round(
+            state, dense, imu, noise, cfg, len(rounds) + 1, base
+        )
+        rounds.append(summary)
+        dense_change = _change(before, state)
+        logger.info(
+            "Final round: %d points on %d surfels, RMS %.2f cm, change %.2f mm / %.4f deg / "
+            "%.3f ms.",
+            summary.points,
+            summary.surfels,
+            100 * summary.rms_m,
+            1e3 * dense_change.translation_m,
+            dense_change.rotation_deg,
+            1e3 * dense_change.time_offset_s,
+        )
+    return Fit(
+        state=state,
+        rounds=tuple(rounds),
+        report=report,
+        inputs=inputs,
+        converged=converged,
+        jitter=jitter,
+        last_change=change,
+        settle_threshold=threshold,
+    )

@@ -1,0 +1,158 @@
+"""Every translation of the config tree into the settings of a stage, in one place.
+
+The stages (odometry, hand-eye, time offset, lever arm, surfels, solver) keep their own small
+frozen settings types so that they can be used without a :class:`~licalib_cli.config.
+CalibConfig`; this module is the only place that reads the config tree for them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from licalib_cli.config import CalibConfig
+from licalib_cli.estimation import FreeParameters, NoiseModel
+from licalib_cli.initialization.rotation import HandEyeConfig
+from licalib_cli.initialization.time_offset import TimeOffsetConfig
+from licalib_cli.initialization.translation import LeverArmConfig
+from licalib_cli.odometry import OdometryConfig
+from licalib_cli.solver.lm import LMParams
+from licalib_cli.surfels import SurfelConfig
+
+__all__ = [
+    "THICKNESS_PER_RANGE_SIGMA",
+    "NoiseLevels",
+    "free_parameters",
+    "hand_eye_config",
+    "lever_arm_config",
+    "lm_params",
+    "noise_model",
+    "odometry_config",
+    "surfel_config",
+    "time_offset_config",
+]
+
+F64 = npt.NDArray[np.float64]
+
+THICKNESS_PER_RANGE_SIGMA = 1.5
+"""Default ``surfels.max_thickness_m`` in units of the range noise: range noise alone gives an
+RMS of at most one sigma off a plane; a cell much thicker than that straddles surfaces."""
+
+
+@dataclass(frozen=True)
+class NoiseLevels:
+    """The sensor noise the fit is weighted with (discrete, per sample).
+
+    Attributes:
+        gyro_sigma: (3,) rad/s.
+        accel_sigma: (3,) m/s^2.
+        range_sigma_m: LiDAR range noise, m.
+        gyro_source: ``config`` or ``data``.
+        accel_source: ``config`` or ``data``.
+        range_source: ``config`` or ``data``.
+        range_sigma_per_beam: (B,) measured range noise per beam (NaN where unknown), m.
+        gyro_measured: (3,) the gyro noise measured from the data, rad/s.
+        accel_measured: (3,) the accelerometer noise measured from the data, m/s^2.
+        range_measured_m: the range noise measured from the data (median over beams), m.
+    """
+
+    gyro_sigma: F64
+    accel_sigma: F64
+    range_sigma_m: float
+    gyro_source: str
+    accel_source: str
+    range_source: str
+    range_sigma_per_beam: F64
+    gyro_measured: F64
+    accel_measured: F64
+    range_measured_m: float
+
+
+def odometry_config(cfg: CalibConfig) -> OdometryConfig:
+    """kiss-icp settings."""
+    o = cfg.odometry
+    return OdometryConfig(
+        voxel_size=o.voxel_size_m,
+        max_range=o.max_range_m,
+        min_range=o.min_range_m,
+        deskew=o.deskew,
+        max_points_per_voxel=o.max_points_per_voxel,
+    )
+
+
+def hand_eye_config(cfg: CalibConfig) -> HandEyeConfig:
+    """Hand-eye rotation settings."""
+    ini = cfg.initialization
+    return HandEyeConfig(
+        min_angle_deg=ini.min_rotation_deg,
+        max_singular_ratio=ini.max_singular_ratio,
+        min_axis_ratio=ini.min_axis_ratio,
+    )
+
+
+def time_offset_config(cfg: CalibConfig) -> TimeOffsetConfig:
+    """Angular-rate cross-correlation settings."""
+    ini = cfg.initialization
+    return TimeOffsetConfig(
+        max_lag_s=ini.time_offset_max_lag_s, min_peak_correlation=ini.min_peak_correlation
+    )
+
+
+def lever_arm_config(cfg: CalibConfig, noise: NoiseLevels) -> LeverArmConfig:
+    """Lever-arm least-squares settings (the accelerometer weight follows its noise, with room
+    for what the gyro-only rotation and the spline cannot represent)."""
+    return LeverArmConfig(accel_sigma=max(0.1, 5.0 * float(np.max(noise.accel_sigma))))
+
+
+def surfel_config(cfg: CalibConfig, noise: NoiseLevels, max_distance_m: float) -> SurfelConfig:
+    """Surfel and association settings of a round.
+
+    The thickness limit scales with the association distance: while the association is loose
+    (the map still blurred by the estimate) surfels may be thicker.
+    """
+    s = cfg.surfels
+    thickness = (
+        s.max_thickness_m
+        if s.max_thickness_m is not None
+        else THICKNESS_PER_RANGE_SIGMA * noise.range_sigma_m
+    )
+    return SurfelConfig(
+        cell_sizes=tuple(s.cell_sizes_m),
+        min_points=s.min_points,
+        min_planarity=s.min_planarity,
+        max_thickness_m=thickness * max_distance_m / s.max_distance_m,
+        max_distance_m=max_distance_m,
+    )
+
+
+def noise_model(cfg: CalibConfig, noise: NoiseLevels) -> NoiseModel:
+    """Residual weights of the problem."""
+    return NoiseModel(
+        gyro_sigma=np.asarray(noise.gyro_sigma, dtype=np.float64),
+        accel_sigma=np.asarray(noise.accel_sigma, dtype=np.float64),
+        range_sigma=noise.range_sigma_m,
+        huber_threshold=cfg.noise.huber_sigmas,
+    )
+
+
+def lm_params(cfg: CalibConfig, max_iterations: int | None = None) -> LMParams:
+    """Levenberg-Marquardt settings of a round."""
+    return LMParams(
+        max_iterations=cfg.schedule.iterations_per_round
+        if max_iterations is None
+        else max_iterations,
+        initial_lambda=1e-6,
+        min_decrease=0.1,
+        use_tsvd=cfg.solver.use_tsvd,
+        tsvd_threshold=cfg.solver.tsvd_threshold,
+    )
+
+
+def free_parameters(cfg: CalibConfig, index: int) -> FreeParameters:
+    """What round ``index`` (1-based) estimates."""
+    sch = cfg.schedule
+    imu_on = sch.imu_intrinsics_from_round > 0 and index >= sch.imu_intrinsics_from_round
+    lidar_on = sch.lidar_intrinsics_from_round > 0 and index >= sch.lidar_intrinsics_from_round
+    return FreeParameters(imu_intrinsics=imu_on, lidar_intrinsics=lidar_on)

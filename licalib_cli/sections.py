@@ -1,0 +1,354 @@
+"""Typed sections of the result file (schema v1), beyond the extrinsic and the intrinsics.
+
+Every section ``calibrate`` writes is a frozen dataclass with ``to_dict`` / ``from_dict``; the
+YAML keys are the field names. Numbers are plain floats (rounded for the file), vectors are
+tuples. A section a file does not carry is ``None`` in :class:`~licalib_cli.results.
+CalibrationResult`.
+
+=================  =============================================================================
+section            content
+=================  =============================================================================
+``uncertainty``    1-sigma of the extrinsic and the time offset (``inf``: not observable)
+``observability``  scaled singular values, the TSVD threshold, unobservable directions in words
+``verdict``        ``pass`` / ``warn`` / ``fail`` and one sentence per finding
+``consistency``    the fit checks: noise, normalised residuals and patterns per sensor, score
+                   tests of the effects the model holds fixed, split-half agreement, how the
+                   sigmas were inflated
+``initialization`` where the initial guess came from
+``fit``            rounds, points, residual RMS, convergence
+``recording``      the data used
+``provenance``     licalib version, bag fingerprint, creation time
+=================  =============================================================================
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from typing import Any, TypeVar
+
+import numpy as np
+
+__all__ = [
+    "Consistency",
+    "EffectCheck",
+    "FitSection",
+    "InitializationSection",
+    "Observability",
+    "PatternCheck",
+    "Provenance",
+    "RecordingSection",
+    "SensorCheck",
+    "SplitHalf",
+    "Uncertainty",
+    "VerdictSection",
+]
+
+T = TypeVar("T")
+
+
+def _num(x: Any, digits: int = 6) -> Any:
+    """A float for YAML: ``significant`` digits, ``inf``/``nan`` kept."""
+    if x is None:
+        return None
+    v = float(x)
+    if not math.isfinite(v) or v == 0.0:
+        return v
+    return float(f"{v:.{digits}g}")
+
+
+def _nums(xs: Any, digits: int = 6) -> list[Any]:
+    return [_num(x, digits) for x in xs]
+
+
+def _plain(value: Any, digits: int | None) -> Any:
+    if hasattr(value, "to_dict"):
+        return value.to_dict()
+    if isinstance(value, tuple | list):
+        return [_plain(v, digits) for v in value]
+    if isinstance(value, float | np.floating):
+        return _num(value, digits) if digits else float(value)
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return value
+
+
+class _Section:
+    """``to_dict`` over the dataclass fields, in order, and ``from_dict`` back.
+
+    ``_digits`` rounds floats to that many significant digits (None: as they are; statistics
+    set it, stamps and clock offsets must not); ``_nested`` names the fields holding other
+    sections (one or a list).
+    """
+
+    _nested: dict[str, Any] = {}  # noqa: RUF012 - read-only, overridden per section
+    _digits: int | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            f.name: _plain(getattr(self, f.name), self._digits)
+            for f in fields(self)  # type: ignore[arg-type]
+        }
+
+    @classmethod
+    def from_dict(cls: type[T], d: dict[str, Any]) -> T:
+        names = {f.name for f in fields(cls)}  # type: ignore[arg-type]
+        nested: dict[str, Any] = getattr(cls, "_nested", {})
+        kwargs: dict[str, Any] = {}
+        for k, v in d.items():
+            if k not in names:
+                continue
+            if k in nested:
+                kind = nested[k]
+                v = (
+                    tuple(kind.from_dict(x) for x in v)
+                    if isinstance(v, list)
+                    else kind.from_dict(v)
+                )
+            elif isinstance(v, list):
+                v = tuple(v)
+            kwargs[k] = v
+        return cls(**kwargs)
+
+
+@dataclass(frozen=True)
+class Uncertainty(_Section):
+    """1-sigma of the extrinsic (``inf`` where not observable).
+
+    Attributes:
+        translation_std_m: per IMU-frame axis, m.
+        rotation_std_deg: per LiDAR-frame axis, deg.
+        time_offset_std_s: s.
+    """
+
+    translation_std_m: tuple[float, float, float]
+    rotation_std_deg: tuple[float, float, float]
+    time_offset_std_s: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "translation_std_m": [float(x) for x in self.translation_std_m],
+            "rotation_std_deg": [float(x) for x in self.rotation_std_deg],
+            "time_offset_std_s": float(self.time_offset_std_s),
+        }
+
+
+@dataclass(frozen=True)
+class Observability(_Section):
+    """Spectrum of the scaled calibration information and the truncated directions."""
+
+    scaling: str
+    threshold: float
+    singular_values: tuple[float, ...]
+    unobservable: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class VerdictSection(_Section):
+    """``pass`` / ``warn`` / ``fail`` and one sentence per finding."""
+
+    status: str
+    reasons: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class PatternCheck(_Section):
+    """Structure of one sensor's residuals against a feature.
+
+    Attributes:
+        feature: e.g. ``angular rate``, ``beam``, ``time within sweep``.
+        explained: share of the residual variance the feature explains.
+        p_value: F test.
+        size: RMS of the explained part, in the residuals' unit.
+        material: whether it counts against the fit.
+    """
+
+    _digits = 6
+
+    feature: str
+    explained: float
+    p_value: float
+    size: float
+    material: bool = False
+
+
+@dataclass(frozen=True)
+class SensorCheck(_Section):
+    """How well the model explains one sensor.
+
+    Attributes:
+        sensor: ``gyro``, ``accelerometer`` or ``lidar``.
+        unit: unit of ``rms`` and ``noise``.
+        noise: noise standard deviation the fit was weighted with (per axis, or the median per
+            beam for the LiDAR's point-to-plane distance along the ray).
+        noise_source: ``config`` or ``data`` (measured, see the README).
+        chi2_per_sample: sum of squared residuals over the noise variance, per scalar residual
+            (about 1 when the model explains the data).
+        rms: residual RMS.
+        samples: scalar residuals.
+        status: ``ok`` or ``excess`` (residuals larger than the noise).
+        patterns: structure left in the residuals.
+    """
+
+    _digits = 6
+
+    sensor: str
+    unit: str
+    noise: tuple[float, ...]
+    noise_source: str
+    chi2_per_sample: float
+    rms: float
+    samples: int
+    status: str
+    patterns: tuple[PatternCheck, ...] = ()
+
+    _nested = {"patterns": PatternCheck}  # noqa: RUF012
+
+
+@dataclass(frozen=True)
+class EffectCheck(_Section):
+    """Score test of one effect the model holds fixed.
+
+    Attributes:
+        name: e.g. ``gyro_scale`` (issue names of the effects).
+        sensor: ``imu`` or ``lidar``.
+        statistic: score statistic (chi-square under "no such effect").
+        dof: its degrees of freedom.
+        p_value: significance.
+        shift_translation_m: how the translation would move if the effect were estimated.
+        shift_rotation_deg: how the rotation would move (LiDAR axes).
+        shift_time_offset_s: how the time offset would move.
+        selected: added by the forward selection (significant beyond the stronger effects;
+            the statistic of an effect not selected is conditional on the selected ones).
+        material: selected and moving the extrinsic by more than its sigma.
+    """
+
+    _digits = 6
+
+    name: str
+    sensor: str
+    statistic: float
+    dof: int
+    p_value: float
+    shift_translation_m: tuple[float, float, float]
+    shift_rotation_deg: tuple[float, float, float]
+    shift_time_offset_s: float
+    selected: bool = False
+    material: bool = False
+
+
+@dataclass(frozen=True)
+class SplitHalf(_Section):
+    """The extrinsic estimated on the two halves of the segment, compared.
+
+    Attributes:
+        status: ``agree``, ``disagree`` or ``not run``.
+        reason: why it was not run, or which coordinate disagrees most.
+        halves_s: duration of each half, s.
+        max_z: largest difference of a coordinate over its combined sigma.
+        chi2: chi-square of the difference with the halves' combined covariance.
+        dof: its degrees of freedom.
+        p_value: probability of a chi-square at least this large if the halves agree.
+        difference_translation_m: second half minus first.
+        difference_rotation_deg: second half relative to the first, about the LiDAR axes.
+        difference_time_offset_s: second half minus first.
+    """
+
+    _digits = 6
+
+    status: str
+    reason: str = ""
+    halves_s: float = 0.0
+    max_z: float = 0.0
+    chi2: float = 0.0
+    dof: int = 0
+    p_value: float = 1.0
+    difference_translation_m: tuple[float, ...] = ()
+    difference_rotation_deg: tuple[float, ...] = ()
+    difference_time_offset_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class Consistency(_Section):
+    """Whether the fitted model explains the data (the fit checks).
+
+    Attributes:
+        sensors: one check per sensor.
+        effects: score tests of the effects the model holds fixed.
+        split_half: the two halves compared.
+        inflation: how the reported sigmas were enlarged, one sentence each (empty: as
+            computed).
+    """
+
+    sensors: tuple[SensorCheck, ...] = ()
+    effects: tuple[EffectCheck, ...] = ()
+    split_half: SplitHalf = field(default_factory=lambda: SplitHalf("not run"))
+    inflation: tuple[str, ...] = ()
+
+    _nested = {"sensors": SensorCheck, "effects": EffectCheck, "split_half": SplitHalf}  # noqa: RUF012
+
+
+@dataclass(frozen=True)
+class InitializationSection(_Section):
+    """Where the initial guess came from."""
+
+    rotation_source: str
+    time_offset_source: str
+    coarse_time_offset_s: float
+    angular_speed_correlation: float | None = None
+    hand_eye_conditioning: float | None = None
+    translation_source: str = "zero"
+    initial_translation_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class FitSection(_Section):
+    """The rounds and the last fit.
+
+    Attributes:
+        rounds: rounds run (the denser final round included).
+        converged: whether the estimate settled before ``schedule.max_rounds``.
+        last_change_translation_m: how far the last regular round moved the translation.
+        last_change_rotation_deg: ... the rotation.
+        last_change_time_offset_s: ... the time offset.
+        points: associated points of the last round.
+        surfels: surfels of the last round.
+        point_rms_m: RMS point-to-plane distance.
+        variance_factor: chi-square per degree of freedom of the whole fit.
+    """
+
+    rounds: int
+    converged: bool
+    last_change_translation_m: float
+    last_change_rotation_deg: float
+    last_change_time_offset_s: float
+    points: int
+    surfels: int
+    point_rms_m: float
+    variance_factor: float
+
+
+@dataclass(frozen=True)
+class RecordingSection(_Section):
+    """The data used."""
+
+    bag: str
+    imu_topic: str
+    lidar_topic: str
+    imu_samples: int
+    scans: int
+    duration_s: float
+    start_ns: int
+    clock_offset_s: float
+    lidar_clock_shift_s: float
+
+
+@dataclass(frozen=True)
+class Provenance(_Section):
+    """Who made the file from what."""
+
+    licalib_version: str
+    bag_fingerprint: str
+    created_utc: str

@@ -1,0 +1,205 @@
+"""End to end: the checks that make a PASS trustworthy, each on a small simulated bag.
+
+Each bag hides one thing the model does not describe (or is set up to defeat one check); the
+calibration must say so in the verdict, name the sensor and the pattern, and write the
+``consistency:`` section. A clean bag must pass.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+
+from licalib_cli.cli import main
+from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
+from licalib_cli.results import CalibrationResult
+from licalib_cli.simulation import SimulationSpec, simulate
+
+CONFIG = Path(__file__).resolve().parents[2] / "configs" / "vlp16.yaml"
+VLP16_ELEVATION = np.radians(np.arange(-15.0, 16.0, 2.0))
+
+pytestmark = pytest.mark.slow
+
+
+def _spec(**kw: object) -> SimulationSpec:
+    base: dict[str, object] = {
+        "scenario": "sinusoid",
+        "lidar": "vlp16",
+        "fmt": "ros1",
+        "duration_s": 8.0,
+        "seed": 21,
+        "time_offset_s": 0.004,
+        "intrinsics": "none",
+        "azimuth_resolution_deg": 0.4,
+    }
+    base.update(kw)
+    return SimulationSpec(**base)  # type: ignore[arg-type]
+
+
+def _intrinsics_file(
+    tmp_path: Path, imu: ImuIntrinsics | None = None, lidar: LidarIntrinsics | None = None
+) -> Path:
+    path = tmp_path / "intrinsics.yaml"
+    CalibrationResult(
+        imu_intrinsics=imu or ImuIntrinsics(),
+        lidar_intrinsics=lidar or LidarIntrinsics.nominal(VLP16_ELEVATION),
+    ).save(path)
+    return path
+
+
+def _calibrate(
+    tmp_path: Path, spec: SimulationSpec, config_extra: dict | None = None
+) -> tuple[dict, str, int]:
+    sim = simulate(spec, tmp_path / "sim")
+    cfg_path = CONFIG
+    if config_extra:
+        cfg = yaml.safe_load(CONFIG.read_text())
+        for section, values in config_extra.items():
+            cfg.setdefault(section, {}).update(values)
+        cfg_path = tmp_path / "config.yaml"
+        cfg_path.write_text(yaml.safe_dump(cfg))
+    out = tmp_path / "result.yaml"
+    code = 0
+    try:
+        main(["calibrate", str(sim.bag_path), "-c", str(cfg_path), "-o", str(out)])
+    except SystemExit as err:
+        code = int(err.code or 0)
+    return yaml.safe_load(out.read_text()), str(sim.bag_path), code
+
+
+def _sensor(result: dict, name: str) -> dict:
+    return next(s for s in result["consistency"]["sensors"] if s["sensor"] == name)
+
+
+def test_clean_bag_passes_every_check(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Through the library (no command line): the run, its result file content and its
+    rendering."""
+    from licalib_cli.commands.render import render_run
+    from licalib_cli.config import load_config
+    from licalib_cli.pipeline import calibrate
+
+    sim = simulate(_spec(), tmp_path / "sim")
+    run = calibrate(sim.bag_path, load_config(CONFIG))
+    assert list(run.timings) == ["read", "odometry", "initialisation", "optimisation", "checks"]
+    assert run.checks.exit_status == "ok"
+    result = run.result.to_dict()
+    assert result["verdict"]["status"] == "pass", result["verdict"]["reasons"]
+    assert np.allclose(result["extrinsic"]["translation"], run.state.t_imu_lidar, atol=1e-9)
+    err = run.result.extrinsic.error_to(sim.truth.extrinsic)
+    assert err["translation_m"] < 0.003 and err["rotation_deg"] < 0.05
+    c = result["consistency"]
+    assert [s["sensor"] for s in c["sensors"]] == ["gyro", "accelerometer", "lidar"]
+    assert all(s["status"] == "ok" for s in c["sensors"])
+    assert all(0.6 < s["chi2_per_sample"] < 1.3 for s in c["sensors"])
+    assert not any(e["material"] for e in c["effects"])
+    assert c["split_half"]["status"] == "agree"
+    assert result["fit"]["converged"] is True
+    render_run(run, sim.truth)
+    printed = capsys.readouterr().out
+    assert "Checks of the fit" in printed and "Verdict: PASS" in printed
+
+
+def test_known_large_lever_arm_is_initialised_from_odometry_and_accelerometer(
+    tmp_path: Path,
+) -> None:
+    lever = (1.2, -0.7, 0.4)
+    result, _, code = _calibrate(
+        tmp_path, _spec(translation=lever, rpy_deg=(170.0, -20.0, 95.0), seed=22)
+    )
+    assert code == 0
+    ini = result["initialization"]
+    assert ini["translation_source"] == "odometry + accelerometer"
+    assert np.linalg.norm(np.asarray(ini["initial_translation_m"]) - lever) < 0.15
+    assert np.linalg.norm(np.asarray(result["extrinsic"]["translation"]) - lever) < 0.003
+
+
+def test_rounds_that_run_out_are_a_non_convergence_with_its_own_exit_code(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    result, _, code = _calibrate(tmp_path, _spec(), {"schedule": {"max_rounds": 1}})
+    err = capsys.readouterr().err
+    assert code == 10
+    assert result["verdict"]["status"] == "fail"
+    assert result["verdict"]["reasons"][0].startswith("The calibration did not converge")
+    assert result["fit"]["converged"] is False
+    assert "did not converge" in err
+
+
+def test_a_wrong_noise_setting_shows_as_a_misfit_of_that_sensor(tmp_path: Path) -> None:
+    # The gyro is configured ten times quieter than it is.
+    result, _, code = _calibrate(tmp_path, _spec(), {"noise": {"gyro_noise_density": 1.75e-5}})
+    assert code == 0
+    gyro = _sensor(result, "gyro")
+    assert gyro["status"] == "excess" and gyro["noise_source"] == "config"
+    assert gyro["chi2_per_sample"] > 50
+    assert result["verdict"]["status"] == "warn"
+    assert any(
+        "gyro residuals" in r and "noise.gyro_noise_density" in r
+        for r in result["verdict"]["reasons"]
+    )
+
+
+def test_per_beam_range_offsets_show_as_a_beam_pattern_and_a_lidar_effect(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    offsets = np.concatenate([[0.0], rng.normal(0.0, 0.01, 15)])
+    lidar = LidarIntrinsics.nominal(VLP16_ELEVATION).with_(range_offset=offsets)
+    spec = _spec(intrinsics_file=_intrinsics_file(tmp_path, lidar=lidar))
+    result, _, _ = _calibrate(tmp_path, spec)
+    lid = _sensor(result, "lidar")
+    beam = next(p for p in lid["patterns"] if p["feature"] == "beam")
+    assert beam["material"] and beam["explained"] > 0.1
+    assert not any(p["material"] for p in _sensor(result, "gyro")["patterns"])
+    effects = result["consistency"]["effects"]
+    selected = [e["name"] for e in effects if e["selected"]]
+    assert selected and selected[0].startswith("lidar_range")
+    assert not any(name.startswith(("gyro", "accel")) for name in selected)
+    assert result["verdict"]["status"] == "warn"
+    assert any("LiDAR" in r and "beam" in r for r in result["verdict"]["reasons"])
+
+
+def test_a_gyro_to_imu_rotation_is_found_by_its_score_test(tmp_path: Path) -> None:
+    q = Rotation.from_euler("xyz", [0.6, -0.5, 0.6], degrees=True).as_quat()
+    spec = _spec(intrinsics_file=_intrinsics_file(tmp_path, imu=ImuIntrinsics(gyro_rotation=q)))
+    result, _, _ = _calibrate(tmp_path, spec)
+    effects = result["consistency"]["effects"]
+    selected = [e["name"] for e in effects if e["selected"]]
+    # A gyro rotation is partly a gyro misalignment (its upper triangle): either may lead, and
+    # the selection adds no LiDAR effect.
+    assert selected[0] in ("gyro_rotation", "gyro_misalignment") and effects[0]["material"]
+    assert "gyro_rotation" in selected
+    assert not any(name.startswith("lidar") for name in selected)
+    assert result["verdict"]["status"] == "warn"
+    assert any("The IMU data show an effect" in r for r in result["verdict"]["reasons"])
+    # The sigma covers what the effect does to the rotation.
+    truth = yaml.safe_load((tmp_path / "sim" / "truth.yaml").read_text())
+    r_est = Rotation.from_quat(result["extrinsic"]["rotation_quaternion"])
+    r_true = Rotation.from_quat(truth["extrinsic"]["rotation_quaternion"])
+    err_deg = np.degrees((r_true.inv() * r_est).as_rotvec())
+    sigma = np.asarray(result["uncertainty"]["rotation_std_deg"])
+    assert np.linalg.norm(err_deg) > 0.3  # the effect really biases the rotation
+    assert np.all(np.abs(err_deg) < 3 * np.linalg.norm(sigma))
+
+
+def test_a_drifting_imu_clock_makes_the_halves_disagree(tmp_path: Path) -> None:
+    spec = _spec(effects=("imu-clock-drift",), imu_clock_drift_ppm=400.0)
+    result, _, _ = _calibrate(tmp_path, spec)
+    split = result["consistency"]["split_half"]
+    assert split["status"] == "disagree"
+    assert split["p_value"] < 1e-3 and split["dof"] == 7
+    assert abs(split["difference_time_offset_s"]) > 5e-4  # 400 ppm, halves 4 s apart
+    assert any("two halves" in r for r in result["verdict"]["reasons"])
+
+
+def test_a_segment_too_short_to_split_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    result, _, _ = _calibrate(tmp_path, _spec(duration_s=3.5))
+    printed = capsys.readouterr().out
+    split = result["consistency"]["split_half"]
+    assert split["status"] == "not run"
+    assert "too short to split" in split["reason"]
+    assert "Split-half check not run" in printed
