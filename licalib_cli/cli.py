@@ -69,12 +69,13 @@ def _root(
 
 
 def _register() -> None:
-    from licalib_cli.commands import calibrate, config_cmd, info, simulate
+    from licalib_cli.commands import calibrate, config_cmd, export, info, simulate
 
     app.command("calibrate")(calibrate.calibrate_command)
     app.command("info")(info.info_command)
     app.command("simulate")(simulate.simulate_command)
     app.add_typer(config_cmd.app, name="config")
+    app.command("export")(export.export_command)
 
 
 _register()
