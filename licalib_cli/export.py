@@ -431,7 +431,7 @@ def to_fast_lio(result: CalibrationResult, ros2: bool = False) -> str:
         body.append(f"  imu_topic: {json.dumps(s.imu_topic)}")
     body += [
         "  time_sync_en: false  # FAST-LIO's software sync (Livox) off: the offset is calibrated",
-        f"  time_offset_lidar_to_imu: {_num(_time_offset_s(result))}  # s, minus IMU stamps",
+        f"  time_offset_lidar_to_imu: {_num(_time_offset_s(result))}  # s, taken off IMU stamps",
         "mapping:",
         f"  extrinsic_T: {_vec(t)}  # m, LiDAR origin in the IMU frame",
         f"  extrinsic_R: {_rows(R, 16)}  # row-major, p_imu = R p_lidar + T",
