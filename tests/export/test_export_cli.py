@@ -3,6 +3,7 @@ documented exit code, never a partial file and never an input overwritten."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -229,3 +230,19 @@ def test_unknown_target_is_a_usage_error(
     write_result(src)
     code, _, err = run(["export", str(src), "--to", "ros"], capsys)
     assert code == 6 and "Invalid value for '--to'" in err
+
+
+def test_the_golden_result_file_exports(capsys: pytest.CaptureFixture[str]) -> None:
+    """A result with every section ``calibrate`` writes (tests/golden/result_v1.yaml)."""
+    golden = Path(__file__).parents[1] / "golden" / "result_v1.yaml"
+    result = CalibrationResult.load(golden)
+    code, out, err = run(["export", str(golden), "--to", "fast-lio"], capsys)
+    assert code == 0, err
+    assert "LiDAR clock shift" in err  # the golden recording carries one
+    mapping = yaml.safe_load(out)["mapping"]
+    np.testing.assert_allclose(
+        np.reshape(mapping["extrinsic_R"], (3, 3)), result.extrinsic.rotation, atol=1e-9
+    )
+    code, out, err = run(["export", str(golden), "--to", "json"], capsys)
+    assert code == 0, err
+    assert CalibrationResult.from_dict(json.loads(out)).to_dict() == result.to_dict()
