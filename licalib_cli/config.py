@@ -165,10 +165,13 @@ class ScheduleConfig(_Section):
     """Most refinement rounds (map rebuild + optimisation). Rounds run until the estimate
     settles; reaching this cap while it still moves is a non-convergence (verdict fail)."""
     iterations_per_round: int = Field(default=6, ge=1, le=200)
-    imu_intrinsics_from_round: int = Field(default=0, ge=0)
-    """Round (1-based) from which IMU intrinsics are estimated; 0 keeps them at their defaults."""
-    lidar_intrinsics_from_round: int = Field(default=0, ge=0)
-    """Round (1-based) from which LiDAR intrinsics are estimated; 0 keeps them at defaults."""
+    """Levenberg-Marquardt iterations per round."""
+    intrinsics_from_round: int = Field(default=0, ge=0)
+    """Round (1-based) from which the intrinsics of ``model`` are estimated; 0 (default): from
+    the round after the extrinsic and time offset first settle, round 4 at the latest."""
+    intrinsic_tolerance_sigmas: float = Field(default=0.5, gt=0.0)
+    """Once intrinsics are estimated, a round counts as settled only if no free intrinsic moved
+    by more than this many of its own 1-sigma."""
     translation_tolerance_m: float = Field(default=5e-4, gt=0.0)
     """Settled when a round moves the translation less than this or than half its 1-sigma
     (and the rotation and time offset likewise)."""
@@ -184,6 +187,49 @@ class SolverSection(_Section):
     """Eigenvalue threshold of the scaled calibration information (see the README)."""
 
 
+ImuBlock = Literal[
+    "gyro_scale",
+    "gyro_misalignment",
+    "gyro_rotation",
+    "accel_scale",
+    "accel_misalignment",
+    "g_sensitivity",
+]
+LidarBlock = Literal[
+    "elevation",
+    "azimuth",
+    "vertical_offset",
+    "horizontal_offset",
+    "range_scale",
+    "range_offset",
+]
+IMU_BLOCKS: tuple[str, ...] = ImuBlock.__args__  # type: ignore[attr-defined]
+LIDAR_BLOCKS: tuple[str, ...] = LidarBlock.__args__  # type: ignore[attr-defined]
+INTRINSIC_PRESETS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    "none": ((), ()),
+    "imu": (IMU_BLOCKS[:5], ()),
+    "lidar": ((), LIDAR_BLOCKS),
+    "all": (IMU_BLOCKS[:5], LIDAR_BLOCKS),
+}
+"""``calibrate --intrinsics``: the IMU and LiDAR blocks each choice estimates (g-sensitivity
+only when listed in ``model.imu``)."""
+
+
+class ModelSection(_Section):
+    """Which intrinsics the calibration estimates; the others stay at their nominal values (and
+    the checks test whether the data show them)."""
+
+    imu: list[ImuBlock] = Field(default_factory=list)
+    """IMU blocks: gyro_scale, gyro_misalignment, gyro_rotation (R_wI), accel_scale,
+    accel_misalignment, g_sensitivity (method.md section 3)."""
+    lidar: list[LidarBlock] = Field(default_factory=list)
+    """Per-beam LiDAR intrinsics: elevation, azimuth, vertical_offset, horizontal_offset,
+    range_scale, range_offset (method.md section 4); the first beam with enough points keeps
+    its angles and offsets (the gauge)."""
+    min_points_per_beam: int = Field(default=200, ge=10)
+    """Beams with fewer associated points keep their intrinsics at nominal (and are named)."""
+
+
 class CalibConfig(_Section):
     """The whole configuration."""
 
@@ -197,6 +243,7 @@ class CalibConfig(_Section):
     surfels: SurfelSection = SurfelSection()
     schedule: ScheduleConfig = ScheduleConfig()
     solver: SolverSection = SolverSection()
+    model: ModelSection = ModelSection()
 
 
 def yaml_error_summary(err: yaml.YAMLError) -> str:

@@ -48,6 +48,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import numpy.typing as npt
 
+from licalib_cli.geometry import so3
 from licalib_cli.geometry.so3 import matrix_to_quat, quat_to_matrix
 from licalib_cli.measurements import ImuSamples
 from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
@@ -79,6 +80,7 @@ from licalib_cli.spline import R3Spline, SO3EvaluationCache, SO3Spline, UniformK
 
 __all__ = [
     "CALIBRATION_SCALES",
+    "IMU_INTRINSIC_BLOCKS",
     "CalibrationState",
     "FreeParameters",
     "ImuData",
@@ -87,6 +89,7 @@ __all__ = [
     "Planes",
     "beam_point_counts",
     "build_problem",
+    "intrinsic_coordinates",
     "parameter_blocks",
     "state_from_problem",
     "state_from_values",
@@ -321,9 +324,14 @@ class FreeParameters:
         extrinsic_rotation: ``ext.rotation``.
         extrinsic_translation: ``ext.translation``.
         time_offset: ``ext.time_offset``.
-        imu_intrinsics: the 15 IMU intrinsics (scale, misalignment, gyro rotation).
+        imu_intrinsics: all 15 IMU intrinsics (scale, misalignment, gyro rotation).
+        imu_blocks: further IMU intrinsic blocks free on their own (block names such as
+            ``imu.gyro_scale``; :data:`IMU_INTRINSIC_BLOCKS`).
         g_sensitivity: the 9 gyro g-sensitivity parameters (adds the ``A_w a_I`` term).
-        lidar_intrinsics: the per-beam LiDAR intrinsics.
+        lidar_intrinsics: all six per-beam LiDAR intrinsics.
+        lidar_columns: further per-beam intrinsics free on their own (names of
+            :data:`~licalib_cli.models.lidar.INTRINSIC_NAMES`: ``dphi``, ``dtheta``, ``V``,
+            ``H``, ``s``, ``drho``).
         min_points_per_beam: beams with fewer points keep their intrinsics fixed.
     """
 
@@ -334,9 +342,42 @@ class FreeParameters:
     extrinsic_translation: bool = True
     time_offset: bool = True
     imu_intrinsics: bool = False
+    imu_blocks: frozenset[str] = frozenset()
     g_sensitivity: bool = False
     lidar_intrinsics: bool = False
+    lidar_columns: frozenset[str] = frozenset()
     min_points_per_beam: int = 100
+
+    def imu_block_free(self, block: str) -> bool:
+        """Whether IMU intrinsic block ``block`` (e.g. ``imu.gyro_scale``) is estimated."""
+        if block == GYRO_G_SENSITIVITY:
+            return self.g_sensitivity or block in self.imu_blocks
+        return self.imu_intrinsics or block in self.imu_blocks
+
+    def lidar_column_free(self, name: str) -> bool:
+        """Whether per-beam intrinsic ``name`` (``dphi`` ... ``drho``) is estimated."""
+        return self.lidar_intrinsics or name in self.lidar_columns
+
+    @property
+    def any_imu_intrinsics(self) -> bool:
+        """Whether some IMU intrinsic (g-sensitivity included) is estimated."""
+        return self.imu_intrinsics or self.g_sensitivity or bool(self.imu_blocks)
+
+    @property
+    def any_lidar_intrinsics(self) -> bool:
+        """Whether some per-beam LiDAR intrinsic is estimated."""
+        return self.lidar_intrinsics or bool(self.lidar_columns)
+
+
+IMU_INTRINSIC_BLOCKS = (
+    GYRO_SCALE,
+    GYRO_MISALIGNMENT,
+    GYRO_ROTATION,
+    ACCEL_SCALE,
+    ACCEL_MISALIGNMENT,
+    GYRO_G_SENSITIVITY,
+)
+"""The IMU intrinsic parameter blocks, in the order of the model (method.md section 3)."""
 
 
 # ----------------------------------------------------------------------- state <-> parameters
@@ -429,6 +470,28 @@ def state_from_values(
     )
 
 
+def intrinsic_coordinates(state: CalibrationState) -> dict[str, float]:
+    """Every IMU and LiDAR intrinsic of a state by its coordinate name (as in the solver's
+    ``calibration_names``); the gyro rotation as a rotation vector, rad."""
+    imu = state.imu_intrinsics
+    out: dict[str, float] = {}
+
+    def put(block: str, suffixes: Sequence[str], values: npt.ArrayLike) -> None:
+        for s, v in zip(suffixes, np.asarray(values, dtype=np.float64).reshape(-1), strict=True):
+            out[f"{block}.{s}"] = float(v)
+
+    put(GYRO_SCALE, _XYZ, imu.gyro_scale)
+    put(GYRO_MISALIGNMENT, _MISALIGNMENT, imu.gyro_misalignment)
+    put(GYRO_ROTATION, ("rx", "ry", "rz"), so3.log(quat_to_matrix(imu.gyro_rotation)))
+    put(ACCEL_SCALE, _XYZ, imu.accel_scale)
+    put(ACCEL_MISALIGNMENT, _MISALIGNMENT, imu.accel_misalignment)
+    put(GYRO_G_SENSITIVITY, _G_SENS, imu.gyro_g_sensitivity)
+    lidar = intrinsics_to_array(state.lidar_intrinsics).reshape(-1, len(INTRINSIC_NAMES))
+    for b, row in enumerate(lidar):
+        put(f"{LIDAR_INTRINSICS}[{b}]", INTRINSIC_NAMES, row)
+    return out
+
+
 def state_from_problem(state: CalibrationState, problem: Problem) -> CalibrationState:
     """:func:`state_from_values` with the problem's current block values."""
     return state_from_values(state, problem.values())
@@ -445,9 +508,10 @@ def _lidar_fixed_mask(counts: npt.NDArray[np.int64], free: FreeParameters) -> np
     """(B * 6,) fixed mask of ``lidar.intrinsics`` (gauge beam + under-observed beams)."""
     b = counts.shape[0]
     fixed = np.ones((b, 6), dtype=bool)
-    if free.lidar_intrinsics:
+    columns = np.array([free.lidar_column_free(n) for n in INTRINSIC_NAMES])
+    if np.any(columns):
         enough = counts >= free.min_points_per_beam
-        fixed[enough] = False
+        fixed[np.ix_(enough, columns)] = False
         if np.any(enough):
             gauge = int(np.argmax(enough))
             fixed[gauge, :4] = True
@@ -482,7 +546,7 @@ def parameter_blocks(
         The blocks (``imu.gyro_g_sensitivity`` only when enabled or non-zero).
     """
     free = FreeParameters() if free is None else free
-    values = state_to_values(state, g_sensitivity=free.g_sensitivity or None)
+    values = state_to_values(state, g_sensitivity=free.imu_block_free(GYRO_G_SENSITIVITY) or None)
     n_cp = state.knots.num_control_points
     counts = (
         np.zeros(state.lidar_intrinsics.num_beams, dtype=np.int64)
@@ -566,7 +630,6 @@ def parameter_blocks(
             fixed=not free.time_offset,
         ),
     ]
-    imu_fixed = not free.imu_intrinsics
     for block, suffixes, manifold in (
         (GYRO_SCALE, _XYZ, "euclidean"),
         (GYRO_MISALIGNMENT, _MISALIGNMENT, "euclidean"),
@@ -582,7 +645,7 @@ def parameter_blocks(
                 group="calibration",  # type: ignore[arg-type]
                 coord_names=names(block, suffixes),
                 scale=scale(block),
-                fixed=imu_fixed,
+                fixed=not free.imu_block_free(block),
             )
         )
     if GYRO_G_SENSITIVITY in values:
@@ -593,7 +656,7 @@ def parameter_blocks(
                 group="calibration",
                 coord_names=names(GYRO_G_SENSITIVITY, _G_SENS),
                 scale=scale(GYRO_G_SENSITIVITY),
-                fixed=not free.g_sensitivity,
+                fixed=not free.imu_block_free(GYRO_G_SENSITIVITY),
             )
         )
     n_beams = state.lidar_intrinsics.num_beams

@@ -78,7 +78,11 @@ def save_plots(run: CalibrationRun, folder: Path) -> list[Path]:
     folder = Path(folder)
     prepare_plots(folder)
     written = []
-    for name, draw in (("fit.png", _fit_figure), ("observability.png", _spectrum_figure)):
+    for name, draw in (
+        ("fit.png", _fit_figure),
+        ("observability.png", _spectrum_figure),
+        ("map_entropy.png", _entropy_figure),
+    ):
         fig = draw(plt, run)
         path = folder / name
         tmp = path.with_name(f".{path.name}.tmp")
@@ -141,6 +145,25 @@ def _fit_figure(plt: Any, run: CalibrationRun) -> Any:
     ax_r.legend(lines[0] + more[0], lines[1] + more[1], fontsize=8, loc="upper right")
     ax_r.set_title("Convergence over the rounds")
     fig.suptitle(f"Fit: verdict {run.verdict.status.upper()}")
+    fig.tight_layout()
+    return fig
+
+
+def _entropy_figure(plt: Any, run: CalibrationRun) -> Any:
+    """Mean map entropy per round (the paper's MME figure): lower is a sharper map."""
+    rounds = run.rounds
+    fig, ax = plt.subplots(figsize=(6.5, 4.0))
+    idx = [r.index for r in rounds]
+    ax.plot(idx, [r.map_entropy for r in rounds], "o-", color="tab:green")
+    joined = [r.index for r in rounds if any("intrinsics" in f for f in r.free)]
+    if joined:
+        ax.axvline(joined[0] - 0.5, color="grey", ls=":", label="intrinsics estimated from here")
+        ax.legend(fontsize=8)
+    ax.set_xlabel("round (the last one is the denser final round)")
+    ax.set_ylabel("mean map entropy (nats, metres)")
+    ax.set_xticks(idx)
+    ax.grid(True, alpha=0.3)
+    ax.set_title("Map sharpness over the rounds")
     fig.tight_layout()
     return fig
 

@@ -37,6 +37,8 @@ from licalib_cli.sections import (
     Consistency,
     FitSection,
     InitializationSection,
+    IntrinsicsUncertainty,
+    ModelInfo,
     Observability,
     Provenance,
     RecordingSection,
@@ -209,7 +211,9 @@ def lidar_intrinsics_from_dict(d: dict[str, Any]) -> LidarIntrinsics:
 
 
 _SECTIONS: tuple[tuple[str, type], ...] = (
+    ("model", ModelInfo),
     ("uncertainty", Uncertainty),
+    ("intrinsics_uncertainty", IntrinsicsUncertainty),
     ("observability", Observability),
     ("verdict", VerdictSection),
     ("consistency", Consistency),
@@ -229,9 +233,9 @@ class CalibrationResult:
         imu_intrinsics: the IMU model's parameters (biases included).
         lidar_intrinsics: per-beam LiDAR intrinsics, or None when not part of the file.
         gravity_G: (3,) gravity in the first IMU frame, m/s^2, or None.
-        uncertainty, observability, verdict, consistency, initialization, fit, recording,
-            provenance: the typed sections ``calibrate`` writes (:mod:`licalib_cli.sections`),
-            None when the file has none.
+        model, uncertainty, intrinsics_uncertainty, observability, verdict, consistency,
+            initialization, fit, recording, provenance: the typed sections ``calibrate`` writes
+            (:mod:`licalib_cli.sections`), None when the file has none.
         extra: top-level sections of other writers, kept as they are (a simulator's
             ``truth.yaml`` carries ``scenario``, ``seed`` and ``simulation``).
     """
@@ -240,7 +244,9 @@ class CalibrationResult:
     imu_intrinsics: ImuIntrinsics = field(default_factory=ImuIntrinsics)
     lidar_intrinsics: LidarIntrinsics | None = None
     gravity_G: tuple[float, float, float] | None = None
+    model: ModelInfo | None = None
     uncertainty: Uncertainty | None = None
+    intrinsics_uncertainty: IntrinsicsUncertainty | None = None
     observability: Observability | None = None
     verdict: VerdictSection | None = None
     consistency: Consistency | None = None

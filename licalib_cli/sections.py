@@ -34,6 +34,8 @@ __all__ = [
     "EffectCheck",
     "FitSection",
     "InitializationSection",
+    "IntrinsicsUncertainty",
+    "ModelInfo",
     "Observability",
     "PatternCheck",
     "Provenance",
@@ -288,6 +290,48 @@ class Consistency(_Section):
     inflation: tuple[str, ...] = ()
 
     _nested = {"sensors": SensorCheck, "effects": EffectCheck, "split_half": SplitHalf}  # noqa: RUF012
+
+
+@dataclass(frozen=True)
+class ModelInfo(_Section):
+    """Which intrinsics were estimated.
+
+    Attributes:
+        imu: IMU blocks estimated (``gyro_scale`` ...; names of the config's ``model.imu``).
+        lidar: per-beam LiDAR intrinsics estimated (``elevation`` ...).
+        gauge_beam: the beam whose angles and offsets were held (the gauge), or -1.
+        held_beams: beams with too few points, held at nominal.
+    """
+
+    imu: tuple[str, ...] = ()
+    lidar: tuple[str, ...] = ()
+    gauge_beam: int = -1
+    held_beams: tuple[int, ...] = ()
+
+
+@dataclass(frozen=True)
+class IntrinsicsUncertainty(_Section):
+    """1-sigma of every estimated intrinsic, by block (``None``: held or not observable).
+
+    ``values`` maps ``gyro_scale``, ``gyro_misalignment``, ``gyro_rotation_deg``,
+    ``accel_scale``, ``accel_misalignment``, ``g_sensitivity`` (rad/s per m/s^2, row-major),
+    ``elevation_deg``, ``azimuth_deg``, ``vertical_offset_m``, ``horizontal_offset_m``,
+    ``range_scale``, ``range_offset_m`` (one entry per beam) to lists of sigmas.
+    """
+
+    values: dict[str, tuple[float | None, ...]] = field(default_factory=dict)
+
+    _digits = 4
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            k: [None if (x is None or not math.isfinite(x)) else _num(x, 4) for x in v]
+            for k, v in self.values.items()
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> IntrinsicsUncertainty:
+        return cls({k: tuple(None if x is None else float(x) for x in v) for k, v in d.items()})
 
 
 @dataclass(frozen=True)

@@ -2,17 +2,35 @@
 
 from __future__ import annotations
 
+from enum import Enum
 from pathlib import Path
 
 import typer
 
 from licalib_cli.commands.render import console, console_err, render_run
-from licalib_cli.config import dump_config, load_config
+from licalib_cli.config import INTRINSIC_PRESETS, dump_config, load_config
 from licalib_cli.errors import NotConverged, VerdictFailure
 from licalib_cli.results import CalibrationResult, prepare_output, write_text_atomic
 
 _IO = "Input"
 _OUT = "Output"
+_MODEL = "Model"
+
+
+class Intrinsics(str, Enum):
+    """``--intrinsics`` choices."""
+
+    NONE = "none"
+    IMU = "imu"
+    LIDAR = "lidar"
+    ALL = "all"
+
+
+def _intrinsics_overrides(choice: Intrinsics | None) -> dict[str, list[str] | None]:
+    if choice is None:
+        return {}
+    imu, lidar = INTRINSIC_PRESETS[choice.value]
+    return {"model.imu": list(imu), "model.lidar": list(lidar)}
 
 
 class RichProgress:
@@ -73,6 +91,13 @@ def calibrate_command(
     duration: float | None = typer.Option(
         None, "--duration", help="Seconds of data to use.", rich_help_panel=_IO
     ),
+    intrinsics: Intrinsics | None = typer.Option(
+        None,
+        "--intrinsics",
+        help="Also estimate intrinsics: imu (scale, misalignment, gyro rotation), lidar (six "
+        "per beam) or all; default: the config's model section (none).",
+        rich_help_panel=_MODEL,
+    ),
     out: Path = typer.Option(
         Path("calibration.yaml"),
         "--out",
@@ -101,6 +126,7 @@ def calibrate_command(
             "lidar.topic": lidar_topic,
             "bag.start_s": start,
             "bag.duration_s": duration,
+            **_intrinsics_overrides(intrinsics),
         },
     )
     prepare_output(out)

@@ -10,6 +10,7 @@ import numpy as np
 
 from licalib_cli import __version__
 from licalib_cli.config import CalibConfig
+from licalib_cli.estimation import beam_point_counts
 from licalib_cli.io.reader import Recording
 from licalib_cli.pipeline.checks import Checks
 from licalib_cli.pipeline.initialise import InitialGuess
@@ -19,6 +20,7 @@ from licalib_cli.results import CalibrationResult
 from licalib_cli.sections import (
     FitSection,
     InitializationSection,
+    ModelInfo,
     Provenance,
     RecordingSection,
 )
@@ -58,6 +60,17 @@ def recording_section(bag: Path, rec: Recording) -> RecordingSection:
     )
 
 
+def model_info(fit: Fit, cfg: CalibConfig) -> ModelInfo:
+    """Which intrinsics were estimated, the gauge beam and the beams held for lack of points."""
+    gauge, held = -1, ()
+    if cfg.model.lidar:
+        counts = beam_point_counts(fit.inputs.lidar, fit.state.lidar_intrinsics.num_beams)
+        enough = counts >= cfg.model.min_points_per_beam
+        gauge = int(np.argmax(enough)) if np.any(enough) else -1
+        held = tuple(int(b) for b in np.flatnonzero(~enough))
+    return ModelInfo(tuple(cfg.model.imu), tuple(cfg.model.lidar), gauge, held)
+
+
 def assemble(
     bag: Path,
     rec: Recording,
@@ -74,9 +87,9 @@ def assemble(
     return CalibrationResult(
         extrinsic=extrinsic_of(state),
         imu_intrinsics=state.imu_intrinsics,
-        lidar_intrinsics=state.lidar_intrinsics
-        if cfg.schedule.lidar_intrinsics_from_round
-        else None,
+        lidar_intrinsics=state.lidar_intrinsics if cfg.model.lidar else None,
+        model=model_info(fit, cfg),
+        intrinsics_uncertainty=checks.intrinsics_uncertainty,
         gravity_G=tuple(round(float(x), 6) for x in state.gravity_G),  # type: ignore[arg-type]
         uncertainty=checks.uncertainty,
         observability=checks.observability,

@@ -34,6 +34,7 @@ from licalib_cli.pipeline.split import SplitResult
 from licalib_cli.sections import (
     Consistency,
     EffectCheck,
+    IntrinsicsUncertainty,
     Observability,
     SensorCheck,
     SplitHalf,
@@ -80,6 +81,7 @@ class Checks:
         consistency: the consistency section.
         findings: every finding, notes included.
         exit_status: ``"ok"``, ``"fail"`` or ``"not converged"``.
+        intrinsics_uncertainty: 1-sigma of the estimated intrinsics (None when none were).
     """
 
     verdict: VerdictSection
@@ -89,6 +91,7 @@ class Checks:
     consistency: Consistency
     findings: tuple[Finding, ...]
     exit_status: str
+    intrinsics_uncertainty: IntrinsicsUncertainty | None = None
 
 
 def _std(report: SolverReport, names: list[str]) -> F64:
@@ -445,6 +448,10 @@ def run_checks(
     findings += _split(split)
     findings += _map(fit, report)
     verdict, exit_status = judge(findings)
+    chi = max((c.chi2_per_sample for c in sensors), default=1.0)
+    intrinsics = intrinsics_uncertainty(
+        report, cfg, max(chi, 1.0) ** 0.5, fit.state.lidar_intrinsics.num_beams
+    )
     consistency = Consistency(
         sensors=sensors,
         effects=tuple(_effect_section(e, raw) for e in effects),
@@ -463,7 +470,55 @@ def run_checks(
         consistency=consistency,
         findings=tuple(findings),
         exit_status=exit_status,
+        intrinsics_uncertainty=intrinsics,
     )
+
+
+_IMU_SUFFIXES = {
+    "gyro_scale": ("x", "y", "z"),
+    "gyro_misalignment": ("xy", "xz", "yz"),
+    "gyro_rotation": ("rx", "ry", "rz"),
+    "accel_scale": ("x", "y", "z"),
+    "accel_misalignment": ("xy", "xz", "yz"),
+    "g_sensitivity": tuple(f"{a}{b}" for a in "xyz" for b in "xyz"),
+}
+_LIDAR_KEYS = {
+    "elevation": ("dphi", "elevation_deg", True),
+    "azimuth": ("dtheta", "azimuth_deg", True),
+    "vertical_offset": ("V", "vertical_offset_m", False),
+    "horizontal_offset": ("H", "horizontal_offset_m", False),
+    "range_scale": ("s", "range_scale", False),
+    "range_offset": ("drho", "range_offset_m", False),
+}
+
+
+def intrinsics_uncertainty(
+    report: SolverReport, cfg: CalibConfig, factor: float, num_beams: int
+) -> IntrinsicsUncertainty | None:
+    """1-sigma of every intrinsic the model estimates (``None`` for held or unobservable ones),
+    enlarged by ``factor`` (the root of the largest chi-square per sample)."""
+    if not (cfg.model.imu or cfg.model.lidar):
+        return None
+    std = dict(zip(report.calibration_names, report.std, strict=True))
+    weight = dict(zip(report.calibration_names, report.truncated_weight, strict=True))
+
+    def get(name: str, degrees: bool = False) -> float | None:
+        v = std.get(name)
+        if v is None or not np.isfinite(v) or weight.get(name, 0.0) > 0.5:
+            return None  # held, or not determined by the data (kept near nominal)
+        return float(np.degrees(v) if degrees else v) * factor
+
+    values: dict[str, tuple[float | None, ...]] = {}
+    for block in cfg.model.imu:
+        block_name = "imu.gyro_g_sensitivity" if block == "g_sensitivity" else f"imu.{block}"
+        key = "gyro_rotation_deg" if block == "gyro_rotation" else block
+        values[key] = tuple(
+            get(f"{block_name}.{s}", block == "gyro_rotation") for s in _IMU_SUFFIXES[block]
+        )
+    for name in cfg.model.lidar:
+        col, key, degrees = _LIDAR_KEYS[name]
+        values[key] = tuple(get(f"lidar.intrinsics[{b}].{col}", degrees) for b in range(num_beams))
+    return IntrinsicsUncertainty(values)
 
 
 def _effect_section(e: EffectEvidence, raw: F64) -> EffectCheck:

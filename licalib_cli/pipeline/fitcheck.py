@@ -314,13 +314,8 @@ def effect_evidence(
     names = lin.layout.calibration_names
     groups: dict[str, list[int]] = {}
     base: list[int] = []
-    estimated = set()
-    if free.imu_intrinsics:
-        estimated |= {v for k, v in _IMU_EFFECTS.items() if k != "imu.gyro_g_sensitivity"}
-    if free.g_sensitivity:
-        estimated.add("g_sensitivity")
-    if free.lidar_intrinsics:
-        estimated |= set(_LIDAR_EFFECTS.values())
+    estimated = {v for k, v in _IMU_EFFECTS.items() if free.imu_block_free(k)}
+    estimated |= {v for k, v in _LIDAR_EFFECTS.items() if free.lidar_column_free(k)}
     for i, n in enumerate(names):
         effect = _effect_of(n)
         if effect is None or effect in estimated:

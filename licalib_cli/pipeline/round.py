@@ -14,7 +14,7 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig
-from licalib_cli.errors import ExcitationError, SolverError
+from licalib_cli.errors import DataError, ExcitationError, SolverError
 from licalib_cli.estimation import (
     CalibrationState,
     FreeParameters,
@@ -25,10 +25,11 @@ from licalib_cli.estimation import (
     build_problem,
     state_from_problem,
 )
+from licalib_cli.map_quality import mean_map_entropy
 from licalib_cli.pipeline.points import PointSample, points_in_global, usable_points
 from licalib_cli.pipeline.settings import (
     NoiseLevels,
-    free_parameters,
+    intrinsic_priors,
     lm_params,
     noise_model,
     surfel_config,
@@ -40,6 +41,9 @@ from licalib_cli.surfels import associate_points, build_surfels
 __all__ = ["RoundInputs", "RoundSummary", "extrinsic_of", "free_names", "run_round"]
 
 F32 = npt.NDArray[np.float32]
+
+_ENTROPY_POINTS = 4000
+"""Points at which the map entropy of a round is evaluated (a Monte-Carlo mean)."""
 
 
 @dataclass(frozen=True)
@@ -82,6 +86,8 @@ class RoundSummary:
         seconds: wall time of the round.
         distances_before_m: (P,) signed point-to-plane distances at the start of the round.
         distances_after_m: (P,) the same after the round (same map), m.
+        map_entropy: mean map entropy (method.md section 9) of the round's sampled points mapped
+            with its estimate, nats; lower is sharper.
     """
 
     index: int
@@ -98,6 +104,7 @@ class RoundSummary:
     seconds: float
     distances_before_m: F32 = field(default_factory=lambda: np.zeros(0, np.float32), repr=False)
     distances_after_m: F32 = field(default_factory=lambda: np.zeros(0, np.float32), repr=False)
+    map_entropy: float = float("nan")
 
 
 def extrinsic_of(state: CalibrationState) -> Extrinsic:
@@ -108,9 +115,9 @@ def extrinsic_of(state: CalibrationState) -> Extrinsic:
 def free_names(free: FreeParameters) -> tuple[str, ...]:
     """Names of the parameter groups a round estimates."""
     names = ["trajectory", "biases", "gravity", "extrinsic", "time offset"]
-    if free.imu_intrinsics:
+    if free.any_imu_intrinsics:
         names.append("IMU intrinsics")
-    if free.lidar_intrinsics:
+    if free.any_lidar_intrinsics:
         names.append("LiDAR intrinsics")
     return tuple(names)
 
@@ -123,6 +130,7 @@ def run_round(
     cfg: CalibConfig,
     index: int,
     max_distance_m: float,
+    free: FreeParameters,
 ) -> tuple[CalibrationState, RoundSummary, SolverReport, RoundInputs]:
     """Rebuild surfels and associations from ``state``, then one LM round.
 
@@ -162,13 +170,20 @@ def run_round(
     )
     planes = Planes(normal=surfels.normal, offset=surfels.d, thickness=surfels.thickness)
     weights = noise_model(cfg, noise)
-    free = free_parameters(cfg, index)
-    problem = build_problem(state, imu, lidar, planes, weights, free)
+    problem = build_problem(
+        state, imu, lidar, planes, weights, free, extra_residuals=intrinsic_priors(state, free)
+    )
     report = solve(problem, lm_params(cfg))
     if report.status == "failed":
         msg = f"The optimisation failed in round {index}: {report.reason}."
         raise SolverError(msg)
     new_state = state_from_problem(state, problem)
+    try:
+        entropy = mean_map_entropy(
+            points_in_global(new_state, pts), max_query_points=_ENTROPY_POINTS
+        ).mean
+    except DataError:
+        entropy = float("nan")
     p_after = points_in_global(new_state, used)
     dist = np.einsum("ij,ij->i", surfels.normal[plane_of], p_after) + surfels.d[plane_of]
     p_before = p_g[assoc.point_index[order]]
@@ -188,5 +203,6 @@ def run_round(
         seconds=time.perf_counter() - start,
         distances_before_m=dist0.astype(np.float32),
         distances_after_m=dist.astype(np.float32),
+        map_entropy=entropy,
     )
     return new_state, summary, report, RoundInputs(imu, lidar, used, planes, weights, free)

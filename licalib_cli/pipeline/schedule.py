@@ -18,12 +18,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from licalib_cli.config import CalibConfig
-from licalib_cli.estimation import CalibrationState, ImuData
+from licalib_cli.estimation import CalibrationState, ImuData, intrinsic_coordinates
 from licalib_cli.io.reader import Recording
 from licalib_cli.pipeline.initialise import InitialGuess
-from licalib_cli.pipeline.points import points_per_scan, sample_points
+from licalib_cli.pipeline.points import (
+    PointSample,
+    points_in_global,
+    points_per_scan,
+    sample_points,
+    usable_points,
+)
 from licalib_cli.pipeline.round import RoundInputs, RoundSummary, extrinsic_of, run_round
-from licalib_cli.pipeline.settings import NoiseLevels
+from licalib_cli.pipeline.settings import NoiseLevels, estimates_intrinsics, free_parameters
 from licalib_cli.progress import Progress
 from licalib_cli.solver.lm import SolverReport
 
@@ -34,8 +40,18 @@ logger = logging.getLogger(__name__)
 COARSE_FACTOR = 3.0
 """The first round associates points up to this many times ``surfels.max_distance_m``."""
 
-TYPICAL_RANGE_M = 10.0
-"""Range at which a change of rotation is converted into a displacement of the points."""
+INTRINSICS_FACTOR = 2.0
+"""When the intrinsics join, the association distance opens to at least this many times
+``surfels.max_distance_m`` (the map changes as they move)."""
+
+JOIN_BY = 3
+"""Without ``schedule.intrinsics_from_round``, the intrinsics join after this many rounds at the
+latest."""
+
+_PROBE_POINTS = 5000
+"""Points whose displacement between rounds measures how much the map moved."""
+
+_MAP_MOVED_QUANTILE = 0.9
 
 JITTER_FACTOR = 2.0
 """At the round cap, a last change within this many times the settle threshold counts as the
@@ -107,6 +123,32 @@ def _threshold(report: SolverReport, cfg: CalibConfig) -> Change:
     )
 
 
+def point_displacement(
+    before: CalibrationState, after: CalibrationState, probe: PointSample
+) -> float:
+    """How far a round moved the map: a high quantile of the displacement of sample points in
+    ``{G}`` (extrinsic, time offset, trajectory and LiDAR intrinsics together), m."""
+    margin = 2 * after.knots.dt_s + abs(after.time_offset_s - before.time_offset_s)
+    pts = usable_points(after, usable_points(before, probe, margin), margin)
+    if len(pts) == 0:
+        return float("inf")
+    d = np.linalg.norm(points_in_global(after, pts) - points_in_global(before, pts), axis=1)
+    return float(np.quantile(d, _MAP_MOVED_QUANTILE))
+
+
+def intrinsic_change(
+    before: CalibrationState, after: CalibrationState, report: SolverReport
+) -> float:
+    """Largest change of a free intrinsic coordinate over a round, in its own 1-sigma."""
+    old = intrinsic_coordinates(before)
+    new = intrinsic_coordinates(after)
+    worst = 0.0
+    for name, std in zip(report.calibration_names, report.std, strict=True):
+        if name in old and np.isfinite(std) and std > 0:
+            worst = max(worst, abs(new[name] - old[name]) / std)
+    return worst
+
+
 def _within(c: Change, t: Change, factor: float = 1.0) -> bool:
     return (
         c.translation_m < factor * t.translation_m
@@ -132,6 +174,7 @@ def run_schedule(
     state = guess.state
     phi = guess.nominal_elevation
     sample = sample_points(rec.scans, phi, points_per_scan(cfg, len(rec.scans)), cfg)
+    probe = sample.subset(np.arange(0, len(sample), max(1, len(sample) // _PROBE_POINTS)))
     imu = ImuData.from_samples(rec.imu, state.t0_ns)
     base = cfg.surfels.max_distance_m
     max_dist = base * COARSE_FACTOR
@@ -141,16 +184,25 @@ def run_schedule(
     settled = False
     change = Change(np.inf, np.inf, np.inf)
     threshold = change
+    want_intrinsics = estimates_intrinsics(cfg)
+    intrinsics_on = want_intrinsics and sch.intrinsics_from_round == 1
+    joined = 1 if intrinsics_on else 0
+    intrinsic_sigmas = 0.0
     for index in range(1, sch.max_rounds + 1):
         before = state
-        state, summary, report, inputs = run_round(state, sample, imu, noise, cfg, index, max_dist)
+        free = free_parameters(cfg, intrinsics_on)
+        state, summary, report, inputs = run_round(
+            state, sample, imu, noise, cfg, index, max_dist, free
+        )
         rounds.append(summary)
         progress.advance(index, sch.max_rounds)
         change = _change(before, state)
         threshold = _threshold(report, cfg)
+        intrinsic_sigmas = intrinsic_change(before, state, report) if intrinsics_on else 0.0
+        moved = point_displacement(before, state, probe)
         logger.info(
             "Round %d: %d points on %d surfels (within %.1f cm), RMS %.2f cm, change %.2f mm / "
-            "%.4f deg / %.3f ms.",
+            "%.4f deg / %.3f ms%s; the map moved %.1f mm, its entropy is %.3f.",
             index,
             summary.points,
             summary.surfels,
@@ -159,16 +211,30 @@ def run_schedule(
             1e3 * change.translation_m,
             change.rotation_deg,
             1e3 * change.time_offset_s,
+            f", intrinsics up to {intrinsic_sigmas:.2f} sigma" if intrinsics_on else "",
+            1e3 * moved,
+            summary.map_entropy,
         )
-        settled = _within(change, threshold)
-        intrinsics_pending = any(
-            0 < k and index < k
-            for k in (sch.imu_intrinsics_from_round, sch.lidar_intrinsics_from_round)
+        settled = _within(change, threshold) and (
+            not intrinsics_on or intrinsic_sigmas < sch.intrinsic_tolerance_sigmas
         )
-        if index >= 2 and settled and not intrinsics_pending and max_dist <= base:
+        if want_intrinsics and not intrinsics_on:
+            due = sch.intrinsics_from_round
+            # Default: once the extrinsic settles, or after JOIN_BY rounds if it does not
+            # (a model without intrinsics may not settle on data that need them).
+            ready = (settled and index >= 2) or index >= JOIN_BY
+            if (due == 0 and ready) or (due > 0 and index + 1 >= due):
+                # The intrinsics join: the map will change as they move, so associate more
+                # generously again and tighten as they settle.
+                intrinsics_on, joined = True, index + 1
+                settled = False
+                max_dist = max(max_dist, base * INTRINSICS_FACTOR)
+                logger.info("The intrinsics of the model join from round %d.", joined)
+                continue
+        enough_rounds = index >= 2 and (not want_intrinsics or index >= joined + 1)
+        if settled and enough_rounds and max_dist <= base:
             break
-        movement = change.translation_m + np.radians(change.rotation_deg) * TYPICAL_RANGE_M
-        max_dist = max(base, min(max_dist, 3.0 * movement))
+        max_dist = max(base, min(max_dist, 3.0 * moved))
     assert report is not None and inputs is not None
     jitter = not settled and _within(change, threshold, JITTER_FACTOR)
     converged = settled or jitter
@@ -190,7 +256,14 @@ def run_schedule(
         dense = sample_points(rec.scans, phi, final, cfg, seed=1)
         before = state
         state, summary, report, inputs = run_round(
-            state, dense, imu, noise, cfg, len(rounds) + 1, base
+            state,
+            dense,
+            imu,
+            noise,
+            cfg,
+            len(rounds) + 1,
+            base,
+            free_parameters(cfg, intrinsics_on),
         )
         rounds.append(summary)
         dense_change = _change(before, state)

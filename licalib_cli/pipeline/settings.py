@@ -13,17 +13,32 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig
-from licalib_cli.estimation import FreeParameters, NoiseModel
+from licalib_cli.estimation import (
+    IMU_INTRINSIC_BLOCKS,
+    CalibrationState,
+    FreeParameters,
+    NoiseModel,
+)
 from licalib_cli.initialization.rotation import HandEyeConfig
 from licalib_cli.initialization.time_offset import TimeOffsetConfig
 from licalib_cli.initialization.translation import LeverArmConfig
 from licalib_cli.odometry import OdometryConfig
+from licalib_cli.residuals import (
+    ACCEL_SCALE,
+    GYRO_G_SENSITIVITY,
+    GYRO_ROTATION,
+    GYRO_SCALE,
+    LIDAR_INTRINSICS,
+    GaussianPrior,
+)
 from licalib_cli.solver.lm import LMParams
 from licalib_cli.surfels import SurfelConfig
 
 __all__ = [
+    "LIDAR_COLUMNS",
     "THICKNESS_PER_RANGE_SIGMA",
     "NoiseLevels",
+    "estimates_intrinsics",
     "free_parameters",
     "hand_eye_config",
     "lever_arm_config",
@@ -150,9 +165,75 @@ def lm_params(cfg: CalibConfig, max_iterations: int | None = None) -> LMParams:
     )
 
 
-def free_parameters(cfg: CalibConfig, index: int) -> FreeParameters:
-    """What round ``index`` (1-based) estimates."""
-    sch = cfg.schedule
-    imu_on = sch.imu_intrinsics_from_round > 0 and index >= sch.imu_intrinsics_from_round
-    lidar_on = sch.lidar_intrinsics_from_round > 0 and index >= sch.lidar_intrinsics_from_round
-    return FreeParameters(imu_intrinsics=imu_on, lidar_intrinsics=lidar_on)
+LIDAR_COLUMNS: dict[str, str] = {
+    "elevation": "dphi",
+    "azimuth": "dtheta",
+    "vertical_offset": "V",
+    "horizontal_offset": "H",
+    "range_scale": "s",
+    "range_offset": "drho",
+}
+"""``model.lidar`` names -> per-beam intrinsic names of the LiDAR model."""
+
+
+def free_parameters(cfg: CalibConfig, intrinsics: bool) -> FreeParameters:
+    """What a round estimates: always the trajectory, biases, gravity, extrinsic and time
+    offset; with ``intrinsics`` also the blocks of the ``model:`` section."""
+    m = cfg.model
+    if not intrinsics:
+        return FreeParameters(min_points_per_beam=m.min_points_per_beam)
+    return FreeParameters(
+        imu_blocks=frozenset(f"imu.{name}" for name in m.imu if name != "g_sensitivity"),
+        g_sensitivity="g_sensitivity" in m.imu,
+        lidar_columns=frozenset(LIDAR_COLUMNS[name] for name in m.lidar),
+        min_points_per_beam=m.min_points_per_beam,
+    )
+
+
+INTRINSIC_PRIOR_SIGMA: dict[str, float | tuple[float, ...]] = {
+    "imu.gyro_scale": 0.01,
+    "imu.gyro_misalignment": 0.01,
+    "imu.gyro_rotation": 0.05,
+    "imu.accel_scale": 0.01,
+    "imu.accel_misalignment": 0.01,
+    "imu.gyro_g_sensitivity": 1e-3,
+    "lidar.intrinsics": (0.01, 0.01, 0.05, 0.05, 1e-3, 0.05),
+}
+"""Standard deviations of the weak priors that keep estimated intrinsics near nominal where
+the data hardly determine them (about ten times the spread of real sensors' intrinsics:
+scales 1 %, misalignments 0.6 deg, gyro rotation 3 deg, beam angles 0.6 deg, beam offsets
+5 cm, range scale 0.1 %, range offset 5 cm); they keep weak directions from drifting between
+rounds and barely move well-observed ones."""
+
+
+def intrinsic_priors(state: CalibrationState, free: FreeParameters) -> list[GaussianPrior]:
+    """Weak priors toward nominal on every estimated intrinsic block."""
+    out = []
+    for block in IMU_INTRINSIC_BLOCKS:
+        if not free.imu_block_free(block):
+            continue
+        nominal = {
+            GYRO_SCALE: np.ones(3),
+            ACCEL_SCALE: np.ones(3),
+            GYRO_ROTATION: np.array([0.0, 0.0, 0.0, 1.0]),
+        }.get(block, np.zeros(9 if block == GYRO_G_SENSITIVITY else 3))
+        out.append(
+            GaussianPrior(
+                block,
+                nominal,
+                INTRINSIC_PRIOR_SIGMA[block],
+                manifold="so3" if block == GYRO_ROTATION else "euclidean",
+            )
+        )
+    if free.any_lidar_intrinsics:
+        b = state.lidar_intrinsics.num_beams
+        nominal = np.zeros((b, 6))
+        nominal[:, 4] = 1.0
+        sigma = np.broadcast_to(np.asarray(INTRINSIC_PRIOR_SIGMA[LIDAR_INTRINSICS]), (b, 6))
+        out.append(GaussianPrior(LIDAR_INTRINSICS, nominal, sigma))
+    return out
+
+
+def estimates_intrinsics(cfg: CalibConfig) -> bool:
+    """Whether the ``model:`` section asks for any intrinsic."""
+    return bool(cfg.model.imu or cfg.model.lidar)

@@ -97,6 +97,10 @@ class LMParams:
         tsvd_threshold: ``epsilon`` on the singular values of the scaled Schur complement
             ``S_d``; absolute by default (1.0 = standard deviation of one characteristic scale).
         tsvd_relative: Interpret ``tsvd_threshold`` as a fraction of the largest singular value.
+        bounded_blocks: Prefixes of calibration blocks whose coordinates are known a priori to
+            within their characteristic scale (the intrinsics): a truncated direction made
+            mostly of them adds that much uncertainty to the coordinates it touches instead of
+            making them unobservable. Biases are not calibration blocks.
         verbose: Log every iteration at INFO (else DEBUG).
     """
 
@@ -112,6 +116,12 @@ class LMParams:
     use_tsvd: bool = True
     tsvd_threshold: float = 1.0
     tsvd_relative: bool = False
+    bounded_blocks: tuple[str, ...] = (
+        "imu.gyro_",
+        "imu.accel_scale",
+        "imu.accel_misalignment",
+        "lidar.",
+    )
     verbose: bool = False
 
 
@@ -186,6 +196,8 @@ class SolverReport:
         elapsed_s: Wall time of :func:`solve`.
         covariance: (Nc, Nc) covariance of the calibration coordinates (own units), the TSVD
             pseudo-inverse of the undamped Schur complement (zero along truncated directions).
+        truncated_weight: (Nc,) share of each coordinate (scaled) lying in truncated
+            directions: near 1 for a coordinate the data do not determine at all.
     """
 
     status: Literal["converged", "max_iterations", "failed"]
@@ -207,6 +219,7 @@ class SolverReport:
     observable: npt.NDArray[np.bool_]
     elapsed_s: float
     covariance: F64 = field(default_factory=lambda: np.zeros((0, 0)))
+    truncated_weight: F64 = field(default_factory=lambda: np.zeros(0))
 
     @property
     def converged(self) -> bool:
@@ -446,11 +459,24 @@ def _report(
         )
         for i in np.flatnonzero(~keep)[::-1]
     )
-    weight = np.sum(u[:, ~keep] ** 2, axis=1) if u.size else np.zeros(0)
-    observable = weight < _NOT_OBSERVABLE_WEIGHT
     scale = layout.calibration_scale
+    owners = layout.calibration_owner
+    bounded = np.array(
+        [any(o.startswith(p) for p in params.bounded_blocks) for o in owners], dtype=bool
+    )
+    # A truncated direction made mostly of bounded coordinates (intrinsics known a priori to
+    # within their characteristic scale) only adds that prior uncertainty to the coordinates it
+    # touches; a direction made mostly of unbounded ones (the extrinsic) leaves them unknown.
+    trunc = u[:, ~keep] if u.size else np.zeros((0, 0))
+    prior_mass = np.sum(trunc[bounded] ** 2, axis=0) if trunc.size else np.zeros(0)
+    free_dir = prior_mass < 0.5
+    weight = np.sum(trunc[:, free_dir] ** 2, axis=1) if trunc.size else np.zeros(len(owners))
+    observable = weight < _NOT_OBSERVABLE_WEIGHT
     if s.size:
         cov_d = (u[:, keep] / s[keep]) @ u[:, keep].T
+        if trunc.size and np.any(~free_dir):
+            prior = trunc[:, ~free_dir]
+            cov_d = cov_d + prior @ prior.T  # one characteristic scale along each
         std = scale * np.sqrt(np.clip(np.diag(cov_d), 0.0, None))
         covariance = scale[:, None] * cov_d * scale[None, :]
     else:
@@ -482,4 +508,5 @@ def _report(
         observable=observable,
         elapsed_s=time.perf_counter() - start,
         covariance=covariance,
+        truncated_weight=np.sum(trunc**2, axis=1) if trunc.size else np.zeros(len(owners)),
     )

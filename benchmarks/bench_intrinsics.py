@@ -1,0 +1,197 @@
+"""Intrinsic calibration on the paper's simulation: extrinsic, IMU and LiDAR intrinsics.
+
+For each seed, simulate the paper's sinusoid (its Table sensor_intrinsic_setting draws the IMU and
+LiDAR intrinsic errors: the simulator's default ``--intrinsics random``), calibrate from no
+initial guess with every intrinsic estimated (``--intrinsics all``) and print:
+
+* the extrinsic error (translation, rotation, time offset);
+* IMU intrinsic errors per block (scale, misalignment, gyro-to-IMU rotation), over the
+  coordinates the calibration reports as determined;
+* LiDAR intrinsic mean absolute errors per kind (range scale, range offset, elevation, vertical
+  offset, azimuth, horizontal offset) over the estimated beams;
+* how many estimated numbers lie within 3 of their reported sigmas;
+* wall time per stage and the rounds.
+
+Examples::
+
+    .venv/bin/python benchmarks/bench_intrinsics.py --seeds 0 1 2 3 4 5 6 7 8 9
+    .venv/bin/python benchmarks/bench_intrinsics.py --lidar os1-64 --seeds 0 1 2
+    .venv/bin/python benchmarks/bench_intrinsics.py --duration 15 --seeds 0   # the speed case
+    .venv/bin/python benchmarks/bench_intrinsics.py --intrinsics-mode none --model none
+
+Each run happens in a fresh subprocess.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+PAPER_LIDAR_MAE = {
+    "range_scale": 0.006e-2,  # 0.006 %
+    "range_offset_m": 0.3e-3,
+    "elevation_deg": 0.0075,
+    "vertical_offset_m": 0.64e-3,
+    "azimuth_deg": 0.003,
+    "horizontal_offset_m": 0.21e-3,
+}
+
+
+def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
+    import numpy as np
+
+    from licalib_cli.config import INTRINSIC_PRESETS, load_config
+    from licalib_cli.geometry import so3
+    from licalib_cli.pipeline import calibrate
+    from licalib_cli.simulation import SimulationSpec, simulate
+
+    spec = SimulationSpec(
+        scenario="sinusoid",
+        lidar=args.lidar,
+        fmt=args.format,
+        duration_s=args.duration,
+        seed=seed,
+        intrinsics=args.intrinsics_mode,
+        random_time_offset=True,
+    )
+    t0 = time.perf_counter()
+    out = simulate(spec, workdir / f"seed{seed}", force=True)
+    sim_s = time.perf_counter() - t0
+    imu_blocks, lidar_blocks = INTRINSIC_PRESETS[args.model]
+    cfg = load_config(None, {"model.imu": list(imu_blocks), "model.lidar": list(lidar_blocks)})
+    t0 = time.perf_counter()
+    run = calibrate(out.bag_path, cfg)
+    wall = time.perf_counter() - t0
+    res = run.result
+    truth = out.truth.extrinsic.on_shifted_clock(
+        spec.lidar_clock_offset_s, res.recording.lidar_clock_shift_s
+    )
+    err = res.extrinsic.error_to(truth)
+    row: dict = {
+        "seed": seed,
+        "translation_mm": 1e3 * err["translation_m"],
+        "rotation_deg": err["rotation_deg"],
+        "time_offset_ms": 1e3 * err["time_offset_s"],
+        "verdict": run.verdict.status,
+        "calibrate_s": wall,
+        "simulate_s": sim_s,
+        "stages": {k: round(v, 2) for k, v in run.timings.items()},
+        "rounds": len(run.rounds),
+    }
+    unc = res.intrinsics_uncertainty.values if res.intrinsics_uncertainty else {}
+    within, total = 0, 0
+
+    def tally(errors: np.ndarray, sigmas: tuple) -> None:
+        nonlocal within, total
+        for e, s in zip(errors.reshape(-1), sigmas, strict=True):
+            if s is None:
+                continue
+            total += 1
+            within += int(abs(e) <= 3 * s)
+
+    est_imu, true_imu = res.imu_intrinsics, out.truth.imu_intrinsics
+    imu_err = {}
+    for block in imu_blocks:
+        if block == "gyro_rotation":
+            e = np.degrees(
+                so3.log(
+                    so3.quat_to_matrix(true_imu.gyro_rotation).T
+                    @ so3.quat_to_matrix(est_imu.gyro_rotation)
+                )
+            )
+            key = "gyro_rotation_deg"
+        else:
+            e = np.asarray(getattr(est_imu, block)) - np.asarray(getattr(true_imu, block))
+            key = block
+        sig = unc.get(key, (None,) * e.size)
+        tally(e, sig)
+        determined = [abs(x) for x, s in zip(e.reshape(-1), sig, strict=True) if s is not None]
+        imu_err[key] = max(determined) if determined else None
+    row["imu_max_error"] = imu_err
+    lidar_mae = {}
+    if lidar_blocks and res.lidar_intrinsics is not None:
+        est_l, true_l = res.lidar_intrinsics, out.truth.lidar_intrinsics
+        pairs = {
+            "elevation_deg": (np.degrees(est_l.elevation_correction - true_l.elevation_correction)),
+            "azimuth_deg": (np.degrees(est_l.azimuth_correction - true_l.azimuth_correction)),
+            "vertical_offset_m": est_l.vertical_offset - true_l.vertical_offset,
+            "horizontal_offset_m": est_l.horizontal_offset - true_l.horizontal_offset,
+            "range_scale": est_l.range_scale - true_l.range_scale,
+            "range_offset_m": est_l.range_offset - true_l.range_offset,
+        }
+        for key, e in pairs.items():
+            sig = unc.get(key)
+            if sig is None:
+                continue
+            tally(e, sig)
+            used = [abs(x) for x, s in zip(e, sig, strict=True) if s is not None]
+            lidar_mae[key] = float(np.mean(used)) if used else None
+    row["lidar_mae"] = lidar_mae
+    row["within_3_sigma"] = [within, total]
+    return row
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--seeds", type=int, nargs="+", default=list(range(10)))
+    p.add_argument("--lidar", default="vlp16")
+    p.add_argument("--format", default="ros1")
+    p.add_argument("--duration", type=float, default=10.0)
+    p.add_argument("--model", default="all", choices=["none", "imu", "lidar", "all"])
+    p.add_argument("--intrinsics-mode", default="random", choices=["random", "none"])
+    p.add_argument("--json", default=None)
+    p.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--workdir", default=None, help=argparse.SUPPRESS)
+    args = p.parse_args()
+    if args.one is not None:
+        print(json.dumps(one_run(args, args.one, Path(args.workdir))))
+        return
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in args.seeds:
+            cmd = [sys.executable, __file__, *sys.argv[1:], "--one", str(seed), "--workdir", tmp]
+            res = subprocess.run(cmd, capture_output=True, text=True, check=False)
+            if res.returncode != 0:
+                print(f"seed {seed}: FAILED {res.stderr.strip().splitlines()[-1:]}", flush=True)
+                continue
+            row = json.loads(res.stdout.strip().splitlines()[-1])
+            rows.append(row)
+            imu = ", ".join(
+                f"{k} {v:.2g}" for k, v in row["imu_max_error"].items() if v is not None
+            )
+            lid = ", ".join(f"{k} {v:.2g}" for k, v in row["lidar_mae"].items() if v is not None)
+            print(
+                f"seed {seed}: t {row['translation_mm']:.2f} mm  r {row['rotation_deg']:.4f} deg  "
+                f"dt {row['time_offset_ms']:.3f} ms  {row['verdict']}  "
+                f"{row['calibrate_s']:.1f} s {row['stages']} rounds {row['rounds']}\n"
+                f"    IMU max error: {imu}\n    LiDAR MAE: {lid}\n"
+                f"    within 3 sigma: {row['within_3_sigma'][0]}/{row['within_3_sigma'][1]}",
+                flush=True,
+            )
+    if rows:
+        import numpy as np
+
+        for k in ("translation_mm", "rotation_deg", "time_offset_ms", "calibrate_s"):
+            vals = np.array([r[k] for r in rows])
+            print(f"{k}: mean {vals.mean():.4g}, max {vals.max():.4g}")
+        w = sum(r["within_3_sigma"][0] for r in rows)
+        n = sum(r["within_3_sigma"][1] for r in rows)
+        print(f"within 3 sigma: {w}/{n} ({100 * w / max(n, 1):.1f} %)")
+        for key, paper in PAPER_LIDAR_MAE.items():
+            vals = [r["lidar_mae"].get(key) for r in rows if r["lidar_mae"].get(key) is not None]
+            if vals:
+                print(f"LiDAR {key}: MAE {np.mean(vals):.3g} (paper {paper:.3g})")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
