@@ -299,6 +299,7 @@ def _line(row: dict) -> str:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--only", default=None, help="run only cases whose name contains this")
+    p.add_argument("--seeds", type=int, nargs="+", default=None, help="run only these seeds")
     p.add_argument("--list", action="store_true", help="print the cases and exit")
     p.add_argument("--jobs", type=int, default=1, help="runs at a time")
     p.add_argument("--json", default=None, help="also write the rows to this JSON file")
@@ -308,7 +309,12 @@ def main() -> None:
     if args.one is not None:
         print(json.dumps(one_run(json.loads(args.one), Path(args.workdir))))
         return
-    todo = [c for c in cases() if args.only is None or args.only in c["name"]]
+    todo = [
+        c
+        for c in cases()
+        if (args.only is None or args.only in c["name"])
+        and (args.seeds is None or c["seed"] in args.seeds)
+    ]
     if args.list:
         for c in todo:
             print(c)

@@ -86,6 +86,16 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
         "stages": {k: round(v, 2) for k, v in run.timings.items()},
         "rounds": len(run.rounds),
     }
+    u = res.uncertainty
+    r_err = so3.log(truth.rotation.T @ res.extrinsic.rotation)
+    ratio = np.concatenate(
+        [
+            np.abs(res.extrinsic.translation - truth.translation) / np.asarray(u.translation_std_m),
+            np.abs(r_err) / np.radians(np.asarray(u.rotation_std_deg)),
+            [abs(res.extrinsic.time_offset_s - truth.time_offset_s) / u.time_offset_std_s],
+        ]
+    )
+    row["extrinsic_max_error_over_sigma"] = float(np.max(ratio[np.isfinite(ratio)]))
     unc = res.intrinsics_uncertainty.values if res.intrinsics_uncertainty else {}
     within, total = 0, 0
 
@@ -170,7 +180,8 @@ def main() -> None:
             lid = ", ".join(f"{k} {v:.2g}" for k, v in row["lidar_mae"].items() if v is not None)
             print(
                 f"seed {seed}: t {row['translation_mm']:.2f} mm  r {row['rotation_deg']:.4f} deg  "
-                f"dt {row['time_offset_ms']:.3f} ms  {row['verdict']}  "
+                f"dt {row['time_offset_ms']:.3f} ms  {row['verdict']} "
+                f"(max err/sigma {row['extrinsic_max_error_over_sigma']:.2f})  "
                 f"{row['calibrate_s']:.1f} s {row['stages']} rounds {row['rounds']}\n"
                 f"    IMU max error: {imu}\n    LiDAR MAE: {lid}\n"
                 f"    within 3 sigma: {row['within_3_sigma'][0]}/{row['within_3_sigma'][1]}",

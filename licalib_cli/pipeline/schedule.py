@@ -20,14 +20,9 @@ import numpy as np
 from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import CalibrationState, ImuData, intrinsic_coordinates
 from licalib_cli.io.reader import Recording
+from licalib_cli.models.intrinsics import lidar_point
 from licalib_cli.pipeline.initialise import InitialGuess
-from licalib_cli.pipeline.points import (
-    PointSample,
-    points_in_global,
-    points_per_scan,
-    sample_points,
-    usable_points,
-)
+from licalib_cli.pipeline.points import PointSample, points_per_scan, sample_points
 from licalib_cli.pipeline.round import RoundInputs, RoundSummary, extrinsic_of, run_round
 from licalib_cli.pipeline.settings import NoiseLevels, estimates_intrinsics, free_parameters
 from licalib_cli.progress import Progress
@@ -39,6 +34,9 @@ logger = logging.getLogger(__name__)
 
 COARSE_FACTOR = 3.0
 """The first round associates points up to this many times ``surfels.max_distance_m``."""
+
+TYPICAL_RANGE_M = 10.0
+"""Range at which a change of rotation is converted into a displacement of the points."""
 
 INTRINSICS_FACTOR = 2.0
 """When the intrinsics join, the association distance opens to at least this many times
@@ -123,17 +121,17 @@ def _threshold(report: SolverReport, cfg: CalibConfig) -> Change:
     )
 
 
-def point_displacement(
-    before: CalibrationState, after: CalibrationState, probe: PointSample
-) -> float:
-    """How far a round moved the map: a high quantile of the displacement of sample points in
-    ``{G}`` (extrinsic, time offset, trajectory and LiDAR intrinsics together), m."""
-    margin = 2 * after.knots.dt_s + abs(after.time_offset_s - before.time_offset_s)
-    pts = usable_points(after, usable_points(before, probe, margin), margin)
-    if len(pts) == 0:
-        return float("inf")
-    d = np.linalg.norm(points_in_global(after, pts) - points_in_global(before, pts), axis=1)
-    return float(np.quantile(d, _MAP_MOVED_QUANTILE))
+def map_movement(before: CalibrationState, after: CalibrationState, probe: PointSample) -> float:
+    """How far a round moved the map, m: the extrinsic's change (a rotation change counted at
+    :data:`TYPICAL_RANGE_M`) plus a high quantile of how far the LiDAR intrinsics moved the
+    sample points in the LiDAR frame."""
+    c = _change(before, after)
+    moved = c.translation_m + np.radians(c.rotation_deg) * TYPICAL_RANGE_M
+    if len(probe):
+        old = lidar_point(before.lidar_intrinsics, probe.beam, probe.rho, probe.theta)
+        new = lidar_point(after.lidar_intrinsics, probe.beam, probe.rho, probe.theta)
+        moved += float(np.quantile(np.linalg.norm(new - old, axis=1), _MAP_MOVED_QUANTILE))
+    return moved
 
 
 def intrinsic_change(
@@ -199,7 +197,7 @@ def run_schedule(
         change = _change(before, state)
         threshold = _threshold(report, cfg)
         intrinsic_sigmas = intrinsic_change(before, state, report) if intrinsics_on else 0.0
-        moved = point_displacement(before, state, probe)
+        moved = map_movement(before, state, probe)
         logger.info(
             "Round %d: %d points on %d surfels (within %.1f cm), RMS %.2f cm, change %.2f mm / "
             "%.4f deg / %.3f ms%s; the map moved %.1f mm, its entropy is %.3f.",
