@@ -32,6 +32,7 @@ from dataclasses import replace
 from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 ROTATION_LIMIT_DEG = 0.1
 TRANSLATION_LIMIT_M = 0.01
@@ -103,71 +104,7 @@ def cases() -> list[dict]:
     return out
 
 
-EFFECTS = [
-    "gyro_scale",
-    "gyro_misalignment",
-    "gyro_rotation",
-    "accel_scale",
-    "accel_misalignment",
-    "g_sensitivity",
-    "lidar_range_offset",
-    "lidar_elevation",
-    "lidar_horizontal_offset",
-    "imu_clock_drift",
-]
-"""Named effects, one per run. Intrinsic effects are drawn per axis (per beam) as N(0, size)
-with the sizes of the paper's Table sensor_intrinsic_setting times EFFECT_SCALE and written to
-an intrinsics file the simulator reads; g-sensitivity (0.1 deg/s/g) and the IMU clock drift
-(50 ppm) are the simulator's own effects."""
-
-EFFECT_SCALE = 2.0
-
-
-def _effect_intrinsics(effect: str, lidar: str, seed: int, path: Path) -> Path | None:
-    """An intrinsics file holding only ``effect`` (None for effects the simulator draws)."""
-    import numpy as np
-    from scipy.spatial.transform import Rotation
-
-    from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
-    from licalib_cli.results import CalibrationResult
-    from licalib_cli.simulation import ground_truth as gt
-    from licalib_cli.simulation.lidar_models import lidar_model
-
-    rng = np.random.default_rng([seed, 77])
-    k = EFFECT_SCALE
-    imu = ImuIntrinsics()
-    nominal = lidar_model(lidar).nominal_elevation
-    lid = LidarIntrinsics.nominal(nominal)
-    b = nominal.shape[0]
-
-    def per_beam(std: float) -> np.ndarray:
-        v = rng.normal(0.0, std * k, b)
-        v[0] = 0.0  # the gauge beam
-        return v
-
-    if effect == "gyro_scale":
-        imu = imu.with_(gyro_scale=1.0 + rng.normal(0.0, gt.GYRO_SCALE_STD * k, 3))
-    elif effect == "accel_scale":
-        imu = imu.with_(accel_scale=1.0 + rng.normal(0.0, gt.ACCEL_SCALE_STD * k, 3))
-    elif effect == "gyro_misalignment":
-        m = rng.normal(0.0, np.radians(gt.GYRO_MISALIGNMENT_STD_DEG) * k, 3)
-        imu = imu.with_(gyro_misalignment=m)
-    elif effect == "accel_misalignment":
-        m = rng.normal(0.0, np.radians(gt.ACCEL_MISALIGNMENT_STD_DEG) * k, 3)
-        imu = imu.with_(accel_misalignment=m)
-    elif effect == "gyro_rotation":
-        angles = rng.normal(0.0, gt.GYRO_ROTATION_STD_DEG * k, 3)
-        imu = imu.with_(gyro_rotation=Rotation.from_euler("xyz", angles, degrees=True).as_quat())
-    elif effect == "lidar_range_offset":
-        lid = lid.with_(range_offset=per_beam(gt.LIDAR_RANGE_OFFSET_STD_M))
-    elif effect == "lidar_elevation":
-        lid = lid.with_(elevation_correction=per_beam(np.radians(gt.LIDAR_ELEVATION_STD_DEG)))
-    elif effect == "lidar_horizontal_offset":
-        lid = lid.with_(horizontal_offset=per_beam(gt.LIDAR_HORIZONTAL_STD_M))
-    else:
-        return None
-    CalibrationResult(imu_intrinsics=imu, lidar_intrinsics=lid).save(path)
-    return path
+from _effects import EFFECTS, effect_spec_kwargs  # noqa: E402
 
 
 def _rotation_error_lidar(r_est, r_true):
@@ -189,17 +126,7 @@ def one_run(case: dict, workdir: Path) -> dict:
     direction = rng.normal(size=3)
     direction /= np.linalg.norm(direction)
     lever = tuple(float(x) for x in direction * rng.uniform(0.0, 2.0))
-    kwargs: dict = {}
-    for effect in case["effects"]:
-        path = _effect_intrinsics(
-            effect, case["lidar"], case["seed"], workdir / f"i{case['seed']}.yaml"
-        )
-        if path is not None:
-            kwargs["intrinsics_file"] = path
-        elif effect == "g_sensitivity":
-            kwargs["effects"] = ("g-sensitivity",)
-        elif effect == "imu_clock_drift":
-            kwargs["effects"] = ("imu-clock-drift",)
+    kwargs = effect_spec_kwargs(case["effects"], case["lidar"], case["seed"], workdir)
     spec = SimulationSpec(
         scenario=case["scenario"],
         lidar=case["lidar"],

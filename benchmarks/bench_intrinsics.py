@@ -98,14 +98,18 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
     row["extrinsic_max_error_over_sigma"] = float(np.max(ratio[np.isfinite(ratio)]))
     unc = res.intrinsics_uncertainty.values if res.intrinsics_uncertainty else {}
     within, total = 0, 0
+    per_kind: dict[str, list[int]] = {}
 
-    def tally(errors: np.ndarray, sigmas: tuple) -> None:
+    def tally(errors: np.ndarray, sigmas: tuple, kind: str = "") -> None:
         nonlocal within, total
         for e, s in zip(errors.reshape(-1), sigmas, strict=True):
             if s is None:
                 continue
             total += 1
             within += int(abs(e) <= 3 * s)
+            k = per_kind.setdefault(kind, [0, 0])
+            k[0] += int(abs(e) <= 3 * s)
+            k[1] += 1
 
     est_imu, true_imu = res.imu_intrinsics, out.truth.imu_intrinsics
     imu_err = {}
@@ -122,7 +126,7 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
             e = np.asarray(getattr(est_imu, block)) - np.asarray(getattr(true_imu, block))
             key = block
         sig = unc.get(key, (None,) * e.size)
-        tally(e, sig)
+        tally(e, sig, key)
         determined = [abs(x) for x, s in zip(e.reshape(-1), sig, strict=True) if s is not None]
         imu_err[key] = max(determined) if determined else None
     row["imu_max_error"] = imu_err
@@ -141,11 +145,12 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
             sig = unc.get(key)
             if sig is None:
                 continue
-            tally(e, sig)
+            tally(e, sig, key)
             used = [abs(x) for x, s in zip(e, sig, strict=True) if s is not None]
             lidar_mae[key] = float(np.mean(used)) if used else None
     row["lidar_mae"] = lidar_mae
     row["within_3_sigma"] = [within, total]
+    row["within_3_sigma_by_kind"] = per_kind
     return row
 
 

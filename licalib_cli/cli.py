@@ -69,13 +69,14 @@ def _root(
 
 
 def _register() -> None:
-    from licalib_cli.commands import calibrate, config_cmd, export, info, simulate
+    from licalib_cli.commands import calibrate, config_cmd, diagnose, export, info, simulate
 
     app.command("calibrate")(calibrate.calibrate_command)
     app.command("info")(info.info_command)
     app.command("simulate")(simulate.simulate_command)
     app.add_typer(config_cmd.app, name="config")
     app.command("export")(export.export_command)
+    app.command("diagnose")(diagnose.diagnose_command)
 
 
 _register()

@@ -194,6 +194,9 @@ ImuBlock = Literal[
     "accel_scale",
     "accel_misalignment",
     "g_sensitivity",
+    "gyro_bias_walk",
+    "accel_bias_walk",
+    "clock_drift",
 ]
 LidarBlock = Literal[
     "elevation",
@@ -202,14 +205,15 @@ LidarBlock = Literal[
     "horizontal_offset",
     "range_scale",
     "range_offset",
+    "point_time",
 ]
 IMU_BLOCKS: tuple[str, ...] = ImuBlock.__args__  # type: ignore[attr-defined]
 LIDAR_BLOCKS: tuple[str, ...] = LidarBlock.__args__  # type: ignore[attr-defined]
 INTRINSIC_PRESETS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "none": ((), ()),
     "imu": (IMU_BLOCKS[:5], ()),
-    "lidar": ((), LIDAR_BLOCKS),
-    "all": (IMU_BLOCKS[:5], LIDAR_BLOCKS),
+    "lidar": ((), LIDAR_BLOCKS[:6]),
+    "all": (IMU_BLOCKS[:5], LIDAR_BLOCKS[:6]),
 }
 """``calibrate --intrinsics``: the IMU and LiDAR blocks each choice estimates (g-sensitivity
 only when listed in ``model.imu``)."""
@@ -221,11 +225,14 @@ class ModelSection(_Section):
 
     imu: list[ImuBlock] = Field(default_factory=list)
     """IMU blocks: gyro_scale, gyro_misalignment, gyro_rotation (R_wI), accel_scale,
-    accel_misalignment, g_sensitivity (method.md section 3)."""
+    accel_misalignment, g_sensitivity (method.md section 3); and the effects gyro_bias_walk /
+    accel_bias_walk (a bias drifting linearly over the segment) and clock_drift (the IMU clock
+    running at another rate than the LiDAR's)."""
     lidar: list[LidarBlock] = Field(default_factory=list)
     """Per-beam LiDAR intrinsics: elevation, azimuth, vertical_offset, horizontal_offset,
-    range_scale, range_offset (method.md section 4); the first beam with enough points keeps
-    its angles and offsets (the gauge)."""
+    range_scale, range_offset (method.md section 4; the first beam with enough points keeps
+    its angles and offsets, the gauge); and the effect point_time (the per-point times within
+    a sweep off by a constant fraction)."""
     min_points_per_beam: int = Field(default=200, ge=10)
     """Beams with fewer associated points keep their intrinsics at nominal (and are named)."""
 

@@ -55,17 +55,21 @@ from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
 from licalib_cli.models.lidar import INTRINSIC_NAMES, intrinsics_from_array, intrinsics_to_array
 from licalib_cli.residuals import (
     ACCEL_BIAS,
+    ACCEL_BIAS_DRIFT,
     ACCEL_MISALIGNMENT,
     ACCEL_SCALE,
     EXT_ROTATION,
     EXT_TRANSLATION,
     GRAVITY,
     GYRO_BIAS,
+    GYRO_BIAS_DRIFT,
     GYRO_G_SENSITIVITY,
     GYRO_MISALIGNMENT,
     GYRO_ROTATION,
     GYRO_SCALE,
     LIDAR_INTRINSICS,
+    POINT_TIME_SCALE,
+    TIME_DRIFT,
     TIME_OFFSET,
     TRAJ_R3,
     TRAJ_SO3,
@@ -89,6 +93,7 @@ __all__ = [
     "Planes",
     "beam_point_counts",
     "build_problem",
+    "free_effect_blocks",
     "intrinsic_coordinates",
     "parameter_blocks",
     "state_from_problem",
@@ -110,6 +115,10 @@ CALIBRATION_SCALES: Mapping[str, tuple[float, ...]] = {
     EXT_ROTATION: (1e-3,) * 3,
     EXT_TRANSLATION: (0.01,) * 3,
     TIME_OFFSET: (1e-3,),
+    TIME_DRIFT: (1e-5,),
+    POINT_TIME_SCALE: (1e-3,),
+    GYRO_BIAS_DRIFT: (1e-5,) * 3,
+    ACCEL_BIAS_DRIFT: (1e-4,) * 3,
     GYRO_SCALE: (1e-3,) * 3,
     GYRO_MISALIGNMENT: (1e-3,) * 3,
     GYRO_ROTATION: (1e-3,) * 3,
@@ -151,6 +160,14 @@ class CalibrationState:
             :func:`~licalib_cli.models.intrinsics.imu_measure` reproduces the model.
         lidar_intrinsics: per-beam intrinsics.
         t0_ns: reference time of the splines' time axis, int nanoseconds (IMU clock).
+        gyro_bias_drift: (3,) ``d_w``: the gyro bias is ``b_w + d_w (t - t_ref_s)``, rad/s^2.
+        accel_bias_drift: (3,) ``d_a``, the same for the accelerometer, m/s^3.
+        time_drift: ``k_drift``: the IMU time of a LiDAR time ``tau`` is
+            ``tau + t_c + k_drift (tau - t_ref_s)`` (an IMU clock running at another rate).
+        point_time_scale: ``k_point``: the per-point times within a sweep are off by this
+            fraction (a point at ``tau`` was measured at ``tau - k_point (tau - sweep start)``).
+        t_ref_s: reference time of the drifts, seconds on the splines' axis (the segment's
+            middle).
     """
 
     so3_spline: SO3Spline
@@ -166,6 +183,11 @@ class CalibrationState:
         default_factory=lambda: LidarIntrinsics.nominal([0.0])
     )
     t0_ns: int = 0
+    gyro_bias_drift: F64 = field(default_factory=lambda: np.zeros(3))
+    accel_bias_drift: F64 = field(default_factory=lambda: np.zeros(3))
+    time_drift: float = 0.0
+    point_time_scale: float = 0.0
+    t_ref_s: float = 0.0
 
     def __post_init__(self) -> None:
         if self.so3_spline.knots != self.r3_spline.knots:
@@ -174,6 +196,8 @@ class CalibrationState:
         for name, shape in (
             ("gyro_bias", (3,)),
             ("accel_bias", (3,)),
+            ("gyro_bias_drift", (3,)),
+            ("accel_bias_drift", (3,)),
             ("gravity_G", (3,)),
             ("R_imu_lidar", (3, 3)),
             ("t_imu_lidar", (3,)),
@@ -184,6 +208,8 @@ class CalibrationState:
                 raise ValueError(msg)
             object.__setattr__(self, name, value)
         object.__setattr__(self, "time_offset_s", float(self.time_offset_s))
+        for name in ("time_drift", "point_time_scale", "t_ref_s"):
+            object.__setattr__(self, name, float(getattr(self, name)))
         object.__setattr__(self, "t0_ns", int(self.t0_ns))
         object.__setattr__(
             self,
@@ -237,6 +263,8 @@ class LidarPoints:
         plane: (N,) index of the associated plane in :class:`Planes`.
         model_gap: (N, 3) published point minus the LiDAR model's nominal point (LiDAR frame,
             m), or None (zero).
+        sweep_start_s: (N,) LiDAR-clock time of each point's sweep start, seconds relative to
+            ``t0_ns``, or None.
     """
 
     t_s: F64
@@ -245,9 +273,27 @@ class LidarPoints:
     theta: F64
     plane: npt.NDArray[np.integer]
     model_gap: F64 | None = None
+    sweep_start_s: F64 | None = None
 
     def __len__(self) -> int:
         return int(np.asarray(self.t_s).shape[0])
+
+    def subset(self, index: npt.ArrayLike) -> LidarPoints:
+        """The points selected by an index array or a boolean mask."""
+        i = np.asarray(index)
+
+        def pick(a: npt.ArrayLike | None) -> F64 | None:
+            return None if a is None else np.asarray(a)[i]
+
+        return LidarPoints(
+            t_s=np.asarray(self.t_s)[i],
+            beam=np.asarray(self.beam)[i],
+            rho=np.asarray(self.rho)[i],
+            theta=np.asarray(self.theta)[i],
+            plane=np.asarray(self.plane)[i],
+            model_gap=pick(self.model_gap),
+            sweep_start_s=pick(self.sweep_start_s),
+        )
 
 
 @dataclass(frozen=True)
@@ -333,6 +379,11 @@ class FreeParameters:
             :data:`~licalib_cli.models.lidar.INTRINSIC_NAMES`: ``dphi``, ``dtheta``, ``V``,
             ``H``, ``s``, ``drho``).
         min_points_per_beam: beams with fewer points keep their intrinsics fixed.
+        gyro_bias_drift: a linear drift of the gyro bias (``imu.gyro_bias_drift``).
+        accel_bias_drift: a linear drift of the accelerometer bias.
+        time_drift: an IMU clock running at another rate (``ext.time_drift``).
+        point_time: an error of the per-point times within a sweep
+            (``lidar.point_time_scale``).
     """
 
     trajectory: bool = True
@@ -347,6 +398,10 @@ class FreeParameters:
     lidar_intrinsics: bool = False
     lidar_columns: frozenset[str] = frozenset()
     min_points_per_beam: int = 100
+    gyro_bias_drift: bool = False
+    accel_bias_drift: bool = False
+    time_drift: bool = False
+    point_time: bool = False
 
     def imu_block_free(self, block: str) -> bool:
         """Whether IMU intrinsic block ``block`` (e.g. ``imu.gyro_scale``) is estimated."""
@@ -383,12 +438,19 @@ IMU_INTRINSIC_BLOCKS = (
 # ----------------------------------------------------------------------- state <-> parameters
 
 
-def state_to_values(state: CalibrationState, g_sensitivity: bool | None = None) -> dict[str, F64]:
+def state_to_values(
+    state: CalibrationState,
+    g_sensitivity: bool | None = None,
+    effects: Sequence[str] | None = None,
+) -> dict[str, F64]:
     """Parameter block values of a state.
 
     Args:
         state: the state.
         g_sensitivity: include ``imu.gyro_g_sensitivity`` (default: when non-zero).
+        effects: drift blocks to include even when zero (``imu.gyro_bias_drift``,
+            ``imu.accel_bias_drift``, ``ext.time_drift``, ``lidar.point_time_scale``; each is
+            included anyway when non-zero).
 
     Returns:
         Block name -> value (construction shapes of :func:`parameter_blocks`).
@@ -414,6 +476,15 @@ def state_to_values(state: CalibrationState, g_sensitivity: bool | None = None) 
     }
     if g_sensitivity:
         values[GYRO_G_SENSITIVITY] = np.array(imu.gyro_g_sensitivity, dtype=np.float64).reshape(9)
+    extras = (
+        (GYRO_BIAS_DRIFT, np.array(state.gyro_bias_drift)),
+        (ACCEL_BIAS_DRIFT, np.array(state.accel_bias_drift)),
+        (TIME_DRIFT, np.array([state.time_drift])),
+        (POINT_TIME_SCALE, np.array([state.point_time_scale])),
+    )
+    for block, value in extras:
+        if block in (effects or ()) or np.any(value != 0.0):
+            values[block] = value
     return values
 
 
@@ -467,12 +538,23 @@ def state_from_values(
         imu_intrinsics=imu.with_(**imu_changes) if imu_changes else imu,
         lidar_intrinsics=lidar,
         t0_ns=state.t0_ns,
+        gyro_bias_drift=state.gyro_bias_drift
+        if (v := get(GYRO_BIAS_DRIFT)) is None
+        else v.reshape(3),
+        accel_bias_drift=state.accel_bias_drift
+        if (v := get(ACCEL_BIAS_DRIFT)) is None
+        else v.reshape(3),
+        time_drift=state.time_drift if (v := get(TIME_DRIFT)) is None else float(v.reshape(-1)[0]),
+        point_time_scale=state.point_time_scale
+        if (v := get(POINT_TIME_SCALE)) is None
+        else float(v.reshape(-1)[0]),
+        t_ref_s=state.t_ref_s,
     )
 
 
 def intrinsic_coordinates(state: CalibrationState) -> dict[str, float]:
-    """Every IMU and LiDAR intrinsic of a state by its coordinate name (as in the solver's
-    ``calibration_names``); the gyro rotation as a rotation vector, rad."""
+    """Every IMU and LiDAR intrinsic and drift of a state by its coordinate name (as in the
+    solver's ``calibration_names``); the gyro rotation as a rotation vector, rad."""
     imu = state.imu_intrinsics
     out: dict[str, float] = {}
 
@@ -489,12 +571,30 @@ def intrinsic_coordinates(state: CalibrationState) -> dict[str, float]:
     lidar = intrinsics_to_array(state.lidar_intrinsics).reshape(-1, len(INTRINSIC_NAMES))
     for b, row in enumerate(lidar):
         put(f"{LIDAR_INTRINSICS}[{b}]", INTRINSIC_NAMES, row)
+    put(GYRO_BIAS_DRIFT, _XYZ, state.gyro_bias_drift)
+    put(ACCEL_BIAS_DRIFT, _XYZ, state.accel_bias_drift)
+    out[TIME_DRIFT] = state.time_drift
+    out[POINT_TIME_SCALE] = state.point_time_scale
     return out
 
 
 def state_from_problem(state: CalibrationState, problem: Problem) -> CalibrationState:
     """:func:`state_from_values` with the problem's current block values."""
     return state_from_values(state, problem.values())
+
+
+def free_effect_blocks(free: FreeParameters) -> tuple[str, ...]:
+    """The drift blocks ``free`` estimates."""
+    return tuple(
+        block
+        for block, flag in (
+            (GYRO_BIAS_DRIFT, free.gyro_bias_drift),
+            (ACCEL_BIAS_DRIFT, free.accel_bias_drift),
+            (TIME_DRIFT, free.time_drift),
+            (POINT_TIME_SCALE, free.point_time),
+        )
+        if flag
+    )
 
 
 def beam_point_counts(lidar: LidarPoints | None, num_beams: int) -> npt.NDArray[np.int64]:
@@ -546,7 +646,11 @@ def parameter_blocks(
         The blocks (``imu.gyro_g_sensitivity`` only when enabled or non-zero).
     """
     free = FreeParameters() if free is None else free
-    values = state_to_values(state, g_sensitivity=free.imu_block_free(GYRO_G_SENSITIVITY) or None)
+    values = state_to_values(
+        state,
+        g_sensitivity=free.imu_block_free(GYRO_G_SENSITIVITY) or None,
+        effects=free_effect_blocks(free),
+    )
     n_cp = state.knots.num_control_points
     counts = (
         np.zeros(state.lidar_intrinsics.num_beams, dtype=np.int64)
@@ -659,6 +763,23 @@ def parameter_blocks(
                 fixed=not free.imu_block_free(GYRO_G_SENSITIVITY),
             )
         )
+    for block, flag, suffixes in (
+        (GYRO_BIAS_DRIFT, free.gyro_bias_drift, _XYZ),
+        (ACCEL_BIAS_DRIFT, free.accel_bias_drift, _XYZ),
+        (TIME_DRIFT, free.time_drift, None),
+        (POINT_TIME_SCALE, free.point_time, None),
+    ):
+        if block in values:
+            blocks.append(
+                ParameterBlock(
+                    block,
+                    values[block],
+                    group="calibration",
+                    coord_names=[block] if suffixes is None else names(block, suffixes),
+                    scale=scale(block),
+                    fixed=not flag,
+                )
+            )
     n_beams = state.lidar_intrinsics.num_beams
     blocks.append(
         ParameterBlock(
@@ -743,11 +864,19 @@ def build_problem(
         shared = SO3EvaluationCache()  # gyro and accelerometer: one rotation-spline evaluation
         problem.add_residual_block(
             GyroResidual(
-                knots, t_imu, imu.gyro, noise.gyro_sigma, g_sensitivity=use_gs, so3_cache=shared
+                knots,
+                t_imu,
+                imu.gyro,
+                noise.gyro_sigma,
+                g_sensitivity=use_gs,
+                t_ref_s=state.t_ref_s,
+                so3_cache=shared,
             )
         )
         problem.add_residual_block(
-            AccelResidual(knots, t_imu, imu.accel, noise.accel_sigma, so3_cache=shared)
+            AccelResidual(
+                knots, t_imu, imu.accel, noise.accel_sigma, t_ref_s=state.t_ref_s, so3_cache=shared
+            )
         )
 
     if has_lidar:
@@ -756,7 +885,10 @@ def build_problem(
             msg = "LiDAR points need their planes: pass the Planes their plane indices refer to"
             raise ValueError(msg)
         t_pts = np.asarray(lidar.t_s, dtype=np.float64)
-        _check_coverage(knots, t_pts + state.time_offset_s, "point times (tau + time offset)")
+        t_query = t_pts + state.time_offset_s + state.time_drift * (t_pts - state.t_ref_s)
+        if lidar.sweep_start_s is not None:
+            t_query = t_query - state.point_time_scale * (t_pts - np.asarray(lidar.sweep_start_s))
+        _check_coverage(knots, t_query, "point times (tau + time offset)")
         plane = np.asarray(lidar.plane, dtype=np.intp)
         normal = np.asarray(planes.normal, dtype=np.float64)
         if plane.min() < 0 or plane.max() >= normal.shape[0]:
@@ -776,6 +908,8 @@ def build_problem(
             np.sqrt(sigma2),
             state.lidar_intrinsics.nominal_elevation,
             model_gap=lidar.model_gap,
+            t_ref_s=state.t_ref_s,
+            sweep_start_s=lidar.sweep_start_s,
         )
         loss = None if noise.huber_threshold is None else HuberLoss(noise.huber_threshold)
         problem.add_residual_block(residual, loss)

@@ -205,3 +205,94 @@ def _spectrum_figure(plt: Any, run: CalibrationRun) -> Any:
     ax.legend(fontsize=8)
     fig.tight_layout()
     return fig
+
+
+_PATTERN = {
+    "gyro_scale": ("gyro", "angular_rate", "angular rate (rad/s)"),
+    "gyro_misalignment": ("gyro", "angular_rate", "angular rate (rad/s)"),
+    "gyro_rotation": ("gyro", "angular_rate", "angular rate (rad/s)"),
+    "g_sensitivity": ("gyro", "specific_force", "specific force (m/s^2)"),
+    "gyro_bias_walk": ("gyro", "t_imu_s", "time (s)"),
+    "accel_scale": ("accel", "specific_force", "specific force (m/s^2)"),
+    "accel_misalignment": ("accel", "specific_force", "specific force (m/s^2)"),
+    "accel_bias_walk": ("accel", "t_imu_s", "time (s)"),
+    "imu_clock_drift": ("distance", "point_t_s", "time (s)"),
+    "lidar_point_time": ("distance", "time_in_sweep_s", "time within the sweep (s)"),
+}
+"""Effect -> (residual, feature, axis label) of the pattern it explains; LiDAR intrinsics show
+per beam."""
+
+
+def _binned(x: np.ndarray, y: np.ndarray, bins: int = 24) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of ``y`` in equal-count bins of ``x``."""
+    order = np.argsort(x)
+    parts = np.array_split(order, bins)
+    return (
+        np.array([x[p].mean() for p in parts if p.size]),
+        np.array([y[p].mean() for p in parts if p.size]),
+    )
+
+
+def _pattern_axes(ax: Any, effect: str, tables: list[tuple[str, Any, str]]) -> None:
+    if effect in _PATTERN:
+        residual, feature, label = _PATTERN[effect]
+        for name, table, colour in tables:
+            r = np.asarray(getattr(table, residual))
+            x = np.asarray(getattr(table, feature))
+            if r.ndim == 2:
+                for axis in range(3):
+                    xx = x[:, axis] if x.ndim == 2 else x
+                    bx, by = _binned(xx, r[:, axis])
+                    ls = ("-", "--", ":")[axis]
+                    ax.plot(bx, by, ls, color=colour, label=f"{name}, axis {'xyz'[axis]}")
+            else:
+                bx, by = _binned(x, r)
+                ax.plot(bx, 1e3 * by, "-", color=colour, label=name)
+        unit = "mm" if residual == "distance" else ("rad/s" if residual == "gyro" else "m/s^2")
+        ax.set_xlabel(label)
+        ax.set_ylabel(f"mean residual ({unit})")
+    else:
+        for k, (name, table, colour) in enumerate(tables):
+            beams = np.asarray(table.beam)
+            d = np.asarray(table.distance)
+            n = int(beams.max()) + 1 if beams.size else 0
+            counts = np.maximum(np.bincount(beams, minlength=n), 1)
+            means = np.bincount(beams, d, minlength=n) / counts
+            ax.bar(np.arange(n) + 0.4 * k - 0.2, 1e3 * means, width=0.4, color=colour, label=name)
+        ax.set_xlabel("beam")
+        ax.set_ylabel("mean point-to-plane distance (mm)")
+    ax.axhline(0.0, color="grey", lw=0.8)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=7)
+
+
+def save_diagnosis_plots(diag: Any, folder: Path) -> list[Path]:
+    """One figure per diagnosis step: the residual pattern its effect explains, before and
+    after it was added (``diagnose_<n>_<effect>.png``)."""
+    from licalib_cli.pipeline.fitcheck import residual_table
+
+    plt = _pyplot()
+    folder = Path(folder)
+    prepare_plots(folder)
+    written = []
+    for n, step in enumerate(diag.steps, start=1):
+        before, after = step.before, step.after
+        fig, ax = plt.subplots(figsize=(7.0, 4.2))
+        tables = [
+            ("before", residual_table(before.state, before.fit.inputs), "tab:orange"),
+            ("after", residual_table(after.state, after.fit.inputs), "tab:blue"),
+        ]
+        _pattern_axes(ax, step.effect, tables)
+        ax.set_title(
+            f"Step {n}: {step.effect} ({'kept' if step.kept else 'rejected'}; "
+            f"{step.gap_before.sensor} gap {step.gap_before.excess:+.3f} -> "
+            f"{step.gap_after.excess:+.3f})"
+        )
+        fig.tight_layout()
+        path = folder / f"diagnose_{n}_{step.effect}.png"
+        tmp = path.with_name(f".{path.name}.tmp")
+        fig.savefig(tmp, dpi=_DPI, format="png")
+        plt.close(fig)
+        tmp.replace(path)
+        written.append(path)
+    return written

@@ -9,12 +9,19 @@ import typer
 
 from licalib_cli.commands.render import console, console_err, render_run
 from licalib_cli.config import INTRINSIC_PRESETS, dump_config, load_config
-from licalib_cli.errors import NotConverged, VerdictFailure
+from licalib_cli.errors import ConfigError, NotConverged, VerdictFailure
 from licalib_cli.results import CalibrationResult, prepare_output, write_text_atomic
 
 _IO = "Input"
 _OUT = "Output"
 _MODEL = "Model"
+
+
+class ModelChoice(str, Enum):
+    """``--model`` choices."""
+
+    CONFIG = "config"
+    AUTO = "auto"
 
 
 class Intrinsics(str, Enum):
@@ -91,6 +98,13 @@ def calibrate_command(
     duration: float | None = typer.Option(
         None, "--duration", help="Seconds of data to use.", rich_help_panel=_IO
     ),
+    model: ModelChoice = typer.Option(
+        ModelChoice.CONFIG,
+        "--model",
+        help="config: estimate what the config's model section (or --intrinsics) says; auto: "
+        "start from the base model and add the effects the data show (as `licalib diagnose`).",
+        rich_help_panel=_MODEL,
+    ),
     intrinsics: Intrinsics | None = typer.Option(
         None,
         "--intrinsics",
@@ -134,11 +148,25 @@ def calibrate_command(
         from licalib_cli.plots import prepare_plots
 
         prepare_plots(plots)
+    if model is ModelChoice.AUTO and intrinsics is not None:
+        msg = "--model auto chooses the intrinsics itself; drop --intrinsics or use --model config."
+        raise ConfigError(msg)
     progress = RichProgress()
+    diagnosis = None
     try:
-        run = calibrate(bag, cfg, progress)
+        if model is ModelChoice.AUTO:
+            from licalib_cli.pipeline.diagnose import diagnose
+
+            diagnosis = diagnose(bag, cfg, progress=progress)
+            run = diagnosis.final
+        else:
+            run = calibrate(bag, cfg, progress)
     finally:
         progress.close()
+    if diagnosis is not None:
+        from licalib_cli.commands.diagnose import render_diagnosis
+
+        render_diagnosis(diagnosis)
     run.result.save(out)
     config_out = out.with_name(out.stem + ".config.yaml")
     write_text_atomic(config_out, dump_config(cfg))

@@ -22,7 +22,7 @@ Everything here is plain linear algebra on ``S`` and ``b`` (no I/O); the pipelin
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
@@ -152,11 +152,14 @@ class EffectSelection:
             base coordinates only).
         joint_shift: (m,) change of the estimated coordinates if every selected effect were
             freed together.
+        alone: every group's statistic tested against the estimated coordinates only (before
+            any selection), by name.
     """
 
     selected: tuple[EffectScore, ...]
     remaining: tuple[EffectScore, ...]
     joint_shift: F64
+    alone: dict[str, float] = field(default_factory=dict)
 
 
 def select_effects(
@@ -189,8 +192,11 @@ def select_effects(
     chosen: list[EffectScore] = []
     chosen_idx: list[npt.NDArray[np.intp]] = []
     current = list(bi)
+    alone: dict[str, float] = {}
     while todo and (max_effects is None or len(chosen) < max_effects):
         scores = score_effects(S, b, current, todo, variance_factor)
+        if not alone:
+            alone = {s.name: s.statistic for s in scores}
         best = max(scores, key=lambda s: -float(stats.chi2.logsf(s.statistic, max(s.rank, 1))))
         if not best.p_value < p_value:
             break
@@ -234,4 +240,4 @@ def select_effects(
         joint = (inv_full @ rhs[full])[: bi.size] - inv_base @ rhs[bi]
     else:
         joint = np.zeros(bi.size)
-    return EffectSelection(tuple(chosen), remaining, joint)
+    return EffectSelection(tuple(chosen), remaining, joint, alone)

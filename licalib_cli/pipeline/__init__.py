@@ -26,9 +26,10 @@ from pathlib import Path
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import CalibrationState
+from licalib_cli.io.reader import Recording
 from licalib_cli.pipeline.assemble import assemble
 from licalib_cli.pipeline.checks import Checks, run_checks
-from licalib_cli.pipeline.fitcheck import effect_evidence, sensor_checks
+from licalib_cli.pipeline.fitcheck import EffectEvidence, effect_evidence, sensor_checks
 from licalib_cli.pipeline.initialise import SINGLE_AXIS, InitialGuess, initialise, lidar_odometry
 from licalib_cli.pipeline.points import nominal_elevations
 from licalib_cli.pipeline.read import measure_noise, read_recording
@@ -41,7 +42,15 @@ from licalib_cli.results import CalibrationResult
 from licalib_cli.sections import RecordingSection
 from licalib_cli.solver.lm import SolverReport
 
-__all__ = ["CalibrationRun", "InitialGuess", "RoundSummary", "calibrate"]
+__all__ = [
+    "CalibrationRun",
+    "InitialGuess",
+    "Prepared",
+    "RoundSummary",
+    "calibrate",
+    "fit_and_check",
+    "prepare",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -59,6 +68,7 @@ class CalibrationRun:
         noise: the noise the fit was weighted with.
         timings: wall seconds per stage, in order.
         warnings: non-fatal findings of the reading stage.
+        effects: the score tests of the effects the fit held fixed (selected ones first).
     """
 
     result: CalibrationResult
@@ -69,6 +79,7 @@ class CalibrationRun:
     noise: NoiseLevels
     timings: dict[str, float]
     warnings: tuple[str, ...] = ()
+    effects: tuple[EffectEvidence, ...] = ()
 
     @property
     def rounds(self) -> tuple[RoundSummary, ...]:
@@ -92,7 +103,9 @@ class CalibrationRun:
         return self.result.recording
 
 
-class _Timer:
+class Timer:
+    """Wall seconds per named stage (a stage entered twice adds up)."""
+
     def __init__(self) -> None:
         self.timings: dict[str, float] = {}
 
@@ -125,8 +138,32 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
         SolverError: the optimisation failed.
     """
     progress = progress or NullProgress()
-    timer = _Timer()
-    bag = Path(bag)
+    timer = Timer()
+    prepared = prepare(Path(bag), cfg, progress, timer)
+    run = fit_and_check(prepared, prepared.guess, cfg, progress, timer)
+    progress.close()
+    return run
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """What every fit of one segment shares: the data, the noise and the initial guess.
+
+    Attributes:
+        bag: the bag read.
+        rec: the segment.
+        noise: the noise the fits are weighted with.
+        guess: the initial guess.
+    """
+
+    bag: Path
+    rec: Recording
+    noise: NoiseLevels
+    guess: InitialGuess
+
+
+def prepare(bag: Path, cfg: CalibConfig, progress: Progress, timer: Timer) -> Prepared:
+    """Read the segment, measure the noise, run the odometry and initialise."""
     with timer.stage("read", progress):
         rec = read_recording(bag, cfg)
         phi = nominal_elevations(rec.scans, cfg)
@@ -135,8 +172,32 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
         odo = lidar_odometry(rec, cfg, progress=lambda d, n: progress.advance(d, n))
     with timer.stage("initialisation", progress):
         guess = initialise(rec, odo, phi, noise, cfg)
+    return Prepared(bag, rec, noise, guess)
+
+
+def fit_and_check(
+    prepared: Prepared,
+    start: InitialGuess,
+    cfg: CalibConfig,
+    progress: Progress,
+    timer: Timer,
+    *,
+    warm: bool = False,
+) -> CalibrationRun:
+    """The rounds from ``start``, the checks and the result file content.
+
+    Args:
+        prepared: the segment, noise and initial guess.
+        start: where the rounds start (``prepared.guess``, or a previous fit's state).
+        cfg: the configuration (its ``model:`` section says what is estimated).
+        progress: progress sink.
+        timer: stage timer (times add up over several fits).
+        warm: ``start`` is already a fit: the model's intrinsics are estimated from the first
+            round and the association starts less loose.
+    """
+    rec, noise, guess = prepared.rec, prepared.noise, prepared.guess
     with timer.stage("optimisation", progress, total=cfg.schedule.max_rounds):
-        fit = run_schedule(rec, guess, noise, cfg, progress)
+        fit = run_schedule(rec, start, noise, cfg, progress, warm=warm)
     with timer.stage("checks", progress):
         sensors = sensor_checks(fit.state, fit.inputs, noise)
         effects = effect_evidence(fit.state, fit.inputs, fit.report.variance_factor)
@@ -148,8 +209,7 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
                 "accelerations, and the translation along it is not observable.",
             )
         checks = run_checks(fit, sensors, effects, split, cfg, notes)
-    result = assemble(bag, rec, guess, fit, checks, cfg)
-    progress.close()
+    result = assemble(prepared.bag, rec, guess, fit, checks, cfg)
     return CalibrationRun(
         result=result,
         state=fit.state,
@@ -159,4 +219,5 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
         noise=noise,
         timings=dict(timer.timings),
         warnings=rec.warnings,
+        effects=tuple(effects),
     )

@@ -40,7 +40,9 @@ __all__ = [
     "EFFECT_P_VALUE",
     "PATTERN_EXPLAINED",
     "EffectEvidence",
+    "ResidualTable",
     "effect_evidence",
+    "residual_table",
     "sensor_checks",
 ]
 
@@ -75,16 +77,7 @@ def _every_kth(lidar: LidarPoints, at_most: int) -> LidarPoints:
     n = len(lidar)
     if n <= at_most:
         return lidar
-    idx = np.arange(0, n, int(np.ceil(n / at_most)))
-    gap = None if lidar.model_gap is None else np.asarray(lidar.model_gap)[idx]
-    return LidarPoints(
-        t_s=np.asarray(lidar.t_s)[idx],
-        beam=np.asarray(lidar.beam)[idx],
-        rho=np.asarray(lidar.rho)[idx],
-        theta=np.asarray(lidar.theta)[idx],
-        plane=np.asarray(lidar.plane)[idx],
-        model_gap=gap,
-    )
+    return lidar.subset(np.arange(0, n, int(np.ceil(n / at_most))))
 
 
 _LIDAR_EFFECTS = {
@@ -94,6 +87,12 @@ _LIDAR_EFFECTS = {
     "H": "lidar_horizontal_offset",
     "s": "lidar_range_scale",
     "drho": "lidar_range_offset",
+}
+_DRIFT_EFFECTS = {
+    "imu.gyro_bias_drift": "gyro_bias_walk",
+    "imu.accel_bias_drift": "accel_bias_walk",
+    "ext.time_drift": "imu_clock_drift",
+    "lidar.point_time_scale": "lidar_point_time",
 }
 _IMU_EFFECTS = {
     "imu.gyro_scale": "gyro_scale",
@@ -144,6 +143,79 @@ def _sensor(
     )
 
 
+@dataclass(frozen=True)
+class ResidualTable:
+    """Every residual of a fit in its sensor's unit, with what it may depend on.
+
+    Attributes:
+        t_imu_s: (N,) IMU sample times, s.
+        gyro: (N, 3) gyro residuals (prediction minus reading), rad/s.
+        accel: (N, 3) accelerometer residuals, m/s^2.
+        angular_rate: (N, 3) gyro readings, rad/s.
+        specific_force: (N, 3) accelerometer readings, m/s^2.
+        point_t_s: (P,) point times, s.
+        distance: (P,) signed point-to-plane distances, m.
+        beam: (P,) beam of each point.
+        rho: (P,) range, m.
+        theta: (P,) azimuth, rad.
+        elevation: (P,) nominal elevation of the beam, rad.
+        cos_incidence: (P,) cosine of the angle between the ray and the plane's normal.
+        time_in_sweep_s: (P,) time since the sweep's first point, s.
+    """
+
+    t_imu_s: F64
+    gyro: F64
+    accel: F64
+    angular_rate: F64
+    specific_force: F64
+    point_t_s: F64
+    distance: F64
+    beam: npt.NDArray[np.intp]
+    rho: F64
+    theta: F64
+    elevation: F64
+    cos_incidence: F64
+    time_in_sweep_s: F64
+
+
+def residual_table(state: CalibrationState, inputs: RoundInputs) -> ResidualTable:
+    """The residuals of ``state`` on a round's measurements and map."""
+    problem = build_problem(
+        state, inputs.imu, inputs.lidar, inputs.planes, inputs.noise, inputs.free
+    )
+    params = problem.values()
+    gyro = next(b for b in problem.residual_blocks if isinstance(b, GyroResidual))
+    accel = next(b for b in problem.residual_blocks if isinstance(b, AccelResidual))
+    points = next(b for b in problem.residual_blocks if isinstance(b, PointToPlaneResidual))
+    r_g = gyro.evaluate(params, jacobians=False).residuals / gyro.inv_sigma
+    r_a = accel.evaluate(params, jacobians=False).residuals / accel.inv_sigma
+    d = points.distances(params)
+    tc = float(np.asarray(params[TIME_OFFSET]).reshape(-1)[0])
+    rot = state.so3_spline.rotation(points.t_s + tc)
+    phi = state.lidar_intrinsics.nominal_elevation[points.beam]
+    ray_l = np.stack(
+        [np.cos(phi) * np.cos(points.theta), np.cos(phi) * np.sin(points.theta), np.sin(phi)],
+        axis=-1,
+    )
+    ray_g = np.einsum("nij,nj->ni", rot, ray_l @ state.R_imu_lidar.T)
+    cos_inc = np.abs(np.einsum("ij,ij->i", ray_g, points.normal))
+    return ResidualTable(
+        t_imu_s=gyro.t_s,
+        gyro=r_g,
+        accel=r_a,
+        angular_rate=gyro.gyro,
+        specific_force=accel.accel,
+        point_t_s=points.t_s,
+        distance=d,
+        beam=points.beam,
+        rho=points.rho,
+        theta=points.theta,
+        elevation=phi,
+        cos_incidence=cos_inc,
+        time_in_sweep_s=(inputs.points.t_ns - inputs.points.sweep_start_ns) * 1e-9,
+    )
+
+
 def sensor_checks(
     state: CalibrationState, inputs: RoundInputs, noise: NoiseLevels
 ) -> tuple[SensorCheck, ...]:
@@ -157,84 +229,64 @@ def sensor_checks(
     Returns:
         The gyro's, the accelerometer's and the LiDAR's checks.
     """
-    problem = build_problem(
-        state, inputs.imu, inputs.lidar, inputs.planes, inputs.noise, inputs.free
-    )
-    params = problem.values()
-    gyro = next(b for b in problem.residual_blocks if isinstance(b, GyroResidual))
-    accel = next(b for b in problem.residual_blocks if isinstance(b, AccelResidual))
-    points = next(b for b in problem.residual_blocks if isinstance(b, PointToPlaneResidual))
-    r_g = gyro.evaluate(params, jacobians=False).residuals / gyro.inv_sigma
-    r_a = accel.evaluate(params, jacobians=False).residuals / accel.inv_sigma
-    t = gyro.t_s
+    r = residual_table(state, inputs)
     out = [
         _sensor(
             "gyro",
             "rad/s",
-            r_g,
+            r.gyro,
             noise.gyro_sigma,
             noise.gyro_sigma,
             noise.gyro_source,
             _patterns(
-                r_g,
+                r.gyro,
                 [
-                    ("angular rate", gyro.gyro, False),
-                    ("specific force", accel.accel, False),
-                    ("time", t, False),
+                    ("angular rate", r.angular_rate, False),
+                    ("specific force", r.specific_force, False),
+                    ("time", r.t_imu_s, False),
                 ],
             ),
         ),
         _sensor(
             "accelerometer",
             "m/s^2",
-            r_a,
+            r.accel,
             noise.accel_sigma,
             noise.accel_sigma,
             noise.accel_source,
             _patterns(
-                r_a,
+                r.accel,
                 [
-                    ("specific force", accel.accel, False),
-                    ("angular rate", gyro.gyro, False),
-                    ("time", t, False),
+                    ("specific force", r.specific_force, False),
+                    ("angular rate", r.angular_rate, False),
+                    ("time", r.t_imu_s, False),
                 ],
             ),
         ),
     ]
-    d = points.distances(params)
-    tc = float(np.asarray(params[TIME_OFFSET]).reshape(-1)[0])
-    rot = state.so3_spline.rotation(points.t_s + tc)
-    phi = state.lidar_intrinsics.nominal_elevation[points.beam]
-    ray_l = np.stack(
-        [np.cos(phi) * np.cos(points.theta), np.cos(phi) * np.sin(points.theta), np.sin(phi)],
-        axis=-1,
-    )
-    ray_g = np.einsum("nij,nj->ni", rot, ray_l @ state.R_imu_lidar.T)
-    cos_inc = np.abs(np.einsum("ij,ij->i", ray_g, points.normal))
     per_beam = noise.range_sigma_per_beam
     if noise.range_source == "data" and per_beam.shape[0] == state.lidar_intrinsics.num_beams:
         beam_sigma = np.where(np.isfinite(per_beam), per_beam, noise.range_sigma_m)
     else:
         beam_sigma = np.full(state.lidar_intrinsics.num_beams, noise.range_sigma_m)
-    sigma = beam_sigma[points.beam] * np.maximum(cos_inc, MIN_INCIDENCE_COS)
-    t_sweep = (inputs.points.t_ns - inputs.points.sweep_start_ns) * 1e-9
+    sigma = beam_sigma[r.beam] * np.maximum(r.cos_incidence, MIN_INCIDENCE_COS)
     out.append(
         _sensor(
             "lidar",
             "m",
-            d,
+            r.distance,
             sigma,
             np.array([noise.range_sigma_m]),
             noise.range_source,
             _patterns(
-                d,
+                r.distance,
                 [
-                    ("beam", points.beam, True),
-                    ("range", points.rho, False),
-                    ("azimuth", np.stack([np.sin(points.theta), np.cos(points.theta)], -1), False),
-                    ("elevation", phi, False),
-                    ("incidence angle", cos_inc, False),
-                    ("time within sweep", t_sweep, False),
+                    ("beam", r.beam, True),
+                    ("range", r.rho, False),
+                    ("azimuth", np.stack([np.sin(r.theta), np.cos(r.theta)], -1), False),
+                    ("elevation", r.elevation, False),
+                    ("incidence angle", r.cos_incidence, False),
+                    ("time within sweep", r.time_in_sweep_s, False),
                 ],
             ),
         )
@@ -254,6 +306,8 @@ class EffectEvidence:
         shift_translation_m: (3,) m.
         shift_rotation_rad: (3,) about the LiDAR axes, rad.
         shift_time_offset_s: s.
+        statistic_alone: the score statistic tested against the estimated coordinates only
+            (before any other effect was selected).
     """
 
     score: EffectScore
@@ -262,6 +316,7 @@ class EffectEvidence:
     shift_translation_m: F64
     shift_rotation_rad: F64
     shift_time_offset_s: float
+    statistic_alone: float = float("nan")
 
     @property
     def shift(self) -> F64:
@@ -274,8 +329,10 @@ class EffectEvidence:
 def _effect_of(name: str) -> str | None:
     if name.startswith("lidar.intrinsics"):
         return _LIDAR_EFFECTS.get(name.rsplit(".", 1)[1])
+    if name in _DRIFT_EFFECTS:
+        return _DRIFT_EFFECTS[name]
     block = name.rsplit(".", 1)[0]
-    return _IMU_EFFECTS.get(block)
+    return _IMU_EFFECTS.get(block) or _DRIFT_EFFECTS.get(block)
 
 
 def effect_evidence(
@@ -299,7 +356,16 @@ def effect_evidence(
         in the order added, then the others (tested with the selected ones freed).
     """
     free = inputs.free
-    all_free = replace(free, imu_intrinsics=True, lidar_intrinsics=True, g_sensitivity=True)
+    all_free = replace(
+        free,
+        imu_intrinsics=True,
+        lidar_intrinsics=True,
+        g_sensitivity=True,
+        gyro_bias_drift=True,
+        accel_bias_drift=True,
+        time_drift=True,
+        point_time=True,
+    )
     problem = build_problem(
         state,
         inputs.imu,
@@ -316,6 +382,16 @@ def effect_evidence(
     base: list[int] = []
     estimated = {v for k, v in _IMU_EFFECTS.items() if free.imu_block_free(k)}
     estimated |= {v for k, v in _LIDAR_EFFECTS.items() if free.lidar_column_free(k)}
+    estimated |= {
+        name
+        for name, flag in (
+            ("gyro_bias_walk", free.gyro_bias_drift),
+            ("accel_bias_walk", free.accel_bias_drift),
+            ("imu_clock_drift", free.time_drift),
+            ("lidar_point_time", free.point_time),
+        )
+        if flag
+    }
     for i, n in enumerate(names):
         effect = _effect_of(n)
         if effect is None or effect in estimated:
@@ -344,6 +420,7 @@ def effect_evidence(
                     shift_translation_m=t if t.size == 3 else np.zeros(3),
                     shift_rotation_rad=r if r.size == 3 else np.zeros(3),
                     shift_time_offset_s=float(c[0]) if c.size else 0.0,
+                    statistic_alone=float(selection.alone.get(s.name, s.statistic)),
                 )
             )
     logger.debug(

@@ -463,6 +463,7 @@ def _initial_state(
         time_offset_s=time_offset_s,
         lidar_intrinsics=LidarIntrinsics.nominal(phi),
         t0_ns=t0,
+        t_ref_s=0.5 * float(t_imu[-1]),
     )
     return state, lever, source
 

@@ -25,6 +25,7 @@ __all__ = [
     "nominal_elevations",
     "points_in_global",
     "points_per_scan",
+    "query_times",
     "sample_points",
     "usable_points",
 ]
@@ -138,9 +139,21 @@ def sample_points(
     return PointSample(t_ns, start_ns, beam, rho, theta, gap)
 
 
+def query_times(state: CalibrationState, sample: PointSample) -> F64:
+    """(N,) the trajectory time of each point, seconds on the splines' axis: its LiDAR time plus
+    the time offset (and, when estimated, the clock drift and the per-point time error)."""
+    tau = (sample.t_ns - state.t0_ns) * 1e-9
+    t = tau + state.time_offset_s
+    if state.time_drift:
+        t = t + state.time_drift * (tau - state.t_ref_s)
+    if state.point_time_scale:
+        t = t - state.point_time_scale * (sample.t_ns - sample.sweep_start_ns) * 1e-9
+    return t
+
+
 def points_in_global(state: CalibrationState, sample: PointSample) -> F64:
     """(N, 3) sampled points mapped into ``{G}`` with the state's trajectory and calibration."""
-    t = (sample.t_ns - state.t0_ns) * 1e-9 + state.time_offset_s
+    t = query_times(state, sample)
     p_l = lidar_point(state.lidar_intrinsics, sample.beam, sample.rho, sample.theta)
     p_i = (p_l + sample.model_gap) @ state.R_imu_lidar.T + state.t_imu_lidar
     rot = state.so3_spline.rotation(t)
@@ -149,7 +162,7 @@ def points_in_global(state: CalibrationState, sample: PointSample) -> F64:
 
 def usable_points(state: CalibrationState, sample: PointSample, margin_s: float) -> PointSample:
     """Points whose trajectory time ``tau + t_c`` stays inside the spline with a margin."""
-    t = (sample.t_ns - state.t0_ns) * 1e-9 + state.time_offset_s
+    t = query_times(state, sample)
     knots = state.knots
     lo = knots.t0_s + margin_s
     hi = knots.t_end_s - margin_s

@@ -167,6 +167,7 @@ def run_round(
         theta=used.theta,
         plane=plane_of,
         model_gap=used.model_gap,
+        sweep_start_s=(used.sweep_start_ns - state.t0_ns) * 1e-9,
     )
     planes = Planes(normal=surfels.normal, offset=surfels.d, thickness=surfels.thickness)
     weights = noise_model(cfg, noise)

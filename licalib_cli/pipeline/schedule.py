@@ -161,8 +161,14 @@ def run_schedule(
     noise: NoiseLevels,
     cfg: CalibConfig,
     progress: Progress,
+    *,
+    warm: bool = False,
 ) -> Fit:
     """Run the rounds from the initial guess until the estimate settles, then a denser round.
+
+    With ``warm`` the guess is a previous fit: the model's intrinsics are estimated from the
+    first round and the association starts at :data:`INTRINSICS_FACTOR` instead of
+    :data:`COARSE_FACTOR` times the configured distance.
 
     Raises:
         ExcitationError: a map without planar surfaces.
@@ -175,7 +181,7 @@ def run_schedule(
     probe = sample.subset(np.arange(0, len(sample), max(1, len(sample) // _PROBE_POINTS)))
     imu = ImuData.from_samples(rec.imu, state.t0_ns)
     base = cfg.surfels.max_distance_m
-    max_dist = base * COARSE_FACTOR
+    max_dist = base * (INTRINSICS_FACTOR if warm else COARSE_FACTOR)
     rounds: list[RoundSummary] = []
     report: SolverReport | None = None
     inputs: RoundInputs | None = None
@@ -183,7 +189,7 @@ def run_schedule(
     change = Change(np.inf, np.inf, np.inf)
     threshold = change
     want_intrinsics = estimates_intrinsics(cfg)
-    intrinsics_on = want_intrinsics and sch.intrinsics_from_round == 1
+    intrinsics_on = want_intrinsics and (warm or sch.intrinsics_from_round == 1)
     joined = 1 if intrinsics_on else 0
     intrinsic_sigmas = 0.0
     for index in range(1, sch.max_rounds + 1):

@@ -183,11 +183,24 @@ def free_parameters(cfg: CalibConfig, intrinsics: bool) -> FreeParameters:
     if not intrinsics:
         return FreeParameters(min_points_per_beam=m.min_points_per_beam)
     return FreeParameters(
-        imu_blocks=frozenset(f"imu.{name}" for name in m.imu if name != "g_sensitivity"),
+        imu_blocks=frozenset(f"imu.{name}" for name in m.imu if name in _IMU_INTRINSIC_NAMES),
         g_sensitivity="g_sensitivity" in m.imu,
-        lidar_columns=frozenset(LIDAR_COLUMNS[name] for name in m.lidar),
+        lidar_columns=frozenset(LIDAR_COLUMNS[name] for name in m.lidar if name in LIDAR_COLUMNS),
         min_points_per_beam=m.min_points_per_beam,
+        gyro_bias_drift="gyro_bias_walk" in m.imu,
+        accel_bias_drift="accel_bias_walk" in m.imu,
+        time_drift="clock_drift" in m.imu,
+        point_time="point_time" in m.lidar,
     )
+
+
+_IMU_INTRINSIC_NAMES = (
+    "gyro_scale",
+    "gyro_misalignment",
+    "gyro_rotation",
+    "accel_scale",
+    "accel_misalignment",
+)
 
 
 INTRINSIC_PRIOR_SIGMA: dict[str, float | tuple[float, ...]] = {

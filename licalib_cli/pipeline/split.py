@@ -22,7 +22,6 @@ from licalib_cli.errors import LicalibError
 from licalib_cli.estimation import (
     CalibrationState,
     ImuData,
-    LidarPoints,
     build_problem,
     state_from_problem,
 )
@@ -143,14 +142,7 @@ def _estimate_half(
     idx = np.flatnonzero(in_pts)
     in_pts = idx[:: max(1, idx.size // MAX_HALF_POINTS)]
     half_imu = ImuData(imu.t_s[in_imu], imu.gyro[in_imu], imu.accel[in_imu])
-    half_lidar = LidarPoints(
-        t_s=np.asarray(lid.t_s)[in_pts],
-        beam=np.asarray(lid.beam)[in_pts],
-        rho=np.asarray(lid.rho)[in_pts],
-        theta=np.asarray(lid.theta)[in_pts],
-        plane=np.asarray(lid.plane)[in_pts],
-        model_gap=None if lid.model_gap is None else np.asarray(lid.model_gap)[in_pts],
-    )
+    half_lidar = lid.subset(in_pts)
     problem = build_problem(sub, half_imu, half_lidar, inputs.planes, inputs.noise, inputs.free)
     report = solve(problem, lm_params(cfg, max_iterations=_HALF_ITERATIONS))
     if report.status == "failed":

@@ -43,6 +43,10 @@ ACCEL_SCALE = "imu.accel_scale"
 ACCEL_MISALIGNMENT = "imu.accel_misalignment"
 GYRO_G_SENSITIVITY = "imu.gyro_g_sensitivity"
 LIDAR_INTRINSICS = "lidar.intrinsics"
+GYRO_BIAS_DRIFT = "imu.gyro_bias_drift"
+ACCEL_BIAS_DRIFT = "imu.accel_bias_drift"
+TIME_DRIFT = "ext.time_drift"
+POINT_TIME_SCALE = "lidar.point_time_scale"
 
 # The submodules import the names above from this package.
 from licalib_cli.residuals.imu import AccelResidual, GyroResidual  # noqa: E402
@@ -51,17 +55,21 @@ from licalib_cli.residuals.priors import GaussianPrior  # noqa: E402
 
 __all__ = [
     "ACCEL_BIAS",
+    "ACCEL_BIAS_DRIFT",
     "ACCEL_MISALIGNMENT",
     "ACCEL_SCALE",
     "EXT_ROTATION",
     "EXT_TRANSLATION",
     "GRAVITY",
     "GYRO_BIAS",
+    "GYRO_BIAS_DRIFT",
     "GYRO_G_SENSITIVITY",
     "GYRO_MISALIGNMENT",
     "GYRO_ROTATION",
     "GYRO_SCALE",
     "LIDAR_INTRINSICS",
+    "POINT_TIME_SCALE",
+    "TIME_DRIFT",
     "TIME_OFFSET",
     "TRAJ_R3",
     "TRAJ_SO3",

@@ -21,10 +21,12 @@ import numpy.typing as npt
 from licalib_cli.models.imu import accel_model, gyro_model, specific_force
 from licalib_cli.residuals import (
     ACCEL_BIAS,
+    ACCEL_BIAS_DRIFT,
     ACCEL_MISALIGNMENT,
     ACCEL_SCALE,
     GRAVITY,
     GYRO_BIAS,
+    GYRO_BIAS_DRIFT,
     GYRO_G_SENSITIVITY,
     GYRO_MISALIGNMENT,
     GYRO_ROTATION,
@@ -82,6 +84,7 @@ class GyroResidual:
         sigma: float | npt.ArrayLike,
         *,
         g_sensitivity: bool = False,
+        t_ref_s: float = 0.0,
         name: str = "imu.gyro",
         so3_cache: SO3EvaluationCache | None = None,
     ) -> None:
@@ -93,6 +96,7 @@ class GyroResidual:
             gyro: (N, 3) gyro readings, rad/s.
             sigma: discrete noise standard deviation, rad/s (scalar or (3,) per axis).
             g_sensitivity: include the ``A_w a_I`` term.
+            t_ref_s: reference time of the bias drift ``b_w(t) = b_w + d_w (t - t_ref)``.
             name: residual block name.
             so3_cache: rotation-spline evaluation shared with an :class:`AccelResidual` at the
                 same sample times (see :class:`~licalib_cli.spline.SO3EvaluationCache`);
@@ -107,6 +111,7 @@ class GyroResidual:
         knots.locate(self.t_s)  # range check
         self.inv_sigma = _per_axis_inverse(sigma, "gyro")
         self.g_sensitivity = g_sensitivity
+        self.dt_ref = self.t_s - float(t_ref_s)
         self.so3_cache = SO3EvaluationCache() if so3_cache is None else so3_cache
         self._zeros = np.zeros((self.t_s.shape[0], 1), dtype=np.intp)
 
@@ -136,7 +141,10 @@ class GyroResidual:
             jacobians=jacobians,
         )
         w = self.inv_sigma
-        r = (model.value - self.gyro) * w
+        value = model.value
+        if GYRO_BIAS_DRIFT in params:
+            value = value + self.dt_ref[:, None] * np.asarray(params[GYRO_BIAS_DRIFT]).reshape(3)
+        r = (value - self.gyro) * w
         if not jacobians:
             return ResidualEval(r)
         assert ev.jac_angular_velocity is not None and ev.jac_rotation is not None
@@ -165,6 +173,9 @@ class GyroResidual:
             )
         if GYRO_BIAS in params:
             jacs.append(DenseJacobian(GYRO_BIAS, self._zeros, _bias_jacobian(n, w)))
+        if GYRO_BIAS_DRIFT in params:
+            j = _bias_jacobian(n, w) * self.dt_ref[:, None, None, None]
+            jacs.append(DenseJacobian(GYRO_BIAS_DRIFT, self._zeros, j))
         for block, d in (
             (GYRO_SCALE, model.d_scale),
             (GYRO_MISALIGNMENT, model.d_misalignment),
@@ -192,6 +203,7 @@ class AccelResidual:
         accel: npt.ArrayLike,
         sigma: float | npt.ArrayLike,
         *,
+        t_ref_s: float = 0.0,
         name: str = "imu.accel",
         so3_cache: SO3EvaluationCache | None = None,
     ) -> None:
@@ -202,6 +214,7 @@ class AccelResidual:
             t_s: (N,) sample times, IMU-clock seconds relative to the reference time.
             accel: (N, 3) accelerometer readings, m/s^2.
             sigma: discrete noise standard deviation, m/s^2 (scalar or (3,) per axis).
+            t_ref_s: reference time of the bias drift ``b_a(t) = b_a + d_a (t - t_ref)``.
             name: residual block name.
             so3_cache: rotation-spline evaluation shared with a :class:`GyroResidual` at the
                 same sample times; default: a private one.
@@ -214,6 +227,7 @@ class AccelResidual:
         self.t_s, self.accel = _check_samples(t_s, accel, "accelerometer")
         knots.locate(self.t_s)
         self.inv_sigma = _per_axis_inverse(sigma, "accelerometer")
+        self.dt_ref = self.t_s - float(t_ref_s)
         self.so3_cache = SO3EvaluationCache() if so3_cache is None else so3_cache
         self._zeros = np.zeros((self.t_s.shape[0], 1), dtype=np.intp)
 
@@ -235,7 +249,10 @@ class AccelResidual:
             jacobians=jacobians,
         )
         w = self.inv_sigma
-        r = (model.value - self.accel) * w
+        value = model.value
+        if ACCEL_BIAS_DRIFT in params:
+            value = value + self.dt_ref[:, None] * np.asarray(params[ACCEL_BIAS_DRIFT]).reshape(3)
+        r = (value - self.accel) * w
         if not jacobians:
             return ResidualEval(r)
         assert ev.jac_rotation is not None and pos.acceleration_weights is not None
@@ -253,6 +270,9 @@ class AccelResidual:
             jacs.append(DenseJacobian(GRAVITY, self._zeros, j_g))
         if ACCEL_BIAS in params:
             jacs.append(DenseJacobian(ACCEL_BIAS, self._zeros, _bias_jacobian(n, w)))
+        if ACCEL_BIAS_DRIFT in params:
+            j = _bias_jacobian(n, w) * self.dt_ref[:, None, None, None]
+            jacs.append(DenseJacobian(ACCEL_BIAS_DRIFT, self._zeros, j))
         for block, d in ((ACCEL_SCALE, model.d_scale), (ACCEL_MISALIGNMENT, model.d_misalignment)):
             if block in params:
                 assert d is not None

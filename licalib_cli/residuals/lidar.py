@@ -32,6 +32,8 @@ from licalib_cli.residuals import (
     EXT_ROTATION,
     EXT_TRANSLATION,
     LIDAR_INTRINSICS,
+    POINT_TIME_SCALE,
+    TIME_DRIFT,
     TIME_OFFSET,
     TRAJ_R3,
     TRAJ_SO3,
@@ -64,6 +66,8 @@ class PointToPlaneResidual:
         nominal_elevation: npt.ArrayLike,
         *,
         model_gap: npt.ArrayLike | None = None,
+        t_ref_s: float = 0.0,
+        sweep_start_s: npt.ArrayLike | None = None,
         name: str = "lidar.point_to_plane",
     ) -> None:
         """Create the block.
@@ -82,6 +86,11 @@ class PointToPlaneResidual:
             nominal_elevation: (B,) nominal beam elevations ``phi_i``, rad.
             model_gap: (N, 3) what the driver's published point adds to the LiDAR model's point
                 (LiDAR frame, m), added to the modelled point; None for zero.
+            t_ref_s: reference time of a clock drift (the IMU time of a point is
+                ``tau + t_c + k_drift (tau - t_ref)``).
+            sweep_start_s: (N,) time of each point's sweep start, LiDAR-clock seconds, for an
+                error of the per-point times within a sweep (``tau - k_point (tau - start)``);
+                None: that term is not available.
             name: residual block name.
 
         Raises:
@@ -120,15 +129,29 @@ class PointToPlaneResidual:
             if model_gap is None
             else np.ascontiguousarray(model_gap, dtype=np.float64).reshape(n, 3)
         )
+        self.since_ref = self.t_s - float(t_ref_s)
+        self.into_sweep = (
+            None
+            if sweep_start_s is None
+            else self.t_s - np.ascontiguousarray(sweep_start_s, dtype=np.float64).reshape(n)
+        )
         self._zeros = np.zeros((n, 1), dtype=np.intp)
         self._beam_elements = self.beam[:, None].copy()
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
 
-    def query_times(self, time_offset_s: float) -> F64:
-        """(N,) IMU-clock query times ``tau_k + t_c``, seconds."""
-        return self.t_s + time_offset_s
+    def query_times(
+        self, time_offset_s: float, time_drift: float = 0.0, point_time_scale: float = 0.0
+    ) -> F64:
+        """(N,) IMU-clock query times ``tau_k + t_c [+ k_drift (tau - t_ref)]
+        [- k_point (tau - sweep start)]``, seconds."""
+        t = self.t_s + time_offset_s
+        if time_drift:
+            t = t + time_drift * self.since_ref
+        if point_time_scale and self.into_sweep is not None:
+            t = t - point_time_scale * self.into_sweep
+        return t
 
     def distances(self, params: Mapping[str, F64]) -> F64:
         """(N,) signed point-to-plane distances in metres (not whitened)."""
@@ -139,7 +162,9 @@ class PointToPlaneResidual:
         """Whitened residuals (N, 1) and their Jacobians (see the module docstring)."""
         n = self.t_s.shape[0]
         tc = float(np.asarray(params.get(TIME_OFFSET, 0.0)).reshape(-1)[0])
-        t = self.t_s + tc
+        drift = float(np.asarray(params.get(TIME_DRIFT, 0.0)).reshape(-1)[0])
+        k_point = float(np.asarray(params.get(POINT_TIME_SCALE, 0.0)).reshape(-1)[0])
+        t = self.query_times(tc, drift, k_point)
         inside = self.knots.contains(t)
         all_inside = bool(np.all(inside))
         if not all_inside:
@@ -149,7 +174,9 @@ class PointToPlaneResidual:
         if intr is None:
             intr = np.zeros((self.nominal_elevation.shape[0], NUM_BEAM_INTRINSICS))
             intr[:, 4] = 1.0
-        want_time = jacobians and TIME_OFFSET in params
+        want_time = jacobians and any(
+            b in params for b in (TIME_OFFSET, TIME_DRIFT, POINT_TIME_SCALE)
+        )
         terms = lidar_point_terms(
             self.nominal_elevation,
             np.asarray(intr, dtype=np.float64).reshape(-1, NUM_BEAM_INTRINSICS),
@@ -208,9 +235,15 @@ class PointToPlaneResidual:
             )
         if want_time:
             assert geo.d_time is not None
-            jacs.append(
-                DenseJacobian(TIME_OFFSET, self._zeros, (geo.d_time * w)[:, None, None, None])
-            )
+            d_t = geo.d_time * w
+            if TIME_OFFSET in params:
+                jacs.append(DenseJacobian(TIME_OFFSET, self._zeros, d_t[:, None, None, None]))
+            if TIME_DRIFT in params:
+                j = (d_t * self.since_ref)[:, None, None, None]
+                jacs.append(DenseJacobian(TIME_DRIFT, self._zeros, j))
+            if POINT_TIME_SCALE in params and self.into_sweep is not None:
+                j = (-d_t * self.into_sweep)[:, None, None, None]
+                jacs.append(DenseJacobian(POINT_TIME_SCALE, self._zeros, j))
         if LIDAR_INTRINSICS in params:
             d_int = terms.vjp(geo.d_point * w[:, None])
             jacs.append(DenseJacobian(LIDAR_INTRINSICS, self._beam_elements, d_int[:, None, None]))

@@ -253,3 +253,79 @@ def test_priors_jacobians_and_values() -> None:
     bias_prior = GaussianPrior(GYRO_BIAS, np.zeros(3), 0.02)
     _check_all(bias_prior, params, [GYRO_BIAS], 1.0)
     assert bias_prior.evaluate(params, False).residuals.shape == (1, 3)
+
+
+def test_bias_drift_jacobians() -> None:
+    """The candidate effects ``imu.gyro_bias_drift`` / ``imu.accel_bias_drift``: a bias that
+    changes linearly with time about ``t_ref``."""
+    from licalib_cli.residuals import ACCEL_BIAS_DRIFT, GYRO_BIAS_DRIFT
+
+    rng = np.random.default_rng(40)
+    params = _random_params(rng)
+    del params[GYRO_G_SENSITIVITY]
+    params[GYRO_BIAS_DRIFT] = 1e-3 * rng.standard_normal(3)
+    params[ACCEL_BIAS_DRIFT] = 1e-2 * rng.standard_normal(3)
+    t = rng.uniform(0.0, KNOTS.t_end_s, 25)
+    gyro = GyroResidual(KNOTS, t, rng.standard_normal((25, 3)), 0.5, t_ref_s=0.4)
+    _check_all(
+        gyro,
+        params,
+        [TRAJ_SO3, GYRO_BIAS, GYRO_BIAS_DRIFT, GYRO_SCALE, GYRO_MISALIGNMENT, GYRO_ROTATION],
+        float(np.abs(gyro.gyro * gyro.inv_sigma).max()),
+    )
+    accel = AccelResidual(KNOTS, t, rng.standard_normal((25, 3)) * 9.0, 0.5, t_ref_s=0.4)
+    _check_all(
+        accel,
+        params,
+        [TRAJ_SO3, TRAJ_R3, GRAVITY, ACCEL_BIAS, ACCEL_BIAS_DRIFT, ACCEL_SCALE, ACCEL_MISALIGNMENT],
+        float(np.abs(accel.accel * accel.inv_sigma).max()),
+    )
+    # The drift adds d (t - t_ref) to the prediction.
+    without = dict(params)
+    del without[GYRO_BIAS_DRIFT]
+    diff = gyro.evaluate(params, False).residuals - gyro.evaluate(without, False).residuals
+    np.testing.assert_allclose(diff, (t - 0.4)[:, None] * params[GYRO_BIAS_DRIFT] * 2.0)
+
+
+def test_clock_drift_and_point_time_jacobians() -> None:
+    """``ext.time_drift`` and ``lidar.point_time_scale`` move each point's query time by
+    ``k_drift (tau - t_ref)`` and ``-k_point (tau - sweep start)``."""
+    from licalib_cli.residuals import POINT_TIME_SCALE, TIME_DRIFT
+
+    rng = np.random.default_rng(41)
+    params = _random_params(rng)
+    params[TIME_DRIFT] = np.array([2e-4])
+    params[POINT_TIME_SCALE] = np.array([5e-3])
+    pts = _points(rng, 30)
+    start = pts["t"] - rng.uniform(0.0, 0.1, 30)
+    res = PointToPlaneResidual(
+        KNOTS,
+        pts["t"],
+        pts["beam"],
+        pts["rho"],
+        pts["theta"],
+        pts["normal"],
+        pts["offset"],
+        pts["sigma"],
+        np.deg2rad([-10.0, 0.0, 10.0]),
+        t_ref_s=0.5,
+        sweep_start_s=start,
+    )
+    terms = (pts["rho"].max() + np.abs(pts["offset"]).max()) / pts["sigma"].min()
+    _check_all(
+        res,
+        params,
+        [
+            TRAJ_SO3,
+            TRAJ_R3,
+            EXT_ROTATION,
+            EXT_TRANSLATION,
+            TIME_OFFSET,
+            TIME_DRIFT,
+            POINT_TIME_SCALE,
+            LIDAR_INTRINSICS,
+        ],
+        float(terms),
+    )
+    expected = pts["t"] + 0.004 + 2e-4 * (pts["t"] - 0.5) - 5e-3 * (pts["t"] - start)
+    np.testing.assert_allclose(res.query_times(0.004, 2e-4, 5e-3), expected)

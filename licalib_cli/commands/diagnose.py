@@ -1,0 +1,203 @@
+"""``licalib diagnose``: which effects does the model lack? Add them one by one, show each gap
+shrink. Thin wiring: parse, load the config, one call to
+:func:`licalib_cli.pipeline.diagnose.diagnose`, render."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import typer
+from rich.table import Table
+
+from licalib_cli.commands.render import console
+from licalib_cli.config import dump_config, load_config
+from licalib_cli.errors import ConfigError
+from licalib_cli.results import create_folder, dump_yaml, write_text_atomic
+
+_IO = "Input"
+_OUT = "Output"
+
+
+def _num(x: float, digits: int = 6) -> float | None:
+    v = float(x)
+    if not math.isfinite(v):
+        return None
+    return float(f"{v:.{digits}g}")
+
+
+def diagnosis_dict(diag: Any) -> dict[str, Any]:
+    """The diagnosis as plain data (the JSON and ``diagnosis.yaml`` content)."""
+    steps = []
+    for s in diag.steps:
+        steps.append(
+            {
+                "effect": s.effect,
+                "statistic": _num(s.statistic),
+                "dof": s.dof,
+                "p_value": _num(s.p_value, 3),
+                "delta_bic": _num(s.delta_bic),
+                "kept": s.kept,
+                "estimate": {k: _num(v[0]) for k, v in s.estimate.items()},
+                "sigma": {k: _num(v[1]) for k, v in s.estimate.items()},
+                "gap_before": _gap_dict(s.gap_before),
+                "gap_after": _gap_dict(s.gap_after),
+                "gap_shrink": _num(s.shrink, 3),
+                "extrinsic_moved": {
+                    "translation_m": _num(s.moved_translation_m),
+                    "rotation_deg": _num(s.moved_rotation_deg),
+                    "time_offset_s": _num(s.moved_time_offset_s),
+                },
+            }
+        )
+    return {
+        "effects_found": list(diag.effects_found),
+        "steps": steps,
+        "base_verdict": diag.base.verdict.status,
+        "verdict": diag.final.verdict.status,
+        "calibration": diag.final.result.to_dict(),
+    }
+
+
+def _finite(x: Any) -> Any:
+    """``x`` with every non-finite float replaced by None (JSON has no inf)."""
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_finite(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def _gap_dict(g: Any) -> dict[str, Any]:
+    out = {
+        "sensor": g.sensor,
+        "chi2_per_sample": _num(g.chi2_per_sample),
+        "expected": _num(g.expected),
+        "excess": _num(g.excess),
+        "rms": _num(g.rms),
+    }
+    if math.isfinite(g.map_entropy):
+        out["map_entropy"] = _num(g.map_entropy)
+    return out
+
+
+def render_diagnosis(diag: Any) -> None:
+    """The steps as a table, then the effects kept and the final verdict."""
+    table = Table(title="Effects the base model lacks, strongest first")
+    for name in (
+        "effect",
+        "score (dof)",
+        "p",
+        "BIC change",
+        "gap before -> after",
+        "extrinsic moved",
+        "kept",
+    ):
+        table.add_column(name)
+    for s in diag.steps:
+        table.add_row(
+            s.effect,
+            f"{s.statistic:.0f} ({s.dof})",
+            f"{s.p_value:.1g}",
+            f"{s.delta_bic:+.0f}",
+            f"{s.gap_before.sensor}: {s.gap_before.excess:+.3f} -> {s.gap_after.excess:+.3f}",
+            f"{1e3 * s.moved_translation_m:.2f} mm / {s.moved_rotation_deg:.4f} deg / "
+            f"{1e3 * s.moved_time_offset_s:.3f} ms",
+            "yes" if s.kept else "no",
+        )
+    out = console()
+    if diag.steps:
+        out.print(table)
+    found = ", ".join(diag.effects_found) or "none"
+    out.print(f"Effects added to the model: {found}")
+    colour = {"pass": "green", "warn": "yellow", "fail": "red"}
+    v0, v1 = diag.base.verdict.status, diag.final.verdict.status
+    out.print(
+        f"Verdict: base model [{colour[v0]}]{v0.upper()}[/], with the effects "
+        f"[bold {colour[v1]}]{v1.upper()}[/]"
+    )
+    for reason in diag.final.verdict.reasons:
+        out.print(f"  - {reason}")
+
+
+def diagnose_command(
+    bag: Path = typer.Argument(
+        ...,
+        metavar="BAG",
+        help="ROS1 .bag (or folder of split bags), ROS2 bag folder, .db3 or .mcap.",
+    ),
+    config: Path | None = typer.Option(
+        None, "--config", "-c", help="YAML config.", rich_help_panel=_IO
+    ),
+    candidates: list[str] | None = typer.Option(
+        None,
+        "--candidates",
+        help="Consider only these effects (repeatable); default all.",
+        rich_help_panel=_IO,
+    ),
+    max_effects: int | None = typer.Option(
+        None, "--max-effects", min=0, help="Add at most this many effects.", rich_help_panel=_IO
+    ),
+    out: Path | None = typer.Option(
+        None,
+        "--out",
+        "-o",
+        metavar="DIR",
+        help="Write diagnosis.yaml, the final calibration.yaml and (with --plots) figures here.",
+        rich_help_panel=_OUT,
+    ),
+    as_json: bool = typer.Option(
+        False, "--json", help="Print one JSON object instead of tables.", rich_help_panel=_OUT
+    ),
+    plots: bool = typer.Option(
+        False,
+        "--plots",
+        help="Write the residual patterns into the -o folder.",
+        rich_help_panel=_OUT,
+    ),
+) -> None:
+    """Find effects the model lacks (score tests), add each that pays (BIC), show the gap shrink."""
+    from licalib_cli.commands.calibrate import RichProgress
+    from licalib_cli.pipeline.diagnose import CANDIDATES, diagnose
+
+    cfg = load_config(config)
+    if candidates:
+        unknown = [c for c in candidates if c not in CANDIDATES]
+        if unknown:
+            msg = f"Unknown candidate effect {unknown[0]!r}; choose from {', '.join(CANDIDATES)}."
+            raise ConfigError(msg)
+    if plots and out is None:
+        msg = "--plots writes into the -o folder; give -o DIR too."
+        raise ConfigError(msg)
+    if out is not None:
+        if out.exists() and not out.is_dir():
+            msg = f"-o needs a folder, but {out} is a file; give a folder path."
+            raise ConfigError(msg)
+        create_folder(out, "The output folder", "give a writable folder to -o")
+    progress = RichProgress() if not as_json else None
+    try:
+        diag = diagnose(bag, cfg, tuple(candidates or ()) or None, max_effects, progress)
+    finally:
+        if progress is not None:
+            progress.close()
+    data = diagnosis_dict(diag)
+    if out is not None:
+        write_text_atomic(
+            out / "diagnosis.yaml", dump_yaml({k: v for k, v in data.items() if k != "calibration"})
+        )
+        diag.final.result.save(out / "calibration.yaml")
+        write_text_atomic(out / "calibration.config.yaml", dump_config(cfg))
+        if plots:
+            from licalib_cli.plots import save_diagnosis_plots
+
+            save_diagnosis_plots(diag, out)
+    if as_json:
+        typer.echo(json.dumps(_finite(data), allow_nan=False))
+        return
+    render_diagnosis(diag)
+    if out is not None:
+        console().print(f"Written: {out / 'diagnosis.yaml'}, {out / 'calibration.yaml'}")

@@ -1,0 +1,399 @@
+"""Model selection stage (``licalib diagnose``, ``calibrate --model auto``, method.md section 10).
+
+1. Fit the base model: extrinsic, time offset, trajectory, biases and gravity.
+2. Score every candidate effect the model lacks against the residuals (a Lagrange-multiplier
+   test with the trajectory and the estimated parameters profiled out through the solver's Schur
+   complement, :mod:`licalib_cli.consistency.score`), the strongest first.
+3. Add the strongest significant candidate to the model, refit from the current estimate, and
+   keep it only if the Bayesian information criterion improves: ``BIC = sum r^2 + k ln n`` over
+   the same measurements and map (the model without the effect is re-solved on the new fit's
+   map, so that both see the same data).
+4. Repeat until no candidate is significant, or ``max_effects`` were added.
+
+Each step records the effect, its test, its estimate with 1-sigma, the gap of its sensor before
+and after (chi-square per sample above what a model that explains the data leaves, the residual
+RMS, and for LiDAR effects the mean map entropy) and how far the extrinsic moved.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field, replace
+
+from scipy import stats
+
+from licalib_cli.config import CalibConfig
+from licalib_cli.estimation import build_problem, intrinsic_coordinates
+from licalib_cli.pipeline import (
+    CalibrationRun,
+    Prepared,
+    Timer,
+    fit_and_check,
+    prepare,
+)
+from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE
+from licalib_cli.pipeline.round import extrinsic_of
+from licalib_cli.pipeline.settings import free_parameters, intrinsic_priors, lm_params
+from licalib_cli.progress import NullProgress, Progress
+from licalib_cli.solver.lm import solve
+
+__all__ = [
+    "CANDIDATES",
+    "Diagnosis",
+    "DiagnosisStep",
+    "Gap",
+    "diagnose",
+]
+
+logger = logging.getLogger(__name__)
+
+CANDIDATES: dict[str, tuple[str, str, str]] = {
+    "gyro_scale": ("imu", "gyro_scale", "gyro"),
+    "gyro_misalignment": ("imu", "gyro_misalignment", "gyro"),
+    "gyro_rotation": ("imu", "gyro_rotation", "gyro"),
+    "accel_scale": ("imu", "accel_scale", "accelerometer"),
+    "accel_misalignment": ("imu", "accel_misalignment", "accelerometer"),
+    "g_sensitivity": ("imu", "g_sensitivity", "gyro"),
+    "gyro_bias_walk": ("imu", "gyro_bias_walk", "gyro"),
+    "accel_bias_walk": ("imu", "accel_bias_walk", "accelerometer"),
+    "imu_clock_drift": ("imu", "clock_drift", "lidar"),
+    "lidar_range_offset": ("lidar", "range_offset", "lidar"),
+    "lidar_range_scale": ("lidar", "range_scale", "lidar"),
+    "lidar_elevation": ("lidar", "elevation", "lidar"),
+    "lidar_azimuth": ("lidar", "azimuth", "lidar"),
+    "lidar_vertical_offset": ("lidar", "vertical_offset", "lidar"),
+    "lidar_horizontal_offset": ("lidar", "horizontal_offset", "lidar"),
+    "lidar_point_time": ("lidar", "point_time", "lidar"),
+}
+"""Candidate effect -> (``model:`` list it joins, its name there, the sensor whose gap it
+closes). The clock drift and the per-point time show in the LiDAR's residuals (points are placed
+at the wrong trajectory time)."""
+
+_COORDINATE_PREFIX = {
+    "gyro_scale": "imu.gyro_scale.",
+    "gyro_misalignment": "imu.gyro_misalignment.",
+    "gyro_rotation": "imu.gyro_rotation.",
+    "accel_scale": "imu.accel_scale.",
+    "accel_misalignment": "imu.accel_misalignment.",
+    "g_sensitivity": "imu.gyro_g_sensitivity.",
+    "gyro_bias_walk": "imu.gyro_bias_drift.",
+    "accel_bias_walk": "imu.accel_bias_drift.",
+    "imu_clock_drift": "ext.time_drift",
+    "lidar_point_time": "lidar.point_time_scale",
+}
+_LIDAR_SUFFIX = {
+    "lidar_range_offset": ".drho",
+    "lidar_range_scale": ".s",
+    "lidar_elevation": ".dphi",
+    "lidar_azimuth": ".dtheta",
+    "lidar_vertical_offset": ".V",
+    "lidar_horizontal_offset": ".H",
+}
+
+
+@dataclass(frozen=True)
+class Gap:
+    """How far one sensor's residuals are from what a model that explains them leaves.
+
+    Attributes:
+        sensor: ``gyro``, ``accelerometer`` or ``lidar``.
+        chi2_per_sample: residual sum of squares over the noise variance, per residual.
+        expected: what a model that explains the data leaves (below 1 for the IMU: the
+            trajectory spline absorbs some of its noise).
+        rms: residual RMS in the sensor's unit.
+        map_entropy: mean map entropy of the fit's last round (LiDAR), nats.
+    """
+
+    sensor: str
+    chi2_per_sample: float
+    expected: float
+    rms: float
+    map_entropy: float = float("nan")
+
+    @property
+    def excess(self) -> float:
+        """``chi2_per_sample - expected`` (the gap; about 0 or below when explained)."""
+        return self.chi2_per_sample - self.expected
+
+
+@dataclass(frozen=True)
+class DiagnosisStep:
+    """One candidate tried.
+
+    Attributes:
+        effect: its name (:data:`CANDIDATES`).
+        statistic: score test statistic before it was added (tested against the estimated
+            coordinates only).
+        dof: its degrees of freedom.
+        p_value: the test's p-value.
+        delta_bic: BIC with the effect minus without (negative: the effect is worth it).
+        kept: whether the effect stays in the model.
+        estimate: coordinate name -> (value, 1-sigma) after the refit (``inf``: undetermined).
+        gap_before: the effect's sensor before the refit.
+        gap_after: the same after it.
+        moved_translation_m: how far the refit moved the translation.
+        moved_rotation_deg: ... the rotation.
+        moved_time_offset_s: ... the time offset.
+        before: the fit the effect was tested on.
+        after: the refit with the effect.
+    """
+
+    effect: str
+    statistic: float
+    dof: int
+    p_value: float
+    delta_bic: float
+    kept: bool
+    estimate: dict[str, tuple[float, float]]
+    gap_before: Gap
+    gap_after: Gap
+    moved_translation_m: float
+    moved_rotation_deg: float
+    moved_time_offset_s: float
+    before: CalibrationRun | None = field(default=None, repr=False, compare=False)
+    after: CalibrationRun | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def shrink(self) -> float:
+        """Fraction of the sensor's gap the effect closed (1: all; NaN without a gap)."""
+        before = self.gap_before.excess
+        if not before > 0.0:
+            return float("nan")
+        return 1.0 - max(self.gap_after.excess, 0.0) / before
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """What ``diagnose`` found.
+
+    Attributes:
+        base: the fit of the base model.
+        steps: every candidate tried, in order.
+        final: the fit with the effects kept.
+        effects_found: the effects kept, in the order added.
+    """
+
+    base: CalibrationRun
+    steps: tuple[DiagnosisStep, ...]
+    final: CalibrationRun
+    effects_found: tuple[str, ...]
+
+
+def _expected_chi2(sensor: str, cfg: CalibConfig, imu_rate_hz: float) -> float:
+    if sensor == "lidar":
+        return 1.0
+    knots_per_s = 1.0 / cfg.spline.knot_spacing_s
+    return max(0.0, 1.0 - knots_per_s / max(imu_rate_hz, 1e-9))
+
+
+def _gap(run: CalibrationRun, sensor: str, cfg: CalibConfig, imu_rate_hz: float) -> Gap:
+    consistency = run.result.consistency
+    assert consistency is not None
+    s = next(c for c in consistency.sensors if c.sensor == sensor)
+    return Gap(
+        sensor=sensor,
+        chi2_per_sample=s.chi2_per_sample,
+        expected=_expected_chi2(sensor, cfg, imu_rate_hz),
+        rms=s.rms,
+        map_entropy=run.rounds[-1].map_entropy if sensor == "lidar" else float("nan"),
+    )
+
+
+def _with_effects(cfg: CalibConfig, effects: tuple[str, ...]) -> CalibConfig:
+    """``cfg`` whose ``model:`` section lists exactly ``effects`` (on top of nothing)."""
+    imu = [CANDIDATES[e][1] for e in effects if CANDIDATES[e][0] == "imu"]
+    lidar = [CANDIDATES[e][1] for e in effects if CANDIDATES[e][0] == "lidar"]
+    return cfg.model_copy(
+        update={"model": cfg.model.model_copy(update={"imu": imu, "lidar": lidar})}
+    )
+
+
+def _sum_of_squares(run: CalibrationRun, cfg: CalibConfig, refit: bool) -> tuple[float, int, int]:
+    """``(sum r^2, residuals, free parameters)`` of ``run``'s model on ``run``'s final data.
+
+    With ``refit``, the model of ``cfg`` is first re-solved (a few iterations) on that data.
+    """
+    inputs = run.fit.inputs
+    free = free_parameters(cfg, bool(cfg.model.imu or cfg.model.lidar))
+    state = run.state
+    problem = build_problem(
+        state,
+        inputs.imu,
+        inputs.lidar,
+        inputs.planes,
+        inputs.noise,
+        free,
+        extra_residuals=intrinsic_priors(state, free),
+    )
+    if refit:
+        report = solve(problem, lm_params(cfg, max_iterations=4))
+        cost = report.final_cost
+        n_res, n_free = report.num_residuals, report.num_parameters
+    else:
+        ev = problem.evaluate(jacobians=False)
+        cost, n_res = ev.cost, ev.num_residuals
+        n_free = problem.layout().num_free
+    return 2.0 * cost, n_res, n_free
+
+
+def _estimate(run: CalibrationRun, effect: str) -> dict[str, tuple[float, float]]:
+    values = intrinsic_coordinates(run.state)
+    std = dict(zip(run.solver.calibration_names, run.solver.std, strict=True))
+    out = {}
+    for name, value in values.items():
+        if effect in _LIDAR_SUFFIX:
+            ok = name.startswith("lidar.intrinsics[") and name.endswith(_LIDAR_SUFFIX[effect])
+        else:
+            prefix = _COORDINATE_PREFIX[effect]
+            ok = name == prefix or name.startswith(prefix)
+        if ok and name in std:
+            out[name] = (float(value), float(std[name]))
+    return out
+
+
+RIVAL_FRACTION = 0.3
+"""A candidate of the same sensor whose score per degree of freedom is at least this fraction
+of the strongest one's is refitted as well; the lower BIC wins."""
+
+MAX_RIVALS = 1
+
+
+def _try_effect(
+    evidence: object,
+    run: CalibrationRun,
+    kept: tuple[str, ...],
+    prepared: Prepared,
+    cfg: CalibConfig,
+    progress: Progress,
+    timer: Timer,
+    rate: float,
+) -> DiagnosisStep:
+    """Refit ``run`` with one more effect and judge it (BIC on the refit's data)."""
+    score = evidence.score  # type: ignore[attr-defined]
+    name = score.name
+    sensor = CANDIDATES[name][2]
+    new_cfg = _with_effects(cfg, (*kept, name))
+    logger.info(
+        "Diagnose: trying %s (score %.1f on %d degrees of freedom, p = %.2g).",
+        name,
+        score.statistic,
+        score.rank,
+        score.p_value,
+    )
+    start = replace(prepared.guess, state=run.state)
+    new = fit_and_check(prepared, start, new_cfg, progress, timer, warm=True)
+    ss_new, n_res, k_new = _sum_of_squares(new, new_cfg, refit=False)
+    base_on_new = replace(new, state=run.state)
+    ss_old, _, k_old = _sum_of_squares(base_on_new, _with_effects(cfg, kept), refit=True)
+    delta_bic = (ss_new - ss_old) + (k_new - k_old) * math.log(max(n_res, 2))
+    moved = extrinsic_of(new.state).error_to(extrinsic_of(run.state))
+    alone = float(getattr(evidence, "statistic_alone", score.statistic))
+    statistic = alone if math.isfinite(alone) else float(score.statistic)
+    step = DiagnosisStep(
+        effect=name,
+        statistic=statistic,
+        dof=int(score.rank),
+        p_value=float(stats.chi2.sf(statistic, max(int(score.rank), 1))),
+        delta_bic=float(delta_bic),
+        kept=bool(delta_bic < 0.0),
+        estimate=_estimate(new, name),
+        gap_before=_gap(run, sensor, cfg, rate),
+        gap_after=_gap(new, sensor, cfg, rate),
+        moved_translation_m=moved["translation_m"],
+        moved_rotation_deg=moved["rotation_deg"],
+        moved_time_offset_s=moved["time_offset_s"],
+        before=run,
+        after=new,
+    )
+    logger.info(
+        "Diagnose: %s %s (BIC %+.1f); %s gap %.3f -> %.3f; the extrinsic moved %.2f mm / "
+        "%.4f deg / %.3f ms.",
+        name,
+        "pays" if step.kept else "does not pay",
+        delta_bic,
+        sensor,
+        step.gap_before.excess,
+        step.gap_after.excess,
+        1e3 * step.moved_translation_m,
+        step.moved_rotation_deg,
+        1e3 * step.moved_time_offset_s,
+    )
+    return step
+
+
+def diagnose(
+    bag: object,
+    cfg: CalibConfig,
+    candidates: tuple[str, ...] | None = None,
+    max_effects: int | None = None,
+    progress: Progress | None = None,
+) -> Diagnosis:
+    """Find the effects the data show, add them one by one, and show each gap shrink.
+
+    Args:
+        bag: the bag (see :func:`licalib_cli.pipeline.calibrate`).
+        cfg: the configuration; its ``model:`` section is ignored (the base model is fitted
+            first and effects are added as the data ask).
+        candidates: the effects considered (default: all of :data:`CANDIDATES`).
+        max_effects: add at most this many (default: no limit).
+        progress: progress sink.
+
+    Returns:
+        The base fit, the steps and the final fit.
+    """
+    from pathlib import Path
+
+    progress = progress or NullProgress()
+    allowed = tuple(candidates) if candidates else tuple(CANDIDATES)
+    timer = Timer()
+    base_cfg = _with_effects(cfg, ())
+    prepared: Prepared = prepare(Path(str(bag)), base_cfg, progress, timer)
+    rate = (len(prepared.rec.imu) - 1) / max(
+        float(prepared.rec.imu.t_ns[-1] - prepared.rec.imu.t_ns[0]) * 1e-9, 1e-9
+    )
+    run = fit_and_check(prepared, prepared.guess, base_cfg, progress, timer)
+    base = run
+    kept: tuple[str, ...] = ()
+    tried: set[str] = set()
+    steps: list[DiagnosisStep] = []
+    while max_effects is None or len(kept) < max_effects:
+        options = [
+            e
+            for e in run.effects
+            if e.score.name in allowed and e.score.name not in tried and e.score.rank > 0
+        ]
+        significant = [e for e in options if e.score.p_value < EFFECT_P_VALUE]
+        if not significant:
+            break
+        # The forward selection's first pick (conditional tests) when it is allowed here, else
+        # the most significant on its own; a close rival (a per-beam range scale against a
+        # range offset in a room seen at similar ranges) is refitted too and the BIC decides.
+        picked = [e for e in significant if e.selected]
+        best = picked[0] if picked else min(significant, key=lambda e: e.score.p_value)
+        per_dof = best.statistic_alone / max(best.score.rank, 1)
+        rivals = [
+            e
+            for e in options
+            if e is not best
+            and CANDIDATES[e.score.name][2] == CANDIDATES[best.score.name][2]
+            and e.statistic_alone / max(e.score.rank, 1) >= RIVAL_FRACTION * per_dof
+        ]
+        rivals = sorted(rivals, key=lambda e: -e.statistic_alone)[:MAX_RIVALS]
+        trials = [
+            _try_effect(e, run, kept, prepared, cfg, progress, timer, rate) for e in [best, *rivals]
+        ]
+        for e in [best, *rivals]:
+            tried.add(e.score.name)
+        step = min(trials, key=lambda t: t.delta_bic)
+        for t in trials:
+            if t is not step:
+                steps.append(replace(t, kept=False))
+        steps.append(step)
+        if step.kept:
+            kept = (*kept, step.effect)
+            assert step.after is not None
+            run = step.after
+    progress.close()
+    final = run
+    return Diagnosis(base=base, steps=tuple(steps), final=final, effects_found=kept)
