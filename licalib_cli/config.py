@@ -7,16 +7,27 @@ override the file. ``licalib config dump`` prints the resolved tree.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from licalib_cli.errors import ConfigError
 
+OPTION_NAMES = {
+    "imu.topic": "--imu-topic",
+    "lidar.topic": "--lidar-topic",
+    "bag.start_s": "--start",
+    "bag.duration_s": "--duration",
+    "model.imu": "--intrinsics",
+    "model.lidar": "--intrinsics",
+}
+"""The command-line option that sets a config key, for messages about a bad option value."""
+
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    # No inf or NaN anywhere: every setting is a finite number of seconds, metres, ...
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
 class ImuInputConfig(_Section):
@@ -55,8 +66,25 @@ class LidarInputConfig(_Section):
     """Spin direction used when per-point times are estimated from azimuth."""
     min_range_m: float = Field(default=0.5, ge=0.0)
     max_range_m: float = Field(default=100.0, gt=0.0)
-    nominal_elevation_deg: list[float] | None = None
-    """Beam table: nominal elevation of each ring, degrees; estimated from the data when unset."""
+    nominal_elevation_deg: list[Annotated[float, Field(ge=-90.0, le=90.0)]] | None = Field(
+        default=None, min_length=1, max_length=512
+    )
+    """Beam table: nominal elevation of each ring (ring 0 first), degrees; estimated from the
+    data when unset. Must list every ring of the clouds."""
+    max_skipped_fraction: float = Field(default=0.5, ge=0.0, le=1.0)
+    """Unusable clouds (empty, NaN, corrupt, too few points) are skipped with a warning; more
+    than this fraction of the segment's clouds skipped is an error."""
+
+    @model_validator(mode="after")
+    def _beam_table_matches_num_beams(self) -> LidarInputConfig:
+        table = self.nominal_elevation_deg
+        if table is not None and self.num_beams is not None and len(table) != self.num_beams:
+            msg = (
+                f"nominal_elevation_deg lists {len(table)} beams but num_beams is "
+                f"{self.num_beams}; give one elevation per beam"
+            )
+            raise ValueError(msg)
+        return self
 
 
 class BagConfig(_Section):
@@ -255,49 +283,126 @@ class CalibConfig(_Section):
 
 def yaml_error_summary(err: yaml.YAMLError) -> str:
     """One-line description of a YAML parse error with its line and column."""
+    if isinstance(err, yaml.reader.ReaderError):
+        return f"a non-text character {err.character!r} at byte {err.position}"
     problem = getattr(err, "problem", None) or type(err).__name__
     mark = getattr(err, "problem_mark", None)
     where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
     return f"{problem}{where}"
 
 
+class DuplicateKeyError(yaml.MarkedYAMLError):
+    """A mapping of a YAML document names the same key twice."""
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses a key given twice in one mapping (PyYAML keeps the
+    last one silently, so a setting written twice would quietly lose one of its values)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            try:
+                duplicate = key in seen
+                seen.add(key)
+            except TypeError:  # an unhashable key: the base class reports it
+                break
+            if duplicate:
+                raise DuplicateKeyError(
+                    problem=f"the key '{key}' twice", problem_mark=key_node.start_mark
+                )
+        return super().construct_mapping(node, deep=deep)
+
+
+def read_yaml(path: Path, what: str) -> Any:
+    """The YAML document of a file, or one sentence naming why it cannot be read.
+
+    Duplicated keys in a mapping are an error (PyYAML would keep the last one silently).
+
+    Args:
+        path: the file.
+        what: how the message names the file, e.g. ``"The config file"``.
+
+    Raises:
+        ConfigError: the file is missing, a folder, unreadable, not text, or not valid YAML.
+    """
+    try:
+        data = Path(path).read_bytes()
+    except FileNotFoundError as err:
+        msg = f"{what} {path} does not exist; check the path."
+        raise ConfigError(msg) from err
+    except IsADirectoryError as err:
+        msg = f"{what} {path} is a folder; pass a YAML file."
+        raise ConfigError(msg) from err
+    except OSError as err:
+        msg = f"{what} {path} cannot be read ({err.strerror}); check the path and its permissions."
+        raise ConfigError(msg) from err
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        msg = f"{what} {path} is not a text file (byte {err.start} is not UTF-8); pass a YAML file."
+        raise ConfigError(msg) from err
+    try:
+        return yaml.load(text, Loader=_UniqueKeyLoader)  # a SafeLoader
+    except DuplicateKeyError as err:
+        mark = err.problem_mark
+        msg = f"{what} {path} gives {err.problem} (line {mark.line + 1}); keep one of them."
+        raise ConfigError(msg) from err
+    except yaml.YAMLError as err:
+        why = yaml_error_summary(err)
+        msg = f"{what} {path} is not valid YAML ({why}); fix the syntax."
+        raise ConfigError(msg) from err
+    except RecursionError as err:
+        msg = f"{what} {path} nests too deeply to be a licalib YAML file; fix it."
+        raise ConfigError(msg) from err
+
+
+def _where(loc: tuple[Any, ...]) -> str:
+    return ".".join(str(x) for x in loc)
+
+
 def load_config(path: Path | None, overrides: dict[str, Any] | None = None) -> CalibConfig:
     """Read a YAML config (or defaults) and apply dotted overrides such as ``{"imu.topic": "/x"}``.
 
     Raises:
-        ConfigError: the file is missing, not YAML, or has unknown keys or bad values.
+        ConfigError: the file is missing, a folder, not text, not YAML (or names a key twice),
+            or has unknown keys or bad values; an override has a bad value.
     """
     data: dict[str, Any] = {}
     if path is not None:
         path = Path(path)
-        try:
-            loaded = yaml.safe_load(path.read_text())
-        except FileNotFoundError as err:
-            msg = f"The config file {path} does not exist; check the path."
-            raise ConfigError(msg) from err
-        except yaml.YAMLError as err:
-            why = yaml_error_summary(err)
-            msg = f"The config file {path} is not valid YAML ({why}); fix the syntax."
-            raise ConfigError(msg) from err
+        loaded = read_yaml(path, "The config file")
         if loaded is not None and not isinstance(loaded, dict):
             msg = f"The config file {path} must be a YAML mapping of sections."
             raise ConfigError(msg)
         data = loaded or {}
-    for dotted, value in (overrides or {}).items():
-        if value is None:
-            continue
-        node = data
+    given = {k: v for k, v in (overrides or {}).items() if v is not None}
+    for dotted, value in given.items():
+        node: Any = data
         *parents, leaf = dotted.split(".")
         for key in parents:
-            node = node.setdefault(key, {})
-        node[leaf] = value
+            if node.get(key) is None:  # absent, or an empty section (``bag:``)
+                node[key] = {}
+            node = node[key]
+            if not isinstance(node, dict):  # a section given as a scalar: validation says so
+                break
+        else:
+            node[leaf] = value
     try:
         return CalibConfig.model_validate(data)
     except ValidationError as err:
         first = err.errors()[0]
-        where = ".".join(str(x) for x in first["loc"])
-        source = f"config file {path}" if path else "options"
-        msg = f"Invalid setting '{where}' in the {source}: {first['msg']}."
+        loc = tuple(first["loc"])
+        where = _where(loc)
+        why = first["msg"].replace("Value error, ", "")
+        option = next((k for k in given if where == k or where.startswith(k + ".")), None)
+        if option is not None:
+            flag = OPTION_NAMES.get(option, option)
+            msg = f"Invalid value {given[option]!r} for {flag} ({option}): {why}."
+        else:
+            source = f"config file {path}" if path else "options"
+            msg = f"Invalid setting '{where}' in the {source}: {why}."
         raise ConfigError(msg) from err
 
 

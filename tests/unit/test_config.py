@@ -48,3 +48,68 @@ def test_missing_config_file(tmp_path):
 def test_dump_is_complete():
     d = yaml.safe_load(dump_config(load_config(None)))
     assert set(d) >= {"bag", "imu", "lidar"}
+
+
+@pytest.mark.parametrize(
+    ("text", "fragment"),
+    [
+        ("bag:\n  max_duration_s: .inf\n", "'bag.max_duration_s'.*finite number"),
+        ("bag:\n  start_s: .nan\n", "'bag.start_s'.*finite number"),
+        ("lidar:\n  nominal_elevation_deg: []\n", "'lidar.nominal_elevation_deg'.*at least 1"),
+        ("lidar:\n  nominal_elevation_deg: [95.0]\n", "less than or equal to 90"),
+        (
+            "lidar:\n  num_beams: 16\n  nominal_elevation_deg: [-15, 15]\n",
+            "lists 2 beams but num_beams is 16",
+        ),
+        ("lidar:\n  max_skipped_fraction: 2\n", "'lidar.max_skipped_fraction'"),
+    ],
+)
+def test_values_a_run_cannot_use_are_refused_at_load_time(tmp_path, text, fragment):
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=fragment) as info:
+        load_config(path)
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "option"),
+    [
+        ("bag.start_s", float("inf"), "--start"),
+        ("bag.duration_s", float("inf"), "--duration"),
+        ("bag.start_s", float("nan"), "--start"),
+    ],
+)
+def test_non_finite_options_name_the_option(key, value, option):
+    with pytest.raises(ConfigError, match=f"Invalid value {value!r} for {option} \\({key}\\)"):
+        load_config(None, {key: value})
+
+
+def test_config_that_is_not_a_text_file_or_is_a_folder(tmp_path):
+    binary = tmp_path / "c.yaml"
+    binary.write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(ConfigError, match=r"is not a text file \(byte \d+ is not UTF-8\)"):
+        load_config(binary)
+    with pytest.raises(ConfigError, match="is a folder; pass a YAML file"):
+        load_config(tmp_path)
+    control = tmp_path / "ctl.yaml"
+    control.write_bytes(b"bag:\n  start_s: \x07\n")
+    with pytest.raises(ConfigError, match=r"not valid YAML .*non-text character"):
+        load_config(control)
+
+
+def test_duplicated_keys_are_an_error(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("bag:\n  start_s: 1\nimu:\n  topic: /a\nbag:\n  duration_s: 20\n")
+    with pytest.raises(ConfigError, match=r"gives the key 'bag' twice \(line 5\); keep one"):
+        load_config(path)
+    path.write_text("bag:\n  start_s: 1\n  start_s: 2\n")
+    with pytest.raises(ConfigError, match="gives the key 'start_s' twice"):
+        load_config(path)
+
+
+def test_override_into_a_section_given_as_a_scalar(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("bag: 3\n")
+    with pytest.raises(ConfigError, match="'bag'"):
+        load_config(path, {"bag.start_s": 1.0})
