@@ -120,17 +120,18 @@ def gravity_turn_factor(
     if t.size < 3 or gyro.shape[0] != t.size:
         return None
     ts = (t - t.min()).astype(np.float64) * 1e-9
-    idx = np.floor(ts / _GRAVITY_BIN_S).astype(np.int64)
+    # the occupied bins only, in time order (stamps far apart must not allocate empty bins)
+    _, idx = np.unique(np.floor(ts / _GRAVITY_BIN_S).astype(np.int64), return_inverse=True)
+    idx = idx.reshape(-1)
     cnt = np.bincount(idx)
-    ok = cnt > 0
-    if int(ok.sum()) < _GRAVITY_MIN_BINS:
+    if cnt.size < _GRAVITY_MIN_BINS:
         return None
 
     def binned(x: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-        cols = [np.bincount(idx, x[:, j])[ok] / cnt[ok] for j in range(x.shape[1])]
+        cols = [np.bincount(idx, x[:, j]) / cnt for j in range(x.shape[1])]
         return np.stack(cols, axis=1)
 
-    tb = np.bincount(idx, ts)[ok] / cnt[ok]
+    tb = np.bincount(idx, ts) / cnt
     wb, ab = binned(np.asarray(gyro, np.float64)), binned(np.asarray(accel, np.float64))
     norm = np.linalg.norm(ab, axis=1)
     if not np.all(np.isfinite(norm)) or np.any(norm <= 0):

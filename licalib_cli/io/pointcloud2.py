@@ -21,7 +21,9 @@ import numpy.typing as npt
 from licalib_cli.errors import DataError
 
 __all__ = [
+    "MAX_POINT_STEP",
     "POINTFIELD_DTYPES",
+    "CloudError",
     "DecodedCloud",
     "decode_cloud",
     "field_names",
@@ -33,6 +35,24 @@ __all__ = [
 POINTFIELD_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 """``sensor_msgs/PointField`` datatype code -> numpy type (without byte order)."""
 
+MAX_POINT_STEP = 1 << 16
+"""Largest ``point_step`` accepted, bytes (drivers use 16 to 64; more means a corrupt header)."""
+
+
+class CloudError(DataError):
+    """A PointCloud2 message that cannot be decoded.
+
+    Attributes:
+        reason: what is wrong, a clause without a final full stop (e.g. ``field 'x' holds 3
+            values per point instead of one``).
+        field: the field at fault, or None when the sizes of the message are.
+    """
+
+    def __init__(self, reason: str, field: str | None = None, fix: str = "the cloud is corrupt"):
+        super().__init__(f"PointCloud2 {reason}; {fix}.")
+        self.reason = reason
+        self.field = field
+
 
 def field_names(msg: Any) -> tuple[str, ...]:
     """Names of the fields of a PointCloud2 message, in message order."""
@@ -43,31 +63,32 @@ def pointcloud2_dtype(msg: Any) -> np.dtype:
     """Structured dtype of one point: field names, offsets, byte order and ``point_step``.
 
     Raises:
-        DataError: unknown datatype code or a field that does not fit in ``point_step``.
+        CloudError: ``point_step`` is implausibly large, a datatype code is unknown, or a field
+            does not fit in ``point_step``.
     """
     order = ">" if msg.is_bigendian else "<"
     names: list[str] = []
     formats: list[Any] = []
     offsets: list[int] = []
     step = int(msg.point_step)
+    if step > MAX_POINT_STEP:
+        reason = f"has point_step {step}, more than {MAX_POINT_STEP} bytes per point"
+        raise CloudError(reason)
     for f in msg.fields:
-        code = int(f.datatype)
+        name, code = str(f.name), int(f.datatype)
         if code not in POINTFIELD_DTYPES:
-            msg_ = (
-                f"PointCloud2 field '{f.name}' has unknown datatype {code}; the cloud is corrupt."
-            )
-            raise DataError(msg_)
+            raise CloudError(f"field '{name}' has unknown datatype {code}", name)
         base = np.dtype(order + POINTFIELD_DTYPES[code])
         count = max(int(f.count), 1)
         if int(f.offset) + base.itemsize * count > step:
-            msg_ = (
-                f"PointCloud2 field '{f.name}' (offset {f.offset}) does not fit in point_step "
-                f"{step}; the cloud is corrupt."
+            reason = (
+                f"field '{name}' (offset {f.offset}, {count} x {base.itemsize} bytes) does not "
+                f"fit in point_step {step}"
             )
-            raise DataError(msg_)
-        if f.name in names:  # duplicated names (seen in some drivers): keep the first
+            raise CloudError(reason, name)
+        if name in names:  # duplicated names (seen in some drivers): keep the first
             continue
-        names.append(str(f.name))
+        names.append(name)
         formats.append(base if count == 1 else (base, (count,)))
         offsets.append(int(f.offset))
     return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
@@ -80,27 +101,23 @@ def to_structured(msg: Any) -> npt.NDArray[np.void]:
     organised with row padding (then ``reshape`` copies).
 
     Raises:
-        DataError: the sizes in the message disagree with its data.
+        CloudError: the sizes in the message disagree with its data.
     """
     dtype = pointcloud2_dtype(msg)
     height, width = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
-    data = np.asarray(msg.data, dtype=np.uint8)
+    raw = msg.data
+    data = raw if isinstance(raw, np.ndarray) else np.frombuffer(bytes(raw), dtype=np.uint8)
+    data = data.reshape(-1).view(np.uint8)
     if height * width == 0:
         return np.empty(0, dtype=dtype)
     if point_step <= 0 or row_step < width * point_step:
-        msg_ = (
-            f"PointCloud2 has row_step {row_step} < width {width} x point_step {point_step}; "
-            "the cloud is corrupt."
-        )
-        raise DataError(msg_)
+        reason = f"has row_step {row_step} < width {width} x point_step {point_step}"
+        raise CloudError(reason)
     needed = (height - 1) * row_step + width * point_step
     if data.size < needed:
-        msg_ = (
-            f"PointCloud2 data has {data.size} bytes but its header announces {needed}; the "
-            "cloud is truncated."
-        )
-        raise DataError(msg_)
+        reason = f"data has {data.size} bytes but its header announces {needed}"
+        raise CloudError(reason, fix="the cloud is truncated")
     rows = np.ndarray((height, width), dtype=dtype, buffer=data, strides=(row_step, point_step))
     return rows.reshape(-1)
 
@@ -113,7 +130,8 @@ class DecodedCloud:
         stamp_ns: header stamp, ns.
         xyz: (N, 3) float64 points in the LiDAR frame, metres (may hold NaN / zeros).
         time_raw: (N,) raw values of the per-point time field in its own dtype, or None.
-        ring: (N,) int16 beam index from the ``ring``/``line`` field, or None.
+        ring: (N,) int32 beam index from the ``ring``/``line`` field (-1 where a float field
+            holds no number), or None.
         intensity: (N,) float32, or None.
         height: rows of the message (1 for unorganised clouds).
         width: points per row.
@@ -122,13 +140,28 @@ class DecodedCloud:
     stamp_ns: int
     xyz: npt.NDArray[np.float64]
     time_raw: np.ndarray | None
-    ring: npt.NDArray[np.int16] | None
+    ring: npt.NDArray[np.int32] | None
     intensity: npt.NDArray[np.float32] | None
     height: int
     width: int
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
+
+
+def _first_value(values: np.ndarray) -> np.ndarray:
+    """(N,) the first value of each point of a field that may hold several (``count > 1``)."""
+    values = np.asarray(values)
+    return values[(slice(None),) + (0,) * (values.ndim - 1)]
+
+
+def _as_ring(values: np.ndarray) -> npt.NDArray[np.int32]:
+    v = _first_value(values)
+    if v.dtype.kind == "f":
+        finite = np.isfinite(v)
+        safe = np.where(finite, v, -1.0).clip(-1, np.iinfo(np.int32).max)
+        return safe.astype(np.int32)
+    return v.astype(np.int64).clip(-1, np.iinfo(np.int32).max).astype(np.int32)
 
 
 def decode_cloud(
@@ -139,6 +172,9 @@ def decode_cloud(
     intensity_field: str | None = "intensity",
 ) -> DecodedCloud:
     """Decode one PointCloud2 message into arrays.
+
+    A field that holds several values per point (``count > 1``) contributes its first value
+    for time, ring and intensity; x, y and z must hold one.
 
     Args:
         msg: a deserialised ``sensor_msgs/PointCloud2``.
@@ -151,38 +187,36 @@ def decode_cloud(
         The decoded cloud (xyz, raw time values, ring, intensity).
 
     Raises:
-        DataError: the cloud has no x/y/z or a named field is missing or corrupt.
+        CloudError: the cloud has no x/y/z, a named field is missing, or the message is
+            corrupt (its sizes, a datatype, a field's place or count).
     """
     pts = to_structured(msg)
     names = pts.dtype.names or ()
     missing = [n for n in ("x", "y", "z") if n not in names]
     if missing:
-        msg_ = (
-            f"PointCloud2 has no {'/'.join(missing)} field (fields: {', '.join(names)}); "
-            "licalib needs Cartesian x, y, z."
-        )
-        raise DataError(msg_)
+        reason = f"has no {'/'.join(missing)} field (fields: {', '.join(names)})"
+        raise CloudError(reason, missing[0], fix="licalib needs Cartesian x, y, z")
     xyz = np.empty((pts.shape[0], 3), dtype=np.float64)
-    xyz[:, 0] = pts["x"]
-    xyz[:, 1] = pts["y"]
-    xyz[:, 2] = pts["z"]
+    for k, axis in enumerate(("x", "y", "z")):
+        values = pts[axis]
+        if values.ndim != 1:
+            count = int(np.prod(values.shape[1:]))
+            reason = f"field '{axis}' holds {count} values per point instead of one"
+            raise CloudError(reason, axis)
+        xyz[:, k] = values
     time_raw = None
     if time_field is not None:
         if time_field not in names:
-            msg_ = (
-                f"PointCloud2 has no time field '{time_field}' (fields: {', '.join(names)}); "
-                "fix `lidar.time_field` in the config."
-            )
-            raise DataError(msg_)
-        time_raw = np.asarray(pts[time_field])
-        if time_raw.ndim != 1:
-            time_raw = time_raw.reshape(time_raw.shape[0], -1)[:, 0]
+            reason = f"has no time field '{time_field}' (fields: {', '.join(names)})"
+            raise CloudError(reason, time_field, fix="fix `lidar.time_field` in the config")
+        time_raw = _first_value(pts[time_field])
     ring = None
-    if ring_field is not None and ring_field in names:
-        ring = np.asarray(pts[ring_field]).astype(np.int16)
-    intensity = None
-    if intensity_field is not None and intensity_field in names:
-        intensity = np.asarray(pts[intensity_field]).astype(np.float32)
+    with np.errstate(invalid="ignore", over="ignore"):
+        if ring_field is not None and ring_field in names:
+            ring = _as_ring(pts[ring_field])
+        intensity = None
+        if intensity_field is not None and intensity_field in names:
+            intensity = _first_value(pts[intensity_field]).astype(np.float32)
     return DecodedCloud(
         stamp_ns=int(stamp_ns),
         xyz=xyz,
@@ -209,5 +243,6 @@ def valid_mask(
     """
     finite = np.isfinite(xyz).all(axis=1)
     safe = np.where(finite[:, None], xyz, 0.0)
-    rng = np.sqrt(np.einsum("ij,ij->i", safe, safe))
+    with np.errstate(over="ignore"):  # ranges beyond 1e154 m overflow to inf: out of range
+        rng = np.sqrt(np.einsum("ij,ij->i", safe, safe))
     return finite & (rng > 0.0) & (rng >= min_range_m) & (rng <= max_range_m)
