@@ -2,14 +2,18 @@
 
 :func:`inspect_bag` reads a segment (the whole bag by default) and returns a frozen
 :class:`BagReport`: topics, IMU and LiDAR rates, gaps, unsorted or duplicated stamps, the
-detected point layout, IMU units and the coarse IMU-LiDAR clock difference, plus the list of
-problems. It applies the same rules as :func:`licalib_cli.io.reader.read_segment` (see that
-module's table), so a bag that ``info`` calls usable can be read by the other commands.
+detected point layout, IMU units, unreadable messages and the coarse IMU-LiDAR clock
+difference, plus the list of findings. It reads through the reader's own functions
+(:func:`licalib_cli.io.reader.read_imu_stream`, :func:`~licalib_cli.io.reader.read_lidar_stream`,
+:func:`~licalib_cli.io.reader.segment_findings`), so that a bag that ``info`` calls usable can
+be read by the other commands, and a bag it refuses is refused by them with the same message
+and exit code.
 
-Unlike the reader, topic and data problems do not raise: they are collected so that the whole
-report can be shown; :meth:`BagReport.error` gives the exception for the first fatal one.
-Only unreadable inputs (missing, not a bag, corrupt) raise :class:`BagError`, and a segment
-starting after the end of the bag raises :class:`ConfigError`.
+Unlike the reader, topic, segment and data findings do not raise: they are collected so that
+the whole report can be shown; :meth:`BagReport.error` gives the exception for the first fatal
+one. Only unreadable inputs (missing, not a bag, corrupt) raise :class:`BagError`.
+:func:`error_report` gives the JSON form of any error, so that ``info --json`` always prints
+one object.
 
 Times: int64 ns in the data; the report's ``*_s`` values are seconds, relative to the first
 stamp of the stream concerned unless stated otherwise. ``clock_offset_s`` is the coarse
@@ -28,19 +32,18 @@ from typing import Any
 import numpy as np
 
 from licalib_cli.config import CalibConfig
-from licalib_cli.errors import (
-    ConfigError,
-    DataError,
-    ExcitationError,
-    LicalibError,
-    TimestampError,
-    TopicError,
-)
+from licalib_cli.errors import ConfigError, ExcitationError, LicalibError, TopicError
 from licalib_cli.io import reader as rd
-from licalib_cli.io.bag import CLOUD_TYPE, IMU_TYPE, BagHandle, open_bag, select_topic
-from licalib_cli.io.imu_units import convert_imu
+from licalib_cli.io.bag import CLOUD_TYPE, IMU_TYPE, open_bag, select_topic
 
-__all__ = ["BagReport", "ImuReport", "LidarReport", "TopicReport", "inspect_bag"]
+__all__ = [
+    "BagReport",
+    "ImuReport",
+    "LidarReport",
+    "TopicReport",
+    "error_report",
+    "inspect_bag",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -169,6 +172,8 @@ class ImuReport:
         duplicates: stamps equal to the previous one.
         first_stamp_ns: first stamp, ns.
         excitation: how the IMU moved, or None without samples.
+        unreadable: messages of the segment that could not be read (damaged bag).
+        dropped: samples dropped for NaN or infinite values.
     """
 
     topic: str
@@ -188,6 +193,8 @@ class ImuReport:
     first_stamp_ns: int
     gyro_gravity_factor: float | None = None
     excitation: Excitation | None = None
+    unreadable: int = 0
+    dropped: int = 0
 
 
 @dataclass(frozen=True)
@@ -220,6 +227,7 @@ class LidarReport:
         backwards: stamps smaller than the previous one.
         duplicates: stamps equal to the previous one.
         first_stamp_ns: first stamp, ns.
+        unreadable: messages of the segment that could not be read (damaged bag).
     """
 
     topic: str
@@ -247,6 +255,7 @@ class LidarReport:
     backwards: int = 0
     duplicates: int = 0
     first_stamp_ns: int = 0
+    unreadable: int = 0
 
 
 @dataclass(frozen=True)
@@ -264,7 +273,7 @@ class BagReport:
         imu: the IMU stream, or None when no IMU topic could be chosen.
         lidar: the LiDAR stream, or None when no LiDAR topic could be chosen.
         clock_offset_s: coarse ``t_imu - t_lidar`` clock difference, s (None: unknown).
-        problems: findings, fatal ones first.
+        problems: findings, fatal ones first (in the reader's order).
         notes: informative remarks (detected units, layout overrides).
     """
 
@@ -278,7 +287,7 @@ class BagReport:
     imu: ImuReport | None
     lidar: LidarReport | None
     clock_offset_s: float | None
-    problems: tuple[rd.Problem, ...]
+    problems: tuple[rd.Finding, ...]
     notes: tuple[str, ...] = ()
 
     @property
@@ -330,6 +339,8 @@ class BagReport:
                 "backwards": i.backwards,
                 "duplicates": i.duplicates,
                 "first_stamp_ns": i.first_stamp_ns,
+                "unreadable": i.unreadable,
+                "dropped_samples": i.dropped,
                 "excitation": None if i.excitation is None else _excitation_dict(i.excitation),
             }
         lidar = None
@@ -361,6 +372,7 @@ class BagReport:
                 "backwards": li.backwards,
                 "duplicates": li.duplicates,
                 "first_stamp_ns": li.first_stamp_ns,
+                "unreadable": li.unreadable,
             }
         return {
             "path": self.path,
@@ -397,78 +409,41 @@ class BagReport:
         }
 
 
-def _inspect_imu(
-    bag: BagHandle,
-    cfg: CalibConfig,
-    window: rd.SegmentWindow,
-    problems: list[rd.Problem],
-    notes: list[str],
-) -> tuple[ImuReport | None, int | None]:
-    try:
-        topic = select_topic(bag, IMU_TYPE, cfg.imu.topic, "--imu-topic", "imu.topic")
-    except TopicError as err:
-        problems.append(rd.Problem(str(err), True, TopicError))
-        return None, None
-    off = rd.stamp_record_offset(bag, topic.name, window)
-    raw = rd.read_raw_imu(bag, topic.name, window, off)
-    stats = rd.stamp_stats(raw.t_ns, rd.IMU_GAP_FACTOR)
-    dup = rd.exact_duplicates(raw)
-    problems.extend(rd.imu_problems(stats, int(dup.sum())))
-    keep = ~dup
-    units = rd.detect_imu_units(
-        raw.gyro[keep], raw.accel[keep], cfg.imu.gyro_unit, cfg.imu.accel_unit, raw.t_ns[keep]
-    )
-    notes.extend(units.messages())
-    problems.extend(rd.Problem(w, False, DataError) for w in units.warnings())
+def _imu_report(imu: rd.ImuRead, unreadable: int, findings: list[rd.Finding]) -> ImuReport:
     excitation = None
-    if np.count_nonzero(keep) >= 10:
-        excitation = motion_excitation(*convert_imu(raw.gyro[keep], raw.accel[keep], units))
+    if len(imu.samples) >= 10:
+        excitation = motion_excitation(imu.samples.gyro, imu.samples.accel)
         if not excitation.ok:
             msg = f"The IMU shows {excitation.summary}."
-            problems.append(rd.Problem(msg, False, ExcitationError))
-    report = ImuReport(
-        topic=topic.name,
+            findings.append(rd.Finding(msg, False, ExcitationError))
+    units, stats = imu.units, imu.stats
+    return ImuReport(
+        topic=imu.topic,
         count=stats.count,
         rate_hz=stats.rate_hz,
         duration_s=stats.duration_s,
-        gyro_unit=units.gyro_unit,
-        accel_unit=units.accel_unit,
-        gyro_unit_source=units.gyro_source,
-        accel_unit_source=units.accel_source,
-        gyro_p99=units.gyro_p99,
-        accel_norm_median=units.accel_norm_median,
+        gyro_unit=units.gyro_unit if units else "-",
+        accel_unit=units.accel_unit if units else "-",
+        gyro_unit_source=units.gyro_source if units else "-",
+        accel_unit_source=units.accel_source if units else "-",
+        gyro_p99=units.gyro_p99 if units else 0.0,
+        accel_norm_median=units.accel_norm_median if units else 0.0,
         gaps=stats.gaps,
         max_gap_s=stats.max_gap_s,
         backwards=stats.backwards,
         duplicates=stats.duplicates,
         first_stamp_ns=stats.first_ns,
-        gyro_gravity_factor=units.gravity_turn_factor,
+        gyro_gravity_factor=units.gravity_turn_factor if units else None,
         excitation=excitation,
+        unreadable=unreadable,
+        dropped=imu.dropped,
     )
-    return report, off
 
 
-def _inspect_lidar(
-    bag: BagHandle,
-    cfg: CalibConfig,
-    window: rd.SegmentWindow,
-    problems: list[rd.Problem],
-    notes: list[str],
-) -> tuple[LidarReport | None, int | None]:
-    try:
-        topic = select_topic(bag, CLOUD_TYPE, cfg.lidar.topic, "--lidar-topic", "lidar.topic")
-    except TopicError as err:
-        problems.append(rd.Problem(str(err), True, TopicError))
-        return None, None
-    off = rd.stamp_record_offset(bag, topic.name, window)
-    stamps = [
-        m.stamp_ns if m.stamp_ns is not None else m.record_ns
-        for m in rd.window_messages(bag, topic.name, window, off)
-    ]
-    stats = rd.stamp_stats(np.asarray(stamps, np.int64), rd.LIDAR_GAP_FACTOR)
-    problems.extend(rd.lidar_stamp_problems(stats))
+def _lidar_report(lidar: rd.LidarRead, unreadable: int) -> LidarReport:
+    stats, tally, layout = lidar.stats, lidar.tally, lidar.layout
     base = LidarReport(
-        topic=topic.name,
+        topic=lidar.topic,
         count=stats.count,
         rate_hz=stats.rate_hz,
         duration_s=stats.duration_s,
@@ -477,40 +452,13 @@ def _inspect_lidar(
         backwards=stats.backwards,
         duplicates=stats.duplicates,
         first_stamp_ns=stats.first_ns,
+        unreadable=unreadable,
     )
-    if stats.count == 0:
-        return base, off
-    try:
-        layout = rd.detect_layout(bag, topic.name, window, off, cfg)
-    except (DataError, TimestampError, ConfigError) as err:
-        problems.append(rd.Problem(str(err), True, type(err)))
-        return base, off
-    clock_off = off + layout.sweep_end_offset_ns
-    notes.extend(layout.time.notes)
-    problems.extend(rd.Problem(w, False, ConfigError) for w in layout.time.warnings)
-    # Check the content of up to _MAX_DECODED clouds spread over the segment.
-    step = max(1, int(np.ceil(stats.count / _MAX_DECODED)))
-    tally = rd.ScanTally()
-    for k, m in enumerate(rd.window_messages(bag, topic.name, window, off)):
-        if k % step:
-            continue
-        msg = bag.deserialize(m)
-        stamp = m.stamp_ns if m.stamp_ns is not None else m.record_ns
-        tally.total += 1
-        names = rd.field_names(msg)
-        tf = layout.time.field if layout.time.field in names else None
-        rf = layout.ring_field if layout.ring_field in names else None
-        if layout.time.field is not None and tf is None:
-            tally.skipped["no time field"] += 1
-            continue
-        dec = rd.decode_cloud(msg, stamp, tf, rf)
-        scan = rd.make_scan(dec, layout, cfg, 0)
-        if isinstance(scan, str):
-            tally.skipped[scan] += 1
-    problems.extend(tally.problems())
+    if layout is None:
+        return base
     tl = layout.time
-    report = LidarReport(
-        topic=topic.name,
+    return LidarReport(
+        topic=lidar.topic,
         count=stats.count,
         rate_hz=stats.rate_hz,
         duration_s=stats.duration_s,
@@ -535,8 +483,8 @@ def _inspect_lidar(
         backwards=stats.backwards,
         duplicates=stats.duplicates,
         first_stamp_ns=stats.first_ns,
+        unreadable=unreadable,
     )
-    return report, clock_off
 
 
 def _excitation_dict(e: Excitation) -> dict[str, Any]:
@@ -550,68 +498,92 @@ def _excitation_dict(e: Excitation) -> dict[str, Any]:
     }
 
 
-def inspect_bag(path: Path, cfg: CalibConfig) -> BagReport:
+def inspect_bag(path: Path, cfg: CalibConfig, *, min_span_s: float = rd.MIN_SEGMENT_S) -> BagReport:
     """Inspect a segment of a bag (the whole bag by default) without calibrating.
 
     Args:
         path: a ROS1 ``.bag`` (or folder of split ``.bag`` files), a ROS2 bag folder, or a bare
             ``.db3``/``.mcap`` file.
-        cfg: configuration (``bag``, ``imu``, ``lidar`` sections: topics, segment, overrides).
+        cfg: configuration (``bag``, ``imu``, ``lidar`` sections: topics, segment, overrides;
+            ``spline.knot_spacing_s`` for the IMU rate it needs).
+        min_span_s: the least time both sensors must cover, as
+            :func:`licalib_cli.io.reader.read_segment` (0: judge a short bag's data only).
 
     Returns:
-        The report; topic, stamp and content problems are listed in ``problems``.
+        The report; topic, segment, stamp and content findings are listed in ``problems``, in
+        the order the reader checks them (so the first fatal one is what ``calibrate`` would
+        stop on).
 
     Raises:
         BagError: the path is missing, not a bag, or corrupt/truncated.
-        ConfigError: the segment starts after the end of the bag.
     """
-    problems: list[rd.Problem] = []
+    findings: list[rd.Finding] = []
     notes: list[str] = []
+    imu_read: rd.ImuRead | None = None
+    lidar_read: rd.LidarRead | None = None
+    imu = lidar = None
     with open_bag(path) as bag:
         dur = max((bag.end_ns - bag.start_ns) / _NS, 1e-9)
         topics = tuple(
             TopicReport(t.name, t.msgtype, t.count, t.count / dur if t.count > 1 else 0.0)
             for t in bag.topics
         )
-        window = rd.segment_window(bag, cfg)
-        imu, off_imu = _inspect_imu(bag, cfg, window, problems, notes)
-        lidar, off_lid = _inspect_lidar(bag, cfg, window, problems, notes)
+        chosen = {}
+        for key, msgtype, name, option, config_key in (
+            ("imu", IMU_TYPE, cfg.imu.topic, "--imu-topic", "imu.topic"),
+            ("lidar", CLOUD_TYPE, cfg.lidar.topic, "--lidar-topic", "lidar.topic"),
+        ):
+            try:
+                chosen[key] = select_topic(bag, msgtype, name, option, config_key).name
+            except TopicError as err:
+                findings.append(rd.Finding(str(err), True, TopicError))
+        try:
+            window = rd.segment_window(bag, cfg)
+        except ConfigError as err:
+            findings.append(rd.Finding(str(err), True, ConfigError))
+            window = None
+        if window is not None:
+            findings += rd.window_findings(bag, window, cfg, min_span_s)
+            if "imu" in chosen:
+                imu_read = rd.read_imu_stream(bag, chosen["imu"], window, cfg, chosen.get("lidar"))
+                findings += imu_read.findings
+            if "lidar" in chosen:
+                listed = next(t.count for t in bag.topics if t.name == chosen["lidar"])
+                end = bag.end_ns if window.stop_ns is None else min(window.stop_ns, bag.end_ns)
+                share = max(0.0, (end - window.start_ns) / _NS / dur)
+                every = max(1, int(np.ceil(listed * min(share, 1.0) / _MAX_DECODED)))
+                lidar_read = rd.read_lidar_stream(
+                    bag,
+                    chosen["lidar"],
+                    window,
+                    cfg,
+                    None if imu_read is None else imu_read.offset_ns,
+                    keep=False,
+                    every=every,
+                    imu_topic=chosen.get("imu"),
+                )
+                findings += lidar_read.findings
+            if imu_read is not None and lidar_read is not None:
+                findings += rd.segment_findings(imu_read, lidar_read, bag.start_ns, min_span_s)
+        if imu_read is not None:
+            imu = _imu_report(imu_read, bag.loss(imu_read.topic).total, findings)
+            if imu_read.units is not None:
+                notes.extend(imu_read.units.messages())
+        if lidar_read is not None:
+            lidar = _lidar_report(lidar_read, bag.loss(lidar_read.topic).total)
+            if lidar_read.layout is not None:
+                notes.extend(lidar_read.layout.time.notes)
         fmt, start_ns, end_ns = bag.format, bag.start_ns, bag.end_ns
     stamp_rates = {r.topic: r.rate_hz for r in (imu, lidar) if r is not None and r.rate_hz > 0}
     topics = tuple(
         TopicReport(t.name, t.msgtype, t.count, stamp_rates.get(t.name, t.rate_hz)) for t in topics
     )
     clock = None
-    if off_imu is not None and off_lid is not None:
-        clock_ns = off_imu - off_lid
-        clock = clock_ns / _NS
-        if abs(clock_ns) >= _NS:
-            problems.append(
-                rd.Problem(
-                    f"The IMU and LiDAR stamps use different clocks ({clock:+.3f} s apart); "
-                    "licalib shifts the LiDAR times into the IMU clock, check the drivers' "
-                    "time synchronisation.",
-                    False,
-                    TimestampError,
-                )
-            )
-        if imu is not None and lidar is not None and imu.count and lidar.count:
-            shift = clock_ns if abs(clock_ns) >= _NS else 0
-            i0, i1 = imu.first_stamp_ns, imu.first_stamp_ns + int(imu.duration_s * _NS)
-            l0 = lidar.first_stamp_ns + shift
-            l1 = l0 + int(lidar.duration_s * _NS)
-            if l1 < i0 or l0 > i1:
-                problems.append(
-                    rd.Problem(
-                        "The IMU and LiDAR stamps do not overlap in time; the sensors' clocks "
-                        "are not synchronised, fix the drivers' time stamping and re-record.",
-                        True,
-                        TimestampError,
-                    )
-                )
-    problems.sort(key=lambda p: not p.fatal)
-    for p in problems:
-        logger.debug("problem: %s", p.message)
+    if lidar_read is not None and lidar_read.clock_offset_ns is not None:
+        clock = lidar_read.clock_offset_ns / _NS
+    findings.sort(key=lambda p: not p.fatal)
+    for p in findings:
+        logger.debug("finding: %s", p.message)
     return BagReport(
         path=str(path),
         format=fmt,
@@ -623,6 +595,29 @@ def inspect_bag(path: Path, cfg: CalibConfig) -> BagReport:
         imu=imu,
         lidar=lidar,
         clock_offset_s=clock,
-        problems=tuple(problems),
+        problems=tuple(findings),
         notes=tuple(notes),
     )
+
+
+def error_report(path: Path | str | None, message: str, exit_code: int) -> dict[str, Any]:
+    """The JSON object of ``licalib info --json`` when the bag could not be inspected (it
+    could not be opened, an option is invalid, the run was interrupted): the keys of
+    :meth:`BagReport.to_dict`, empty, with the error as the one problem."""
+    code = int(exit_code)
+    return {
+        "path": None if path is None else str(path),
+        "format": None,
+        "duration_s": None,
+        "start_ns": None,
+        "end_ns": None,
+        "segment": None,
+        "topics": [],
+        "imu": None,
+        "lidar": None,
+        "clock_offset_s": None,
+        "usable": False,
+        "exit_code": code,
+        "problems": [{"severity": "error", "message": message, "exit_code": code}],
+        "notes": [],
+    }

@@ -7,9 +7,16 @@ LiDAR points are metres in the LiDAR frame, one absolute time per point.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
+
+if TYPE_CHECKING:
+    from licalib_cli.io.imu_units import ImuUnits
+    from licalib_cli.io.reader import CloudLayout
+
+_NS = 1_000_000_000
 
 
 @dataclass(frozen=True)
@@ -65,3 +72,50 @@ class LidarScan:
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
+
+
+@dataclass(frozen=True)
+class Recording:
+    """One segment of a bag, validated and converted (what the reader hands on).
+
+    Attributes:
+        imu: IMU samples (rad/s, m/s^2), IMU clock.
+        scans: LiDAR scans of the segment in stamp order; their times are in the IMU clock
+            when ``lidar_shift_ns != 0``.
+        imu_topic: IMU topic read.
+        lidar_topic: LiDAR topic read.
+        layout: detected point layout.
+        imu_units: units of the raw IMU messages.
+        clock_offset_ns: coarse ``t_imu - t_lidar`` clock difference, ns.
+        lidar_shift_ns: shift applied to every LiDAR time (``clock_offset_ns`` when it is
+            1 s or more, else 0), ns.
+        start_ns: segment start in the IMU clock, ns.
+        end_ns: segment end in the IMU clock, ns (exclusive).
+        warnings: non-fatal findings, one sentence each.
+        imu_unreadable: IMU messages of the segment that could not be read (undecodable, a
+            stamp far from their record time, or lost in a damaged chunk).
+        lidar_unreadable: the same for the LiDAR messages.
+        imu_samples_dropped: IMU samples dropped for NaN or infinite values.
+        scans_skipped: clouds of the segment skipped as unusable (empty, corrupt, ...).
+    """
+
+    imu: ImuSamples
+    scans: tuple[LidarScan, ...]
+    imu_topic: str
+    lidar_topic: str
+    layout: CloudLayout
+    imu_units: ImuUnits
+    clock_offset_ns: int
+    lidar_shift_ns: int
+    start_ns: int
+    end_ns: int
+    warnings: tuple[str, ...] = ()
+    imu_unreadable: int = 0
+    lidar_unreadable: int = 0
+    imu_samples_dropped: int = 0
+    scans_skipped: int = 0
+
+    @property
+    def clock_offset_s(self) -> float:
+        """Coarse clock difference ``t_imu - t_lidar``, seconds."""
+        return self.clock_offset_ns / _NS

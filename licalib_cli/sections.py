@@ -387,6 +387,14 @@ class RecordingSection(_Section):
     start_ns: int
     clock_offset_s: float
     lidar_clock_shift_s: float
+    imu_unreadable_messages: int = 0
+    """IMU messages of the segment that could not be read (damaged bag), skipped."""
+    lidar_unreadable_messages: int = 0
+    """LiDAR messages of the segment that could not be read (damaged bag), skipped."""
+    imu_samples_dropped: int = 0
+    """IMU samples dropped for NaN or infinite values."""
+    scans_skipped: int = 0
+    """Clouds of the segment skipped as unusable (empty, corrupt, too few points, ...)."""
 
 
 @dataclass(frozen=True)

@@ -4,9 +4,10 @@ Thin command: parse options -> ``load_config`` -> :func:`licalib_cli.inspection.
 -> render (rich tables, or one JSON object with ``--json``).
 
 Exit codes: 0 when the segment is usable; otherwise the code of the first fatal problem
-(2 bag unreadable, 3 topic problem, 4 unusable data, 5 timestamp problem, 6 configuration),
-with its one-sentence message on standard error. With ``--json`` the JSON object is printed
-to standard output in every case where the bag could be opened.
+(2 bag unreadable, 3 topic problem, 4 unusable data, 5 timestamp problem, 6 configuration,
+7 segment too short), the same as ``calibrate`` would stop with, and its one-sentence message
+on standard error. With ``--json`` one JSON object with ``problems`` is printed to standard
+output whatever the outcome (an unreadable bag or an invalid option included).
 """
 
 from __future__ import annotations
@@ -21,7 +22,8 @@ from rich.table import Table
 
 from licalib_cli.commands.render import console
 from licalib_cli.config import load_config
-from licalib_cli.inspection import BagReport, inspect_bag
+from licalib_cli.errors import LicalibError
+from licalib_cli.inspection import BagReport, error_report, inspect_bag
 
 
 def info_command(
@@ -51,16 +53,21 @@ def info_command(
     ] = None,
 ) -> None:
     """Show topics, rates, gaps, point layout, IMU units and clock offsets of a bag."""
-    cfg = load_config(
-        config,
-        {
-            "imu.topic": imu_topic,
-            "lidar.topic": lidar_topic,
-            "bag.start_s": start,
-            "bag.duration_s": duration,
-        },
-    )
-    report = inspect_bag(bag, cfg)
+    try:
+        cfg = load_config(
+            config,
+            {
+                "imu.topic": imu_topic,
+                "lidar.topic": lidar_topic,
+                "bag.start_s": start,
+                "bag.duration_s": duration,
+            },
+        )
+        report = inspect_bag(bag, cfg)
+    except LicalibError as err:
+        if as_json:
+            typer.echo(json.dumps(error_report(bag, str(err), err.exit_code), indent=2))
+        raise
     if as_json:
         typer.echo(json.dumps(report.to_dict(), indent=2))
     else:
@@ -92,10 +99,11 @@ def render_report(report: BagReport) -> None:
         f"{len(report.topics)} topics; segment: {seg}"
     )
     roles = {}
-    if report.imu is not None:
-        roles[report.imu.topic] = "IMU"
-    if report.lidar is not None:
-        roles[report.lidar.topic] = "LiDAR"
+    unreadable = {}
+    for role, stream in (("IMU", report.imu), ("LiDAR", report.lidar)):
+        if stream is not None:
+            roles[stream.topic] = role
+            unreadable[stream.topic] = stream.unreadable
     topics = Table(title="Topics", title_justify="left")
     for col, just in (
         ("topic", "left"),
@@ -106,9 +114,10 @@ def render_report(report: BagReport) -> None:
     ):
         topics.add_column(col, justify=just)  # type: ignore[arg-type]
     for t in report.topics:
-        topics.add_row(
-            escape(t.name), t.msgtype, str(t.count), f"{t.rate_hz:.1f}", roles.get(t.name, "")
-        )
+        count = str(t.count)
+        if unreadable.get(t.name):
+            count += f" ([yellow]{unreadable[t.name]} unreadable[/yellow])"
+        topics.add_row(escape(t.name), t.msgtype, count, f"{t.rate_hz:.1f}", roles.get(t.name, ""))
     out.print(topics)
 
     if report.imu is not None:
@@ -131,6 +140,9 @@ def render_report(report: BagReport) -> None:
         )
         imu.add_row("stamps going backwards", _problem_cell(i.backwards))
         imu.add_row("duplicated stamps", _problem_cell(i.duplicates))
+        if i.unreadable or i.dropped:
+            imu.add_row("unreadable messages", _problem_cell(i.unreadable, False))
+            imu.add_row("samples with NaN/inf", _problem_cell(i.dropped, False))
         if i.excitation is not None:
             e = i.excitation
             imu.add_row(
@@ -187,6 +199,8 @@ def render_report(report: BagReport) -> None:
         )
         lid.add_row("stamps going backwards", _problem_cell(li.backwards))
         lid.add_row("duplicated stamps", _problem_cell(li.duplicates))
+        if li.unreadable:
+            lid.add_row("unreadable messages", _problem_cell(li.unreadable, False))
         out.print(lid)
 
     if report.clock_offset_s is not None:

@@ -17,23 +17,28 @@ import logging
 import struct
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rosbags.highlevel import AnyReader, AnyReaderError
+import yaml
+from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
+from licalib_cli.config import yaml_error_summary
 from licalib_cli.errors import BagError, TopicError
 
 __all__ = [
     "CLOUD_TYPE",
     "IMU_TYPE",
     "BagHandle",
+    "MessageLosses",
     "RawMessage",
     "TopicInfo",
     "bag_paths",
+    "detect_format",
     "open_bag",
+    "repair_hint",
     "select_topic",
 ]
 
@@ -121,6 +126,144 @@ def bag_paths(path: Path) -> list[Path]:
     return [path]
 
 
+_MAGIC = {
+    "ros1": b"#ROSBAG V2.0\n",
+    "mcap": b"\x89MCAP",
+    "db3": b"SQLite format 3\x00",
+}
+_SUFFIX_FORMAT = {".bag": "ros1", ".mcap": "mcap", ".db3": "db3"}
+_FORMAT_NAME = {
+    "ros1": "ROS1 bag",
+    "mcap": "ROS2 MCAP file",
+    "db3": "ROS2 SQLite (.db3) file",
+}
+_FORMAT_SUFFIX = {"ros1": ".bag", "mcap": ".mcap", "db3": ".db3"}
+
+
+def detect_format(path: Path) -> str | None:
+    """The container format of a file from its first bytes: ``ros1``, ``mcap``, ``db3``,
+    ``empty``, or None when it is none of them (or cannot be read)."""
+    try:
+        with Path(path).open("rb") as f:
+            head = f.read(16)
+    except OSError:
+        return None
+    if not head:
+        return "empty"
+    for fmt, magic in _MAGIC.items():
+        if head.startswith(magic):
+            return fmt
+    return None
+
+
+def repair_hint(fmt: str, file: Path) -> str:
+    """How to repair a damaged file of format ``fmt`` (a clause after a semicolon)."""
+    if fmt == "ros1":
+        return f"repair it with `rosbag reindex {file}` (ROS1) or re-record it"
+    if fmt == "mcap":
+        return (
+            f"recover it with `mcap recover {file} -o recovered.mcap` (the mcap command-line "
+            "tool) and pass recovered.mcap, or re-record it"
+        )
+    return (
+        f"recover it with `sqlite3 {file} .recover | sqlite3 recovered.db3` and pass "
+        "recovered.db3, or re-record it"
+    )
+
+
+def _short(err: BaseException) -> str:
+    """The first line of an exception's text, without a final full stop."""
+    text = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+    return text.rstrip(".")
+
+
+def _file_problem(file: Path, err: BaseException | None) -> str:
+    """Why one storage file cannot be read: its format (from its first bytes), and the fix."""
+    expected = _SUFFIX_FORMAT.get(file.suffix)
+    found = detect_format(file)
+    if found == "empty":
+        return f"{file} is empty (0 bytes); the recording was not written, re-record it"
+    if found is not None and expected is not None and found != expected:
+        right = file.with_suffix(_FORMAT_SUFFIX[found])
+        return (
+            f"{file} is a {_FORMAT_NAME[found]}, not a {_FORMAT_NAME[expected]}; rename it to "
+            f"{right.name} and pass that"
+        )
+    if found is None:
+        what = _FORMAT_NAME.get(expected or "", "bag")
+        return (
+            f"{file} is not a {what} (it does not start with the format's signature); check the "
+            "path: licalib reads ROS1 .bag, ROS2 .db3/.mcap files and ROS2 bag folders"
+        )
+    why = f" ({_short(err)})" if err is not None else ""
+    return (
+        f"{file} is a {_FORMAT_NAME[found]} that cannot be read{why}: it is truncated or "
+        f"damaged, {repair_hint(found, file)}"
+    )
+
+
+def _try_open(paths: list[Path]) -> BaseException | None:
+    """The error of opening ``paths`` with rosbags, or None when they open."""
+    try:
+        reader = AnyReader(paths, default_typestore=get_typestore(Stores.LATEST))
+        reader.open()
+    except Exception as err:
+        return err
+    try:
+        reader.close()
+    except Exception:  # closing must not hide the answer
+        logger.debug("closing %s failed", paths, exc_info=True)
+    return None
+
+
+def _open_failure(path: Path, paths: list[Path], err: BaseException) -> str:
+    """One sentence on why ``path`` (resolved to ``paths``) cannot be opened: the format
+    detected, the file at fault and the fix for that format."""
+    if path.is_dir() and paths == [path]:  # a ROS2 bag folder
+        meta = path / "metadata.yaml"
+        storage = sorted([*path.glob("*.db3"), *path.glob("*.mcap")])
+        try:
+            info = yaml.safe_load(meta.read_text(encoding="utf-8"))
+            ok = isinstance(info, dict) and isinstance(
+                info.get("rosbag2_bagfile_information"), dict
+            )
+            why = "not a rosbag2 metadata file"
+        except yaml.YAMLError as meta_err:
+            ok, why = False, f"not valid YAML: {yaml_error_summary(meta_err)}"
+        except UnicodeDecodeError:
+            ok, why = False, "not a text file"
+        except OSError as meta_err:
+            ok, why = False, _short(meta_err)
+        if not ok:
+            direct = f"pass {storage[0]} itself (licalib reads it without metadata.yaml)"
+            fix = direct + " or " if len(storage) == 1 else ""
+            return (
+                f"The ROS2 bag folder {path} has a damaged metadata.yaml ({why}); {fix}rebuild "
+                f"it with `ros2 bag reindex {path}`."
+            )
+        for file in storage:
+            file_err = _try_open([file])
+            if file_err is not None:
+                return f"In the ROS2 bag folder {path}, {_file_problem(file, file_err)}."
+        return (
+            f"The ROS2 bag folder {path} cannot be read ({_short(err)}); its metadata.yaml does "
+            f"not match its files, rebuild it with `ros2 bag reindex {path}`."
+        )
+    if len(paths) > 1:  # a folder of split ROS1 bags
+        for file in paths:
+            file_err = _try_open([file])
+            if file_err is not None:
+                return (
+                    f"Of the {len(paths)} split bags in {path}, {_file_problem(file, file_err)}; "
+                    "or move it out of the folder to use the others."
+                )
+        return (
+            f"The split bags in {path} cannot be read together ({_short(err)}); they may not "
+            "belong to one recording, pass them one at a time."
+        )
+    return _file_problem(paths[0], err) + "."
+
+
 def _stamp_from_raw(raw: bytes | memoryview, ros1: bool) -> int | None:
     """``header.stamp`` of a serialised message that starts with a ``std_msgs/Header``.
 
@@ -137,20 +280,57 @@ def _stamp_from_raw(raw: bytes | memoryview, ros1: bool) -> int | None:
     return int(sec) * _NS + int(nsec)
 
 
+@dataclass
+class MessageLosses:
+    """Messages of one topic that the bag lists but that could not be used.
+
+    Attributes:
+        undecodable: record times of messages whose bytes do not decode.
+        misstamped: record times of messages whose header stamp lies far from their record
+            time (more than the reading margin off the topic's usual offset; e.g. zero).
+        missing: messages the bag's index counts but that could not be read at all (a damaged
+            MCAP chunk is skipped silently by the reader); known only once the whole topic was
+            read.
+    """
+
+    undecodable: set[int] = field(default_factory=set)
+    misstamped: set[int] = field(default_factory=set)
+    missing: int = 0
+
+    @property
+    def total(self) -> int:
+        """All unusable messages."""
+        return len(self.undecodable) + len(self.misstamped) + self.missing
+
+    def describe(self) -> str:
+        """What the losses are, e.g. ``"3 undecodable, 64 lost in damaged chunks"``."""
+        parts = []
+        if self.undecodable:
+            parts.append(f"{len(self.undecodable)} undecodable")
+        if self.misstamped:
+            parts.append(f"{len(self.misstamped)} with a header stamp far from the record time")
+        if self.missing:
+            parts.append(f"{self.missing} lost in damaged chunks")
+        return ", ".join(parts)
+
+
 class BagHandle:
     """An open bag: topics, time range, message streaming and deserialisation.
 
-    Use through :func:`open_bag`. All reading errors are re-raised as :class:`BagError`.
+    Use through :func:`open_bag`. Reading errors are re-raised as :class:`BagError`; messages
+    that cannot be used are counted per topic in :attr:`losses` (see :meth:`decode`).
     """
 
-    def __init__(self, path: Path, reader: AnyReader) -> None:
+    def __init__(self, path: Path, reader: AnyReader, files: list[Path]) -> None:
         self.path = path
+        self.files = files
         self._reader = reader
         self.ros1 = not reader.is2
         self.topics: tuple[TopicInfo, ...] = tuple(
             TopicInfo(name, msgtype, count)
             for (name, msgtype), count in sorted(self._topic_counts().items())
         )
+        self.losses: dict[str, MessageLosses] = {}
 
     def _topic_counts(self) -> dict[tuple[str, str], int]:
         counts: dict[tuple[str, str], int] = {}
@@ -187,6 +367,21 @@ class BagHandle:
         """Topics carrying ``msgtype``."""
         return [t for t in self.topics if t.msgtype == msgtype]
 
+    def loss(self, topic: str) -> MessageLosses:
+        """The unusable messages of ``topic`` found so far."""
+        return self.losses.setdefault(topic, MessageLosses())
+
+    def _damaged(self, err: BaseException) -> BagError:
+        """The error for a bag whose messages stop reading part way."""
+        kind = self.format.removeprefix("ros2-")
+        files = [f for f in self.files if f.is_file()] or [self.path]
+        file = files[0] if len(files) == 1 else self.path
+        msg = (
+            f"The bag {self.path} is damaged: reading its messages failed part way ("
+            f"{type(err).__name__}: {str(err).strip().rstrip('.')}); {repair_hint(kind, file)}."
+        )
+        return BagError(msg)
+
     def messages(
         self,
         topics: Sequence[str],
@@ -194,6 +389,9 @@ class BagHandle:
         stop_ns: int | None = None,
     ) -> Iterator[RawMessage]:
         """Stream messages of ``topics`` with record time in ``[start_ns, stop_ns)``.
+
+        When the range covers the whole bag and the stream is read to its end, messages the
+        index counts but the reader could not deliver are counted in :attr:`losses`.
 
         Args:
             topics: topic names to read.
@@ -210,36 +408,45 @@ class BagHandle:
         conns = [c for c in self._reader.connections if c.topic in wanted]
         if not conns:
             return
+        whole = (start_ns is None or start_ns <= self.start_ns) and (
+            stop_ns is None or stop_ns >= self.end_ns
+        )
+        seen: dict[str, int] = dict.fromkeys(wanted, 0)
         try:
             for conn, t_rec, raw in self._reader.messages(
                 connections=conns, start=start_ns, stop=stop_ns
             ):
+                seen[conn.topic] += 1
                 yield RawMessage(
                     conn.topic, int(t_rec), _stamp_from_raw(raw, self.ros1), raw, conn.msgtype
                 )
         except BagError:
             raise
         except Exception as err:  # storage back ends raise their own exception types
-            msg = (
-                f"The bag {self.path} is corrupt or truncated ({type(err).__name__}: {err}); "
-                "re-record it or repair it (ROS1: `rosbag reindex`; ROS2: `ros2 bag reindex`)."
-            )
-            raise BagError(msg) from err
+            raise self._damaged(err) from err
+        if whole:
+            listed = {t.name: t.count for t in self.topics if t.name in wanted}
+            for topic, n in listed.items():
+                self.loss(topic).missing = max(0, n - seen[topic])
 
-    def deserialize(self, message: RawMessage) -> Any:
+    def decode(self, message: RawMessage) -> Any | None:
         """Deserialise one message with the bag's embedded definitions.
 
-        Raises:
-            BagError: the bytes do not decode (corrupt message).
+        Returns:
+            The message, or None when its bytes do not decode (counted in :attr:`losses`).
         """
         try:
             return self._reader.deserialize(message.raw, message.msgtype)
-        except Exception as err:
-            msg = (
-                f"A {message.msgtype} message on {message.topic} in {self.path} cannot be "
-                f"decoded ({err}); the bag is corrupt, re-record or repair it."
+        except Exception:  # any decoding failure means a damaged message
+            logger.debug(
+                "%s message at %d on %s does not decode",
+                message.msgtype,
+                message.record_ns,
+                message.topic,
+                exc_info=True,
             )
-            raise BagError(msg) from err
+            self.loss(message.topic).undecodable.add(message.record_ns)
+            return None
 
 
 @contextmanager
@@ -254,28 +461,19 @@ def open_bag(path: Path) -> Iterator[BagHandle]:
         A :class:`BagHandle`, closed on exit.
 
     Raises:
-        BagError: missing path, not a bag, corrupt or truncated bag.
+        BagError: missing path, not a bag, corrupt or truncated bag; the message names the
+            format detected, the file at fault and the fix for that format.
     """
     path = Path(path)
     paths = bag_paths(path)
     try:
         reader = AnyReader(paths, default_typestore=get_typestore(Stores.LATEST))
         reader.open()
-    except (AnyReaderError, FileNotFoundError, OSError, ValueError, KeyError) as err:
-        msg = (
-            f"{path} cannot be read as a bag ({err}); check that it is a complete ROS1 .bag, "
-            "ROS2 bag folder or .db3/.mcap file (a truncated ROS1 bag can be repaired with "
-            "`rosbag reindex`)."
-        )
-        raise BagError(msg) from err
-    except Exception as err:  # e.g. sqlite or mcap parsing errors on damaged files
-        msg = (
-            f"{path} cannot be read as a bag ({type(err).__name__}: {err}); it is corrupt or "
-            "truncated, re-record or repair it."
-        )
-        raise BagError(msg) from err
+    except Exception as err:  # rosbags, sqlite, mcap and OS errors on damaged inputs
+        raise BagError(_open_failure(path, paths, err)) from err
+    files = [p for q in paths for p in ([q] if q.is_file() else sorted(q.iterdir()))]
     try:
-        yield BagHandle(path, reader)
+        yield BagHandle(path, reader, files)
     finally:
         try:
             reader.close()

@@ -117,6 +117,13 @@ class BagWriter:
         record_ns: int | None = None,
     ) -> None:
         """Write one ``sensor_msgs/Imu`` (orientation unknown: covariance[0] = -1)."""
+        msg = self.imu_message(t_ns, gyro, accel, frame_id)
+        self.write_message(topic, IMU_TYPE, msg, t_ns if record_ns is None else record_ns)
+
+    def imu_message(
+        self, t_ns: int, gyro: npt.ArrayLike, accel: npt.ArrayLike, frame_id: str = "imu"
+    ) -> Any:
+        """A ``sensor_msgs/Imu`` of this writer's typestore (see :meth:`write_imu`)."""
         types = self.typestore.types
         vec = types["geometry_msgs/msg/Vector3"]
         g = np.asarray(gyro, dtype=np.float64)
@@ -132,7 +139,7 @@ class BagWriter:
             linear_acceleration=vec(x=float(a[0]), y=float(a[1]), z=float(a[2])),
             linear_acceleration_covariance=np.zeros(9),
         )
-        self.write_message(topic, IMU_TYPE, msg, t_ns if record_ns is None else record_ns)
+        return msg
 
     def write_cloud(
         self,
@@ -157,6 +164,19 @@ class BagWriter:
             is_dense: defaults to "no NaN in x".
             row_padding: extra bytes at the end of each row (``row_step > width*point_step``).
         """
+        msg = self.cloud_message(t_ns, points, frame_id, is_dense, row_padding)
+        self.write_message(topic, CLOUD_TYPE, msg, t_ns if record_ns is None else record_ns)
+
+    def cloud_message(
+        self,
+        t_ns: int,
+        points: np.ndarray,
+        frame_id: str = "lidar",
+        is_dense: bool | None = None,
+        row_padding: int = 0,
+    ) -> Any:
+        """A ``sensor_msgs/PointCloud2`` of this writer's typestore (see :meth:`write_cloud`);
+        its fields can be altered before :meth:`write_message` (e.g. to write a damaged one)."""
         types = self.typestore.types
         pts = np.asarray(points)
         if pts.ndim == 1:
@@ -197,4 +217,4 @@ class BagWriter:
             data=rows.reshape(-1),
             is_dense=is_dense,
         )
-        self.write_message(topic, CLOUD_TYPE, msg, t_ns if record_ns is None else record_ns)
+        return msg

@@ -11,7 +11,7 @@ import numpy as np
 from licalib_cli import __version__
 from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import beam_point_counts
-from licalib_cli.io.reader import Recording
+from licalib_cli.measurements import Recording
 from licalib_cli.pipeline.checks import Checks
 from licalib_cli.pipeline.initialise import InitialGuess
 from licalib_cli.pipeline.round import extrinsic_of
@@ -57,6 +57,10 @@ def recording_section(bag: Path, rec: Recording) -> RecordingSection:
         start_ns=int(rec.start_ns),
         clock_offset_s=round(rec.clock_offset_s, 9),
         lidar_clock_shift_s=round(rec.lidar_shift_ns / _NS, 9),
+        imu_unreadable_messages=rec.imu_unreadable,
+        lidar_unreadable_messages=rec.lidar_unreadable,
+        imu_samples_dropped=rec.imu_samples_dropped,
+        scans_skipped=rec.scans_skipped,
     )
 
 

@@ -42,7 +42,7 @@ from licalib_cli.initialization.time_offset import (
     estimate_time_offset_joint,
 )
 from licalib_cli.initialization.translation import LeverArmEstimate, estimate_lever_arm
-from licalib_cli.io.reader import Recording
+from licalib_cli.measurements import Recording
 from licalib_cli.models.intrinsics import LidarIntrinsics
 from licalib_cli.odometry import PoseSeries, refine_odometry, run_odometry
 from licalib_cli.pipeline.settings import (

@@ -9,8 +9,8 @@ import numpy as np
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.consistency import imu_noise, range_noise
-from licalib_cli.errors import ExcitationError
-from licalib_cli.io.reader import Recording, read_segment
+from licalib_cli.io.reader import MIN_SEGMENT_S, read_segment
+from licalib_cli.measurements import Recording
 from licalib_cli.pipeline.settings import NoiseLevels
 
 __all__ = ["MIN_SEGMENT_S", "measure_noise", "read_recording"]
@@ -18,9 +18,6 @@ __all__ = ["MIN_SEGMENT_S", "measure_noise", "read_recording"]
 logger = logging.getLogger(__name__)
 
 _NS = 1_000_000_000
-
-MIN_SEGMENT_S = 2.0
-"""Shorter segments are refused: a few scans cannot determine the extrinsic."""
 
 _NOISE_SCANS = 20
 """Scans used to measure the range noise (spread over the segment)."""
@@ -31,7 +28,8 @@ def read_recording(bag: Path, cfg: CalibConfig) -> Recording:
 
     Raises:
         BagError, TopicError, DataError, TimestampError: unreadable or unusable input.
-        ExcitationError: the segment is shorter than :data:`MIN_SEGMENT_S`.
+        ExcitationError: the segment (or the time both sensors cover) is shorter than
+            :data:`MIN_SEGMENT_S` (the reader's rule, shared with ``licalib info``).
     """
     rec = read_segment(Path(bag), cfg)
     logger.info(
@@ -40,13 +38,6 @@ def read_recording(bag: Path, cfg: CalibConfig) -> Recording:
         len(rec.scans),
         (rec.end_ns - rec.start_ns) / _NS,
     )
-    span_s = float(rec.imu.t_ns[-1] - rec.imu.t_ns[0]) / _NS
-    if span_s < MIN_SEGMENT_S:
-        msg = (
-            f"The segment holds only {span_s:.1f} s of data, too little to calibrate; use "
-            "10-60 s with rotation about all three axes (--start/--duration)."
-        )
-        raise ExcitationError(msg)
     return rec
 
 

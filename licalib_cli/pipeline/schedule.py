@@ -19,7 +19,7 @@ import numpy as np
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import CalibrationState, ImuData, intrinsic_coordinates
-from licalib_cli.io.reader import Recording
+from licalib_cli.measurements import Recording
 from licalib_cli.models.intrinsics import lidar_point
 from licalib_cli.pipeline.initialise import InitialGuess
 from licalib_cli.pipeline.points import PointSample, points_per_scan, sample_points

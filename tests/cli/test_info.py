@@ -44,7 +44,7 @@ def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str,
 @pytest.fixture(scope="module")
 def small_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("info") / "small.bag"
-    layouts.write_velodyne_bag(path, "ros1", n_clouds=10)
+    layouts.write_velodyne_bag(path, "ros1", n_clouds=24)
     return path
 
 
@@ -75,11 +75,11 @@ def test_info_json(small_bag: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert JSON_IMU_KEYS <= set(data["imu"])
     assert JSON_LIDAR_KEYS <= set(data["lidar"])
     assert {"clock_offset_s", "problems", "usable", "exit_code", "topics"} <= set(data)
-    assert data["imu"]["count"] == 240 and data["imu"]["rate_hz"] == pytest.approx(200.0)
+    assert data["imu"]["count"] == 520 and data["imu"]["rate_hz"] == pytest.approx(200.0)
     assert data["imu"]["gyro_unit"] == "rad/s" and data["imu"]["accel_unit"] == "m/s^2"
     li = data["lidar"]
     assert (li["count"], li["time_field"], li["time_unit"], li["time_reference"]) == (
-        10,
+        24,
         "time",
         "s",
         "relative",
@@ -93,11 +93,11 @@ def test_info_json(small_bag: Path, capsys: pytest.CaptureFixture[str]) -> None:
 
 def test_info_segment_options(small_bag: Path, capsys: pytest.CaptureFixture[str]) -> None:
     code, out, _ = _run(
-        ["info", str(small_bag), "--json", "--start", "0.2", "--duration", "0.5"], capsys
+        ["info", str(small_bag), "--json", "--start", "0.2", "--duration", "2"], capsys
     )
     assert code == 0
     data = json.loads(out)
-    assert data["imu"]["count"] == 100 and data["lidar"]["count"] == 5
+    assert data["imu"]["count"] == 400 and data["lidar"]["count"] == 20
 
 
 def test_info_json_reports_fatal_problem_with_exit_code(
@@ -126,12 +126,12 @@ def test_info_shows_coarse_clock_difference(
     t0 = 1_700_000_000 * layouts.NS
     boot = 3_000 * layouts.NS
     with BagWriter(path, "ros2-mcap") as w:
-        for i in range(240):
+        for i in range(480):
             t = t0 + i * 5_000_000
             w.write_imu(
                 "/imu", t - t0 + boot, [0.4 * np.sin(i / 9), 0.1, 0], [0, 0, 9.8], record_ns=t
             )
-        for k in range(10):
+        for k in range(24):
             stamp = t0 + k * 100_000_000
             w.write_cloud(
                 "/points", stamp, layouts.velodyne_points(stamp), record_ns=stamp + PERIOD
@@ -155,7 +155,7 @@ def _bag_with_imu(path: Path, gyro: np.ndarray, accel: np.ndarray) -> None:
     with BagWriter(path, "ros2-mcap") as w:
         for i in range(len(gyro)):
             w.write_imu("/imu", t0 + i * 5_000_000, gyro[i], accel[i])
-        for k in range(10):
+        for k in range(24):
             stamp = t0 + k * PERIOD
             w.write_cloud(
                 "/points", stamp, layouts.velodyne_points(stamp), record_ns=stamp + PERIOD
@@ -163,7 +163,7 @@ def _bag_with_imu(path: Path, gyro: np.ndarray, accel: np.ndarray) -> None:
 
 
 def test_info_slow_deg_s_gyro_detected(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    s = np.arange(240) / 200.0
+    s = np.arange(480) / 200.0
     gyro, accel = layouts.tilting_imu(0.2 * s)
     gyro_deg = np.rad2deg(0.2 * gyro)  # slow tilting, p99 |w| of a few deg/s
     _bag_with_imu(tmp_path / "x", gyro_deg, accel)
@@ -177,9 +177,9 @@ def test_info_slow_deg_s_gyro_detected(tmp_path: Path, capsys: pytest.CaptureFix
 def test_info_ambiguous_gyro_unit_warns_but_stays_usable(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    s = np.arange(240) / 200.0
+    s = np.arange(480) / 200.0
     gyro = np.stack([0 * s, 0 * s, 5.0 * np.sin(2.0 * s)], 1)  # yaw only: cannot tell
-    accel = np.tile([0.0, 0.0, 9.81], (240, 1))
+    accel = np.tile([0.0, 0.0, 9.81], (480, 1))
     _bag_with_imu(tmp_path / "x", gyro, accel)
     code, out, err = _run(["info", str(tmp_path / "x"), "--json"], capsys)
     assert code == 0, err

@@ -107,7 +107,9 @@ def _result(
         case.shift,
     )
     recording = (
-        RecordingSection(*fields) if frames is None else RecordingWithFrames(*fields, *frames)
+        RecordingSection(*fields)
+        if frames is None
+        else RecordingWithFrames(*fields, imu_frame=frames[0], lidar_frame=frames[1])
     )
     return CalibrationResult(
         extrinsic=Extrinsic(case.R, case.t, case.dt),

@@ -36,12 +36,13 @@ Field names, datatypes, offsets and point_step of each driver, as published by i
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from licalib_cli.io.writer import BagFormat, BagWriter
+from licalib_cli.io.writer import CLOUD_TYPE, BagFormat, BagWriter
 
 NS = 1_000_000_000
 
@@ -302,16 +303,17 @@ def write_custom_bag(
     cloud_topic: str = "/points",
     t0_ns: int = 1_700_000_000 * NS,
 ) -> None:
-    """A bag with IMU samples at ``imu_t`` (default 1.2 s at 200 Hz) and the given clouds.
+    """A bag with IMU samples at ``imu_t`` (default 2.4 s at 200 Hz) and the given clouds
+    (default 24 at 10 Hz: longer than the 2 s a calibration needs).
 
     Record times follow the message index (IMU: its nominal time; clouds: the end of their
     nominal sweep), so unsorted or duplicated stamps stay as written in the bag.
     """
     if imu_t is None:
-        imu_t = t0_ns + np.arange(240, dtype=np.int64) * 5_000_000
+        imu_t = t0_ns + np.arange(480, dtype=np.int64) * 5_000_000
     if clouds is None:
         clouds = [
-            (t0_ns + k * 100_000_000, velodyne_points(t0_ns + k * 100_000_000)) for k in range(10)
+            (t0_ns + k * 100_000_000, velodyne_points(t0_ns + k * 100_000_000)) for k in range(24)
         ]
     gyro, accel = tilting_imu(np.arange(len(imu_t)) / 200.0)
     with BagWriter(path, fmt) as w:
@@ -321,3 +323,91 @@ def write_custom_bag(
         for k, (stamp, pts) in enumerate(clouds):
             # published when the sweep ends, in the original order
             w.write_cloud(cloud_topic, stamp, pts, record_ns=t0_ns + k * 100_000_000 + 99_000_000)
+
+
+def read_short(path: Path, cfg: object) -> object:
+    """``read_segment`` without the 2 s a calibration needs: these bags test decoding and
+    validation on a few clouds."""
+    from licalib_cli.io.reader import read_segment
+
+    return read_segment(path, cfg, min_span_s=0.0)  # type: ignore[arg-type]
+
+
+def organised_points(stamp_ns: int, beams: int = 16, columns: int = 128) -> np.ndarray:
+    """An organised (beams x columns) Ouster-layout cloud of the box room, times from the stamp."""
+    sw = spinning_sweep(stamp_ns, columns=columns, clockwise=False)
+    pts = np.zeros((beams, columns), dtype=OUSTER)
+    xyz = sw.xyz.reshape(columns, beams, 3).transpose(1, 0, 2)  # rows = beams
+    pts["x"], pts["y"], pts["z"] = np.moveaxis(xyz, -1, 0)
+    pts["t"] = (sw.t_ns - sw.start_ns).reshape(columns, beams).T
+    pts["ring"] = np.arange(beams)[:, None]
+    return pts
+
+
+def write_bag(
+    path: Path,
+    fmt: BagFormat | str = "ros2-mcap",
+    seconds: float = 3.0,
+    imu_rate_hz: float = 200.0,
+    *,
+    imu: Callable[[int, int, np.ndarray, np.ndarray], Iterable[tuple]] | None = None,
+    cloud: Callable[[BagWriter, int, int], object] | None = None,
+    columns: int = 60,
+    t0_ns: int = 1_700_000_000 * NS,
+) -> Path:
+    """A bag of ``seconds`` of a tilting IMU and 10 Hz velodyne clouds, to damage in tests.
+
+    Args:
+        imu: ``(index, stamp, gyro, accel) -> [(stamp, gyro, accel, record), ...]`` replaces
+            each IMU message (an empty list drops it); None keeps them.
+        cloud: ``(writer, index, stamp) -> message`` replaces each cloud (None drops it); the
+            default writes :func:`velodyne_points` with ``columns`` columns.
+    """
+    n = round(seconds * imu_rate_hz)
+    t = t0_ns + np.round(np.arange(n) * NS / imu_rate_hz).astype(np.int64)
+    gyro, accel = tilting_imu((t - t0_ns) / NS)
+    with BagWriter(path, fmt) as w:
+        for i in range(n):
+            out = (
+                [(int(t[i]), gyro[i], accel[i], int(t[i]))]
+                if imu is None
+                else imu(i, int(t[i]), gyro[i], accel[i])
+            )
+            for stamp, g, a, rec in out:
+                w.write_imu("/imu", stamp, g, a, record_ns=rec)
+        for k in range(round(seconds * 10)):
+            stamp = t0_ns + k * 100_000_000
+            if cloud is None:
+                msg = w.cloud_message(stamp, velodyne_points(stamp, columns))
+            else:
+                msg = cloud(w, k, stamp)
+            if msg is not None:
+                w.write_message("/points", CLOUD_TYPE, msg, stamp + 99_000_000)
+    return path
+
+
+def damage_mcap_records(path: Path, first: int, count: int) -> None:
+    """Damage the opcode of ``count`` message records of an MCAP file from the ``first``
+    one (in file order): the reader skips them as unknown records, silently, as it skips what
+    a damaged chunk holds."""
+    import struct
+
+    data = bytearray(path.read_bytes())
+    pos, seen = 8, 0
+    while pos < len(data):
+        op, length = data[pos], struct.unpack_from("<Q", data, pos + 1)[0]
+        if op in (0x02, 0x0E, 0x0F):
+            break
+        if op == 0x06:  # a chunk: walk its (uncompressed) records
+            p = pos + 9 + 28
+            p += 4 + struct.unpack_from("<I", data, p)[0]  # compression name
+            end = p + 8 + struct.unpack_from("<Q", data, p)[0]
+            q = p + 8
+            while q < end:
+                if data[q] == 0x05:
+                    if first <= seen < first + count:
+                        data[q] = 0x0A
+                    seen += 1
+                q += 9 + struct.unpack_from("<Q", data, q + 1)[0]
+        pos += 9 + length
+    path.write_bytes(bytes(data))

@@ -7,12 +7,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _layouts import NS, VELODYNE, fill, spinning_sweep, write_imu_stream, write_velodyne_bag
+from _layouts import (
+    NS,
+    VELODYNE,
+    fill,
+    read_short,
+    spinning_sweep,
+    write_imu_stream,
+    write_velodyne_bag,
+)
 
 from licalib_cli.config import load_config
-from licalib_cli.errors import BagError
+from licalib_cli.errors import BagError, DataError
 from licalib_cli.io.bag import bag_paths, open_bag
-from licalib_cli.io.reader import iter_scans, read_imu, read_segment
+from licalib_cli.io.reader import iter_scans, read_imu
 from licalib_cli.io.writer import BagWriter
 
 FORMATS = ["ros1", "ros2-db3", "ros2-mcap"]
@@ -35,7 +43,7 @@ def test_roundtrip_exact(tmp_path: Path, fmt: str) -> None:
             pts["time"] = (sw.t_ns - sw.start_ns) / NS
             w.write_cloud("/points", sw.start_ns, pts, record_ns=int(sw.t_ns[-1]))
             sweeps.append((sw, pts))
-    rec = read_segment(path, load_config(None, {"lidar.min_range_m": 0.0}))
+    rec = read_short(path, load_config(None, {"lidar.min_range_m": 0.0}))
     assert rec.imu.t_ns.dtype == np.int64
     np.testing.assert_array_equal(rec.imu.t_ns, t)
     np.testing.assert_array_equal(rec.imu.gyro, gyro)
@@ -54,11 +62,11 @@ def test_roundtrip_exact(tmp_path: Path, fmt: str) -> None:
 
 
 @pytest.mark.parametrize("fmt", FORMATS)
-def test_iter_scans_matches_read_segment(tmp_path: Path, fmt: str) -> None:
+def test_iter_scans_matches_read_short(tmp_path: Path, fmt: str) -> None:
     path = _bag(tmp_path, fmt)
     write_velodyne_bag(path, fmt, n_clouds=6)
     cfg = load_config(None)
-    rec = read_segment(path, cfg)
+    rec = read_short(path, cfg)
     streamed = list(iter_scans(path, cfg))
     assert len(streamed) == len(rec.scans) == 6
     for a, b in zip(streamed, rec.scans, strict=True):
@@ -84,8 +92,8 @@ def test_bare_storage_file(tmp_path: Path, fmt: str, suffix: str) -> None:
     write_velodyne_bag(folder, fmt, n_clouds=4)
     bare = tmp_path / f"bare{suffix}"
     shutil.copy(next(folder.glob(f"*{suffix}")), bare)
-    rec_folder = read_segment(folder, load_config(None))
-    rec_bare = read_segment(bare, load_config(None))
+    rec_folder = read_short(folder, load_config(None))
+    rec_bare = read_short(bare, load_config(None))
     np.testing.assert_array_equal(rec_folder.imu.t_ns, rec_bare.imu.t_ns)
     assert len(rec_bare.scans) == 4
     with open_bag(bare) as bag:
@@ -105,7 +113,7 @@ def test_window_selects_by_header_stamp(tmp_path: Path) -> None:
             pts["time"] = (sw.t_ns - sw.start_ns) / NS
             w.write_cloud("/points", sw.start_ns, pts, record_ns=sw.start_ns + 40_000_000)
     cfg = load_config(None, {"bag.start_s": 0.5, "bag.duration_s": 0.5})
-    rec = read_segment(path, cfg)
+    rec = read_short(path, cfg)
     # first record time is T0 + 30 ms, so the window is [T0 + 0.5 s, T0 + 1.0 s) in stamps
     assert rec.imu.t_ns[0] == T0 + 500_000_000
     assert rec.imu.t_ns[-1] == T0 + 995_000_000
@@ -126,13 +134,13 @@ def test_coarse_clock_offset_shifts_lidar(tmp_path: Path) -> None:
             pts = fill(sw, VELODYNE)
             pts["time"] = (sw.t_ns - sw.start_ns) / NS
             w.write_cloud("/points", sw.start_ns, pts, record_ns=int(sw.t_ns[-1]) + 2_000_000)
-    rec = read_segment(path, load_config(None))
+    rec = read_short(path, load_config(None))
     # coarse: good to the 2 ms publication latency of the clouds
     assert abs(rec.clock_offset_ns - (boot - T0)) <= 2_000_000
     assert rec.lidar_shift_ns == rec.clock_offset_ns
     assert rec.scans[0].stamp_ns == T0 + rec.lidar_shift_ns
     assert abs(rec.scans[0].stamp_ns - boot) <= 2_000_000
-    assert any("clocks differ" in w for w in rec.warnings)
+    assert any("use different clocks" in w for w in rec.warnings)
 
 
 def test_missing_and_not_a_bag(tmp_path: Path) -> None:
@@ -155,12 +163,18 @@ def test_imu_units_detected_in_bag_and_overridden(tmp_path: Path) -> None:
             pts = fill(sw, VELODYNE)
             pts["time"] = (sw.t_ns - sw.start_ns) / NS
             w.write_cloud("/points", sw.start_ns, pts)
-    rec = read_segment(path, load_config(None))
+    rec = read_short(path, load_config(None))
     assert (rec.imu_units.gyro_unit, rec.imu_units.accel_unit) == ("deg/s", "g")
     np.testing.assert_allclose(rec.imu.gyro, np.deg2rad(gyro), rtol=1e-12)
     np.testing.assert_allclose(rec.imu.accel, accel * 9.80665, rtol=1e-12)
     assert any("deg/s" in w for w in rec.warnings) and any("in g" in w for w in rec.warnings)
-    cfg = load_config(None, {"imu.gyro_unit": "rad/s", "imu.accel_unit": "m/s^2"})
-    rec = read_segment(path, cfg)
+    cfg = load_config(None, {"imu.gyro_unit": "rad/s", "imu.accel_unit": "g"})
+    rec = read_short(path, cfg)
     np.testing.assert_array_equal(rec.imu.gyro, gyro)
-    np.testing.assert_array_equal(rec.imu.accel, accel)
+    np.testing.assert_allclose(rec.imu.accel, accel * 9.80665, rtol=1e-12)
+    # An accelerometer override that leaves no gravity is refused, naming the setting.
+    cfg = load_config(None, {"imu.accel_unit": "m/s^2"})
+    with pytest.raises(
+        DataError, match=r"reads no gravity \(median \|a\| 1 m/s\^2.*`imu.accel_unit`"
+    ):
+        read_short(path, cfg)

@@ -12,10 +12,11 @@ from licalib_cli.io.writer import BagFormat
 from licalib_cli.simulation import LidarKind, SimulationSpec, simulate
 
 # (lidar, spec options, expected info --json lidar fields). The OS1-64 keeps its native
-# 1024 columns so that the organised 64 x 1024 layout is checked (3 scans keep it fast).
+# 1024 columns so that the organised 64 x 1024 layout is checked; 2.2 s is just above the 2 s
+# a calibration (and so ``info``) needs.
 LIDARS = {
     LidarKind.VLP16: (
-        {"duration_s": 0.5, "azimuth_resolution_deg": 2.0},
+        {"duration_s": 2.2, "azimuth_resolution_deg": 2.0},
         {
             "topic": "/points_raw",
             "time_field": "time",
@@ -30,7 +31,7 @@ LIDARS = {
         },
     ),
     LidarKind.OS1_64: (
-        {"duration_s": 0.3},
+        {"duration_s": 2.2},
         {
             "topic": "/ouster/points",
             "time_field": "t",
