@@ -3,17 +3,25 @@
 Every known failure is a :class:`~licalib_cli.errors.LicalibError`; ``main`` prints its one-line
 message and exits with its code. Tracebacks appear only with ``--debug``.
 
-Exit codes: 0 success; 1 generic error; 2 bag unreadable; 3 topic problem; 4 unusable data;
-5 timestamp problem; 6 invalid configuration or option (command-line usage errors included);
-7 insufficient excitation; 8 solver failure; 130 interrupted.
+Exit codes: 0 success; 1 generic error (and an output pipe closed early, quietly); 2 bag
+unreadable; 3 topic problem; 4 unusable data; 5 timestamp problem; 6 invalid configuration or
+option (command-line usage errors included); 7 insufficient excitation; 8 solver failure;
+9 verdict fail; 10 not converged; 130 interrupted ("Interrupted." on standard error, also when
+Ctrl-C lands inside a library that turns it into another exception). ``info --json`` prints
+one JSON object with ``problems`` whatever the outcome.
 """
 
 from __future__ import annotations
 
 import importlib
+import json
 import logging
 import os
+import signal
 import sys
+import threading
+import warnings
+from types import FrameType
 
 # The dense products of the solver are small; OpenBLAS threads only add contention on them.
 # Set before numpy is imported; an explicit setting in the environment wins.
@@ -122,24 +130,84 @@ def _show_usage_error(err: Exception) -> None:
     typer.echo(f"Error: {_usage_message(err)}", err=True)
 
 
+INTERRUPTED_EXIT_CODE = 130
+"""Exit code after Ctrl-C (128 + SIGINT, as shells report it)."""
+
+_interrupt = threading.Event()
+
+
+def _on_sigint(signum: int, frame: FrameType | None) -> None:
+    """Python's own Ctrl-C behaviour, remembering that it happened: a library may turn the
+    KeyboardInterrupt into another exception (an ImportError while it loads, click's Abort)."""
+    _interrupt.set()
+    raise KeyboardInterrupt
+
+
+def _watch_interrupts() -> None:
+    if threading.current_thread() is not threading.main_thread():
+        return
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, _on_sigint)
+
+
+def _interrupted(args: list[str]) -> None:
+    _info_json(args, "Interrupted.", INTERRUPTED_EXIT_CODE)
+    sys.stderr.write("Interrupted.\n")
+    sys.exit(INTERRUPTED_EXIT_CODE)
+
+
+def _broken_pipe() -> None:
+    """Standard output was closed by its reader (``licalib info BAG | head -1``): stop quietly,
+    with the exit code click and rich give it, and keep Python's final flush from failing."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):  # stdout without a file descriptor (captured)
+        pass
+    sys.exit(1)
+
+
+def _info_json(args: list[str], message: str, code: int) -> None:
+    """For ``info --json``, the JSON object of an error that the command itself could not
+    report (a usage error, an internal error, an interrupt): scripts always get one object."""
+    if "info" not in args or "--json" not in args:
+        return
+    from licalib_cli.inspection import error_report
+
+    rest = args[args.index("info") + 1 :]
+    bag = next((a for a in rest if not a.startswith("-")), None)
+    try:
+        typer.echo(json.dumps(error_report(bag, message, code), indent=2))
+    except BrokenPipeError:
+        _broken_pipe()
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point.
 
     Exits with 0 on success (and after printing help when called without arguments), with
     the code of the :class:`LicalibError` raised, with :data:`USAGE_ERROR_EXIT_CODE` for a
-    command-line usage error (unknown option, missing argument, invalid value) and 130 on
-    Ctrl-C.
+    command-line usage error (unknown option, missing argument, invalid value), 130 on
+    Ctrl-C and 1, quietly, when standard output is closed early. Numeric RuntimeWarnings are
+    not shown unless ``--debug``.
     """
     args = list(argv) if argv is not None else sys.argv[1:]
     debug = "--debug" in args
+    _interrupt.clear()
+    _watch_interrupts()
+    if not debug:
+        warnings.filterwarnings("ignore", category=RuntimeWarning)
     try:
         # Without standalone mode click returns (not raises) the code of a typer.Exit.
         code = app(args=args, prog_name="licalib", standalone_mode=False)
+        if code == INTERRUPTED_EXIT_CODE:  # typer turns Ctrl-C into a quiet Exit(130)
+            _interrupted(args)
         if isinstance(code, int) and code != 0:
             sys.exit(code)
     except KeyboardInterrupt:
-        typer.echo("Interrupted.", err=True)
-        sys.exit(130)
+        _interrupted(args)
+    except BrokenPipeError:
+        _broken_pipe()
     except LicalibError as err:
         if debug:
             raise
@@ -148,6 +216,8 @@ def main(argv: list[str] | None = None) -> None:
     except typer.Exit as err:
         sys.exit(err.exit_code)
     except Exception as err:  # click usage errors and the unexpected
+        if _interrupt.is_set() or isinstance(err.__context__, KeyboardInterrupt):
+            _interrupted(args)
         click_exc, usage_exc, abort_exc = _click_exception_types()
         if type(err).__name__ == "NoArgsIsHelpError":
             # The help text was rendered when the error was built (rich help prints it);
@@ -159,6 +229,7 @@ def main(argv: list[str] | None = None) -> None:
         if isinstance(err, usage_exc) or (
             isinstance(err, click_exc) and getattr(err, "ctx", None) is not None
         ):
+            _info_json(args, _usage_message(err), USAGE_ERROR_EXIT_CODE)
             _show_usage_error(err)
             sys.exit(USAGE_ERROR_EXIT_CODE)
         duck = callable(getattr(err, "show", None)) and isinstance(
@@ -172,10 +243,10 @@ def main(argv: list[str] | None = None) -> None:
             sys.exit(1)
         if debug:
             raise
-        typer.secho(
-            f"Internal error: {type(err).__name__}: {err}. Rerun with --debug for the traceback "
-            "and report it.",
-            err=True,
-            fg=typer.colors.RED,
+        text = (
+            f"Internal error: {type(err).__name__}: {err}. Rerun with --debug for the "
+            "traceback and report it."
         )
+        _info_json(args, text, 1)
+        typer.secho(text, err=True, fg=typer.colors.RED)
         sys.exit(1)
