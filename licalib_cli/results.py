@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -30,7 +31,7 @@ import numpy.typing as npt
 import yaml
 from scipy.spatial.transform import Rotation
 
-from licalib_cli.config import yaml_error_summary
+from licalib_cli.config import read_yaml
 from licalib_cli.errors import ConfigError
 from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
 from licalib_cli.sections import (
@@ -315,15 +316,7 @@ class CalibrationResult:
     @classmethod
     def load(cls, path: Path) -> CalibrationResult:
         path = Path(path)
-        try:
-            data = yaml.safe_load(path.read_text())
-        except FileNotFoundError as err:
-            msg = f"The result file {path} does not exist; check the path."
-            raise ConfigError(msg) from err
-        except yaml.YAMLError as err:
-            why = yaml_error_summary(err)
-            msg = f"The result file {path} is not valid YAML ({why}); regenerate it."
-            raise ConfigError(msg) from err
+        data = read_yaml(path, "The result file")
         if not isinstance(data, dict):
             msg = f"The result file {path} is not a YAML mapping; regenerate it."
             raise ConfigError(msg)
@@ -368,15 +361,66 @@ def create_folder(folder: Path, label: str, fix: str) -> None:
         raise ConfigError(msg) from err
 
 
-def prepare_output(path: Path) -> None:
-    """Check, before a long run, that a result file can be written at ``path`` (its folder is
-    created if needed).
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether two paths name the same file (also through links), or would."""
+    try:
+        if a.exists() and b.exists():
+            return os.path.samefile(a, b)
+    except OSError:
+        pass
+    return a.resolve() == b.resolve()
+
+
+def _input_files(path: Path) -> list[Path]:
+    """The files an input consists of: itself, or every file in it when it is a folder."""
+    if path.is_dir():
+        return [p for p in sorted(path.rglob("*")) if p.is_file()]
+    return [path]
+
+
+def check_not_an_input(
+    path: Path, inputs: Sequence[tuple[str, Path | None]], label: str | None = None
+) -> None:
+    """Refuse an output path that is, or would overwrite, an input.
+
+    Args:
+        path: the file about to be written.
+        inputs: ``(what, path)`` of every input, e.g. ``("the input bag", bag)``; a folder (a
+            ROS2 bag, split ROS1 bags) stands for every file in it; None entries are skipped.
+        label: how the message names the output (default ``"The output <path>"``).
 
     Raises:
-        ConfigError: ``path`` is a folder, or its folder is a file, cannot be created or is not
-            writable.
+        ConfigError: ``path`` is one of the inputs or a file of an input folder.
     """
     path = Path(path)
+    for what, given in inputs:
+        if given is None:
+            continue
+        given = Path(given)
+        for file in _input_files(given):
+            if _same_file(path, file):
+                which = what if file == given else f"a file of {what} {given}"
+                msg = (
+                    f"{label or f'The output {path}'} is {which} ({file}); writing it would "
+                    "destroy that input, give another output path with -o."
+                )
+                raise ConfigError(msg)
+
+
+def prepare_output(path: Path, inputs: Sequence[tuple[str, Path | None]] = ()) -> None:
+    """Check, before a long run, that a result file can be written at ``path`` without
+    overwriting an input (its folder is created if needed).
+
+    Args:
+        path: the file to be written.
+        inputs: the inputs it must not overwrite (see :func:`check_not_an_input`).
+
+    Raises:
+        ConfigError: ``path`` is an input or a file of an input folder, a folder, or its folder
+            is a file, cannot be created or is not writable.
+    """
+    path = Path(path)
+    check_not_an_input(path, inputs)
     if path.is_dir():
         msg = f"The output {path} is a folder; give a file name such as {path / 'calib.yaml'}."
         raise ConfigError(msg)

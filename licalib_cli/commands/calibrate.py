@@ -10,7 +10,12 @@ import typer
 from licalib_cli.commands.render import console, console_err, render_run
 from licalib_cli.config import INTRINSIC_PRESETS, dump_config, load_config
 from licalib_cli.errors import ConfigError, NotConverged, VerdictFailure
-from licalib_cli.results import CalibrationResult, prepare_output, write_text_atomic
+from licalib_cli.results import (
+    CalibrationResult,
+    check_not_an_input,
+    prepare_output,
+    write_text_atomic,
+)
 
 _IO = "Input"
 _OUT = "Output"
@@ -133,6 +138,13 @@ def calibrate_command(
     """Calibrate T_imu_lidar and the time offset from a bag; write the result file."""
     from licalib_cli.pipeline import calibrate
 
+    # Nothing is read or computed before the outputs are known not to overwrite an input.
+    config_out = out.with_name(out.stem + ".config.yaml")
+    inputs = [("the input bag", bag), ("the config file", config), ("the truth file", truth)]
+    prepare_output(out, inputs)
+    label = f"The resolved config that calibrate writes next to the result, {config_out},"
+    check_not_an_input(config_out, inputs, label)
+    reference = CalibrationResult.load(truth) if truth is not None else None
     cfg = load_config(
         config,
         {
@@ -143,7 +155,6 @@ def calibrate_command(
             **_intrinsics_overrides(intrinsics),
         },
     )
-    prepare_output(out)
     if plots is not None:
         from licalib_cli.plots import prepare_plots
 
@@ -168,9 +179,8 @@ def calibrate_command(
 
         render_diagnosis(diagnosis)
     run.result.save(out)
-    config_out = out.with_name(out.stem + ".config.yaml")
     write_text_atomic(config_out, dump_config(cfg))
-    render_run(run, CalibrationResult.load(truth) if truth is not None else None)
+    render_run(run, reference)
     console().print(f"Result: {out}  (resolved config: {config_out})")
     if plots is not None:
         from licalib_cli.plots import save_plots
