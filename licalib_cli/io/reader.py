@@ -1110,8 +1110,10 @@ def _finite_times(values: np.ndarray) -> np.ndarray:
     return values[np.isfinite(values)] if values.dtype.kind == "f" else values
 
 
-def _cloud_label(index: int, stamp_ns: int) -> str:
-    return f"cloud {index} of the segment, stamp {_stamp_text(stamp_ns)}"
+def _cloud_label(index: int, stamp_ns: int, topic: str) -> str:
+    """``cloud 18 of /points in the segment, stamp 1700000001.700000000``."""
+    where = f" of {topic}" if topic else ""
+    return f"cloud {index}{where} in the segment, stamp {_stamp_text(stamp_ns)}"
 
 
 def detect_layout(
@@ -1342,7 +1344,9 @@ class ScanTally:
             return ""
         index, stamp, detail = self.examples[reason]
         first = "the first: " if n > 1 else ""
-        return f" ({first}{_cloud_label(index, stamp)}{': ' + detail if detail else ''})"
+        return (
+            f" ({first}{_cloud_label(index, stamp, self.topic)}{': ' + detail if detail else ''})"
+        )
 
     def all_skipped_message(self) -> str:
         """The sentence for a segment whose every checked cloud was skipped."""
@@ -1353,7 +1357,6 @@ class ScanTally:
             reason = "empty" if self.skipped["empty"] == total else "invalid"
         singular, plural, what = _SKIP_WHAT[reason]
         verb = singular if total == 1 else plural
-        where = "" if not self.topic or reason != "corrupt" else f" on {self.topic}"
         fix = _SKIP_FIX.get(reason, "check the LiDAR driver and re-record")
         if reason == "empty":
             fix = (
@@ -1362,13 +1365,13 @@ class ScanTally:
             )
         if reason == "out of range":
             return (
-                f"No point of the {_count(total, 'LiDAR cloud')} of the segment{where} lies "
+                f"No point of the {_count(total, 'LiDAR cloud')} of the segment lies "
                 "between `lidar.min_range_m` and `lidar.max_range_m`; widen that range in the "
                 "config."
             )
         mixed = "" if self.skipped[reason] == total else " or otherwise unusable"
         return (
-            f"{every} of the segment{where} {verb} {what}{mixed}"
+            f"{every} of the segment {verb} {what}{mixed}"
             f"{self._example(reason, self.skipped[reason])}; {fix}."
         )
 

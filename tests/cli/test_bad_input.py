@@ -153,7 +153,7 @@ CASES: dict[str, tuple[Builder, list[str], int, str]] = {
         lambda p: layouts.write_bag(p, cloud=_huge_point_step),
         [],
         4,
-        "(the first: cloud 1 of the segment, stamp 1700000000.000000000: has point_step "
+        "(the first: cloud 1 of /points in the segment, stamp 1700000000.000000000: has point_step "
         "2147483648, more than 65536 bytes per point)",
     ),
     "x with count 3": (
@@ -255,7 +255,8 @@ def test_one_truncated_cloud_is_skipped_naming_its_stamp(
     assert data["lidar"]["clouds_skipped"] == {"corrupt": 1}
     assert any(
         p["message"].startswith(
-            "1 of 30 LiDAR clouds is corrupt and was skipped (cloud 18 of the segment, stamp "
+            "1 of 30 LiDAR clouds is corrupt and was skipped (cloud 18 of /points in the segment, "
+            "stamp "
             "1700000001.700000000: data has 10560 bytes but its header announces 21120)"
         )
         for p in data["problems"]
