@@ -15,7 +15,12 @@ from rich.table import Table
 from licalib_cli.commands.render import console
 from licalib_cli.config import dump_config, load_config
 from licalib_cli.errors import ConfigError
-from licalib_cli.results import create_folder, dump_yaml, write_text_atomic
+from licalib_cli.results import (
+    check_not_an_input,
+    create_folder,
+    dump_yaml,
+    write_text_atomic,
+)
 
 _IO = "Input"
 _OUT = "Output"
@@ -178,6 +183,9 @@ def diagnose_command(
             msg = f"-o needs a folder, but {out} is a file; give a folder path."
             raise ConfigError(msg)
         create_folder(out, "The output folder", "give a writable folder to -o")
+        inputs = [("the input bag", bag), ("the config file", config)]
+        for name in ("diagnosis.yaml", "calibration.yaml", "calibration.config.yaml"):
+            check_not_an_input(out / name, inputs, f"The output {out / name} (written into -o)")
     progress = RichProgress() if not as_json else None
     try:
         diag = diagnose(bag, cfg, tuple(candidates or ()) or None, max_effects, progress)

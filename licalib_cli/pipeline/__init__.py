@@ -26,7 +26,7 @@ from pathlib import Path
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import CalibrationState
-from licalib_cli.io.reader import Recording
+from licalib_cli.measurements import Recording
 from licalib_cli.pipeline.assemble import assemble
 from licalib_cli.pipeline.checks import Checks, run_checks
 from licalib_cli.pipeline.fitcheck import EffectEvidence, effect_evidence, sensor_checks

@@ -609,3 +609,14 @@ def test_no_numpy_runtime_warnings_on_stderr(tmp_path: Path) -> None:
     )
     assert done.returncode == 4 and "Warning" not in done.stderr, done.stderr
     assert done.stderr.startswith("Error: 188 of 600 IMU samples on /imu hold NaN")
+
+
+def test_diagnose_output_folder_that_holds_the_config_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bag = layouts.write_bag(tmp_path / "in.bag", fmt="ros1")
+    config = tmp_path / "calibration.config.yaml"
+    config.write_text("bag:\n  start_s: 0.0\n")
+    code, _, err = run(["diagnose", str(bag), "-c", str(config), "-o", str(tmp_path)], capsys)
+    assert code == 6 and "is the config file" in error_line(err)
+    assert config.read_text() == "bag:\n  start_s: 0.0\n"
