@@ -71,7 +71,8 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
     t = time.perf_counter()
     run = calibrate(out.bag_path, cfg)
     wall = time.perf_counter() - t
-    shift = run.result.extra["recording"]["lidar_clock_shift_s"]
+    assert run.result.recording is not None and run.result.observability is not None
+    shift = run.result.recording.lidar_clock_shift_s
     truth = out.truth.extrinsic.on_shifted_clock(spec.lidar_clock_offset_s, shift)
     err = run.result.extrinsic.error_to(truth)
     return {
@@ -81,7 +82,7 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
         "rotation_deg": err["rotation_deg"],
         "time_offset_ms": 1e3 * err["time_offset_s"],
         "verdict": run.verdict.status,
-        "unobservable": run.result.extra["observability"]["unobservable"],
+        "unobservable": list(run.result.observability.unobservable),
         "calibrate_s": wall,
         "simulate_s": sim_s,
         "stages": {k: round(v, 2) for k, v in run.timings.items()},

@@ -161,7 +161,8 @@ def one_run(case: dict, workdir: Path) -> dict:
     if "imu_clock_drift" in case["effects"]:
         # A drifting clock has no single time offset: compare with the one at the middle of the
         # segment (where a calibration over the whole segment puts it).
-        ppm = out.truth.extra["simulation"]["imu"]["clock_drift_ppm"]
+        assert out.truth.simulation is not None
+        ppm = out.truth.simulation.imu.clock_drift_ppm
         mid = 0.5 * spec.duration_s
         truth = replace(truth, time_offset_s=truth.time_offset_s + 1e-6 * ppm * mid)
     unc = res.uncertainty.to_dict()

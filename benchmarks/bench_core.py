@@ -53,7 +53,8 @@ from licalib_cli.estimation import (
     build_problem,
 )
 from licalib_cli.geometry.so3 import exp as so3_exp
-from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics, imu_measure
+from licalib_cli.models.imu import imu_measure
+from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
 from licalib_cli.solver import LMParams, Problem, compute_step, solve
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
 

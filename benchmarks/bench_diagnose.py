@@ -95,7 +95,8 @@ def one_run(case: dict, workdir: Path, scale: float, sim_scale: float) -> dict:
     wall = time.perf_counter() - t0
     truth = out.truth.extrinsic
     if "imu_clock_drift" in case["effects"]:
-        ppm = out.truth.extra["simulation"]["imu"]["clock_drift_ppm"]
+        assert out.truth.simulation is not None
+        ppm = out.truth.simulation.imu.clock_drift_ppm
         from dataclasses import replace
 
         truth = replace(truth, time_offset_s=truth.time_offset_s + 1e-6 * ppm * 5.0)

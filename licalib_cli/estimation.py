@@ -42,7 +42,7 @@ observable from an IMU alone; gravity should then be free).
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -52,7 +52,13 @@ from licalib_cli.geometry import so3
 from licalib_cli.geometry.so3 import matrix_to_quat, quat_to_matrix
 from licalib_cli.measurements import ImuSamples
 from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
-from licalib_cli.models.lidar import INTRINSIC_NAMES, intrinsics_from_array, intrinsics_to_array
+from licalib_cli.models.lidar import (
+    GAUGE_COLUMNS,
+    INTRINSIC_NAMES,
+    NUM_BEAM_INTRINSICS,
+    intrinsics_from_array,
+    intrinsics_to_array,
+)
 from licalib_cli.residuals import (
     ACCEL_BIAS,
     ACCEL_BIAS_DRIFT,
@@ -78,13 +84,15 @@ from licalib_cli.residuals import (
     PointToPlaneResidual,
 )
 from licalib_cli.solver.loss import HuberLoss
-from licalib_cli.solver.parameters import ParameterBlock
+from licalib_cli.solver.parameters import Group, ManifoldName, ParameterBlock
 from licalib_cli.solver.problem import Problem, ResidualBlock
 from licalib_cli.spline import R3Spline, SO3EvaluationCache, SO3Spline, UniformKnots
 
 __all__ = [
+    "BLOCK_SPECS",
     "CALIBRATION_SCALES",
     "IMU_INTRINSIC_BLOCKS",
+    "BlockSpec",
     "CalibrationState",
     "FreeParameters",
     "ImuData",
@@ -302,12 +310,12 @@ class Planes:
 
     Attributes:
         normal: (P, 3) unit normals.
-        offset: (P,) offsets ``d``, m.
+        d: (P,) offsets ``d``, m (minus the distance of the plane from the origin along n).
         thickness: (P,) RMS point-to-plane spread of each surfel, m, or None.
     """
 
     normal: F64
-    offset: F64
+    d: F64
     thickness: F64 | None = None
 
 
@@ -607,14 +615,14 @@ def beam_point_counts(lidar: LidarPoints | None, num_beams: int) -> npt.NDArray[
 def _lidar_fixed_mask(counts: npt.NDArray[np.int64], free: FreeParameters) -> npt.NDArray[np.bool_]:
     """(B * 6,) fixed mask of ``lidar.intrinsics`` (gauge beam + under-observed beams)."""
     b = counts.shape[0]
-    fixed = np.ones((b, 6), dtype=bool)
+    fixed = np.ones((b, NUM_BEAM_INTRINSICS), dtype=bool)
     columns = np.array([free.lidar_column_free(n) for n in INTRINSIC_NAMES])
     if np.any(columns):
         enough = counts >= free.min_points_per_beam
         fixed[np.ix_(enough, columns)] = False
         if np.any(enough):
             gauge = int(np.argmax(enough))
-            fixed[gauge, :4] = True
+            fixed[gauge, list(GAUGE_COLUMNS)] = True
         weak = np.flatnonzero(~enough)
         if weak.size:
             logger.info(
@@ -625,6 +633,69 @@ def _lidar_fixed_mask(counts: npt.NDArray[np.int64], free: FreeParameters) -> np
     return fixed.reshape(-1)
 
 
+@dataclass(frozen=True)
+class BlockSpec:
+    """How one parameter block of the state enters the problem.
+
+    Attributes:
+        name: block name (:mod:`licalib_cli.residuals`).
+        group: ``"trajectory"`` (eliminated by the Schur complement) or ``"calibration"``.
+        is_free: whether :class:`FreeParameters` lets the optimiser change it.
+        manifold: ``"euclidean"``, ``"so3"`` or ``"s2"``.
+        suffixes: coordinate names ``<name>.<suffix>`` (None: the solver's default names;
+            empty: one coordinate named like the block).
+    """
+
+    name: str
+    group: Group
+    is_free: Callable[[FreeParameters], bool]
+    manifold: ManifoldName = "euclidean"
+    suffixes: tuple[str, ...] | None = None
+
+    def coord_names(self, num_beams: int) -> list[str] | None:
+        """Names of the block's tangent coordinates (the per-beam LiDAR block has one set per
+        beam)."""
+        if self.name == LIDAR_INTRINSICS:
+            return [f"{self.name}[{b}].{s}" for b in range(num_beams) for s in INTRINSIC_NAMES]
+        if self.suffixes is None:
+            return None
+        if not self.suffixes:
+            return [self.name]
+        return [f"{self.name}.{s}" for s in self.suffixes]
+
+
+def _imu_block(name: str, suffixes: tuple[str, ...], manifold: ManifoldName) -> BlockSpec:
+    return BlockSpec(
+        name, "calibration", lambda f: f.imu_block_free(name), manifold, suffixes=suffixes
+    )
+
+
+BLOCK_SPECS: tuple[BlockSpec, ...] = (
+    BlockSpec(TRAJ_SO3, "trajectory", lambda f: f.trajectory, "so3"),
+    BlockSpec(TRAJ_R3, "trajectory", lambda f: f.trajectory),
+    BlockSpec(GYRO_BIAS, "trajectory", lambda f: f.biases, suffixes=_XYZ),
+    BlockSpec(ACCEL_BIAS, "trajectory", lambda f: f.biases, suffixes=_XYZ),
+    BlockSpec(GRAVITY, "trajectory", lambda f: f.gravity, "s2"),
+    BlockSpec(
+        EXT_ROTATION, "calibration", lambda f: f.extrinsic_rotation, "so3", ("rx", "ry", "rz")
+    ),
+    BlockSpec(EXT_TRANSLATION, "calibration", lambda f: f.extrinsic_translation, suffixes=_XYZ),
+    BlockSpec(TIME_OFFSET, "calibration", lambda f: f.time_offset, suffixes=()),
+    _imu_block(GYRO_SCALE, _XYZ, "euclidean"),
+    _imu_block(GYRO_MISALIGNMENT, _MISALIGNMENT, "euclidean"),
+    _imu_block(GYRO_ROTATION, ("rx", "ry", "rz"), "so3"),
+    _imu_block(ACCEL_SCALE, _XYZ, "euclidean"),
+    _imu_block(ACCEL_MISALIGNMENT, _MISALIGNMENT, "euclidean"),
+    _imu_block(GYRO_G_SENSITIVITY, _G_SENS, "euclidean"),
+    BlockSpec(GYRO_BIAS_DRIFT, "calibration", lambda f: f.gyro_bias_drift, suffixes=_XYZ),
+    BlockSpec(ACCEL_BIAS_DRIFT, "calibration", lambda f: f.accel_bias_drift, suffixes=_XYZ),
+    BlockSpec(TIME_DRIFT, "calibration", lambda f: f.time_drift, suffixes=()),
+    BlockSpec(POINT_TIME_SCALE, "calibration", lambda f: f.point_time, suffixes=()),
+    BlockSpec(LIDAR_INTRINSICS, "calibration", lambda f: f.any_lidar_intrinsics),
+)
+"""Every parameter block of a state, in solver order (trajectory group first)."""
+
+
 def parameter_blocks(
     state: CalibrationState,
     free: FreeParameters | None = None,
@@ -632,7 +703,7 @@ def parameter_blocks(
     beam_counts: npt.ArrayLike | None = None,
     fix_gauge: bool = False,
 ) -> list[ParameterBlock]:
-    """Parameter blocks of a state, trajectory group first.
+    """Parameter blocks of a state, one per :data:`BLOCK_SPECS` entry, trajectory group first.
 
     Args:
         state: the state (initial values).
@@ -643,7 +714,8 @@ def parameter_blocks(
             problems with a free trajectory).
 
     Returns:
-        The blocks (``imu.gyro_g_sensitivity`` only when enabled or non-zero).
+        The blocks (``imu.gyro_g_sensitivity`` and the drift blocks only when enabled or
+        non-zero).
     """
     free = FreeParameters() if free is None else free
     values = state_to_values(
@@ -651,148 +723,34 @@ def parameter_blocks(
         g_sensitivity=free.imu_block_free(GYRO_G_SENSITIVITY) or None,
         effects=free_effect_blocks(free),
     )
-    n_cp = state.knots.num_control_points
+    n_beams = state.lidar_intrinsics.num_beams
     counts = (
-        np.zeros(state.lidar_intrinsics.num_beams, dtype=np.int64)
+        np.zeros(n_beams, dtype=np.int64)
         if beam_counts is None
         else np.asarray(beam_counts, dtype=np.int64)
     )
-
-    def scale(name: str) -> F64:
-        return np.asarray(CALIBRATION_SCALES[name], dtype=np.float64)
-
-    so3_fixed: bool | npt.NDArray[np.bool_] = not free.trajectory
-    r3_fixed: bool | npt.NDArray[np.bool_] = not free.trajectory
-    if free.trajectory and fix_gauge:
-        so3_fixed = np.zeros(3 * n_cp, dtype=bool)
-        so3_fixed[:3] = True
-        r3_fixed = np.zeros(3 * n_cp, dtype=bool)
-        r3_fixed[:6] = True
-
-    def names(block: str, suffixes: Sequence[str]) -> list[str]:
-        return [f"{block}.{s}" for s in suffixes]
-
-    blocks = [
-        ParameterBlock(
-            TRAJ_SO3,
-            values[TRAJ_SO3],
-            manifold="so3",
-            group="trajectory",
-            scale=scale(TRAJ_SO3),
-            fixed=so3_fixed,
-        ),
-        ParameterBlock(
-            TRAJ_R3, values[TRAJ_R3], group="trajectory", scale=scale(TRAJ_R3), fixed=r3_fixed
-        ),
-        ParameterBlock(
-            GYRO_BIAS,
-            values[GYRO_BIAS],
-            group="trajectory",
-            coord_names=names(GYRO_BIAS, _XYZ),
-            scale=scale(GYRO_BIAS),
-            fixed=not free.biases,
-        ),
-        ParameterBlock(
-            ACCEL_BIAS,
-            values[ACCEL_BIAS],
-            group="trajectory",
-            coord_names=names(ACCEL_BIAS, _XYZ),
-            scale=scale(ACCEL_BIAS),
-            fixed=not free.biases,
-        ),
-        ParameterBlock(
-            GRAVITY,
-            values[GRAVITY],
-            manifold="s2",
-            group="trajectory",
-            scale=scale(GRAVITY),
-            fixed=not free.gravity,
-        ),
-        ParameterBlock(
-            EXT_ROTATION,
-            values[EXT_ROTATION],
-            manifold="so3",
-            group="calibration",
-            coord_names=names(EXT_ROTATION, ("rx", "ry", "rz")),
-            scale=scale(EXT_ROTATION),
-            fixed=not free.extrinsic_rotation,
-        ),
-        ParameterBlock(
-            EXT_TRANSLATION,
-            values[EXT_TRANSLATION],
-            group="calibration",
-            coord_names=names(EXT_TRANSLATION, _XYZ),
-            scale=scale(EXT_TRANSLATION),
-            fixed=not free.extrinsic_translation,
-        ),
-        ParameterBlock(
-            TIME_OFFSET,
-            values[TIME_OFFSET],
-            group="calibration",
-            coord_names=[TIME_OFFSET],
-            scale=scale(TIME_OFFSET),
-            fixed=not free.time_offset,
-        ),
-    ]
-    for block, suffixes, manifold in (
-        (GYRO_SCALE, _XYZ, "euclidean"),
-        (GYRO_MISALIGNMENT, _MISALIGNMENT, "euclidean"),
-        (GYRO_ROTATION, ("rx", "ry", "rz"), "so3"),
-        (ACCEL_SCALE, _XYZ, "euclidean"),
-        (ACCEL_MISALIGNMENT, _MISALIGNMENT, "euclidean"),
-    ):
+    gauge = {TRAJ_SO3: 3, TRAJ_R3: 6}  # leading coordinates held by fix_gauge
+    blocks = []
+    for spec in BLOCK_SPECS:
+        if spec.name not in values:
+            continue
+        fixed: bool | npt.NDArray[np.bool_] = not spec.is_free(free)
+        if spec.name in gauge and free.trajectory and fix_gauge:
+            fixed = np.zeros(3 * state.knots.num_control_points, dtype=bool)
+            fixed[: gauge[spec.name]] = True
+        elif spec.name == LIDAR_INTRINSICS:
+            fixed = _lidar_fixed_mask(counts, free)
         blocks.append(
             ParameterBlock(
-                block,
-                values[block],
-                manifold=manifold,
-                group="calibration",  # type: ignore[arg-type]
-                coord_names=names(block, suffixes),
-                scale=scale(block),
-                fixed=not free.imu_block_free(block),
+                spec.name,
+                values[spec.name],
+                manifold=spec.manifold,
+                group=spec.group,
+                coord_names=spec.coord_names(n_beams),
+                scale=np.asarray(CALIBRATION_SCALES[spec.name], dtype=np.float64),
+                fixed=fixed,
             )
         )
-    if GYRO_G_SENSITIVITY in values:
-        blocks.append(
-            ParameterBlock(
-                GYRO_G_SENSITIVITY,
-                values[GYRO_G_SENSITIVITY],
-                group="calibration",
-                coord_names=names(GYRO_G_SENSITIVITY, _G_SENS),
-                scale=scale(GYRO_G_SENSITIVITY),
-                fixed=not free.imu_block_free(GYRO_G_SENSITIVITY),
-            )
-        )
-    for block, flag, suffixes in (
-        (GYRO_BIAS_DRIFT, free.gyro_bias_drift, _XYZ),
-        (ACCEL_BIAS_DRIFT, free.accel_bias_drift, _XYZ),
-        (TIME_DRIFT, free.time_drift, None),
-        (POINT_TIME_SCALE, free.point_time, None),
-    ):
-        if block in values:
-            blocks.append(
-                ParameterBlock(
-                    block,
-                    values[block],
-                    group="calibration",
-                    coord_names=[block] if suffixes is None else names(block, suffixes),
-                    scale=scale(block),
-                    fixed=not flag,
-                )
-            )
-    n_beams = state.lidar_intrinsics.num_beams
-    blocks.append(
-        ParameterBlock(
-            LIDAR_INTRINSICS,
-            values[LIDAR_INTRINSICS],
-            group="calibration",
-            coord_names=[
-                f"{LIDAR_INTRINSICS}[{b}].{s}" for b in range(n_beams) for s in INTRINSIC_NAMES
-            ],
-            scale=scale(LIDAR_INTRINSICS),
-            fixed=_lidar_fixed_mask(counts, free),
-        )
-    )
     return blocks
 
 
@@ -904,7 +862,7 @@ def build_problem(
             lidar.rho,
             lidar.theta,
             normal[plane],
-            np.asarray(planes.offset, dtype=np.float64)[plane],
+            np.asarray(planes.d, dtype=np.float64)[plane],
             np.sqrt(sigma2),
             state.lidar_intrinsics.nominal_elevation,
             model_gap=lidar.model_gap,

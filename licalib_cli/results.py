@@ -13,8 +13,9 @@ The same keys are used for a calibration result and for a simulator's ``truth.ya
 
 A calibration adds ``gravity_G`` and the typed sections of :mod:`licalib_cli.sections`
 (``uncertainty``, ``observability``, ``verdict``, ``consistency``, ``initialization``, ``fit``,
-``recording``, ``provenance``); other top-level keys (a simulator's ``scenario``, ``seed``,
-``simulation``) are kept as they are in :attr:`CalibrationResult.extra`.
+``recording``, ``provenance``). A simulator's ``truth.yaml`` adds ``scenario``, ``seed`` and
+``simulation``, read with :class:`licalib_cli.truth.Truth`; :class:`CalibrationResult` reads
+such a file's true values and leaves those sections aside.
 """
 
 from __future__ import annotations
@@ -29,10 +30,10 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 import yaml
-from scipy.spatial.transform import Rotation
 
 from licalib_cli.config import read_yaml
 from licalib_cli.errors import ConfigError
+from licalib_cli.geometry import so3
 from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
 from licalib_cli.sections import (
     Consistency,
@@ -55,15 +56,19 @@ def _list(a: npt.ArrayLike, digits: int = 9) -> list[float]:
     return [round(float(x), digits) for x in np.asarray(a, dtype=np.float64).reshape(-1)]
 
 
+def _vec3(values: Any) -> tuple[float, float, float]:
+    x, y, z = (float(v) for v in values)
+    return (x, y, z)
+
+
 def rpy_deg_from_matrix(rot: F64) -> F64:
     """``[roll, pitch, yaw]`` in degrees with ``R = Rz(yaw) Ry(pitch) Rx(roll)``."""
-    return Rotation.from_matrix(rot).as_euler("ZYX", degrees=True)[::-1].copy()
+    return np.degrees(so3.matrix_to_rpy(rot)) + 0.0  # + 0.0: no -0.0 in the file
 
 
 def matrix_from_rpy_deg(rpy_deg: npt.ArrayLike) -> F64:
     """Inverse of :func:`rpy_deg_from_matrix`."""
-    r = np.asarray(rpy_deg, dtype=np.float64)
-    return Rotation.from_euler("ZYX", r[::-1], degrees=True).as_matrix()
+    return so3.rpy_to_matrix(np.radians(np.asarray(rpy_deg, dtype=np.float64)))
 
 
 @dataclass(frozen=True)
@@ -83,8 +88,7 @@ class Extrinsic:
     @property
     def quaternion(self) -> F64:
         """``[x, y, z, w]`` with ``w >= 0``."""
-        q = Rotation.from_matrix(self.rotation).as_quat()
-        return -q if q[3] < 0 else q
+        return so3.matrix_to_quat(self.rotation) + 0.0
 
     def matrix(self) -> F64:
         """(4, 4) homogeneous ``T_imu_lidar``."""
@@ -103,7 +107,7 @@ class Extrinsic:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Extrinsic:
         if "rotation_quaternion" in d:
-            rot = Rotation.from_quat(np.asarray(d["rotation_quaternion"], float)).as_matrix()
+            rot = so3.quat_to_matrix(np.asarray(d["rotation_quaternion"], float))
         elif "rotation_rpy_deg" in d:
             rot = matrix_from_rpy_deg(d["rotation_rpy_deg"])
         else:
@@ -116,7 +120,7 @@ class Extrinsic:
 
     def error_to(self, other: Extrinsic) -> dict[str, float]:
         """Errors against a reference: translation (m), rotation angle (deg), time offset (s)."""
-        d_rot = Rotation.from_matrix(self.rotation.T @ other.rotation).magnitude()
+        d_rot = np.linalg.norm(so3.log(self.rotation.T @ other.rotation))
         return {
             "translation_m": float(np.linalg.norm(self.translation - other.translation)),
             "rotation_deg": float(np.degrees(d_rot)),
@@ -144,7 +148,7 @@ def imu_intrinsics_to_dict(k: ImuIntrinsics) -> dict[str, Any]:
         "gyro_scale": _list(k.gyro_scale),  # diag(S_w)
         "gyro_misalignment": _list(k.gyro_misalignment),  # M_w = [[1,m0,m1],[0,1,m2],[0,0,1]]
         "gyro_rotation_quaternion": _list(q, 12),  # R_wI: IMU frame -> gyro frame
-        "gyro_rotation_rpy_deg": _list(rpy_deg_from_matrix(Rotation.from_quat(q).as_matrix())),
+        "gyro_rotation_rpy_deg": _list(rpy_deg_from_matrix(so3.quat_to_matrix(q))),
         "accel_scale": _list(k.accel_scale),  # diag(S_a)
         "accel_misalignment": _list(k.accel_misalignment),  # M_a
         "gyro_g_sensitivity": [_list(row) for row in np.asarray(k.gyro_g_sensitivity)],  # A_w
@@ -158,7 +162,7 @@ def imu_intrinsics_from_dict(d: dict[str, Any]) -> ImuIntrinsics:
     if "gyro_rotation_quaternion" in d:
         q = np.asarray(d["gyro_rotation_quaternion"], dtype=np.float64)
     elif "gyro_rotation_rpy_deg" in d:
-        q = Rotation.from_matrix(matrix_from_rpy_deg(d["gyro_rotation_rpy_deg"])).as_quat()
+        q = so3.matrix_to_quat(matrix_from_rpy_deg(d["gyro_rotation_rpy_deg"]))
     else:
         q = default.gyro_rotation
 
@@ -237,8 +241,6 @@ class CalibrationResult:
         model, uncertainty, intrinsics_uncertainty, observability, verdict, consistency,
             initialization, fit, recording, provenance: the typed sections ``calibrate`` writes
             (:mod:`licalib_cli.sections`), None when the file has none.
-        extra: top-level sections of other writers, kept as they are (a simulator's
-            ``truth.yaml`` carries ``scenario``, ``seed`` and ``simulation``).
     """
 
     extrinsic: Extrinsic = field(default_factory=Extrinsic)
@@ -255,7 +257,6 @@ class CalibrationResult:
     fit: FitSection | None = None
     recording: RecordingSection | None = None
     provenance: Provenance | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"schema_version": SCHEMA_VERSION}
@@ -269,11 +270,16 @@ class CalibrationResult:
             section = getattr(self, name)
             if section is not None:
                 out[name] = section.to_dict()
-        out.update(self.extra)
         return out
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> CalibrationResult:
+        """Read a result (or the true values of a ``truth.yaml``; other top-level keys are
+        left aside).
+
+        Raises:
+            ConfigError: another schema version, or an incomplete section.
+        """
         version = d.get("schema_version")
         if version != SCHEMA_VERSION:
             msg = (
@@ -281,8 +287,6 @@ class CalibrationResult:
                 f"version {SCHEMA_VERSION}; regenerate it with this version."
             )
             raise ConfigError(msg)
-        typed = {name for name, _ in _SECTIONS}
-        known = {"schema_version", "extrinsic", "imu_intrinsics", "lidar_intrinsics", "gravity_G"}
         lidar = d.get("lidar_intrinsics")
         gravity = d.get("gravity_G")
         sections: dict[str, Any] = {}
@@ -301,8 +305,7 @@ class CalibrationResult:
             extrinsic=Extrinsic.from_dict(d.get("extrinsic", {})),
             imu_intrinsics=imu_intrinsics_from_dict(d.get("imu_intrinsics", {})),
             lidar_intrinsics=lidar_intrinsics_from_dict(lidar) if lidar else None,
-            gravity_G=None if gravity is None else tuple(float(x) for x in gravity),  # type: ignore[arg-type]
-            extra={k: v for k, v in d.items() if k not in known | typed},
+            gravity_G=None if gravity is None else _vec3(gravity),
             **sections,
         )
 

@@ -40,6 +40,7 @@ __all__ = [
     "PatternCheck",
     "Provenance",
     "RecordingSection",
+    "Section",
     "SensorCheck",
     "SplitHalf",
     "Uncertainty",
@@ -77,7 +78,12 @@ def _plain(value: Any, digits: int | None) -> Any:
     return value
 
 
-class _Section:
+def _tupled(value: Any) -> Any:
+    """Lists (nested ones too) as tuples."""
+    return tuple(_tupled(v) for v in value) if isinstance(value, list) else value
+
+
+class Section:
     """``to_dict`` over the dataclass fields, in order, and ``from_dict`` back.
 
     ``_digits`` rounds floats to that many significant digits (None: as they are; statistics
@@ -110,13 +116,13 @@ class _Section:
                     else kind.from_dict(v)
                 )
             elif isinstance(v, list):
-                v = tuple(v)
+                v = _tupled(v)
             kwargs[k] = v
         return cls(**kwargs)
 
 
 @dataclass(frozen=True)
-class Uncertainty(_Section):
+class Uncertainty(Section):
     """1-sigma of the extrinsic (``inf`` where not observable).
 
     Attributes:
@@ -138,7 +144,7 @@ class Uncertainty(_Section):
 
 
 @dataclass(frozen=True)
-class Observability(_Section):
+class Observability(Section):
     """Spectrum of the scaled calibration information and the truncated directions."""
 
     scaling: str
@@ -148,7 +154,7 @@ class Observability(_Section):
 
 
 @dataclass(frozen=True)
-class VerdictSection(_Section):
+class VerdictSection(Section):
     """``pass`` / ``warn`` / ``fail`` and one sentence per finding."""
 
     status: str
@@ -156,7 +162,7 @@ class VerdictSection(_Section):
 
 
 @dataclass(frozen=True)
-class PatternCheck(_Section):
+class PatternCheck(Section):
     """Structure of one sensor's residuals against a feature.
 
     Attributes:
@@ -177,7 +183,7 @@ class PatternCheck(_Section):
 
 
 @dataclass(frozen=True)
-class SensorCheck(_Section):
+class SensorCheck(Section):
     """How well the model explains one sensor.
 
     Attributes:
@@ -210,7 +216,7 @@ class SensorCheck(_Section):
 
 
 @dataclass(frozen=True)
-class EffectCheck(_Section):
+class EffectCheck(Section):
     """Score test of one effect the model holds fixed.
 
     Attributes:
@@ -242,7 +248,7 @@ class EffectCheck(_Section):
 
 
 @dataclass(frozen=True)
-class SplitHalf(_Section):
+class SplitHalf(Section):
     """The extrinsic estimated on the two halves of the segment, compared.
 
     Attributes:
@@ -273,7 +279,7 @@ class SplitHalf(_Section):
 
 
 @dataclass(frozen=True)
-class Consistency(_Section):
+class Consistency(Section):
     """Whether the fitted model explains the data (the fit checks).
 
     Attributes:
@@ -293,7 +299,7 @@ class Consistency(_Section):
 
 
 @dataclass(frozen=True)
-class ModelInfo(_Section):
+class ModelInfo(Section):
     """Which intrinsics were estimated.
 
     Attributes:
@@ -310,7 +316,7 @@ class ModelInfo(_Section):
 
 
 @dataclass(frozen=True)
-class IntrinsicsUncertainty(_Section):
+class IntrinsicsUncertainty(Section):
     """1-sigma of every estimated intrinsic, by block (``None``: held or not observable).
 
     ``values`` maps ``gyro_scale``, ``gyro_misalignment``, ``gyro_rotation_deg``,
@@ -335,7 +341,7 @@ class IntrinsicsUncertainty(_Section):
 
 
 @dataclass(frozen=True)
-class InitializationSection(_Section):
+class InitializationSection(Section):
     """Where the initial guess came from."""
 
     rotation_source: str
@@ -348,7 +354,7 @@ class InitializationSection(_Section):
 
 
 @dataclass(frozen=True)
-class FitSection(_Section):
+class FitSection(Section):
     """The rounds and the last fit.
 
     Attributes:
@@ -375,8 +381,23 @@ class FitSection(_Section):
 
 
 @dataclass(frozen=True)
-class RecordingSection(_Section):
-    """The data used."""
+class RecordingSection(Section):
+    """The data used.
+
+    Attributes:
+        bag: the bag's path as given.
+        imu_topic: the IMU topic.
+        lidar_topic: the LiDAR topic.
+        imu_samples: IMU samples in the segment.
+        scans: sweeps in the segment.
+        duration_s: length of the segment, s.
+        start_ns: first stamp of the segment (IMU clock), ns.
+        clock_offset_s: the coarse clock offset ``t_imu - t_lidar`` of the two sensors'
+            clocks, measured from stamps and record times before calibrating, s.
+        lidar_clock_shift_s: the clock shift added to every LiDAR time before calibrating
+            (the clock offset when it is 1 s or more, else 0); the time offset is on top of
+            it, s.
+    """
 
     bag: str
     imu_topic: str
@@ -398,7 +419,7 @@ class RecordingSection(_Section):
 
 
 @dataclass(frozen=True)
-class Provenance(_Section):
+class Provenance(Section):
     """Who made the file from what."""
 
     licalib_version: str

@@ -10,12 +10,8 @@ import typer
 from licalib_cli.commands.render import console, console_err, render_run
 from licalib_cli.config import INTRINSIC_PRESETS, dump_config, load_config
 from licalib_cli.errors import ConfigError, NotConverged, VerdictFailure
-from licalib_cli.results import (
-    CalibrationResult,
-    check_not_an_input,
-    prepare_output,
-    write_text_atomic,
-)
+from licalib_cli.results import check_not_an_input, prepare_output, write_text_atomic
+from licalib_cli.truth import Truth
 
 _IO = "Input"
 _OUT = "Output"
@@ -144,7 +140,7 @@ def calibrate_command(
     prepare_output(out, inputs)
     label = f"The resolved config that calibrate writes next to the result, {config_out},"
     check_not_an_input(config_out, inputs, label)
-    reference = CalibrationResult.load(truth) if truth is not None else None
+    reference = Truth.load(truth) if truth is not None else None
     cfg = load_config(
         config,
         {

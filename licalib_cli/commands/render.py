@@ -11,6 +11,7 @@ from rich.table import Table
 
 from licalib_cli.results import CalibrationResult, Extrinsic, rpy_deg_from_matrix
 from licalib_cli.sections import Consistency, SensorCheck
+from licalib_cli.truth import Truth
 
 if TYPE_CHECKING:
     from licalib_cli.pipeline import CalibrationRun
@@ -34,14 +35,13 @@ def _fmt(v: float, unit: str, scale: float = 1.0, digits: int = 4) -> str:
     return f"{v * scale:.{digits}f} {unit}"
 
 
-def _truth_on_result_clock(result: CalibrationResult, truth: CalibrationResult) -> Extrinsic:
+def _truth_on_result_clock(result: CalibrationResult, truth: Truth) -> Extrinsic:
     """The true extrinsic with its time offset on the result's footing (LiDAR clock shift)."""
     shift = result.recording.lidar_clock_shift_s if result.recording else 0.0
-    clock = truth.extra.get("simulation", {}).get("clock", {})
-    return truth.extrinsic.on_shifted_clock(float(clock.get("lidar_clock_offset_s", 0.0)), shift)
+    return truth.extrinsic.on_shifted_clock(truth.lidar_clock_offset_s, shift)
 
 
-def render_estimate(result: CalibrationResult, truth: CalibrationResult | None) -> Table:
+def render_estimate(result: CalibrationResult, truth: Truth | None) -> Table:
     """The extrinsic and time offset with their 1-sigma (and the truth and error if given)."""
     ext = result.extrinsic
     unc = result.uncertainty
@@ -131,7 +131,7 @@ def render_checks(consistency: Consistency) -> Table:
     return table
 
 
-def render_run(run: CalibrationRun, truth: CalibrationResult | None) -> None:
+def render_run(run: CalibrationRun, truth: Truth | None) -> None:
     """Print the estimate table, the checks, the observability findings, the verdict and the
     stage timings."""
     r = run.result

@@ -41,9 +41,11 @@ __all__ = [
     "project_to_so3",
     "quat_conjugate",
     "quat_exp",
+    "quat_left_matrix",
     "quat_log",
     "quat_multiply",
     "quat_normalize",
+    "quat_right_matrix",
     "quat_rotate",
     "quat_to_matrix",
     "rpy_to_matrix",
@@ -380,6 +382,44 @@ def quat_multiply(q1: npt.ArrayLike, q2: npt.ArrayLike) -> FloatArray:
     v = w1 * v2 + w2 * v1 + np.cross(v1, v2)
     w = w1 * w2 - np.sum(v1 * v2, axis=-1, keepdims=True)
     return np.concatenate([v, w], axis=-1)
+
+
+def quat_left_matrix(q: npt.ArrayLike) -> FloatArray:
+    """Left-multiplication matrix: ``quat_multiply(q, p) == L(q) @ p``.
+
+    Args:
+        q: (..., 4) quaternions ``[x, y, z, w]``.
+
+    Returns:
+        (..., 4, 4) ``L(q)``.
+    """
+    q = _as_float(q)
+    v, w = q[..., :3], q[..., 3]
+    out = np.empty((*q.shape[:-1], 4, 4))
+    out[..., :3, :3] = w[..., None, None] * np.eye(3) + hat(v)
+    out[..., :3, 3] = v
+    out[..., 3, :3] = -v
+    out[..., 3, 3] = w
+    return out
+
+
+def quat_right_matrix(q: npt.ArrayLike) -> FloatArray:
+    """Right-multiplication matrix: ``quat_multiply(p, q) == R(q) @ p``.
+
+    Args:
+        q: (..., 4) quaternions ``[x, y, z, w]``.
+
+    Returns:
+        (..., 4, 4) ``R(q)``.
+    """
+    q = _as_float(q)
+    v, w = q[..., :3], q[..., 3]
+    out = np.empty((*q.shape[:-1], 4, 4))
+    out[..., :3, :3] = w[..., None, None] * np.eye(3) - hat(v)
+    out[..., :3, 3] = v
+    out[..., 3, :3] = -v
+    out[..., 3, 3] = w
+    return out
 
 
 def quat_exp(phi: npt.ArrayLike) -> FloatArray:

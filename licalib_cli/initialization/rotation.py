@@ -23,6 +23,7 @@ import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from licalib_cli.errors import DataError, ExcitationError, TimestampError
+from licalib_cli.geometry.so3 import quat_left_matrix, quat_multiply, quat_right_matrix
 from licalib_cli.measurements import ImuSamples
 from licalib_cli.odometry import PoseSeries
 
@@ -32,9 +33,6 @@ __all__ = [
     "HandEyeRotation",
     "estimate_rotation_extrinsic",
     "lidar_rotation_at",
-    "quat_left_matrix",
-    "quat_multiply",
-    "quat_right_matrix",
     "relative_rotations",
     "solve_hand_eye_rotation",
 ]
@@ -43,45 +41,6 @@ logger = logging.getLogger(__name__)
 
 FloatArray = npt.NDArray[np.float64]
 RotationAt = Callable[[npt.NDArray[np.int64]], Rotation]
-
-
-def quat_multiply(a: FloatArray, b: FloatArray) -> FloatArray:
-    """Hamilton product ``a ⊗ b`` of (..., 4) ``[x, y, z, w]`` quaternions, broadcasting."""
-    av, aw = a[..., :3], a[..., 3:]
-    bv, bw = b[..., :3], b[..., 3:]
-    vec = aw * bv + bw * av + np.cross(av, bv)
-    w = aw * bw - np.sum(av * bv, axis=-1, keepdims=True)
-    return np.concatenate([vec, w], axis=-1)
-
-
-def _hat(v: FloatArray) -> FloatArray:
-    out = np.zeros((*v.shape[:-1], 3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
-
-
-def quat_left_matrix(q: FloatArray) -> FloatArray:
-    """(..., 4, 4) ``L(q)`` with ``q ⊗ p = L(q) p`` for ``[x, y, z, w]`` quaternions."""
-    v, w = q[..., :3], q[..., 3]
-    out = np.empty((*q.shape[:-1], 4, 4))
-    out[..., :3, :3] = w[..., None, None] * np.eye(3) + _hat(v)
-    out[..., :3, 3] = v
-    out[..., 3, :3] = -v
-    out[..., 3, 3] = w
-    return out
-
-
-def quat_right_matrix(q: FloatArray) -> FloatArray:
-    """(..., 4, 4) ``R(q)`` with ``p ⊗ q = R(q) p`` for ``[x, y, z, w]`` quaternions."""
-    v, w = q[..., :3], q[..., 3]
-    out = np.empty((*q.shape[:-1], 4, 4))
-    out[..., :3, :3] = w[..., None, None] * np.eye(3) - _hat(v)
-    out[..., :3, 3] = v
-    out[..., 3, :3] = -v
-    out[..., 3, 3] = w
-    return out
 
 
 def _prefix_product(q: FloatArray) -> FloatArray:

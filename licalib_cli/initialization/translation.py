@@ -34,6 +34,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from licalib_cli.errors import ExcitationError
+from licalib_cli.geometry.so3 import hat
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
 
 __all__ = ["LeverArmConfig", "LeverArmEstimate", "estimate_lever_arm"]
@@ -127,15 +128,6 @@ def _block_design(
     )
 
 
-def _hat(v: F64) -> F64:
-    """(M, 3, 3) cross-product matrices of (M, 3) vectors."""
-    out = np.zeros((v.shape[0], 3, 3))
-    out[:, 0, 1], out[:, 0, 2] = -v[:, 2], v[:, 1]
-    out[:, 1, 0], out[:, 1, 2] = v[:, 2], -v[:, 0]
-    out[:, 2, 0], out[:, 2, 1] = -v[:, 1], v[:, 0]
-    return out
-
-
 def _dense_rows(blocks: F64) -> sp.csr_matrix:
     """(M, 3, 3) blocks stacked into a sparse (3M, 3) matrix."""
     return sp.csr_matrix(blocks.reshape(-1, 3))
@@ -205,7 +197,7 @@ def estimate_lever_arm(
         [
             _block_design(knots, t_k, 0, None),
             _dense_rows(rot_k),
-            _dense_rows(_hat(p_k - p_k.mean(axis=0))),
+            _dense_rows(hat(p_k - p_k.mean(axis=0))),
             sp.csr_matrix((3 * t_k.shape[0], 6)),
         ]
     ).tocsr()

@@ -10,8 +10,9 @@ Conventions::
 ``[0, 0, -9.81]`` when z is up). ``S = diag(scale)``, ``M = [[1, m0, m1], [0, 1, m2], [0, 0, 1]]``
 from ``misalignment = [m0, m1, m2]``, ``R_wI`` (quaternion ``[x, y, z, w]``) rotates IMU-frame
 vectors into the gyro frame and is perturbed on the right (``R_wI Exp(delta)``), ``A_w`` is the
-(3, 3) g-sensitivity flattened row-major into 9 numbers. The same forward model is
-:func:`licalib_cli.models.intrinsics.imu_measure`; this module adds the derivatives.
+(3, 3) g-sensitivity flattened row-major into 9 numbers. :func:`gyro_model` and
+:func:`accel_model` are the one forward model (with derivatives); :func:`imu_measure` applies
+them to an :class:`~licalib_cli.models.intrinsics.ImuIntrinsics` (the simulator's readings).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.geometry.so3 import hat, quat_to_matrix
-from licalib_cli.models.intrinsics import misalignment_matrix
+from licalib_cli.models.intrinsics import ImuIntrinsics, misalignment_matrix
 
 __all__ = [
     "AccelModel",
@@ -30,6 +31,7 @@ __all__ = [
     "SpecificForce",
     "accel_model",
     "gyro_model",
+    "imu_measure",
     "specific_force",
 ]
 
@@ -192,3 +194,29 @@ def accel_model(
     if not jacobians:
         return AccelModel(y + bias, k, None, None)
     return AccelModel(y + bias, k, d_scale, d_mis)
+
+
+def imu_measure(intrinsics: ImuIntrinsics, omega_imu: F64, accel_imu: F64) -> tuple[F64, F64]:
+    """Noise-free IMU readings from the true body rate and specific force.
+
+    Args:
+        intrinsics: the IMU model parameters (biases included).
+        omega_imu: (N, 3) angular velocity of the IMU frame, in the IMU frame, rad/s.
+        accel_imu: (N, 3) specific force ``R^T (p_ddot - g)`` in the IMU frame, m/s^2.
+
+    Returns:
+        ``(gyro_m, accel_m)``, each (N, 3): :func:`gyro_model` and :func:`accel_model`.
+    """
+    k = intrinsics
+    gyro = gyro_model(
+        omega_imu,
+        accel_imu,
+        k.gyro_scale,
+        k.gyro_misalignment,
+        k.gyro_rotation,
+        k.gyro_bias,
+        k.gyro_g_sensitivity,
+        jacobians=False,
+    )
+    accel = accel_model(accel_imu, k.accel_scale, k.accel_misalignment, k.accel_bias, False)
+    return gyro.value, accel.value

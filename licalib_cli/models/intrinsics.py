@@ -1,4 +1,5 @@
-"""Intrinsic parameter sets and the forward sensor models (no Jacobians).
+"""Intrinsic parameter sets of the IMU and LiDAR models (the models are in :mod:`.imu` and
+:mod:`.lidar`).
 
 IMU model (method.md section 3)::
 
@@ -16,7 +17,8 @@ LiDAR model (method.md section 4), per beam ``i`` with nominal elevation ``phi_i
            rho_bar sin(phi_bar) + V_i]
 
 A driver publishes the *nominal* conversion ``rho [cos phi_i cos theta, cos phi_i sin theta,
-sin phi_i]`` of the raw range ``rho`` and azimuth ``theta``; :func:`raw_from_nominal` inverts it.
+sin phi_i]`` of the raw range ``rho`` and azimuth ``theta``
+(:func:`licalib_cli.models.lidar.nominal_point`).
 """
 
 from __future__ import annotations
@@ -25,7 +27,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial.transform import Rotation
 
 F64 = npt.NDArray[np.float64]
 
@@ -69,34 +70,9 @@ class ImuIntrinsics:
     gyro_bias: F64 = field(default_factory=_zeros3)
     accel_bias: F64 = field(default_factory=_zeros3)
 
-    def gyro_matrix(self) -> F64:
-        """``S_w M_w R_wI`` (3, 3)."""
-        r_wi = Rotation.from_quat(self.gyro_rotation).as_matrix()
-        return np.diag(self.gyro_scale) @ misalignment_matrix(self.gyro_misalignment) @ r_wi
-
-    def accel_matrix(self) -> F64:
-        """``S_a M_a`` (3, 3)."""
-        return np.diag(self.accel_scale) @ misalignment_matrix(self.accel_misalignment)
-
     def with_(self, **changes: object) -> ImuIntrinsics:
         """Copy with some fields replaced."""
         return replace(self, **changes)
-
-
-def imu_measure(intrinsics: ImuIntrinsics, omega_imu: F64, accel_imu: F64) -> tuple[F64, F64]:
-    """Noise-free IMU readings from the true body rate and specific force.
-
-    Args:
-        intrinsics: the IMU model parameters.
-        omega_imu: (N, 3) angular velocity of the IMU frame, in the IMU frame, rad/s.
-        accel_imu: (N, 3) specific force ``R^T (p_ddot - g)`` in the IMU frame, m/s^2.
-
-    Returns:
-        ``(gyro_m, accel_m)``, each (N, 3).
-    """
-    gyro = omega_imu @ intrinsics.gyro_matrix().T + accel_imu @ intrinsics.gyro_g_sensitivity.T
-    accel = accel_imu @ intrinsics.accel_matrix().T
-    return gyro + intrinsics.gyro_bias, accel + intrinsics.accel_bias
 
 
 @dataclass(frozen=True)
@@ -140,47 +116,3 @@ class LidarIntrinsics:
     def with_(self, **changes: object) -> LidarIntrinsics:
         """Copy with some fields replaced."""
         return replace(self, **changes)
-
-
-def lidar_point(
-    intrinsics: LidarIntrinsics, beam: npt.NDArray[np.integer], rho: F64, theta: F64
-) -> F64:
-    """Point in the LiDAR frame from raw (beam, range, azimuth) with the full model.
-
-    Args:
-        intrinsics: per-beam parameters.
-        beam: (N,) beam index.
-        rho: (N,) raw range, m.
-        theta: (N,) raw azimuth, rad.
-
-    Returns:
-        (N, 3) points in the LiDAR frame, m.
-    """
-    k = intrinsics
-    rho_bar = k.range_scale[beam] * rho + k.range_offset[beam]
-    phi_bar = k.nominal_elevation[beam] + k.elevation_correction[beam]
-    theta_bar = theta + k.azimuth_correction[beam]
-    h = k.horizontal_offset[beam]
-    c_phi = np.cos(phi_bar)
-    c_th, s_th = np.cos(theta_bar), np.sin(theta_bar)
-    return np.stack(
-        [
-            rho_bar * c_phi * c_th + h * s_th,
-            rho_bar * c_phi * s_th - h * c_th,
-            rho_bar * np.sin(phi_bar) + k.vertical_offset[beam],
-        ],
-        axis=-1,
-    )
-
-
-def nominal_point(rho: F64, theta: F64, phi: F64) -> F64:
-    """The driver's nominal conversion of raw range/azimuth at elevation ``phi`` -> (N, 3)."""
-    c_phi = np.cos(phi)
-    return np.stack(
-        [rho * c_phi * np.cos(theta), rho * c_phi * np.sin(theta), rho * np.sin(phi)], axis=-1
-    )
-
-
-def raw_from_nominal(xyz: F64) -> tuple[F64, F64]:
-    """Raw range and azimuth ``(rho, theta)`` of nominally converted points (N, 3)."""
-    return np.linalg.norm(xyz, axis=-1), np.arctan2(xyz[:, 1], xyz[:, 0])

@@ -11,8 +11,11 @@ Conventions:
              rho_bar sin(phi_bar) + V_i]
 
 * The six estimated intrinsics of a beam are stored as one row, in the order
-  :data:`INTRINSIC_NAMES` = ``[dphi (rad), dtheta (rad), V (m), H (m), s (-), drho (m)]``. The
-  nominal elevation ``phi_i`` is not estimated.
+  :data:`INTRINSIC_NAMES` = ``[dphi (rad), dtheta (rad), V (m), H (m), s (-), drho (m)]``; the
+  columns are named by :class:`BeamIntrinsic`. The nominal elevation ``phi_i`` is not estimated.
+* :func:`lidar_point_terms` is the one forward model; :func:`lidar_point` applies it to a
+  :class:`~licalib_cli.models.intrinsics.LidarIntrinsics`, and :func:`nominal_point` is what a
+  driver publishes (the model with nominal intrinsics).
 * Point-to-plane geometry (:func:`point_to_plane`): a point ``p_L`` seen at IMU time ``t`` maps to
   ``p_G = R(t) (R_IL p_L + t_IL) + p(t)`` with ``R(t) = R_G_I(t)``, ``p(t) = G p_I(t)`` and
   ``T_imu_lidar = (R_IL, t_IL)``; its signed distance to the plane ``n^T x + d = 0`` (``{G}``,
@@ -22,6 +25,7 @@ Conventions:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import IntEnum
 
 import numpy as np
 import numpy.typing as npt
@@ -29,22 +33,63 @@ import numpy.typing as npt
 from licalib_cli.models.intrinsics import LidarIntrinsics
 
 __all__ = [
+    "GAUGE_COLUMNS",
     "INTRINSIC_NAMES",
     "NUM_BEAM_INTRINSICS",
+    "BeamIntrinsic",
     "LidarPointTerms",
     "PointToPlaneGeometry",
     "intrinsics_from_array",
     "intrinsics_to_array",
+    "lidar_point",
     "lidar_point_terms",
     "lidar_point_with_jacobian",
+    "nominal_intrinsics_array",
+    "nominal_point",
     "point_to_plane",
+    "raw_from_nominal",
 ]
 
 F64 = npt.NDArray[np.float64]
 
+
+class BeamIntrinsic(IntEnum):
+    """Column of a beam's intrinsics in the ``(B, 6)`` array."""
+
+    ELEVATION = 0
+    """``dphi``, elevation correction, rad."""
+    AZIMUTH = 1
+    """``dtheta``, azimuth correction, rad."""
+    VERTICAL_OFFSET = 2
+    """``V``, m."""
+    HORIZONTAL_OFFSET = 3
+    """``H``, m (perpendicular to the beam)."""
+    RANGE_SCALE = 4
+    """``s`` (nominal 1)."""
+    RANGE_OFFSET = 5
+    """``drho``, m."""
+
+
+_E = BeamIntrinsic
+
 #: Names of the per-beam intrinsic coordinates, in storage order.
 INTRINSIC_NAMES: tuple[str, ...] = ("dphi", "dtheta", "V", "H", "s", "drho")
-NUM_BEAM_INTRINSICS = 6
+NUM_BEAM_INTRINSICS = len(BeamIntrinsic)
+
+GAUGE_COLUMNS: tuple[BeamIntrinsic, ...] = (
+    _E.ELEVATION,
+    _E.AZIMUTH,
+    _E.VERTICAL_OFFSET,
+    _E.HORIZONTAL_OFFSET,
+)
+"""The intrinsics the gauge beam keeps (only its range scale and offset are free)."""
+
+
+def nominal_intrinsics_array(num_beams: int) -> F64:
+    """(B, 6) intrinsics of ideal beams: zero corrections and offsets, unit range scale."""
+    out = np.zeros((num_beams, NUM_BEAM_INTRINSICS))
+    out[:, _E.RANGE_SCALE] = 1.0
+    return out
 
 
 def intrinsics_to_array(intrinsics: LidarIntrinsics) -> F64:
@@ -79,12 +124,12 @@ def intrinsics_from_array(
     v = np.array(values, dtype=np.float64).reshape(phi.shape[0], NUM_BEAM_INTRINSICS)
     return LidarIntrinsics(
         nominal_elevation=phi,
-        elevation_correction=v[:, 0].copy(),
-        azimuth_correction=v[:, 1].copy(),
-        vertical_offset=v[:, 2].copy(),
-        horizontal_offset=v[:, 3].copy(),
-        range_scale=v[:, 4].copy(),
-        range_offset=v[:, 5].copy(),
+        elevation_correction=v[:, _E.ELEVATION].copy(),
+        azimuth_correction=v[:, _E.AZIMUTH].copy(),
+        vertical_offset=v[:, _E.VERTICAL_OFFSET].copy(),
+        horizontal_offset=v[:, _E.HORIZONTAL_OFFSET].copy(),
+        range_scale=v[:, _E.RANGE_SCALE].copy(),
+        range_offset=v[:, _E.RANGE_OFFSET].copy(),
     )
 
 
@@ -122,20 +167,21 @@ class LidarPointTerms:
         ux, uy = cp * ct, cp * st
         n = rb.shape[0]
         jac = np.zeros((n, 3, NUM_BEAM_INTRINSICS))
-        jac[:, 0, 0] = -rb * sp * ct  # dphi
-        jac[:, 1, 0] = -rb * sp * st
-        jac[:, 2, 0] = rb * cp
-        jac[:, 0, 1] = -self.point[:, 1]  # dtheta: the offset term turns with the azimuth
-        jac[:, 1, 1] = self.point[:, 0]
-        jac[:, 2, 2] = 1.0  # V
-        jac[:, 0, 3] = st  # H
-        jac[:, 1, 3] = -ct
-        jac[:, 0, 4] = self.rho * ux  # s
-        jac[:, 1, 4] = self.rho * uy
-        jac[:, 2, 4] = self.rho * sp
-        jac[:, 0, 5] = ux  # drho
-        jac[:, 1, 5] = uy
-        jac[:, 2, 5] = sp
+        jac[:, 0, _E.ELEVATION] = -rb * sp * ct
+        jac[:, 1, _E.ELEVATION] = -rb * sp * st
+        jac[:, 2, _E.ELEVATION] = rb * cp
+        # the offset term turns with the azimuth too
+        jac[:, 0, _E.AZIMUTH] = -self.point[:, 1]
+        jac[:, 1, _E.AZIMUTH] = self.point[:, 0]
+        jac[:, 2, _E.VERTICAL_OFFSET] = 1.0
+        jac[:, 0, _E.HORIZONTAL_OFFSET] = st
+        jac[:, 1, _E.HORIZONTAL_OFFSET] = -ct
+        jac[:, 0, _E.RANGE_SCALE] = self.rho * ux
+        jac[:, 1, _E.RANGE_SCALE] = self.rho * uy
+        jac[:, 2, _E.RANGE_SCALE] = self.rho * sp
+        jac[:, 0, _E.RANGE_OFFSET] = ux
+        jac[:, 1, _E.RANGE_OFFSET] = uy
+        jac[:, 2, _E.RANGE_OFFSET] = sp
         return jac
 
     def vjp(self, v: F64) -> F64:
@@ -145,12 +191,12 @@ class LidarPointTerms:
         horizontal = vx * ct + vy * st
         along = cp * horizontal + sp * vz  # v . u
         out = np.empty((v.shape[0], NUM_BEAM_INTRINSICS))
-        out[:, 0] = self.rho_bar * (cp * vz - sp * horizontal)
-        out[:, 1] = vy * self.point[:, 0] - vx * self.point[:, 1]
-        out[:, 2] = vz
-        out[:, 3] = vx * st - vy * ct
-        out[:, 4] = self.rho * along
-        out[:, 5] = along
+        out[:, _E.ELEVATION] = self.rho_bar * (cp * vz - sp * horizontal)
+        out[:, _E.AZIMUTH] = vy * self.point[:, 0] - vx * self.point[:, 1]
+        out[:, _E.VERTICAL_OFFSET] = vz
+        out[:, _E.HORIZONTAL_OFFSET] = vx * st - vy * ct
+        out[:, _E.RANGE_SCALE] = self.rho * along
+        out[:, _E.RANGE_OFFSET] = along
         return out
 
 
@@ -178,26 +224,62 @@ def lidar_point_terms(
     Returns:
         :class:`LidarPointTerms`.
     """
-    phi_bar = nominal_elevation + values[:, 0]
+    phi_bar = nominal_elevation + values[:, _E.ELEVATION]
     cos_phi = np.cos(phi_bar)[beam]
     sin_phi = np.sin(phi_bar)[beam]
     if cos_sin_theta is None:
-        theta_bar = theta + values[beam, 1]
+        theta_bar = theta + values[beam, _E.AZIMUTH]
         c_th, s_th = np.cos(theta_bar), np.sin(theta_bar)
     else:
         c0, s0 = cos_sin_theta
-        c_d, s_d = np.cos(values[:, 1])[beam], np.sin(values[:, 1])[beam]
+        d_theta = values[:, _E.AZIMUTH]
+        c_d, s_d = np.cos(d_theta)[beam], np.sin(d_theta)[beam]
         c_th = c0 * c_d - s0 * s_d
         s_th = s0 * c_d + c0 * s_d
-    rho_bar = values[beam, 4] * rho + values[beam, 5]
-    h = values[beam, 3]
+    rho_bar = values[beam, _E.RANGE_SCALE] * rho + values[beam, _E.RANGE_OFFSET]
+    h = values[beam, _E.HORIZONTAL_OFFSET]
     n = rho.shape[0]
     horizontal = rho_bar * cos_phi
     p = np.empty((n, 3))
     p[:, 0] = horizontal * c_th + h * s_th
     p[:, 1] = horizontal * s_th - h * c_th
-    p[:, 2] = rho_bar * sin_phi + values[beam, 2]
+    p[:, 2] = rho_bar * sin_phi + values[beam, _E.VERTICAL_OFFSET]
     return LidarPointTerms(p, rho, rho_bar, cos_phi, sin_phi, c_th, s_th)
+
+
+def lidar_point(
+    intrinsics: LidarIntrinsics, beam: npt.NDArray[np.integer], rho: F64, theta: F64
+) -> F64:
+    """Point in the LiDAR frame from raw (beam, range, azimuth) with the full model.
+
+    Args:
+        intrinsics: per-beam parameters.
+        beam: (N,) beam index.
+        rho: (N,) raw range, m.
+        theta: (N,) raw azimuth, rad.
+
+    Returns:
+        (N, 3) points in the LiDAR frame, m (:func:`lidar_point_terms`).
+    """
+    values = intrinsics_to_array(intrinsics)
+    return lidar_point_terms(intrinsics.nominal_elevation, values, beam, rho, theta).point
+
+
+def nominal_point(rho: F64, theta: F64, phi: F64) -> F64:
+    """The driver's nominal conversion of raw range/azimuth at elevation ``phi`` -> (N, 3).
+
+    This is the model with nominal intrinsics (:func:`lidar_point` of
+    ``LidarIntrinsics.nominal``), written for a per-point elevation.
+    """
+    c_phi = np.cos(phi)
+    return np.stack(
+        [rho * c_phi * np.cos(theta), rho * c_phi * np.sin(theta), rho * np.sin(phi)], axis=-1
+    )
+
+
+def raw_from_nominal(xyz: F64) -> tuple[F64, F64]:
+    """Raw range and azimuth ``(rho, theta)`` of nominally converted points (N, 3)."""
+    return np.linalg.norm(xyz, axis=-1), np.arctan2(xyz[:, 1], xyz[:, 0])
 
 
 def lidar_point_with_jacobian(
@@ -257,7 +339,7 @@ def point_to_plane(
     t_imu_lidar: F64,
     p_lidar: F64,
     normal: F64,
-    offset: F64,
+    d: F64,
     angular_velocity: F64 | None = None,
     velocity: F64 | None = None,
 ) -> PointToPlaneGeometry:
@@ -273,7 +355,7 @@ def point_to_plane(
         t_imu_lidar: (3,) extrinsic translation ``t_IL``, m.
         p_lidar: (N, 3) points in ``{L}``, m.
         normal: (N, 3) unit plane normals in ``{G}``.
-        offset: (N,) plane offsets ``d``, m.
+        d: (N,) plane offsets ``d``, m.
         angular_velocity: (N, 3) body rate ``w_I(t)``, rad/s (for ``d_time``), or None.
         velocity: (N, 3) ``p_dot(t)`` in ``{G}``, m/s (for ``d_time``), or None.
 
@@ -285,7 +367,7 @@ def point_to_plane(
     n_imu = np.einsum("nji,nj->ni", rotation, normal)
     n_lidar = n_imu @ R_imu_lidar
     distance = np.einsum("ni,ni->n", n_imu, p_imu) + np.einsum("ni,ni->n", normal, position)
-    distance += offset
+    distance += d
     # d/d eps of n^T R Exp(eps) p_I = -n_I^T hat(p_I) = (p_I x n_I)^T
     d_rotation = _cross(p_imu, n_imu)
     d_ext_rotation = _cross(p_lidar, n_lidar)

@@ -28,18 +28,16 @@ from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import CalibrationState
 from licalib_cli.measurements import Recording
 from licalib_cli.pipeline.assemble import assemble
-from licalib_cli.pipeline.checks import Checks, run_checks
-from licalib_cli.pipeline.fitcheck import EffectEvidence, effect_evidence, sensor_checks
-from licalib_cli.pipeline.initialise import SINGLE_AXIS, InitialGuess, initialise, lidar_odometry
-from licalib_cli.pipeline.points import nominal_elevations
-from licalib_cli.pipeline.read import measure_noise, read_recording
+from licalib_cli.pipeline.checks import Checks, check
+from licalib_cli.pipeline.fitcheck import EffectEvidence
+from licalib_cli.pipeline.initialise import InitialGuess, initialise, lidar_odometry
+from licalib_cli.pipeline.read import read
 from licalib_cli.pipeline.round import RoundSummary
 from licalib_cli.pipeline.schedule import Fit, run_schedule
 from licalib_cli.pipeline.settings import NoiseLevels
-from licalib_cli.pipeline.split import split_half
 from licalib_cli.progress import NullProgress, Progress
 from licalib_cli.results import CalibrationResult
-from licalib_cli.sections import RecordingSection
+from licalib_cli.sections import RecordingSection, VerdictSection
 from licalib_cli.solver.lm import SolverReport
 
 __all__ = [
@@ -92,7 +90,7 @@ class CalibrationRun:
         return self.fit.report
 
     @property
-    def verdict(self):
+    def verdict(self) -> VerdictSection:
         """The verdict section."""
         return self.checks.verdict
 
@@ -165,13 +163,12 @@ class Prepared:
 def prepare(bag: Path, cfg: CalibConfig, progress: Progress, timer: Timer) -> Prepared:
     """Read the segment, measure the noise, run the odometry and initialise."""
     with timer.stage("read", progress):
-        rec = read_recording(bag, cfg)
-        phi = nominal_elevations(rec.scans, cfg)
-        noise = measure_noise(rec, cfg, phi.shape[0])
+        segment = read(bag, cfg)
+    rec, noise = segment.recording, segment.noise
     with timer.stage("odometry", progress, total=len(rec.scans)):
-        odo = lidar_odometry(rec, cfg, progress=lambda d, n: progress.advance(d, n))
+        odo = lidar_odometry(rec, cfg, progress=progress.advance)
     with timer.stage("initialisation", progress):
-        guess = initialise(rec, odo, phi, noise, cfg)
+        guess = initialise(rec, odo, segment.nominal_elevation, noise, cfg)
     return Prepared(bag, rec, noise, guess)
 
 
@@ -199,16 +196,7 @@ def fit_and_check(
     with timer.stage("optimisation", progress, total=cfg.schedule.max_rounds):
         fit = run_schedule(rec, start, noise, cfg, progress, warm=warm)
     with timer.stage("checks", progress):
-        sensors = sensor_checks(fit.state, fit.inputs, noise)
-        effects = effect_evidence(fit.state, fit.inputs, fit.report.variance_factor)
-        split = split_half(fit.state, fit.inputs, cfg)
-        notes = ()
-        if guess.rotation_source == SINGLE_AXIS:
-            notes = (
-                "The rig turned about one axis only; the rotation about it rests on the "
-                "accelerations, and the translation along it is not observable.",
-            )
-        checks = run_checks(fit, sensors, effects, split, cfg, notes)
+        checks = check(fit, guess, noise, cfg)
     result = assemble(prepared.bag, rec, guess, fit, checks, cfg)
     return CalibrationRun(
         result=result,
@@ -219,5 +207,5 @@ def fit_and_check(
         noise=noise,
         timings=dict(timer.timings),
         warnings=rec.warnings,
-        effects=tuple(effects),
+        effects=checks.effects,
     )

@@ -28,9 +28,16 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig
-from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
+from licalib_cli.pipeline.fitcheck import (
+    EFFECT_P_VALUE,
+    EffectEvidence,
+    effect_evidence,
+    sensor_checks,
+)
+from licalib_cli.pipeline.initialise import SINGLE_AXIS, InitialGuess
 from licalib_cli.pipeline.schedule import Fit
-from licalib_cli.pipeline.split import SplitResult
+from licalib_cli.pipeline.settings import NoiseLevels
+from licalib_cli.pipeline.split import SplitResult, split_half
 from licalib_cli.sections import (
     Consistency,
     EffectCheck,
@@ -47,9 +54,11 @@ __all__ = [
     "SPLIT_HALF_P",
     "Checks",
     "Finding",
+    "check",
     "judge",
     "observability_of",
     "raw_uncertainty",
+    "run_checks",
 ]
 
 F64 = npt.NDArray[np.float64]
@@ -82,6 +91,7 @@ class Checks:
         findings: every finding, notes included.
         exit_status: ``"ok"``, ``"fail"`` or ``"not converged"``.
         intrinsics_uncertainty: 1-sigma of the estimated intrinsics (None when none were).
+        effects: the score tests of the effects the fit held fixed (selected ones first).
     """
 
     verdict: VerdictSection
@@ -92,6 +102,7 @@ class Checks:
     findings: tuple[Finding, ...]
     exit_status: str
     intrinsics_uncertainty: IntrinsicsUncertainty | None = None
+    effects: tuple[EffectEvidence, ...] = ()
 
 
 def _std(report: SolverReport, names: list[str]) -> F64:
@@ -414,6 +425,21 @@ def judge(findings: list[Finding]) -> tuple[VerdictSection, str]:
     return VerdictSection(status, reasons), exit_status
 
 
+def check(fit: Fit, guess: InitialGuess, noise: NoiseLevels, cfg: CalibConfig) -> Checks:
+    """The checks stage: gather the evidence on the fit (residuals per sensor, score tests of
+    the fixed effects, the two halves) and judge it (:func:`run_checks`)."""
+    sensors = sensor_checks(fit.state, fit.inputs, noise)
+    effects = effect_evidence(fit.state, fit.inputs, fit.report.variance_factor)
+    split = split_half(fit.state, fit.inputs, cfg)
+    notes = ()
+    if guess.rotation_source == SINGLE_AXIS:
+        notes = (
+            "The rig turned about one axis only; the rotation about it rests on the "
+            "accelerations, and the translation along it is not observable.",
+        )
+    return run_checks(fit, sensors, effects, split, cfg, notes)
+
+
 def run_checks(
     fit: Fit,
     sensors: tuple[SensorCheck, ...],
@@ -471,6 +497,7 @@ def run_checks(
         findings=tuple(findings),
         exit_status=exit_status,
         intrinsics_uncertainty=intrinsics,
+        effects=tuple(effects),
     )
 
 

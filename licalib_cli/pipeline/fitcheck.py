@@ -33,7 +33,7 @@ from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.pipeline.settings import NoiseLevels
 from licalib_cli.residuals import TIME_OFFSET, AccelResidual, GyroResidual, PointToPlaneResidual
 from licalib_cli.sections import PatternCheck, SensorCheck
-from licalib_cli.solver.problem import schur_complement
+from licalib_cli.solver.schur import schur_complement
 
 __all__ = [
     "CHI2_EXCESS",

@@ -16,9 +16,9 @@ import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.errors import ConfigError, DataError
-from licalib_cli.estimation import CalibrationState
+from licalib_cli.estimation import CalibrationState, LidarPoints
 from licalib_cli.measurements import LidarScan
-from licalib_cli.models.intrinsics import lidar_point, nominal_point
+from licalib_cli.models.lidar import lidar_point, nominal_point
 
 __all__ = [
     "PointSample",
@@ -27,6 +27,7 @@ __all__ = [
     "points_per_scan",
     "query_times",
     "sample_points",
+    "solver_points",
     "usable_points",
 ]
 
@@ -158,6 +159,23 @@ def points_in_global(state: CalibrationState, sample: PointSample) -> F64:
     p_i = (p_l + sample.model_gap) @ state.R_imu_lidar.T + state.t_imu_lidar
     rot = state.so3_spline.rotation(t)
     return np.einsum("nij,nj->ni", rot, p_i) + state.r3_spline.position(t)
+
+
+def solver_points(
+    state: CalibrationState, sample: PointSample, plane: npt.NDArray[np.integer]
+) -> LidarPoints:
+    """The sampled points as the solver's input, each with the index of its plane: the same
+    raw measurements, model gap and times as :func:`points_in_global` maps, so that the residual
+    of a point that lies on its plane in the map is zero."""
+    return LidarPoints(
+        t_s=(sample.t_ns - state.t0_ns) * 1e-9,
+        beam=sample.beam,
+        rho=sample.rho,
+        theta=sample.theta,
+        plane=plane,
+        model_gap=sample.model_gap,
+        sweep_start_s=(sample.sweep_start_ns - state.t0_ns) * 1e-9,
+    )
 
 
 def usable_points(state: CalibrationState, sample: PointSample, margin_s: float) -> PointSample:

@@ -1,19 +1,23 @@
-"""Read stage: the segment of the bag as measurements, and the sensors' noise."""
+"""Read stage: the segment of the bag as measurements, the beams' nominal elevations and the
+sensors' noise."""
 
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.consistency import imu_noise, range_noise
 from licalib_cli.io.reader import MIN_SEGMENT_S, read_segment
 from licalib_cli.measurements import Recording
+from licalib_cli.pipeline.points import nominal_elevations
 from licalib_cli.pipeline.settings import NoiseLevels
 
-__all__ = ["MIN_SEGMENT_S", "measure_noise", "read_recording"]
+__all__ = ["MIN_SEGMENT_S", "Segment", "measure_noise", "read", "read_recording"]
 
 logger = logging.getLogger(__name__)
 
@@ -21,6 +25,34 @@ _NS = 1_000_000_000
 
 _NOISE_SCANS = 20
 """Scans used to measure the range noise (spread over the segment)."""
+
+
+@dataclass(frozen=True)
+class Segment:
+    """What the read stage produces.
+
+    Attributes:
+        recording: the segment's IMU samples and scans on one clock.
+        nominal_elevation: (B,) nominal elevation of each beam, rad.
+        noise: the noise the fit is weighted with.
+    """
+
+    recording: Recording
+    nominal_elevation: npt.NDArray[np.float64]
+    noise: NoiseLevels
+
+
+def read(bag: Path, cfg: CalibConfig) -> Segment:
+    """The configured segment of ``bag``, its beam table and its noise.
+
+    Raises:
+        BagError, TopicError, DataError, TimestampError: unreadable or unusable input.
+        ConfigError: the configured beam table does not cover the data's beams.
+        ExcitationError: the segment is shorter than :data:`MIN_SEGMENT_S`.
+    """
+    rec = read_recording(bag, cfg)
+    phi = nominal_elevations(rec.scans, cfg)
+    return Segment(rec, phi, measure_noise(rec, cfg, phi.shape[0]))
 
 
 def read_recording(bag: Path, cfg: CalibConfig) -> Recording:

@@ -13,7 +13,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from licalib_cli.config import CalibConfig
 from licalib_cli.errors import DataError, ExcitationError, SolverError
 from licalib_cli.estimation import (
     CalibrationState,
@@ -26,19 +25,18 @@ from licalib_cli.estimation import (
     state_from_problem,
 )
 from licalib_cli.map_quality import mean_map_entropy
-from licalib_cli.pipeline.points import PointSample, points_in_global, usable_points
-from licalib_cli.pipeline.settings import (
-    NoiseLevels,
-    intrinsic_priors,
-    lm_params,
-    noise_model,
-    surfel_config,
+from licalib_cli.pipeline.points import (
+    PointSample,
+    points_in_global,
+    solver_points,
+    usable_points,
 )
+from licalib_cli.pipeline.settings import RoundSettings, intrinsic_priors
 from licalib_cli.results import Extrinsic
 from licalib_cli.solver.lm import SolverReport, solve
 from licalib_cli.surfels import associate_points, build_surfels
 
-__all__ = ["RoundInputs", "RoundSummary", "extrinsic_of", "free_names", "run_round"]
+__all__ = ["RoundInputs", "RoundResult", "RoundSummary", "extrinsic_of", "free_names", "run_round"]
 
 F32 = npt.NDArray[np.float32]
 
@@ -122,16 +120,30 @@ def free_names(free: FreeParameters) -> tuple[str, ...]:
     return tuple(names)
 
 
+@dataclass(frozen=True)
+class RoundResult:
+    """What a round produces.
+
+    Attributes:
+        state: the estimate after the round.
+        summary: the round's figures.
+        report: the solver's report (spectrum and sigmas at the new estimate).
+        inputs: what the round's problem was built from.
+    """
+
+    state: CalibrationState
+    summary: RoundSummary
+    report: SolverReport
+    inputs: RoundInputs
+
+
 def run_round(
     state: CalibrationState,
     sample: PointSample,
     imu: ImuData,
-    noise: NoiseLevels,
-    cfg: CalibConfig,
+    settings: RoundSettings,
     index: int,
-    max_distance_m: float,
-    free: FreeParameters,
-) -> tuple[CalibrationState, RoundSummary, SolverReport, RoundInputs]:
+) -> RoundResult:
     """Rebuild surfels and associations from ``state``, then one LM round.
 
     Raises:
@@ -139,10 +151,9 @@ def run_round(
         SolverError: the optimisation failed.
     """
     start = time.perf_counter()
-    margin = max(cfg.spline.time_offset_padding_s, 2 * cfg.spline.knot_spacing_s)
-    pts = usable_points(state, sample, margin)
+    pts = usable_points(state, sample, settings.margin_s)
     p_g = points_in_global(state, pts)
-    scfg = surfel_config(cfg, noise, max_distance_m)
+    scfg = settings.surfels
     surfels = build_surfels(p_g, scfg)
     if len(surfels.d) == 0:
         msg = (
@@ -160,21 +171,19 @@ def run_round(
     order = np.argsort(assoc.point_index)
     used = pts.subset(assoc.point_index[order])
     plane_of = assoc.surfel_index[order]
-    lidar = LidarPoints(
-        t_s=(used.t_ns - state.t0_ns) * 1e-9,
-        beam=used.beam,
-        rho=used.rho,
-        theta=used.theta,
-        plane=plane_of,
-        model_gap=used.model_gap,
-        sweep_start_s=(used.sweep_start_ns - state.t0_ns) * 1e-9,
-    )
-    planes = Planes(normal=surfels.normal, offset=surfels.d, thickness=surfels.thickness)
-    weights = noise_model(cfg, noise)
+    lidar = solver_points(state, used, plane_of)
+    planes = Planes(normal=surfels.normal, d=surfels.d, thickness=surfels.thickness)
+    free = settings.free
     problem = build_problem(
-        state, imu, lidar, planes, weights, free, extra_residuals=intrinsic_priors(state, free)
+        state,
+        imu,
+        lidar,
+        planes,
+        settings.weights,
+        free,
+        extra_residuals=intrinsic_priors(state, free),
     )
-    report = solve(problem, lm_params(cfg))
+    report = solve(problem, settings.solver)
     if report.status == "failed":
         msg = f"The optimisation failed in round {index}: {report.reason}."
         raise SolverError(msg)
@@ -192,7 +201,7 @@ def run_round(
     summary = RoundSummary(
         index=index,
         free=free_names(free),
-        max_distance_m=max_distance_m,
+        max_distance_m=scfg.max_distance_m,
         points=len(used),
         surfels=len(surfels.d),
         associated_fraction=len(used) / max(len(pts), 1),
@@ -206,4 +215,5 @@ def run_round(
         distances_after_m=dist.astype(np.float32),
         map_entropy=entropy,
     )
-    return new_state, summary, report, RoundInputs(imu, lidar, used, planes, weights, free)
+    inputs = RoundInputs(imu, lidar, used, planes, settings.weights, free)
+    return RoundResult(new_state, summary, report, inputs)

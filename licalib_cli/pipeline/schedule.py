@@ -20,11 +20,11 @@ import numpy as np
 from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import CalibrationState, ImuData, intrinsic_coordinates
 from licalib_cli.measurements import Recording
-from licalib_cli.models.intrinsics import lidar_point
+from licalib_cli.models.lidar import lidar_point
 from licalib_cli.pipeline.initialise import InitialGuess
 from licalib_cli.pipeline.points import PointSample, points_per_scan, sample_points
 from licalib_cli.pipeline.round import RoundInputs, RoundSummary, extrinsic_of, run_round
-from licalib_cli.pipeline.settings import NoiseLevels, estimates_intrinsics, free_parameters
+from licalib_cli.pipeline.settings import NoiseLevels, estimates_intrinsics, round_settings
 from licalib_cli.progress import Progress
 from licalib_cli.solver.lm import SolverReport
 
@@ -194,10 +194,10 @@ def run_schedule(
     intrinsic_sigmas = 0.0
     for index in range(1, sch.max_rounds + 1):
         before = state
-        free = free_parameters(cfg, intrinsics_on)
-        state, summary, report, inputs = run_round(
-            state, sample, imu, noise, cfg, index, max_dist, free
+        done = run_round(
+            state, sample, imu, round_settings(cfg, noise, max_dist, intrinsics_on), index
         )
+        state, summary, report, inputs = done.state, done.summary, done.report, done.inputs
         rounds.append(summary)
         progress.advance(index, sch.max_rounds)
         change = _change(before, state)
@@ -259,16 +259,10 @@ def run_schedule(
         # time offset and the translation shrinks with the number of points.
         dense = sample_points(rec.scans, phi, final, cfg, seed=1)
         before = state
-        state, summary, report, inputs = run_round(
-            state,
-            dense,
-            imu,
-            noise,
-            cfg,
-            len(rounds) + 1,
-            base,
-            free_parameters(cfg, intrinsics_on),
+        done = run_round(
+            state, dense, imu, round_settings(cfg, noise, base, intrinsics_on), len(rounds) + 1
         )
+        state, summary, report, inputs = done.state, done.summary, done.report, done.inputs
         rounds.append(summary)
         dense_change = _change(before, state)
         logger.info(

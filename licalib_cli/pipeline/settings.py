@@ -22,6 +22,7 @@ from licalib_cli.estimation import (
 from licalib_cli.initialization.rotation import HandEyeConfig
 from licalib_cli.initialization.time_offset import TimeOffsetConfig
 from licalib_cli.initialization.translation import LeverArmConfig
+from licalib_cli.models.lidar import nominal_intrinsics_array
 from licalib_cli.odometry import OdometryConfig
 from licalib_cli.residuals import (
     ACCEL_SCALE,
@@ -38,6 +39,7 @@ __all__ = [
     "LIDAR_COLUMNS",
     "THICKNESS_PER_RANGE_SIGMA",
     "NoiseLevels",
+    "RoundSettings",
     "estimates_intrinsics",
     "free_parameters",
     "hand_eye_config",
@@ -45,6 +47,8 @@ __all__ = [
     "lm_params",
     "noise_model",
     "odometry_config",
+    "round_settings",
+    "spline_margin_s",
     "surfel_config",
     "time_offset_config",
 ]
@@ -240,9 +244,8 @@ def intrinsic_priors(state: CalibrationState, free: FreeParameters) -> list[Gaus
         )
     if free.any_lidar_intrinsics:
         b = state.lidar_intrinsics.num_beams
-        nominal = np.zeros((b, 6))
-        nominal[:, 4] = 1.0
-        sigma = np.broadcast_to(np.asarray(INTRINSIC_PRIOR_SIGMA[LIDAR_INTRINSICS]), (b, 6))
+        nominal = nominal_intrinsics_array(b)
+        sigma = np.broadcast_to(np.asarray(INTRINSIC_PRIOR_SIGMA[LIDAR_INTRINSICS]), nominal.shape)
         out.append(GaussianPrior(LIDAR_INTRINSICS, nominal, sigma))
     return out
 
@@ -250,3 +253,43 @@ def intrinsic_priors(state: CalibrationState, free: FreeParameters) -> list[Gaus
 def estimates_intrinsics(cfg: CalibConfig) -> bool:
     """Whether the ``model:`` section asks for any intrinsic."""
     return bool(cfg.model.imu or cfg.model.lidar)
+
+
+def spline_margin_s(cfg: CalibConfig) -> float:
+    """How far inside the spline a point's trajectory time ``tau + t_c`` must stay, s (room
+    for the time offset to move)."""
+    return max(cfg.spline.time_offset_padding_s, 2 * cfg.spline.knot_spacing_s)
+
+
+@dataclass(frozen=True)
+class RoundSettings:
+    """What one refinement round runs with (the schedule chooses them round by round).
+
+    Attributes:
+        surfels: surfel and association settings (the round's association distance).
+        weights: residual weights.
+        solver: Levenberg-Marquardt settings.
+        free: what the round estimates.
+        margin_s: points whose trajectory time comes closer than this to the spline's ends are
+            left out, s.
+    """
+
+    surfels: SurfelConfig
+    weights: NoiseModel
+    solver: LMParams
+    free: FreeParameters
+    margin_s: float
+
+
+def round_settings(
+    cfg: CalibConfig, noise: NoiseLevels, max_distance_m: float, intrinsics: bool
+) -> RoundSettings:
+    """The settings of a round associating within ``max_distance_m``, with the intrinsics of
+    the ``model:`` section free when ``intrinsics``."""
+    return RoundSettings(
+        surfels=surfel_config(cfg, noise, max_distance_m),
+        weights=noise_model(cfg, noise),
+        solver=lm_params(cfg),
+        free=free_parameters(cfg, intrinsics),
+        margin_s=spline_margin_s(cfg),
+    )

@@ -27,7 +27,7 @@ from licalib_cli.estimation import (
 )
 from licalib_cli.geometry import so3
 from licalib_cli.pipeline.round import RoundInputs
-from licalib_cli.pipeline.settings import lm_params
+from licalib_cli.pipeline.settings import lm_params, spline_margin_s
 from licalib_cli.solver.lm import SolverReport, solve
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
 
@@ -129,7 +129,7 @@ def _estimate_half(
     state: CalibrationState, inputs: RoundInputs, lo_s: float, hi_s: float, cfg: CalibConfig
 ) -> tuple[CalibrationState, SolverReport] | str:
     """Re-estimate on IMU-clock seconds ``[lo, hi]``; a sentence when it cannot be done."""
-    margin = max(cfg.spline.time_offset_padding_s, 2 * cfg.spline.knot_spacing_s)
+    margin = spline_margin_s(cfg)
     sub = _sub_state(state, lo_s - margin, hi_s + margin)
     knots = sub.knots
     imu = inputs.imu

@@ -27,7 +27,12 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.geometry.so3 import quat_to_matrix
-from licalib_cli.models.lidar import NUM_BEAM_INTRINSICS, lidar_point_terms, point_to_plane
+from licalib_cli.models.lidar import (
+    NUM_BEAM_INTRINSICS,
+    lidar_point_terms,
+    nominal_intrinsics_array,
+    point_to_plane,
+)
 from licalib_cli.residuals import (
     EXT_ROTATION,
     EXT_TRANSLATION,
@@ -61,7 +66,7 @@ class PointToPlaneResidual:
         rho: npt.ArrayLike,
         theta: npt.ArrayLike,
         normal: npt.ArrayLike,
-        offset: npt.ArrayLike,
+        d: npt.ArrayLike,
         sigma: float | npt.ArrayLike,
         nominal_elevation: npt.ArrayLike,
         *,
@@ -79,7 +84,7 @@ class PointToPlaneResidual:
             rho: (N,) raw range, m.
             theta: (N,) raw azimuth, rad.
             normal: (N, 3) unit normal of each point's plane, ``{G}``.
-            offset: (N,) offset ``d`` of each point's plane, m.
+            d: (N,) offset ``d`` of each point's plane ``n^T x + d = 0``, m.
             sigma: (N,) or scalar standard deviation of the distance, m (e.g. the range noise,
                 a conservative bound: the distance noise is the range noise times the cosine of
                 the incidence angle).
@@ -105,16 +110,16 @@ class PointToPlaneResidual:
         self.theta = np.ascontiguousarray(theta, dtype=np.float64).reshape(-1)
         self._cos_sin_theta = (np.cos(self.theta), np.sin(self.theta))
         self.normal = np.ascontiguousarray(normal, dtype=np.float64)
-        self.offset = np.ascontiguousarray(offset, dtype=np.float64).reshape(-1)
+        self.d = np.ascontiguousarray(d, dtype=np.float64).reshape(-1)
         self.nominal_elevation = np.ascontiguousarray(nominal_elevation, dtype=np.float64)
         sig = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (n,))
         if not (
-            self.beam.shape == self.rho.shape == self.theta.shape == self.offset.shape == (n,)
+            self.beam.shape == self.rho.shape == self.theta.shape == self.d.shape == (n,)
             and self.normal.shape == (n, 3)
         ):
             msg = (
                 "point arrays disagree in length "
-                "(need t, beam, rho, theta, offset (N,) and normal (N, 3))"
+                "(need t, beam, rho, theta, d (N,) and normal (N, 3))"
             )
             raise ValueError(msg)
         if n and (self.beam.min() < 0 or self.beam.max() >= self.nominal_elevation.shape[0]):
@@ -172,8 +177,7 @@ class PointToPlaneResidual:
             t = np.clip(t, self.knots.t0_s, self.knots.t_end_s)
         intr = params.get(LIDAR_INTRINSICS)
         if intr is None:
-            intr = np.zeros((self.nominal_elevation.shape[0], NUM_BEAM_INTRINSICS))
-            intr[:, 4] = 1.0
+            intr = nominal_intrinsics_array(self.nominal_elevation.shape[0])
         want_time = jacobians and any(
             b in params for b in (TIME_OFFSET, TIME_DRIFT, POINT_TIME_SCALE)
         )
@@ -196,7 +200,7 @@ class PointToPlaneResidual:
             np.asarray(params[EXT_TRANSLATION], dtype=np.float64),
             terms.point if self.model_gap is None else terms.point + self.model_gap,
             self.normal,
-            self.offset,
+            self.d,
             rot_ev.angular_velocity,
             pos_ev.velocity,
         )

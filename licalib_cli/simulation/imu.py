@@ -19,7 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.measurements import ImuSamples
-from licalib_cli.models.intrinsics import imu_measure
+from licalib_cli.models.imu import imu_measure
 from licalib_cli.simulation.ground_truth import SimulationSetup, Stream, build_setup, rng_for
 from licalib_cli.simulation.spec import SimulationSpec
 

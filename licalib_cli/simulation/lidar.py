@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from licalib_cli.models.lidar import nominal_point
 from licalib_cli.simulation.ground_truth import SimulationSetup, Stream, build_setup, rng_for
 from licalib_cli.simulation.lidar_models import FiringPattern
 from licalib_cli.simulation.spec import LidarStamp, SimulationSpec
@@ -150,11 +151,7 @@ def _scan(
     keep = rng.uniform(size=rho_bar.shape[0]) >= spec.dropout
     rho = (rho_bar - kin.range_offset[ring]) / kin.range_scale[ring] + noise
     valid = keep & (rho >= model.min_range) & (rho <= model.max_range)
-    phi_nom = model.nominal_elevation[ring]
-    c_nom = np.cos(phi_nom)
-    xyz = np.stack(
-        [rho * c_nom * np.cos(theta), rho * c_nom * np.sin(theta), rho * np.sin(phi_nom)], axis=-1
-    )
+    xyz = nominal_point(rho, theta, model.nominal_elevation[ring])
     cos_inc = np.abs(np.einsum("ni,ni->n", planes[plane_id, :3], dir_w))
     albedo = refl[plane_id] * cos_inc
 

@@ -1,7 +1,7 @@
 """Write a simulated bag and its ``truth.yaml``.
 
-``truth.yaml`` is a :class:`~licalib_cli.results.CalibrationResult` (schema v1: ``extrinsic``,
-``imu_intrinsics``, ``lidar_intrinsics``) with these extra top-level keys::
+``truth.yaml`` is a :class:`~licalib_cli.truth.Truth`: the true values with the keys of a result
+file (schema v1: ``extrinsic``, ``imu_intrinsics``, ``lidar_intrinsics``) and these sections::
 
     scenario: {name, duration_s, mounting, vertical_in_imu, bursts_s: [[t0, t1], ...]}
     seed: 0
@@ -28,7 +28,7 @@ import shutil
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +36,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from licalib_cli import __version__
+from licalib_cli import truth as tr
 from licalib_cli.errors import ConfigError
 from licalib_cli.io.writer import BagWriter, default_bag_path
 from licalib_cli.results import CalibrationResult, create_folder, write_text_atomic
@@ -66,15 +67,20 @@ class SimulationOutput:
 
     bag_path: Path
     truth_path: Path
-    truth: CalibrationResult
+    truth: tr.Truth
     num_imu: int
     num_scans: int
     num_points: int
     elapsed_s: float
 
 
-def _list(a: Any, digits: int = 9) -> list[float]:
-    return [round(float(x), digits) for x in np.asarray(a, dtype=np.float64).reshape(-1)]
+def _vec(a: Any, digits: int = 9) -> tuple[float, ...]:
+    return tuple(round(float(x), digits) for x in np.asarray(a, dtype=np.float64).reshape(-1))
+
+
+def _vec3(a: Any, digits: int = 9) -> tuple[float, float, float]:
+    x, y, z = _vec(a, digits)
+    return (x, y, z)
 
 
 def build_truth(
@@ -82,101 +88,105 @@ def build_truth(
     setup: SimulationSetup,
     imu_truth: ImuTruth | None = None,
     bag_path: Path | None = None,
-) -> CalibrationResult:
-    """The ground truth of a run as a result file (extra keys under ``scenario``/``simulation``)."""
+) -> tr.Truth:
+    """The ground truth of a run: the true values and how they were simulated."""
     imu_truth = imu_truth if imu_truth is not None else generate_imu(spec, setup)[1]
     t_first = float(imu_truth.t_true_s[0])
     state = setup.trajectory.state(np.array([t_first]))
     r0 = state.rotation[0]
     g_g = r0.T @ spec.gravity_w
     q0 = Rotation.from_matrix(r0).as_quat()
-    q0 = -q0 if q0[3] < 0 else q0
+    qx, qy, qz, qw = _vec(-q0 if q0[3] < 0 else q0, 12)
     model = setup.lidar_model
     pattern = model.pattern(spec.lidar_rate_hz, spec.azimuth_resolution_deg)
     rate = spec.imu_rate_hz
-    scenario: dict[str, Any] = {
-        "name": spec.scenario.value,
-        "duration_s": float(spec.resolved_duration_s),
-        "bursts_s": [_list(b, 3) for b in setup.motion.bursts_s],
-    }
+    scenario = tr.Scenario(
+        name=spec.scenario.value,
+        duration_s=float(spec.resolved_duration_s),
+        bursts_s=tuple(_vec(b, 3) for b in setup.motion.bursts_s),
+    )
     if spec.scenario is Scenario.FIGURE8:
-        scenario["mounting"] = spec.mounting.value
-        scenario["vertical_in_imu"] = _list(setup.motion.vertical_in_imu)
-    simulation: dict[str, Any] = {
-        "gravity_world": _list(spec.gravity_w),
-        "gravity_in_first_imu_frame": _list(g_g),
-        "initial_imu_pose": {
-            "stamp_ns": int(spec.base_time_ns + round(t_first * 1e9)),
-            "position": _list(state.position[0]),
-            "rotation_quaternion": _list(q0, 12),
-            "velocity": _list(state.velocity[0]),
-            "angular_velocity": _list(state.angular_velocity[0]),
-        },
-        "imu": {
-            "topic": spec.imu_topic,
-            "frame_id": spec.imu_frame,
-            "rate_hz": float(rate),
-            "num_samples": int(imu_truth.t_true_s.shape[0]),
-            "model": "Xsens MTi-100 (datasheet densities)",
-            "gyro_noise_density": float(spec.gyro_noise_density),  # rad/s/sqrt(Hz)
-            "accel_noise_density": float(spec.accel_noise_density),  # m/s^2/sqrt(Hz)
-            "gyro_bias_walk_density": float(spec.gyro_bias_walk_density),  # rad/s^2/sqrt(Hz)
-            "accel_bias_walk_density": float(spec.accel_bias_walk_density),  # m/s^3/sqrt(Hz)
-            "gyro_noise_sigma": imu_truth.gyro_noise_sigma,  # density * sqrt(rate)
-            "accel_noise_sigma": imu_truth.accel_noise_sigma,
-            "noise_free": spec.noise_free,
-            "bias_walk_scale": float(spec.resolved_bias_walk_scale),
-            "effects": [e.value for e in spec.active_effects],
-            "g_sensitivity_dps_per_g": float(spec.g_sensitivity_dps_per_g)
-            if ImuEffect.G_SENSITIVITY in spec.active_effects
-            else 0.0,
-            "clock_drift_ppm": float(spec.resolved_imu_clock_drift_ppm),
-            "gyro_bias_mean": _list(imu_truth.gyro_bias.mean(axis=0), 12),
-            "accel_bias_mean": _list(imu_truth.accel_bias.mean(axis=0), 12),
-            "gyro_bias_end": _list(imu_truth.gyro_bias[-1], 12),
-            "accel_bias_end": _list(imu_truth.accel_bias[-1], 12),
-        },
-        "lidar": {
-            "model": model.kind.value,
-            "topic": spec.resolved_lidar_topic,
-            "frame_id": spec.resolved_lidar_frame,
-            "rate_hz": float(spec.lidar_rate_hz),
-            "num_beams": model.num_beams,
-            "rays_per_beam": int(pattern.t_ns.shape[0]),
-            "num_scans": num_scans(spec),
-            "organized": model.organized,
-            "stamp": "start" if model.organized else spec.lidar_stamp.value,
-            "range_noise_m": float(spec.resolved_range_noise_m),
-            "azimuth_resolution_deg": None
-            if spec.azimuth_resolution_deg is None
-            else float(spec.azimuth_resolution_deg),
-            "dropout": float(spec.dropout),
-            "intrinsics": spec.intrinsics.value
-            if spec.intrinsics_file is None
-            else str(spec.intrinsics_file),
-            "intrinsics_scale": float(spec.intrinsics_scale),
-        },
-        "clock": {
-            "base_time_ns": int(spec.base_time_ns),
-            "time_offset_s": float(setup.time_offset_ns * 1e-9),
-            "time_offset_drawn": spec.random_time_offset,
-            "lidar_clock_offset_s": float(setup.lidar_clock_offset_ns * 1e-9),
-            "relation": "t_imu = t_lidar - lidar_clock_offset_s + time_offset_s",
-        },
-        "random_extrinsic": spec.random_extrinsic,
-        "bag": {
-            "format": spec.fmt.value,
-            "path": None if bag_path is None else str(bag_path),
-        },
-        "command_line": spec.command_line,
-        "licalib_version": __version__,
-    }
-    return CalibrationResult(
+        scenario = replace(
+            scenario,
+            mounting=spec.mounting.value,
+            vertical_in_imu=_vec3(setup.motion.vertical_in_imu),
+        )
+    imu = tr.SimulatedImu(
+        topic=spec.imu_topic,
+        frame_id=spec.imu_frame,
+        rate_hz=float(rate),
+        num_samples=int(imu_truth.t_true_s.shape[0]),
+        model="Xsens MTi-100 (datasheet densities)",
+        gyro_noise_density=float(spec.gyro_noise_density),  # rad/s/sqrt(Hz)
+        accel_noise_density=float(spec.accel_noise_density),  # m/s^2/sqrt(Hz)
+        gyro_bias_walk_density=float(spec.gyro_bias_walk_density),  # rad/s^2/sqrt(Hz)
+        accel_bias_walk_density=float(spec.accel_bias_walk_density),  # m/s^3/sqrt(Hz)
+        gyro_noise_sigma=imu_truth.gyro_noise_sigma,  # density * sqrt(rate)
+        accel_noise_sigma=imu_truth.accel_noise_sigma,
+        noise_free=spec.noise_free,
+        bias_walk_scale=float(spec.resolved_bias_walk_scale),
+        effects=tuple(e.value for e in spec.active_effects),
+        g_sensitivity_dps_per_g=float(spec.g_sensitivity_dps_per_g)
+        if ImuEffect.G_SENSITIVITY in spec.active_effects
+        else 0.0,
+        clock_drift_ppm=float(spec.resolved_imu_clock_drift_ppm),
+        gyro_bias_mean=_vec3(imu_truth.gyro_bias.mean(axis=0), 12),
+        accel_bias_mean=_vec3(imu_truth.accel_bias.mean(axis=0), 12),
+        gyro_bias_end=_vec3(imu_truth.gyro_bias[-1], 12),
+        accel_bias_end=_vec3(imu_truth.accel_bias[-1], 12),
+    )
+    lidar = tr.SimulatedLidar(
+        model=model.kind.value,
+        topic=spec.resolved_lidar_topic,
+        frame_id=spec.resolved_lidar_frame,
+        rate_hz=float(spec.lidar_rate_hz),
+        num_beams=model.num_beams,
+        rays_per_beam=int(pattern.t_ns.shape[0]),
+        num_scans=num_scans(spec),
+        organized=model.organized,
+        stamp="start" if model.organized else spec.lidar_stamp.value,
+        range_noise_m=float(spec.resolved_range_noise_m),
+        azimuth_resolution_deg=None
+        if spec.azimuth_resolution_deg is None
+        else float(spec.azimuth_resolution_deg),
+        dropout=float(spec.dropout),
+        intrinsics=spec.intrinsics.value
+        if spec.intrinsics_file is None
+        else str(spec.intrinsics_file),
+        intrinsics_scale=float(spec.intrinsics_scale),
+    )
+    simulation = tr.Simulation(
+        gravity_world=_vec3(spec.gravity_w),
+        gravity_in_first_imu_frame=_vec3(g_g),
+        initial_imu_pose=tr.InitialImuPose(
+            stamp_ns=int(spec.base_time_ns + round(t_first * 1e9)),
+            position=_vec3(state.position[0]),
+            rotation_quaternion=(qx, qy, qz, qw),
+            velocity=_vec3(state.velocity[0]),
+            angular_velocity=_vec3(state.angular_velocity[0]),
+        ),
+        imu=imu,
+        lidar=lidar,
+        clock=tr.SimulatedClock(
+            base_time_ns=int(spec.base_time_ns),
+            time_offset_s=float(setup.time_offset_ns * 1e-9),
+            time_offset_drawn=spec.random_time_offset,
+            lidar_clock_offset_s=float(setup.lidar_clock_offset_ns * 1e-9),
+            relation="t_imu = t_lidar - lidar_clock_offset_s + time_offset_s",
+        ),
+        random_extrinsic=spec.random_extrinsic,
+        bag=tr.SimulatedBag(
+            format=spec.fmt.value, path=None if bag_path is None else str(bag_path)
+        ),
+        command_line=spec.command_line,
+        licalib_version=__version__,
+    )
+    values = CalibrationResult(
         extrinsic=setup.extrinsic,
         imu_intrinsics=setup.imu_intrinsics,
         lidar_intrinsics=setup.lidar_intrinsics,
-        extra={"scenario": scenario, "seed": int(spec.seed), "simulation": simulation},
     )
+    return tr.Truth(values, scenario, int(spec.seed), simulation)
 
 
 def _is_bag_like(path: Path) -> bool:

@@ -29,11 +29,10 @@ from licalib_cli.solver.problem import (
     Problem,
     ResidualBlock,
     ResidualEval,
-    SchurSystem,
     SparseJacobian,
     dense_to_coo,
-    schur_complement,
 )
+from licalib_cli.solver.schur import SchurSystem, schur_complement
 
 __all__ = [
     "CauchyLoss",

@@ -5,10 +5,10 @@ Each iteration solves the damped normal equations ``(H + lambda diag(D)) dx = -g
 
 1. Eliminate the trajectory group: factorise ``H_tt + lambda D_t`` (banded Cholesky of the
    reordered spline coordinates plus a dense border of biases and gravity; sparse LU when that
-   does not apply, see :func:`licalib_cli.solver.problem.schur_complement`), Schur complement
+   does not apply, see :func:`licalib_cli.solver.schur.schur_complement`), Schur complement
    ``S = H_cc - H_ct (H_tt + lambda D_t)^-1 H_tc`` and right-hand side ``b`` (method.md section 8).
 2. Scale the calibration system by the characteristic scales ``d`` (``S_d = D S D``, see
-   :mod:`licalib_cli.observability`). The eigen-decomposition ``S0_d = U diag(s) U^T`` of the
+   :mod:`licalib_cli.solver.observability`). The eigen-decomposition ``S0_d = U diag(s) U^T`` of the
    *undamped* Schur complement (computed once per linearisation) decides the truncation: damping
    ``H_tt`` would charge the trajectory for absorbing a calibration direction and make such a
    direction look observable.
@@ -43,7 +43,7 @@ import numpy.typing as npt
 import scipy.linalg as sla
 
 from licalib_cli.errors import SolverError
-from licalib_cli.observability import (
+from licalib_cli.solver.observability import (
     DirectionDescription,
     InformationSummary,
     describe_direction,
@@ -51,7 +51,8 @@ from licalib_cli.observability import (
     truncation_mask,
     undamped_schur,
 )
-from licalib_cli.solver.problem import Linearization, Problem, schur_complement
+from licalib_cli.solver.problem import Linearization, Problem
+from licalib_cli.solver.schur import schur_complement
 
 __all__ = [
     "IterationSummary",

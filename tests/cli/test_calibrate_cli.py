@@ -86,6 +86,16 @@ def test_missing_topic_lists_candidates(tmp_path, capsys):
     assert "Traceback" not in err
 
 
+def test_a_beam_table_shorter_than_the_data_is_a_config_error(tmp_path, capsys):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("lidar:\n  nominal_elevation_deg: [-15, -13, -11, -9, -7, -5, -3, -1]\n")
+    bag = write_static_bag(tmp_path / "s.bag", 3.0)
+    code, _, err = run(["calibrate", str(bag), "--config", str(cfg)], capsys)
+    assert code == 6, err
+    assert "lists 8 beams but the clouds on /points have 16" in err
+    assert "Traceback" not in err
+
+
 def test_no_motion_is_refused_with_a_reason(tmp_path, capsys):
     bag = write_static_bag(tmp_path / "s.bag", 3.0)
     out = tmp_path / "result.yaml"

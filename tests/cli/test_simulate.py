@@ -11,9 +11,9 @@ from typer.testing import CliRunner
 from licalib_cli.cli import main
 from licalib_cli.commands.simulate import simulate_command
 from licalib_cli.errors import ConfigError
-from licalib_cli.results import CalibrationResult
 from licalib_cli.simulation import SimulationSpec
 from licalib_cli.simulation.ground_truth import draw_time_offset
+from licalib_cli.truth import Truth
 
 
 def _app() -> typer.Typer:
@@ -51,10 +51,11 @@ def test_simulate_smoke(tmp_path: Path) -> None:
     assert lines[-1] == str(out_dir / "bag")
     assert (out_dir / "bag" / "metadata.yaml").exists()
     assert "10 vlp16 scans" in result.output and "401 IMU samples" in result.output
-    truth = CalibrationResult.load(out_dir / "truth.yaml")
+    truth = Truth.load(out_dir / "truth.yaml")
     assert truth.extrinsic.time_offset_s == pytest.approx(-0.005)
     assert truth.extrinsic.translation.tolist() == [-0.1, 0.2, 0.05]
-    cmd = truth.extra["simulation"]["command_line"]
+    assert truth.simulation is not None
+    cmd = truth.simulation.command_line
     assert "--seed 3" in cmd and "--translation -0.1 0.2 0.05" in cmd
 
     again = CliRunner().invoke(_app(), args)
@@ -122,15 +123,16 @@ def test_effects_by_name_and_random_time_offset(
         main(argv)
         raise SystemExit(0)
     assert exc.value.code == 0, capsys.readouterr().err
-    truth = CalibrationResult.load(out_dir / "truth.yaml")
-    sim = truth.extra["simulation"]
-    assert sim["imu"]["effects"] == ["bias-random-walk", "imu-clock-drift"]
-    assert sim["imu"]["bias_walk_scale"] == 10.0 and sim["imu"]["clock_drift_ppm"] == 50.0
+    truth = Truth.load(out_dir / "truth.yaml")
+    sim = truth.simulation
+    assert sim is not None
+    assert sim.imu.effects == ("bias-random-walk", "imu-clock-drift")
+    assert sim.imu.bias_walk_scale == 10.0 and sim.imu.clock_drift_ppm == 50.0
     expected = draw_time_offset(SimulationSpec(seed=4, random_time_offset=True))
     assert truth.extrinsic.time_offset_s == pytest.approx(expected, abs=1e-12)
-    assert 0 < abs(expected) <= 0.05 and sim["clock"]["time_offset_drawn"] is True
-    assert "--random-time-offset" in sim["command_line"]
-    assert "--effect bias-random-walk --effect imu-clock-drift" in sim["command_line"]
+    assert 0 < abs(expected) <= 0.05 and sim.clock.time_offset_drawn is True
+    assert "--random-time-offset" in sim.command_line
+    assert "--effect bias-random-walk --effect imu-clock-drift" in sim.command_line
 
 
 def test_output_that_is_a_file_is_a_clear_error(tmp_path: Path) -> None:

@@ -32,7 +32,7 @@ from licalib_cli.solver import (
     Problem,
     ResidualEval,
 )
-from licalib_cli.solver.problem import _compress_key, _element_key
+from licalib_cli.solver.assembly import _compress_key, _element_key
 
 NUM_CTRL = 14
 NUM_BEAMS = 5

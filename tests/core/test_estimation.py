@@ -26,7 +26,8 @@ from licalib_cli.geometry.so3 import exp as so3_exp
 from licalib_cli.geometry.so3 import log as so3_log
 from licalib_cli.geometry.so3 import quat_exp, quat_to_matrix
 from licalib_cli.measurements import ImuSamples
-from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics, imu_measure
+from licalib_cli.models.imu import imu_measure
+from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
 from licalib_cli.models.lidar import intrinsics_to_array
 from licalib_cli.residuals import (
     EXT_ROTATION,
@@ -293,7 +294,7 @@ def _scan_room(
     rot = so3.rotation(t)
     origin = np.einsum("nij,j->ni", rot, t_il) + r3.position(t)
     u_g = np.einsum("nij,nj->ni", rot @ R_il, u_l)
-    num = -(origin @ planes.normal.T + planes.offset)  # (n, P)
+    num = -(origin @ planes.normal.T + planes.d)  # (n, P)
     den = u_g @ planes.normal.T
     with np.errstate(divide="ignore", invalid="ignore"):
         s = np.where(den != 0.0, num / den, np.inf)

@@ -499,7 +499,7 @@ def test_direction_absorbed_by_trajectory_is_truncated_under_damping() -> None:
     assert step.num_truncated == 1
     assert abs(step.dx[nt]) < 1e-12
     # what the damped Schur complement alone would have said
-    from licalib_cli.solver.problem import schur_complement
+    from licalib_cli.solver.schur import schur_complement
 
     damped = schur_complement(lin, 1e-4 * lin.H_tt.diagonal()).S
     assert float(damped[0, 0]) * 0.1**2 > 100.0

@@ -9,17 +9,22 @@ import numpy as np
 import pytest
 from fd_check import STEP, assert_jacobian
 from fd_check import central_difference as _fd
+from scipy.spatial.transform import Rotation
 
 from licalib_cli.geometry.so3 import exp as so3_exp
 from licalib_cli.geometry.so3 import quat_exp, quat_multiply
-from licalib_cli.models.imu import accel_model, gyro_model, specific_force
-from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics, imu_measure, lidar_point
+from licalib_cli.models.imu import accel_model, gyro_model, imu_measure, specific_force
+from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
 from licalib_cli.models.lidar import (
+    BeamIntrinsic,
     PointToPlaneGeometry,
     intrinsics_from_array,
     intrinsics_to_array,
+    lidar_point,
     lidar_point_terms,
     lidar_point_with_jacobian,
+    nominal_intrinsics_array,
+    nominal_point,
     point_to_plane,
 )
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
@@ -61,11 +66,27 @@ def _random_imu_intrinsics(rng: np.random.Generator) -> ImuIntrinsics:
     )
 
 
-def test_imu_models_match_contract_forward_model(rng: np.random.Generator) -> None:
+def _written_imu_model(k: ImuIntrinsics, omega: np.ndarray, accel: np.ndarray) -> tuple:
+    """method.md section 3 written out with matrices: ``S_w M_w R_wI w + A_w a + b_w`` and
+    ``S_a M_a a + b_a`` (scipy for ``R_wI``)."""
+
+    def m(x: np.ndarray) -> np.ndarray:
+        return np.array([[1.0, x[0], x[1]], [0.0, 1.0, x[2]], [0.0, 0.0, 1.0]])
+
+    r_wi = Rotation.from_quat(k.gyro_rotation).as_matrix()
+    k_w = np.diag(k.gyro_scale) @ m(k.gyro_misalignment) @ r_wi
+    k_a = np.diag(k.accel_scale) @ m(k.accel_misalignment)
+    gyro = omega @ k_w.T + accel @ k.gyro_g_sensitivity.T + k.gyro_bias
+    return gyro, accel @ k_a.T + k.accel_bias
+
+
+def test_the_imu_model_is_the_written_model(rng: np.random.Generator) -> None:
+    """gyro_model / accel_model (the solver's) and imu_measure (the simulator's, a thin use of
+    them) agree with the model as written in method.md."""
     k = _random_imu_intrinsics(rng)
     omega = rng.standard_normal((20, 3))
     accel = rng.standard_normal((20, 3)) * 5.0
-    g_ref, a_ref = imu_measure(k, omega, accel)
+    g_ref, a_ref = _written_imu_model(k, omega, accel)
     g = gyro_model(
         omega,
         accel,
@@ -78,6 +99,9 @@ def test_imu_models_match_contract_forward_model(rng: np.random.Generator) -> No
     a = accel_model(accel, k.accel_scale, k.accel_misalignment, k.accel_bias)
     np.testing.assert_allclose(g.value, g_ref, rtol=0, atol=1e-13)
     np.testing.assert_allclose(a.value, a_ref, rtol=0, atol=1e-13)
+    g_sim, a_sim = imu_measure(k, omega, accel)
+    np.testing.assert_array_equal(g_sim, g.value)
+    np.testing.assert_array_equal(a_sim, a.value)
 
 
 def test_gyro_model_jacobians(rng: np.random.Generator) -> None:
@@ -162,7 +186,27 @@ def _random_lidar(rng: np.random.Generator, beams: int = 4) -> tuple[np.ndarray,
     return phi, values
 
 
-def test_lidar_point_matches_contract_and_jacobian(rng: np.random.Generator) -> None:
+def _written_lidar_model(
+    phi: np.ndarray, values: np.ndarray, beam: np.ndarray, rho: np.ndarray, theta: np.ndarray
+) -> np.ndarray:
+    """method.md section 4 written out point by point, columns by name."""
+    out = []
+    for i, r, t in zip(beam, rho, theta, strict=True):
+        d = dict(zip(("dphi", "dtheta", "V", "H", "s", "drho"), values[i], strict=True))
+        r_bar, p_bar, t_bar = d["s"] * r + d["drho"], phi[i] + d["dphi"], t + d["dtheta"]
+        out.append(
+            [
+                r_bar * np.cos(p_bar) * np.cos(t_bar) + d["H"] * np.sin(t_bar),
+                r_bar * np.cos(p_bar) * np.sin(t_bar) - d["H"] * np.cos(t_bar),
+                r_bar * np.sin(p_bar) + d["V"],
+            ]
+        )
+    return np.asarray(out)
+
+
+def test_lidar_point_is_the_written_model_and_its_jacobian(rng: np.random.Generator) -> None:
+    """lidar_point_terms (the solver's), lidar_point (the map's) and nominal_point (the
+    driver's) agree with the model as written in method.md."""
     phi, values = _random_lidar(rng)
     intr = intrinsics_from_array(phi, values)
     np.testing.assert_array_equal(intrinsics_to_array(intr), values)
@@ -170,7 +214,15 @@ def test_lidar_point_matches_contract_and_jacobian(rng: np.random.Generator) -> 
     rho = rng.uniform(1.0, 50.0, 40)
     theta = rng.uniform(-np.pi, np.pi, 40)
     p, jac = lidar_point_with_jacobian(phi, values, beam, rho, theta)
-    np.testing.assert_allclose(p, lidar_point(intr, beam, rho, theta), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        p, _written_lidar_model(phi, values, beam, rho, theta), rtol=0, atol=1e-12
+    )
+    np.testing.assert_array_equal(lidar_point(intr, beam, rho, theta), p)
+    nominal = lidar_point(LidarIntrinsics.nominal(phi), beam, rho, theta)
+    np.testing.assert_allclose(nominal_point(rho, theta, phi[beam]), nominal, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(
+        nominal_intrinsics_array(4), intrinsics_to_array(LidarIntrinsics.nominal(phi))
+    )
     assert jac is not None
     for b in range(4):
         sel = beam == b
@@ -189,8 +241,8 @@ def test_lidar_point_matches_contract_and_jacobian(rng: np.random.Generator) -> 
         terms.vjp(v), np.einsum("ni,nij->nj", v, jac), rtol=1e-12, atol=1e-12
     )
     # the horizontal offset is perpendicular to the beam (method.md: minus sign on y)
-    zero = np.zeros((1, 6))
-    zero[0, 3], zero[0, 4] = 0.1, 1.0
+    zero = nominal_intrinsics_array(1)
+    zero[0, BeamIntrinsic.HORIZONTAL_OFFSET] = 0.1
     q, _ = lidar_point_with_jacobian(
         np.zeros(1), zero, np.zeros(1, int), np.array([10.0]), np.array([np.pi / 4]), False
     )
@@ -201,7 +253,7 @@ def test_lidar_point_matches_contract_and_jacobian(rng: np.random.Generator) -> 
 def test_nominal_intrinsics_round_trip() -> None:
     intr = LidarIntrinsics.nominal(np.deg2rad([-15.0, 0.0, 15.0]))
     arr = intrinsics_to_array(intr)
-    np.testing.assert_array_equal(arr[:, 4], 1.0)
+    np.testing.assert_array_equal(arr[:, BeamIntrinsic.RANGE_SCALE], 1.0)
     back = intrinsics_from_array(intr.nominal_elevation, arr)
     for name in ("elevation_correction", "range_scale", "range_offset", "horizontal_offset"):
         np.testing.assert_array_equal(getattr(back, name), getattr(intr, name))

@@ -7,13 +7,13 @@ from collections.abc import Mapping
 import numpy as np
 import pytest
 
-from licalib_cli.observability import (
+from licalib_cli.solver import ParameterBlock, Problem, ResidualEval, SparseJacobian
+from licalib_cli.solver.observability import (
     calibration_information,
     describe_direction,
     summarize_information,
     truncation_mask,
 )
-from licalib_cli.solver import ParameterBlock, Problem, ResidualEval, SparseJacobian
 
 
 class LinearResidual:

@@ -13,9 +13,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from licalib_cli.solver.problem import (
-    Layout,
-    Linearization,
+from licalib_cli.solver.problem import Layout, Linearization
+from licalib_cli.solver.schur import (
     _BandedCholesky,
     _sparse_lu_solver,
     _trajectory_diagonal,

@@ -268,3 +268,15 @@ def test_project_to_so3(rng: np.random.Generator) -> None:
     )
     np.testing.assert_allclose(np.linalg.det(P), 1.0, atol=1e-14)
     assert np.abs(P - R).max() < 5e-3
+
+
+def test_quaternion_matrices_match_scipy_composition() -> None:
+    a, b = Rotation.random(5, random_state=3), Rotation.random(5, random_state=4)
+    qa, qb = a.as_quat(), b.as_quat()
+    expected = (a * b).as_quat()
+    for got in (
+        so3.quat_multiply(qa, qb),
+        np.einsum("nij,nj->ni", so3.quat_left_matrix(qa), qb),
+        np.einsum("nij,nj->ni", so3.quat_right_matrix(qb), qa),
+    ):
+        np.testing.assert_allclose(np.abs(np.sum(got * expected, axis=1)), 1.0, atol=1e-12)

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from rosbags.highlevel import AnyReader
 
 from licalib_cli.errors import ConfigError
@@ -20,6 +21,7 @@ from licalib_cli.simulation import (
     generate_scans,
     simulate,
 )
+from licalib_cli.truth import Truth
 
 SMALL = {"duration_s": 0.35, "azimuth_resolution_deg": 2.0}
 
@@ -130,7 +132,7 @@ def test_truth_yaml(tmp_path: Path) -> None:
         **SMALL,
     )
     out = simulate(spec, tmp_path)
-    truth = CalibrationResult.load(out.truth_path)
+    truth = Truth.load(out.truth_path)
     setup = build_setup(spec)
     err = truth.extrinsic.error_to(setup.extrinsic)
     assert err["translation_m"] < 1e-8 and err["rotation_deg"] < 1e-8
@@ -140,16 +142,25 @@ def test_truth_yaml(tmp_path: Path) -> None:
     assert np.allclose(
         truth.lidar_intrinsics.range_offset, setup.lidar_intrinsics.range_offset, atol=1e-9
     )
-    assert truth.extra["scenario"]["name"] == "figure8"
-    assert truth.extra["scenario"]["mounting"] == "B"
-    assert truth.extra["seed"] == 7
-    sim = truth.extra["simulation"]
-    assert sim["clock"]["lidar_clock_offset_s"] == -3.0
+    assert truth.scenario is not None and truth.simulation is not None
+    assert truth.scenario.name == "figure8" and truth.scenario.mounting == "B"
+    assert truth.seed == 7
+    sim = truth.simulation
+    assert sim.clock.lidar_clock_offset_s == -3.0 and truth.lidar_clock_offset_s == -3.0
     # g in G = R_W_I(t_first)^T g_W: for mounting B the IMU is tilted 30 deg about its y axis.
     assert np.allclose(
-        sim["gravity_in_first_imu_frame"], -9.81 * np.array([0.5, 0.0, 0.866]), atol=2e-3
+        sim.gravity_in_first_imu_frame, -9.81 * np.array([0.5, 0.0, 0.866]), atol=2e-3
     )
-    assert sim["lidar"]["model"] == "vlp16" and sim["imu"]["rate_hz"] == 400.0
+    assert sim.lidar.model == "vlp16" and sim.imu.rate_hz == 400.0
+    # The simulation sections read back to what was written; as a result, the file gives the
+    # true values alone.
+    written = yaml.safe_load(out.truth_path.read_text())
+    assert out.truth.to_yaml() == out.truth_path.read_text()
+    for key in ("scenario", "seed", "simulation"):
+        assert truth.to_dict()[key] == written[key]
+    as_result = CalibrationResult.load(out.truth_path)
+    assert as_result.extrinsic.error_to(truth.extrinsic)["translation_m"] == 0.0
+    assert "simulation" not in as_result.to_dict()
 
 
 def test_deterministic_per_seed(tmp_path: Path) -> None:

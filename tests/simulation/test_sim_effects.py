@@ -16,11 +16,14 @@ from licalib_cli.simulation.spec import (
     ImuEffect,
     IntrinsicsMode,
 )
+from licalib_cli.truth import SimulatedImu
 
 
-def _imu_truth(spec: SimulationSpec) -> dict:
+def _imu_truth(spec: SimulationSpec) -> SimulatedImu:
     setup = build_setup(spec)
-    return build_truth(spec, setup).extra["simulation"]["imu"]
+    simulation = build_truth(spec, setup).simulation
+    assert simulation is not None
+    return simulation.imu
 
 
 def test_effect_names_are_accepted_as_strings() -> None:
@@ -49,8 +52,8 @@ def test_bias_random_walk_effect_default_strength_and_override() -> None:
         t_custom.gyro_bias - t_custom.gyro_bias[0], 3.0 * walk_base, rtol=1e-9
     )
     info = _imu_truth(strong.with_(duration_s=0.2))
-    assert info["effects"] == ["bias-random-walk"] and info["bias_walk_scale"] == 10.0
-    assert _imu_truth(base.with_(duration_s=0.2))["effects"] == []
+    assert info.effects == ("bias-random-walk",) and info.bias_walk_scale == 10.0
+    assert _imu_truth(base.with_(duration_s=0.2)).effects == ()
 
 
 def test_imu_clock_drift_effect_default_strength_and_override() -> None:
@@ -60,17 +63,17 @@ def test_imu_clock_drift_effect_default_strength_and_override() -> None:
     rel = (imu.t_ns - spec.base_time_ns).astype(float) * 1e-9
     np.testing.assert_allclose(rel, truth.t_true_s * (1 + 50e-6), atol=1e-12)
     info = _imu_truth(spec.with_(duration_s=0.2))
-    assert info["effects"] == ["imu-clock-drift"] and info["clock_drift_ppm"] == 50.0
+    assert info.effects == ("imu-clock-drift",) and info.clock_drift_ppm == 50.0
     # the numeric option alone sets the drift and records the effect
     only_ppm = SimulationSpec(duration_s=0.2, imu_clock_drift_ppm=-20.0)
     assert only_ppm.resolved_imu_clock_drift_ppm == -20.0
     info = _imu_truth(only_ppm)
-    assert info["effects"] == ["imu-clock-drift"] and info["clock_drift_ppm"] == -20.0
+    assert info.effects == ("imu-clock-drift",) and info.clock_drift_ppm == -20.0
 
 
 def test_g_sensitivity_recorded_with_its_strength() -> None:
     info = _imu_truth(SimulationSpec(duration_s=0.2, effects=("g-sensitivity",)))
-    assert info["effects"] == ["g-sensitivity"] and info["g_sensitivity_dps_per_g"] == 0.1
+    assert info.effects == ("g-sensitivity",) and info.g_sensitivity_dps_per_g == 0.1
 
 
 def test_random_time_offset_is_seeded_and_bounded() -> None:
@@ -101,9 +104,10 @@ def test_random_time_offset_leaves_the_other_draws_unchanged() -> None:
     imu_b, _ = generate_imu(drawn, b)
     np.testing.assert_array_equal(imu_a.gyro, imu_b.gyro)
     assert a.extrinsic.time_offset_s == 0.0 and b.extrinsic.time_offset_s != 0.0
-    clock = build_truth(drawn, b).extra["simulation"]["clock"]
-    assert clock["time_offset_drawn"] is True
-    assert clock["time_offset_s"] == pytest.approx(b.extrinsic.time_offset_s, abs=1e-12)
+    simulation = build_truth(drawn, b).simulation
+    assert simulation is not None
+    assert simulation.clock.time_offset_drawn is True
+    assert simulation.clock.time_offset_s == pytest.approx(b.extrinsic.time_offset_s, abs=1e-12)
 
 
 def test_random_time_offset_conflicts_with_a_given_offset() -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from licalib_cli.models.intrinsics import imu_measure
+from licalib_cli.models.imu import imu_measure
 from licalib_cli.simulation import (
     ImuEffect,
     IntrinsicsMode,

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from licalib_cli.models.intrinsics import lidar_point, nominal_point, raw_from_nominal
+from licalib_cli.models.lidar import lidar_point, nominal_point, raw_from_nominal
 from licalib_cli.simulation import (
     IntrinsicsMode,
     LidarKind,

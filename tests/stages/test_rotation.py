@@ -13,9 +13,6 @@ from licalib_cli.initialization.rotation import (
     HandEyeConfig,
     estimate_rotation_extrinsic,
     lidar_rotation_at,
-    quat_left_matrix,
-    quat_multiply,
-    quat_right_matrix,
     relative_rotations,
     solve_hand_eye_rotation,
 )
@@ -33,18 +30,6 @@ MOUNTINGS = {
 
 def _angle_deg(a: Rotation, b: Rotation) -> float:
     return float(np.degrees((a.inv() * b).magnitude()))
-
-
-def test_quaternion_matrices_match_scipy_composition() -> None:
-    a, b = Rotation.random(5, random_state=3), Rotation.random(5, random_state=4)
-    qa, qb = a.as_quat(), b.as_quat()
-    expected = (a * b).as_quat()
-    for got in (
-        quat_multiply(qa, qb),
-        np.einsum("nij,nj->ni", quat_left_matrix(qa), qb),
-        np.einsum("nij,nj->ni", quat_right_matrix(qb), qa),
-    ):
-        np.testing.assert_allclose(np.abs(np.sum(got * expected, axis=1)), 1.0, atol=1e-12)
 
 
 def test_gyro_integration_matches_analytic_orientation() -> None:

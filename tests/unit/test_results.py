@@ -39,7 +39,7 @@ def _random_result(rng: np.random.Generator) -> CalibrationResult:
         range_offset=0.01 * rng.standard_normal(n),
     )
     ext = Extrinsic(rot, np.array([0.3, -0.15, 0.05]), time_offset_s=-0.0123)
-    return CalibrationResult(ext, imu, lidar, extra={"gravity": [0.0, 0.0, -9.81]})
+    return CalibrationResult(ext, imu, lidar, gravity_G=(0.0, 0.0, -9.81))
 
 
 def test_yaml_round_trip_is_exact_to_printed_precision(tmp_path):
@@ -59,7 +59,7 @@ def test_yaml_round_trip_is_exact_to_printed_precision(tmp_path):
         res.lidar_intrinsics.elevation_correction,
         atol=1e-9,
     )
-    assert back.extra == {"gravity": [0.0, 0.0, -9.81]}
+    assert back.gravity_G == (0.0, 0.0, -9.81)
     # Saving the loaded result reproduces the same text.
     assert back.to_yaml() == res.to_yaml()
     assert not [p for p in path.parent.iterdir() if p.name.startswith(".")]

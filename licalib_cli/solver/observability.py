@@ -24,13 +24,12 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
-if TYPE_CHECKING:
-    from licalib_cli.solver.problem import Linearization, Problem, ResidualBlock
+from licalib_cli.solver.problem import Linearization, Problem, ResidualBlock
+from licalib_cli.solver.schur import schur_complement
 
 __all__ = [
     "BLOCK_FRAMES",
@@ -320,9 +319,6 @@ def undamped_schur(lin: Linearization) -> F64:
     Returns:
         (Nc, Nc) ``S``.
     """
-    # Imported here: licalib_cli.solver imports this module, so a top-level import would cycle.
-    from licalib_cli.solver.problem import schur_complement
-
     try:
         s = schur_complement(lin, 0.0).S
         if np.all(np.isfinite(s)):

@@ -1,0 +1,259 @@
+"""A simulator's ``truth.yaml``: the true values in the result file's form, and the run.
+
+``licalib simulate`` writes the true extrinsic and intrinsics with the keys of a calibration
+result (schema v1, :class:`~licalib_cli.results.CalibrationResult`), followed by three sections
+of its own::
+
+    scenario:      name, duration, motion bursts (figure-8: mounting, vertical axis)
+    seed:          the random seed
+    simulation:    gravity, initial pose, IMU, LiDAR, clocks, bag and command line
+
+:class:`Truth` reads and writes the whole file; a calibration result read as a truth (e.g.
+``calibrate --truth previous.yaml``) has no simulation sections (``None``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from licalib_cli.config import read_yaml
+from licalib_cli.errors import ConfigError
+from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
+from licalib_cli.results import CalibrationResult, Extrinsic, dump_yaml, write_text_atomic
+from licalib_cli.sections import Section
+
+__all__ = [
+    "InitialImuPose",
+    "Scenario",
+    "SimulatedBag",
+    "SimulatedClock",
+    "SimulatedImu",
+    "SimulatedLidar",
+    "Simulation",
+    "Truth",
+]
+
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Scenario(Section):
+    """The simulated motion.
+
+    Attributes:
+        name: scenario name (``sinusoid``, ``figure8``, ...).
+        duration_s: simulated duration, s.
+        bursts_s: ``[start, end]`` of each burst of motion, s.
+        mounting: figure-8 only: the mounting of the rig on the robot.
+        vertical_in_imu: figure-8 only: the robot's vertical in the IMU frame.
+    """
+
+    name: str
+    duration_s: float
+    bursts_s: tuple[tuple[float, ...], ...] = ()
+    mounting: str | None = None
+    vertical_in_imu: Vec3 | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: v for k, v in super().to_dict().items() if v is not None}
+
+
+@dataclass(frozen=True)
+class InitialImuPose(Section):
+    """The IMU's true state at its first sample (world frame)."""
+
+    stamp_ns: int
+    position: Vec3
+    rotation_quaternion: tuple[float, float, float, float]
+    velocity: Vec3
+    angular_velocity: Vec3
+
+
+@dataclass(frozen=True)
+class SimulatedImu(Section):
+    """The simulated IMU: topic, rate, noise, biases and effects (units as named)."""
+
+    topic: str
+    frame_id: str
+    rate_hz: float
+    num_samples: int
+    model: str
+    gyro_noise_density: float
+    accel_noise_density: float
+    gyro_bias_walk_density: float
+    accel_bias_walk_density: float
+    gyro_noise_sigma: float
+    accel_noise_sigma: float
+    noise_free: bool
+    bias_walk_scale: float
+    effects: tuple[str, ...]
+    g_sensitivity_dps_per_g: float
+    clock_drift_ppm: float
+    gyro_bias_mean: Vec3
+    accel_bias_mean: Vec3
+    gyro_bias_end: Vec3
+    accel_bias_end: Vec3
+
+
+@dataclass(frozen=True)
+class SimulatedLidar(Section):
+    """The simulated LiDAR: model, topic, firing pattern, noise and intrinsics."""
+
+    model: str
+    topic: str
+    frame_id: str
+    rate_hz: float
+    num_beams: int
+    rays_per_beam: int
+    num_scans: int
+    organized: bool
+    stamp: str
+    range_noise_m: float
+    azimuth_resolution_deg: float | None
+    dropout: float
+    intrinsics: str
+    intrinsics_scale: float
+
+
+@dataclass(frozen=True)
+class SimulatedClock(Section):
+    """The clocks: ``t_imu = t_lidar - lidar_clock_offset_s + time_offset_s``.
+
+    Attributes:
+        base_time_ns: stamp of simulated time 0, ns.
+        time_offset_s: the true time offset, s.
+        time_offset_drawn: whether it was drawn from the seed.
+        lidar_clock_offset_s: how far the LiDAR clock runs ahead of the IMU clock, s.
+        relation: the relation above, in words.
+    """
+
+    base_time_ns: int
+    time_offset_s: float
+    time_offset_drawn: bool
+    lidar_clock_offset_s: float
+    relation: str
+
+
+@dataclass(frozen=True)
+class SimulatedBag(Section):
+    """The bag written: ``ros1``, ``ros2-sqlite3`` or ``ros2-mcap`` and its path."""
+
+    format: str
+    path: str | None
+
+
+@dataclass(frozen=True)
+class Simulation(Section):
+    """How the run was simulated."""
+
+    gravity_world: Vec3
+    gravity_in_first_imu_frame: Vec3
+    initial_imu_pose: InitialImuPose
+    imu: SimulatedImu
+    lidar: SimulatedLidar
+    clock: SimulatedClock
+    random_extrinsic: bool
+    bag: SimulatedBag
+    command_line: str
+    licalib_version: str
+
+    _nested = {  # noqa: RUF012
+        "initial_imu_pose": InitialImuPose,
+        "imu": SimulatedImu,
+        "lidar": SimulatedLidar,
+        "clock": SimulatedClock,
+        "bag": SimulatedBag,
+    }
+
+
+@dataclass(frozen=True)
+class Truth:
+    """A ``truth.yaml``: the true values and, for a simulated run, how it was made.
+
+    Attributes:
+        values: the true extrinsic, time offset and intrinsics (the result file's keys).
+        scenario: the simulated motion, or None.
+        seed: the random seed, or None.
+        simulation: the simulation settings, or None.
+    """
+
+    values: CalibrationResult
+    scenario: Scenario | None = None
+    seed: int | None = None
+    simulation: Simulation | None = None
+
+    @property
+    def extrinsic(self) -> Extrinsic:
+        """The true ``T_imu_lidar`` and time offset."""
+        return self.values.extrinsic
+
+    @property
+    def imu_intrinsics(self) -> ImuIntrinsics:
+        """The true IMU intrinsics (biases: those at the first sample)."""
+        return self.values.imu_intrinsics
+
+    @property
+    def lidar_intrinsics(self) -> LidarIntrinsics | None:
+        """The true per-beam LiDAR intrinsics."""
+        return self.values.lidar_intrinsics
+
+    @property
+    def lidar_clock_offset_s(self) -> float:
+        """How far the LiDAR clock ran ahead of the IMU clock, s (0 when not simulated)."""
+        return self.simulation.clock.lidar_clock_offset_s if self.simulation else 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        out = self.values.to_dict()
+        if self.scenario is not None:
+            out["scenario"] = self.scenario.to_dict()
+        if self.seed is not None:
+            out["seed"] = int(self.seed)
+        if self.simulation is not None:
+            out["simulation"] = self.simulation.to_dict()
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Truth:
+        """Read a truth (or a calibration result used as one).
+
+        Raises:
+            ConfigError: a section is incomplete or of another version.
+        """
+        values = CalibrationResult.from_dict(d)
+        sections: dict[str, Any] = {}
+        for name, kind in (("scenario", Scenario), ("simulation", Simulation)):
+            if isinstance(d.get(name), dict):
+                try:
+                    sections[name] = kind.from_dict(d[name])
+                except TypeError as err:
+                    msg = (
+                        f"The truth file's {name!r} section is incomplete ({err}); regenerate "
+                        "it with this licalib version (licalib simulate)."
+                    )
+                    raise ConfigError(msg) from err
+        seed = d.get("seed")
+        return cls(values, seed=None if seed is None else int(seed), **sections)
+
+    def to_yaml(self) -> str:
+        return dump_yaml(self.to_dict())
+
+    def save(self, path: Path) -> None:
+        """Write the YAML atomically."""
+        write_text_atomic(Path(path), self.to_yaml())
+
+    @classmethod
+    def load(cls, path: Path) -> Truth:
+        """Read a ``truth.yaml``.
+
+        Raises:
+            ConfigError: missing, a folder, not text, not YAML, not a mapping or of another
+                schema version.
+        """
+        path = Path(path)
+        data = read_yaml(path, "The truth file")
+        if not isinstance(data, dict):
+            msg = f"The truth file {path} is not a YAML mapping; regenerate it."
+            raise ConfigError(msg)
+        return cls.from_dict(data)

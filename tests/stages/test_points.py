@@ -1,0 +1,100 @@
+"""The points of the optimisation: the map and the solver apply one point model.
+
+A driver converts its raw (beam, range, azimuth) with its own beam table; when that differs
+from the table the calibration uses (a config's ``lidar.nominal_elevation_deg``, or per-beam
+corrections applied by the driver), the published point is not the model's nominal point. The
+sample keeps the difference (``model_gap``); the map (:func:`points_in_global`) and the
+point-to-plane residual must both add it, or the solver fits other points than the map holds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from licalib_cli.config import CalibConfig
+from licalib_cli.estimation import (
+    CalibrationState,
+    FreeParameters,
+    NoiseModel,
+    Planes,
+    build_problem,
+)
+from licalib_cli.geometry.so3 import exp as so3_exp
+from licalib_cli.measurements import LidarScan
+from licalib_cli.models.intrinsics import LidarIntrinsics
+from licalib_cli.models.lidar import nominal_point
+from licalib_cli.pipeline.points import points_in_global, sample_points, solver_points
+from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
+
+TABLE = np.radians(np.arange(-15.0, 16.0, 2.0))
+T0_NS = 5_000_000_000
+RANGE_SIGMA = 0.01
+
+
+def _scans(rng: np.random.Generator, driver_table: np.ndarray) -> tuple[LidarScan, ...]:
+    """Ten sweeps of 2 s whose points the driver converted with ``driver_table``."""
+    scans = []
+    for k in range(10):
+        n = 400
+        ring = rng.integers(0, 16, n).astype(np.int16)
+        rho = rng.uniform(2.0, 30.0, n)
+        theta = rng.uniform(-np.pi, np.pi, n)
+        t_ns = T0_NS + 100_000_000 + k * 100_000_000 + np.sort(rng.integers(0, 99_000_000, n))
+        xyz = nominal_point(rho, theta, driver_table[ring])
+        scans.append(LidarScan(int(t_ns[0]), xyz, t_ns.astype(np.int64), ring))
+    return tuple(scans)
+
+
+def _state(rng: np.random.Generator) -> CalibrationState:
+    knots = UniformKnots.for_interval(0.0, 1.4, 0.05)
+    t = np.linspace(0.0, knots.t_end_s, 300)
+    rot = so3_exp(np.column_stack([0.3 * np.sin(t), 0.2 * np.cos(2 * t), 0.5 * t]))
+    pos = np.column_stack([np.sin(t), 0.5 * t, 0.1 * t**2])
+    return CalibrationState(
+        so3_spline=SO3Spline.from_rotations(knots, t, rot),
+        r3_spline=R3Spline.fit(knots, t, pos),
+        gyro_bias=np.zeros(3),
+        accel_bias=np.zeros(3),
+        gravity_G=np.array([0.0, 0.0, -9.81]),
+        R_imu_lidar=so3_exp(np.array([0.1, -0.2, 0.3])),
+        t_imu_lidar=np.array([0.3, 0.1, -0.05]),
+        time_offset_s=0.004,
+        lidar_intrinsics=LidarIntrinsics.nominal(TABLE),
+        t0_ns=T0_NS,
+        time_drift=2e-4,  # the timing terms too: the map and the solver query the same times
+        point_time_scale=0.02,
+        t_ref_s=0.7,
+    )
+
+
+def test_a_point_on_its_map_plane_has_zero_residual_whatever_the_driver_table() -> None:
+    rng = np.random.default_rng(3)
+    driver_table = TABLE + np.radians(rng.uniform(-0.5, 0.5, TABLE.size))
+    state = _state(rng)
+    sample = sample_points(_scans(rng, driver_table), TABLE, 400, CalibConfig())
+    assert np.abs(sample.model_gap).max() > 0.05  # the driver's table is not the config's
+    # A plane through every point where the map puts it.
+    p_g = points_in_global(state, sample)
+    normal = rng.standard_normal(p_g.shape)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    planes = Planes(normal=normal, d=-np.einsum("ij,ij->i", normal, p_g))
+    lidar = solver_points(state, sample, np.arange(len(sample)))
+    noise = NoiseModel(range_sigma=RANGE_SIGMA, huber_threshold=None)
+
+    def distances(points: object) -> np.ndarray:
+        problem = build_problem(state, None, points, planes, noise, FreeParameters())  # type: ignore[arg-type]
+        return problem.evaluate(jacobians=False).evals[0].residuals[:, 0] * RANGE_SIGMA
+
+    assert np.abs(distances(lidar)).max() < 1e-9
+    # Without the gap the solver would fit points centimetres away from the map's; without the
+    # sweep starts, at other times.
+    assert np.abs(distances(replace(lidar, model_gap=None))).max() > 0.05
+    assert np.abs(distances(replace(lidar, sweep_start_s=None))).max() > 1e-4
+
+
+def test_with_the_drivers_table_the_gap_vanishes() -> None:
+    rng = np.random.default_rng(4)
+    sample = sample_points(_scans(rng, TABLE), TABLE, 400, CalibConfig())
+    assert np.abs(sample.model_gap).max() < 1e-9
