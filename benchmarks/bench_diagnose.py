@@ -14,9 +14,10 @@ Examples::
     .venv/bin/python benchmarks/bench_diagnose.py --jobs 2
     .venv/bin/python benchmarks/bench_diagnose.py --only gyro_scale --list
 
-Sizes: intrinsic effects at ``--scale`` (default 3) times the paper's table, the simulator's
-effects at ``--sim-scale`` (default 2) times theirs (see benchmarks/_effects.py). The effects the
-simulator cannot hide yet (separate gyro/accel bias walks, per-point time errors) are not run.
+Sizes: every effect at ``--scale`` (default 3) times its reference size: the paper's table for
+the intrinsics, 0.1 deg/s/g g-sensitivity, 50 ppm clock drift, bias walks ten times the
+MTi-100's, a 1 % per-point time error (``licalib simulate --effect NAME --effect-scale K``, see
+benchmarks/_effects.py and licalib_cli/simulation/effects.py).
 """
 
 from __future__ import annotations
@@ -34,14 +35,15 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _effects import INTRINSIC_EFFECTS
+from _effects import INTRINSIC_EFFECTS, SIMULATOR_EFFECTS
 
-SINGLE = [*INTRINSIC_EFFECTS, "g_sensitivity", "imu_clock_drift"]
+SINGLE = [*INTRINSIC_EFFECTS, *SIMULATOR_EFFECTS]
 PAIRS = [
     ("gyro_scale", "lidar_range_offset"),
     ("gyro_rotation", "lidar_elevation"),
     ("accel_scale", "lidar_horizontal_offset"),
     ("gyro_misalignment", "imu_clock_drift"),
+    ("gyro_bias_walk", "lidar_point_time"),
 ]
 
 
@@ -70,7 +72,7 @@ def cases() -> list[dict]:
     return out
 
 
-def one_run(case: dict, workdir: Path, scale: float, sim_scale: float) -> dict:
+def one_run(case: dict, workdir: Path, scale: float) -> dict:
     from _effects import effect_spec_kwargs
 
     from licalib_cli.config import load_config
@@ -78,7 +80,7 @@ def one_run(case: dict, workdir: Path, scale: float, sim_scale: float) -> dict:
     from licalib_cli.simulation import SimulationSpec, simulate
 
     kwargs = effect_spec_kwargs(
-        case["effects"], case["lidar"], case["seed"], workdir, scale=scale, sim_scale=sim_scale
+        case["effects"], case["lidar"], case["seed"], workdir, scale=scale, sim_scale=scale
     )
     spec = SimulationSpec(
         scenario=case["scenario"],
@@ -117,6 +119,22 @@ def one_run(case: dict, workdir: Path, scale: float, sim_scale: float) -> dict:
         "shrink": {s.effect: s.shrink for s in diag.steps if s.kept},
         "before": err(diag.base),
         "after": err(diag.final),
+        "steps": [
+            [
+                s.effect,
+                s.statistic,
+                s.dof,
+                s.delta_bic,
+                s.kept,
+                s.gap_before.excess,
+                s.gap_after.excess,
+            ]
+            for s in diag.steps
+        ],
+        "injected": {
+            e.name: list(e.values)[:3]
+            for e in (out.truth.simulation.effects if out.truth.simulation else ())
+        },
         "verdict_before": diag.base.verdict.status,
         "verdict_after": diag.final.verdict.status,
         "seconds": wall,
@@ -144,13 +162,12 @@ def main() -> None:
     p.add_argument("--list", action="store_true")
     p.add_argument("--jobs", type=int, default=1)
     p.add_argument("--scale", type=float, default=3.0)
-    p.add_argument("--sim-scale", type=float, default=2.0)
     p.add_argument("--json", default=None)
     p.add_argument("--one", default=None, help=argparse.SUPPRESS)
     p.add_argument("--workdir", default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.one is not None:
-        row = one_run(json.loads(args.one), Path(args.workdir), args.scale, args.sim_scale)
+        row = one_run(json.loads(args.one), Path(args.workdir), args.scale)
         print(json.dumps(row))
         return
     todo = [
@@ -180,8 +197,6 @@ def main() -> None:
                     tmp,
                     "--scale",
                     str(args.scale),
-                    "--sim-scale",
-                    str(args.sim_scale),
                 ]
                 running.append(
                     (

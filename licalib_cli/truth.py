@@ -6,7 +6,9 @@ of its own::
 
     scenario:      name, duration, motion bursts (figure-8: mounting, vertical axis)
     seed:          the random seed
-    simulation:    gravity, initial pose, IMU, LiDAR, clocks, bag and command line
+    simulation:    gravity, initial pose, IMU, LiDAR, clocks, bag and command line, and
+                   ``effects``: every effect hidden in the data by name (the candidates of
+                   ``licalib diagnose``) with its size and the values injected
 
 :class:`Truth` reads and writes the whole file; a calibration result read as a truth (e.g.
 ``calibrate --truth previous.yaml``) has no simulation sections (``None``).
@@ -26,6 +28,7 @@ from licalib_cli.sections import Section
 
 __all__ = [
     "InitialImuPose",
+    "InjectedEffect",
     "Scenario",
     "SimulatedBag",
     "SimulatedClock",
@@ -95,6 +98,8 @@ class SimulatedImu(Section):
     accel_bias_mean: Vec3
     gyro_bias_end: Vec3
     accel_bias_end: Vec3
+    gyro_bias_walk_scale: float = 1.0
+    accel_bias_walk_scale: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -115,6 +120,7 @@ class SimulatedLidar(Section):
     dropout: float
     intrinsics: str
     intrinsics_scale: float
+    point_time_error: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -145,6 +151,31 @@ class SimulatedBag(Section):
 
 
 @dataclass(frozen=True)
+class InjectedEffect(Section):
+    """One effect hidden in the simulated data (:mod:`licalib_cli.simulation.effects`).
+
+    Attributes:
+        name: the effect's name (as ``licalib diagnose`` names it).
+        scale: ``--effect-scale``: times the reference size (1 when set by a numeric option).
+        size: the size injected, in ``unit`` (a 1-sigma for drawn effects).
+        unit: unit of ``size``.
+        values: what was injected, in ``values_unit``: per axis (IMU scale ``s - 1``,
+            misalignment and rotation angles), the 9 g-sensitivity entries row-major, per beam
+            (LiDAR intrinsics, beam 0 first), the drift (ppm) or the per-point time error; for a
+            bias walk its least-squares slope over the recording per axis (what a linear bias
+            drift would estimate).
+        values_unit: unit of ``values``.
+    """
+
+    name: str
+    scale: float
+    size: float
+    unit: str
+    values: tuple[float, ...]
+    values_unit: str
+
+
+@dataclass(frozen=True)
 class Simulation(Section):
     """How the run was simulated."""
 
@@ -158,6 +189,7 @@ class Simulation(Section):
     bag: SimulatedBag
     command_line: str
     licalib_version: str
+    effects: tuple[InjectedEffect, ...] = ()
 
     _nested = {  # noqa: RUF012
         "initial_imu_pose": InitialImuPose,
@@ -165,7 +197,12 @@ class Simulation(Section):
         "lidar": SimulatedLidar,
         "clock": SimulatedClock,
         "bag": SimulatedBag,
+        "effects": InjectedEffect,
     }
+
+    def effect(self, name: str) -> InjectedEffect | None:
+        """The injected effect of that name, or None."""
+        return next((e for e in self.effects if e.name == name), None)
 
 
 @dataclass(frozen=True)

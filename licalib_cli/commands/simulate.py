@@ -14,11 +14,12 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from licalib_cli.io.writer import BagFormat
+from licalib_cli.simulation.effects import Effect
 from licalib_cli.simulation.spec import (
     DEFAULT_G_SENSITIVITY_DPS_PER_G,
     EFFECT_BIAS_WALK_SCALE,
     EFFECT_IMU_CLOCK_DRIFT_PPM,
-    ImuEffect,
+    EFFECT_POINT_TIME_ERROR,
     IntrinsicsMode,
     LidarKind,
     LidarStamp,
@@ -33,7 +34,8 @@ if TYPE_CHECKING:
 _SCENE = "Scenario"
 _SENSORS = "Sensors"
 _CALIB = "Extrinsic, time and intrinsics"
-_IMU = "IMU noise and effects"
+_IMU = "IMU noise"
+_EFFECTS = "Hidden effects (the candidates of licalib diagnose)"
 _OUT = "Output"
 
 
@@ -213,36 +215,57 @@ def simulate_command(
         float | None,
         typer.Option(
             "--bias-walk-scale",
-            help="Multiply the MTi-100 bias random-walk densities (0: constant biases; "
-            f"default 1, or {EFFECT_BIAS_WALK_SCALE:g} with --effect bias-random-walk).",
+            help="Multiply both MTi-100 bias random-walk densities (0: constant biases; "
+            f"default 1, or {EFFECT_BIAS_WALK_SCALE:g} x --effect-scale for a named walk).",
             rich_help_panel=_IMU,
         ),
     ] = None,
     effect: Annotated[
-        list[ImuEffect] | None,
+        list[str] | None,
         typer.Option(
             "--effect",
-            help="Optional IMU effect (repeatable): g-sensitivity (strength "
-            "--g-sensitivity), bias-random-walk (stronger walk, strength --bias-walk-scale), "
-            "imu-clock-drift (strength --imu-clock-drift-ppm).",
-            rich_help_panel=_IMU,
+            metavar="NAME",
+            help="Hide this effect (repeatable), at its reference size (the paper's table "
+            "where it has one) times --effect-scale: "
+            + ", ".join(e.value for e in Effect)
+            + ". Intrinsic effects replace what --intrinsics drew for their block; use "
+            "--intrinsics none to hide them alone.",
+            rich_help_panel=_EFFECTS,
         ),
     ] = None,
-    g_sensitivity: Annotated[
+    effect_scale: Annotated[
         float,
         typer.Option(
-            "--g-sensitivity",
-            help="Std of each g-sensitivity entry, deg/s per g (with --effect g-sensitivity).",
-            rich_help_panel=_IMU,
+            "--effect-scale",
+            help="Times the reference size of every named effect (the benchmark uses 2-5).",
+            rich_help_panel=_EFFECTS,
         ),
-    ] = DEFAULT_G_SENSITIVITY_DPS_PER_G,
+    ] = 1.0,
+    g_sensitivity: Annotated[
+        float | None,
+        typer.Option(
+            "--g-sensitivity",
+            help="Std of each g-sensitivity entry, deg/s per g (with --effect g_sensitivity; "
+            f"default {DEFAULT_G_SENSITIVITY_DPS_PER_G:g} x --effect-scale).",
+            rich_help_panel=_EFFECTS,
+        ),
+    ] = None,
     imu_clock_drift_ppm: Annotated[
         float | None,
         typer.Option(
             "--imu-clock-drift-ppm",
             help="IMU stamps run at (1 + ppm 1e-6) times the true rate (default 0, or "
-            f"{EFFECT_IMU_CLOCK_DRIFT_PPM:g} with --effect imu-clock-drift).",
-            rich_help_panel=_IMU,
+            f"{EFFECT_IMU_CLOCK_DRIFT_PPM:g} x --effect-scale with --effect imu_clock_drift).",
+            rich_help_panel=_EFFECTS,
+        ),
+    ] = None,
+    point_time_error: Annotated[
+        float | None,
+        typer.Option(
+            "--point-time-error",
+            help="Per-point times within a sweep published 1 / (1 - k) fast (default 0, or "
+            f"{EFFECT_POINT_TIME_ERROR:g} x --effect-scale with --effect lidar_point_time).",
+            rich_help_panel=_EFFECTS,
         ),
     ] = None,
     fmt: Annotated[
@@ -307,8 +330,10 @@ def simulate_command(
         noise_free=noise_free,
         bias_walk_scale=bias_walk_scale,
         effects=tuple(effect or ()),
+        effect_scale=effect_scale,
         g_sensitivity_dps_per_g=g_sensitivity,
         imu_clock_drift_ppm=imu_clock_drift_ppm,
+        point_time_error=point_time_error,
         imu_topic=imu_topic,
         lidar_topic=lidar_topic,
         imu_frame=imu_frame,

@@ -7,6 +7,7 @@ memory. Conventions: ``T_imu_lidar`` maps LiDAR points into the IMU frame; quate
 
 from __future__ import annotations
 
+from licalib_cli.simulation.effects import EFFECT_SIZES, Effect, EffectSize
 from licalib_cli.simulation.ground_truth import SimulationSetup, build_setup
 from licalib_cli.simulation.imu import ImuTruth, generate_imu
 from licalib_cli.simulation.lidar import ScanTruth, SimulatedScan, generate_scans, num_scans
@@ -19,7 +20,6 @@ from licalib_cli.simulation.simulate import (
     simulate,
 )
 from licalib_cli.simulation.spec import (
-    ImuEffect,
     IntrinsicsMode,
     LidarKind,
     LidarStamp,
@@ -31,8 +31,10 @@ from licalib_cli.simulation.trajectories import EulerTrajectory, Signal, Traject
 from licalib_cli.simulation.world import World, default_world
 
 __all__ = [
+    "EFFECT_SIZES",
+    "Effect",
+    "EffectSize",
     "EulerTrajectory",
-    "ImuEffect",
     "ImuTruth",
     "IntrinsicsMode",
     "LidarKind",

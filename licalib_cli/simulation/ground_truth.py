@@ -16,10 +16,13 @@ gyro non-orthogonality     0.05 deg     accel non-orthogonality     0.05 deg
 
 plus the gyro-to-IMU rotation ``R_wI`` (0.5 deg per Euler angle, the size of the paper's IMU
 intrinsics table), constant biases (gyro 0.2 deg/s, accel 0.03 m/s^2 per axis) and, with the
-``g-sensitivity`` effect, ``A_w`` entries of ``g_sensitivity_dps_per_g`` deg/s per g.
+``g_sensitivity`` effect, ``A_w`` entries of ``g_sensitivity_dps_per_g`` deg/s per g.
 With ``random_time_offset`` the time offset is drawn uniformly within +-50 ms.
-``intrinsics_scale`` multiplies all of these. Beam 0 gets zero ``dphi, dtheta, V, H``: the
-calibration fixes them as the gauge (method.md section 4), so the truth uses the same gauge.
+``intrinsics_scale`` multiplies all of these. An intrinsic effect named in ``spec.effects``
+(:mod:`~licalib_cli.simulation.effects`) replaces its block with a draw of its own size times
+``effect_scale``, from its own stream (so naming one effect changes nothing else). Beam 0 gets
+zero ``dphi, dtheta, V, H``: the calibration fixes them as the gauge (method.md section 4), so
+the truth uses the same gauge.
 """
 
 from __future__ import annotations
@@ -35,12 +38,12 @@ from scipy.spatial.transform import Rotation
 from licalib_cli.errors import ConfigError
 from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
 from licalib_cli.results import CalibrationResult, Extrinsic, matrix_from_rpy_deg
+from licalib_cli.simulation.effects import Effect
 from licalib_cli.simulation.lidar_models import LidarModel, lidar_model
 from licalib_cli.simulation.scenarios import ScenarioMotion, make_motion
 from licalib_cli.simulation.spec import (
     RANDOM_TIME_OFFSET_MAX_S,
     STANDARD_GRAVITY,
-    ImuEffect,
     IntrinsicsMode,
     SimulationSpec,
 )
@@ -75,6 +78,7 @@ class Stream(IntEnum):
     TRAJECTORY = 4
     IMU_NOISE = 5
     LIDAR_NOISE = 6
+    EFFECTS = 7
 
 
 def rng_for(seed: int, stream: Stream, *extra: int) -> np.random.Generator:
@@ -196,9 +200,10 @@ def draw_imu_intrinsics(spec: SimulationSpec) -> ImuIntrinsics:
         )
     else:
         base = ImuIntrinsics()
-    if ImuEffect.G_SENSITIVITY in spec.effects:
-        sigma = np.radians(spec.g_sensitivity_dps_per_g) / STANDARD_GRAVITY
+    if Effect.G_SENSITIVITY in spec.effects:
+        sigma = np.radians(spec.resolved_g_sensitivity_dps_per_g) / STANDARD_GRAVITY
         base = base.with_(gyro_g_sensitivity=sigma * a_w)
+    base = _named_imu_effects(spec, base)
     if spec.gyro_bias is not None:
         base = base.with_(gyro_bias=np.asarray(spec.gyro_bias, dtype=np.float64))
     if spec.accel_bias is not None:
@@ -242,6 +247,69 @@ def draw_lidar_intrinsics(spec: SimulationSpec, model: LidarModel) -> LidarIntri
     )
 
 
+def _effect_rng(spec: SimulationSpec, effect: Effect) -> np.random.Generator:
+    return rng_for(spec.seed, Stream.EFFECTS, list(Effect).index(effect))
+
+
+def _named_imu_effects(spec: SimulationSpec, base: ImuIntrinsics) -> ImuIntrinsics:
+    """``base`` with each named IMU intrinsic effect drawn at its size times the scale."""
+    for effect in spec.effects:
+        if effect not in _IMU_DRAWN:
+            continue
+        rng = _effect_rng(spec, effect)
+        size = spec.effect_size(effect)
+        draw = rng.normal(0.0, 1.0, 3) * size
+        if effect is Effect.GYRO_SCALE:
+            base = base.with_(gyro_scale=1.0 + draw)
+        elif effect is Effect.ACCEL_SCALE:
+            base = base.with_(accel_scale=1.0 + draw)
+        elif effect is Effect.GYRO_MISALIGNMENT:
+            base = base.with_(gyro_misalignment=np.radians(draw))
+        elif effect is Effect.ACCEL_MISALIGNMENT:
+            base = base.with_(accel_misalignment=np.radians(draw))
+        else:  # gyro rotation: Z-Y-X Euler angles as the random intrinsics
+            q = Rotation.from_euler("ZYX", draw[::-1], degrees=True).as_quat()
+            base = base.with_(gyro_rotation=q)
+    return base
+
+
+_IMU_DRAWN = (
+    Effect.GYRO_SCALE,
+    Effect.GYRO_MISALIGNMENT,
+    Effect.GYRO_ROTATION,
+    Effect.ACCEL_SCALE,
+    Effect.ACCEL_MISALIGNMENT,
+)
+_LIDAR_DRAWN = {
+    Effect.LIDAR_ELEVATION: ("elevation_correction", True, True),
+    Effect.LIDAR_AZIMUTH: ("azimuth_correction", True, True),
+    Effect.LIDAR_VERTICAL_OFFSET: ("vertical_offset", False, True),
+    Effect.LIDAR_HORIZONTAL_OFFSET: ("horizontal_offset", False, True),
+    Effect.LIDAR_RANGE_SCALE: ("range_scale", False, False),
+    Effect.LIDAR_RANGE_OFFSET: ("range_offset", False, False),
+}
+"""LiDAR effect -> (intrinsics field, size in degrees, beam 0 is the gauge)."""
+
+
+def _named_lidar_effects(
+    spec: SimulationSpec, base: LidarIntrinsics, num_beams: int
+) -> LidarIntrinsics:
+    """``base`` with each named per-beam effect drawn at its size times the scale."""
+    for effect in spec.effects:
+        if effect not in _LIDAR_DRAWN:
+            continue
+        name, degrees, gauge = _LIDAR_DRAWN[effect]
+        draw = _effect_rng(spec, effect).normal(0.0, 1.0, num_beams) * spec.effect_size(effect)
+        if degrees:
+            draw = np.radians(draw)
+        if gauge:
+            draw[0] = 0.0
+        if effect is Effect.LIDAR_RANGE_SCALE:
+            draw = 1.0 + draw
+        base = base.with_(**{name: draw})
+    return base
+
+
 def build_setup(spec: SimulationSpec) -> SimulationSetup:
     """Resolve every true quantity of a run (deterministic in ``spec``)."""
     model = lidar_model(spec.lidar)
@@ -252,6 +320,8 @@ def build_setup(spec: SimulationSpec) -> SimulationSetup:
         motion=motion,
         extrinsic=draw_extrinsic(spec),
         imu_intrinsics=draw_imu_intrinsics(spec),
-        lidar_intrinsics=draw_lidar_intrinsics(spec, model),
+        lidar_intrinsics=_named_lidar_effects(
+            spec, draw_lidar_intrinsics(spec, model), model.num_beams
+        ),
         lidar_model=model,
     )

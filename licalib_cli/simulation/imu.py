@@ -7,8 +7,10 @@ For sample ``k`` taken at true time ``t_k``::
 
 with ``a_I = R_W_I^T (p_ddot - g_W)``. White noise has the discrete sigma
 ``density * sqrt(rate)``; the bias random walk adds ``N(0, walk_density^2 / rate)`` per sample
-(``walk(0) = 0``). Stamps are ``base_time_ns + round(k 1e9 / rate)`` on the IMU clock; with clock
-drift the true sampling time is ``t_k = (stamp_k - base) / (1 + ppm 1e-6)``.
+(``walk(0) = 0``); the gyro's and the accelerometer's walks have their own multipliers
+(``gyro_bias_walk`` / ``accel_bias_walk`` effects). Stamps are
+``base_time_ns + round(k 1e9 / rate)`` on the IMU clock; with clock drift the true sampling
+time is ``t_k = (stamp_k - base) / (1 + ppm 1e-6)``.
 """
 
 from __future__ import annotations
@@ -84,11 +86,12 @@ def generate_imu(
     walk = rng.standard_normal((n, 6))
     rate = spec.imu_rate_hz
     noise_scale = 0.0 if spec.noise_free else 1.0
-    walk_scale = 0.0 if spec.noise_free else spec.resolved_bias_walk_scale
+    walk_g_scale = 0.0 if spec.noise_free else spec.resolved_gyro_bias_walk_scale
+    walk_a_scale = 0.0 if spec.noise_free else spec.resolved_accel_bias_walk_scale
     sig_g = noise_scale * spec.gyro_noise_density * np.sqrt(rate)
     sig_a = noise_scale * spec.accel_noise_density * np.sqrt(rate)
-    step_g = walk_scale * spec.gyro_bias_walk_density / np.sqrt(rate)
-    step_a = walk_scale * spec.accel_bias_walk_density / np.sqrt(rate)
+    step_g = walk_g_scale * spec.gyro_bias_walk_density / np.sqrt(rate)
+    step_a = walk_a_scale * spec.accel_bias_walk_density / np.sqrt(rate)
     walk[0] = 0.0
     walk_g = np.cumsum(walk[:, :3] * step_g, axis=0)
     walk_a = np.cumsum(walk[:, 3:] * step_a, axis=0)

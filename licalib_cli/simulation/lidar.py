@@ -13,7 +13,9 @@ driver's nominal conversion ``nominal_point(rho, theta, phi_i)``, so
 ``lidar_point(intrinsics, i, rho, theta)`` gives back the true point (up to noise).
 
 Stamps are on the LiDAR clock: ``tau = t - time_offset_s + lidar_clock_offset_s`` (plus the base
-time). Sweep ``k`` covers true times ``[k T, (k + 1) T)``.
+time). Sweep ``k`` covers true times ``[k T, (k + 1) T)``. With a per-point time error ``k_pt``
+(the ``lidar_point_time`` effect) each point's published time since the sweep's first firing is
+the true one divided by ``1 - k_pt``; header stamps stay true.
 """
 
 from __future__ import annotations
@@ -45,6 +47,8 @@ class ScanTruth:
         plane_id: (N,) int32 id of the surface hit (``World.planes()`` row).
         hit_world: (N, 3) true hit point in ``{W}``, m.
         valid: (N,) bool, False for no-returns (zero points of an organised cloud).
+        t_published_s: (N,) the time the cloud gives the point, on the true time axis, s
+            (``t_true_s`` unless the per-point times are off, ``lidar_point_time``).
     """
 
     t_true_s: F64
@@ -55,6 +59,7 @@ class ScanTruth:
     plane_id: npt.NDArray[np.int32]
     hit_world: F64
     valid: npt.NDArray[np.bool_]
+    t_published_s: F64
 
 
 @dataclass(frozen=True)
@@ -156,7 +161,13 @@ def _scan(
     albedo = refl[plane_id] * cos_inc
 
     offset_ns = -setup.time_offset_ns + setup.lidar_clock_offset_ns
-    sweep_stamp_rel = sweep_start_ns + int(t_rel.min())
+    first_ns = sweep_start_ns + int(t_rel.min())
+    k_pt = spec.resolved_point_time_error
+    if k_pt != 0.0:  # published times within the sweep run 1 / (1 - k) fast
+        t_pub_ns = first_ns + np.round((t_true_ns - first_ns) / (1.0 - k_pt)).astype(np.int64)
+    else:
+        t_pub_ns = t_true_ns
+    sweep_stamp_rel = first_ns
     if not model.organized and spec.lidar_stamp is LidarStamp.END:
         sweep_stamp_rel = sweep_start_ns + int(t_rel.max())
     stamp_ns = spec.base_time_ns + sweep_stamp_rel + offset_ns
@@ -166,7 +177,7 @@ def _scan(
     if model.organized:
         points["x"], points["y"], points["z"] = (np.where(valid, xyz[:, i], 0.0) for i in range(3))
         points["intensity"] = np.where(valid, 1000.0 * albedo / (1.0 + 0.05 * rho_bar), 0.0)
-        points["t"] = (t_true_ns - (sweep_start_ns + int(t_rel.min()))).astype(np.uint32)
+        points["t"] = (t_pub_ns - first_ns).astype(np.uint32)
         reflectivity = np.where(valid, np.round(255 * refl[plane_id]), 0)
         points["reflectivity"] = reflectivity.astype(np.uint16)
         points["ring"] = ring.astype(np.uint16)
@@ -181,7 +192,7 @@ def _scan(
         points["x"], points["y"], points["z"] = xyz[sel, 0], xyz[sel, 1], xyz[sel, 2]
         points["intensity"] = np.round(255.0 * albedo[sel])
         points["ring"] = ring[sel].astype(np.uint16)
-        points["time"] = ((t_true_ns[sel] - sweep_stamp_rel) * 1e-9).astype(np.float32)
+        points["time"] = ((t_pub_ns[sel] - sweep_stamp_rel) * 1e-9).astype(np.float32)
         rho_out = rho
 
     truth = ScanTruth(
@@ -193,5 +204,6 @@ def _scan(
         plane_id=plane_id[sel],
         hit_world=origin_w[sel] + rho_bar[sel, None] * dir_w[sel],
         valid=valid[sel],
+        t_published_s=t_pub_ns[sel].astype(np.float64) * 1e-9,
     )
     return SimulatedScan(k, int(stamp_ns), int(record_ns), points, truth)

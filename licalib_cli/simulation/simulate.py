@@ -11,12 +11,16 @@ file (schema v1: ``extrinsic``, ``imu_intrinsics``, ``lidar_intrinsics``) and th
       initial_imu_pose: {stamp_ns, position, rotation_quaternion, velocity, angular_velocity}
       imu: {topic, frame_id, rate_hz, num_samples, noise densities and discrete sigmas,
             bias_walk_scale, effects, g_sensitivity_dps_per_g, clock_drift_ppm,
-            gyro_bias_mean, accel_bias_mean, ...}
-      lidar: {model, topic, frame_id, rate_hz, num_beams, num_scans, stamp, range_noise_m, ...}
+            gyro_bias_mean, accel_bias_mean, ..., gyro_bias_walk_scale, accel_bias_walk_scale}
+      lidar: {model, topic, frame_id, rate_hz, num_beams, num_scans, stamp, range_noise_m, ...,
+              point_time_error}
       clock: {base_time_ns, time_offset_s, time_offset_drawn, lidar_clock_offset_s, relation}
       bag: {format, path}
       command_line: "licalib simulate ..."
       licalib_version: "0.1.0"
+      effects:                                    # every effect hidden, by diagnose's names
+        - {name: gyro_scale, scale: 3.0, size: 0.0003, unit: "1 (std of s - 1)",
+           values: [...], values_unit: "1 (s - 1)"}
 
 Times in ``bursts_s`` are true seconds after ``base_time_ns`` (the IMU clock without drift).
 """
@@ -40,10 +44,11 @@ from licalib_cli import truth as tr
 from licalib_cli.errors import ConfigError
 from licalib_cli.io.writer import BagWriter, default_bag_path
 from licalib_cli.results import CalibrationResult, create_folder, write_text_atomic
+from licalib_cli.simulation.effects import EFFECT_SIZES, Effect
 from licalib_cli.simulation.ground_truth import SimulationSetup, build_setup
 from licalib_cli.simulation.imu import ImuTruth, generate_imu
 from licalib_cli.simulation.lidar import generate_scans, num_scans
-from licalib_cli.simulation.spec import ImuEffect, Scenario, SimulationSpec
+from licalib_cli.simulation.spec import STANDARD_GRAVITY, Scenario, SimulationSpec
 
 logger = logging.getLogger(__name__)
 
@@ -81,6 +86,76 @@ def _vec(a: Any, digits: int = 9) -> tuple[float, ...]:
 def _vec3(a: Any, digits: int = 9) -> tuple[float, float, float]:
     x, y, z = _vec(a, digits)
     return (x, y, z)
+
+
+def _walk_slope(t_s: Any, bias: Any) -> tuple[float, ...]:
+    """Least-squares slope of each column of ``bias`` (N, 3) over ``t_s`` (N,)."""
+    t = np.asarray(t_s, dtype=np.float64)
+    dt = t - t.mean()
+    b = np.asarray(bias, dtype=np.float64)
+    return _vec(dt @ (b - b.mean(axis=0)) / max(float(dt @ dt), 1e-300), 12)
+
+
+def injected_effects(
+    spec: SimulationSpec, setup: SimulationSetup, imu_truth: ImuTruth
+) -> tuple[tr.InjectedEffect, ...]:
+    """Every effect in force with its size and the values injected (truth ``effects``)."""
+    imu = setup.imu_intrinsics
+    lid = setup.lidar_intrinsics
+    out = []
+    for effect in spec.active_effects:
+        named = effect in spec.effects
+        ref = EFFECT_SIZES[effect]
+        size = spec.effect_size(effect)
+        if effect is Effect.GYRO_SCALE:
+            values, unit = _vec(imu.gyro_scale - 1.0, 12), "1 (s - 1)"
+        elif effect is Effect.ACCEL_SCALE:
+            values, unit = _vec(imu.accel_scale - 1.0, 12), "1 (s - 1)"
+        elif effect is Effect.GYRO_MISALIGNMENT:
+            values, unit = _vec(np.degrees(imu.gyro_misalignment), 12), "deg"
+        elif effect is Effect.ACCEL_MISALIGNMENT:
+            values, unit = _vec(np.degrees(imu.accel_misalignment), 12), "deg"
+        elif effect is Effect.GYRO_ROTATION:
+            q = np.asarray(imu.gyro_rotation, dtype=np.float64)
+            values, unit = _vec(np.degrees(Rotation.from_quat(q).as_rotvec()), 12), "deg"
+            unit = "deg (rotation vector of R_wI)"
+        elif effect is Effect.G_SENSITIVITY:
+            a_w = np.asarray(imu.gyro_g_sensitivity, dtype=np.float64)
+            values = _vec(np.degrees(a_w) * STANDARD_GRAVITY, 12)
+            unit = "deg/s per g (A_w row-major)"
+        elif effect is Effect.GYRO_BIAS_WALK:
+            values = _walk_slope(imu_truth.t_true_s, imu_truth.gyro_bias)
+            unit = "rad/s^2 (least-squares slope of the gyro bias)"
+        elif effect is Effect.ACCEL_BIAS_WALK:
+            values = _walk_slope(imu_truth.t_true_s, imu_truth.accel_bias)
+            unit = "m/s^3 (least-squares slope of the accelerometer bias)"
+        elif effect is Effect.IMU_CLOCK_DRIFT:
+            values, unit = (size,), "ppm"
+        elif effect is Effect.LIDAR_POINT_TIME:
+            values, unit = (size,), "1 (fraction of the time within the sweep)"
+        else:
+            field, scale, degrees = {
+                Effect.LIDAR_RANGE_OFFSET: ("range_offset", 0.0, False),
+                Effect.LIDAR_RANGE_SCALE: ("range_scale", 1.0, False),
+                Effect.LIDAR_ELEVATION: ("elevation_correction", 0.0, True),
+                Effect.LIDAR_AZIMUTH: ("azimuth_correction", 0.0, True),
+                Effect.LIDAR_VERTICAL_OFFSET: ("vertical_offset", 0.0, False),
+                Effect.LIDAR_HORIZONTAL_OFFSET: ("horizontal_offset", 0.0, False),
+            }[effect]
+            v = np.asarray(getattr(lid, field), dtype=np.float64) - scale
+            values = _vec(np.degrees(v) if degrees else v, 12)
+            unit = "deg per beam" if degrees else ("1 (s - 1) per beam" if scale else "m per beam")
+        out.append(
+            tr.InjectedEffect(
+                name=effect.value,
+                scale=float(spec.effect_scale) if named else 1.0,
+                size=float(f"{size:.12g}"),
+                unit=ref.unit,
+                values=values,
+                values_unit=unit,
+            )
+        )
+    return tuple(out)
 
 
 def build_truth(
@@ -125,15 +200,15 @@ def build_truth(
         accel_noise_sigma=imu_truth.accel_noise_sigma,
         noise_free=spec.noise_free,
         bias_walk_scale=float(spec.resolved_bias_walk_scale),
-        effects=tuple(e.value for e in spec.active_effects),
-        g_sensitivity_dps_per_g=float(spec.g_sensitivity_dps_per_g)
-        if ImuEffect.G_SENSITIVITY in spec.active_effects
-        else 0.0,
+        effects=tuple(e.value for e in spec.active_effects if e.sensor == "imu"),
+        g_sensitivity_dps_per_g=float(spec.resolved_g_sensitivity_dps_per_g),
         clock_drift_ppm=float(spec.resolved_imu_clock_drift_ppm),
         gyro_bias_mean=_vec3(imu_truth.gyro_bias.mean(axis=0), 12),
         accel_bias_mean=_vec3(imu_truth.accel_bias.mean(axis=0), 12),
         gyro_bias_end=_vec3(imu_truth.gyro_bias[-1], 12),
         accel_bias_end=_vec3(imu_truth.accel_bias[-1], 12),
+        gyro_bias_walk_scale=float(spec.resolved_gyro_bias_walk_scale),
+        accel_bias_walk_scale=float(spec.resolved_accel_bias_walk_scale),
     )
     lidar = tr.SimulatedLidar(
         model=model.kind.value,
@@ -154,6 +229,7 @@ def build_truth(
         if spec.intrinsics_file is None
         else str(spec.intrinsics_file),
         intrinsics_scale=float(spec.intrinsics_scale),
+        point_time_error=float(spec.resolved_point_time_error),
     )
     simulation = tr.Simulation(
         gravity_world=_vec3(spec.gravity_w),
@@ -180,6 +256,7 @@ def build_truth(
         ),
         command_line=spec.command_line,
         licalib_version=__version__,
+        effects=injected_effects(spec, setup, imu_truth),
     )
     values = CalibrationResult(
         extrinsic=setup.extrinsic,

@@ -24,6 +24,7 @@ import numpy as np
 
 from licalib_cli.errors import ConfigError
 from licalib_cli.io.writer import BagFormat
+from licalib_cli.simulation.effects import EFFECT_SIZES, Effect, parse_effects
 
 # Xsens MTi 100-series datasheet (MTi-100/200/300 share the inertial sensors):
 # gyro noise density 0.01 deg/s/sqrt(Hz), in-run bias stability 10 deg/h;
@@ -84,30 +85,14 @@ class LidarStamp(str, Enum):
     END = "end"
 
 
-class ImuEffect(str, Enum):
-    """Optional IMU effects beyond the MTi-100 model of method.md section 3.
-
-    * ``g-sensitivity``: gyro g-sensitivity ``A_w``, entries with std
-      ``g_sensitivity_dps_per_g`` (default :data:`DEFAULT_G_SENSITIVITY_DPS_PER_G`).
-    * ``bias-random-walk``: a stronger bias random walk, the MTi-100 densities times
-      ``bias_walk_scale`` (default :data:`EFFECT_BIAS_WALK_SCALE`, a consumer-grade MEMS IMU);
-      without the effect the walk is the MTi-100's (scale 1).
-    * ``imu-clock-drift``: the IMU clock runs fast by ``imu_clock_drift_ppm`` (default
-      :data:`EFFECT_IMU_CLOCK_DRIFT_PPM`, a typical uncompensated crystal); without the effect
-      there is no drift unless ``imu_clock_drift_ppm`` is set.
-    """
-
-    G_SENSITIVITY = "g-sensitivity"
-    BIAS_RANDOM_WALK = "bias-random-walk"
-    IMU_CLOCK_DRIFT = "imu-clock-drift"
-
-
-DEFAULT_G_SENSITIVITY_DPS_PER_G = 0.1
-"""Std of each g-sensitivity entry with the ``g-sensitivity`` effect, deg/s per g."""
-EFFECT_BIAS_WALK_SCALE = 10.0
-"""Bias random-walk strength of the ``bias-random-walk`` effect, times the MTi-100 densities."""
-EFFECT_IMU_CLOCK_DRIFT_PPM = 50.0
-"""IMU clock drift of the ``imu-clock-drift`` effect, ppm (IMU stamps run fast)."""
+DEFAULT_G_SENSITIVITY_DPS_PER_G = EFFECT_SIZES[Effect.G_SENSITIVITY].size
+"""Std of each g-sensitivity entry with the ``g_sensitivity`` effect, deg/s per g."""
+EFFECT_BIAS_WALK_SCALE = EFFECT_SIZES[Effect.GYRO_BIAS_WALK].size
+"""Bias random-walk strength of the bias-walk effects, times the MTi-100 densities."""
+EFFECT_IMU_CLOCK_DRIFT_PPM = EFFECT_SIZES[Effect.IMU_CLOCK_DRIFT].size
+"""IMU clock drift of the ``imu_clock_drift`` effect, ppm (IMU stamps run fast)."""
+EFFECT_POINT_TIME_ERROR = EFFECT_SIZES[Effect.LIDAR_POINT_TIME].size
+"""Per-point time error of the ``lidar_point_time`` effect (fraction of the time in the sweep)."""
 RANDOM_TIME_OFFSET_MAX_S = 0.05
 """``random_time_offset`` draws the time offset uniformly in +-this, s."""
 
@@ -145,13 +130,21 @@ class SimulationSpec:
         lidar_stamp: Velodyne header stamp at the first or the last firing.
         dropout: probability that a ray returns nothing.
         noise_free: zero IMU white noise, bias random walk and range noise.
-        bias_walk_scale: multiplies the bias random-walk densities (0 disables the walk); None
-            for 1, or :data:`EFFECT_BIAS_WALK_SCALE` with the ``bias-random-walk`` effect.
-        effects: optional IMU effects (:class:`ImuEffect`, names or members).
-        g_sensitivity_dps_per_g: sigma of each g-sensitivity entry, deg/s per g (used with the
-            ``g-sensitivity`` effect).
+        bias_walk_scale: multiplies both bias random-walk densities (0 disables the walk);
+            None for 1, or the effect's strength with ``gyro_bias_walk`` / ``accel_bias_walk``.
+        effects: effects to hide (:class:`~licalib_cli.simulation.effects.Effect`, names or
+            members; the earlier names ``g-sensitivity``, ``imu-clock-drift`` and
+            ``bias-random-walk`` (both walks) are accepted), each at its reference size
+            (:data:`~licalib_cli.simulation.effects.EFFECT_SIZES`) times ``effect_scale``.
+            Drawn intrinsic effects replace what ``intrinsics`` drew for that block.
+        effect_scale: multiplies the reference size of every named effect.
+        g_sensitivity_dps_per_g: sigma of each g-sensitivity entry, deg/s per g (with the
+            ``g_sensitivity`` effect); None for its size times ``effect_scale``.
         imu_clock_drift_ppm: IMU stamps run at ``1 + ppm 1e-6`` times the true rate; None for
-            0, or :data:`EFFECT_IMU_CLOCK_DRIFT_PPM` with the ``imu-clock-drift`` effect.
+            0, or its size times ``effect_scale`` with the ``imu_clock_drift`` effect.
+        point_time_error: ``k``: each point's published time within its sweep is the true one
+            divided by ``1 - k``; None for 0, or its size times ``effect_scale`` with the
+            ``lidar_point_time`` effect.
         gyro_noise_density: rad/s/sqrt(Hz).
         accel_noise_density: m/s^2/sqrt(Hz).
         gyro_bias_walk_density: rad/s^2/sqrt(Hz).
@@ -190,9 +183,11 @@ class SimulationSpec:
     dropout: float = 0.001
     noise_free: bool = False
     bias_walk_scale: float | None = None
-    effects: tuple[ImuEffect, ...] = field(default_factory=tuple)
-    g_sensitivity_dps_per_g: float = DEFAULT_G_SENSITIVITY_DPS_PER_G
+    effects: tuple[Effect, ...] = field(default_factory=tuple)
+    effect_scale: float = 1.0
+    g_sensitivity_dps_per_g: float | None = None
     imu_clock_drift_ppm: float | None = None
+    point_time_error: float | None = None
     gyro_noise_density: float = GYRO_NOISE_DENSITY
     accel_noise_density: float = ACCEL_NOISE_DENSITY
     gyro_bias_walk_density: float = GYRO_BIAS_WALK_DENSITY
@@ -223,12 +218,10 @@ class SimulationSpec:
                 msg = f"Unknown {name} {value!r}; choose one of {choices}."
                 raise ConfigError(msg) from err
         try:
-            effects = tuple(ImuEffect(e) for e in self.effects)
+            effects = parse_effects(tuple(self.effects))
         except ValueError as err:
-            choices = ", ".join(e.value for e in ImuEffect)
-            msg = f"Unknown IMU effect in {list(self.effects)}; choose from {choices}."
-            raise ConfigError(msg) from err
-        object.__setattr__(self, "effects", tuple(dict.fromkeys(effects)))
+            raise ConfigError(str(err)) from err
+        object.__setattr__(self, "effects", effects)
         self._validate()
 
     def _validate(self) -> None:
@@ -244,6 +237,16 @@ class SimulationSpec:
             (
                 self.intrinsics_scale >= 0 and self.resolved_bias_walk_scale >= 0,
                 "--intrinsics-scale and --bias-walk-scale must not be negative.",
+            ),
+            (
+                0.0 <= self.effect_scale <= 100.0,
+                f"--effect-scale {self.effect_scale} must be in [0, 100]; the benchmark "
+                "uses 1 to 5.",
+            ),
+            (
+                abs(self.resolved_point_time_error) < 0.5,
+                "--point-time-error must be below 0.5 in magnitude (a fraction of the time "
+                "within the sweep, e.g. 0.01).",
             ),
             (
                 not (self.random_time_offset and self.time_offset_s != 0.0),
@@ -304,33 +307,87 @@ class SimulationSpec:
             return self.lidar_frame
         return "velodyne" if self.lidar is LidarKind.VLP16 else "os_sensor"
 
+    def _strength(self, effect: Effect) -> float:
+        """The named effect's reference size times ``effect_scale``; 0 when not named."""
+        if effect not in self.effects:
+            return 0.0
+        return EFFECT_SIZES[effect].size * float(self.effect_scale)
+
+    def effect_size(self, effect: Effect) -> float:
+        """The 1-sigma (or value) an effect is injected with, in its unit of
+        :data:`~licalib_cli.simulation.effects.EFFECT_SIZES` (0 when not in force)."""
+        if effect is Effect.G_SENSITIVITY:
+            return self.resolved_g_sensitivity_dps_per_g
+        if effect is Effect.IMU_CLOCK_DRIFT:
+            return self.resolved_imu_clock_drift_ppm
+        if effect is Effect.LIDAR_POINT_TIME:
+            return self.resolved_point_time_error
+        if effect is Effect.GYRO_BIAS_WALK:
+            return self.resolved_gyro_bias_walk_scale
+        if effect is Effect.ACCEL_BIAS_WALK:
+            return self.resolved_accel_bias_walk_scale
+        return self._strength(effect)
+
     @property
-    def resolved_bias_walk_scale(self) -> float:
-        """Multiplier of the MTi-100 bias random-walk densities actually used."""
+    def resolved_gyro_bias_walk_scale(self) -> float:
+        """Multiplier of the MTi-100 gyro bias random-walk density actually used."""
         if self.bias_walk_scale is not None:
             return float(self.bias_walk_scale)
-        return EFFECT_BIAS_WALK_SCALE if ImuEffect.BIAS_RANDOM_WALK in self.effects else 1.0
+        return self._strength(Effect.GYRO_BIAS_WALK) or 1.0
+
+    @property
+    def resolved_accel_bias_walk_scale(self) -> float:
+        """Multiplier of the MTi-100 accelerometer bias random-walk density actually used."""
+        if self.bias_walk_scale is not None:
+            return float(self.bias_walk_scale)
+        return self._strength(Effect.ACCEL_BIAS_WALK) or 1.0
+
+    @property
+    def resolved_bias_walk_scale(self) -> float:
+        """The larger of the two bias-walk multipliers."""
+        return max(self.resolved_gyro_bias_walk_scale, self.resolved_accel_bias_walk_scale)
+
+    @property
+    def resolved_g_sensitivity_dps_per_g(self) -> float:
+        """Std of each g-sensitivity entry actually used, deg/s per g (0: none)."""
+        if Effect.G_SENSITIVITY not in self.effects:
+            return 0.0
+        if self.g_sensitivity_dps_per_g is not None:
+            return float(self.g_sensitivity_dps_per_g)
+        return self._strength(Effect.G_SENSITIVITY)
 
     @property
     def resolved_imu_clock_drift_ppm(self) -> float:
         """IMU clock drift actually used, ppm."""
         if self.imu_clock_drift_ppm is not None:
             return float(self.imu_clock_drift_ppm)
-        return EFFECT_IMU_CLOCK_DRIFT_PPM if ImuEffect.IMU_CLOCK_DRIFT in self.effects else 0.0
+        return self._strength(Effect.IMU_CLOCK_DRIFT)
 
     @property
-    def active_effects(self) -> tuple[ImuEffect, ...]:
+    def resolved_point_time_error(self) -> float:
+        """Per-point time error ``k`` actually used (fraction of the time within the sweep)."""
+        if self.point_time_error is not None:
+            return float(self.point_time_error)
+        return self._strength(Effect.LIDAR_POINT_TIME)
+
+    @property
+    def active_effects(self) -> tuple[Effect, ...]:
         """Effects in force: those named, plus those the numeric options imply.
 
-        ``imu-clock-drift`` when a drift is set, ``bias-random-walk`` when the walk is stronger
-        than the MTi-100's (scale above 1). Ordered as :class:`ImuEffect`.
+        ``imu_clock_drift`` when a drift is set, ``lidar_point_time`` when a point time error
+        is set, a bias walk when it is stronger than the MTi-100's (multiplier above 1).
+        Ordered as :class:`~licalib_cli.simulation.effects.Effect`.
         """
         out = set(self.effects)
         if self.resolved_imu_clock_drift_ppm != 0.0:
-            out.add(ImuEffect.IMU_CLOCK_DRIFT)
-        if self.resolved_bias_walk_scale > 1.0:
-            out.add(ImuEffect.BIAS_RANDOM_WALK)
-        return tuple(e for e in ImuEffect if e in out)
+            out.add(Effect.IMU_CLOCK_DRIFT)
+        if self.resolved_point_time_error != 0.0:
+            out.add(Effect.LIDAR_POINT_TIME)
+        if self.resolved_gyro_bias_walk_scale > 1.0:
+            out.add(Effect.GYRO_BIAS_WALK)
+        if self.resolved_accel_bias_walk_scale > 1.0:
+            out.add(Effect.ACCEL_BIAS_WALK)
+        return tuple(e for e in Effect if e in out)
 
     @property
     def resolved_range_noise_m(self) -> float:

@@ -126,8 +126,10 @@ def test_effects_by_name_and_random_time_offset(
     truth = Truth.load(out_dir / "truth.yaml")
     sim = truth.simulation
     assert sim is not None
-    assert sim.imu.effects == ("bias-random-walk", "imu-clock-drift")
+    # the earlier names are recorded under diagnose's names, each with its size
+    assert sim.imu.effects == ("gyro_bias_walk", "accel_bias_walk", "imu_clock_drift")
     assert sim.imu.bias_walk_scale == 10.0 and sim.imu.clock_drift_ppm == 50.0
+    assert [e.name for e in sim.effects] == list(sim.imu.effects)
     expected = draw_time_offset(SimulationSpec(seed=4, random_time_offset=True))
     assert truth.extrinsic.time_offset_s == pytest.approx(expected, abs=1e-12)
     assert 0 < abs(expected) <= 0.05 and sim.clock.time_offset_drawn is True

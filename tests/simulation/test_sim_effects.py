@@ -1,4 +1,5 @@
-"""IMU effects by name (with default strengths) and the seeded random time offset."""
+"""Effects by name (with default strengths) and the seeded random time offset; each named effect
+shows in the simulated measurements with its recorded size and sign."""
 
 from __future__ import annotations
 
@@ -7,13 +8,13 @@ import pytest
 
 from licalib_cli.errors import ConfigError
 from licalib_cli.simulation import SimulationSpec, build_setup, generate_imu
+from licalib_cli.simulation.effects import Effect
 from licalib_cli.simulation.ground_truth import draw_extrinsic
 from licalib_cli.simulation.simulate import build_truth
 from licalib_cli.simulation.spec import (
     EFFECT_BIAS_WALK_SCALE,
     EFFECT_IMU_CLOCK_DRIFT_PPM,
     RANDOM_TIME_OFFSET_MAX_S,
-    ImuEffect,
     IntrinsicsMode,
 )
 from licalib_cli.truth import SimulatedImu
@@ -26,16 +27,23 @@ def _imu_truth(spec: SimulationSpec) -> SimulatedImu:
     return simulation.imu
 
 
-def test_effect_names_are_accepted_as_strings() -> None:
+def test_effect_names_are_accepted_as_strings_and_by_their_earlier_names() -> None:
     spec = SimulationSpec(effects=("bias-random-walk", "imu-clock-drift", "g-sensitivity"))
-    assert set(spec.effects) == set(ImuEffect)
-    with pytest.raises(ConfigError, match="bias-random-walk, imu-clock-drift"):
+    assert set(spec.effects) == {
+        Effect.GYRO_BIAS_WALK,
+        Effect.ACCEL_BIAS_WALK,
+        Effect.IMU_CLOCK_DRIFT,
+        Effect.G_SENSITIVITY,
+    }
+    every = SimulationSpec(effects=tuple(e.value for e in Effect))
+    assert every.effects == tuple(Effect)
+    with pytest.raises(ConfigError, match="gyro_scale, gyro_misalignment"):
         SimulationSpec(effects=("rain",))
 
 
 def test_bias_random_walk_effect_default_strength_and_override() -> None:
     base = SimulationSpec(duration_s=4.0, intrinsics=IntrinsicsMode.NONE)
-    strong = base.with_(effects=(ImuEffect.BIAS_RANDOM_WALK,))
+    strong = base.with_(effects=("bias-random-walk",))
     assert base.resolved_bias_walk_scale == 1.0
     assert strong.resolved_bias_walk_scale == EFFECT_BIAS_WALK_SCALE == 10.0
     # same noise stream: the walk is exactly 10x the MTi-100 walk
@@ -52,28 +60,29 @@ def test_bias_random_walk_effect_default_strength_and_override() -> None:
         t_custom.gyro_bias - t_custom.gyro_bias[0], 3.0 * walk_base, rtol=1e-9
     )
     info = _imu_truth(strong.with_(duration_s=0.2))
-    assert info.effects == ("bias-random-walk",) and info.bias_walk_scale == 10.0
+    assert info.effects == ("gyro_bias_walk", "accel_bias_walk")
+    assert info.bias_walk_scale == 10.0
     assert _imu_truth(base.with_(duration_s=0.2)).effects == ()
 
 
 def test_imu_clock_drift_effect_default_strength_and_override() -> None:
-    spec = SimulationSpec(duration_s=2.0, noise_free=True, effects=("imu-clock-drift",))
+    spec = SimulationSpec(duration_s=2.0, noise_free=True, effects=("imu_clock_drift",))
     assert spec.resolved_imu_clock_drift_ppm == EFFECT_IMU_CLOCK_DRIFT_PPM == 50.0
     imu, truth = generate_imu(spec)
     rel = (imu.t_ns - spec.base_time_ns).astype(float) * 1e-9
     np.testing.assert_allclose(rel, truth.t_true_s * (1 + 50e-6), atol=1e-12)
     info = _imu_truth(spec.with_(duration_s=0.2))
-    assert info.effects == ("imu-clock-drift",) and info.clock_drift_ppm == 50.0
+    assert info.effects == ("imu_clock_drift",) and info.clock_drift_ppm == 50.0
     # the numeric option alone sets the drift and records the effect
     only_ppm = SimulationSpec(duration_s=0.2, imu_clock_drift_ppm=-20.0)
     assert only_ppm.resolved_imu_clock_drift_ppm == -20.0
     info = _imu_truth(only_ppm)
-    assert info.effects == ("imu-clock-drift",) and info.clock_drift_ppm == -20.0
+    assert info.effects == ("imu_clock_drift",) and info.clock_drift_ppm == -20.0
 
 
 def test_g_sensitivity_recorded_with_its_strength() -> None:
     info = _imu_truth(SimulationSpec(duration_s=0.2, effects=("g-sensitivity",)))
-    assert info.effects == ("g-sensitivity",) and info.g_sensitivity_dps_per_g == 0.1
+    assert info.effects == ("g_sensitivity",) and info.g_sensitivity_dps_per_g == 0.1
 
 
 def test_random_time_offset_is_seeded_and_bounded() -> None:

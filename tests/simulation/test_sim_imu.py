@@ -7,7 +7,7 @@ import pytest
 
 from licalib_cli.models.imu import imu_measure
 from licalib_cli.simulation import (
-    ImuEffect,
+    Effect,
     IntrinsicsMode,
     Scenario,
     SimulationSpec,
@@ -100,7 +100,7 @@ def test_ideal_readings_are_the_kinematics() -> None:
 
 
 def test_intrinsics_and_g_sensitivity_follow_the_model() -> None:
-    spec = SimulationSpec(duration_s=1.0, noise_free=True, effects=(ImuEffect.G_SENSITIVITY,))
+    spec = SimulationSpec(duration_s=1.0, noise_free=True, effects=(Effect.G_SENSITIVITY,))
     setup = build_setup(spec)
     k = setup.imu_intrinsics
     assert np.abs(k.gyro_g_sensitivity).max() > 0
