@@ -131,6 +131,21 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
             ]
             for s in diag.steps
         ],
+        # how strongly the base fit's residuals show each injected effect (score test alone,
+        # dof, p): below the significance level the data do not show it at that level
+        "evidence": {
+            e.score.name: [e.statistic_alone, int(e.score.rank), e.score.p_value]
+            for e in diag.base.effects
+            if e.score.name in case["effects"]
+        },
+        "twin": {
+            s.sensor: [s.chi2_per_sample, s.chi2_spread]
+            for s in (diag.base_twin.sensors if diag.base_twin else ())
+        },
+        "measured": {
+            c.sensor: c.chi2_per_sample
+            for c in (diag.base.result.consistency.sensors if diag.base.result.consistency else ())
+        },
         "injected": {
             e.name: list(e.values)[:3]
             for e in (out.truth.simulation.effects if out.truth.simulation else ())
@@ -221,6 +236,12 @@ def main() -> None:
                 rows.append(row)
                 b, a = row["before"], row["after"]
                 misses = judge(row)
+                evidence = " ".join(
+                    f"{k} score {v[0]:.1f} ({v[1]}) p {v[2]:.1g}"
+                    for k, v in row["evidence"].items()
+                )
+                if evidence:
+                    misses = [*misses, evidence] if misses else misses
                 injected = ",".join(row["effects"]) or "none"
                 named = ",".join(row["named"]) or "none"
                 print(

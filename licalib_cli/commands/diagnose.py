@@ -57,9 +57,13 @@ def diagnosis_dict(diag: Any) -> dict[str, Any]:
                 },
             }
         )
+    residuals = {"base": _residuals(diag.base, diag.base_twin)}
+    if diag.effects_found:
+        residuals["final"] = _residuals(diag.final, diag.final_twin)
     return {
         "effects_found": list(diag.effects_found),
         "steps": steps,
+        "residuals": residuals,
         "base_verdict": diag.base.verdict.status,
         "verdict": diag.final.verdict.status,
         "calibration": diag.final.result.to_dict(),
@@ -77,21 +81,95 @@ def _finite(x: Any) -> Any:
     return x
 
 
+def _patterns(check: Any) -> dict[str, Any]:
+    return {p.feature: _num(p.explained, 3) for p in check.patterns}
+
+
+def _residuals(run: Any, twin: Any) -> list[dict[str, Any]]:
+    """Per sensor: the fit's residual statistics next to its twin recording's."""
+    consistency = run.result.consistency
+    out = []
+    for c in consistency.sensors if consistency is not None else ():
+        t = twin.sensor(c.sensor) if twin is not None else None
+        row: dict[str, Any] = {
+            "sensor": c.sensor,
+            "unit": c.unit,
+            "measured": {
+                "chi2_per_sample": _num(c.chi2_per_sample),
+                "rms": _num(c.rms),
+                "explained_by": _patterns(c),
+            },
+            "twin": None,
+        }
+        if t is not None:
+            row["twin"] = {
+                "chi2_per_sample": _num(t.chi2_per_sample),
+                "chi2_spread": _num(t.chi2_spread, 3),
+                "rms": _num(t.rms),
+                "explained_by": _patterns(t.check),
+                "recordings": twin.realisations,
+            }
+            row["gap"] = _num(c.chi2_per_sample - t.chi2_per_sample)
+        out.append(row)
+    return out
+
+
 def _gap_dict(g: Any) -> dict[str, Any]:
     out = {
         "sensor": g.sensor,
         "chi2_per_sample": _num(g.chi2_per_sample),
         "expected": _num(g.expected),
+        "twin_chi2_per_sample": _num(g.twin_chi2_per_sample),
+        "twin_spread": _num(g.twin_spread, 3),
+        "reference": g.reference_source,
         "excess": _num(g.excess),
         "rms": _num(g.rms),
+        "twin_rms": _num(g.twin_rms),
     }
     if math.isfinite(g.map_entropy):
         out["map_entropy"] = _num(g.map_entropy)
     return out
 
 
+def _residual_table(title: str, run: Any, twin: Any) -> Table:
+    """Per sensor: chi-square per sample and RMS, measured and on the twin, and the pattern
+    that explains most of the measured residuals with its share on the twin."""
+    table = Table(title=title)
+    for name in ("sensor", "chi2/sample", "twin", "gap", "RMS", "twin RMS", "strongest pattern"):
+        table.add_column(name)
+    for row in _residuals(run, twin):
+        m, t = row["measured"], row["twin"]
+        patterns = sorted(m["explained_by"].items(), key=lambda kv: -(kv[1] or 0.0))
+        pattern = "-"
+        if patterns and (patterns[0][1] or 0.0) > 0.0:
+            feature, share = patterns[0]
+            twin_share = t["explained_by"].get(feature) if t else None
+            pattern = f"{feature} {100 * share:.1f} %"
+            if twin_share is not None:
+                pattern += f" (twin {100 * twin_share:.1f} %)"
+        table.add_row(
+            f"{row['sensor']} ({row['unit']})",
+            f"{m['chi2_per_sample']:.3f}",
+            f"{t['chi2_per_sample']:.3f} +- {t['chi2_spread']:.3f}" if t else "-",
+            f"{row['gap']:+.3f}" if t else "-",
+            f"{m['rms']:.4g}",
+            f"{t['rms']:.4g}" if t else "-",
+            pattern,
+        )
+    return table
+
+
 def render_diagnosis(diag: Any) -> None:
-    """The steps as a table, then the effects kept and the final verdict."""
+    """The residuals against the twin, the steps as a table, then the effects kept and the
+    final verdict."""
+    out = console()
+    out.print(
+        _residual_table(
+            "Residuals of the base model: measured and on its twin recording",
+            diag.base,
+            diag.base_twin,
+        )
+    )
     table = Table(title="Effects the base model lacks, strongest first")
     for name in (
         "effect",
@@ -114,9 +192,16 @@ def render_diagnosis(diag: Any) -> None:
             f"{1e3 * s.moved_time_offset_s:.3f} ms",
             "yes" if s.kept else "no",
         )
-    out = console()
     if diag.steps:
         out.print(table)
+    if diag.effects_found:
+        out.print(
+            _residual_table(
+                "Residuals with the effects: measured and on its twin recording",
+                diag.final,
+                diag.final_twin,
+            )
+        )
     found = ", ".join(diag.effects_found) or "none"
     out.print(f"Effects added to the model: {found}")
     colour = {"pass": "green", "warn": "yellow", "fail": "red"}

@@ -13,6 +13,13 @@
 Each step records the effect, its test, its estimate with 1-sigma, the gap of its sensor before
 and after (chi-square per sample above what a model that explains the data leaves, the residual
 RMS, and for LiDAR effects the mean map entropy) and how far the extrinsic moved.
+
+What "a model that explains the data leaves" is comes from a twin recording of each fit
+(:mod:`licalib_cli.pipeline.twin`): the fitted model's own prediction of every measurement with
+noise of the fitted levels, fitted and checked the same way. Its chi-square per sample is the
+reference of the gap (the IMU's is below 1 because the trajectory spline absorbs some noise, the
+LiDAR's because the planes are fitted to the same points); without a twin (its fit failed) the
+reference is the analytic ``1 - knots / IMU samples`` (IMU) and 1 (LiDAR).
 """
 
 from __future__ import annotations
@@ -35,6 +42,7 @@ from licalib_cli.pipeline import (
 from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.settings import free_parameters, intrinsic_priors, lm_params
+from licalib_cli.pipeline.twin import TWIN_ITERATIONS, Twin, twin_checks
 from licalib_cli.progress import NullProgress, Progress
 from licalib_cli.solver.lm import solve
 
@@ -44,6 +52,7 @@ __all__ = [
     "DiagnosisStep",
     "Gap",
     "diagnose",
+    "twin_of",
 ]
 
 logger = logging.getLogger(__name__)
@@ -99,10 +108,13 @@ class Gap:
     Attributes:
         sensor: ``gyro``, ``accelerometer`` or ``lidar``.
         chi2_per_sample: residual sum of squares over the noise variance, per residual.
-        expected: what a model that explains the data leaves (below 1 for the IMU: the
-            trajectory spline absorbs some of its noise).
+        expected: the analytic value a model that explains the data leaves (below 1 for the
+            IMU: the trajectory spline absorbs some of its noise).
         rms: residual RMS in the sensor's unit.
         map_entropy: mean map entropy of the fit's last round (LiDAR), nats.
+        twin_chi2_per_sample: the same on the fit's twin recordings (NaN without a twin).
+        twin_spread: 1-sigma of that figure (from the twins' spread).
+        twin_rms: the twin's residual RMS.
     """
 
     sensor: str
@@ -110,11 +122,27 @@ class Gap:
     expected: float
     rms: float
     map_entropy: float = float("nan")
+    twin_chi2_per_sample: float = float("nan")
+    twin_spread: float = float("nan")
+    twin_rms: float = float("nan")
+
+    @property
+    def reference(self) -> float:
+        """What the fitted model itself would leave: the twin's chi-square per sample, or the
+        analytic ``expected`` without a twin."""
+        if math.isfinite(self.twin_chi2_per_sample):
+            return self.twin_chi2_per_sample
+        return self.expected
+
+    @property
+    def reference_source(self) -> str:
+        """``twin`` or ``analytic``."""
+        return "twin" if math.isfinite(self.twin_chi2_per_sample) else "analytic"
 
     @property
     def excess(self) -> float:
-        """``chi2_per_sample - expected`` (the gap; about 0 or below when explained)."""
-        return self.chi2_per_sample - self.expected
+        """``chi2_per_sample - reference`` (the gap; about 0 or below when explained)."""
+        return self.chi2_per_sample - self.reference
 
 
 @dataclass(frozen=True)
@@ -137,6 +165,7 @@ class DiagnosisStep:
         moved_time_offset_s: ... the time offset.
         before: the fit the effect was tested on.
         after: the refit with the effect.
+        after_twin: the twin recordings of the refit.
     """
 
     effect: str
@@ -153,6 +182,7 @@ class DiagnosisStep:
     moved_time_offset_s: float
     before: CalibrationRun | None = field(default=None, repr=False, compare=False)
     after: CalibrationRun | None = field(default=None, repr=False, compare=False)
+    after_twin: Twin | None = field(default=None, repr=False, compare=False)
 
     @property
     def shrink(self) -> float:
@@ -172,12 +202,16 @@ class Diagnosis:
         steps: every candidate tried, in order.
         final: the fit with the effects kept.
         effects_found: the effects kept, in the order added.
+        base_twin: the twin recordings of the base fit (None if none could be fitted).
+        final_twin: those of the final fit.
     """
 
     base: CalibrationRun
     steps: tuple[DiagnosisStep, ...]
     final: CalibrationRun
     effects_found: tuple[str, ...]
+    base_twin: Twin | None = None
+    final_twin: Twin | None = None
 
 
 def _expected_chi2(sensor: str, cfg: CalibConfig, imu_rate_hz: float) -> float:
@@ -187,16 +221,33 @@ def _expected_chi2(sensor: str, cfg: CalibConfig, imu_rate_hz: float) -> float:
     return max(0.0, 1.0 - knots_per_s / max(imu_rate_hz, 1e-9))
 
 
-def _gap(run: CalibrationRun, sensor: str, cfg: CalibConfig, imu_rate_hz: float) -> Gap:
+def _gap(
+    run: CalibrationRun, sensor: str, cfg: CalibConfig, imu_rate_hz: float, twin: Twin | None
+) -> Gap:
     consistency = run.result.consistency
     assert consistency is not None
     s = next(c for c in consistency.sensors if c.sensor == sensor)
+    t = twin.sensor(sensor) if twin is not None else None
+    nan = float("nan")
     return Gap(
         sensor=sensor,
         chi2_per_sample=s.chi2_per_sample,
         expected=_expected_chi2(sensor, cfg, imu_rate_hz),
         rms=s.rms,
-        map_entropy=run.rounds[-1].map_entropy if sensor == "lidar" else float("nan"),
+        map_entropy=run.rounds[-1].map_entropy if sensor == "lidar" else nan,
+        twin_chi2_per_sample=t.chi2_per_sample if t is not None else nan,
+        twin_spread=t.chi2_spread if t is not None else nan,
+        twin_rms=t.rms if t is not None else nan,
+    )
+
+
+def twin_of(run: CalibrationRun, cfg: CalibConfig) -> Twin | None:
+    """The twin recordings of a fit (:mod:`licalib_cli.pipeline.twin`)."""
+    return twin_checks(
+        run.state,
+        run.fit.inputs,
+        run.noise,
+        lm_params(cfg, max_iterations=TWIN_ITERATIONS),
     )
 
 
@@ -262,6 +313,7 @@ MAX_RIVALS = 1
 def _try_effect(
     evidence: object,
     run: CalibrationRun,
+    run_twin: Twin | None,
     kept: tuple[str, ...],
     prepared: Prepared,
     cfg: CalibConfig,
@@ -288,6 +340,7 @@ def _try_effect(
     ss_old, _, k_old = _sum_of_squares(base_on_new, _with_effects(cfg, kept), refit=True)
     delta_bic = (ss_new - ss_old) + (k_new - k_old) * math.log(max(n_res, 2))
     moved = extrinsic_of(new.state).error_to(extrinsic_of(run.state))
+    new_twin = twin_of(new, cfg)
     alone = float(getattr(evidence, "statistic_alone", score.statistic))
     statistic = alone if math.isfinite(alone) else float(score.statistic)
     step = DiagnosisStep(
@@ -298,13 +351,14 @@ def _try_effect(
         delta_bic=float(delta_bic),
         kept=bool(delta_bic < 0.0),
         estimate=_estimate(new, name),
-        gap_before=_gap(run, sensor, cfg, rate),
-        gap_after=_gap(new, sensor, cfg, rate),
+        gap_before=_gap(run, sensor, cfg, rate, run_twin),
+        gap_after=_gap(new, sensor, cfg, rate, new_twin),
         moved_translation_m=moved["translation_m"],
         moved_rotation_deg=moved["rotation_deg"],
         moved_time_offset_s=moved["time_offset_s"],
         before=run,
         after=new,
+        after_twin=new_twin,
     )
     logger.info(
         "Diagnose: %s %s (BIC %+.1f); %s gap %.3f -> %.3f; the extrinsic moved %.2f mm / "
@@ -353,7 +407,9 @@ def diagnose(
         float(prepared.rec.imu.t_ns[-1] - prepared.rec.imu.t_ns[0]) * 1e-9, 1e-9
     )
     run = fit_and_check(prepared, prepared.guess, base_cfg, progress, timer)
-    base = run
+    with timer.stage("twin", progress):
+        run_twin = twin_of(run, cfg)
+    base, base_twin = run, run_twin
     kept: tuple[str, ...] = ()
     tried: set[str] = set()
     steps: list[DiagnosisStep] = []
@@ -381,7 +437,8 @@ def diagnose(
         ]
         rivals = sorted(rivals, key=lambda e: -e.statistic_alone)[:MAX_RIVALS]
         trials = [
-            _try_effect(e, run, kept, prepared, cfg, progress, timer, rate) for e in [best, *rivals]
+            _try_effect(e, run, run_twin, kept, prepared, cfg, progress, timer, rate)
+            for e in [best, *rivals]
         ]
         for e in [best, *rivals]:
             tried.add(e.score.name)
@@ -393,7 +450,13 @@ def diagnose(
         if step.kept:
             kept = (*kept, step.effect)
             assert step.after is not None
-            run = step.after
+            run, run_twin = step.after, step.after_twin
     progress.close()
-    final = run
-    return Diagnosis(base=base, steps=tuple(steps), final=final, effects_found=kept)
+    return Diagnosis(
+        base=base,
+        steps=tuple(steps),
+        final=run,
+        effects_found=kept,
+        base_twin=base_twin,
+        final_twin=run_twin,
+    )

@@ -41,6 +41,7 @@ __all__ = [
     "PATTERN_EXPLAINED",
     "EffectEvidence",
     "ResidualTable",
+    "beam_sigma",
     "effect_evidence",
     "residual_table",
     "sensor_checks",
@@ -216,6 +217,15 @@ def residual_table(state: CalibrationState, inputs: RoundInputs) -> ResidualTabl
     )
 
 
+def beam_sigma(noise: NoiseLevels, num_beams: int) -> F64:
+    """(B,) range noise per beam, m: measured per beam when the noise comes from the data,
+    else the one figure."""
+    per_beam = noise.range_sigma_per_beam
+    if noise.range_source == "data" and per_beam.shape[0] == num_beams:
+        return np.where(np.isfinite(per_beam), per_beam, noise.range_sigma_m)
+    return np.full(num_beams, noise.range_sigma_m)
+
+
 def sensor_checks(
     state: CalibrationState, inputs: RoundInputs, noise: NoiseLevels
 ) -> tuple[SensorCheck, ...]:
@@ -264,12 +274,9 @@ def sensor_checks(
             ),
         ),
     ]
-    per_beam = noise.range_sigma_per_beam
-    if noise.range_source == "data" and per_beam.shape[0] == state.lidar_intrinsics.num_beams:
-        beam_sigma = np.where(np.isfinite(per_beam), per_beam, noise.range_sigma_m)
-    else:
-        beam_sigma = np.full(state.lidar_intrinsics.num_beams, noise.range_sigma_m)
-    sigma = beam_sigma[r.beam] * np.maximum(r.cos_incidence, MIN_INCIDENCE_COS)
+    sigma = beam_sigma(noise, state.lidar_intrinsics.num_beams)[r.beam] * np.maximum(
+        r.cos_incidence, MIN_INCIDENCE_COS
+    )
     out.append(
         _sensor(
             "lidar",
