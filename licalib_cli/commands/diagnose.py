@@ -133,9 +133,9 @@ def _gap_dict(g: Any) -> dict[str, Any]:
 
 def _residual_table(title: str, run: Any, twin: Any) -> Table:
     """Per sensor: chi-square per sample and RMS, measured and on the twin, and the pattern
-    that explains most of the measured residuals with its share on the twin."""
+    that explains most of the measured residuals (its share there, and on the twin)."""
     table = Table(title=title)
-    for name in ("sensor", "chi2/sample", "twin", "gap", "RMS", "twin RMS", "strongest pattern"):
+    for name in ("sensor", "chi2/n", "twin", "gap", "RMS (twin)", "main pattern (twin)"):
         table.add_column(name)
     for row in _residuals(run, twin):
         m, t = row["measured"], row["twin"]
@@ -144,16 +144,16 @@ def _residual_table(title: str, run: Any, twin: Any) -> Table:
         if patterns and (patterns[0][1] or 0.0) > 0.0:
             feature, share = patterns[0]
             twin_share = t["explained_by"].get(feature) if t else None
-            pattern = f"{feature} {100 * share:.1f} %"
+            pattern = f"{feature} {100 * share:.1f}%"
             if twin_share is not None:
-                pattern += f" (twin {100 * twin_share:.1f} %)"
+                pattern += f" ({100 * twin_share:.1f}%)"
+        unit = row["unit"]
         table.add_row(
-            f"{row['sensor']} ({row['unit']})",
+            row["sensor"],
             f"{m['chi2_per_sample']:.3f}",
-            f"{t['chi2_per_sample']:.3f} +- {t['chi2_spread']:.3f}" if t else "-",
+            f"{t['chi2_per_sample']:.3f}" if t else "-",
             f"{row['gap']:+.3f}" if t else "-",
-            f"{m['rms']:.4g}",
-            f"{t['rms']:.4g}" if t else "-",
+            f"{m['rms']:.3g} ({t['rms']:.3g}) {unit}" if t else f"{m['rms']:.3g} {unit}",
             pattern,
         )
     return table
@@ -165,7 +165,7 @@ def render_diagnosis(diag: Any) -> None:
     out = console()
     out.print(
         _residual_table(
-            "Residuals of the base model: measured and on its twin recording",
+            "Base model: residuals measured and on its twin recording",
             diag.base,
             diag.base_twin,
         )
@@ -197,7 +197,7 @@ def render_diagnosis(diag: Any) -> None:
     if diag.effects_found:
         out.print(
             _residual_table(
-                "Residuals with the effects: measured and on its twin recording",
+                "With the effects: residuals measured and on its twin recording",
                 diag.final,
                 diag.final_twin,
             )

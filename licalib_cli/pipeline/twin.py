@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -51,7 +52,14 @@ from licalib_cli.residuals import PointToPlaneResidual
 from licalib_cli.sections import SensorCheck
 from licalib_cli.solver.lm import LMParams, solve
 
-__all__ = ["TWIN_ITERATIONS", "TWIN_REALISATIONS", "Twin", "TwinSensor", "twin_checks"]
+__all__ = [
+    "TWIN_ITERATIONS",
+    "TWIN_REALISATIONS",
+    "Twin",
+    "TwinSensor",
+    "twin_checks",
+    "twin_recordings",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -245,6 +253,39 @@ def _fit(
     return state_from_problem(state, problem), report.status != "failed"
 
 
+def twin_recordings(
+    state: CalibrationState,
+    inputs: RoundInputs,
+    noise: NoiseLevels,
+    params: LMParams,
+    realisations: int = TWIN_REALISATIONS,
+    seed: int = 0,
+) -> Iterator[tuple[CalibrationState, RoundInputs]]:
+    """Twin recordings of the fitted model, each fitted: ``(its estimate, its inputs)``.
+
+    Args:
+        state: the fit's estimate.
+        inputs: the fit's final round (measurements, associations, planes, weights, free).
+        noise: the noise levels the fit was weighted with (the twin's noise).
+        params: LM settings of the twin's fit (a few iterations).
+        realisations: twin recordings to make.
+        seed: seed of the first one's noise (the others follow).
+
+    Yields:
+        One pair per twin whose fit did not fail.
+    """
+    model = _model(state, inputs, noise)
+    plane = np.asarray(inputs.lidar.plane, dtype=np.intp)
+    for k in range(max(realisations, 1)):
+        rng = np.random.default_rng([seed, k])
+        twin = _twin_inputs(model, inputs.planes, plane, noise, rng)
+        fitted, ok = _fit(state, twin, params)
+        if not ok:
+            logger.info("Twin recording %d: its fit failed; left out.", k)
+            continue
+        yield fitted, twin
+
+
 def twin_checks(
     state: CalibrationState,
     inputs: RoundInputs,
@@ -267,17 +308,10 @@ def twin_checks(
         The twin's statistics per sensor, or None when no twin could be fitted.
     """
     start = time.perf_counter()
-    model = _model(state, inputs, noise)
-    plane = np.asarray(inputs.lidar.plane, dtype=np.intp)
-    checks: list[tuple[SensorCheck, ...]] = []
-    for k in range(max(realisations, 1)):
-        rng = np.random.default_rng([seed, k])
-        twin = _twin_inputs(model, inputs.planes, plane, noise, rng)
-        fitted, ok = _fit(state, twin, params)
-        if not ok:
-            logger.info("Twin recording %d: its fit failed; left out.", k)
-            continue
-        checks.append(sensor_checks(fitted, twin, noise))
+    checks = [
+        sensor_checks(fitted, twin, noise)
+        for fitted, twin in twin_recordings(state, inputs, noise, params, realisations, seed)
+    ]
     if not checks:
         return None
     sensors = []

@@ -67,7 +67,19 @@ def test_a_hidden_gyro_scale_is_named_added_and_its_gap_shrinks(
             determined += 1
             assert abs(value - true) < max(4 * sigma, 3e-4)
     assert determined >= 2
-    assert set(data) >= {"effects_found", "steps", "calibration", "verdict"}
+    assert set(data) >= {"effects_found", "steps", "calibration", "verdict", "residuals"}
+    # the twin recording of each fit is the reference of the gap, shown next to the measured
+    base = {r["sensor"]: r for r in data["residuals"]["base"]}
+    assert set(base) == {"gyro", "accelerometer", "lidar"}
+    for row in base.values():
+        assert row["twin"] is not None and row["twin"]["recordings"] >= 1
+        assert row["gap"] == pytest.approx(
+            row["measured"]["chi2_per_sample"] - row["twin"]["chi2_per_sample"], abs=1e-5
+        )
+    assert step["gap_before"]["reference"] == "twin"
+    assert base["gyro"]["gap"] > 3 * base["gyro"]["twin"]["chi2_spread"]  # the scale shows
+    final = {r["sensor"]: r for r in data["residuals"]["final"]}
+    assert abs(final["gyro"]["gap"]) < base["gyro"]["gap"] / 2
     assert data["calibration"]["model"]["imu"] == ["gyro_scale"]
     written = yaml.safe_load((out / "diagnosis.yaml").read_text())
     assert written["effects_found"] == data["effects_found"]
@@ -80,6 +92,50 @@ def test_a_clean_bag_shows_no_effect(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert code == 0
     assert "Effects added to the model: none" in printed
     assert "base model PASS" in printed
+
+
+def test_score_tests_are_chi_square_on_clean_simulated_data(tmp_path: Path) -> None:
+    """Without any effect in the data every candidate's score statistic is chi-square with its
+    degrees of freedom: the false-alarm rate at 5 % is at most about 5 %, and nothing reaches
+    the significance level diagnose uses. Clean data: a simulated bag without effects, fitted
+    once, and twin recordings of that fit (the fitted model plus fresh noise, refitted).
+
+    The test is somewhat conservative (the statistic averages about 0.85 of its degrees of
+    freedom): the surfel planes are fitted to the same points and held fixed in the test, and
+    the Huber loss clips the largest distances."""
+    from scipy import stats
+
+    from licalib_cli.config import load_config
+    from licalib_cli.pipeline import Timer, fit_and_check, prepare
+    from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, effect_evidence
+    from licalib_cli.pipeline.settings import lm_params
+    from licalib_cli.pipeline.twin import twin_recordings
+    from licalib_cli.progress import NullProgress
+
+    spec = SimulationSpec(
+        scenario="shake",
+        duration_s=3.0,
+        seed=12,
+        intrinsics="none",
+        azimuth_resolution_deg=1.0,
+    )
+    bag = simulate(spec, tmp_path / "clean").bag_path
+    cfg = load_config(CONFIG)
+    timer, progress = Timer(), NullProgress()
+    prepared = prepare(bag, cfg, progress, timer)
+    run = fit_and_check(prepared, prepared.guess, cfg, progress, timer)
+    scores = [(e.statistic_alone, e.score.rank) for e in run.effects]
+    twins = twin_recordings(
+        run.state, run.fit.inputs, run.noise, lm_params(cfg, max_iterations=3), 10, seed=7
+    )
+    for state, inputs in twins:
+        scores += [(e.statistic_alone, e.score.rank) for e in effect_evidence(state, inputs, 1.0)]
+    statistic, dof = np.array(scores).T
+    p = stats.chi2.sf(statistic, dof)
+    assert p.size >= 100
+    assert 0.01 < np.mean(p < 0.05) < 0.10  # the false-alarm rate at 5 %
+    assert p.min() > EFFECT_P_VALUE  # no false effect at diagnose's level
+    assert 0.65 < statistic.sum() / dof.sum() < 1.3  # chi-square: mean = degrees of freedom
 
 
 def test_bad_diagnose_options_end_in_one_sentence(
