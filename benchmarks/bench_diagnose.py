@@ -48,6 +48,8 @@ PAIRS = [
 
 
 def cases() -> list[dict]:
+    """Clean controls, then every effect once, the pairs, then every effect a second time (so
+    that a run cut short has covered each effect)."""
     out = []
     seed = 200
     combos = [
@@ -60,16 +62,35 @@ def cases() -> list[dict]:
         scenario, lidar = combos[k]
         out.append({"effects": [], "scenario": scenario, "lidar": lidar, "seed": seed})
         seed += 1
+    singles: list[list[dict]] = [[], []]
     for i, effect in enumerate(SINGLE):
         for j in range(2):
             scenario, lidar = combos[(i + j) % 4]
-            out.append({"effects": [effect], "scenario": scenario, "lidar": lidar, "seed": seed})
+            singles[j].append(
+                {"effects": [effect], "scenario": scenario, "lidar": lidar, "seed": seed}
+            )
             seed += 1
+    pairs = []
     for i, pair in enumerate(PAIRS):
         scenario, lidar = combos[i % 4]
-        out.append({"effects": list(pair), "scenario": scenario, "lidar": lidar, "seed": seed})
+        pairs.append({"effects": list(pair), "scenario": scenario, "lidar": lidar, "seed": seed})
         seed += 1
-    return out
+    return out + singles[0] + pairs + singles[1]
+
+
+def report(rows: list[dict]) -> None:
+    """The confusion table and the count of runs missing a target."""
+    confusion: Counter = Counter()
+    for r in rows:
+        for e in r["effects"] or ["(clean)"]:
+            named = r["named"] or ["(none)"]
+            for n in named:
+                confusion[(e, n)] += 1
+    print("\nConfusion (injected -> named: runs)")
+    for (e, n), k in sorted(confusion.items()):
+        print(f"  {e:<26} -> {n:<26} {k}")
+    bad = [r for r in rows if judge(r)]
+    print(f"{len(rows)} runs, {len(bad)} missing a target")
 
 
 def one_run(case: dict, workdir: Path, scale: float) -> dict:
@@ -178,9 +199,18 @@ def main() -> None:
     p.add_argument("--jobs", type=int, default=1)
     p.add_argument("--scale", type=float, default=3.0)
     p.add_argument("--json", default=None)
+    p.add_argument("--jsonl", default=None, help="append each row to this file as it comes")
+    p.add_argument("--skip", default="", help="seeds not to run (comma separated)")
+    p.add_argument("--report", default=None, help="only print the tables of a --jsonl file")
     p.add_argument("--one", default=None, help=argparse.SUPPRESS)
     p.add_argument("--workdir", default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
+    if args.report is not None:
+        rows = [json.loads(x) for x in Path(args.report).read_text().splitlines() if x.strip()]
+        for r in rows:
+            print(r["seed"], r["scenario"], r["lidar"], r["effects"], r["named"], judge(r))
+        report(rows)
+        return
     if args.one is not None:
         row = one_run(json.loads(args.one), Path(args.workdir), args.scale)
         print(json.dumps(row))
@@ -188,9 +218,12 @@ def main() -> None:
     todo = [
         c
         for c in cases()
-        if args.only is None
-        or args.only in c["effects"]
-        or (args.only == "clean" and not c["effects"])
+        if (
+            args.only is None
+            or args.only in c["effects"]
+            or (args.only == "clean" and not c["effects"])
+        )
+        and str(c["seed"]) not in args.skip.split(",")
     ]
     if args.list:
         for c in todo:
@@ -234,6 +267,9 @@ def main() -> None:
                     print(f"seed {c['seed']} {c['effects']}: FAILED {last}", flush=True)
                     continue
                 rows.append(row)
+                if args.jsonl:
+                    with Path(args.jsonl).open("a") as f:
+                        f.write(json.dumps(row) + "\n")
                 b, a = row["before"], row["after"]
                 misses = judge(row)
                 evidence = " ".join(
@@ -252,17 +288,7 @@ def main() -> None:
                     f"{row['seconds']:.0f} s  {'ok' if not misses else '; '.join(misses)}",
                     flush=True,
                 )
-    confusion: Counter = Counter()
-    for r in rows:
-        for e in r["effects"] or ["(clean)"]:
-            named = r["named"] or ["(none)"]
-            for n in named:
-                confusion[(e, n)] += 1
-    print("\nConfusion (injected -> named: runs)")
-    for (e, n), k in sorted(confusion.items()):
-        print(f"  {e:<26} -> {n:<26} {k}")
-    bad = [r for r in rows if judge(r)]
-    print(f"{len(rows)} runs, {len(bad)} missing a target")
+    report(rows)
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
 

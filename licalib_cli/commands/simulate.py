@@ -8,13 +8,14 @@ bag's path (so scripts can capture it).
 from __future__ import annotations
 
 import shlex
+from enum import Enum
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from licalib_cli.io.writer import BagFormat
-from licalib_cli.simulation.effects import Effect
+from licalib_cli.simulation.effects import LEGACY_EFFECT_NAMES, Effect
 from licalib_cli.simulation.spec import (
     DEFAULT_G_SENSITIVITY_DPS_PER_G,
     EFFECT_BIAS_WALK_SCALE,
@@ -34,6 +35,13 @@ if TYPE_CHECKING:
 _SCENE = "Scenario"
 _SENSORS = "Sensors"
 _CALIB = "Extrinsic, time and intrinsics"
+EffectName = Enum(  # type: ignore[misc]
+    "EffectName",
+    {name: name for name in [*(e.value for e in Effect), *LEGACY_EFFECT_NAMES]},
+    type=str,
+)
+"""``--effect`` choices: every effect by name, and the earlier names."""
+
 _IMU = "IMU noise"
 _EFFECTS = "Hidden effects (the candidates of licalib diagnose)"
 _OUT = "Output"
@@ -221,7 +229,7 @@ def simulate_command(
         ),
     ] = None,
     effect: Annotated[
-        list[str] | None,
+        list[EffectName] | None,
         typer.Option(
             "--effect",
             metavar="NAME",
@@ -329,7 +337,7 @@ def simulate_command(
         dropout=dropout,
         noise_free=noise_free,
         bias_walk_scale=bias_walk_scale,
-        effects=tuple(effect or ()),
+        effects=tuple(e.value for e in effect or ()),
         effect_scale=effect_scale,
         g_sensitivity_dps_per_g=g_sensitivity,
         imu_clock_drift_ppm=imu_clock_drift_ppm,
