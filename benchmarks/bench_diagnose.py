@@ -149,6 +149,7 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
                 s.kept,
                 s.gap_before.excess,
                 s.gap_after.excess,
+                s.gap_before.sigma,
             ]
             for s in diag.steps
         ],
@@ -184,7 +185,8 @@ def judge(row: dict) -> list[str]:
     if injected != named:
         misses.append(f"named {sorted(named)} for {sorted(injected)}")
     for effect, shrink in row["shrink"].items():
-        if effect in injected and not shrink >= 0.5:
+        # NaN: the gap was within 3 sigma of its noise (only the score test shows the effect)
+        if effect in injected and shrink == shrink and not shrink >= 0.5:
             misses.append(f"{effect} gap shrank {shrink:.0%}")
     a = row["after"]
     if a["translation_mm"] > 3.0 or a["rotation_deg"] > 0.05 or a["time_offset_ms"] > 0.1:

@@ -123,6 +123,7 @@ def _gap_dict(g: Any) -> dict[str, Any]:
         "twin_spread": _num(g.twin_spread, 3),
         "reference": g.reference_source,
         "excess": _num(g.excess),
+        "excess_sigma": _num(g.sigma, 3),
         "rms": _num(g.rms),
         "twin_rms": _num(g.twin_rms),
     }

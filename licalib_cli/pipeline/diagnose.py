@@ -48,6 +48,7 @@ from licalib_cli.solver.lm import solve
 
 __all__ = [
     "CANDIDATES",
+    "GAP_NOISE_SIGMAS",
     "Diagnosis",
     "DiagnosisStep",
     "Gap",
@@ -101,6 +102,10 @@ _LIDAR_SUFFIX = {
 }
 
 
+GAP_NOISE_SIGMAS = 3.0
+"""A gap counts (and its shrink is measured) above this many of its noise sigmas."""
+
+
 @dataclass(frozen=True)
 class Gap:
     """How far one sensor's residuals are from what a model that explains them leaves.
@@ -115,6 +120,7 @@ class Gap:
         twin_chi2_per_sample: the same on the fit's twin recordings (NaN without a twin).
         twin_spread: 1-sigma of that figure (from the twins' spread).
         twin_rms: the twin's residual RMS.
+        samples: residuals behind ``chi2_per_sample``.
     """
 
     sensor: str
@@ -125,6 +131,17 @@ class Gap:
     twin_chi2_per_sample: float = float("nan")
     twin_spread: float = float("nan")
     twin_rms: float = float("nan")
+    samples: int = 0
+
+    @property
+    def sigma(self) -> float:
+        """1-sigma of :attr:`excess` from noise alone: the measured chi-square per sample
+        varies by ``sqrt(2 reference / samples)`` between recordings, the twin's by its spread.
+        """
+        if self.samples <= 0:
+            return float("nan")
+        spread = self.twin_spread if math.isfinite(self.twin_spread) else 0.0
+        return math.sqrt(2.0 * max(self.reference, 0.0) / self.samples + spread**2)
 
     @property
     def reference(self) -> float:
@@ -186,9 +203,11 @@ class DiagnosisStep:
 
     @property
     def shrink(self) -> float:
-        """Fraction of the sensor's gap the effect closed (1: all; NaN without a gap)."""
+        """Fraction of the sensor's gap the effect closed (1: all; NaN without a gap, or with
+        one below :data:`GAP_NOISE_SIGMAS` times its noise, which no refit can be seen to
+        close: the score test is the evidence of such an effect)."""
         before = self.gap_before.excess
-        if not before > 0.0:
+        if not before > GAP_NOISE_SIGMAS * self.gap_before.sigma:
             return float("nan")
         return 1.0 - max(self.gap_after.excess, 0.0) / before
 
@@ -238,6 +257,7 @@ def _gap(
         twin_chi2_per_sample=t.chi2_per_sample if t is not None else nan,
         twin_spread=t.chi2_spread if t is not None else nan,
         twin_rms=t.rms if t is not None else nan,
+        samples=int(s.samples),
     )
 
 

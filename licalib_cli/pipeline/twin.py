@@ -88,8 +88,8 @@ class TwinSensor:
     Attributes:
         sensor: ``gyro``, ``accelerometer`` or ``lidar``.
         chi2_per_sample: mean over the realisations of the chi-square per residual.
-        chi2_spread: standard deviation of that mean (from the realisations' spread, or the
-            chi-square distribution's ``sqrt(2 / n)`` with one realisation).
+        chi2_spread: standard deviation of that mean: the realisations' spread, at least the
+            chi-square distribution's ``sqrt(2 chi2 / (n realisations))``.
         rms: mean residual RMS in the sensor's unit.
         check: the full check (patterns included) of the first realisation.
     """
@@ -318,10 +318,11 @@ def twin_checks(
     for i, first in enumerate(checks[0]):
         chi2 = np.array([c[i].chi2_per_sample for c in checks])
         rms = np.array([c[i].rms for c in checks])
-        if chi2.size > 1:
-            spread = float(np.std(chi2, ddof=1) / np.sqrt(chi2.size))
-        else:
-            spread = float(np.sqrt(2.0 / max(first.samples, 1)))
+        # at least what chi-square theory gives for the mean of the realisations (two give a
+        # poor estimate of their own spread)
+        theory = float(np.sqrt(2.0 * chi2.mean() / (max(first.samples, 1) * chi2.size)))
+        spread = float(np.std(chi2, ddof=1) / np.sqrt(chi2.size)) if chi2.size > 1 else 0.0
+        spread = max(spread, theory)
         sensors.append(
             TwinSensor(
                 sensor=first.sensor,
