@@ -509,6 +509,11 @@ _IMU_SUFFIXES = {
     "accel_misalignment": ("xy", "xz", "yz"),
     "g_sensitivity": tuple(f"{a}{b}" for a in "xyz" for b in "xyz"),
 }
+_DRIFT_NAMES: dict[str, tuple[str, tuple[str, ...]]] = {
+    "gyro_bias_walk": ("imu.gyro_bias_drift", ("x", "y", "z")),
+    "accel_bias_walk": ("imu.accel_bias_drift", ("x", "y", "z")),
+    "clock_drift": ("ext.time_drift", ()),
+}
 _LIDAR_KEYS = {
     "elevation": ("dphi", "elevation_deg", True),
     "azimuth": ("dtheta", "azimuth_deg", True),
@@ -537,12 +542,20 @@ def intrinsics_uncertainty(
 
     values: dict[str, tuple[float | None, ...]] = {}
     for block in cfg.model.imu:
+        if block in _DRIFT_NAMES:  # linear drifts (diagnose's bias walks, clock drift)
+            prefix, suffixes = _DRIFT_NAMES[block]
+            names = [f"{prefix}.{s}" for s in suffixes] if suffixes else [prefix]
+            values[block] = tuple(get(n) for n in names)
+            continue
         block_name = "imu.gyro_g_sensitivity" if block == "g_sensitivity" else f"imu.{block}"
         key = "gyro_rotation_deg" if block == "gyro_rotation" else block
         values[key] = tuple(
             get(f"{block_name}.{s}", block == "gyro_rotation") for s in _IMU_SUFFIXES[block]
         )
     for name in cfg.model.lidar:
+        if name == "point_time":  # one number for the whole LiDAR
+            values[name] = (get("lidar.point_time_scale"),)
+            continue
         col, key, degrees = _LIDAR_KEYS[name]
         values[key] = tuple(get(f"lidar.intrinsics[{b}].{col}", degrees) for b in range(num_beams))
     return IntrinsicsUncertainty(values)

@@ -149,3 +149,31 @@ def test_bad_diagnose_options_end_in_one_sentence(
     with pytest.raises(SystemExit) as err:
         main(["diagnose", str(bag), "--plots"])
     assert err.value.code == 6
+
+
+def test_the_sigmas_of_every_candidate_block_go_into_the_result() -> None:
+    """A model with a drift or the per-point time (as diagnose builds it) reports their sigmas
+    in ``intrinsics_uncertainty`` instead of failing."""
+    from licalib_cli.config import load_config
+    from licalib_cli.pipeline.checks import intrinsics_uncertainty
+    from licalib_cli.pipeline.diagnose import CANDIDATES, _with_effects
+
+    cfg = _with_effects(load_config(CONFIG), tuple(CANDIDATES))
+    names = [
+        *(f"imu.gyro_bias_drift.{a}" for a in "xyz"),
+        *(f"imu.accel_bias_drift.{a}" for a in "xyz"),
+        "ext.time_drift",
+        "lidar.point_time_scale",
+    ]
+
+    class Report:
+        calibration_names = names
+        std = np.full(len(names), 2e-4)
+        truncated_weight = np.zeros(len(names))
+
+    values = intrinsics_uncertainty(Report(), cfg, 1.0, 16).values  # type: ignore[arg-type]
+    assert values["gyro_bias_walk"] == pytest.approx((2e-4,) * 3)
+    assert values["accel_bias_walk"] == pytest.approx((2e-4,) * 3)
+    assert values["clock_drift"] == pytest.approx((2e-4,))
+    assert values["point_time"] == pytest.approx((2e-4,))
+    assert values["gyro_scale"] == (None, None, None)  # not in the report: held
