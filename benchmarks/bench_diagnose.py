@@ -79,16 +79,20 @@ def cases() -> list[dict]:
 
 
 def report(rows: list[dict]) -> None:
-    """The confusion table and the count of runs missing a target."""
+    """The confusion table (each injected effect against what was named for it: itself, or
+    nothing; each effect named but not injected against "(none injected)") and the count of
+    runs missing a target."""
     confusion: Counter = Counter()
     for r in rows:
-        for e in r["effects"] or ["(clean)"]:
-            named = r["named"] or ["(none)"]
-            for n in named:
-                confusion[(e, n)] += 1
+        injected, named = set(r["effects"]), set(r["named"])
+        for e in sorted(injected) or ["(clean)"]:
+            confusion[(e, e if e in named else "(not named)")] += 1
+        for n in sorted(named - injected):
+            for e in sorted(injected) or ["(clean)"]:
+                confusion[(e, f"{n} (extra)")] += 1
     print("\nConfusion (injected -> named: runs)")
     for (e, n), k in sorted(confusion.items()):
-        print(f"  {e:<26} -> {n:<26} {k}")
+        print(f"  {e:<26} -> {n:<34} {k}")
     bad = [r for r in rows if judge(r)]
     print(f"{len(rows)} runs, {len(bad)} missing a target")
 
