@@ -130,6 +130,8 @@ def render_report(report: BagReport) -> None:
         evidence = f"p99 |w| {i.gyro_p99:.3g}"
         if i.gyro_gravity_factor is not None:
             evidence += f", gravity turns at {i.gyro_gravity_factor:.3g} x w"
+        if i.gyro_unit_basis is not None:
+            evidence += f"; {i.gyro_unit_basis}"
         imu.add_row("gyro unit", f"{i.gyro_unit} ({i.gyro_unit_source}, {evidence})")
         imu.add_row(
             "accel unit",
@@ -145,9 +147,10 @@ def render_report(report: BagReport) -> None:
             imu.add_row("samples with NaN/inf", _problem_cell(i.dropped, False))
         if i.excitation is not None:
             e = i.excitation
+            given = f" (gyro unit assumed {i.gyro_unit})" if i.gyro_unit_source == "assumed" else ""
             imu.add_row(
                 "rotation RMS x, y, z",
-                ", ".join(f"{v:.1f}" for v in e.rotation_rms_deg_s) + " deg/s",
+                ", ".join(f"{v:.1f}" for v in e.rotation_rms_deg_s) + " deg/s" + given,
             )
             imu.add_row(
                 "rotation axes",
