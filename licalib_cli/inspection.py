@@ -34,7 +34,8 @@ import numpy as np
 from licalib_cli.config import CalibConfig
 from licalib_cli.errors import ConfigError, ExcitationError, LicalibError, TopicError
 from licalib_cli.io import reader as rd
-from licalib_cli.io.bag import CLOUD_TYPE, IMU_TYPE, open_bag, select_topic
+from licalib_cli.io.bag import CLOUD_TYPE, IMU_TYPE, BagHandle, open_bag, select_topic
+from licalib_cli.io.ouster import FactoryExtrinsic, read_factory_extrinsic
 
 __all__ = [
     "BagReport",
@@ -288,6 +289,9 @@ class BagReport:
         clock_offset_s: coarse ``t_imu - t_lidar`` clock difference, s (None: unknown).
         problems: findings, fatal ones first (in the reader's order).
         notes: informative remarks (detected units, layout overrides).
+        factory_extrinsic: the factory ``T_imu_lidar`` of an Ouster sensor, from the
+            metadata topic the driver records (None when the bag has none), for the frame the
+            clouds are published in.
     """
 
     path: str
@@ -302,6 +306,7 @@ class BagReport:
     clock_offset_s: float | None
     problems: tuple[rd.Finding, ...]
     notes: tuple[str, ...] = ()
+    factory_extrinsic: FactoryExtrinsic | None = None
 
     @property
     def duration_s(self) -> float:
@@ -420,7 +425,29 @@ class BagReport:
                 for p in self.problems
             ],
             "notes": list(self.notes),
+            "factory_extrinsic": None
+            if self.factory_extrinsic is None
+            else factory_extrinsic_dict(self.factory_extrinsic),
         }
+
+
+def factory_extrinsic_dict(f: FactoryExtrinsic) -> dict[str, Any]:
+    """The factory extrinsic in the result file's keys (``p_imu = R p_lidar + t``), with
+    where it came from."""
+    from licalib_cli.results import Extrinsic
+
+    ext = Extrinsic(rotation=f.rotation, translation=f.translation).to_dict()
+    del ext["time_offset_s"]
+    return {**ext, "cloud_frame": f.cloud_frame, "topic": f.topic, "sensor": f.sensor}
+
+
+def _cloud_frame(bag: BagHandle, topic: str) -> str:
+    """``header.frame_id`` of the first cloud of ``topic`` that decodes (``""``: none)."""
+    for raw in bag.messages([topic]):
+        msg = bag.decode(raw)
+        if msg is not None:
+            return str(msg.header.frame_id)
+    return ""
 
 
 def _imu_report(imu: rd.ImuRead, unreadable: int, findings: list[rd.Finding]) -> ImuReport:
@@ -557,7 +584,8 @@ def inspect_bag(path: Path, cfg: CalibConfig, *, min_span_s: float = rd.MIN_SEGM
             try:
                 chosen[key] = select_topic(bag, msgtype, name, option, config_key).name
             except TopicError as err:
-                findings.append(rd.Finding(str(err), True, TopicError))
+                if all(f.message != str(err) for f in findings):  # e.g. a packet-mode bag
+                    findings.append(rd.Finding(str(err), True, TopicError))
         try:
             window = rd.segment_window(bag, cfg)
         except ConfigError as err:
@@ -598,6 +626,9 @@ def inspect_bag(path: Path, cfg: CalibConfig, *, min_span_s: float = rd.MIN_SEGM
             lidar = _lidar_report(lidar_read, bag.loss(lidar_read.topic).total)
             if lidar_read.layout is not None:
                 notes.extend(lidar_read.layout.time.notes)
+        factory = None
+        if "lidar" in chosen:
+            factory = read_factory_extrinsic(bag, _cloud_frame(bag, chosen["lidar"]))
         fmt, start_ns, end_ns = bag.format, bag.start_ns, bag.end_ns
     stamp_rates = {r.topic: r.rate_hz for r in (imu, lidar) if r is not None and r.rate_hz > 0}
     topics = tuple(
@@ -622,6 +653,7 @@ def inspect_bag(path: Path, cfg: CalibConfig, *, min_span_s: float = rd.MIN_SEGM
         clock_offset_s=clock,
         problems=tuple(findings),
         notes=tuple(notes),
+        factory_extrinsic=factory,
     )
 
 
@@ -645,4 +677,5 @@ def error_report(path: Path | str | None, message: str, exit_code: int) -> dict[
         "exit_code": code,
         "problems": [{"severity": "error", "message": message, "exit_code": code}],
         "notes": [],
+        "factory_extrinsic": None,
     }

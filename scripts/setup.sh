@@ -47,4 +47,18 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test,plot]"
   touch "$stamp"
 fi
+
+# Test-only: ouster-sdk decodes the real Ouster captures of ../shared/data/real for tests/real.
+# It pins rosbags==0.9.23 (licalib needs >= 0.11), so it gets a virtual environment of its own,
+# .venv/ouster, and hands its output to the tests as numpy arrays. Without it those tests skip.
+ouster=.venv/ouster
+if [ ! -f "$ouster/.licalib-installed" ]; then
+  echo "setup: installing ouster-sdk (test-only) into $ouster"
+  if "$PYTHON" -m venv "$ouster" \
+    && "$ouster/bin/python" -m pip install -q --disable-pip-version-check "ouster-sdk==1.0.1"; then
+    touch "$ouster/.licalib-installed"
+  else
+    echo "setup: ouster-sdk could not be installed; the Ouster decoding tests will be skipped." >&2
+  fi
+fi
 .venv/bin/licalib --version
