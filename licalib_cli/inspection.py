@@ -34,8 +34,8 @@ import numpy as np
 from licalib_cli.config import CalibConfig
 from licalib_cli.errors import ConfigError, ExcitationError, LicalibError, TopicError
 from licalib_cli.io import reader as rd
-from licalib_cli.io.bag import CLOUD_TYPE, IMU_TYPE, BagHandle, open_bag, select_topic
-from licalib_cli.io.ouster import FactoryExtrinsic, read_factory_extrinsic
+from licalib_cli.io.bag import CLOUD_TYPE, IMU_TYPE, open_bag, select_topic
+from licalib_cli.io.ouster import FactoryExtrinsic, cloud_frame, read_factory_extrinsic
 
 __all__ = [
     "BagReport",
@@ -441,15 +441,6 @@ def factory_extrinsic_dict(f: FactoryExtrinsic) -> dict[str, Any]:
     return {**ext, "cloud_frame": f.cloud_frame, "topic": f.topic, "sensor": f.sensor}
 
 
-def _cloud_frame(bag: BagHandle, topic: str) -> str:
-    """``header.frame_id`` of the first cloud of ``topic`` that decodes (``""``: none)."""
-    for raw in bag.messages([topic]):
-        msg = bag.decode(raw)
-        if msg is not None:
-            return str(msg.header.frame_id)
-    return ""
-
-
 def _imu_report(imu: rd.ImuRead, unreadable: int, findings: list[rd.Finding]) -> ImuReport:
     excitation = None
     if len(imu.samples) >= 10:
@@ -628,7 +619,7 @@ def inspect_bag(path: Path, cfg: CalibConfig, *, min_span_s: float = rd.MIN_SEGM
                 notes.extend(lidar_read.layout.time.notes)
         factory = None
         if "lidar" in chosen:
-            factory = read_factory_extrinsic(bag, _cloud_frame(bag, chosen["lidar"]))
+            factory = read_factory_extrinsic(bag, cloud_frame(bag, chosen["lidar"]))
         fmt, start_ns, end_ns = bag.format, bag.start_ns, bag.end_ns
     stamp_rates = {r.topic: r.rate_hz for r in (imu, lidar) if r is not None and r.rate_hz > 0}
     topics = tuple(

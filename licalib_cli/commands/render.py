@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from licalib_cli.results import CalibrationResult, Extrinsic, rpy_deg_from_matrix
@@ -149,6 +150,13 @@ def render_run(run: CalibrationRun, truth: Truth | None) -> None:
         out.print(
             f"Error against truth: translation {1e3 * err['translation_m']:.2f} mm, rotation "
             f"{err['rotation_deg']:.4f} deg, time offset {1e3 * err['time_offset_s']:.3f} ms"
+        )
+    if r.factory_extrinsic is not None:
+        f = r.factory_extrinsic
+        out.print(
+            f"Against the factory extrinsic ({escape(f.source)}, clouds in {f.cloud_frame}): "
+            f"translation differs by {1e3 * f.difference_translation_norm_m:.1f} mm, rotation "
+            f"by {f.difference_rotation_deg:.3f} deg."
         )
     if r.consistency is not None:
         out.print(render_checks(r.consistency))

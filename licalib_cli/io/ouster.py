@@ -35,6 +35,7 @@ __all__ = [
     "METADATA_TYPE",
     "PACKET_TYPES",
     "FactoryExtrinsic",
+    "cloud_frame",
     "factory_extrinsic",
     "metadata_transforms",
     "packet_topics",
@@ -165,6 +166,15 @@ def read_factory_extrinsic(
                     return found
             break
     return None
+
+
+def cloud_frame(bag: BagHandle, topic: str) -> str:
+    """``header.frame_id`` of the first cloud of ``topic`` that decodes (``""``: none)."""
+    for raw in bag.messages([topic]):
+        msg = bag.decode(raw)
+        if msg is not None:
+            return str(msg.header.frame_id)
+    return ""
 
 
 def packet_topics(topics: Sequence[TopicInfo]) -> list[TopicInfo]:

@@ -90,6 +90,7 @@ from licalib_cli.io.bag import (
     select_topic,
 )
 from licalib_cli.io.imu_units import GRAVITY, ImuUnits, convert_imu, detect_imu_units
+from licalib_cli.io.ouster import cloud_frame, read_factory_extrinsic
 from licalib_cli.io.pointcloud2 import (
     POINTFIELD_DTYPES,
     CloudError,
@@ -1676,6 +1677,7 @@ def read_segment(path: Path, cfg: CalibConfig, *, min_span_s: float = MIN_SEGMEN
         _raise_fatal(findings)
         findings += segment_findings(imu, lidar, bag.start_ns, min_span_s)
         _raise_fatal(findings)
+        factory = read_factory_extrinsic(bag, cloud_frame(bag, lid_t.name))
         bag_start, bag_end = bag.start_ns, bag.end_ns
         imu_lost, lidar_lost = bag.loss(imu_t.name).total, bag.loss(lid_t.name).total
     layout, units = lidar.layout, imu.units
@@ -1711,6 +1713,7 @@ def read_segment(path: Path, cfg: CalibConfig, *, min_span_s: float = MIN_SEGMEN
         lidar_unreadable=lidar_lost,
         imu_samples_dropped=imu.dropped,
         scans_skipped=sum(lidar.tally.skipped.values()),
+        factory_extrinsic=factory,
     )
 
 

@@ -16,8 +16,9 @@ from licalib_cli.pipeline.checks import Checks
 from licalib_cli.pipeline.initialise import InitialGuess
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.schedule import Fit
-from licalib_cli.results import CalibrationResult
+from licalib_cli.results import CalibrationResult, Extrinsic
 from licalib_cli.sections import (
+    FactoryExtrinsicSection,
     FitSection,
     InitializationSection,
     ModelInfo,
@@ -61,6 +62,17 @@ def recording_section(bag: Path, rec: Recording) -> RecordingSection:
         lidar_unreadable_messages=rec.lidar_unreadable,
         imu_samples_dropped=rec.imu_samples_dropped,
         scans_skipped=rec.scans_skipped,
+    )
+
+
+def factory_section(rec: Recording, calibrated: Extrinsic) -> FactoryExtrinsicSection | None:
+    """The bag's factory extrinsic and the calibration's difference from it (None: none)."""
+    f = rec.factory_extrinsic
+    if f is None:
+        return None
+    factory = Extrinsic(rotation=f.rotation, translation=f.translation)
+    return calibrated.factory_difference(
+        factory, f"Ouster metadata on {f.topic}", f.sensor, f.cloud_frame
     )
 
 
@@ -124,6 +136,7 @@ def assemble(
             variance_factor=float(f"{fit.report.variance_factor:.4g}"),
         ),
         recording=recording_section(bag, rec),
+        factory_extrinsic=factory_section(rec, extrinsic_of(state)),
         provenance=Provenance(
             licalib_version=__version__,
             bag_fingerprint=bag_fingerprint(bag),
