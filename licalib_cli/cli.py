@@ -77,13 +77,22 @@ def _root(
 
 
 def _register() -> None:
-    from licalib_cli.commands import calibrate, config_cmd, diagnose, export, info, simulate
+    from licalib_cli.commands import (
+        calibrate,
+        config_cmd,
+        diagnose,
+        export,
+        info,
+        report,
+        simulate,
+    )
 
     app.command("calibrate")(calibrate.calibrate_command)
     app.command("info")(info.info_command)
     app.command("simulate")(simulate.simulate_command)
     app.add_typer(config_cmd.app, name="config")
     app.command("export")(export.export_command)
+    app.command("report")(report.report_command)
     app.command("diagnose")(diagnose.diagnose_command)
 
 
