@@ -123,9 +123,7 @@ def _write_report_outputs(
     map_before: Path | None,
 ) -> None:
     """The report data beside the result, and the report and map files asked for."""
-    import shlex
-    import sys
-
+    from licalib_cli.cli import command_line
     from licalib_cli.commands.render import truth_on_result_clock
     from licalib_cli.report import build_report_data, write_report
 
@@ -136,7 +134,7 @@ def _write_report_outputs(
         run.segment,
         cfg,
         truth=truth,
-        command_line=shlex.join(["licalib", *sys.argv[1:]]),
+        command_line=command_line(),
         config_text=config_text,
     )
     data.save(data_out)

@@ -43,7 +43,8 @@ POINT_DTYPE = np.dtype(
         ("time", "<f8"),
     ]
 )
-"""One packed little-endian record per point (32 bytes); ``beam`` is int32 as Open3D reads no 16-bit PLY property."""
+"""One packed little-endian record per point (32 bytes); ``beam`` is int32 because Open3D reads
+no 16-bit PLY property."""
 
 _PLY_TYPES = {"<f4": "float", "<i4": "int", "<f8": "double"}
 _PCD_TYPES = {"<f4": ("4", "F"), "<i4": ("4", "I"), "<f8": ("8", "F")}

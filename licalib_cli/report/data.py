@@ -260,17 +260,17 @@ def _entropy(xyz: F64) -> float:
 
 
 def _region(level_xyz: F64) -> F64:
-    """The views' region: the central 96 % of the final map horizontally (at most
-    :data:`_REGION_M` across), its 1-99 % in height."""
+    """The views' region: the central 99 % of the final map horizontally (at most
+    :data:`_REGION_M` across), its 0.5-99.5 % in height."""
     if level_xyz.shape[0] == 0:
         return np.array([-1.0, 1.0, -1.0, 1.0, -1.0, 1.0])
-    lo = np.percentile(level_xyz, 2, axis=0)
-    hi = np.percentile(level_xyz, 98, axis=0)
-    zlo, zhi = np.percentile(level_xyz[:, 2], [1, 99])
+    lo = np.percentile(level_xyz, 0.5, axis=0)
+    hi = np.percentile(level_xyz, 99.5, axis=0)
+    zlo, zhi = lo[2], hi[2]
     half = _REGION_M / 2
     x0, x1 = max(lo[0], -half), min(hi[0], half)
     y0, y1 = max(lo[1], -half), min(hi[1], half)
-    pad = 0.5
+    pad = 0.3
     return np.array([x0 - pad, x1 + pad, y0 - pad, y1 + pad, zlo - pad, zhi + pad])
 
 
@@ -279,7 +279,10 @@ def _slices(level_xyz: F64, region: F64, entropy: float) -> MapSlices:
     inside = (x >= region[0]) & (x <= region[1]) & (y >= region[2]) & (y <= region[3])
     top = inside & (np.abs(z) <= TOP_SLAB_M / 2)
     side = (
-        (x >= region[0]) & (x <= region[1]) & (z >= region[4]) & (z <= region[5])
+        (x >= region[0])
+        & (x <= region[1])
+        & (z >= region[4])
+        & (z <= region[5])
         & (np.abs(y) <= SIDE_SLAB_M / 2)
     )
     t_idx = np.flatnonzero(top)

@@ -56,7 +56,9 @@ def spectrum_png(
     x = np.arange(s.size)
     ax.bar(x, np.maximum(s, floor), color=np.where(s > threshold, "tab:blue", "tab:red"))
     ax.set_yscale("log")
-    ax.axhline(threshold, color="k", ls="--", label=f"threshold {threshold:g}: below it, not updated")
+    ax.axhline(
+        threshold, color="k", ls="--", label=f"threshold {threshold:g}: below it, not updated"
+    )
     ax.set_xticks(x)
     names = list(labels) if len(labels) == s.size else [f"#{i + 1}" for i in range(s.size)]
     ax.set_xticklabels(names, rotation=60, ha="right", fontsize=7)

@@ -43,6 +43,8 @@ figcaption { color: #555; font-size: 13px; margin-top: 4px; }
 pre { background: #f5f5f5; padding: 10px; overflow-x: auto; font-size: 12px; }
 .missing { color: #8a5a00; background: #fff8e6; padding: 6px 10px; border-radius: 4px; }
 .note { color: #444; font-size: 14px; }
+table.provenance td, table.rounds td:last-child, table.checks td { text-align: left; }
+table.provenance td { word-break: break-all; }
 """
 
 
@@ -59,7 +61,9 @@ def _img(png: bytes, alt: str, caption: str) -> str:
 
 
 def _table(header: Sequence[str], rows: Sequence[Sequence[str]], cls: str = "") -> str:
-    head = "".join(f'<th class="{"l" if i == 0 else ""}">{_e(h)}</th>' for i, h in enumerate(header))
+    head = "".join(
+        f'<th class="{"l" if i == 0 else ""}">{_e(h)}</th>' for i, h in enumerate(header)
+    )
     body = []
     for row in rows:
         cells = "".join(
@@ -460,7 +464,7 @@ def _provenance(result: CalibrationResult, data: ReportData | None, source: str)
     rows.append(["result file", source])
     if data is not None and data.command_line:
         rows.append(["command line", data.command_line])
-    out = ["<h2>Provenance</h2>", _table(["", ""], rows, "provenance")]
+    out = ["<h2>Provenance</h2>", _table(["item", "value"], rows, "provenance")]
     if data is not None and data.config_text:
         out.append("<h3>Configuration (resolved)</h3>")
         out.append(f"<pre>{_e(data.config_text)}</pre>")
@@ -510,7 +514,7 @@ def render_html(result: CalibrationResult, data: ReportData | None, source: str 
         _provenance(result, data, source),
     ]
     return (
-        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
         f"<title>{_e(title)}</title><style>{_STYLE}</style></head>\n<body><main>\n"
         + "\n".join(body)
         + "\n</main></body></html>\n"
