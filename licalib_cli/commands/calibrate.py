@@ -149,10 +149,9 @@ def _write_report_outputs(
         if path is None:
             continue
         from licalib_cli.io.map_writer import write_map
-        from licalib_cli.pipeline.map_export import map_chunks, segment_points
+        from licalib_cli.pipeline.map_export import map_chunks
 
-        points = segment_points(run.segment, run.state, cfg)
-        count, chunks = map_chunks(points, state, cfg)
+        count, chunks = map_chunks(run.segment, state, cfg)
         write_map(path, count, chunks)
         console().print(f"Map with the {which} calibration: {path} ({count} points)")
 

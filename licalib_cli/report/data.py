@@ -31,9 +31,11 @@ key                                     content
 ``map_*``                               the map with the initial (``before``) and the final
                                         (``after``) calibration in the level frame (z up against
                                         gravity, origin at the first IMU position, x along the
-                                        first IMU x axis): a horizontal slab (``top``, x/y) and a
-                                        vertical slab (``side``, x/z) of the same region, the
-                                        slabs' definitions and the mean map entropy of both maps
+                                        first IMU x axis): a horizontal slab (``top``, x/y), a
+                                        vertical slab (``side``, x/z) of the same region, every
+                                        point of the horizontal slab in a 1 m square on the
+                                        densest wall (``zoom``), the slabs' definitions and the
+                                        mean map entropy of both maps
 ======================================  ========================================================
 
 A report drawn from a result without its sidecar shows what the YAML holds and says which
@@ -76,16 +78,18 @@ F64 = npt.NDArray[np.float64]
 _MAX_DISTANCES = 60_000
 _MAX_IMU = 4_000
 _MAX_MOTION = 6_000
-_MAP_POINTS = 1_500_000
+_MAP_POINTS = 600_000
 """Points of each map mapped for the slices (every k-th point of the segment)."""
 _ENTROPY_POINTS = 300_000
-_ENTROPY_QUERIES = 6_000
+_ENTROPY_QUERIES = 4_000
 _MAX_SLICE = 150_000
 TOP_SLAB_M = 0.3
 """Thickness of the horizontal slab of the top view, m (centred on the first IMU position)."""
 SIDE_SLAB_M = 0.2
 """Thickness of the vertical slab of the side view, m (through the first IMU position)."""
 _REGION_M = 40.0
+ZOOM_M = 1.0
+"""Side of the zoomed top view, m."""
 
 
 def report_data_path(result_path: Path) -> Path:
@@ -105,11 +109,13 @@ class MapSlices:
     Attributes:
         top_xy: (n, 2) points of the horizontal slab, m.
         side_xz: (m, 2) points of the vertical slab, m.
+        zoom_xy: (k, 2) every point of the horizontal slab within the zoom window, m.
         entropy: mean map entropy of the map, nats (NaN when too sparse).
     """
 
     top_xy: F32
     side_xz: F32
+    zoom_xy: F32
     entropy: float
 
 
@@ -154,6 +160,10 @@ class ReportData:
     map_before_side_xz: F32 = field(default_factory=lambda: np.zeros((0, 2), np.float32))
     map_after_top_xy: F32 = field(default_factory=lambda: np.zeros((0, 2), np.float32))
     map_after_side_xz: F32 = field(default_factory=lambda: np.zeros((0, 2), np.float32))
+    map_before_zoom_xy: F32 = field(default_factory=lambda: np.zeros((0, 2), np.float32))
+    map_after_zoom_xy: F32 = field(default_factory=lambda: np.zeros((0, 2), np.float32))
+    map_zoom_m: F64 = field(default_factory=lambda: np.zeros(0))
+    """``[x_min, x_max, y_min, y_max]`` of the zoomed top view, level frame, m."""
     map_entropy_before: float = float("nan")
     map_entropy_after: float = float("nan")
     map_region_m: F64 = field(default_factory=lambda: np.zeros(0))
@@ -274,10 +284,34 @@ def _region(level_xyz: F64) -> F64:
     return np.array([x0 - pad, x1 + pad, y0 - pad, y1 + pad, zlo - pad, zhi + pad])
 
 
-def _slices(level_xyz: F64, region: F64, entropy: float) -> MapSlices:
+def _zoom(level_xyz: F64) -> F64:
+    """A :data:`ZOOM_M` square of the horizontal slab on the densest stretch of surface at
+    least 1 m from the start (where a doubled or thick wall shows best)."""
+    x, y, z = level_xyz[:, 0], level_xyz[:, 1], level_xyz[:, 2]
+    slab = (np.abs(z) <= TOP_SLAB_M / 2) & (np.hypot(x, y) > 1.0)
+    if not np.any(slab):
+        return np.array([-ZOOM_M / 2, ZOOM_M / 2, -ZOOM_M / 2, ZOOM_M / 2])
+    cell = np.floor(np.stack([x[slab], y[slab]], axis=1) / ZOOM_M).astype(np.int64)
+    keys, counts = np.unique(cell, axis=0, return_counts=True)
+    cx, cy = keys[int(np.argmax(counts))]
+    inside = slab.copy()
+    inside[slab] = (cell[:, 0] == cx) & (cell[:, 1] == cy)
+    mx, my = float(np.median(x[inside])), float(np.median(y[inside]))
+    h = ZOOM_M / 2
+    return np.array([mx - h, mx + h, my - h, my + h])
+
+
+def _slices(level_xyz: F64, region: F64, zoom: F64, entropy: float) -> MapSlices:
     x, y, z = level_xyz[:, 0], level_xyz[:, 1], level_xyz[:, 2]
     inside = (x >= region[0]) & (x <= region[1]) & (y >= region[2]) & (y <= region[3])
     top = inside & (np.abs(z) <= TOP_SLAB_M / 2)
+    in_zoom = (
+        (np.abs(z) <= TOP_SLAB_M / 2)
+        & (x >= zoom[0])
+        & (x <= zoom[1])
+        & (y >= zoom[2])
+        & (y <= zoom[3])
+    )
     side = (
         (x >= region[0])
         & (x <= region[1])
@@ -292,6 +326,7 @@ def _slices(level_xyz: F64, region: F64, entropy: float) -> MapSlices:
     return MapSlices(
         level_xyz[t_idx][:, :2].astype(np.float32),
         level_xyz[s_idx][:, [0, 2]].astype(np.float32),
+        level_xyz[in_zoom][:, :2].astype(np.float32),
         entropy,
     )
 
@@ -318,7 +353,7 @@ def build_report_data(
         with_map: map the segment with both calibrations for the map views.
     """
     from licalib_cli.pipeline.fitcheck import residual_table
-    from licalib_cli.pipeline.map_export import map_points, segment_points
+    from licalib_cli.pipeline.map_export import map_points, thinning_for
     from licalib_cli.plots import dominant_labels
     from licalib_cli.results import rpy_deg_from_matrix
 
@@ -379,19 +414,22 @@ def build_report_data(
         data["truth_matrix"] = truth.matrix()
         data["truth_time_offset"] = np.array([truth.time_offset_s])
     if with_map:
-        points = segment_points(rec, run.state, cfg)
-        every = max(1, -(-len(points) // _MAP_POINTS))
+        every = thinning_for(rec, _MAP_POINTS)
         level = level_frame(run.state.gravity_G)
-        after = map_points(points, run.state, cfg, every).xyz @ level.T
-        before = map_points(points, ini.state, cfg, every).xyz @ level.T
+        after = map_points(rec, run.state, cfg, every).xyz @ level.T
+        before = map_points(rec, ini.state, cfg, every).xyz @ level.T
         region = _region(after)
-        s_after = _slices(after, region, _entropy(after))
-        s_before = _slices(before, region, _entropy(before))
+        zoom = _zoom(after)
+        s_after = _slices(after, region, zoom, _entropy(after))
+        s_before = _slices(before, region, zoom, _entropy(before))
         data.update(
             map_before_top_xy=s_before.top_xy,
             map_before_side_xz=s_before.side_xz,
             map_after_top_xy=s_after.top_xy,
             map_after_side_xz=s_after.side_xz,
+            map_before_zoom_xy=s_before.zoom_xy,
+            map_after_zoom_xy=s_after.zoom_xy,
+            map_zoom_m=zoom,
             map_entropy_before=s_before.entropy,
             map_entropy_after=s_after.entropy,
             map_region_m=region,

@@ -255,18 +255,21 @@ def map_png(
     region: F64,
     entropies: tuple[float, float],
     slabs: tuple[float, float],
+    zoom: tuple[F64, F64, F64] | None = None,
 ) -> bytes:
-    """Top view and side slice of the map with the initial and the final calibration."""
+    """Top view and side slice of the map with the initial and the final calibration, and a
+    zoomed top view (``zoom``: the points before, after, and the window ``[x0, x1, y0, y1]``)."""
     plt = pyplot()
     x0, x1, y0, y1, z0, z1 = (float(v) for v in region)
     top_ratio = (y1 - y0) / max(x1 - x0, 1e-6)
     side_ratio = (z1 - z0) / max(x1 - x0, 1e-6)
     width = 6.0
+    ratios = [max(top_ratio, 0.2), max(side_ratio, 0.1)] + ([1.0] if zoom is not None else [])
     fig, axes = plt.subplots(
+        len(ratios),
         2,
-        2,
-        figsize=(2 * width + 0.6, width * (top_ratio + side_ratio) + 1.6),
-        gridspec_kw={"height_ratios": [max(top_ratio, 0.2), max(side_ratio, 0.1)]},
+        figsize=(2 * width + 0.6, width * sum(ratios) + 1.2 + 0.5 * len(ratios)),
+        gridspec_kw={"height_ratios": ratios},
         squeeze=False,
     )
     titles = ("initial calibration", "final calibration")
@@ -275,7 +278,7 @@ def map_png(
         ent_text = f"mean map entropy {ent:.3f}" if np.isfinite(ent) else "entropy n/a"
         ax = axes[0][col]
         top = np.asarray(top)
-        ax.scatter(top[:, 0], top[:, 1], s=0.15, c="black", marker=".", linewidths=0)
+        ax.plot(top[:, 0], top[:, 1], ",", color="black", alpha=0.6)
         ax.set_xlim(x0, x1)
         ax.set_ylim(y0, y1)
         ax.set_aspect("equal")
@@ -284,13 +287,25 @@ def map_png(
         ax.set_ylabel("y (m)")
         ax = axes[1][col]
         side = np.asarray(side)
-        ax.scatter(side[:, 0], side[:, 1], s=0.15, c="black", marker=".", linewidths=0)
+        ax.plot(side[:, 0], side[:, 1], ",", color="black", alpha=0.6)
         ax.set_xlim(x0, x1)
         ax.set_ylim(z0, z1)
         ax.set_aspect("equal")
         ax.set_title(f"Side slice, {titles[col]}", fontsize=9)
         ax.set_xlabel("x (m)")
         ax.set_ylabel("z, up (m)")
+        if zoom is not None:
+            ax = axes[2][col]
+            pts = np.asarray(zoom[col])
+            ax.plot(pts[:, 0], pts[:, 1], ".", color="black", markersize=1.0, alpha=0.5)
+            w = np.asarray(zoom[2], dtype=np.float64)
+            ax.set_xlim(w[0], w[1])
+            ax.set_ylim(w[2], w[3])
+            ax.set_aspect("equal")
+            ax.set_title(f"Top view zoomed to {w[1] - w[0]:.1f} m, {titles[col]}", fontsize=9)
+            ax.set_xlabel("x (m)")
+            ax.set_ylabel("y (m)")
+            ax.grid(True, alpha=0.3)
     fig.suptitle(
         f"Map: horizontal slab {slabs[0]:.2f} m thick at the first IMU position (top) and "
         f"vertical slab {slabs[1]:.2f} m thick through it (side); same region",

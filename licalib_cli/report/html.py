@@ -43,7 +43,8 @@ figcaption { color: #555; font-size: 13px; margin-top: 4px; }
 pre { background: #f5f5f5; padding: 10px; overflow-x: auto; font-size: 12px; }
 .missing { color: #8a5a00; background: #fff8e6; padding: 6px 10px; border-radius: 4px; }
 .note { color: #444; font-size: 14px; }
-table.provenance td, table.rounds td:last-child, table.checks td { text-align: left; }
+table.provenance td, table.provenance th, table.rounds td:last-child, table.checks td,
+table.checks th { text-align: left; }
 table.provenance td { word-break: break-all; }
 """
 
@@ -413,7 +414,8 @@ def _map(data: ReportData | None) -> str:
     out.append(
         '<p class="note">The map built with the initial calibration (left) and with the final '
         "one (right), same region: walls that are doubled or thick with a wrong calibration "
-        "become thin lines. The mean map entropy is lower for a sharper map.</p>"
+        "become thin lines; the bottom row zooms into 1 m of the densest wall. The mean map "
+        "entropy is lower for a sharper map.</p>"
     )
     out.append(
         _table(
@@ -435,6 +437,9 @@ def _map(data: ReportData | None) -> str:
                 data.map_region_m,
                 (before, after),
                 (data.map_top_slab_m, data.map_side_slab_m),
+                (data.map_before_zoom_xy, data.map_after_zoom_xy, data.map_zoom_m)
+                if data.map_zoom_m.size == 4
+                else None,
             ),
             "map views",
             "Level frame: z up against gravity, origin at the first IMU position.",

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from licalib_cli.cli import main
-from licalib_cli.report import ReportData, report_data_path
+from licalib_cli.report import ReportData, report_data_path, write_report
 from licalib_cli.report.figures import direction_parts
 from licalib_cli.report.html import render_html
 from licalib_cli.results import CalibrationResult, Extrinsic, matrix_from_rpy_deg
@@ -108,9 +108,10 @@ def test_verdict_comes_first_and_fail_is_marked(tmp_path, capsys):
     assert "The calibration did not converge." in page
 
 
-def test_report_data_round_trip_and_figures(tmp_path):
+def full_data() -> ReportData:
+    """Report data with every figure's arrays (synthetic)."""
     rng = np.random.default_rng(0)
-    data = ReportData(
+    return ReportData(
         result_created_utc=CREATED,
         command_line="licalib calibrate rig.bag",
         config_text="bag:\n  start_s: 0.0\n",
@@ -148,6 +149,10 @@ def test_report_data_round_trip_and_figures(tmp_path):
         map_entropy_after=-4.1,
         map_region_m=np.array([-5.0, 5.0, -5.0, 5.0, -2.0, 2.0]),
     )
+
+
+def test_report_data_round_trip_and_figures(tmp_path):
+    data = full_data()
     result_path = tmp_path / "calib.yaml"
     write_result(result_path)
     data.save(report_data_path(result_path))
@@ -163,6 +168,38 @@ def test_report_data_round_trip_and_figures(tmp_path):
     assert "-3.9000" in page and "-4.1000" in page  # both entropies
     assert "licalib calibrate rig.bag" in page and "start_s: 0.0" in page
     assert "initial guess" in page and "truth" in page and "+0.25" in page
+
+
+@pytest.mark.slow
+def test_page_in_chromium(tmp_path, browser):
+    """The page as a person sees it: rendered by headless Chromium, the verdict box on top in
+    its colour, the verdict and its reasons, the estimate table with the truth, the checks."""
+    result_path = tmp_path / "calib.yaml"
+    write_result(result_path, "warn", ("Not observable from this data: the lever arm's z.",))
+    full_data().save(report_data_path(result_path))
+    page = tmp_path / "calib.html"
+    write_report(page, CalibrationResult.load(result_path), full_data(), str(result_path))
+    pixels = browser.screenshot(page, tmp_path / "shot.png", 1000, 1800)
+    assert pixels.shape[:2] == (1800, 1000)
+    assert float(pixels[..., :3].std()) > 0.05  # not blank
+    assert browser.verdict_share(pixels, "warn") > 0.05
+    dom = browser.dom(page)
+    text = browser.text(dom)
+    assert "Verdict: WARN" in text
+    assert "Not observable from this data: the lever arm's z." in text
+    cells = browser.table_cells(dom, "estimate")
+    assert cells[:6] == ["parameter", "estimate", "1-sigma", "initial guess", "truth", "error"]
+    assert cells[6:12] == ["t_x", "+0.3000 m", "1.00 mm", "+0.2500 m", "+0.0000 m", "+300.00 mm"]
+    assert cells[18:21] == ["t_z", "+0.0500 m", "not observable"]
+    assert cells[-6:-3] == ["time offset", "-7.100 ms", "0.100 ms"]
+    assert browser.table_cells(dom, "entropy")[2:] == [
+        "initial calibration",
+        "-3.9000",
+        "final calibration",
+        "-4.1000",
+    ]
+    for heading in ("What the data determined", "The fit", "The motion", "The map", "Provenance"):
+        assert heading in text
 
 
 def test_report_data_of_another_run_is_not_used(tmp_path, capsys):
