@@ -1,8 +1,17 @@
 #!/usr/bin/env bash
 # Set up licalib in ./.venv: system libraries (Debian/Ubuntu, as root), the virtual environment,
 # and the package with its test extras. Safe to run again; only missing pieces are installed.
+#   --with-browser   also Debian's chromium (headless), which the report tests render pages with
 set -euo pipefail
 cd "$(dirname "$0")/.."
+
+browser=0
+for arg in "$@"; do
+  case "$arg" in
+    --with-browser) browser=1 ;;
+    *) echo "setup: unknown option $arg (known: --with-browser)." >&2; exit 1 ;;
+  esac
+done
 
 PYTHON=${PYTHON:-python3}
 if ! command -v "$PYTHON" >/dev/null 2>&1; then
@@ -23,6 +32,10 @@ if command -v dpkg >/dev/null 2>&1; then
   for pkg in libusb-1.0-0 libgl1 libegl1 libgomp1; do
     dpkg -s "$pkg" >/dev/null 2>&1 || need+=("$pkg")
   done
+fi
+if [ "$browser" -eq 1 ] && ! command -v chromium >/dev/null 2>&1 \
+    && ! command -v chromium-browser >/dev/null 2>&1; then
+  need+=("chromium")
 fi
 if [ ${#need[@]} -gt 0 ]; then
   if [ "$(id -u)" -eq 0 ] && command -v apt-get >/dev/null 2>&1; then

@@ -97,6 +97,17 @@ def test_calibrate_writes_report_and_maps(tmp_path, browser_if_installed):
     m = min(len(c) for c in clouds.values())
     assert not np.allclose(clouds["map.ply"][:m], clouds["before.pcd"][:m])
 
+    # The sensors' frame ids are recorded, so a URDF joint needs no names.
+    truth = yaml.safe_load((sim.bag_path.parent / "truth.yaml").read_text())["simulation"]
+    recording = yaml.safe_load((out / "calib.yaml").read_text())["recording"]
+    assert recording["imu_frame"] == truth["imu"]["frame_id"]
+    assert recording["lidar_frame"] == truth["lidar"]["frame_id"]
+    urdf = tmp_path / "joint.urdf"
+    assert (
+        _main(["export", str(out / "calib.yaml"), "--to", "urdf", "--force", "-o", str(urdf)]) == 0
+    )
+    assert f'<child link="{truth["lidar"]["frame_id"]}"/>' in urdf.read_text()
+
     # Later, from the result file alone (and its report data): the same page.
     again = tmp_path / "again.html"
     assert _main(["report", str(out / "calib.yaml"), "-o", str(again)]) == 0
