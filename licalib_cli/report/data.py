@@ -331,6 +331,24 @@ def _slices(level_xyz: F64, region: F64, zoom: F64, entropy: float) -> MapSlices
     )
 
 
+def imu_residuals(run: CalibrationRun) -> tuple[F64, F64, F64]:
+    """``(t_s, gyro, accel)``: the IMU residuals (prediction minus reading) of the final fit,
+    rad/s and m/s^2, without evaluating the LiDAR points."""
+    from licalib_cli.estimation import build_problem
+    from licalib_cli.residuals import AccelResidual, GyroResidual
+
+    inputs = run.fit.inputs
+    problem = build_problem(
+        run.state, inputs.imu, None, None, inputs.noise, inputs.free, fix_gauge=False
+    )
+    params = problem.values()
+    gyro = next(b for b in problem.residual_blocks if isinstance(b, GyroResidual))
+    accel = next(b for b in problem.residual_blocks if isinstance(b, AccelResidual))
+    r_g = gyro.evaluate(params, jacobians=False).residuals / gyro.inv_sigma
+    r_a = accel.evaluate(params, jacobians=False).residuals / accel.inv_sigma
+    return np.asarray(gyro.t_s), np.reshape(r_g, (-1, 3)), np.reshape(r_a, (-1, 3))
+
+
 def build_report_data(
     run: CalibrationRun,
     rec: Recording,
@@ -352,7 +370,6 @@ def build_report_data(
         config_text: the resolved configuration as YAML.
         with_map: map the segment with both calibrations for the map views.
     """
-    from licalib_cli.pipeline.fitcheck import residual_table
     from licalib_cli.pipeline.map_export import map_points, thinning_for
     from licalib_cli.plots import dominant_labels
     from licalib_cli.results import rpy_deg_from_matrix
@@ -362,8 +379,8 @@ def build_report_data(
     info = report.information
     rounds = run.rounds
     first, last = rounds[0].distances_before_m, rounds[-1].distances_after_m
-    table = residual_table(run.state, run.fit.inputs)
-    imu_idx = _thin(table.t_imu_s.shape[0], _MAX_IMU)
+    t_res, r_gyro, r_accel = imu_residuals(run)
+    imu_idx = _thin(t_res.shape[0], _MAX_IMU)
     t_imu = rec.imu.t_ns
     m_idx = _thin(t_imu.shape[0], _MAX_MOTION)
     t0 = int(t_imu[0]) if t_imu.size else int(rec.start_ns)
@@ -386,9 +403,9 @@ def build_report_data(
         "truncated_vectors": truncated,
         "distances_before_m": np.asarray(first[_thin(first.size, _MAX_DISTANCES)], np.float32),
         "distances_after_m": np.asarray(last[_thin(last.size, _MAX_DISTANCES)], np.float32),
-        "imu_t_s": table.t_imu_s[imu_idx].astype(np.float32),
-        "gyro_residual": table.gyro[imu_idx].astype(np.float32),
-        "accel_residual": table.accel[imu_idx].astype(np.float32),
+        "imu_t_s": t_res[imu_idx].astype(np.float32),
+        "gyro_residual": r_gyro[imu_idx].astype(np.float32),
+        "accel_residual": r_accel[imu_idx].astype(np.float32),
         "round_index": np.array([r.index for r in rounds], np.int64),
         "round_max_distance_m": np.array([r.max_distance_m for r in rounds]),
         "round_points": np.array([r.points for r in rounds], np.int64),
