@@ -15,6 +15,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from licalib_cli.geometry import so3
 from licalib_cli.report import figures
 from licalib_cli.report.data import ReportData
 from licalib_cli.results import CalibrationResult, Extrinsic, rpy_deg_from_matrix
@@ -154,11 +155,84 @@ def _estimate(result: CalibrationResult, data: ReportData | None) -> str:
             f"{1e3 * err['translation_m']:.2f} mm, rotation {err['rotation_deg']:.4f} deg, time "
             f"offset {1e3 * err['time_offset_s']:.3f} ms.</p>"
         )
-    if result.model is not None and (result.model.imu or result.model.lidar):
-        blocks = ", ".join(list(result.model.imu) + list(result.model.lidar))
+    out.append(_intrinsics(result))
+    return "\n".join(out)
+
+
+_IMU_BLOCKS = {
+    # model name: (result field, sigma key, unit, labels, to the shown unit)
+    "gyro_scale": ("gyro_scale", "gyro_scale", "", ("x", "y", "z")),
+    "gyro_misalignment": ("gyro_misalignment", "gyro_misalignment", "", ("xy", "xz", "yz")),
+    "gyro_rotation": ("gyro_rotation", "gyro_rotation_deg", "deg", ("roll", "pitch", "yaw")),
+    "accel_scale": ("accel_scale", "accel_scale", "", ("x", "y", "z")),
+    "accel_misalignment": ("accel_misalignment", "accel_misalignment", "", ("xy", "xz", "yz")),
+    "g_sensitivity": (
+        "gyro_g_sensitivity",
+        "g_sensitivity",
+        "rad/s per m/s^2",
+        tuple(f"{a}{b}" for a in "xyz" for b in "xyz"),
+    ),
+}
+_LIDAR_BLOCKS = {
+    # model name: (result field, sigma key, unit, value and sigma factors to the shown unit)
+    "elevation": ("elevation_correction", "elevation_deg", "deg", 180.0 / np.pi, 1.0),
+    "azimuth": ("azimuth_correction", "azimuth_deg", "deg", 180.0 / np.pi, 1.0),
+    "vertical_offset": ("vertical_offset", "vertical_offset_m", "mm", 1e3, 1e3),
+    "horizontal_offset": ("horizontal_offset", "horizontal_offset_m", "mm", 1e3, 1e3),
+    "range_scale": ("range_scale", "range_scale", "", 1.0, 1.0),
+    "range_offset": ("range_offset", "range_offset_m", "mm", 1e3, 1e3),
+}
+
+
+def _sigma_of(values: dict[str, tuple[float | None, ...]], key: str, i: int, factor: float) -> str:
+    sig = values.get(key, ())
+    v = sig[i] if i < len(sig) else None
+    return "-" if v is None or not np.isfinite(v) else f"{v * factor:.4g}"
+
+
+def _intrinsics(result: CalibrationResult) -> str:
+    """Tables of the estimated intrinsics with their 1-sigma (empty when none were)."""
+    model = result.model
+    if model is None or not (model.imu or model.lidar):
+        return ""
+    sig = result.intrinsics_uncertainty.values if result.intrinsics_uncertainty else {}
+    out = ["<h3>Intrinsics estimated as well</h3>"]
+    rows = []
+    k = result.imu_intrinsics
+    for name in model.imu:
+        if name not in _IMU_BLOCKS:
+            continue
+        field_name, key, unit, labels = _IMU_BLOCKS[name]
+        raw = np.asarray(getattr(k, field_name), dtype=np.float64)
+        values = (
+            rpy_deg_from_matrix(so3.quat_to_matrix(raw)) if name == "gyro_rotation" else raw
+        ).reshape(-1)
+        for i, label in enumerate(labels):
+            rows.append(
+                [f"{name} {label}", f"{values[i]:.6g} {unit}".strip(), _sigma_of(sig, key, i, 1.0)]
+            )
+    if rows:
+        out.append(_table(["IMU intrinsic", "estimate", "1-sigma"], rows, "intrinsics"))
+    lidar = result.lidar_intrinsics
+    names = [n for n in model.lidar if n in _LIDAR_BLOCKS]
+    if lidar is not None and names:
+        header = ["beam"] + [
+            f"{n} ({_LIDAR_BLOCKS[n][2]})" if _LIDAR_BLOCKS[n][2] else n for n in names
+        ]
+        beam_rows = []
+        for b in range(lidar.num_beams):
+            row = [str(b)]
+            for n in names:
+                field_name, key, _, factor, sigma_factor = _LIDAR_BLOCKS[n]
+                value = float(np.asarray(getattr(lidar, field_name))[b]) * factor
+                row.append(f"{value:.4g} +- {_sigma_of(sig, key, b, sigma_factor)}")
+            beam_rows.append(row)
+        held = ", ".join(str(b) for b in model.held_beams) or "none"
         out.append(
-            f'<p class="note">Intrinsics estimated as well: {_e(blocks)} (values and sigmas in '
-            "the result file's imu_intrinsics, lidar_intrinsics and intrinsics_uncertainty).</p>"
+            f"<details><summary>Per-beam LiDAR intrinsics (estimate +- 1-sigma; gauge beam "
+            f"{model.gauge_beam}, beams held for lack of points: {_e(held)})</summary>"
+            + _table(header, beam_rows, "beams")
+            + "</details>"
         )
     return "\n".join(out)
 

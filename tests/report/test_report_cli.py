@@ -297,3 +297,33 @@ def test_calibrate_refuses_bad_report_and_map_paths_before_reading(tmp_path, cap
     assert "is also the output of -o" in _one_sentence_error(err, code, 6)
     assert bag.read_bytes() == b"not read"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rig.bag"]
+
+
+def test_estimated_intrinsics_are_tabled_with_their_sigmas(tmp_path):
+    from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
+    from licalib_cli.sections import IntrinsicsUncertainty, ModelInfo
+
+    base = write_result(tmp_path / "calib.yaml")
+    lidar = LidarIntrinsics.nominal(np.radians([-15.0, 15.0]))
+    result = CalibrationResult(
+        extrinsic=base.extrinsic,
+        imu_intrinsics=ImuIntrinsics(gyro_scale=np.array([1.002, 0.999, 1.0])),
+        lidar_intrinsics=LidarIntrinsics(
+            lidar.nominal_elevation,
+            lidar.elevation_correction,
+            lidar.azimuth_correction,
+            lidar.vertical_offset,
+            lidar.horizontal_offset,
+            lidar.range_scale,
+            np.array([0.0, 0.012]),
+        ),
+        model=ModelInfo(("gyro_scale",), ("range_offset",), 0, ()),
+        intrinsics_uncertainty=IntrinsicsUncertainty(
+            {"gyro_scale": (1e-4, 2e-4, None), "range_offset_m": (0.001, 0.002)}
+        ),
+        verdict=base.verdict,
+    )
+    page = render_html(result, None, "calib.yaml")
+    assert '<td class="l">gyro_scale x</td><td class="">1.002</td><td class="">0.0001</td>' in page
+    assert '<td class="l">gyro_scale z</td><td class="">1</td><td class="">-</td>' in page
+    assert "range_offset (mm)" in page and "12 +- 2" in page
