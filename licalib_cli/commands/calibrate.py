@@ -99,7 +99,8 @@ def _check_extra_outputs(
             continue
         if option.startswith("--map"):
             check_map_suffix(path, option)
-        prepare_output(path, inputs)
+        example = "report.html" if option == "--report" else "map.ply"
+        prepare_output(path, inputs, example)
         for what, other in taken.items():
             if path.resolve() == other.resolve():
                 msg = f"{option} {path} is also the output of {what}; give another path."

@@ -52,7 +52,7 @@ def report_command(
     check_not_an_input(out, inputs)
     if result.recording is not None:
         check_not_an_input(out, [("the calibrated bag", Path(result.recording.bag))])
-    prepare_output(out)
+    prepare_output(out, example="report.html")
     pyplot()
     data = load_report_data(result_path, result)
     write_report(out, result, data, str(result_path))
