@@ -327,3 +327,20 @@ def test_estimated_intrinsics_are_tabled_with_their_sigmas(tmp_path):
     assert '<td class="l">gyro_scale x</td><td class="">1.002</td><td class="">0.0001</td>' in page
     assert '<td class="l">gyro_scale z</td><td class="">1</td><td class="">-</td>' in page
     assert "range_offset (mm)" in page and "12 +- 2" in page
+
+
+def test_truth_given_to_report_is_shown_beside_the_estimate(tmp_path, capsys):
+    result = tmp_path / "calib.yaml"
+    write_result(result)
+    truth = tmp_path / "truth.yaml"
+    CalibrationResult(
+        extrinsic=Extrinsic(
+            matrix_from_rpy_deg([180.0, 0.0, 90.0]), np.array([0.31, -0.15, 0.05]), -0.007
+        )
+    ).save(truth)
+    code, _, err = run(["report", str(result), "--truth", str(truth)], capsys)
+    assert code == 0, err
+    page = (tmp_path / "calib.html").read_text()
+    assert '<th class="">truth</th>' in page and "-10.00 mm" in page and "-0.100 ms" in page
+    code, _, err = run(["report", str(result), "--truth", str(truth), "-o", str(truth)], capsys)
+    assert "is the truth file" in _one_sentence_error(err, code, 6)
