@@ -434,13 +434,16 @@ def check_not_an_input(
                 raise ConfigError(msg)
 
 
-def prepare_output(path: Path, inputs: Sequence[tuple[str, Path | None]] = ()) -> None:
+def prepare_output(
+    path: Path, inputs: Sequence[tuple[str, Path | None]] = (), example: str = "calib.yaml"
+) -> None:
     """Check, before a long run, that a result file can be written at ``path`` without
     overwriting an input (its folder is created if needed).
 
     Args:
         path: the file to be written.
         inputs: the inputs it must not overwrite (see :func:`check_not_an_input`).
+        example: a file name the message suggests when ``path`` is a folder.
 
     Raises:
         ConfigError: ``path`` is an input or a file of an input folder, a folder, or its folder
@@ -449,7 +452,7 @@ def prepare_output(path: Path, inputs: Sequence[tuple[str, Path | None]] = ()) -
     path = Path(path)
     check_not_an_input(path, inputs)
     if path.is_dir():
-        msg = f"The output {path} is a folder; give a file name such as {path / 'calib.yaml'}."
+        msg = f"The output {path} is a folder; give a file name such as {path / example}."
         raise ConfigError(msg)
     create_folder(path.parent, "The output folder", "give another output path")
     if not os.access(path.parent, os.W_OK):

@@ -419,6 +419,10 @@ class RecordingSection(Section):
     """IMU samples dropped for NaN or infinite values."""
     scans_skipped: int = 0
     """Clouds of the segment skipped as unusable (empty, corrupt, too few points, ...)."""
+    imu_frame: str = ""
+    """``header.frame_id`` of the IMU messages ("" when unknown)."""
+    lidar_frame: str = ""
+    """``header.frame_id`` of the LiDAR messages ("" when unknown)."""
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ import numpy as np
 from licalib_cli import __version__
 from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import beam_point_counts
+from licalib_cli.io.frames import frame_ids
 from licalib_cli.measurements import Recording
 from licalib_cli.pipeline.checks import Checks
 from licalib_cli.pipeline.initialise import InitialGuess
@@ -47,7 +48,8 @@ def bag_fingerprint(path: Path) -> str:
 
 
 def recording_section(bag: Path, rec: Recording) -> RecordingSection:
-    """What data the calibration used."""
+    """What data the calibration used (the sensors' frame ids read from the bag)."""
+    frames = frame_ids(bag, (rec.imu_topic, rec.lidar_topic))
     return RecordingSection(
         bag=str(bag),
         imu_topic=rec.imu_topic,
@@ -62,6 +64,8 @@ def recording_section(bag: Path, rec: Recording) -> RecordingSection:
         lidar_unreadable_messages=rec.lidar_unreadable,
         imu_samples_dropped=rec.imu_samples_dropped,
         scans_skipped=rec.scans_skipped,
+        imu_frame=frames.get(rec.imu_topic, ""),
+        lidar_frame=frames.get(rec.lidar_topic, ""),
     )
 
 

@@ -1,6 +1,6 @@
 """Decode an Ouster pcap capture with ouster-sdk into plain arrays (one ``.npz``).
 
-Run with the Python that has ouster-sdk (``.venv/ouster``, made by ``scripts/setup.sh``):
+Run with the Python that has ouster-sdk (``.venv/ouster``, made by ``scripts/setup.sh --tests``):
 ouster-sdk pins its own rosbags, so it lives in a virtual environment of its own and hands
 its output over as numpy arrays, which the tests turn into bags with licalib's writer::
 
