@@ -142,7 +142,8 @@ def require_data(folder: Path) -> None:
 
 def _ouster_sdk_reason() -> str | None:
     if not OUSTER_PYTHON.exists():
-        return f"ouster-sdk's environment {OUSTER_PYTHON.parents[1]} is missing (scripts/setup.sh --tests)"
+        where = OUSTER_PYTHON.parents[1]
+        return f"ouster-sdk's environment {where} is missing (bash scripts/setup.sh --tests)"
     probe = subprocess.run(
         [str(OUSTER_PYTHON), "-c", "import ouster.sdk.pcap, ouster.sdk.core"],
         capture_output=True,
