@@ -90,7 +90,9 @@ def _result() -> CalibrationResult:
             -0.000012345,
             -1000000.25,
         ),
-        provenance=Provenance("0.1.0", "0123456789abcdef", "2026-11-24T07:00:00Z"),
+        provenance=Provenance(
+            "0.1.0", "0123456789abcdef", "2026-11-24T07:00:00Z", "fedcba9876543210"
+        ),
     )
 
 
