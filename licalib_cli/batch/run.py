@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import time
 import uuid
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +31,7 @@ from licalib_cli.batch.summary import (
 )
 from licalib_cli.batch.task import TaskInput, TaskOutcome, calibrate_task
 from licalib_cli.config import dump_config
+from licalib_cli.errors import ConfigError
 from licalib_cli.progress import NullProgress, Progress
 from licalib_cli.results import create_folder, write_text_atomic
 
@@ -208,13 +210,14 @@ def run_batch(
     start = time.perf_counter()
     progress = progress or NullProgress()
     if retries < 0:
-        from licalib_cli.errors import ConfigError
-
         msg = f"--retries {retries} is not a number of retries; give 0 or more."
         raise ConfigError(msg)
     out_dir = Path(out_dir).absolute()
-    create_folder(out_dir, "The output folder", "give another folder with -o")
+    if out_dir.exists() and not out_dir.is_dir():
+        msg = f"The output {out_dir} is a file; -o takes a folder, give another one."
+        raise ConfigError(msg)
     planned = plan(jobs, out_dir)
+    create_folder(out_dir, "The output folder", "give another folder with -o")
     tracker = _Tracker(planned, out_dir)
     todo = [i for i, p in enumerate(planned) if p.existing is None]
     for i in todo:
@@ -261,10 +264,16 @@ def _run(
     progress: Progress,
     task: Task,
 ) -> None:
-    """Submit, wait, write, retry until every bag of ``todo`` is done or failed."""
+    """Submit, wait, write, retry until every bag of ``todo`` is done or failed.
+
+    No more tasks are submitted than the cluster has worker threads: each waits on the
+    client, not on a worker, so that a worker that dies takes only the bag it was calibrating
+    with it (the scheduler would otherwise hand a worker several tasks of a small batch).
+    """
     from distributed import as_completed
 
     planned = tracker.planned
+    waiting = deque(todo)
     index: dict[Future, int] = {}
     completed = as_completed(loop=client.loop)
 
@@ -277,18 +286,24 @@ def _run(
         index[future] = i
         completed.add(future)
 
-    for i in todo:
-        submit(i)
+    def fill() -> None:
+        free = max(1, _threads(client)) - len(index)
+        while waiting and free > 0:
+            submit(waiting.popleft())
+            free -= 1
+
     total = len(todo)
     done = failed = 0
     progress.stage("calibrating", total)
-    shown = 0.0
+    fill()
+    shown = time.monotonic()
     try:
         while index:
             finished = completed.next_batch(block=False)
             if not finished:
                 if time.monotonic() - shown > _REFRESH_S:
-                    progress.note(f"{_running(client, index)} running, {failed} failed")
+                    fill()  # a worker may have joined
+                    progress.note(f"{len(index)} running, {failed} failed")
                     shown = time.monotonic()
                 time.sleep(_POLL_S)
                 continue
@@ -313,22 +328,23 @@ def _run(
                 attempts = tracker.attempts[i]
                 if attempts <= retries:
                     logger.warning(
-                        "%s: %s on attempt %d; trying again (%d of %d retries left).",
+                        "%s: %s on attempt %d; retry %d of %d.",
                         label,
                         _what_happened(err),
                         attempts,
-                        retries - attempts + 1,
+                        attempts,
                         retries,
                     )
-                    submit(i)
+                    waiting.appendleft(i)
                     continue
                 sentence = _sentence(err, attempts)
                 tracker.failed(i, sentence)
                 logger.error("%s failed: %s", label, sentence)
                 failed += 1
                 done += 1
+            fill()
             progress.advance(done, total)
-            progress.note(f"{_running(client, index)} running, {failed} failed")
+            progress.note(f"{len(index)} running, {failed} failed")
             shown = time.monotonic()
     except BaseException:
         client.cancel(list(index), force=True)
@@ -343,11 +359,9 @@ def _exception(future: Future) -> BaseException:
     return err if err is not None else RuntimeError("the task ended without a result")
 
 
-def _running(client: Client, index: dict[Future, int]) -> int:
-    """How many of the batch's tasks a worker holds now (with one thread per worker: runs)."""
+def _threads(client: Client) -> int:
+    """Worker threads of the cluster now (0 when it cannot be asked)."""
     try:
-        processing = client.processing()
-    except Exception:  # the count is only for the progress display
+        return sum(client.nthreads().values())
+    except Exception:  # a scheduler that went away: the futures say so
         return 0
-    keys = {f.key for f in index}
-    return sum(1 for tasks in processing.values() for key in tasks if key in keys)

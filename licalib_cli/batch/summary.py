@@ -1,15 +1,16 @@
 """The fleet summary: one row per bag, and per rig the spread of its calibrations and the bags
 that disagree with the rig's others beyond their sigmas (a sensor that moved or came loose).
 
-Comparison within a rig (method: a leave-one-out consistency test). Each usable calibration
-(verdict ``pass`` or ``warn``) is a 7-vector ``x = [t (m), r (deg), dt (s)]``: the translation,
-the rotation as the rotation vector ``log(R_ref^T R)`` about the LiDAR axes (``R_ref`` the rig's
-first calibration; the axes of ``uncertainty.rotation_std_deg``) and the time offset, with its
-1-sigma ``s`` from ``uncertainty``. For bag ``i`` the others' inverse-variance weighted mean
-``m`` (sigma ``s_m``) gives ``z = (x_i - m) / sqrt(s_i^2 + s_m^2)`` per coordinate, and
-``chi2 = sum z^2`` over the coordinates observable in both (finite sigmas). A bag differs when
-the chi-square's p-value is below :data:`DIFFER_P` (the split-halves check's threshold). With
-two bags in a rig each differs from the other when they disagree.
+Comparison within a rig. Each usable calibration (verdict ``pass`` or ``warn``) is a 7-vector
+``x = [t (m), r (deg), dt (s)]``: the translation, the rotation as the rotation vector
+``log(R_ref^T R)`` about the LiDAR axes (``R_ref`` the rig's first calibration; the axes of
+``uncertainty.rotation_std_deg``) and the time offset, with its 1-sigma ``s`` from
+``uncertainty``. Bag ``i`` is compared with the inverse-variance weighted mean ``m`` (sigma
+``s_m``) of the rig's other reference bags: ``z = (x_i - m) / sqrt(s_i^2 + s_m^2)`` per
+coordinate and ``chi2 = sum z^2`` over the coordinates both determine (finite sigmas). The bag
+with the smallest p-value leaves the reference while that p-value is below :data:`DIFFER_P`
+(the split-halves check's threshold), so that one moved sensor does not pull the reference
+towards it; the bags left out differ. Of two bags that disagree, both differ.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ __all__ = [
     "BagRow",
     "RigRow",
     "compare_within_rig",
+    "find_differing",
     "rig_rows",
     "summary_csv",
 ]
@@ -201,32 +203,71 @@ class RigRow:
         return out
 
 
-def compare_within_rig(x: F64, sigma: F64) -> tuple[F64, F64, F64, F64]:
-    """Leave-one-out comparison of each calibration with the rig's others (module docstring).
+def compare_within_rig(
+    x: F64, sigma: F64, reference: npt.NDArray[np.bool_] | None = None
+) -> tuple[F64, F64, F64, F64, F64]:
+    """Each calibration against the weighted mean of the reference ones but itself.
 
     Args:
         x: (n, k) estimates, one row per calibration.
         sigma: (n, k) their 1-sigma; ``inf``, NaN or 0 leave the coordinate out.
+        reference: (n,) which rows make the reference (default: all).
 
     Returns:
-        ``(z, chi2, dof, p)``: (n, k) normalised differences (0 where left out), and per
-        calibration the chi-square, its degrees of freedom and p-value (1 when ``dof`` is 0).
+        ``(z, difference, chi2, dof, p)``: (n, k) normalised differences and differences
+        ``x - mean`` (0 where left out), and per calibration the chi-square, its degrees of
+        freedom and its p-value (1 when ``dof`` is 0).
     """
     x = np.asarray(x, dtype=np.float64)
     sigma = np.asarray(sigma, dtype=np.float64)
+    ref = np.ones(len(x), dtype=bool) if reference is None else np.asarray(reference, bool)
     ok = np.isfinite(sigma) & (sigma > 0) & np.isfinite(x)
     w = np.where(ok, 1.0 / np.where(ok, sigma, 1.0) ** 2, 0.0)
-    wx = np.where(ok, w * x, 0.0)
-    w_others = w.sum(axis=0) - w
+    w_ref = w * ref[:, None]
+    wx_ref = np.where(ok, w_ref * np.where(ok, x, 0.0), 0.0)
+    w_others = w_ref.sum(axis=0) - w_ref
     valid = ok & (w_others > 0)
     safe_w = np.where(valid, w_others, 1.0)
-    mean_others = (wx.sum(axis=0) - wx) / safe_w
+    mean_others = (wx_ref.sum(axis=0) - wx_ref) / safe_w
+    diff = np.where(valid, np.where(ok, x, 0.0) - mean_others, 0.0)
     var = np.where(valid, np.where(ok, sigma, 0.0) ** 2 + 1.0 / safe_w, 1.0)
-    z = np.where(valid, (np.where(ok, x, 0.0) - mean_others) / np.sqrt(var), 0.0)
+    z = diff / np.sqrt(var)
     chi2 = (z**2).sum(axis=1)
     dof = valid.sum(axis=1).astype(np.float64)
     p = np.where(dof > 0, stats.chi2.sf(chi2, np.maximum(dof, 1.0)), 1.0)
-    return z, chi2, dof, p
+    return z, diff, chi2, dof, p
+
+
+def find_differing(x: F64, sigma: F64) -> tuple[npt.NDArray[np.bool_], F64, F64, F64]:
+    """The calibrations that differ from their rig's others (module docstring).
+
+    The most discrepant calibration (smallest p-value against the others) leaves the
+    reference while its p-value is below :data:`DIFFER_P` and more than two remain, so that
+    one moved sensor does not drag the reference towards itself and make the others look
+    moved too; each calibration is then compared with the final reference. Of the last two,
+    when they disagree, neither can be preferred: both differ.
+
+    Args:
+        x: (n, k) estimates.
+        sigma: (n, k) their 1-sigma.
+
+    Returns:
+        ``(differs, z, difference, p)``: (n,) flags, (n, k) normalised differences and
+        differences from the reference's mean, (n,) p-values.
+    """
+    ref = np.ones(len(x), dtype=bool)
+    while ref.sum() > 2:
+        p = compare_within_rig(x, sigma, ref)[4]
+        candidates = np.flatnonzero(ref)
+        worst = candidates[np.argmin(p[candidates])]
+        if p[worst] >= DIFFER_P:
+            break
+        ref[worst] = False
+    z, diff, _chi2, _dof, p = compare_within_rig(x, sigma, ref)
+    differs = ~ref
+    if ref.sum() == 2 and np.all(p[ref] < DIFFER_P):
+        differs = np.ones(len(x), dtype=bool)
+    return differs, z, diff, p
 
 
 def _vectors(rows: Sequence[BagRow]) -> tuple[F64, F64]:
@@ -282,18 +323,17 @@ def rig_rows(rows: Sequence[BagRow]) -> tuple[list[BagRow], list[RigRow]]:
         stamps = sorted(rows[i].recorded_utc for i in usable if rows[i].recorded_utc)
         differing: list[str] = []
         if len(usable) >= 2:
-            z, _chi2, _dof, p = compare_within_rig(x, sigma)
-            for k, i in enumerate(usable):
-                if p[k] < DIFFER_P:
-                    j = int(np.argmax(np.abs(z[k])))
-                    unit, scale = _UNITS[j]
-                    diff = x[k, j] - _others_mean(x, sigma, k, j)
-                    text = (
-                        f"{COORDINATES[j]} {diff * scale:+.3g} {unit} from the others "
-                        f"({abs(z[k, j]):.1f} sigma, p = {p[k]:.1g})"
-                    )
-                    out[i] = replace(out[i], differs=True, difference=text)
-                    differing.append(rows[i].bag)
+            flags, z, diff, p = find_differing(x, sigma)
+            for k in np.flatnonzero(flags):
+                i = usable[k]
+                j = int(np.argmax(np.abs(z[k])))
+                unit, scale = _UNITS[j]
+                text = (
+                    f"{COORDINATES[j]} {diff[k, j] * scale:+.3g} {unit} from the others "
+                    f"({abs(z[k, j]):.1f} sigma, p = {p[k]:.1g})"
+                )
+                out[i] = replace(out[i], differs=True, difference=text)
+                differing.append(rows[i].bag)
         scaled = spread * np.array([s for _, s in _UNITS])
         rigs.append(
             RigRow(
@@ -314,17 +354,6 @@ def rig_rows(rows: Sequence[BagRow]) -> tuple[list[BagRow], list[RigRow]]:
             )
         )
     return out, rigs
-
-
-def _others_mean(x: F64, sigma: F64, k: int, j: int) -> float:
-    """The inverse-variance weighted mean of coordinate ``j`` over every row but ``k``."""
-    s = np.delete(sigma[:, j], k)
-    v = np.delete(x[:, j], k)
-    ok = np.isfinite(s) & (s > 0)
-    if not ok.any():
-        return float(np.mean(v))
-    w = 1.0 / s[ok] ** 2
-    return float(np.sum(w * v[ok]) / np.sum(w))
 
 
 def _cell(value: Any) -> str:
