@@ -138,7 +138,7 @@ class _Tracker:
         rows = [
             row
             if row is not None
-            else self._row(i, "not run", None, None, error="The batch was interrupted first.")
+            else self._row(i, "not run", None, None, error="The batch stopped before this bag.")
             for i, row in enumerate(self.rows)
         ]
         return rig_rows(rows)
@@ -224,11 +224,13 @@ def run_batch(
         logger.debug("%s: to calibrate (%s)", planned[i].label, planned[i].reason)
     threads = 0
     interrupted = False
+    started = not todo  # the summary is written once the batch has reached its cluster
     try:
         if todo:
             with connect(
                 scheduler, workers, timeout_s=connect_timeout_s, quiet=quiet_dask
             ) as client:
+                started = True
                 threads = sum(client.nthreads().values())
                 _run(client, tracker, todo, retries, progress, task)
     except KeyboardInterrupt:
@@ -237,7 +239,8 @@ def run_batch(
     finally:
         progress.close()
         bags, rigs = tracker.summary()
-        write_summaries(out_dir, bags, rigs)
+        if started or interrupted:
+            write_summaries(out_dir, bags, rigs)
         if interrupted:
             done = sum(1 for r in tracker.rows if r is not None)
             logger.info(

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import typer
+from rich.console import Console
 from rich.table import Table
 
 from licalib_cli.commands.render import console, console_err
@@ -17,6 +18,8 @@ from licalib_cli.errors import BatchIncomplete
 _IO = "Input"
 _OUT = "Output"
 _CLUSTER = "Cluster"
+_FILE_WIDTH = 180
+"""Width of the tables when standard output is not a terminal (a log file, a pipe)."""
 
 
 class BatchProgress:
@@ -98,7 +101,7 @@ def _bags_table(report: Any) -> Table:
     for name in ("rig", "bag", "recorded (UTC)", "result"):
         table.add_column(name)
     for name in ("t (mm)", "1-sigma (mm)", "rpy (deg)", "1-sigma (deg)", "dt (ms)", "time (s)"):
-        table.add_column(name, justify="right")
+        table.add_column(name, justify="right", no_wrap=True)
     colour = {"pass": "green", "warn": "yellow", "fail": "red"}
     for b in report.bags:
         if b.verdict:
@@ -125,7 +128,7 @@ def _bags_table(report: Any) -> Table:
             status = "[red]failed[/]" if b.status == "failed" else b.status
             cells = ["", "", "", "", ""]
         seconds = "" if math.isnan(b.calibration_s) else f"{b.calibration_s:.1f}"
-        recorded = b.recorded_utc.replace("T", " ")[:19]
+        recorded = b.recorded_utc.replace("T", " ")[:16]
         table.add_row(b.rig, b.bag, recorded, status, *cells, seconds)
     return table
 
@@ -136,7 +139,7 @@ def _rigs_table(report: Any) -> Table:
     table.add_column("bags", justify="right")
     table.add_column("recorded (UTC)")
     for name in ("t (mm)", "rotation (deg)", "dt (ms)"):
-        table.add_column(name, justify="right")
+        table.add_column(name, justify="right", no_wrap=True)
     table.add_column("differ beyond their sigmas")
     for r in report.rigs:
         counts = f"{r.usable} of {r.bags}"
@@ -164,6 +167,8 @@ def _rigs_table(report: Any) -> Table:
 def render_report(report: Any) -> None:
     """The bags and rigs tables, each failure's sentence and each difference, the totals."""
     out = console()
+    if not out.is_terminal:  # a log file or a pipe: no need to wrap at 80 columns
+        out = Console(width=_FILE_WIDTH, highlight=False)
     out.print(_bags_table(report))
     out.print(_rigs_table(report))
     for b in report.bags:
