@@ -4,6 +4,7 @@ the fleet summary (rich tables, or one JSON object with ``--json``)."""
 from __future__ import annotations
 
 import json
+import logging
 import math
 from pathlib import Path
 from typing import Any
@@ -33,7 +34,7 @@ class BatchProgress:
         self._progress = Progress(
             TextColumn("{task.description:<12}"),
             BarColumn(),
-            TextColumn("{task.completed}/{task.total} done"),
+            TextColumn("{task.completed}/{task.total} done,"),
             TextColumn("{task.fields[note]}"),
             TimeElapsedColumn(),
             console=console_err(),
@@ -236,7 +237,13 @@ def batch_command(
 
     jobs = read_inputs(inputs, config)
     report = run_batch(
-        jobs, out, scheduler=scheduler, workers=workers, retries=retries, progress=BatchProgress()
+        jobs,
+        out,
+        scheduler=scheduler,
+        workers=workers,
+        retries=retries,
+        progress=BatchProgress(),
+        quiet_dask=not logging.getLogger("licalib_cli").isEnabledFor(logging.DEBUG),
     )
     if as_json:
         typer.echo(json.dumps(report_dict(report), indent=2))
