@@ -2,10 +2,12 @@
 
 The only module that starts or connects to Dask. A local cluster runs one single-threaded
 worker process per core (the calibration is single-threaded numpy; processes keep the
-interpreter lock out of the way), its scheduler in this process, no dashboard, and sends a
-worker one task at a time (``worker-saturation`` 1), so that a worker that dies takes only the
-bag it was calibrating with it. Its scheduler gives up on a task at the first worker death
-(``allowed-failures`` 0): the batch's own ``--retries`` decide what happens next.
+interpreter lock out of the way), its scheduler in this process, no dashboard and no profiler.
+Its scheduler gives up on a task at the first worker death (``allowed-failures`` 0): the
+batch's own ``--retries`` decide what happens next (and :mod:`~licalib_cli.batch.run` hands a
+worker one task at a time, so that a death costs one bag). Its workers leave Ctrl-C to the
+client (:mod:`~licalib_cli.batch.worker_setup`) and run without Dask's default
+``MALLOC_TRIM_THRESHOLD_``, which slows the solver down threefold.
 """
 
 from __future__ import annotations
