@@ -459,8 +459,24 @@ class FactoryExtrinsicSection(Section):
 
 @dataclass(frozen=True)
 class Provenance(Section):
-    """Who made the file from what."""
+    """Who made the file from what.
+
+    Attributes:
+        licalib_version: the version that wrote the file.
+        bag_fingerprint: :func:`licalib_cli.pipeline.assemble.bag_fingerprint` of the bag.
+        created_utc: when, ISO 8601.
+        config_fingerprint: :func:`licalib_cli.config.config_fingerprint` of the resolved
+            configuration (segment options included); None in files written before it existed
+            (not written then).
+    """
 
     licalib_version: str
     bag_fingerprint: str
     created_utc: str
+    config_fingerprint: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        out = super().to_dict()
+        if self.config_fingerprint is None:
+            del out["config_fingerprint"]
+        return out

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from licalib_cli import __version__
-from licalib_cli.config import CalibConfig
+from licalib_cli.config import CalibConfig, config_fingerprint
 from licalib_cli.estimation import beam_point_counts
 from licalib_cli.io.frames import frame_ids
 from licalib_cli.measurements import Recording
@@ -145,5 +145,6 @@ def assemble(
             licalib_version=__version__,
             bag_fingerprint=bag_fingerprint(bag),
             created_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            config_fingerprint=config_fingerprint(cfg),
         ),
     )
