@@ -77,7 +77,15 @@ def _root(
 
 
 def _register() -> None:
-    from licalib_cli.commands import calibrate, config_cmd, diagnose, export, info, simulate
+    from licalib_cli.commands import (
+        calibrate,
+        config_cmd,
+        diagnose,
+        export,
+        info,
+        select_segments,
+        simulate,
+    )
 
     app.command("calibrate")(calibrate.calibrate_command)
     app.command("info")(info.info_command)
@@ -85,6 +93,7 @@ def _register() -> None:
     app.add_typer(config_cmd.app, name="config")
     app.command("export")(export.export_command)
     app.command("diagnose")(diagnose.diagnose_command)
+    app.command("select-segments")(select_segments.select_segments_command)
 
 
 _register()

@@ -1688,7 +1688,11 @@ def read_segment(path: Path, cfg: CalibConfig, *, min_span_s: float = MIN_SEGMEN
 
 
 def iter_scans(
-    path: Path, cfg: CalibConfig, shift_ns: int = 0, warnings: list[str] | None = None
+    path: Path,
+    cfg: CalibConfig,
+    shift_ns: int = 0,
+    warnings: list[str] | None = None,
+    every: int = 1,
 ) -> Iterator[LidarScan]:
     """Stream the LiDAR scans of the segment one at a time (constant memory).
 
@@ -1701,6 +1705,7 @@ def iter_scans(
         cfg: configuration (``bag`` and ``lidar`` sections).
         shift_ns: added to every LiDAR time (e.g. ``Recording.lidar_shift_ns``).
         warnings: list that receives non-fatal findings, or None.
+        every: decode only every ``every``-th cloud (the others are only counted).
 
     Yields:
         :class:`LidarScan` in stamp order.
@@ -1716,7 +1721,8 @@ def iter_scans(
         layout = detect_layout(bag, lid_t.name, window, off, cfg)
         tally = ScanTally(topic=lid_t.name)
         last: int | None = None
-        for scan in _scan_stream(bag, lid_t.name, window, off, layout, cfg, shift_ns, tally):
+        stream = _scan_stream(bag, lid_t.name, window, off, layout, cfg, shift_ns, tally, every)
+        for scan in stream:
             if last is not None and scan.stamp_ns <= last:
                 what = "go backwards" if scan.stamp_ns < last else "are duplicated"
                 at = (scan.stamp_ns - shift_ns - tally.stamps[0]) / _NS
