@@ -44,6 +44,7 @@ from licalib_cli.sections import (
     Observability,
     Provenance,
     RecordingSection,
+    SegmentsSection,
     Uncertainty,
     VerdictSection,
 )
@@ -226,6 +227,7 @@ _SECTIONS: tuple[tuple[str, type], ...] = (
     ("fit", FitSection),
     ("recording", RecordingSection),
     ("provenance", Provenance),
+    ("segments", SegmentsSection),
 )
 
 
@@ -239,8 +241,8 @@ class CalibrationResult:
         lidar_intrinsics: per-beam LiDAR intrinsics, or None when not part of the file.
         gravity_G: (3,) gravity in the first IMU frame, m/s^2, or None.
         model, uncertainty, intrinsics_uncertainty, observability, verdict, consistency,
-            initialization, fit, recording, provenance: the typed sections ``calibrate`` writes
-            (:mod:`licalib_cli.sections`), None when the file has none.
+            initialization, fit, recording, provenance, segments: the typed sections
+            ``calibrate`` writes (:mod:`licalib_cli.sections`), None when the file has none.
     """
 
     extrinsic: Extrinsic = field(default_factory=Extrinsic)
@@ -257,6 +259,7 @@ class CalibrationResult:
     fit: FitSection | None = None
     recording: RecordingSection | None = None
     provenance: Provenance | None = None
+    segments: SegmentsSection | None = None
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"schema_version": SCHEMA_VERSION}

@@ -1659,8 +1659,9 @@ def read_segment(path: Path, cfg: CalibConfig, *, min_span_s: float = MIN_SEGMEN
     if cfg.bag.duration_s is None and window.stop_ns is not None:
         warnings.append(
             f"The bag lasts {(bag_end - bag_start) / _NS:.0f} s; only {cfg.bag.max_duration_s:g} "
-            f"s from {cfg.bag.start_s:g} s are used. Choose the part with the most varied motion "
-            "with --start/--duration (or raise bag.max_duration_s)."
+            f"s from {cfg.bag.start_s:g} s are used. Let --segments auto calibrate on its most "
+            "informative windows together (licalib select-segments ranks them), or choose a "
+            "part with --start/--duration (or raise bag.max_duration_s)."
         )
     for w in warnings:
         logger.warning(w)
