@@ -22,30 +22,25 @@ if TYPE_CHECKING:
 def render_segments(run: JointRun, truth: Truth | None = None) -> Table:
     """One row per segment (calibrated alone) and one for the joint estimate."""
     table = Table(title="T_imu_lidar per segment (calibrated alone) and jointly; sigma in brackets")
-    for col in ("segment", "t [mm]", "roll/pitch/yaw [deg]", "time offset [ms]", "off by"):
+    for col in ("segment", "t [mm]", "roll/pitch/yaw [deg]", "time offset [ms]", "sigmas off"):
         table.add_column(col, justify="left" if col == "segment" else "right")
 
     def t_text(t: np.ndarray, s: tuple[float, ...]) -> str:
-        return (
-            " ".join(f"{1e3 * v:+.1f}" for v in t)
-            + " ("
-            + "/".join(f"{1e3 * v:.2f}" for v in s)
-            + ")"
-        )
+        return " ".join(f"{1e3 * v:+.1f}" for v in t) + f" ({1e3 * max(s):.2f})"
 
     def r_text(rot: np.ndarray, s: tuple[float, ...]) -> str:
         rpy = rpy_deg_from_matrix(rot)
-        return " ".join(f"{v:+.3f}" for v in rpy) + " (" + "/".join(f"{v:.3f}" for v in s) + ")"
+        return " ".join(f"{v:+.3f}" for v in rpy) + f" ({max(s):.3f})"
 
     for e in run.segments.segments:
         from licalib_cli.results import matrix_from_rpy_deg
 
-        flag = f"{e.disagreement_sigmas:.1f} sigma" + (" DISAGREES" if e.disagrees else "")
+        flag = f"{e.disagreement_sigmas:.1f}" + (" DISAGREES" if e.disagrees else "")
         table.add_row(
             f"{e.start_s:g}-{e.end_s:g} s",
             t_text(np.asarray(e.translation), e.translation_std_m),
             r_text(matrix_from_rpy_deg(e.rotation_rpy_deg), e.rotation_std_deg),
-            f"{1e3 * e.time_offset_s:+.3f} ({1e3 * e.time_offset_std_s:.3f}); joint "
+            f"{1e3 * e.time_offset_s:+.3f} ({1e3 * e.time_offset_std_s:.3f}) -> "
             f"{1e3 * e.joint_time_offset_s:+.3f}",
             flag,
         )
