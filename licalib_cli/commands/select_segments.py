@@ -145,7 +145,7 @@ def select_segments_command(
         rich_help_panel=_WIN,
     ),
     every: int = typer.Option(
-        2,
+        3,
         "--every",
         min=1,
         help="Decode every N-th cloud (1: all; faster when larger).",

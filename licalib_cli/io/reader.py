@@ -86,6 +86,7 @@ from licalib_cli.io.bag import (
     BagHandle,
     MessageLosses,
     RawMessage,
+    imu_vectors_from_raw,
     open_bag,
     select_topic,
 )
@@ -718,12 +719,21 @@ class RawImu:
 
 
 def read_raw_imu(bag: BagHandle, topic: str, window: SegmentWindow, offset_ns: int) -> RawImu:
-    """IMU messages of the window, deserialised one by one (memory grows with the window).
+    """IMU messages of the window (memory grows with the window). The vectors are read at
+    their fixed offsets (:func:`~licalib_cli.io.bag.imu_vectors_from_raw`) once the first
+    message read so agrees with its full decode; a message of another size is deserialised.
     Messages that do not decode are skipped (and counted in ``bag.losses``)."""
     t: list[int] = []
     rec: list[int] = []
     vals: list[tuple[float, float, float, float, float, float]] = []
+    fast: bool | None = None  # reading at fixed offsets, once checked against a full decode
     for m in window_messages(bag, topic, window, offset_ns):
+        quick = imu_vectors_from_raw(m.raw, bag.ros1) if fast is not False else None
+        if fast and quick is not None and m.stamp_ns is not None:
+            t.append(m.stamp_ns)
+            rec.append(m.record_ns)
+            vals.append(quick)
+            continue
         msg = bag.decode(m)
         if msg is None:
             continue
@@ -732,6 +742,8 @@ def read_raw_imu(bag: BagHandle, topic: str, window: SegmentWindow, offset_ns: i
         rec.append(m.record_ns)
         av, la = msg.angular_velocity, msg.linear_acceleration
         vals.append((av.x, av.y, av.z, la.x, la.y, la.z))
+        if fast is None:
+            fast = quick == vals[-1] and m.stamp_ns == t[-1]
     arr = np.asarray(vals, dtype=np.float64).reshape(-1, 6)
     return RawImu(
         np.asarray(t, dtype=np.int64),

@@ -17,9 +17,10 @@ How it stays cheap (no window is calibrated):
    coarse time offset, lever arm) runs once, on the :data:`ESTIMATE_S` seconds whose rotation
    about the least-excited axis is largest; with the extrinsic and time offset all given in the
    config (``initialization``), only that part's noise is measured.
-3. **LiDAR pass.** The clouds are streamed (every ``every``-th one decoded); each decoded cloud
-   is reduced at once to a few hundred points on planes of its own (surfels of that single
-   sweep, in the LiDAR frame), so memory holds one window of such points.
+3. **LiDAR pass.** The clouds are streamed (every ``every``-th one decoded, by default every
+   third); each decoded cloud is reduced at once to a few hundred points on planes of its own
+   (surfels of that single sweep, in the LiDAR frame), so memory holds one window of such
+   points.
 4. **Per window.** The trajectory is the gyro's rotation and the accelerometer's motion
    (gravity from the window's mean specific force, velocity with its linear drift removed);
    every point gets the plane through itself with its sweep's normal, so every residual is zero
@@ -103,7 +104,7 @@ ESTIMATE_S = 8.0
 POINTS_PER_SCAN = 300
 """Points on planes kept per decoded sweep."""
 
-_SURFEL_POINTS = 8000
+_SURFEL_POINTS = 5000
 """Points of a sweep its planes are extracted from."""
 
 _BIN_S = 0.1
@@ -712,7 +713,7 @@ def select_segments(
     step_s: float | None = None,
     top: int | None = None,
     threshold: float | None = None,
-    every: int = 2,
+    every: int = 3,
     progress: Callable[[int, int], None] | None = None,
 ) -> Selection:
     """Rank the windows of a bag by the information they carry about the calibration.
@@ -725,7 +726,7 @@ def select_segments(
         step_s: window step, s (default: ``length_s``, windows side by side).
         top: select the best ``top`` windows that do not overlap.
         threshold: select windows whose metric is at least this.
-        every: decode every ``every``-th cloud (2: half of them).
+        every: decode every ``every``-th cloud (3: a third of them).
         progress: called as ``progress(done, total)`` after each window.
 
     Returns:
