@@ -121,7 +121,7 @@ def walk(args: argparse.Namespace, workdir: Path) -> None:
     err = truth.extrinsic.error_to(run.result.extrinsic)
     unc = run.result.uncertainty
     print(
-        f"\ncalibrate --segments auto ({chosen}): {wall:.0f} s wall, "
+        f"\ncalibrate --segments {chosen} (the selection above): {wall:.0f} s wall, "
         f"{time.process_time() - cpu:.0f} s CPU "
         f"({', '.join(f'{k} {v:.0f} s' for k, v in run.timings.items())})"
     )

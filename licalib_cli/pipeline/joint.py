@@ -51,7 +51,7 @@ from licalib_cli.pipeline import CalibrationRun, calibrate
 from licalib_cli.pipeline.points import points_in_global, solver_points, usable_points
 from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.pipeline.segments import _with_range, select_segments
-from licalib_cli.pipeline.settings import intrinsic_priors, round_settings
+from licalib_cli.pipeline.settings import intrinsic_priors, lm_params, round_settings
 from licalib_cli.progress import NullProgress, Progress
 from licalib_cli.residuals import (
     ACCEL_BIAS_DRIFT,
@@ -241,11 +241,12 @@ def joint_problem(
     return problem
 
 
-def _segment_values(problem: Problem, k: int, names: Sequence[str]) -> dict[str, F64]:
+def _segment_values(problem: Problem, k: int) -> dict[str, F64]:
+    """Segment ``k``'s values under their single-segment block names."""
     own = per_segment_blocks()
     values = problem.values()
     out = {}
-    for name in names:
+    for name in (spec.name for spec in BLOCK_SPECS):
         joint = segment_name(k, name) if name in own else name
         if joint in values:
             out[name] = values[joint]
@@ -406,11 +407,8 @@ def calibrate_segments(
                 _reassociate(s, d, cfg, r) for s, d, r in zip(states, inputs, runs, strict=True)
             ]
         problem = joint_problem(states, inputs, free)
-        names = [b.name for b in build_names(states[0], inputs[0], free)]
-        report = solve(problem, round_settings(cfg, runs[0].noise, 1.0, False).solver)
-        states = [
-            state_from_values(s, _segment_values(problem, k, names)) for k, s in enumerate(states)
-        ]
+        report = solve(problem, lm_params(cfg))
+        states = [state_from_values(s, _segment_values(problem, k)) for k, s in enumerate(states)]
         logger.info(
             "Joint round %d over %d segments: cost %.1f -> %.1f in %d iterations.",
             rnd + 1,
@@ -423,13 +421,6 @@ def calibrate_segments(
     timings["joint"] = time.perf_counter() - clock
     result = _joint_result(runs, kept, states, report, best)
     return JointRun(result, tuple(runs), tuple(kept), report, tuple(states), timings)
-
-
-def build_names(state: CalibrationState, data: RoundInputs, free: FreeParameters) -> list:
-    """The parameter blocks a single segment's problem has (names and order)."""
-    return list(
-        build_problem(state, data.imu, data.lidar, data.planes, data.noise, free).parameter_blocks
-    )
 
 
 def _sigma_size(run: CalibrationRun) -> float:

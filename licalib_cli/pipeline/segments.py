@@ -38,7 +38,7 @@ import logging
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -98,7 +98,7 @@ logger = logging.getLogger(__name__)
 F64 = npt.NDArray[np.float64]
 _NS = 1_000_000_000
 
-ESTIMATE_S = 8.0
+ESTIMATE_S = 6.0
 """Seconds of the bag the common estimate is initialised on (at most the window length)."""
 
 POINTS_PER_SCAN = 300
@@ -606,13 +606,7 @@ def choose(
             continue
         taken.append(w)
         chosen.add(i)
-    return tuple(_replace(w, rank=rank[i], selected=i in chosen) for i, w in enumerate(windows))
-
-
-def _replace(w: WindowScore, **changes: object) -> WindowScore:
-    from dataclasses import replace
-
-    return replace(w, **changes)  # type: ignore[arg-type]
+    return tuple(replace(w, rank=rank[i], selected=i in chosen) for i, w in enumerate(windows))
 
 
 def _weak(info: InformationSummary, threshold: float) -> tuple[str, ...]:
