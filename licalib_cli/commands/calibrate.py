@@ -158,10 +158,6 @@ def calibrate_command(
             **_intrinsics_overrides(intrinsics),
         },
     )
-    if plots is not None:
-        from licalib_cli.plots import prepare_plots
-
-        prepare_plots(plots)
     if segments is not None:
         from licalib_cli.commands.segments_render import run_segments
 
@@ -171,8 +167,15 @@ def calibrate_command(
                 "(select-segments --start/--duration restricts the search)."
             )
             raise ConfigError(msg)
+        if plots is not None:
+            msg = "--plots draws one segment's fit; drop it with --segments."
+            raise ConfigError(msg)
         run_segments(bag, cfg, segments, out, config_out, reference)
         return
+    if plots is not None:
+        from licalib_cli.plots import prepare_plots
+
+        prepare_plots(plots)
     if model is ModelChoice.AUTO and intrinsics is not None:
         msg = "--model auto chooses the intrinsics itself; drop --intrinsics or use --model config."
         raise ConfigError(msg)

@@ -185,9 +185,12 @@ def select_segments_command(
     else:
         out = console()
         out.print(render_selection(sel))
-        chosen = ", ".join(f"{w.start_s:.1f}-{w.end_s:.1f}" for w in sel.selected)
+        chosen = ",".join(f"{w.start_s:g}-{w.end_s:g}" for w in sel.selected)
         out.print(f"Common estimate: {sel.estimate.source}.")
-        out.print(f"Selected: {chosen or 'none'}  (calibrate BAG --segments {chosen or 'auto'})")
+        if chosen:
+            out.print(f"Selected: {chosen}  (licalib calibrate BAG --segments {chosen})")
+        else:
+            out.print("Selected: none (no window reaches --threshold).")
         stages = ", ".join(f"{k} {v:.1f} s" for k, v in sel.timings.items())
         out.print(f"Stages: {stages}")
     if plot is not None:
