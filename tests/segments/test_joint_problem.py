@@ -3,6 +3,8 @@ offset; its cost and calibration information are those of the segments added up.
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -17,7 +19,12 @@ from licalib_cli.estimation import (
 )
 from licalib_cli.geometry.so3 import exp as so3_exp
 from licalib_cli.models.intrinsics import LidarIntrinsics
-from licalib_cli.pipeline.joint import joint_problem, per_segment_blocks, segment_name
+from licalib_cli.pipeline.joint import (
+    _disagreement,
+    joint_problem,
+    per_segment_blocks,
+    segment_name,
+)
 from licalib_cli.pipeline.points import PointSample
 from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.residuals import (
@@ -30,6 +37,8 @@ from licalib_cli.residuals import (
     TRAJ_R3,
     TRAJ_SO3,
 )
+from licalib_cli.results import Extrinsic
+from licalib_cli.sections import Uncertainty
 from licalib_cli.solver import LMParams, solve
 from licalib_cli.solver.observability import calibration_information
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
@@ -156,3 +165,20 @@ def test_joint_solve_recovers_shared_extrinsic_and_own_time_offsets(two_segments
     np.testing.assert_allclose(values[EXT_TRANSLATION], T_TRUE, atol=1e-4)
     assert values["seg1:ext.time_offset"].reshape(-1)[0] == pytest.approx(0.004, abs=2e-5)
     assert values["seg2:ext.time_offset"].reshape(-1)[0] == pytest.approx(-0.003, abs=2e-5)
+
+
+def test_disagreement_is_measured_in_the_segments_own_sigmas() -> None:
+    own = Extrinsic(np.eye(3), np.array([0.3, 0.15, 0.05]), 0.0)
+    unc = Uncertainty((0.001, 0.001, 0.002), (0.01, 0.01, 0.01), 1e-5)
+    run = SimpleNamespace(result=SimpleNamespace(extrinsic=own, uncertainty=unc))
+    moved = Extrinsic(np.eye(3), own.translation + np.array([0.0, 0.0, 0.01]), 0.0)
+    assert _disagreement(run, moved) == pytest.approx(5.0)  # 1 cm on z, sigma 2 mm
+    turned = Extrinsic(so3_exp(np.deg2rad([0.0, 0.03, 0.0])), own.translation, 0.0)
+    assert _disagreement(run, turned) == pytest.approx(3.0, rel=1e-6)
+    # an axis the segment alone cannot determine (infinite sigma) never disagrees
+    blind = SimpleNamespace(
+        result=SimpleNamespace(
+            extrinsic=own, uncertainty=Uncertainty((np.inf,) * 3, (0.01,) * 3, 1)
+        )
+    )
+    assert _disagreement(blind, moved) == 0.0
