@@ -21,8 +21,11 @@ if TYPE_CHECKING:
 
 def render_segments(run: JointRun, truth: Truth | None = None) -> Table:
     """One row per segment (calibrated alone) and one for the joint estimate."""
-    table = Table(title="T_imu_lidar per segment (calibrated alone) and jointly; sigma in brackets")
-    for col in ("segment", "t [mm]", "roll/pitch/yaw [deg]", "time offset [ms]", "sigmas off"):
+    table = Table(
+        title="T_imu_lidar per segment (calibrated alone) and jointly, largest 1-sigma in "
+        "brackets; time offset alone -> in the joint problem"
+    )
+    for col in ("segment", "t, mm", "roll/pitch/yaw, deg", "time offset, ms", "sigmas off"):
         table.add_column(col, justify="left" if col == "segment" else "right")
 
     def t_text(t: np.ndarray, s: tuple[float, ...]) -> str:
