@@ -179,7 +179,14 @@ def select_segments_command(
             "bag.duration_s": duration,
         },
     )
-    sel = select_segments(bag, cfg, length, step, top, threshold, every)
+    from licalib_cli.commands.calibrate import RichProgress
+
+    progress = RichProgress()
+    progress.stage("windows")
+    try:
+        sel = select_segments(bag, cfg, length, step, top, threshold, every, progress.advance)
+    finally:
+        progress.close()
     if as_json:
         typer.echo(json.dumps(_jsonable(sel.to_dict()), indent=2))
     else:

@@ -332,6 +332,26 @@ def _disagreement(run: CalibrationRun, joint: Extrinsic) -> float:
     return float(z.max()) if z.size else 0.0
 
 
+class _KeptOpen:
+    """The caller's progress for one segment's calibration after another: ``calibrate``
+    closes its progress when it is done, the segments must not."""
+
+    def __init__(self, inner: Progress) -> None:
+        self.inner = inner
+
+    def stage(self, name: str, total: int | None = None) -> None:
+        self.inner.stage(name, total)
+
+    def advance(self, done: int, total: int | None = None) -> None:
+        self.inner.advance(done, total)
+
+    def note(self, text: str) -> None:
+        self.inner.note(text)
+
+    def close(self) -> None:
+        return None
+
+
 def calibrate_segments(
     bag: Path,
     cfg: CalibConfig,
@@ -372,10 +392,11 @@ def calibrate_segments(
         windows = parse_segments(segments, bag_duration_s(bag))
     runs: list[CalibrationRun] = []
     kept: list[tuple[float, float]] = []
+    shared_progress = _KeptOpen(progress)
     for a, b in windows:
         clock = time.perf_counter()
         try:
-            run = calibrate(bag, _with_range(cfg, a, b - a), progress)
+            run = calibrate(bag, _with_range(cfg, a, b - a), shared_progress)
         except LicalibError as err:
             if segments.strip().lower() != "auto" or isinstance(err, ConfigError):
                 raise
@@ -442,7 +463,12 @@ def _joint_result(
 ) -> CalibrationResult:
     names = report.calibration_names
     std = dict(zip(names, report.std, strict=True))
-    offsets = np.array([s.time_offset_s for s in states])
+    # each segment's time offset is on its own LiDAR clock shift; put them on the reference's
+    shift = [
+        r.result.recording.lidar_clock_shift_s if r.result.recording is not None else 0.0
+        for r in runs
+    ]
+    offsets = np.array([s.time_offset_s + shift[k] - shift[best] for k, s in enumerate(states)])
     sig = np.array([std.get(f"seg{k + 1}:{TIME_OFFSET}", np.inf) for k in range(len(states))])
     w = np.where(np.isfinite(sig) & (sig > 0), 1.0 / np.maximum(sig, 1e-12) ** 2, 0.0)
     if w.sum() > 0:
