@@ -40,7 +40,15 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
-_state = {"debug": False}
+_state: dict[str, object] = {"debug": False, "args": ()}
+
+
+def command_line() -> str:
+    """The command line of this run as a shell would take it (for provenance)."""
+    import shlex
+
+    return shlex.join(["licalib", *(str(a) for a in _state["args"])])  # type: ignore[attr-defined]
+
 
 USAGE_ERROR_EXIT_CODE = ConfigError.exit_code
 """Exit code of a command-line usage error: an invalid option is an invalid configuration."""
@@ -83,6 +91,7 @@ def _register() -> None:
         diagnose,
         export,
         info,
+        report,
         select_segments,
         simulate,
     )
@@ -92,6 +101,7 @@ def _register() -> None:
     app.command("simulate")(simulate.simulate_command)
     app.add_typer(config_cmd.app, name="config")
     app.command("export")(export.export_command)
+    app.command("report")(report.report_command)
     app.command("diagnose")(diagnose.diagnose_command)
     app.command("select-segments")(select_segments.select_segments_command)
 
@@ -201,6 +211,7 @@ def main(argv: list[str] | None = None) -> None:
     not shown unless ``--debug``.
     """
     args = list(argv) if argv is not None else sys.argv[1:]
+    _state["args"] = tuple(args)
     debug = "--debug" in args
     _interrupt.clear()
     _watch_interrupts()
