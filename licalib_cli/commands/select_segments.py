@@ -71,9 +71,9 @@ def render_selection(sel: Selection, limit: int | None = None) -> Table:
 def save_selection_plot(sel: Selection, path: Path) -> Path:
     """The paper's figure: the metric per window over the angular rate and acceleration of
     the whole bag (selected windows shaded)."""
-    from licalib_cli.plots import _pyplot
+    from licalib_cli.plots import pyplot
 
-    plt = _pyplot()
+    plt = pyplot()
     fig, (ax_m, ax_w, ax_a) = plt.subplots(3, 1, figsize=(10, 7), sharex=True)
     for w in sel.windows:
         colour = "tab:green" if w.selected else "tab:blue"
@@ -166,9 +166,9 @@ def select_segments_command(
     from licalib_cli.pipeline.segments import select_segments
 
     if plot is not None:
-        from licalib_cli.plots import _pyplot
+        from licalib_cli.plots import pyplot
 
-        _pyplot()
+        pyplot()
         prepare_output(plot, [("the input bag", bag), ("the config file", config)])
     cfg = load_config(
         config,
