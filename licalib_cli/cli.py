@@ -94,6 +94,7 @@ def _register() -> None:
         export,
         info,
         report,
+        select_segments,
         simulate,
     )
 
@@ -105,6 +106,7 @@ def _register() -> None:
     app.command("report")(report.report_command)
     app.command("diagnose")(diagnose.diagnose_command)
     app.command("batch")(batch.batch_command)
+    app.command("select-segments")(select_segments.select_segments_command)
 
 
 _register()

@@ -45,6 +45,7 @@ from licalib_cli.sections import (
     Observability,
     Provenance,
     RecordingSection,
+    SegmentsSection,
     Uncertainty,
     VerdictSection,
 )
@@ -248,6 +249,7 @@ _SECTIONS: tuple[tuple[str, type], ...] = (
     ("recording", RecordingSection),
     ("factory_extrinsic", FactoryExtrinsicSection),
     ("provenance", Provenance),
+    ("segments", SegmentsSection),
 )
 
 
@@ -261,9 +263,9 @@ class CalibrationResult:
         lidar_intrinsics: per-beam LiDAR intrinsics, or None when not part of the file.
         gravity_G: (3,) gravity in the first IMU frame, m/s^2, or None.
         model, uncertainty, intrinsics_uncertainty, observability, verdict, consistency,
-            initialization, fit, recording, factory_extrinsic, provenance: the typed sections
-            ``calibrate`` writes
-            (:mod:`licalib_cli.sections`), None when the file has none.
+            initialization, fit, recording, factory_extrinsic, provenance, segments: the typed
+            sections ``calibrate`` writes (:mod:`licalib_cli.sections`), None when the file
+            has none.
     """
 
     extrinsic: Extrinsic = field(default_factory=Extrinsic)
@@ -281,6 +283,7 @@ class CalibrationResult:
     recording: RecordingSection | None = None
     factory_extrinsic: FactoryExtrinsicSection | None = None
     provenance: Provenance | None = None
+    segments: SegmentsSection | None = None
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"schema_version": SCHEMA_VERSION}

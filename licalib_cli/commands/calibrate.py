@@ -178,6 +178,13 @@ def calibrate_command(
     duration: float | None = typer.Option(
         None, "--duration", help="Seconds of data to use.", rich_help_panel=_IO
     ),
+    segments: str | None = typer.Option(
+        None,
+        "--segments",
+        help="Calibrate over several segments in one problem: auto (the best windows by "
+        "`licalib select-segments`) or START-END,... in seconds, e.g. 60-75,105-120.",
+        rich_help_panel=_IO,
+    ),
     model: ModelChoice = typer.Option(
         ModelChoice.CONFIG,
         "--model",
@@ -261,6 +268,30 @@ def calibrate_command(
             **_intrinsics_overrides(intrinsics),
         },
     )
+    if segments is not None:
+        from licalib_cli.commands.segments_render import run_segments
+
+        if model is ModelChoice.AUTO or start is not None or duration is not None:
+            msg = (
+                "--segments chooses the data itself; drop --start/--duration and --model auto "
+                "(select-segments --start/--duration restricts the search)."
+            )
+            raise ConfigError(msg)
+        drawn = [
+            o
+            for o, v in (
+                ("--plots", plots),
+                ("--report", report),
+                ("--map", map_file),
+                ("--map-before", map_before),
+            )
+            if v is not None
+        ]
+        if drawn:
+            msg = f"{drawn[0]} shows one segment's fit; drop it with --segments."
+            raise ConfigError(msg)
+        run_segments(bag, cfg, segments, out, config_out, reference)
+        return
     if plots is not None:
         from licalib_cli.plots import prepare_plots
 

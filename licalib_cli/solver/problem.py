@@ -373,6 +373,11 @@ class Problem:
         """All residual blocks in insertion order."""
         return tuple(self._residuals)
 
+    @property
+    def losses(self) -> tuple[Loss | None, ...]:
+        """The robust loss of each residual block (None: plain squares), in the same order."""
+        return tuple(self._losses)
+
     def __getitem__(self, name: str) -> ParameterBlock:
         """The parameter block called ``name``."""
         return self._blocks[name]
