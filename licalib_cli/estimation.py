@@ -517,7 +517,7 @@ def state_from_values(
     so3 = state.so3_spline if (v := get(TRAJ_SO3)) is None else SO3Spline(knots, v)
     r3 = state.r3_spline if (v := get(TRAJ_R3)) is None else R3Spline(knots, v)
     imu = state.imu_intrinsics
-    imu_changes: dict[str, object] = {}
+    imu_changes: dict[str, F64] = {}
     for block, attr in (
         (GYRO_SCALE, "gyro_scale"),
         (GYRO_MISALIGNMENT, "gyro_misalignment"),

@@ -45,6 +45,7 @@ from licalib_cli.sections import (
     Observability,
     Provenance,
     RecordingSection,
+    Section,
     SegmentsSection,
     Uncertainty,
     VerdictSection,
@@ -237,7 +238,7 @@ def lidar_intrinsics_from_dict(d: dict[str, Any]) -> LidarIntrinsics:
         raise ConfigError(msg) from err
 
 
-_SECTIONS: tuple[tuple[str, type], ...] = (
+_SECTIONS: tuple[tuple[str, type[Section]], ...] = (
     ("model", ModelInfo),
     ("uncertainty", Uncertainty),
     ("intrinsics_uncertainty", IntrinsicsUncertainty),

@@ -7,7 +7,7 @@ import json
 import logging
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
 from rich.console import Console
@@ -15,6 +15,9 @@ from rich.table import Table
 
 from licalib_cli.commands.render import console, console_err
 from licalib_cli.errors import BatchIncomplete
+
+if TYPE_CHECKING:
+    from rich.progress import TaskID
 
 _IO = "Input"
 _OUT = "Output"
@@ -40,7 +43,7 @@ class BatchProgress:
             console=console_err(),
             transient=True,
         )
-        self._task: int | None = None
+        self._task: TaskID | None = None
         self._started = False
 
     def stage(self, name: str, total: int | None = None) -> None:

@@ -16,6 +16,8 @@ from licalib_cli.results import check_not_an_input, prepare_output, write_text_a
 from licalib_cli.truth import Truth
 
 if TYPE_CHECKING:
+    from rich.progress import TaskID
+
     from licalib_cli.config import CalibConfig
     from licalib_cli.pipeline import CalibrationRun
 
@@ -62,7 +64,7 @@ class RichProgress:
             console=console_err(),
             transient=True,
         )
-        self._task: int | None = None
+        self._task: TaskID | None = None
         if self._enabled:
             self._progress.start()
 

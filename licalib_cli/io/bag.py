@@ -381,11 +381,11 @@ class BagHandle:
         if self.ros1:
             return "ros1"
         paths = self._reader.paths
-        names = [p.name for p in paths]
+        names = [p.name for p in paths]  # type: ignore[attr-defined]
         if any(n.endswith(".mcap") for n in names):
             return "ros2-mcap"
         folder = paths[0]
-        if folder.is_dir() and any(folder.glob("*.mcap")):
+        if folder.is_dir() and any(folder.glob("*.mcap")):  # type: ignore[attr-defined]
             return "ros2-mcap"
         return "ros2-db3"
 

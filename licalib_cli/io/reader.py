@@ -785,9 +785,9 @@ def _nonfinite_findings(raw: RawImu, topic: str) -> tuple[npt.NDArray[np.bool_],
     ``(bad mask, findings)``. Isolated ones (at most 1 % of the samples, in runs of at most 3)
     are dropped with a warning; otherwise the IMU is unusable."""
     with np.errstate(invalid="ignore"):  # NaN compares False: bad
-        fine = (np.abs(raw.gyro) < _MAX_IMU_READING).all(axis=1) & (
-            np.abs(raw.accel) < _MAX_IMU_READING
-        ).all(axis=1)
+        fine = np.all(np.abs(raw.gyro) < _MAX_IMU_READING, axis=1) & np.all(
+            np.abs(raw.accel) < _MAX_IMU_READING, axis=1
+        )
     bad = ~fine
     n_bad = int(bad.sum())
     if n_bad == 0:
@@ -1588,7 +1588,7 @@ def read_lidar_stream(
     findings += tally.problems(cfg.lidar.max_skipped_fraction)
     findings += [Finding(w, False, ConfigError) for w in layout.time.warnings]
     findings += _loss_findings(topic, "LiDAR", lost)
-    if shift:
+    if shift and clock is not None:
         findings.append(
             Finding(
                 f"The IMU and LiDAR stamps use different clocks ({clock / _NS:+.3f} s apart); "

@@ -82,7 +82,8 @@ def factory_section(rec: Recording, calibrated: Extrinsic) -> FactoryExtrinsicSe
 
 def model_info(fit: Fit, cfg: CalibConfig) -> ModelInfo:
     """Which intrinsics were estimated, the gauge beam and the beams held for lack of points."""
-    gauge, held = -1, ()
+    gauge = -1
+    held: tuple[int, ...] = ()
     if cfg.model.lidar:
         counts = beam_point_counts(fit.inputs.lidar, fit.state.lidar_intrinsics.num_beams)
         enough = counts >= cfg.model.min_points_per_beam

@@ -441,7 +441,7 @@ def check(fit: Fit, guess: InitialGuess, noise: NoiseLevels, cfg: CalibConfig) -
     effects = effect_evidence(fit.state, fit.inputs, fit.report.variance_factor)
     split = split_half(fit.state, fit.inputs, cfg)
     planes = map_uncertainty(fit.state, fit.inputs, fit.report)
-    notes = ()
+    notes: tuple[str, ...] = ()
     if guess.rotation_source == SINGLE_AXIS:
         notes = (
             "The rig turned about one axis only; the rotation about it rests on the "
@@ -564,7 +564,7 @@ def intrinsics_uncertainty(
     values: dict[str, tuple[float | None, ...]] = {}
     for block in cfg.model.imu:
         block_name = "imu.gyro_g_sensitivity" if block == "g_sensitivity" else f"imu.{block}"
-        key = "gyro_rotation_deg" if block == "gyro_rotation" else block
+        key: str = "gyro_rotation_deg" if block == "gyro_rotation" else block
         values[key] = tuple(
             get(f"{block_name}.{s}", block == "gyro_rotation") for s in _IMU_SUFFIXES[block]
         )

@@ -61,7 +61,7 @@ from licalib_cli.residuals import (
     TIME_DRIFT,
     TIME_OFFSET,
 )
-from licalib_cli.results import CalibrationResult, Extrinsic, rpy_deg_from_matrix
+from licalib_cli.results import CalibrationResult, Extrinsic, _vec3, rpy_deg_from_matrix
 from licalib_cli.sections import (
     Observability,
     SegmentEstimate,
@@ -504,11 +504,11 @@ def _joint_result(
             SegmentEstimate(
                 start_s=float(a),
                 end_s=float(b),
-                translation=tuple(float(x) for x in own.translation),
-                rotation_rpy_deg=tuple(float(x) for x in rpy_deg_from_matrix(own.rotation)),
+                translation=_vec3(own.translation),
+                rotation_rpy_deg=_vec3(rpy_deg_from_matrix(own.rotation)),
                 time_offset_s=float(own.time_offset_s),
-                translation_std_m=tuple(float(x) for x in ou.translation_std_m),
-                rotation_std_deg=tuple(float(x) for x in ou.rotation_std_deg),
+                translation_std_m=_vec3(ou.translation_std_m),
+                rotation_std_deg=_vec3(ou.rotation_std_deg),
                 time_offset_std_s=float(ou.time_offset_std_s),
                 joint_time_offset_s=float(states[k].time_offset_s),
                 joint_time_offset_std_s=float(std.get(f"seg{k + 1}:{TIME_OFFSET}", np.inf)),

@@ -192,12 +192,12 @@ def _binned_max(t_s: F64, value: F64, start_s: float, end_s: float) -> tuple[F64
     idx = np.clip(((t_s - start_s) / _BIN_S).astype(np.int64), 0, n - 1)
     out = np.zeros(n)
     np.maximum.at(out, idx, value)
-    return start_s + (np.arange(n) + 0.5) * _BIN_S, out
+    return start_s + (np.arange(n, dtype=np.float64) + 0.5) * _BIN_S, out
 
 
 def excitation_of(imu: ImuSamples, bag_start_ns: int, span: tuple[float, float]) -> Excitation:
     """The binned angular rate and acceleration of the IMU samples."""
-    t = (imu.t_ns - bag_start_ns) * 1e-9
+    t = np.asarray((imu.t_ns - bag_start_ns) * 1e-9, dtype=np.float64)
     w = np.linalg.norm(imu.gyro, axis=1)
     a = np.abs(np.linalg.norm(imu.accel, axis=1) - GRAVITY_NORM)
     tc, wb = _binned_max(t, w, *span)
