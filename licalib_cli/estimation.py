@@ -44,6 +44,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -230,9 +231,9 @@ class CalibrationState:
         """The shared knot vector."""
         return self.so3_spline.knots
 
-    def with_(self, **changes: object) -> CalibrationState:
+    def with_(self, **changes: Any) -> CalibrationState:
         """Copy with some fields replaced."""
-        return replace(self, **changes)  # type: ignore[arg-type]
+        return replace(self, **changes)
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ from licalib_cli.pipeline.checks import Checks
 from licalib_cli.pipeline.initialise import InitialGuess
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.schedule import Fit
-from licalib_cli.results import CalibrationResult, Extrinsic
+from licalib_cli.results import CalibrationResult, Extrinsic, vec3
 from licalib_cli.sections import (
     FactoryExtrinsicSection,
     FitSection,
@@ -111,7 +111,7 @@ def assemble(
         lidar_intrinsics=state.lidar_intrinsics if cfg.model.lidar else None,
         model=model_info(fit, cfg),
         intrinsics_uncertainty=checks.intrinsics_uncertainty,
-        gravity_G=tuple(round(float(x), 6) for x in state.gravity_G),  # type: ignore[arg-type]
+        gravity_G=vec3(round(float(x), 6) for x in state.gravity_G),
         uncertainty=checks.uncertainty,
         observability=checks.observability,
         verdict=checks.verdict,
@@ -127,7 +127,7 @@ def assemble(
             if hand_eye is None
             else float(f"{hand_eye.conditioning:.4g}"),
             translation_source=guess.translation_source,
-            initial_translation_m=tuple(round(float(x), 6) for x in guess.t_imu_lidar),  # type: ignore[arg-type]
+            initial_translation_m=vec3(round(float(x), 6) for x in guess.t_imu_lidar),
         ),
         fit=FitSection(
             rounds=len(fit.rounds),

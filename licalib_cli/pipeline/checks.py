@@ -41,6 +41,7 @@ from licalib_cli.pipeline.map_uncertainty import MapUncertainty, map_uncertainty
 from licalib_cli.pipeline.schedule import Fit
 from licalib_cli.pipeline.settings import NoiseLevels
 from licalib_cli.pipeline.split import SplitResult, split_half
+from licalib_cli.results import vec3
 from licalib_cli.sections import (
     Consistency,
     EffectCheck,
@@ -507,8 +508,8 @@ def run_checks(
     return Checks(
         verdict=verdict,
         uncertainty=Uncertainty(
-            translation_std_m=tuple(float(x) for x in sigma[:3]),  # type: ignore[arg-type]
-            rotation_std_deg=tuple(float(np.degrees(x)) for x in sigma[3:6]),  # type: ignore[arg-type]
+            translation_std_m=vec3(sigma[:3]),
+            rotation_std_deg=vec3(np.degrees(x) for x in sigma[3:6]),
             time_offset_std_s=float(sigma[6]),
         ),
         raw_sigma=raw,
@@ -581,8 +582,8 @@ def _effect_section(e: EffectEvidence, raw: F64) -> EffectCheck:
         statistic=float(e.score.statistic),
         dof=int(e.score.rank),
         p_value=float(e.score.p_value),
-        shift_translation_m=tuple(float(x) for x in e.shift_translation_m),  # type: ignore[arg-type]
-        shift_rotation_deg=tuple(float(np.degrees(x)) for x in e.shift_rotation_rad),  # type: ignore[arg-type]
+        shift_translation_m=vec3(e.shift_translation_m),
+        shift_rotation_deg=vec3(np.degrees(x) for x in e.shift_rotation_rad),
         shift_time_offset_s=float(e.shift_time_offset_s),
         selected=e.selected,
         material=effect_is_material(e, raw),

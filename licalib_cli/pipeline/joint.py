@@ -61,7 +61,7 @@ from licalib_cli.residuals import (
     TIME_DRIFT,
     TIME_OFFSET,
 )
-from licalib_cli.results import CalibrationResult, Extrinsic, _vec3, rpy_deg_from_matrix
+from licalib_cli.results import CalibrationResult, Extrinsic, rpy_deg_from_matrix, vec3
 from licalib_cli.sections import (
     Observability,
     SegmentEstimate,
@@ -71,7 +71,7 @@ from licalib_cli.sections import (
 )
 from licalib_cli.solver.lm import SolverReport, solve
 from licalib_cli.solver.parameters import ParameterBlock
-from licalib_cli.solver.problem import Problem, ResidualEval
+from licalib_cli.solver.problem import Problem, ResidualBlock, ResidualEval
 from licalib_cli.surfels import associate_points, build_surfels
 
 __all__ = [
@@ -172,14 +172,14 @@ def bag_duration_s(bag: Path) -> float:
 class _Renamed:
     """A segment's residual block in the joint problem: parameter names mapped both ways."""
 
-    def __init__(self, inner: object, rename: Mapping[str, str], prefix: str) -> None:
+    def __init__(self, inner: ResidualBlock, rename: Mapping[str, str], prefix: str) -> None:
         self.inner = inner
         self.rename = dict(rename)
-        self.name = f"{prefix}{inner.name}"  # type: ignore[attr-defined]
+        self.name = f"{prefix}{inner.name}"
 
     def evaluate(self, params: Mapping[str, F64], jacobians: bool = True) -> ResidualEval:
         local = {own: params[joint] for own, joint in self.rename.items() if joint in params}
-        ev = self.inner.evaluate(local, jacobians)  # type: ignore[attr-defined]
+        ev = self.inner.evaluate(local, jacobians)
         jac = tuple(replace(j, block=self.rename.get(j.block, j.block)) for j in ev.jacobians)
         return ResidualEval(ev.residuals, jac)
 
@@ -312,11 +312,7 @@ def _std(report: SolverReport, prefix: str) -> F64:
 def _uncertainty(report: SolverReport) -> Uncertainty:
     t = _std(report, EXT_TRANSLATION)
     r = np.degrees(_std(report, EXT_ROTATION))
-    return Uncertainty(
-        tuple(float(x) for x in t),  # type: ignore[arg-type]
-        tuple(float(x) for x in r),  # type: ignore[arg-type]
-        float("nan"),
-    )
+    return Uncertainty(vec3(t), vec3(r), float("nan"))
 
 
 def _disagreement(run: CalibrationRun, joint: Extrinsic) -> float:
@@ -504,11 +500,11 @@ def _joint_result(
             SegmentEstimate(
                 start_s=float(a),
                 end_s=float(b),
-                translation=_vec3(own.translation),
-                rotation_rpy_deg=_vec3(rpy_deg_from_matrix(own.rotation)),
+                translation=vec3(own.translation),
+                rotation_rpy_deg=vec3(rpy_deg_from_matrix(own.rotation)),
                 time_offset_s=float(own.time_offset_s),
-                translation_std_m=_vec3(ou.translation_std_m),
-                rotation_std_deg=_vec3(ou.rotation_std_deg),
+                translation_std_m=vec3(ou.translation_std_m),
+                rotation_std_deg=vec3(ou.rotation_std_deg),
                 time_offset_std_s=float(ou.time_offset_std_s),
                 joint_time_offset_s=float(states[k].time_offset_s),
                 joint_time_offset_std_s=float(std.get(f"seg{k + 1}:{TIME_OFFSET}", np.inf)),
