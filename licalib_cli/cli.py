@@ -6,7 +6,8 @@ message and exits with its code. Tracebacks appear only with ``--debug``.
 Exit codes: 0 success; 1 generic error (and an output pipe closed early, quietly); 2 bag
 unreadable; 3 topic problem; 4 unusable data; 5 timestamp problem; 6 invalid configuration or
 option (command-line usage errors included); 7 insufficient excitation; 8 solver failure;
-9 verdict fail; 10 not converged; 130 interrupted ("Interrupted." on standard error, also when
+9 verdict fail; 10 not converged; 11 Dask cluster unreachable (``batch``); 12 some bags of a
+``batch`` failed; 130 interrupted ("Interrupted." on standard error, also when
 Ctrl-C lands inside a library that turns it into another exception). ``info --json`` prints
 one JSON object with ``problems`` whatever the outcome.
 """
@@ -40,7 +41,15 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
-_state = {"debug": False}
+_state: dict[str, object] = {"debug": False, "args": ()}
+
+
+def command_line() -> str:
+    """The command line of this run as a shell would take it (for provenance)."""
+    import shlex
+
+    return shlex.join(["licalib", *(str(a) for a in _state["args"])])  # type: ignore[attr-defined]
+
 
 USAGE_ERROR_EXIT_CODE = ConfigError.exit_code
 """Exit code of a command-line usage error: an invalid option is an invalid configuration."""
@@ -77,14 +86,27 @@ def _root(
 
 
 def _register() -> None:
-    from licalib_cli.commands import calibrate, config_cmd, diagnose, export, info, simulate
+    from licalib_cli.commands import (
+        batch,
+        calibrate,
+        config_cmd,
+        diagnose,
+        export,
+        info,
+        report,
+        select_segments,
+        simulate,
+    )
 
     app.command("calibrate")(calibrate.calibrate_command)
     app.command("info")(info.info_command)
     app.command("simulate")(simulate.simulate_command)
     app.add_typer(config_cmd.app, name="config")
     app.command("export")(export.export_command)
+    app.command("report")(report.report_command)
     app.command("diagnose")(diagnose.diagnose_command)
+    app.command("batch")(batch.batch_command)
+    app.command("select-segments")(select_segments.select_segments_command)
 
 
 _register()
@@ -192,6 +214,7 @@ def main(argv: list[str] | None = None) -> None:
     not shown unless ``--debug``.
     """
     args = list(argv) if argv is not None else sys.argv[1:]
+    _state["args"] = tuple(args)
     debug = "--debug" in args
     _interrupt.clear()
     _watch_interrupts()

@@ -37,6 +37,7 @@ from licalib_cli.geometry import so3
 from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
 from licalib_cli.sections import (
     Consistency,
+    FactoryExtrinsicSection,
     FitSection,
     InitializationSection,
     IntrinsicsUncertainty,
@@ -44,6 +45,8 @@ from licalib_cli.sections import (
     Observability,
     Provenance,
     RecordingSection,
+    Section,
+    SegmentsSection,
     Uncertainty,
     VerdictSection,
 )
@@ -56,7 +59,8 @@ def _list(a: npt.ArrayLike, digits: int = 9) -> list[float]:
     return [round(float(x), digits) for x in np.asarray(a, dtype=np.float64).reshape(-1)]
 
 
-def _vec3(values: Any) -> tuple[float, float, float]:
+def vec3(values: Any) -> tuple[float, float, float]:
+    """Three numbers (an array, a sequence or an iterable) as a tuple of floats."""
     x, y, z = (float(v) for v in values)
     return (x, y, z)
 
@@ -116,6 +120,27 @@ class Extrinsic:
             rotation=rot,
             translation=np.asarray(d.get("translation", [0.0, 0.0, 0.0]), dtype=np.float64),
             time_offset_s=float(d.get("time_offset_s", 0.0)),
+        )
+
+    def factory_difference(
+        self, factory: Extrinsic, source: str, sensor: str, cloud_frame: str
+    ) -> FactoryExtrinsicSection:
+        """The factory extrinsic ``factory`` and this calibration's difference from it (see
+        :class:`~licalib_cli.sections.FactoryExtrinsicSection`)."""
+        d_rot = so3.log(factory.rotation.T @ self.rotation)
+        d_t = self.translation - factory.translation
+        qx, qy, qz, qw = _list(factory.quaternion, 12)
+        return FactoryExtrinsicSection(
+            source=source,
+            sensor=sensor,
+            cloud_frame=cloud_frame,
+            translation=vec3(_list(factory.translation)),
+            rotation_quaternion=(qx, qy, qz, qw),
+            rotation_rpy_deg=vec3(_list(rpy_deg_from_matrix(factory.rotation))),
+            difference_translation_m=vec3(_list(d_t)),
+            difference_translation_norm_m=round(float(np.linalg.norm(d_t)), 9),
+            difference_rotation_deg=round(float(np.degrees(np.linalg.norm(d_rot))), 9),
+            difference_rotation_vector_deg=vec3(_list(np.degrees(d_rot))),
         )
 
     def error_to(self, other: Extrinsic) -> dict[str, float]:
@@ -215,7 +240,7 @@ def lidar_intrinsics_from_dict(d: dict[str, Any]) -> LidarIntrinsics:
         raise ConfigError(msg) from err
 
 
-_SECTIONS: tuple[tuple[str, type], ...] = (
+_SECTIONS: tuple[tuple[str, type[Section]], ...] = (
     ("model", ModelInfo),
     ("uncertainty", Uncertainty),
     ("intrinsics_uncertainty", IntrinsicsUncertainty),
@@ -225,7 +250,9 @@ _SECTIONS: tuple[tuple[str, type], ...] = (
     ("initialization", InitializationSection),
     ("fit", FitSection),
     ("recording", RecordingSection),
+    ("factory_extrinsic", FactoryExtrinsicSection),
     ("provenance", Provenance),
+    ("segments", SegmentsSection),
 )
 
 
@@ -239,8 +266,9 @@ class CalibrationResult:
         lidar_intrinsics: per-beam LiDAR intrinsics, or None when not part of the file.
         gravity_G: (3,) gravity in the first IMU frame, m/s^2, or None.
         model, uncertainty, intrinsics_uncertainty, observability, verdict, consistency,
-            initialization, fit, recording, provenance: the typed sections ``calibrate`` writes
-            (:mod:`licalib_cli.sections`), None when the file has none.
+            initialization, fit, recording, factory_extrinsic, provenance, segments: the typed
+            sections ``calibrate`` writes (:mod:`licalib_cli.sections`), None when the file
+            has none.
     """
 
     extrinsic: Extrinsic = field(default_factory=Extrinsic)
@@ -256,7 +284,9 @@ class CalibrationResult:
     initialization: InitializationSection | None = None
     fit: FitSection | None = None
     recording: RecordingSection | None = None
+    factory_extrinsic: FactoryExtrinsicSection | None = None
     provenance: Provenance | None = None
+    segments: SegmentsSection | None = None
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"schema_version": SCHEMA_VERSION}
@@ -305,7 +335,7 @@ class CalibrationResult:
             extrinsic=Extrinsic.from_dict(d.get("extrinsic", {})),
             imu_intrinsics=imu_intrinsics_from_dict(d.get("imu_intrinsics", {})),
             lidar_intrinsics=lidar_intrinsics_from_dict(lidar) if lidar else None,
-            gravity_G=None if gravity is None else _vec3(gravity),
+            gravity_G=None if gravity is None else vec3(gravity),
             **sections,
         )
 
@@ -410,13 +440,16 @@ def check_not_an_input(
                 raise ConfigError(msg)
 
 
-def prepare_output(path: Path, inputs: Sequence[tuple[str, Path | None]] = ()) -> None:
+def prepare_output(
+    path: Path, inputs: Sequence[tuple[str, Path | None]] = (), example: str = "calib.yaml"
+) -> None:
     """Check, before a long run, that a result file can be written at ``path`` without
     overwriting an input (its folder is created if needed).
 
     Args:
         path: the file to be written.
         inputs: the inputs it must not overwrite (see :func:`check_not_an_input`).
+        example: a file name the message suggests when ``path`` is a folder.
 
     Raises:
         ConfigError: ``path`` is an input or a file of an input folder, a folder, or its folder
@@ -425,7 +458,7 @@ def prepare_output(path: Path, inputs: Sequence[tuple[str, Path | None]] = ()) -
     path = Path(path)
     check_not_an_input(path, inputs)
     if path.is_dir():
-        msg = f"The output {path} is a folder; give a file name such as {path / 'calib.yaml'}."
+        msg = f"The output {path} is a folder; give a file name such as {path / example}."
         raise ConfigError(msg)
     create_folder(path.parent, "The output folder", "give another output path")
     if not os.access(path.parent, os.W_OK):

@@ -86,10 +86,12 @@ from licalib_cli.io.bag import (
     BagHandle,
     MessageLosses,
     RawMessage,
+    imu_vectors_from_raw,
     open_bag,
     select_topic,
 )
 from licalib_cli.io.imu_units import GRAVITY, ImuUnits, convert_imu, detect_imu_units
+from licalib_cli.io.ouster import cloud_frame, read_factory_extrinsic
 from licalib_cli.io.pointcloud2 import (
     POINTFIELD_DTYPES,
     CloudError,
@@ -153,6 +155,7 @@ logger = logging.getLogger(__name__)
 
 _NS = 1_000_000_000
 _MARGIN_NS = _NS
+_MS = 1_000_000  # slack of comparisons of durations built from rounded stamps
 IMU_GAP_FACTOR = 5.0
 LIDAR_GAP_FACTOR = 2.5
 MIN_SEGMENT_S = 2.0
@@ -473,10 +476,15 @@ class SegmentWindow:
     Attributes:
         start_ns: first record time of the segment, ns.
         stop_ns: record time the segment ends before, ns (None: end of the bag).
+        from_bag_start: the segment starts at the bag's first message: nothing before
+            ``start_ns`` is cut (a stamp mapped to record time with its topic's median offset
+            may land a little before the bag's first record time, e.g. the first IMU message
+            recorded with less latency than the others).
     """
 
     start_ns: int
     stop_ns: int | None
+    from_bag_start: bool = False
 
     def read_range(self) -> tuple[int, int | None]:
         """Record-time range to read, with the margin for stamp/record jitter."""
@@ -485,7 +493,7 @@ class SegmentWindow:
 
     def contains(self, record_equiv_ns: int) -> bool:
         """Whether a stamp mapped to record time lies in the window."""
-        return record_equiv_ns >= self.start_ns and (
+        return (self.from_bag_start or record_equiv_ns >= self.start_ns) and (
             self.stop_ns is None or record_equiv_ns < self.stop_ns
         )
 
@@ -515,7 +523,7 @@ def segment_window(bag: BagHandle, cfg: CalibConfig, *, cap: bool = False) -> Se
         limit = round(min(cfg.bag.max_duration_s, _MAX_SPAN_S) * _NS)
         if bag.end_ns - start > limit:
             stop = start + limit
-    return SegmentWindow(start, stop)
+    return SegmentWindow(start, stop, from_bag_start=cfg.bag.start_s <= 0)
 
 
 def window_findings(
@@ -718,12 +726,21 @@ class RawImu:
 
 
 def read_raw_imu(bag: BagHandle, topic: str, window: SegmentWindow, offset_ns: int) -> RawImu:
-    """IMU messages of the window, deserialised one by one (memory grows with the window).
+    """IMU messages of the window (memory grows with the window). The vectors are read at
+    their fixed offsets (:func:`~licalib_cli.io.bag.imu_vectors_from_raw`) once the first
+    message read so agrees with its full decode; a message of another size is deserialised.
     Messages that do not decode are skipped (and counted in ``bag.losses``)."""
     t: list[int] = []
     rec: list[int] = []
     vals: list[tuple[float, float, float, float, float, float]] = []
+    fast: bool | None = None  # reading at fixed offsets, once checked against a full decode
     for m in window_messages(bag, topic, window, offset_ns):
+        quick = imu_vectors_from_raw(m.raw, bag.ros1) if fast is not False else None
+        if fast and quick is not None and m.stamp_ns is not None:
+            t.append(m.stamp_ns)
+            rec.append(m.record_ns)
+            vals.append(quick)
+            continue
         msg = bag.decode(m)
         if msg is None:
             continue
@@ -732,6 +749,8 @@ def read_raw_imu(bag: BagHandle, topic: str, window: SegmentWindow, offset_ns: i
         rec.append(m.record_ns)
         av, la = msg.angular_velocity, msg.linear_acceleration
         vals.append((av.x, av.y, av.z, la.x, la.y, la.z))
+        if fast is None:
+            fast = quick == vals[-1] and m.stamp_ns == t[-1]
     arr = np.asarray(vals, dtype=np.float64).reshape(-1, 6)
     return RawImu(
         np.asarray(t, dtype=np.int64),
@@ -766,9 +785,9 @@ def _nonfinite_findings(raw: RawImu, topic: str) -> tuple[npt.NDArray[np.bool_],
     ``(bad mask, findings)``. Isolated ones (at most 1 % of the samples, in runs of at most 3)
     are dropped with a warning; otherwise the IMU is unusable."""
     with np.errstate(invalid="ignore"):  # NaN compares False: bad
-        fine = (np.abs(raw.gyro) < _MAX_IMU_READING).all(axis=1) & (
-            np.abs(raw.accel) < _MAX_IMU_READING
-        ).all(axis=1)
+        fine = np.all(np.abs(raw.gyro) < _MAX_IMU_READING, axis=1) & np.all(
+            np.abs(raw.accel) < _MAX_IMU_READING, axis=1
+        )
     bad = ~fine
     n_bad = int(bad.sum())
     if n_bad == 0:
@@ -1012,6 +1031,10 @@ class CloudLayout:
         sweep_end_offset_ns: median ``max(point time) - header stamp`` of the checked clouds,
             ns (about one period when the stamp marks the sweep start). A cloud cannot be
             recorded before its last point, so the clock offset is measured from there.
+        sweep_start_offset_ns: median ``min(point time) - header stamp`` of the checked
+            clouds, ns (0 when the stamp marks the sweep start, about minus one period when it
+            marks the end). With ``sweep_end_offset_ns`` it gives the time a cloud covers,
+            which is what the sensors' overlap is measured with (one cloud covers a sweep).
     """
 
     topic: str
@@ -1027,6 +1050,15 @@ class CloudLayout:
     points_per_scan: int = 0
     valid_points_per_scan: int = 0
     sweep_end_offset_ns: int = 0
+    sweep_start_offset_ns: int = 0
+
+    def sweep_span_ns(self, stamp_ns: int) -> tuple[int, int]:
+        """The time a cloud stamped ``stamp_ns`` stands for, ns: its sweep, at least one scan
+        period long (consecutive clouds then tile the time, so 20 clouds at 10 Hz cover 2 s)."""
+        start = stamp_ns + self.sweep_start_offset_ns
+        sweep = self.sweep_end_offset_ns - self.sweep_start_offset_ns
+        length = max(sweep, self.time.scan_period_ns)
+        return start, start + length
 
 
 def _field_desc(msg: Any) -> tuple[str, ...]:
@@ -1212,12 +1244,14 @@ def detect_layout(
         )
         raise ConfigError(msg_)
     if tl.field is not None:
-        ends = [int(time_values_to_ns(v, st, tl).max()) - st for st, v in samples if v.size]
-        end_offset = int(np.median(ends)) if ends else 0
-        if abs(end_offset) > 2 * tl.scan_period_ns:  # implausible layout: do not trust it
-            end_offset = 0
+        converted = [time_values_to_ns(v, st, tl) - st for st, v in samples if v.size]
+        end_offset = int(np.median([int(c.max()) for c in converted])) if converted else 0
+        start_offset = int(np.median([int(c.min()) for c in converted])) if converted else 0
+        if max(abs(end_offset), abs(start_offset)) > 2 * tl.scan_period_ns:  # implausible
+            end_offset = start_offset = 0  # layout: do not trust it
     else:
         end_offset = tl.scan_period_ns if tl.stamp_position != "end" else 0
+        start_offset = end_offset - tl.scan_period_ns
     return CloudLayout(
         topic=topic,
         fields=_field_desc(first),
@@ -1232,6 +1266,7 @@ def detect_layout(
         points_per_scan=int(np.median(counts)),
         valid_points_per_scan=int(np.median(valid_counts)),
         sweep_end_offset_ns=end_offset,
+        sweep_start_offset_ns=start_offset,
     )
 
 
@@ -1553,7 +1588,7 @@ def read_lidar_stream(
     findings += tally.problems(cfg.lidar.max_skipped_fraction)
     findings += [Finding(w, False, ConfigError) for w in layout.time.warnings]
     findings += _loss_findings(topic, "LiDAR", lost)
-    if shift:
+    if shift and clock is not None:
         findings.append(
             Finding(
                 f"The IMU and LiDAR stamps use different clocks ({clock / _NS:+.3f} s apart); "
@@ -1581,10 +1616,11 @@ def segment_findings(
     """
     if imu.samples.t_ns.size == 0 or not lidar.tally.stamps or lidar.layout is None:
         return []
-    # each sample or sweep stands for its period: a 2 s window holds 2 s of data
+    # each sample or sweep stands for its period: a 2 s window holds 2 s of data; the LiDAR
+    # covers its sweeps (from the per-point times), not last minus first stamp (0 for one cloud)
     i0, i1 = int(imu.samples.t_ns.min()), int(imu.samples.t_ns.max()) + imu.stats.period_ns
-    l0 = min(lidar.tally.stamps) + lidar.shift_ns
-    l1 = max(lidar.tally.stamps) + lidar.shift_ns + lidar.layout.time.scan_period_ns
+    l0 = lidar.layout.sweep_span_ns(min(lidar.tally.stamps) + lidar.shift_ns)[0]
+    l1 = lidar.layout.sweep_span_ns(max(lidar.tally.stamps) + lidar.shift_ns)[1]
     overlap = min(i1, l1) - max(i0, l0)
     if overlap <= 0:
         ri, rl = imu.record_span_ns, lidar.record_span_ns
@@ -1595,7 +1631,9 @@ def segment_findings(
             "synchronised, fix the drivers' time stamping and re-record."
         )
         return [Finding(msg, True, TimestampError)]
-    if overlap < min_span_s * _NS:
+    # a record-time window selects clouds by when they were recorded (after their sweep), so
+    # its edge can cut up to one sweep off the LiDAR's share: that much is not held against it
+    if overlap + lidar.layout.time.scan_period_ns + _MS < min_span_s * _NS:
         return [
             Finding(
                 f"The IMU and LiDAR data of the segment overlap for only {overlap / _NS:.2f} s, "
@@ -1651,6 +1689,7 @@ def read_segment(path: Path, cfg: CalibConfig, *, min_span_s: float = MIN_SEGMEN
         _raise_fatal(findings)
         findings += segment_findings(imu, lidar, bag.start_ns, min_span_s)
         _raise_fatal(findings)
+        factory = read_factory_extrinsic(bag, cloud_frame(bag, lid_t.name))
         bag_start, bag_end = bag.start_ns, bag.end_ns
         imu_lost, lidar_lost = bag.loss(imu_t.name).total, bag.loss(lid_t.name).total
     layout, units = lidar.layout, imu.units
@@ -1659,8 +1698,9 @@ def read_segment(path: Path, cfg: CalibConfig, *, min_span_s: float = MIN_SEGMEN
     if cfg.bag.duration_s is None and window.stop_ns is not None:
         warnings.append(
             f"The bag lasts {(bag_end - bag_start) / _NS:.0f} s; only {cfg.bag.max_duration_s:g} "
-            f"s from {cfg.bag.start_s:g} s are used. Choose the part with the most varied motion "
-            "with --start/--duration (or raise bag.max_duration_s)."
+            f"s from {cfg.bag.start_s:g} s are used. Let --segments auto calibrate on its most "
+            "informative windows together (licalib select-segments ranks them), or choose a "
+            "part with --start/--duration (or raise bag.max_duration_s)."
         )
     for w in warnings:
         logger.warning(w)
@@ -1677,18 +1717,25 @@ def read_segment(path: Path, cfg: CalibConfig, *, min_span_s: float = MIN_SEGMEN
         imu_units=units,
         clock_offset_ns=lidar.clock_offset_ns,
         lidar_shift_ns=lidar.shift_ns,
-        start_ns=window.start_ns + imu.offset_ns,
+        start_ns=min(window.start_ns + imu.offset_ns, int(imu.samples.t_ns[0]))
+        if window.from_bag_start
+        else window.start_ns + imu.offset_ns,
         end_ns=end_ns,
         warnings=tuple(warnings),
         imu_unreadable=imu_lost,
         lidar_unreadable=lidar_lost,
         imu_samples_dropped=imu.dropped,
         scans_skipped=sum(lidar.tally.skipped.values()),
+        factory_extrinsic=factory,
     )
 
 
 def iter_scans(
-    path: Path, cfg: CalibConfig, shift_ns: int = 0, warnings: list[str] | None = None
+    path: Path,
+    cfg: CalibConfig,
+    shift_ns: int = 0,
+    warnings: list[str] | None = None,
+    every: int = 1,
 ) -> Iterator[LidarScan]:
     """Stream the LiDAR scans of the segment one at a time (constant memory).
 
@@ -1701,6 +1748,7 @@ def iter_scans(
         cfg: configuration (``bag`` and ``lidar`` sections).
         shift_ns: added to every LiDAR time (e.g. ``Recording.lidar_shift_ns``).
         warnings: list that receives non-fatal findings, or None.
+        every: decode only every ``every``-th cloud (the others are only counted).
 
     Yields:
         :class:`LidarScan` in stamp order.
@@ -1716,7 +1764,8 @@ def iter_scans(
         layout = detect_layout(bag, lid_t.name, window, off, cfg)
         tally = ScanTally(topic=lid_t.name)
         last: int | None = None
-        for scan in _scan_stream(bag, lid_t.name, window, off, layout, cfg, shift_ns, tally):
+        stream = _scan_stream(bag, lid_t.name, window, off, layout, cfg, shift_ns, tally, every)
+        for scan in stream:
             if last is not None and scan.stamp_ns <= last:
                 what = "go backwards" if scan.stamp_ns < last else "are duplicated"
                 at = (scan.stamp_ns - shift_ns - tally.stamps[0]) / _NS

@@ -67,6 +67,7 @@ class CalibrationRun:
         timings: wall seconds per stage, in order.
         warnings: non-fatal findings of the reading stage.
         effects: the score tests of the effects the fit held fixed (selected ones first).
+        segment: the segment's measurements (for the report and the map files), or None.
     """
 
     result: CalibrationResult
@@ -78,6 +79,7 @@ class CalibrationRun:
     timings: dict[str, float]
     warnings: tuple[str, ...] = ()
     effects: tuple[EffectEvidence, ...] = ()
+    segment: Recording | None = None
 
     @property
     def rounds(self) -> tuple[RoundSummary, ...]:
@@ -208,4 +210,5 @@ def fit_and_check(
         timings=dict(timer.timings),
         warnings=rec.warnings,
         effects=checks.effects,
+        segment=rec,
     )
