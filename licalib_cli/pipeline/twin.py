@@ -220,8 +220,8 @@ def _refit_planes(planes: Planes, plane: npt.NDArray[np.intp], p_g: F64) -> Plan
     d0 = np.asarray(planes.d, dtype=np.float64)
     n_planes = normal0.shape[0]
     count = np.bincount(plane, minlength=n_planes).astype(np.float64)
-    mean = np.stack([np.bincount(plane, p_g[:, i], n_planes) for i in range(3)], -1)
-    mean /= np.maximum(count, 1.0)[:, None]
+    sums = np.stack([np.bincount(plane, p_g[:, i], n_planes) for i in range(3)], -1)
+    mean: F64 = sums.astype(np.float64) / np.maximum(count, 1.0)[:, None]
     q = p_g - mean[plane]
     cov = np.zeros((n_planes, 3, 3))
     for i in range(3):
