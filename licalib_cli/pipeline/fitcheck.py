@@ -105,7 +105,9 @@ _IMU_EFFECTS = {
 }
 
 
-def _patterns(residuals: F64, features: list[tuple[str, F64, bool]]) -> tuple[PatternCheck, ...]:
+def _patterns(
+    residuals: F64, features: list[tuple[str, npt.NDArray[np.number], bool]]
+) -> tuple[PatternCheck, ...]:
     out = []
     for name, x, grouped in features:
         p = group_pattern(residuals, x, name) if grouped else regression_pattern(residuals, x, name)
@@ -213,7 +215,9 @@ def residual_table(state: CalibrationState, inputs: RoundInputs) -> ResidualTabl
         theta=points.theta,
         elevation=phi,
         cos_incidence=cos_inc,
-        time_in_sweep_s=(inputs.points.t_ns - inputs.points.sweep_start_ns) * 1e-9,
+        time_in_sweep_s=np.asarray(
+            (inputs.points.t_ns - inputs.points.sweep_start_ns) * 1e-9, dtype=np.float64
+        ),
     )
 
 

@@ -254,7 +254,7 @@ def build_truth(
         bag=tr.SimulatedBag(
             format=spec.fmt.value, path=None if bag_path is None else str(bag_path)
         ),
-        command_line=spec.command_line,
+        command_line=spec.command_line or "",
         licalib_version=__version__,
         effects=injected_effects(spec, setup, imu_truth),
     )

@@ -100,7 +100,7 @@ class Signal:
             return f, d1, d2
         # Windowed terms that do not overlap the queried times contribute exact zeros: skip them
         # (a long walk has many bursts, a sweep spans 0.1 s).
-        bounded = np.isfinite(self.window).all(axis=1)
+        bounded = np.all(np.isfinite(self.window), axis=1)
         active = ~bounded | ((self.window[:, 1] >= tt.min()) & (self.window[:, 0] <= tt.max()))
         if not active.any():
             return f, d1, d2

@@ -284,16 +284,16 @@ def _clutter(room_min: F64, room_max: F64) -> list[tuple[F64, F64, F64]]:
             depth = rng.uniform(0.15, 0.6)
             along = rng.uniform(0.3, 1.4)
             height = rng.uniform(0.3, 1.4)
-            center = np.empty(3)
+            c = np.empty(3)
             other = 1 - axis
-            center[other] = rng.uniform(room_min[other] + 0.8, room_max[other] - 0.8)
+            c[other] = rng.uniform(room_min[other] + 0.8, room_max[other] - 0.8)
             wall_pos = room_max[axis] if side else room_min[axis]
-            center[axis] = wall_pos + (-1 if side else 1) * rng.uniform(0.0, 0.6)
-            center[2] = rng.uniform(0.3, 9.0)
-            half = np.empty(3)
-            half[axis], half[other], half[2] = depth / 2, along / 2, height / 2
+            c[axis] = wall_pos + (-1 if side else 1) * rng.uniform(0.0, 0.6)
+            c[2] = rng.uniform(0.3, 9.0)
+            hs = np.empty(3)
+            hs[axis], hs[other], hs[2] = depth / 2, along / 2, height / 2
             rpy = (rng.uniform(-15, 15), rng.uniform(-15, 15), rng.uniform(-25, 25))
-            out.append(_box(tuple(center), tuple(half), rpy))  # type: ignore[arg-type]
+            out.append(_box((float(c[0]), float(c[1]), float(c[2])), (hs[0], hs[1], hs[2]), rpy))
     for _ in range(4):
         center = (rng.uniform(-2.5, 7.5), rng.uniform(1.0, 9.0), rng.uniform(8.3, 9.4))
         half = (rng.uniform(0.1, 0.3), rng.uniform(0.8, 2.0), rng.uniform(0.1, 0.3))
