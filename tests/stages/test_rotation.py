@@ -8,7 +8,6 @@ from scipy.spatial.transform import Rotation
 from stages_motion import T0_NS, RotationMotion
 
 from licalib_cli.errors import ExcitationError, TimestampError
-from licalib_cli.measurements import ImuSamples
 from licalib_cli.initialization.rotation import (
     GyroIntegrator,
     HandEyeConfig,
@@ -18,6 +17,7 @@ from licalib_cli.initialization.rotation import (
     relative_rotations,
     solve_hand_eye_rotation,
 )
+from licalib_cli.measurements import ImuSamples
 
 MOUNTINGS = {
     "identity": Rotation.identity(),
