@@ -662,8 +662,9 @@ def _with_rotation_prior(prepared: PreparedSweeps, rotation_at: RotationAt | Non
         [s.dt_ns + t for s, t in zip(prepared.sweeps, prepared.t_ns, strict=True)]
     )
     owner = np.repeat(np.arange(len(sizes)), sizes)
-    r_end = rotation_at(prepared.t_ns)
-    rel = (r_end[owner].inv() * rotation_at(t_pts)).as_matrix()
+    r_end = np.asarray(rotation_at(prepared.t_ns).as_matrix())
+    r_pts = np.asarray(rotation_at(t_pts).as_matrix())
+    rel = np.einsum("nji,njk->nik", r_end[owner], r_pts)  # R_end^T R(t)
     out = []
     for s, part in zip(prepared.sweeps, np.split(rel, np.cumsum(sizes)[:-1]), strict=True):
         rot = np.ascontiguousarray(part) if np.any(s.dt_ns) else None

@@ -48,6 +48,7 @@ from licalib_cli.models.intrinsics import LidarIntrinsics
 from licalib_cli.odometry import (
     PoseSeries,
     PreparedSweeps,
+    RefineConfig,
     prepare_sweeps,
     refine_odometry,
     run_odometry,
@@ -204,10 +205,14 @@ def lidar_odometry(
                 logger.info("Rotation search not possible: %s", err)
             rot = search.R_imu_lidar if search is not None and _unambiguous(search) else None
         if rot is not None:
+            # A searched rotation is a few degrees off and the next round redoes the
+            # registration with hand-eye's: one pass is enough for that hand-eye.
+            refine = RefineConfig(passes=1) if search is not None else RefineConfig()
             refined = refine_odometry(
                 rec.scans,
                 None,
                 ocfg,
+                refine,
                 rotation_at=lidar_rotation_at(gyro, rot, t_c),
                 prepared=sweeps,
                 progress=progress,
