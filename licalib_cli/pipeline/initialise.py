@@ -268,6 +268,8 @@ def _searched_rotation(
         raise ExcitationError(msg)
     rot = found.R_imu_lidar
     ocfg = odometry_config(cfg)
+    toc = time_offset_config(cfg)
+    free_time = cfg.initialization.time_offset_s is None
     hand_eye: HandEyeRotation | None = None
     poses = odo.refined
     for k in range(max_rounds):
@@ -279,16 +281,25 @@ def _searched_rotation(
                 rotation_at=lidar_rotation_at(gyro, rot, t_c),
                 prepared=odo.sweeps,
             )
+        t_step = 0.0
+        if free_time:
+            # The time offset assumed for the deskew matters as much as the rotation: re-estimate
+            # it from the angular rates of these poses before hand-eye (as the later rounds do).
+            est = _coarse_time_offset(rec, poses, rot, toc)
+            if est is not None and est.ok:
+                t_step = abs(float(est.time_offset_s) - t_c)
+                t_c = float(est.time_offset_s)
         new = estimate_rotation_extrinsic(gyro, poses, time_offset_s=t_c, cfg=hand_eye_config(cfg))
         step = float(np.degrees(np.abs(so3.log(rot.T @ new.R_imu_lidar)).max()))
         rot, hand_eye = new.R_imu_lidar, new
         logger.info(
             "Gyro-aided hand-eye round after the search: rotation moved %.3f deg, residual "
-            "%.3f deg.",
+            "%.3f deg, time offset %+.4f s.",
             step,
             new.residual_rms_deg,
+            t_c,
         )
-        if step < 0.5 or new.residual_rms_deg < _AGREEING_HAND_EYE_DEG:
+        if (step < 0.5 and t_step < 2e-3) or new.residual_rms_deg < _AGREEING_HAND_EYE_DEG:
             # the rounds at the coarse time offset and the optimisation do the rest
             break
     assert hand_eye is not None
