@@ -40,7 +40,15 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
-_state = {"debug": False}
+_state: dict[str, object] = {"debug": False, "args": ()}
+
+
+def command_line() -> str:
+    """The command line of this run as a shell would take it (for provenance)."""
+    import shlex
+
+    return shlex.join(["licalib", *(str(a) for a in _state["args"])])  # type: ignore[attr-defined]
+
 
 USAGE_ERROR_EXIT_CODE = ConfigError.exit_code
 """Exit code of a command-line usage error: an invalid option is an invalid configuration."""
@@ -77,13 +85,22 @@ def _root(
 
 
 def _register() -> None:
-    from licalib_cli.commands import calibrate, config_cmd, diagnose, export, info, simulate
+    from licalib_cli.commands import (
+        calibrate,
+        config_cmd,
+        diagnose,
+        export,
+        info,
+        report,
+        simulate,
+    )
 
     app.command("calibrate")(calibrate.calibrate_command)
     app.command("info")(info.info_command)
     app.command("simulate")(simulate.simulate_command)
     app.add_typer(config_cmd.app, name="config")
     app.command("export")(export.export_command)
+    app.command("report")(report.report_command)
     app.command("diagnose")(diagnose.diagnose_command)
 
 
@@ -192,6 +209,7 @@ def main(argv: list[str] | None = None) -> None:
     not shown unless ``--debug``.
     """
     args = list(argv) if argv is not None else sys.argv[1:]
+    _state["args"] = tuple(args)
     debug = "--debug" in args
     _interrupt.clear()
     _watch_interrupts()

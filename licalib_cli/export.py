@@ -171,11 +171,12 @@ def _sections(result: CalibrationResult) -> _Sections:
 # --------------------------------------------------------------------------------------------
 
 
-def load_result(path: Path) -> CalibrationResult:
-    """Read a licalib result file for export.
+def load_result(path: Path, purpose: str = "export") -> CalibrationResult:
+    """Read a licalib result file for export (or for a report).
 
     Args:
         path: the YAML file ``licalib calibrate`` wrote.
+        purpose: ``"export"`` or ``"report"``: what the messages say the file is read for.
 
     Returns:
         The result.
@@ -209,8 +210,8 @@ def load_result(path: Path) -> CalibrationResult:
     if isinstance(raw, dict) and raw["schema_version"] != SCHEMA_VERSION:
         msg = (
             f"{path} is a result of schema version {raw['schema_version']!r}, but this licalib "
-            f"exports version {SCHEMA_VERSION}; export it with the licalib that wrote it or "
-            "calibrate again."
+            f"{'exports' if purpose == 'export' else 'reads'} version {SCHEMA_VERSION}; "
+            f"{purpose} it with the licalib that wrote it or calibrate again."
         )
         raise ConfigError(msg)
     result = CalibrationResult.load(path)

@@ -35,6 +35,7 @@ from licalib_cli.config import CalibConfig
 from licalib_cli.errors import ConfigError, ExcitationError, LicalibError, TopicError
 from licalib_cli.io import reader as rd
 from licalib_cli.io.bag import CLOUD_TYPE, IMU_TYPE, open_bag, select_topic
+from licalib_cli.io.ouster import FactoryExtrinsic, cloud_frame, read_factory_extrinsic
 
 __all__ = [
     "BagReport",
@@ -101,12 +102,16 @@ class Excitation:
     ok: bool
 
 
-def motion_excitation(gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray) -> Excitation:
+def motion_excitation(
+    gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray, assumption: str | None = None
+) -> Excitation:
     """Per-axis rotation and acceleration of an IMU recording (gyro in rad/s, accel in m/s^2).
 
     Rotation about all three axes makes the extrinsic fully observable; about one axis only
     (a vehicle on flat ground) the translation along that axis is not; without rotation neither
-    the rotation extrinsic nor the lever arm can be found.
+    the rotation extrinsic nor the lever arm can be found. ``assumption`` (e.g. ``"gyro unit
+    assumed deg/s"``) names what the rates rest on when the gyro unit was not told by the data:
+    the summary then says so, as its figures are only right if the assumption is.
     """
     w = np.degrees(np.asarray(gyro_rad_s, dtype=np.float64))
     a = np.asarray(accel_m_s2, dtype=np.float64)
@@ -116,27 +121,32 @@ def motion_excitation(gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray) -> Excitat
     axis = vec[:, -1] * (1.0 if vec[np.argmax(np.abs(vec[:, -1])), -1] >= 0 else -1.0)
     first = max(float(strength[0]), 1e-12)
     total = float(np.sqrt(np.sum(strength**2)))
+    given = f", {assumption}" if assumption else ""
     if total < MIN_ROTATION_RMS_DEG_S:
         summary = (
-            f"hardly any rotation (RMS {total:.1f} deg/s): the rotation extrinsic and the lever "
-            "arm cannot be determined; rotate the rig about all three axes"
+            f"hardly any rotation (RMS {total:.1f} deg/s{given}): the rotation extrinsic and "
+            "the lever arm cannot be determined; rotate the rig about all three axes"
         )
         ok = False
     elif strength[1] / first < SINGLE_AXIS_RATIO:
         ax = ", ".join(f"{x:.2f}" for x in np.round(axis, 2) + 0.0)
         summary = (
-            f"rotation about one axis only ([{ax}] in the IMU frame, planar motion): the "
-            "translation along it will not be observable"
+            f"rotation about one axis only ([{ax}] in the IMU frame, planar motion{given}): "
+            "the translation along it will not be observable"
         )
         ok = False
     elif strength[2] / first < SINGLE_AXIS_RATIO:
         summary = (
-            "rotation about two axes only: the extrinsic is observable but weakly along the "
-            "third; rotate about all three axes for the best result"
+            f"rotation about two axes only (RMS {total:.1f} deg/s{given}): the extrinsic is "
+            "observable but weakly along the third; rotate about all three axes for the best "
+            "result"
         )
         ok = True
     else:
-        summary = "rotation about all three axes: the extrinsic is fully observable"
+        summary = (
+            f"rotation about all three axes (RMS {total:.1f} deg/s{given}): the extrinsic is "
+            "fully observable"
+        )
         ok = True
     std_a = np.std(a, axis=0)
     return Excitation(
@@ -174,6 +184,9 @@ class ImuReport:
         excitation: how the IMU moved, or None without samples.
         unreadable: messages of the segment that could not be read (damaged bag).
         dropped: samples dropped for NaN or infinite values.
+        gyro_unit_basis: why an assumed gyro unit was chosen (``accelerometer in g`` or
+            ``ROS convention``), with ``too little data to tell`` when the samples are too
+            short for the tilting check; None when the unit was detected or configured.
     """
 
     topic: str
@@ -195,6 +208,7 @@ class ImuReport:
     excitation: Excitation | None = None
     unreadable: int = 0
     dropped: int = 0
+    gyro_unit_basis: str | None = None
 
 
 @dataclass(frozen=True)
@@ -275,6 +289,9 @@ class BagReport:
         clock_offset_s: coarse ``t_imu - t_lidar`` clock difference, s (None: unknown).
         problems: findings, fatal ones first (in the reader's order).
         notes: informative remarks (detected units, layout overrides).
+        factory_extrinsic: the factory ``T_imu_lidar`` of an Ouster sensor, from the
+            metadata topic the driver records (None when the bag has none), for the frame the
+            clouds are published in.
     """
 
     path: str
@@ -289,6 +306,7 @@ class BagReport:
     clock_offset_s: float | None
     problems: tuple[rd.Finding, ...]
     notes: tuple[str, ...] = ()
+    factory_extrinsic: FactoryExtrinsic | None = None
 
     @property
     def duration_s(self) -> float:
@@ -341,6 +359,7 @@ class BagReport:
                 "first_stamp_ns": i.first_stamp_ns,
                 "unreadable": i.unreadable,
                 "dropped_samples": i.dropped,
+                "gyro_unit_basis": i.gyro_unit_basis,
                 "excitation": None if i.excitation is None else _excitation_dict(i.excitation),
             }
         lidar = None
@@ -406,17 +425,36 @@ class BagReport:
                 for p in self.problems
             ],
             "notes": list(self.notes),
+            "factory_extrinsic": None
+            if self.factory_extrinsic is None
+            else factory_extrinsic_dict(self.factory_extrinsic),
         }
+
+
+def factory_extrinsic_dict(f: FactoryExtrinsic) -> dict[str, Any]:
+    """The factory extrinsic in the result file's keys (``p_imu = R p_lidar + t``), with
+    where it came from."""
+    from licalib_cli.results import Extrinsic
+
+    ext = Extrinsic(rotation=f.rotation, translation=f.translation).to_dict()
+    del ext["time_offset_s"]
+    return {**ext, "cloud_frame": f.cloud_frame, "topic": f.topic, "sensor": f.sensor}
 
 
 def _imu_report(imu: rd.ImuRead, unreadable: int, findings: list[rd.Finding]) -> ImuReport:
     excitation = None
     if len(imu.samples) >= 10:
-        excitation = motion_excitation(imu.samples.gyro, imu.samples.accel)
+        assumption = imu.units.gyro_assumption if imu.units is not None else None
+        excitation = motion_excitation(imu.samples.gyro, imu.samples.accel, assumption)
         if not excitation.ok:
             msg = f"The IMU shows {excitation.summary}."
             findings.append(rd.Finding(msg, False, ExcitationError))
     units, stats = imu.units, imu.stats
+    basis = None
+    if units is not None and units.gyro_source == "assumed":
+        basis = "accelerometer in g" if units.gyro_unit == "deg/s" else "ROS convention"
+        if units.too_short:
+            basis = f"too little data to tell, {basis}"
     return ImuReport(
         topic=imu.topic,
         count=stats.count,
@@ -437,6 +475,7 @@ def _imu_report(imu: rd.ImuRead, unreadable: int, findings: list[rd.Finding]) ->
         excitation=excitation,
         unreadable=unreadable,
         dropped=imu.dropped,
+        gyro_unit_basis=basis,
     )
 
 
@@ -536,7 +575,8 @@ def inspect_bag(path: Path, cfg: CalibConfig, *, min_span_s: float = rd.MIN_SEGM
             try:
                 chosen[key] = select_topic(bag, msgtype, name, option, config_key).name
             except TopicError as err:
-                findings.append(rd.Finding(str(err), True, TopicError))
+                if all(f.message != str(err) for f in findings):  # e.g. a packet-mode bag
+                    findings.append(rd.Finding(str(err), True, TopicError))
         try:
             window = rd.segment_window(bag, cfg)
         except ConfigError as err:
@@ -564,7 +604,11 @@ def inspect_bag(path: Path, cfg: CalibConfig, *, min_span_s: float = rd.MIN_SEGM
                 )
                 findings += lidar_read.findings
             if imu_read is not None and lidar_read is not None:
-                findings += rd.segment_findings(imu_read, lidar_read, bag.start_ns, min_span_s)
+                both = rd.segment_findings(imu_read, lidar_read, bag.start_ns, min_span_s)
+                if any(p.fatal and p.error is ExcitationError for p in findings):
+                    # the segment itself is too short: say so once, as calibrate does
+                    both = [p for p in both if p.error is not ExcitationError]
+                findings += both
         if imu_read is not None:
             imu = _imu_report(imu_read, bag.loss(imu_read.topic).total, findings)
             if imu_read.units is not None:
@@ -573,6 +617,9 @@ def inspect_bag(path: Path, cfg: CalibConfig, *, min_span_s: float = rd.MIN_SEGM
             lidar = _lidar_report(lidar_read, bag.loss(lidar_read.topic).total)
             if lidar_read.layout is not None:
                 notes.extend(lidar_read.layout.time.notes)
+        factory = None
+        if "lidar" in chosen:
+            factory = read_factory_extrinsic(bag, cloud_frame(bag, chosen["lidar"]))
         fmt, start_ns, end_ns = bag.format, bag.start_ns, bag.end_ns
     stamp_rates = {r.topic: r.rate_hz for r in (imu, lidar) if r is not None and r.rate_hz > 0}
     topics = tuple(
@@ -597,6 +644,7 @@ def inspect_bag(path: Path, cfg: CalibConfig, *, min_span_s: float = rd.MIN_SEGM
         clock_offset_s=clock,
         problems=tuple(findings),
         notes=tuple(notes),
+        factory_extrinsic=factory,
     )
 
 
@@ -620,4 +668,5 @@ def error_report(path: Path | str | None, message: str, exit_code: int) -> dict[
         "exit_code": code,
         "problems": [{"severity": "error", "message": message, "exit_code": code}],
         "notes": [],
+        "factory_extrinsic": None,
     }

@@ -14,6 +14,7 @@ import numpy.typing as npt
 
 if TYPE_CHECKING:
     from licalib_cli.io.imu_units import ImuUnits
+    from licalib_cli.io.ouster import FactoryExtrinsic
     from licalib_cli.io.reader import CloudLayout
 
 _NS = 1_000_000_000
@@ -97,6 +98,8 @@ class Recording:
         lidar_unreadable: the same for the LiDAR messages.
         imu_samples_dropped: IMU samples dropped for NaN or infinite values.
         scans_skipped: clouds of the segment skipped as unusable (empty, corrupt, ...).
+        factory_extrinsic: the sensor's factory extrinsic when the bag carries one (Ouster
+            metadata), for the frame the clouds are in; None otherwise.
     """
 
     imu: ImuSamples
@@ -114,6 +117,7 @@ class Recording:
     lidar_unreadable: int = 0
     imu_samples_dropped: int = 0
     scans_skipped: int = 0
+    factory_extrinsic: FactoryExtrinsic | None = None
 
     @property
     def clock_offset_s(self) -> float:

@@ -27,12 +27,13 @@ from licalib_cli.results import Extrinsic, create_folder
 if TYPE_CHECKING:
     from licalib_cli.pipeline import CalibrationRun
 
-__all__ = ["prepare_plots", "save_plots"]
+__all__ = ["dominant_labels", "prepare_plots", "pyplot", "save_plots"]
 
 _DPI = 110
 
 
-def _pyplot() -> Any:
+def pyplot() -> Any:
+    """matplotlib's pyplot with the Agg backend, or a ConfigError saying how to install it."""
     try:
         import matplotlib
     except ImportError as err:
@@ -53,7 +54,7 @@ def prepare_plots(folder: Path) -> None:
     Raises:
         ConfigError: matplotlib is missing, or ``folder`` is a file or cannot be created.
     """
-    _pyplot()
+    pyplot()
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         msg = f"--plots needs a folder, but {folder} is a file; give a folder path."
@@ -74,7 +75,7 @@ def save_plots(run: CalibrationRun, folder: Path) -> list[Path]:
     Raises:
         ConfigError: matplotlib is not installed.
     """
-    plt = _pyplot()
+    plt = pyplot()
     folder = Path(folder)
     prepare_plots(folder)
     written = []
@@ -168,7 +169,7 @@ def _entropy_figure(plt: Any, run: CalibrationRun) -> Any:
     return fig
 
 
-def _dominant_labels(vectors: np.ndarray, names: Sequence[str]) -> list[str]:
+def dominant_labels(vectors: np.ndarray, names: Sequence[str]) -> list[str]:
     labels = []
     for j in range(vectors.shape[1]):
         v = vectors[:, j]
@@ -194,7 +195,7 @@ def _spectrum_figure(plt: Any, run: CalibrationRun) -> Any:
     ax.axhline(thr, color="k", linestyle="--", label=f"truncation threshold {thr:g}")
     ax.set_xticks(x)
     ax.set_xticklabels(
-        _dominant_labels(info.singular_vectors, info.names), rotation=60, ha="right", fontsize=7
+        dominant_labels(info.singular_vectors, info.names), rotation=60, ha="right", fontsize=7
     )
     ax.set_ylabel("singular value of the scaled information")
     ax.set_title(
@@ -271,7 +272,7 @@ def save_diagnosis_plots(diag: Any, folder: Path) -> list[Path]:
     after it was added (``diagnose_<n>_<effect>.png``)."""
     from licalib_cli.pipeline.fitcheck import residual_table
 
-    plt = _pyplot()
+    plt = pyplot()
     folder = Path(folder)
     prepare_plots(folder)
     written = []

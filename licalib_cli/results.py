@@ -37,6 +37,7 @@ from licalib_cli.geometry import so3
 from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
 from licalib_cli.sections import (
     Consistency,
+    FactoryExtrinsicSection,
     FitSection,
     InitializationSection,
     IntrinsicsUncertainty,
@@ -116,6 +117,26 @@ class Extrinsic:
             rotation=rot,
             translation=np.asarray(d.get("translation", [0.0, 0.0, 0.0]), dtype=np.float64),
             time_offset_s=float(d.get("time_offset_s", 0.0)),
+        )
+
+    def factory_difference(
+        self, factory: Extrinsic, source: str, sensor: str, cloud_frame: str
+    ) -> FactoryExtrinsicSection:
+        """The factory extrinsic ``factory`` and this calibration's difference from it (see
+        :class:`~licalib_cli.sections.FactoryExtrinsicSection`)."""
+        d_rot = so3.log(factory.rotation.T @ self.rotation)
+        d_t = self.translation - factory.translation
+        return FactoryExtrinsicSection(
+            source=source,
+            sensor=sensor,
+            cloud_frame=cloud_frame,
+            translation=_vec3(_list(factory.translation)),
+            rotation_quaternion=tuple(_list(factory.quaternion, 12)),  # type: ignore[arg-type]
+            rotation_rpy_deg=_vec3(_list(rpy_deg_from_matrix(factory.rotation))),
+            difference_translation_m=_vec3(_list(d_t)),
+            difference_translation_norm_m=round(float(np.linalg.norm(d_t)), 9),
+            difference_rotation_deg=round(float(np.degrees(np.linalg.norm(d_rot))), 9),
+            difference_rotation_vector_deg=_vec3(_list(np.degrees(d_rot))),
         )
 
     def error_to(self, other: Extrinsic) -> dict[str, float]:
@@ -225,6 +246,7 @@ _SECTIONS: tuple[tuple[str, type], ...] = (
     ("initialization", InitializationSection),
     ("fit", FitSection),
     ("recording", RecordingSection),
+    ("factory_extrinsic", FactoryExtrinsicSection),
     ("provenance", Provenance),
 )
 
@@ -239,7 +261,8 @@ class CalibrationResult:
         lidar_intrinsics: per-beam LiDAR intrinsics, or None when not part of the file.
         gravity_G: (3,) gravity in the first IMU frame, m/s^2, or None.
         model, uncertainty, intrinsics_uncertainty, observability, verdict, consistency,
-            initialization, fit, recording, provenance: the typed sections ``calibrate`` writes
+            initialization, fit, recording, factory_extrinsic, provenance: the typed sections
+            ``calibrate`` writes
             (:mod:`licalib_cli.sections`), None when the file has none.
     """
 
@@ -256,6 +279,7 @@ class CalibrationResult:
     initialization: InitializationSection | None = None
     fit: FitSection | None = None
     recording: RecordingSection | None = None
+    factory_extrinsic: FactoryExtrinsicSection | None = None
     provenance: Provenance | None = None
 
     def to_dict(self) -> dict[str, Any]:
@@ -410,13 +434,16 @@ def check_not_an_input(
                 raise ConfigError(msg)
 
 
-def prepare_output(path: Path, inputs: Sequence[tuple[str, Path | None]] = ()) -> None:
+def prepare_output(
+    path: Path, inputs: Sequence[tuple[str, Path | None]] = (), example: str = "calib.yaml"
+) -> None:
     """Check, before a long run, that a result file can be written at ``path`` without
     overwriting an input (its folder is created if needed).
 
     Args:
         path: the file to be written.
         inputs: the inputs it must not overwrite (see :func:`check_not_an_input`).
+        example: a file name the message suggests when ``path`` is a folder.
 
     Raises:
         ConfigError: ``path`` is an input or a file of an input folder, a folder, or its folder
@@ -425,7 +452,7 @@ def prepare_output(path: Path, inputs: Sequence[tuple[str, Path | None]] = ()) -
     path = Path(path)
     check_not_an_input(path, inputs)
     if path.is_dir():
-        msg = f"The output {path} is a folder; give a file name such as {path / 'calib.yaml'}."
+        msg = f"The output {path} is a folder; give a file name such as {path / example}."
         raise ConfigError(msg)
     create_folder(path.parent, "The output folder", "give another output path")
     if not os.access(path.parent, os.W_OK):

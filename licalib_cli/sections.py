@@ -17,6 +17,8 @@ section            content
 ``initialization`` where the initial guess came from
 ``fit``            rounds, points, residual RMS, convergence
 ``recording``      the data used
+``factory_extrinsic`` the sensor's factory extrinsic (Ouster metadata) and the calibration's
+                   difference from it, when the bag carries one
 ``provenance``     licalib version, bag fingerprint, creation time
 =================  =============================================================================
 """
@@ -32,6 +34,7 @@ import numpy as np
 __all__ = [
     "Consistency",
     "EffectCheck",
+    "FactoryExtrinsicSection",
     "FitSection",
     "InitializationSection",
     "IntrinsicsUncertainty",
@@ -416,6 +419,42 @@ class RecordingSection(Section):
     """IMU samples dropped for NaN or infinite values."""
     scans_skipped: int = 0
     """Clouds of the segment skipped as unusable (empty, corrupt, too few points, ...)."""
+    imu_frame: str = ""
+    """``header.frame_id`` of the IMU messages ("" when unknown)."""
+    lidar_frame: str = ""
+    """``header.frame_id`` of the LiDAR messages ("" when unknown)."""
+
+
+@dataclass(frozen=True)
+class FactoryExtrinsicSection(Section):
+    """The factory extrinsic the bag carries (Ouster metadata) and how far the calibration
+    lies from it.
+
+    Attributes:
+        source: where it was read, e.g. ``Ouster metadata on /ouster/metadata``.
+        sensor: product line and serial number the metadata names ("" when none).
+        cloud_frame: the frame the clouds are in (``os_lidar`` or ``os_sensor``), which the
+            factory ``T_imu_lidar`` maps from.
+        translation: factory ``t`` (``p_imu = R p_lidar + t``), m.
+        rotation_quaternion: factory ``R`` as ``[x, y, z, w]``.
+        rotation_rpy_deg: factory ``R`` as roll, pitch, yaw, deg.
+        difference_translation_m: calibrated minus factory ``t``, IMU frame, m.
+        difference_translation_norm_m: its length, m.
+        difference_rotation_deg: angle of ``R_factory^T R_calibrated``, deg.
+        difference_rotation_vector_deg: rotation vector of ``R_factory^T R_calibrated``
+            (about the LiDAR axes), deg.
+    """
+
+    source: str
+    sensor: str
+    cloud_frame: str
+    translation: tuple[float, float, float]
+    rotation_quaternion: tuple[float, float, float, float]
+    rotation_rpy_deg: tuple[float, float, float]
+    difference_translation_m: tuple[float, float, float]
+    difference_translation_norm_m: float
+    difference_rotation_deg: float
+    difference_rotation_vector_deg: tuple[float, float, float]
 
 
 @dataclass(frozen=True)

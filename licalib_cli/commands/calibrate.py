@@ -4,14 +4,20 @@ from __future__ import annotations
 
 from enum import Enum
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
 from licalib_cli.commands.render import console, console_err, render_run
 from licalib_cli.config import INTRINSIC_PRESETS, dump_config, load_config
 from licalib_cli.errors import ConfigError, NotConverged, VerdictFailure
+from licalib_cli.report.data import report_data_path
 from licalib_cli.results import check_not_an_input, prepare_output, write_text_atomic
 from licalib_cli.truth import Truth
+
+if TYPE_CHECKING:
+    from licalib_cli.config import CalibConfig
+    from licalib_cli.pipeline import CalibrationRun
 
 _IO = "Input"
 _OUT = "Output"
@@ -78,6 +84,79 @@ class RichProgress:
             self._progress.stop()
 
 
+def _check_extra_outputs(
+    extra: dict[str, Path | None],
+    inputs: list[tuple[str, Path | None]],
+    written: dict[str, Path],
+) -> None:
+    """Refuse, before the run, a report or map path that is an input, another output or a
+    map without a point-cloud suffix."""
+    from licalib_cli.io.map_writer import check_map_suffix
+
+    taken = dict(written)
+    for option, path in extra.items():
+        if path is None:
+            continue
+        if option.startswith("--map"):
+            check_map_suffix(path, option)
+        example = "report.html" if option == "--report" else "map.ply"
+        prepare_output(path, inputs, example)
+        for what, other in taken.items():
+            if path.resolve() == other.resolve():
+                msg = f"{option} {path} is also the output of {what}; give another path."
+                raise ConfigError(msg)
+        taken[option] = path
+    if extra.get("--report") is not None:
+        from licalib_cli.plots import pyplot
+
+        pyplot()
+
+
+def _write_report_outputs(
+    run: CalibrationRun,
+    cfg: CalibConfig,
+    out: Path,
+    data_out: Path,
+    report: Path | None,
+    reference: Truth | None,
+    config_text: str,
+    map_file: Path | None,
+    map_before: Path | None,
+) -> None:
+    """The report data beside the result, and the report and map files asked for."""
+    from licalib_cli.cli import command_line
+    from licalib_cli.commands.render import truth_on_result_clock
+    from licalib_cli.report import build_report_data, write_report
+
+    assert run.segment is not None
+    truth = truth_on_result_clock(run.result, reference) if reference is not None else None
+    data = build_report_data(
+        run,
+        run.segment,
+        cfg,
+        truth=truth,
+        command_line=command_line(),
+        config_text=config_text,
+    )
+    data.save(data_out)
+    console().print(f"Report data: {data_out}")
+    if report is not None:
+        write_report(report, run.result, data, str(out))
+        console().print(f"Report: {report}")
+    for path, state, which in (
+        (map_file, run.state, "final"),
+        (map_before, run.initial.state, "initial"),
+    ):
+        if path is None:
+            continue
+        from licalib_cli.io.map_writer import write_map
+        from licalib_cli.pipeline.map_export import map_chunks
+
+        count, chunks = map_chunks(run.segment, state, cfg)
+        write_map(path, count, chunks)
+        console().print(f"Map with the {which} calibration: {path} ({count} points)")
+
+
 def calibrate_command(
     bag: Path = typer.Argument(
         ...,
@@ -130,6 +209,29 @@ def calibrate_command(
         help="Write figures (fit, observability) as PNG files into this folder.",
         rich_help_panel=_OUT,
     ),
+    report: Path | None = typer.Option(
+        None,
+        "--report",
+        metavar="FILE",
+        help="Write the calibration report: one self-contained HTML page (verdict, estimate, "
+        "observability, fit, motion, map, provenance).",
+        rich_help_panel=_OUT,
+    ),
+    map_file: Path | None = typer.Option(
+        None,
+        "--map",
+        metavar="FILE",
+        help="Write the undistorted map with the final calibration (.ply or .pcd, with "
+        "intensity, beam and time per point).",
+        rich_help_panel=_OUT,
+    ),
+    map_before: Path | None = typer.Option(
+        None,
+        "--map-before",
+        metavar="FILE",
+        help="Write the map with the initial calibration too (.ply or .pcd).",
+        rich_help_panel=_OUT,
+    ),
 ) -> None:
     """Calibrate T_imu_lidar and the time offset from a bag; write the result file."""
     from licalib_cli.pipeline import calibrate
@@ -140,6 +242,14 @@ def calibrate_command(
     prepare_output(out, inputs)
     label = f"The resolved config that calibrate writes next to the result, {config_out},"
     check_not_an_input(config_out, inputs, label)
+    data_out = report_data_path(out)
+    label = f"The report data that calibrate writes next to the result, {data_out},"
+    check_not_an_input(data_out, inputs, label)
+    _check_extra_outputs(
+        {"--report": report, "--map": map_file, "--map-before": map_before},
+        inputs,
+        {"-o": out, "the resolved config": config_out, "the report data": data_out},
+    )
     reference = Truth.load(truth) if truth is not None else None
     cfg = load_config(
         config,
@@ -175,9 +285,13 @@ def calibrate_command(
 
         render_diagnosis(diagnosis)
     run.result.save(out)
-    write_text_atomic(config_out, dump_config(cfg))
+    config_text = dump_config(cfg)
+    write_text_atomic(config_out, config_text)
     render_run(run, reference)
     console().print(f"Result: {out}  (resolved config: {config_out})")
+    _write_report_outputs(
+        run, cfg, out, data_out, report, reference, config_text, map_file, map_before
+    )
     if plots is not None:
         from licalib_cli.plots import save_plots
 

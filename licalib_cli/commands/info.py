@@ -23,7 +23,7 @@ from rich.table import Table
 from licalib_cli.commands.render import console
 from licalib_cli.config import load_config
 from licalib_cli.errors import LicalibError
-from licalib_cli.inspection import BagReport, error_report, inspect_bag
+from licalib_cli.inspection import BagReport, error_report, factory_extrinsic_dict, inspect_bag
 
 
 def info_command(
@@ -130,6 +130,8 @@ def render_report(report: BagReport) -> None:
         evidence = f"p99 |w| {i.gyro_p99:.3g}"
         if i.gyro_gravity_factor is not None:
             evidence += f", gravity turns at {i.gyro_gravity_factor:.3g} x w"
+        if i.gyro_unit_basis is not None:
+            evidence += f"; {i.gyro_unit_basis}"
         imu.add_row("gyro unit", f"{i.gyro_unit} ({i.gyro_unit_source}, {evidence})")
         imu.add_row(
             "accel unit",
@@ -145,9 +147,10 @@ def render_report(report: BagReport) -> None:
             imu.add_row("samples with NaN/inf", _problem_cell(i.dropped, False))
         if i.excitation is not None:
             e = i.excitation
+            given = f" (gyro unit assumed {i.gyro_unit})" if i.gyro_unit_source == "assumed" else ""
             imu.add_row(
                 "rotation RMS x, y, z",
-                ", ".join(f"{v:.1f}" for v in e.rotation_rms_deg_s) + " deg/s",
+                ", ".join(f"{v:.1f}" for v in e.rotation_rms_deg_s) + " deg/s" + given,
             )
             imu.add_row(
                 "rotation axes",
@@ -207,6 +210,18 @@ def render_report(report: BagReport) -> None:
         out.print(
             f"Clock difference IMU - LiDAR (coarse, from record times): "
             f"{round(report.clock_offset_s, 6) + 0.0:+.6f} s"
+        )
+    if report.factory_extrinsic is not None:
+        f = report.factory_extrinsic
+        d = factory_extrinsic_dict(f)
+        t = ", ".join(f"{v:+.6f}" for v in d["translation"])
+        rpy = ", ".join(f"{v:.2f}" for v in d["rotation_rpy_deg"])
+        q = ", ".join(f"{v:.4f}" for v in d["rotation_quaternion"])
+        who = f" of {escape(f.sensor)}" if f.sensor else ""
+        out.print(
+            f"Factory extrinsic{who} (Ouster metadata on {escape(f.topic)}, clouds in "
+            f"{f.cloud_frame}): T_imu_lidar t = ({t}) m, rpy = ({rpy}) deg, "
+            f"quaternion xyzw = ({q}); p_imu = R p_lidar + t"
         )
     for note in report.notes:
         out.print(f"[cyan]note[/cyan]: {escape(note)}")

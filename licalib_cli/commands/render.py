@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from licalib_cli.results import CalibrationResult, Extrinsic, rpy_deg_from_matrix
@@ -35,7 +36,7 @@ def _fmt(v: float, unit: str, scale: float = 1.0, digits: int = 4) -> str:
     return f"{v * scale:.{digits}f} {unit}"
 
 
-def _truth_on_result_clock(result: CalibrationResult, truth: Truth) -> Extrinsic:
+def truth_on_result_clock(result: CalibrationResult, truth: Truth) -> Extrinsic:
     """The true extrinsic with its time offset on the result's footing (LiDAR clock shift)."""
     shift = result.recording.lidar_clock_shift_s if result.recording else 0.0
     return truth.extrinsic.on_shifted_clock(truth.lidar_clock_offset_s, shift)
@@ -49,7 +50,7 @@ def render_estimate(result: CalibrationResult, truth: Truth | None) -> Table:
     t_std = unc.translation_std_m if unc else nan3
     r_std = unc.rotation_std_deg if unc else nan3
     c_std = unc.time_offset_std_s if unc else float("nan")
-    true_ext = _truth_on_result_clock(result, truth) if truth is not None else None
+    true_ext = truth_on_result_clock(result, truth) if truth is not None else None
     table = Table(
         title="T_imu_lidar (p_imu = R p_lidar + t) and time offset (t_imu = t_lidar + dt)"
     )
@@ -145,10 +146,17 @@ def render_run(run: CalibrationRun, truth: Truth | None) -> None:
             + ("; the truth is shown on the same footing." if truth is not None else ".")
         )
     if truth is not None:
-        err = r.extrinsic.error_to(_truth_on_result_clock(r, truth))
+        err = r.extrinsic.error_to(truth_on_result_clock(r, truth))
         out.print(
             f"Error against truth: translation {1e3 * err['translation_m']:.2f} mm, rotation "
             f"{err['rotation_deg']:.4f} deg, time offset {1e3 * err['time_offset_s']:.3f} ms"
+        )
+    if r.factory_extrinsic is not None:
+        f = r.factory_extrinsic
+        out.print(
+            f"Against the factory extrinsic ({escape(f.source)}, clouds in {f.cloud_frame}): "
+            f"translation differs by {1e3 * f.difference_translation_norm_m:.1f} mm, rotation "
+            f"by {f.difference_rotation_deg:.3f} deg."
         )
     if r.consistency is not None:
         out.print(render_checks(r.consistency))

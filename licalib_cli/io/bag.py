@@ -520,6 +520,18 @@ def select_topic(
         )
         raise TopicError(msg)
     if not candidates:
+        from licalib_cli.io.ouster import packet_topics
+
+        packets = packet_topics(bag.topics)
+        if packets:
+            kinds = sorted({t.msgtype.replace("/msg/", "/") for t in packets})
+            msg = (
+                f"The bag holds raw Ouster packets ({', '.join(t.name for t in packets)}: "
+                f"{', '.join(kinds)}) and no sensor_msgs/PointCloud2 or sensor_msgs/Imu topic; "
+                "replay it through the ouster-ros driver (its replay launch file) while "
+                "recording the driver's points and imu topics, and pass that bag."
+            )
+            raise TopicError(msg)
         others = ", ".join(f"{t.name} ({t.msgtype.replace('/msg/', '/')})" for t in bag.topics)
         msg = (
             f"The bag has no {short} topic (topics: {others or 'none'}); record one, or convert "

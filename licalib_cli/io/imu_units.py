@@ -13,8 +13,10 @@ Detection from the data of a segment:
 * gyro, from magnitude otherwise: rates above ~12 rad/s (690 deg/s) do not occur when a rig is
   moved by hand or on a vehicle, so a 99th-percentile ``|angular_velocity|`` above 12 means
   deg/s. Below that both units are plausible (5 may be brisk rad/s or slow deg/s): the unit is
-  *assumed* rad/s and :meth:`ImuUnits.warnings` asks the user to set ``imu.gyro_unit`` if the
-  data is in deg/s.
+  *assumed*, and :meth:`ImuUnits.warnings` says so and asks the user to set ``imu.gyro_unit``.
+  The assumption is deg/s when the accelerometer is in g (drivers that keep the raw units of
+  the IMU, as Ouster's IMU packets: g and deg/s), rad/s otherwise (ROS's unit). Under 0.5 s of
+  data the tilting check cannot run: the warning says that the data is too short to tell.
 
 The config (``imu.gyro_unit``, ``imu.accel_unit``) overrides detection. Converted samples are
 always rad/s and m/s^2.
@@ -38,6 +40,7 @@ _GRAVITY_BIN_S = 0.05  # averaging window of the gravity-direction check, s
 _GRAVITY_MIN_BINS = 10  # at least 0.5 s of data for the gravity-direction check
 _GRAVITY_MIN_CORR = 0.2  # and at least 4 sigma of the correlation of noise
 _GRAVITY_FACTOR_TOL = 3.0
+_GRAVITY_MIN_SPAN_S = _GRAVITY_BIN_S * _GRAVITY_MIN_BINS
 
 GyroUnit = Literal["rad/s", "deg/s"]
 AccelUnit = Literal["m/s^2", "g"]
@@ -57,6 +60,7 @@ class ImuUnits:
         gravity_turn_factor: least-squares ``k`` of ``du/dt = -k (w_raw x u)`` (about 1 for
             rad/s, 0.0175 for deg/s), or None when the data could not tell (too short, no
             tilting, or no stamps given).
+        span_s: time the samples span, s (None: no stamps given).
     """
 
     gyro_unit: GyroUnit
@@ -66,6 +70,18 @@ class ImuUnits:
     gyro_p99: float
     accel_norm_median: float
     gravity_turn_factor: float | None = None
+    span_s: float | None = None
+
+    @property
+    def too_short(self) -> bool:
+        """The samples span less than the 0.5 s the tilting check of the gyro unit needs."""
+        return self.span_s is not None and self.span_s < _GRAVITY_MIN_SPAN_S
+
+    @property
+    def gyro_assumption(self) -> str | None:
+        """``"gyro unit assumed deg/s"`` when the gyro unit was assumed, else None (for
+        sentences that rest on it, such as how much the rig rotated)."""
+        return f"gyro unit assumed {self.gyro_unit}" if self.gyro_source == "assumed" else None
 
     def messages(self) -> list[str]:
         """Sentences telling the user what was detected and converted (informative notes)."""
@@ -86,11 +102,29 @@ class ImuUnits:
         """Sentences about units that were assumed rather than detected (user action advised)."""
         out = []
         if self.gyro_source == "assumed":
+            other = "rad/s" if self.gyro_unit == "deg/s" else "deg/s"
+            why = (
+                "as the accelerometer reads g (drivers that keep the IMU's raw units publish g "
+                "with deg/s, Livox's g with rad/s)"
+                if self.gyro_unit == "deg/s"
+                else "as ROS specifies"
+            )
+            if self.too_short:
+                evidence = (
+                    f"{self.span_s:.2f} s of IMU data is too little to tell the gyro unit (the "
+                    f"tilting check needs {_GRAVITY_MIN_SPAN_S:g} s, and the 99th percentile of "
+                    f"|w|, {self.gyro_p99:.3g}, is plausible in rad/s and in deg/s)"
+                )
+            else:
+                evidence = (
+                    f"The IMU gyro unit cannot be told from the data (99th percentile of |w| "
+                    f"{self.gyro_p99:.3g}, plausible in rad/s and in deg/s, and the tilting does "
+                    "not settle it)"
+                )
+            evidence = evidence[0].upper() + evidence[1:]
             out.append(
-                f"The IMU gyro unit cannot be told from the data (99th percentile of |w| "
-                f"{self.gyro_p99:.3g}, plausible in rad/s and in deg/s, and the tilting does not "
-                "settle it); it is assumed rad/s, set `imu.gyro_unit: deg/s` in the config if "
-                "the data is in deg/s."
+                f"{evidence}; it is assumed {self.gyro_unit} {why}, set "
+                f"`imu.gyro_unit: {other}` in the config if the data is in {other}."
             )
         if self.accel_source == "assumed":
             out.append(
@@ -174,18 +208,6 @@ def detect_imu_units(
     factor = None
     if t_ns is not None and len(gyro) == len(accel):
         factor = gravity_turn_factor(t_ns, gyro, accel)
-    gyro_unit: GyroUnit
-    gsrc: Literal["config", "detected", "assumed"]
-    if gyro_override is not None:
-        gyro_unit, gsrc = gyro_override, "config"
-    elif factor is not None and _within(factor, 1.0):
-        gyro_unit, gsrc = "rad/s", "detected"
-    elif factor is not None and _within(factor, np.pi / 180.0):
-        gyro_unit, gsrc = "deg/s", "detected"
-    elif p99 > _GYRO_DEG_THRESHOLD:
-        gyro_unit, gsrc = "deg/s", "detected"
-    else:
-        gyro_unit, gsrc = "rad/s", "assumed"
     accel_unit: AccelUnit
     asrc: Literal["config", "detected", "assumed"]
     if accel_override is not None:
@@ -196,7 +218,24 @@ def detect_imu_units(
         accel_unit, asrc = "m/s^2", "detected"
     else:
         accel_unit, asrc = "m/s^2", "assumed"
-    return ImuUnits(gyro_unit, accel_unit, gsrc, asrc, p99, amed, factor)
+    gyro_unit: GyroUnit
+    gsrc: Literal["config", "detected", "assumed"]
+    if gyro_override is not None:
+        gyro_unit, gsrc = gyro_override, "config"
+    elif factor is not None and _within(factor, 1.0):
+        gyro_unit, gsrc = "rad/s", "detected"
+    elif factor is not None and _within(factor, np.pi / 180.0):
+        gyro_unit, gsrc = "deg/s", "detected"
+    elif p99 > _GYRO_DEG_THRESHOLD:
+        gyro_unit, gsrc = "deg/s", "detected"
+    elif accel_unit == "g" and asrc != "assumed":
+        gyro_unit, gsrc = "deg/s", "assumed"  # raw IMU units: g with deg/s
+    else:
+        gyro_unit, gsrc = "rad/s", "assumed"
+    span = None
+    if t_ns is not None and len(t_ns):
+        span = float(np.max(t_ns) - np.min(t_ns)) * 1e-9
+    return ImuUnits(gyro_unit, accel_unit, gsrc, asrc, p99, amed, factor, span)
 
 
 def _within(value: float, target: float) -> bool:

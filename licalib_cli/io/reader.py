@@ -90,6 +90,7 @@ from licalib_cli.io.bag import (
     select_topic,
 )
 from licalib_cli.io.imu_units import GRAVITY, ImuUnits, convert_imu, detect_imu_units
+from licalib_cli.io.ouster import cloud_frame, read_factory_extrinsic
 from licalib_cli.io.pointcloud2 import (
     POINTFIELD_DTYPES,
     CloudError,
@@ -153,6 +154,7 @@ logger = logging.getLogger(__name__)
 
 _NS = 1_000_000_000
 _MARGIN_NS = _NS
+_MS = 1_000_000  # slack of comparisons of durations built from rounded stamps
 IMU_GAP_FACTOR = 5.0
 LIDAR_GAP_FACTOR = 2.5
 MIN_SEGMENT_S = 2.0
@@ -473,10 +475,15 @@ class SegmentWindow:
     Attributes:
         start_ns: first record time of the segment, ns.
         stop_ns: record time the segment ends before, ns (None: end of the bag).
+        from_bag_start: the segment starts at the bag's first message: nothing before
+            ``start_ns`` is cut (a stamp mapped to record time with its topic's median offset
+            may land a little before the bag's first record time, e.g. the first IMU message
+            recorded with less latency than the others).
     """
 
     start_ns: int
     stop_ns: int | None
+    from_bag_start: bool = False
 
     def read_range(self) -> tuple[int, int | None]:
         """Record-time range to read, with the margin for stamp/record jitter."""
@@ -485,7 +492,7 @@ class SegmentWindow:
 
     def contains(self, record_equiv_ns: int) -> bool:
         """Whether a stamp mapped to record time lies in the window."""
-        return record_equiv_ns >= self.start_ns and (
+        return (self.from_bag_start or record_equiv_ns >= self.start_ns) and (
             self.stop_ns is None or record_equiv_ns < self.stop_ns
         )
 
@@ -515,7 +522,7 @@ def segment_window(bag: BagHandle, cfg: CalibConfig, *, cap: bool = False) -> Se
         limit = round(min(cfg.bag.max_duration_s, _MAX_SPAN_S) * _NS)
         if bag.end_ns - start > limit:
             stop = start + limit
-    return SegmentWindow(start, stop)
+    return SegmentWindow(start, stop, from_bag_start=cfg.bag.start_s <= 0)
 
 
 def window_findings(
@@ -1012,6 +1019,10 @@ class CloudLayout:
         sweep_end_offset_ns: median ``max(point time) - header stamp`` of the checked clouds,
             ns (about one period when the stamp marks the sweep start). A cloud cannot be
             recorded before its last point, so the clock offset is measured from there.
+        sweep_start_offset_ns: median ``min(point time) - header stamp`` of the checked
+            clouds, ns (0 when the stamp marks the sweep start, about minus one period when it
+            marks the end). With ``sweep_end_offset_ns`` it gives the time a cloud covers,
+            which is what the sensors' overlap is measured with (one cloud covers a sweep).
     """
 
     topic: str
@@ -1027,6 +1038,15 @@ class CloudLayout:
     points_per_scan: int = 0
     valid_points_per_scan: int = 0
     sweep_end_offset_ns: int = 0
+    sweep_start_offset_ns: int = 0
+
+    def sweep_span_ns(self, stamp_ns: int) -> tuple[int, int]:
+        """The time a cloud stamped ``stamp_ns`` stands for, ns: its sweep, at least one scan
+        period long (consecutive clouds then tile the time, so 20 clouds at 10 Hz cover 2 s)."""
+        start = stamp_ns + self.sweep_start_offset_ns
+        sweep = self.sweep_end_offset_ns - self.sweep_start_offset_ns
+        length = max(sweep, self.time.scan_period_ns)
+        return start, start + length
 
 
 def _field_desc(msg: Any) -> tuple[str, ...]:
@@ -1212,12 +1232,14 @@ def detect_layout(
         )
         raise ConfigError(msg_)
     if tl.field is not None:
-        ends = [int(time_values_to_ns(v, st, tl).max()) - st for st, v in samples if v.size]
-        end_offset = int(np.median(ends)) if ends else 0
-        if abs(end_offset) > 2 * tl.scan_period_ns:  # implausible layout: do not trust it
-            end_offset = 0
+        converted = [time_values_to_ns(v, st, tl) - st for st, v in samples if v.size]
+        end_offset = int(np.median([int(c.max()) for c in converted])) if converted else 0
+        start_offset = int(np.median([int(c.min()) for c in converted])) if converted else 0
+        if max(abs(end_offset), abs(start_offset)) > 2 * tl.scan_period_ns:  # implausible
+            end_offset = start_offset = 0  # layout: do not trust it
     else:
         end_offset = tl.scan_period_ns if tl.stamp_position != "end" else 0
+        start_offset = end_offset - tl.scan_period_ns
     return CloudLayout(
         topic=topic,
         fields=_field_desc(first),
@@ -1232,6 +1254,7 @@ def detect_layout(
         points_per_scan=int(np.median(counts)),
         valid_points_per_scan=int(np.median(valid_counts)),
         sweep_end_offset_ns=end_offset,
+        sweep_start_offset_ns=start_offset,
     )
 
 
@@ -1581,10 +1604,11 @@ def segment_findings(
     """
     if imu.samples.t_ns.size == 0 or not lidar.tally.stamps or lidar.layout is None:
         return []
-    # each sample or sweep stands for its period: a 2 s window holds 2 s of data
+    # each sample or sweep stands for its period: a 2 s window holds 2 s of data; the LiDAR
+    # covers its sweeps (from the per-point times), not last minus first stamp (0 for one cloud)
     i0, i1 = int(imu.samples.t_ns.min()), int(imu.samples.t_ns.max()) + imu.stats.period_ns
-    l0 = min(lidar.tally.stamps) + lidar.shift_ns
-    l1 = max(lidar.tally.stamps) + lidar.shift_ns + lidar.layout.time.scan_period_ns
+    l0 = lidar.layout.sweep_span_ns(min(lidar.tally.stamps) + lidar.shift_ns)[0]
+    l1 = lidar.layout.sweep_span_ns(max(lidar.tally.stamps) + lidar.shift_ns)[1]
     overlap = min(i1, l1) - max(i0, l0)
     if overlap <= 0:
         ri, rl = imu.record_span_ns, lidar.record_span_ns
@@ -1595,7 +1619,9 @@ def segment_findings(
             "synchronised, fix the drivers' time stamping and re-record."
         )
         return [Finding(msg, True, TimestampError)]
-    if overlap < min_span_s * _NS:
+    # a record-time window selects clouds by when they were recorded (after their sweep), so
+    # its edge can cut up to one sweep off the LiDAR's share: that much is not held against it
+    if overlap + lidar.layout.time.scan_period_ns + _MS < min_span_s * _NS:
         return [
             Finding(
                 f"The IMU and LiDAR data of the segment overlap for only {overlap / _NS:.2f} s, "
@@ -1651,6 +1677,7 @@ def read_segment(path: Path, cfg: CalibConfig, *, min_span_s: float = MIN_SEGMEN
         _raise_fatal(findings)
         findings += segment_findings(imu, lidar, bag.start_ns, min_span_s)
         _raise_fatal(findings)
+        factory = read_factory_extrinsic(bag, cloud_frame(bag, lid_t.name))
         bag_start, bag_end = bag.start_ns, bag.end_ns
         imu_lost, lidar_lost = bag.loss(imu_t.name).total, bag.loss(lid_t.name).total
     layout, units = lidar.layout, imu.units
@@ -1677,13 +1704,16 @@ def read_segment(path: Path, cfg: CalibConfig, *, min_span_s: float = MIN_SEGMEN
         imu_units=units,
         clock_offset_ns=lidar.clock_offset_ns,
         lidar_shift_ns=lidar.shift_ns,
-        start_ns=window.start_ns + imu.offset_ns,
+        start_ns=min(window.start_ns + imu.offset_ns, int(imu.samples.t_ns[0]))
+        if window.from_bag_start
+        else window.start_ns + imu.offset_ns,
         end_ns=end_ns,
         warnings=tuple(warnings),
         imu_unreadable=imu_lost,
         lidar_unreadable=lidar_lost,
         imu_samples_dropped=imu.dropped,
         scans_skipped=sum(lidar.tally.skipped.values()),
+        factory_extrinsic=factory,
     )
 
 

@@ -12,13 +12,17 @@ Drivers publish per-point time in different ways (field name, dtype, unit, refer
   estimated from the azimuth and the scan period (spinning LiDARs) or from the point order
   (non-repetitive scanners).
 
-Classification follows rko_lio's rule, generalised over units: the values are *absolute* when
-the header stamp lies within (or within 10 ms of) the span of the converted values, or when the
-values are epoch-sized although the clock differs from the stamp; otherwise *relative* to the
-header stamp. The unit is the one that makes the sweep span closest to the scan period
-(integer fields are never seconds). Every decision can be overridden from the config
-(``lidar.time_field``, ``time_unit``, ``time_reference``; ``time_field: none`` forces
-estimation).
+The unit comes from the data's own span: a spinning LiDAR's per-point times span about one
+sweep period, so the unit is the one that makes the span of a cloud's values closest to the
+scan period (within a factor of 30; integer fields are never seconds). Where the header stamp
+falls does not decide the unit: an Ouster ``t`` (ns since the stamp) read as ms spans 0-100 s,
+which contains any stamp on a sensor clock of under 100 s since power-on. Then the reference
+follows rko_lio's rule: the values are *absolute* when the header stamp lies within (or within
+10 ms of) the span of the converted values, or when they are epoch-sized although the clock
+differs from the stamp; otherwise *relative* to the header stamp. Only when no unit gives a
+plausible span (a cropped cloud) does the stamp's position choose the unit. Every decision
+can be overridden from the config (``lidar.time_field``, ``time_unit``, ``time_reference``;
+``time_field: none`` forces estimation).
 
 Beams: the ``ring``/``line`` field is used when present; otherwise beams are recovered by
 clustering the elevation angles ``atan2(z, hypot(x, y))`` (ring 0 = lowest beam).
@@ -79,6 +83,7 @@ _ABS_TOL_NS = 10_000_000  # rko_lio: max time within 10 ms of the header stamp
 _FAR_FROM_STAMP_NS = 1e9  # per-point times farther than this from the stamp are implausible
 _FAR_FROM_STAMP_PERIODS = 10.0  # ... or than this many scan periods
 _LONG_SWEEP_PERIODS = 3.0  # a cloud spanning more than this many periods is implausible
+_SPAN_PLAUSIBLE = float(np.log(30.0))  # a sweep spans 1/30 to 30 periods in the right unit
 
 
 @dataclass(frozen=True)
@@ -222,23 +227,32 @@ def classify_time_field(
         return float(np.mean((stamps >= lo) & (stamps <= hi)))
 
     by_span = min(candidates, key=span_score)
+    # A spinning LiDAR's per-point times span about one sweep period: the unit that gives that
+    # span is the unit, wherever the header stamp falls. Units are 1000x apart, so at most one
+    # gives a plausible span; only when none does (a cropped or odd cloud) does the stamp decide.
+    span_fits = [u for u in candidates if span_score(u) <= _SPAN_PLAUSIBLE]
     other_clock = False
     chosen_ref: Literal["relative", "absolute"]
     chosen_unit: Unit
     if reference is not None:
         notes.append(f"time reference '{reference}' set in the config")
         chosen_ref = reference
-        if reference == "absolute":
+        if reference == "absolute" and not span_fits:
             fits = [u for u in candidates if absolute_fit(u) >= 0.5]
             chosen_unit = fits[0] if fits else by_span
         else:
             chosen_unit = by_span
     else:
-        fits = [u for u in candidates if absolute_fit(u) >= 0.5]
-        if fits:
-            chosen_ref, chosen_unit = "absolute", fits[0]
+        if span_fits:
+            chosen_unit = span_fits[0]
+            absolute = absolute_fit(chosen_unit) >= 0.5
         else:
-            chosen_unit = by_span
+            fits = [u for u in candidates if absolute_fit(u) >= 0.5]
+            absolute = bool(fits)
+            chosen_unit = fits[0] if fits else by_span
+        if absolute:
+            chosen_ref = "absolute"
+        else:
             magnitude = float(np.median(np.abs(vmax))) * UNIT_TO_NS[chosen_unit]
             if magnitude > _EPOCH_NS:
                 other_clock = True

@@ -65,9 +65,10 @@ class CalibrationRun:
         checks: the checks' outcome (verdict, sigmas, consistency).
         noise: the noise the fit was weighted with.
         timings: wall seconds per stage, in order.
-        stage_times: wall and CPU seconds per stage, in order (the same stages).
         warnings: non-fatal findings of the reading stage.
         effects: the score tests of the effects the fit held fixed (selected ones first).
+        segment: the segment's measurements (for the report and the map files), or None.
+        stage_times: wall and CPU seconds per stage, in order (the same stages as ``timings``).
     """
 
     result: CalibrationResult
@@ -79,6 +80,7 @@ class CalibrationRun:
     timings: dict[str, float]
     warnings: tuple[str, ...] = ()
     effects: tuple[EffectEvidence, ...] = ()
+    segment: Recording | None = None
     stage_times: dict[str, StageTime] = field(default_factory=dict)
 
     @property
@@ -195,4 +197,5 @@ def fit_and_check(
         stage_times=dict(timer.stages),
         warnings=rec.warnings,
         effects=checks.effects,
+        segment=rec,
     )

@@ -11,13 +11,15 @@ import numpy as np
 from licalib_cli import __version__
 from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import beam_point_counts
+from licalib_cli.io.frames import frame_ids
 from licalib_cli.measurements import Recording
 from licalib_cli.pipeline.checks import Checks
 from licalib_cli.pipeline.initialise import InitialGuess
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.schedule import Fit
-from licalib_cli.results import CalibrationResult
+from licalib_cli.results import CalibrationResult, Extrinsic
 from licalib_cli.sections import (
+    FactoryExtrinsicSection,
     FitSection,
     InitializationSection,
     ModelInfo,
@@ -46,7 +48,8 @@ def bag_fingerprint(path: Path) -> str:
 
 
 def recording_section(bag: Path, rec: Recording) -> RecordingSection:
-    """What data the calibration used."""
+    """What data the calibration used (the sensors' frame ids read from the bag)."""
+    frames = frame_ids(bag, (rec.imu_topic, rec.lidar_topic))
     return RecordingSection(
         bag=str(bag),
         imu_topic=rec.imu_topic,
@@ -61,6 +64,19 @@ def recording_section(bag: Path, rec: Recording) -> RecordingSection:
         lidar_unreadable_messages=rec.lidar_unreadable,
         imu_samples_dropped=rec.imu_samples_dropped,
         scans_skipped=rec.scans_skipped,
+        imu_frame=frames.get(rec.imu_topic, ""),
+        lidar_frame=frames.get(rec.lidar_topic, ""),
+    )
+
+
+def factory_section(rec: Recording, calibrated: Extrinsic) -> FactoryExtrinsicSection | None:
+    """The bag's factory extrinsic and the calibration's difference from it (None: none)."""
+    f = rec.factory_extrinsic
+    if f is None:
+        return None
+    factory = Extrinsic(rotation=f.rotation, translation=f.translation)
+    return calibrated.factory_difference(
+        factory, f"Ouster metadata on {f.topic}", f.sensor, f.cloud_frame
     )
 
 
@@ -124,6 +140,7 @@ def assemble(
             variance_factor=float(f"{fit.report.variance_factor:.4g}"),
         ),
         recording=recording_section(bag, rec),
+        factory_extrinsic=factory_section(rec, extrinsic_of(state)),
         provenance=Provenance(
             licalib_version=__version__,
             bag_fingerprint=bag_fingerprint(bag),

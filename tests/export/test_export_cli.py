@@ -246,3 +246,15 @@ def test_the_golden_result_file_exports(capsys: pytest.CaptureFixture[str]) -> N
     code, out, err = run(["export", str(golden), "--to", "json"], capsys)
     assert code == 0, err
     assert CalibrationResult.from_dict(json.loads(out)).to_dict() == result.to_dict()
+
+
+def test_frames_default_to_the_ids_calibrate_recorded(capsys: pytest.CaptureFixture[str]) -> None:
+    """calibrate records the sensors' header.frame_id (recording.imu_frame, lidar_frame), so the
+    URDF joint and the tf2 lines need no names."""
+    golden = Path(__file__).parents[1] / "golden" / "result_v1.yaml"
+    code, out, err = run(["export", str(golden), "--to", "urdf"], capsys)
+    assert code == 0, err
+    assert '<parent link="imu_link"/>' in out and '<child link="velodyne"/>' in out
+    code, out, err = run(["export", str(golden), "--to", "tf2", "--parent-sensor", "lidar"], capsys)
+    assert code == 0, err
+    assert "--frame-id velodyne --child-frame-id imu_link" in out

@@ -40,14 +40,6 @@ TOL = 1e-9
 
 
 @dataclass(frozen=True)
-class RecordingWithFrames(RecordingSection):
-    """A recording section that also names the sensors' frame ids."""
-
-    imu_frame: str = ""
-    lidar_frame: str = ""
-
-
-@dataclass(frozen=True)
 class Case:
     """A mounting: ``p_imu = R p_lidar + t``, ``t_imu = t_lidar + shift + dt``."""
 
@@ -109,7 +101,7 @@ def _result(
     recording = (
         RecordingSection(*fields)
         if frames is None
-        else RecordingWithFrames(*fields, imu_frame=frames[0], lidar_frame=frames[1])
+        else RecordingSection(*fields, imu_frame=frames[0], lidar_frame=frames[1])
     )
     return CalibrationResult(
         extrinsic=Extrinsic(case.R, case.t, case.dt),

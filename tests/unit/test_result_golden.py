@@ -89,6 +89,8 @@ def _result() -> CalibrationResult:
             1700000000000000000,
             -0.000012345,
             -1000000.25,
+            imu_frame="imu_link",
+            lidar_frame="velodyne",
         ),
         provenance=Provenance("0.1.0", "0123456789abcdef", "2026-11-24T07:00:00Z"),
     )

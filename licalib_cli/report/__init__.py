@@ -1,0 +1,67 @@
+"""The calibration report: one self-contained HTML page per result.
+
+``calibrate`` keeps the arrays the figures need next to the result
+(:mod:`licalib_cli.report.data`, ``<stem>.report-data.npz``); :func:`write_report` draws the page
+(:mod:`licalib_cli.report.html`, figures in :mod:`licalib_cli.report.figures`) from the result
+and, when present, those arrays.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from licalib_cli.report.data import ReportData, build_report_data, report_data_path
+from licalib_cli.results import CalibrationResult, write_text_atomic
+
+__all__ = [
+    "ReportData",
+    "build_report_data",
+    "load_report_data",
+    "report_data_path",
+    "write_report",
+]
+
+logger = logging.getLogger(__name__)
+
+
+def load_report_data(result_path: Path, result: CalibrationResult) -> ReportData | None:
+    """The report data beside ``result_path``, or None when there is none or it belongs to
+    another run (a warning says so).
+
+    Raises:
+        ConfigError: the sidecar exists but is not report data of this version.
+    """
+    path = report_data_path(result_path)
+    if not path.is_file():
+        logger.warning(
+            "%s has no report data (%s), so the report shows what the result file holds; "
+            "calibrate with this licalib to get every figure.",
+            result_path,
+            path.name,
+        )
+        return None
+    data = ReportData.load(path)
+    created = result.provenance.created_utc if result.provenance else ""
+    if data.result_created_utc and created and data.result_created_utc != created:
+        logger.warning(
+            "%s belongs to another run (created %s, the result %s); it is not used.",
+            path,
+            data.result_created_utc,
+            created,
+        )
+        return None
+    return data
+
+
+def write_report(
+    path: Path, result: CalibrationResult, data: ReportData | None, source: str
+) -> None:
+    """Draw the report of ``result`` and write it to ``path`` atomically.
+
+    Raises:
+        ConfigError: matplotlib is not installed.
+    """
+    from licalib_cli.report.html import render_html
+
+    write_text_atomic(Path(path), render_html(result, data, source))

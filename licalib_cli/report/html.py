@@ -1,0 +1,600 @@
+"""One self-contained HTML page from a result and its report data.
+
+The page needs no network access: the style is inline and every figure is a PNG embedded as a
+``data:`` URI. It reads top to bottom: the verdict and its reasons; the estimate with its
+1-sigma (and the truth); what the data determined and what not; the fit; the motion; the map;
+the provenance. Without report data (a result whose ``<stem>.report-data.npz`` is missing) the
+page shows what the result file holds and names the figures it cannot draw.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+from collections.abc import Sequence
+
+import numpy as np
+
+from licalib_cli.geometry import so3
+from licalib_cli.report import figures
+from licalib_cli.report.data import ReportData
+from licalib_cli.results import CalibrationResult, Extrinsic, rpy_deg_from_matrix
+from licalib_cli.sections import Consistency, SensorCheck
+
+__all__ = ["render_html"]
+
+_STYLE = """
+body { font-family: -apple-system, "Segoe UI", "DejaVu Sans", Arial, sans-serif; margin: 0;
+       color: #1d1d1f; background: #fafafa; }
+main { max-width: 1100px; margin: 0 auto; padding: 24px 32px 48px; background: #fff; }
+h1 { font-size: 26px; margin: 0 0 4px; }
+h2 { font-size: 20px; border-bottom: 2px solid #ddd; padding-bottom: 4px; margin-top: 36px; }
+h3 { font-size: 16px; margin-top: 22px; }
+.sub { color: #666; margin: 0 0 18px; }
+.verdict { border-radius: 8px; padding: 14px 20px; margin: 12px 0 8px; color: #fff; }
+.verdict .status { font-size: 30px; font-weight: bold; letter-spacing: 1px; }
+.verdict ul { margin: 8px 0 0; padding-left: 22px; }
+.pass { background: #1e8e3e; } .warn { background: #c77700; } .fail { background: #c5221f; }
+table { border-collapse: collapse; margin: 8px 0 12px; font-size: 14px; }
+th, td { border: 1px solid #ccc; padding: 4px 10px; text-align: right; }
+th { background: #f0f0f0; } td.l, th.l { text-align: left; }
+tr.bad td { background: #fff1e0; }
+figure { margin: 10px 0 18px; } figure img { max-width: 100%; border: 1px solid #eee; }
+figcaption { color: #555; font-size: 13px; margin-top: 4px; }
+pre { background: #f5f5f5; padding: 10px; overflow-x: auto; font-size: 12px; }
+.missing { color: #8a5a00; background: #fff8e6; padding: 6px 10px; border-radius: 4px; }
+.note { color: #444; font-size: 14px; }
+table.provenance td, table.provenance th, table.rounds td:last-child, table.checks td,
+table.checks th { text-align: left; }
+table.provenance td { word-break: break-all; }
+"""
+
+
+def _e(text: object) -> str:
+    return html.escape(str(text), quote=True)
+
+
+def _img(png: bytes, alt: str, caption: str) -> str:
+    data = base64.b64encode(png).decode("ascii")
+    return (
+        f'<figure><img alt="{_e(alt)}" src="data:image/png;base64,{data}">'
+        f"<figcaption>{_e(caption)}</figcaption></figure>"
+    )
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[str]], cls: str = "") -> str:
+    head = "".join(
+        f'<th class="{"l" if i == 0 else ""}">{_e(h)}</th>' for i, h in enumerate(header)
+    )
+    body = []
+    for row in rows:
+        cells = "".join(
+            f'<td class="{"l" if i == 0 else ""}">{_e(c)}</td>' for i, c in enumerate(row)
+        )
+        body.append(f"<tr>{cells}</tr>")
+    return f'<table class="{cls}"><tr>{head}</tr>{"".join(body)}</table>'
+
+
+def _missing(what: str) -> str:
+    return (
+        f'<p class="missing">{_e(what)} not shown: the result has no report data '
+        "(&lt;stem&gt;.report-data.npz, written by this licalib's calibrate next to the "
+        "result).</p>"
+    )
+
+
+def _sigma(v: float, scale: float, unit: str, digits: int) -> str:
+    return f"{v * scale:.{digits}f} {unit}" if np.isfinite(v) else "not observable"
+
+
+def _estimate(result: CalibrationResult, data: ReportData | None) -> str:
+    ext = result.extrinsic
+    unc = result.uncertainty
+    nan3 = (float("nan"),) * 3
+    t_std = unc.translation_std_m if unc else nan3
+    r_std = unc.rotation_std_deg if unc else nan3
+    c_std = unc.time_offset_std_s if unc else float("nan")
+    truth: Extrinsic | None = data.truth if data is not None else None
+    initial = data is not None and data.initial_translation_m.size == 3
+    header = ["parameter", "estimate", "1-sigma"]
+    if initial:
+        header.append("initial guess")
+    if truth is not None:
+        header += ["truth", "error"]
+    rpy = rpy_deg_from_matrix(ext.rotation)
+    t_rpy = rpy_deg_from_matrix(truth.rotation) if truth is not None else None
+    rows = []
+    for i, axis in enumerate("xyz"):
+        row = [f"t_{axis}", f"{ext.translation[i]:+.4f} m", _sigma(t_std[i], 1e3, "mm", 2)]
+        if initial:
+            row.append(f"{data.initial_translation_m[i]:+.4f} m")  # type: ignore[union-attr]
+        if truth is not None:
+            row += [
+                f"{truth.translation[i]:+.4f} m",
+                f"{1e3 * (ext.translation[i] - truth.translation[i]):+.2f} mm",
+            ]
+        rows.append(row)
+    for i, name in enumerate(("roll", "pitch", "yaw")):
+        row = [name, f"{rpy[i]:+.4f} deg", _sigma(r_std[i], 1.0, "deg", 4)]
+        if initial:
+            row.append(f"{data.initial_rpy_deg[i]:+.4f} deg")  # type: ignore[union-attr]
+        if t_rpy is not None:
+            row += [f"{t_rpy[i]:+.4f} deg", f"{rpy[i] - t_rpy[i]:+.4f} deg"]
+        rows.append(row)
+    row = ["time offset", f"{1e3 * ext.time_offset_s:+.3f} ms", _sigma(c_std, 1e3, "ms", 3)]
+    if initial:
+        row.append(f"{1e3 * float(data.initial_time_offset_s[0]):+.3f} ms")  # type: ignore[union-attr]
+    if truth is not None:
+        row += [
+            f"{1e3 * truth.time_offset_s:+.3f} ms",
+            f"{1e3 * (ext.time_offset_s - truth.time_offset_s):+.3f} ms",
+        ]
+    rows.append(row)
+    out = [
+        "<h2>Estimate</h2>",
+        '<p class="note">T_imu_lidar maps LiDAR points into the IMU frame: p_imu = R p_lidar + '
+        "t (t is the LiDAR origin in the IMU frame; roll, pitch, yaw with R = Rz(yaw) Ry(pitch) "
+        "Rx(roll)). Time offset: t_imu = t_lidar + time offset. The rotation sigmas are about "
+        "the LiDAR axes.</p>",
+        _table(header, rows, "estimate"),
+    ]
+    q = ext.quaternion
+    out.append(
+        f'<p class="note">Quaternion [x, y, z, w]: [{", ".join(f"{v:.9f}" for v in q)}].</p>'
+    )
+    shift = result.recording.lidar_clock_shift_s if result.recording else 0.0
+    if shift:
+        out.append(
+            f'<p class="note">The LiDAR clock was shifted by {shift:+.9f} s before calibrating: '
+            f"t_imu = t_lidar + ({shift:+.9f} s) + time offset.</p>"
+        )
+    if truth is not None:
+        err = ext.error_to(truth)
+        out.append(
+            f'<p class="note">Error against the truth: translation '
+            f"{1e3 * err['translation_m']:.2f} mm, rotation {err['rotation_deg']:.4f} deg, time "
+            f"offset {1e3 * err['time_offset_s']:.3f} ms.</p>"
+        )
+    out.append(_intrinsics(result))
+    return "\n".join(out)
+
+
+_IMU_BLOCKS = {
+    # model name: (result field, sigma key, unit, labels, to the shown unit)
+    "gyro_scale": ("gyro_scale", "gyro_scale", "", ("x", "y", "z")),
+    "gyro_misalignment": ("gyro_misalignment", "gyro_misalignment", "", ("xy", "xz", "yz")),
+    "gyro_rotation": ("gyro_rotation", "gyro_rotation_deg", "deg", ("roll", "pitch", "yaw")),
+    "accel_scale": ("accel_scale", "accel_scale", "", ("x", "y", "z")),
+    "accel_misalignment": ("accel_misalignment", "accel_misalignment", "", ("xy", "xz", "yz")),
+    "g_sensitivity": (
+        "gyro_g_sensitivity",
+        "g_sensitivity",
+        "rad/s per m/s^2",
+        tuple(f"{a}{b}" for a in "xyz" for b in "xyz"),
+    ),
+}
+_LIDAR_BLOCKS = {
+    # model name: (result field, sigma key, unit, value and sigma factors to the shown unit)
+    "elevation": ("elevation_correction", "elevation_deg", "deg", 180.0 / np.pi, 1.0),
+    "azimuth": ("azimuth_correction", "azimuth_deg", "deg", 180.0 / np.pi, 1.0),
+    "vertical_offset": ("vertical_offset", "vertical_offset_m", "mm", 1e3, 1e3),
+    "horizontal_offset": ("horizontal_offset", "horizontal_offset_m", "mm", 1e3, 1e3),
+    "range_scale": ("range_scale", "range_scale", "", 1.0, 1.0),
+    "range_offset": ("range_offset", "range_offset_m", "mm", 1e3, 1e3),
+}
+
+
+def _sigma_of(values: dict[str, tuple[float | None, ...]], key: str, i: int, factor: float) -> str:
+    sig = values.get(key, ())
+    v = sig[i] if i < len(sig) else None
+    return "-" if v is None or not np.isfinite(v) else f"{v * factor:.4g}"
+
+
+def _intrinsics(result: CalibrationResult) -> str:
+    """Tables of the estimated intrinsics with their 1-sigma (empty when none were)."""
+    model = result.model
+    if model is None or not (model.imu or model.lidar):
+        return ""
+    sig = result.intrinsics_uncertainty.values if result.intrinsics_uncertainty else {}
+    out = ["<h3>Intrinsics estimated as well</h3>"]
+    rows = []
+    k = result.imu_intrinsics
+    for name in model.imu:
+        if name not in _IMU_BLOCKS:
+            continue
+        field_name, key, unit, labels = _IMU_BLOCKS[name]
+        raw = np.asarray(getattr(k, field_name), dtype=np.float64)
+        values = (
+            rpy_deg_from_matrix(so3.quat_to_matrix(raw)) if name == "gyro_rotation" else raw
+        ).reshape(-1)
+        for i, label in enumerate(labels):
+            rows.append(
+                [f"{name} {label}", f"{values[i]:.6g} {unit}".strip(), _sigma_of(sig, key, i, 1.0)]
+            )
+    if rows:
+        out.append(_table(["IMU intrinsic", "estimate", "1-sigma"], rows, "intrinsics"))
+    lidar = result.lidar_intrinsics
+    names = [n for n in model.lidar if n in _LIDAR_BLOCKS]
+    if lidar is not None and names:
+        header = ["beam"] + [
+            f"{n} ({_LIDAR_BLOCKS[n][2]})" if _LIDAR_BLOCKS[n][2] else n for n in names
+        ]
+        beam_rows = []
+        for b in range(lidar.num_beams):
+            row = [str(b)]
+            for n in names:
+                field_name, key, _, factor, sigma_factor = _LIDAR_BLOCKS[n]
+                value = float(np.asarray(getattr(lidar, field_name))[b]) * factor
+                row.append(f"{value:.4g} +- {_sigma_of(sig, key, b, sigma_factor)}")
+            beam_rows.append(row)
+        held = ", ".join(str(b) for b in model.held_beams) or "none"
+        out.append(
+            f"<details><summary>Per-beam LiDAR intrinsics (estimate +- 1-sigma; gauge beam "
+            f"{model.gauge_beam}, beams held for lack of points: {_e(held)})</summary>"
+            + _table(header, beam_rows, "beams")
+            + "</details>"
+        )
+    return "\n".join(out)
+
+
+def _observability(result: CalibrationResult, data: ReportData | None) -> str:
+    out = ["<h2>What the data determined</h2>"]
+    obs = result.observability
+    if obs is None:
+        out.append('<p class="missing">The result has no observability section.</p>')
+        return "\n".join(out)
+    labels = list(data.singular_labels) if data is not None else []
+    out.append(
+        '<p class="note">Each bar is one direction in calibration space (labelled by its largest '
+        f"coordinate). Scaling: {_e(obs.scaling)}. A singular value of 1 means the direction is "
+        "known to one characteristic scale; below the threshold "
+        f"({obs.threshold:g}) a direction is not updated and keeps its initial value.</p>"
+    )
+    out.append(
+        _img(
+            figures.spectrum_png(obs.singular_values, obs.threshold, labels),
+            "singular-value spectrum",
+            "Scaled singular values of the calibration information against the threshold.",
+        )
+    )
+    if not obs.unobservable:
+        out.append(
+            "<p><b>Every calibration direction was determined by the data</b> (all singular "
+            "values above the threshold).</p>"
+        )
+        return "\n".join(out)
+    out.append(f"<p><b>{len(obs.unobservable)} direction(s) were not observable:</b></p>")
+    for text in obs.unobservable:
+        out.append(f"<h3>{_e(text)}</h3>")
+        parts = figures.direction_parts(text)
+        words = []
+        if "ext.translation" in parts:
+            v = parts["ext.translation"]
+            words.append(
+                "the LiDAR's position along the black arrow ("
+                + ", ".join(f"{x:+.2f} IMU {a}" for x, a in zip(v, "xyz", strict=True))
+                + ") cannot be told from this motion"
+            )
+        if "ext.rotation" in parts:
+            v = parts["ext.rotation"]
+            words.append(
+                "a turn of the LiDAR about the purple axis ("
+                + ", ".join(f"{x:+.2f} LiDAR {a}" for x, a in zip(v, "xyz", strict=True))
+                + ") cannot be told from this motion"
+            )
+        if words:
+            out.append(
+                f"<p>In words: {_e('; '.join(words))}. It stays at its initial value; record "
+                "with rotation about more axes or set it from a measurement.</p>"
+            )
+        out.append(
+            _img(
+                figures.unobservable_png(
+                    text, result.extrinsic.rotation, result.extrinsic.translation
+                ),
+                "sketch of an unobservable direction",
+                "The IMU axes (solid), the LiDAR axes where the result puts them (dashed) and the "
+                "direction the data did not determine.",
+            )
+        )
+    return "\n".join(out)
+
+
+def _noise_text(s: SensorCheck) -> str:
+    scale, unit = (1e3, "mm") if s.unit == "m" else (1.0, s.unit)
+    value = float(np.sqrt(np.mean(np.square(s.noise)))) * scale if s.noise else float("nan")
+    return f"{value:.3g} {unit} ({'measured' if s.noise_source == 'data' else s.noise_source})"
+
+
+def _checks(consistency: Consistency) -> str:
+    names = {"gyro": "gyro", "accelerometer": "accelerometer", "lidar": "LiDAR"}
+    rows = []
+    for s in consistency.sensors:
+        patterns = [p.feature for p in s.patterns if p.material]
+        outcome = "ok" if s.status == "ok" and not patterns else "misfit"
+        if patterns:
+            outcome += " (depends on " + ", ".join(patterns) + ")"
+        rows.append(
+            [
+                f"{names.get(s.sensor, s.sensor)} residuals",
+                f"chi2/sample {s.chi2_per_sample:.2f}, noise {_noise_text(s)}",
+                outcome,
+            ]
+        )
+    material = [e for e in consistency.effects if e.material]
+    if consistency.effects:
+        if material:
+            worst = max(material, key=lambda e: e.statistic)
+            figure = (
+                f"{worst.name}: score {worst.statistic:.0f} (dof {worst.dof}), moves "
+                f"{1e3 * float(np.linalg.norm(worst.shift_translation_m)):.1f} mm / "
+                f"{float(np.linalg.norm(worst.shift_rotation_deg)):.3f} deg"
+            )
+            rows.append(["effects held fixed", figure, ", ".join(e.name for e in material)])
+        else:
+            strongest = min(consistency.effects, key=lambda e: e.p_value)
+            rows.append(
+                [
+                    "effects held fixed",
+                    f"strongest {strongest.name}: p = {strongest.p_value:.2g}",
+                    "none that moves the extrinsic",
+                ]
+            )
+    sh = consistency.split_half
+    if sh.status == "not run":
+        rows.append(["split halves", sh.reason or "-", "not run"])
+    else:
+        rows.append(
+            [
+                "split halves",
+                f"{sh.halves_s:.1f} s each, chi-square {sh.chi2:.1f} on {sh.dof} "
+                f"(p = {sh.p_value:.2g})",
+                "agree" if sh.status == "agree" else "disagree",
+            ]
+        )
+    out = [_table(["check", "figure", "outcome"], rows, "checks")]
+    for why in consistency.inflation:
+        out.append(f'<p class="note">Sigmas enlarged {_e(why)}.</p>')
+    return "\n".join(out)
+
+
+def _fit(result: CalibrationResult, data: ReportData | None) -> str:
+    out = ["<h2>The fit</h2>"]
+    fit = result.fit
+    if fit is not None:
+        out.append(
+            f'<p class="note">{fit.rounds} rounds, '
+            f"{'converged' if fit.converged else 'NOT converged'}; the last fit used "
+            f"{fit.points} points on {fit.surfels} surfels, RMS point-to-plane distance "
+            f"{100 * fit.point_rms_m:.2f} cm, chi-square per degree of freedom "
+            f"{fit.variance_factor:.3g}.</p>"
+        )
+    out.append("<h3>Point-to-plane distances before and after</h3>")
+    if data is not None and data.distances_after_m.size:
+        out.append(
+            _img(
+                figures.distances_png(data.distances_before_m, data.distances_after_m),
+                "point-to-plane distances",
+                "A good calibration gives a narrow peak about as wide as the range noise.",
+            )
+        )
+    else:
+        out.append(_missing("The distance histogram is"))
+    out.append("<h3>IMU residuals against time</h3>")
+    if data is not None and data.imu_t_s.size:
+        out.append(
+            _img(
+                figures.imu_residuals_png(data.imu_t_s, data.gyro_residual, data.accel_residual),
+                "IMU residuals",
+                "Prediction minus reading per axis; drifts or bursts show what the model lacks.",
+            )
+        )
+    else:
+        out.append(_missing("The IMU residuals are"))
+    out.append("<h3>Checks of the fit</h3>")
+    if result.consistency is not None:
+        out.append(_checks(result.consistency))
+    else:
+        out.append('<p class="missing">The result has no consistency section.</p>')
+    out.append("<h3>Convergence per round</h3>")
+    if data is not None and data.round_index.size:
+        initial = (
+            (data.initial_translation_m, data.initial_rpy_deg, float(data.initial_time_offset_s[0]))
+            if data.initial_translation_m.size == 3
+            else None
+        )
+        out.append(
+            _img(
+                figures.rounds_png(
+                    data.round_index,
+                    data.round_translation_m,
+                    data.round_rpy_deg,
+                    data.round_time_offset_s,
+                    data.round_rms_m,
+                    initial,
+                ),
+                "convergence per round",
+                "How far each round moved the extrinsic, and the RMS distance after it.",
+            )
+        )
+        rows = []
+        for k in range(data.round_index.size):
+            ent = float(data.round_map_entropy[k])
+            rows.append(
+                [
+                    str(int(data.round_index[k])),
+                    f"{100 * data.round_max_distance_m[k]:.1f} cm",
+                    str(int(data.round_points[k])),
+                    str(int(data.round_surfels[k])),
+                    f"{100 * data.round_rms_m[k]:.2f} cm",
+                    f"{ent:.3f}" if np.isfinite(ent) else "-",
+                    str(int(data.round_iterations[k])),
+                    f"{data.round_seconds[k]:.1f} s",
+                    str(data.round_free[k]),
+                ]
+            )
+        out.append(
+            _table(
+                [
+                    "round",
+                    "association",
+                    "points",
+                    "surfels",
+                    "RMS",
+                    "map entropy",
+                    "iterations",
+                    "time",
+                    "estimated",
+                ],
+                rows,
+                "rounds",
+            )
+        )
+    else:
+        out.append(_missing("The per-round convergence is"))
+    return "\n".join(out)
+
+
+def _motion(result: CalibrationResult, data: ReportData | None) -> str:
+    out = ["<h2>The motion</h2>"]
+    rec = result.recording
+    if rec is not None:
+        out.append(
+            f'<p class="note">Segment used: {rec.duration_s:.2f} s, {rec.imu_samples} IMU '
+            f"samples on {_e(rec.imu_topic)}, {rec.scans} sweeps on {_e(rec.lidar_topic)}.</p>"
+        )
+    if data is not None and data.motion_t_s.size:
+        out.append(
+            _img(
+                figures.motion_png(
+                    data.motion_t_s, data.angular_rate, data.specific_force, data.segments_s
+                ),
+                "angular rate and specific force",
+                "Gyro and accelerometer readings; the shaded span is the segment calibrated. "
+                "Rotation about all three axes makes every extrinsic direction observable.",
+            )
+        )
+    else:
+        out.append(_missing("The motion plot is"))
+    return "\n".join(out)
+
+
+def _map(data: ReportData | None) -> str:
+    out = ["<h2>The map</h2>"]
+    if data is None or not data.has_map:
+        out.append(_missing("The map views are"))
+        return "\n".join(out)
+    before, after = data.map_entropy_before, data.map_entropy_after
+    out.append(
+        '<p class="note">The map built with the initial calibration (left) and with the final '
+        "one (right), same region: walls that are doubled or thick with a wrong calibration "
+        "become thin lines; the bottom row zooms into 1 m of the densest wall. The mean map "
+        "entropy is lower for a sharper map.</p>"
+    )
+    out.append(
+        _table(
+            ["map", "mean map entropy (nats)"],
+            [
+                ["initial calibration", f"{before:.4f}" if np.isfinite(before) else "-"],
+                ["final calibration", f"{after:.4f}" if np.isfinite(after) else "-"],
+            ],
+            "entropy",
+        )
+    )
+    out.append(
+        _img(
+            figures.map_png(
+                data.map_before_top_xy,
+                data.map_after_top_xy,
+                data.map_before_side_xz,
+                data.map_after_side_xz,
+                data.map_region_m,
+                (before, after),
+                (data.map_top_slab_m, data.map_side_slab_m),
+                (data.map_before_zoom_xy, data.map_after_zoom_xy, data.map_zoom_m)
+                if data.map_zoom_m.size == 4
+                else None,
+            ),
+            "map views",
+            "Level frame: z up against gravity, origin at the first IMU position.",
+        )
+    )
+    return "\n".join(out)
+
+
+def _provenance(result: CalibrationResult, data: ReportData | None, source: str) -> str:
+    rows = []
+    prov = result.provenance
+    if prov is not None:
+        rows += [
+            ["licalib version", prov.licalib_version],
+            ["created (UTC)", prov.created_utc],
+            ["bag fingerprint", prov.bag_fingerprint],
+        ]
+    rec = result.recording
+    if rec is not None:
+        rows += [
+            ["bag", rec.bag],
+            ["topics", f"{rec.imu_topic}, {rec.lidar_topic}"],
+            ["segment start (ns, IMU clock)", str(rec.start_ns)],
+            ["segment duration", f"{rec.duration_s:.3f} s"],
+            ["clock offset t_imu - t_lidar", f"{rec.clock_offset_s:+.6f} s"],
+        ]
+    rows.append(["result file", source])
+    if data is not None and data.command_line:
+        rows.append(["command line", data.command_line])
+    out = ["<h2>Provenance</h2>", _table(["item", "value"], rows, "provenance")]
+    if data is not None and data.config_text:
+        out.append("<h3>Configuration (resolved)</h3>")
+        out.append(f"<pre>{_e(data.config_text)}</pre>")
+    elif data is None:
+        out.append(_missing("The command line and configuration are"))
+    return "\n".join(out)
+
+
+def render_html(result: CalibrationResult, data: ReportData | None, source: str = "") -> str:
+    """The report page.
+
+    Args:
+        result: the result file's content.
+        data: its report data, or None (the figures that need it are named as missing).
+        source: how the page names the result file.
+
+    Returns:
+        The HTML text (UTF-8, self-contained).
+    """
+    verdict = result.verdict
+    status = verdict.status if verdict is not None else "unknown"
+    reasons = verdict.reasons if verdict is not None else ()
+    cls = status if status in ("pass", "warn", "fail") else "warn"
+    meaning = {
+        "pass": "Every check could have failed and none did; the result can be used.",
+        "warn": "Usable with care: read the reasons below.",
+        "fail": "Do not use this result; it is shown for inspection only.",
+    }.get(status, "The result carries no verdict.")
+    items = "".join(f"<li>{_e(r)}</li>" for r in reasons)
+    verdict_html = (
+        f'<section class="verdict {cls}" id="verdict"><div class="status">Verdict: '
+        f"{_e(status.upper())}</div><div>{_e(meaning)}</div>"
+        + (f"<ul>{items}</ul>" if items else "")
+        + "</section>"
+    )
+    title = f"licalib calibration report: {status.upper()}"
+    created = result.provenance.created_utc if result.provenance else ""
+    body = [
+        f"<h1>LiDAR-IMU calibration report</h1>"
+        f'<p class="sub">{_e(source)}{" - " + _e(created) if created else ""}</p>',
+        verdict_html,
+        _estimate(result, data),
+        _observability(result, data),
+        _fit(result, data),
+        _motion(result, data),
+        _map(data),
+        _provenance(result, data, source),
+    ]
+    return (
+        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+        f"<title>{_e(title)}</title><style>{_STYLE}</style></head>\n<body><main>\n"
+        + "\n".join(body)
+        + "\n</main></body></html>\n"
+    )
