@@ -51,12 +51,6 @@ _PROBE_POINTS = 5000
 
 _MAP_MOVED_QUANTILE = 0.9
 
-ROUND_TOLERANCE = 1e-4
-"""Without intrinsics, a round before the final one stops its Levenberg-Marquardt iterations
-once a step lowers the cost by less than this fraction: the next round rebuilds the map anyway,
-so converging further on this one only costs time (the final round uses the solver's own
-tolerance)."""
-
 JITTER_FACTOR = 2.0
 """At the round cap, a last change within this many times the settle threshold counts as the
 rounds' jitter (the map is rebuilt each round), not as a non-convergence; the sigmas then cover
@@ -198,16 +192,10 @@ def run_schedule(
     intrinsics_on = want_intrinsics and (warm or sch.intrinsics_from_round == 1)
     joined = 1 if intrinsics_on else 0
     intrinsic_sigmas = 0.0
-    # Intrinsics settle on their own sigmas round by round: their rounds converge fully.
-    tolerance = None if want_intrinsics else ROUND_TOLERANCE
     for index in range(1, sch.max_rounds + 1):
         before = state
         done = run_round(
-            state,
-            sample,
-            imu,
-            round_settings(cfg, noise, max_dist, intrinsics_on, tolerance),
-            index,
+            state, sample, imu, round_settings(cfg, noise, max_dist, intrinsics_on), index
         )
         state, summary, report, inputs = done.state, done.summary, done.report, done.inputs
         rounds.append(summary)

@@ -156,11 +156,8 @@ def noise_model(cfg: CalibConfig, noise: NoiseLevels) -> NoiseModel:
     )
 
 
-def lm_params(
-    cfg: CalibConfig, max_iterations: int | None = None, function_tolerance: float | None = None
-) -> LMParams:
-    """Levenberg-Marquardt settings of a round (``function_tolerance``: the solver's default
-    when None)."""
+def lm_params(cfg: CalibConfig, max_iterations: int | None = None) -> LMParams:
+    """Levenberg-Marquardt settings of a round."""
     return LMParams(
         max_iterations=cfg.schedule.iterations_per_round
         if max_iterations is None
@@ -169,7 +166,6 @@ def lm_params(
         min_decrease=0.1,
         use_tsvd=cfg.solver.use_tsvd,
         tsvd_threshold=cfg.solver.tsvd_threshold,
-        **({} if function_tolerance is None else {"function_tolerance": function_tolerance}),
     )
 
 
@@ -286,19 +282,14 @@ class RoundSettings:
 
 
 def round_settings(
-    cfg: CalibConfig,
-    noise: NoiseLevels,
-    max_distance_m: float,
-    intrinsics: bool,
-    function_tolerance: float | None = None,
+    cfg: CalibConfig, noise: NoiseLevels, max_distance_m: float, intrinsics: bool
 ) -> RoundSettings:
     """The settings of a round associating within ``max_distance_m``, with the intrinsics of
-    the ``model:`` section free when ``intrinsics`` (and the solver stopping once a step gains
-    less than ``function_tolerance`` of the cost, when given)."""
+    the ``model:`` section free when ``intrinsics``."""
     return RoundSettings(
         surfels=surfel_config(cfg, noise, max_distance_m),
         weights=noise_model(cfg, noise),
-        solver=lm_params(cfg, function_tolerance=function_tolerance),
+        solver=lm_params(cfg),
         free=free_parameters(cfg, intrinsics),
         margin_s=spline_margin_s(cfg),
     )
