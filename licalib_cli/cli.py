@@ -6,7 +6,8 @@ message and exits with its code. Tracebacks appear only with ``--debug``.
 Exit codes: 0 success; 1 generic error (and an output pipe closed early, quietly); 2 bag
 unreadable; 3 topic problem; 4 unusable data; 5 timestamp problem; 6 invalid configuration or
 option (command-line usage errors included); 7 insufficient excitation; 8 solver failure;
-9 verdict fail; 10 not converged; 130 interrupted ("Interrupted." on standard error, also when
+9 verdict fail; 10 not converged; 11 Dask cluster unreachable (``batch``); 12 some bags of a
+``batch`` failed; 130 interrupted ("Interrupted." on standard error, also when
 Ctrl-C lands inside a library that turns it into another exception). ``info --json`` prints
 one JSON object with ``problems`` whatever the outcome.
 """
@@ -86,12 +87,14 @@ def _root(
 
 def _register() -> None:
     from licalib_cli.commands import (
+        batch,
         calibrate,
         config_cmd,
         diagnose,
         export,
         info,
         report,
+        select_segments,
         simulate,
     )
 
@@ -102,6 +105,8 @@ def _register() -> None:
     app.command("export")(export.export_command)
     app.command("report")(report.report_command)
     app.command("diagnose")(diagnose.diagnose_command)
+    app.command("batch")(batch.batch_command)
+    app.command("select-segments")(select_segments.select_segments_command)
 
 
 _register()

@@ -6,6 +6,7 @@ override the file. ``licalib config dump`` prints the resolved tree.
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -409,3 +410,9 @@ def load_config(path: Path | None, overrides: dict[str, Any] | None = None) -> C
 def dump_config(cfg: CalibConfig) -> str:
     """The resolved configuration as YAML."""
     return yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False)
+
+
+def config_fingerprint(cfg: CalibConfig) -> str:
+    """A short content fingerprint of the resolved configuration: the first 16 hex digits of
+    the sha256 of :func:`dump_config` (two configs that resolve alike share it)."""
+    return hashlib.sha256(dump_config(cfg).encode()).hexdigest()[:16]

@@ -65,3 +65,22 @@ class NotConverged(VerdictFailure):
     """The calibration ran out of rounds while the estimate still moved (result written)."""
 
     exit_code = 10
+
+
+class ManifestError(ConfigError):
+    """``batch``: an input list that cannot be used: an unreadable manifest, an unknown column,
+    a bad value, a bag that does not exist or a pattern that matches none."""
+
+
+class ClusterError(LicalibError):
+    """``batch``: the Dask cluster cannot be started or reached (a bad or unreachable scheduler
+    address, a scheduler without workers, the ``batch`` extra not installed)."""
+
+    exit_code = 11
+
+
+class BatchIncomplete(LicalibError):
+    """``batch`` ran to the end, but some bags have no usable result (they failed, or their
+    verdict is ``fail``); every other result is written and ``summary.csv`` names each."""
+
+    exit_code = 12

@@ -44,6 +44,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -230,9 +231,9 @@ class CalibrationState:
         """The shared knot vector."""
         return self.so3_spline.knots
 
-    def with_(self, **changes: object) -> CalibrationState:
+    def with_(self, **changes: Any) -> CalibrationState:
         """Copy with some fields replaced."""
-        return replace(self, **changes)  # type: ignore[arg-type]
+        return replace(self, **changes)
 
 
 @dataclass(frozen=True)
@@ -517,7 +518,7 @@ def state_from_values(
     so3 = state.so3_spline if (v := get(TRAJ_SO3)) is None else SO3Spline(knots, v)
     r3 = state.r3_spline if (v := get(TRAJ_R3)) is None else R3Spline(knots, v)
     imu = state.imu_intrinsics
-    imu_changes: dict[str, object] = {}
+    imu_changes: dict[str, F64] = {}
     for block, attr in (
         (GYRO_SCALE, "gyro_scale"),
         (GYRO_MISALIGNMENT, "gyro_misalignment"),

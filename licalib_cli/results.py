@@ -45,6 +45,8 @@ from licalib_cli.sections import (
     Observability,
     Provenance,
     RecordingSection,
+    Section,
+    SegmentsSection,
     Uncertainty,
     VerdictSection,
 )
@@ -57,7 +59,8 @@ def _list(a: npt.ArrayLike, digits: int = 9) -> list[float]:
     return [round(float(x), digits) for x in np.asarray(a, dtype=np.float64).reshape(-1)]
 
 
-def _vec3(values: Any) -> tuple[float, float, float]:
+def vec3(values: Any) -> tuple[float, float, float]:
+    """Three numbers (an array, a sequence or an iterable) as a tuple of floats."""
     x, y, z = (float(v) for v in values)
     return (x, y, z)
 
@@ -126,17 +129,18 @@ class Extrinsic:
         :class:`~licalib_cli.sections.FactoryExtrinsicSection`)."""
         d_rot = so3.log(factory.rotation.T @ self.rotation)
         d_t = self.translation - factory.translation
+        qx, qy, qz, qw = _list(factory.quaternion, 12)
         return FactoryExtrinsicSection(
             source=source,
             sensor=sensor,
             cloud_frame=cloud_frame,
-            translation=_vec3(_list(factory.translation)),
-            rotation_quaternion=tuple(_list(factory.quaternion, 12)),  # type: ignore[arg-type]
-            rotation_rpy_deg=_vec3(_list(rpy_deg_from_matrix(factory.rotation))),
-            difference_translation_m=_vec3(_list(d_t)),
+            translation=vec3(_list(factory.translation)),
+            rotation_quaternion=(qx, qy, qz, qw),
+            rotation_rpy_deg=vec3(_list(rpy_deg_from_matrix(factory.rotation))),
+            difference_translation_m=vec3(_list(d_t)),
             difference_translation_norm_m=round(float(np.linalg.norm(d_t)), 9),
             difference_rotation_deg=round(float(np.degrees(np.linalg.norm(d_rot))), 9),
-            difference_rotation_vector_deg=_vec3(_list(np.degrees(d_rot))),
+            difference_rotation_vector_deg=vec3(_list(np.degrees(d_rot))),
         )
 
     def error_to(self, other: Extrinsic) -> dict[str, float]:
@@ -236,7 +240,7 @@ def lidar_intrinsics_from_dict(d: dict[str, Any]) -> LidarIntrinsics:
         raise ConfigError(msg) from err
 
 
-_SECTIONS: tuple[tuple[str, type], ...] = (
+_SECTIONS: tuple[tuple[str, type[Section]], ...] = (
     ("model", ModelInfo),
     ("uncertainty", Uncertainty),
     ("intrinsics_uncertainty", IntrinsicsUncertainty),
@@ -248,6 +252,7 @@ _SECTIONS: tuple[tuple[str, type], ...] = (
     ("recording", RecordingSection),
     ("factory_extrinsic", FactoryExtrinsicSection),
     ("provenance", Provenance),
+    ("segments", SegmentsSection),
 )
 
 
@@ -261,9 +266,9 @@ class CalibrationResult:
         lidar_intrinsics: per-beam LiDAR intrinsics, or None when not part of the file.
         gravity_G: (3,) gravity in the first IMU frame, m/s^2, or None.
         model, uncertainty, intrinsics_uncertainty, observability, verdict, consistency,
-            initialization, fit, recording, factory_extrinsic, provenance: the typed sections
-            ``calibrate`` writes
-            (:mod:`licalib_cli.sections`), None when the file has none.
+            initialization, fit, recording, factory_extrinsic, provenance, segments: the typed
+            sections ``calibrate`` writes (:mod:`licalib_cli.sections`), None when the file
+            has none.
     """
 
     extrinsic: Extrinsic = field(default_factory=Extrinsic)
@@ -281,6 +286,7 @@ class CalibrationResult:
     recording: RecordingSection | None = None
     factory_extrinsic: FactoryExtrinsicSection | None = None
     provenance: Provenance | None = None
+    segments: SegmentsSection | None = None
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"schema_version": SCHEMA_VERSION}
@@ -329,7 +335,7 @@ class CalibrationResult:
             extrinsic=Extrinsic.from_dict(d.get("extrinsic", {})),
             imu_intrinsics=imu_intrinsics_from_dict(d.get("imu_intrinsics", {})),
             lidar_intrinsics=lidar_intrinsics_from_dict(lidar) if lidar else None,
-            gravity_G=None if gravity is None else _vec3(gravity),
+            gravity_G=None if gravity is None else vec3(gravity),
             **sections,
         )
 

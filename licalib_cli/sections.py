@@ -20,6 +20,7 @@ section            content
 ``factory_extrinsic`` the sensor's factory extrinsic (Ouster metadata) and the calibration's
                    difference from it, when the bag carries one
 ``provenance``     licalib version, bag fingerprint, creation time
+``segments``       multi-segment calibration: each segment's own estimate next to the joint one
 =================  =============================================================================
 """
 
@@ -44,6 +45,8 @@ __all__ = [
     "Provenance",
     "RecordingSection",
     "Section",
+    "SegmentEstimate",
+    "SegmentsSection",
     "SensorCheck",
     "SplitHalf",
     "Uncertainty",
@@ -459,8 +462,81 @@ class FactoryExtrinsicSection(Section):
 
 @dataclass(frozen=True)
 class Provenance(Section):
-    """Who made the file from what."""
+    """Who made the file from what.
+
+    Attributes:
+        licalib_version: the version that wrote the file.
+        bag_fingerprint: :func:`licalib_cli.pipeline.assemble.bag_fingerprint` of the bag.
+        created_utc: when, ISO 8601.
+        config_fingerprint: :func:`licalib_cli.config.config_fingerprint` of the resolved
+            configuration (segment options included); None in files written before it existed
+            (not written then).
+    """
 
     licalib_version: str
     bag_fingerprint: str
     created_utc: str
+    config_fingerprint: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        out = super().to_dict()
+        if self.config_fingerprint is None:
+            del out["config_fingerprint"]
+        return out
+
+
+@dataclass(frozen=True)
+class SegmentEstimate(Section):
+    """One segment of a multi-segment calibration.
+
+    Attributes:
+        start_s: start, seconds after the bag start.
+        end_s: end, seconds after the bag start.
+        translation: the segment's own estimate of ``t`` (calibrated alone), m.
+        rotation_rpy_deg: its own rotation, roll/pitch/yaw in degrees.
+        time_offset_s: its own time offset, s.
+        translation_std_m: its own 1-sigma per IMU axis, m.
+        rotation_std_deg: its own 1-sigma per LiDAR axis, deg.
+        time_offset_std_s: its own time-offset 1-sigma, s.
+        joint_time_offset_s: its time offset in the joint problem, s.
+        joint_time_offset_std_s: that time offset's 1-sigma, s.
+        disagreement_sigmas: largest difference of its own estimate from the joint one on a
+            translation or rotation axis, in its own sigmas.
+        disagrees: above the section's threshold.
+        verdict: the segment's own verdict.
+    """
+
+    _digits = 9
+
+    start_s: float
+    end_s: float
+    translation: tuple[float, float, float]
+    rotation_rpy_deg: tuple[float, float, float]
+    time_offset_s: float
+    translation_std_m: tuple[float, float, float]
+    rotation_std_deg: tuple[float, float, float]
+    time_offset_std_s: float
+    joint_time_offset_s: float
+    joint_time_offset_std_s: float
+    disagreement_sigmas: float
+    disagrees: bool
+    verdict: str
+
+
+@dataclass(frozen=True)
+class SegmentsSection(Section):
+    """The segments of a multi-segment calibration (``calibrate --segments``).
+
+    Attributes:
+        reference: 1-based segment whose own sections (``recording``, ``fit``,
+            ``consistency``, ``initialization``) the file carries.
+        disagreement_threshold_sigmas: a segment further than this from the joint estimate
+            (in its own sigmas) is flagged.
+        segments: one entry per segment, in time order.
+    """
+
+    _nested = {"segments": SegmentEstimate}  # noqa: RUF012
+
+    reference: int
+    disagreement_threshold_sigmas: float
+    segments: tuple[SegmentEstimate, ...] = ()

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Set up licalib in ./.venv: system libraries (Debian/Ubuntu, as root), the virtual environment,
-# and the package with its test extras. Safe to run again; only missing pieces are installed.
+# and the package with its test, plot and batch extras. Safe to run again; only missing pieces are
+# installed.
 #   --tests   also what only the test suite uses: Debian's chromium (headless), which the report
 #             tests render pages with, and ouster-sdk (in .venv/ouster) for the real Ouster data
 set -euo pipefail
@@ -58,7 +59,7 @@ stamp=.venv/.licalib-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   echo "setup: installing licalib and its dependencies into .venv (first run takes a few minutes)"
   .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip
-  .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test,plot]"
+  .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test,plot,batch]"
   touch "$stamp"
 fi
 

@@ -16,6 +16,8 @@ from licalib_cli.results import check_not_an_input, prepare_output, write_text_a
 from licalib_cli.truth import Truth
 
 if TYPE_CHECKING:
+    from rich.progress import TaskID
+
     from licalib_cli.config import CalibConfig
     from licalib_cli.pipeline import CalibrationRun
 
@@ -62,7 +64,7 @@ class RichProgress:
             console=console_err(),
             transient=True,
         )
-        self._task: int | None = None
+        self._task: TaskID | None = None
         if self._enabled:
             self._progress.start()
 
@@ -178,6 +180,13 @@ def calibrate_command(
     duration: float | None = typer.Option(
         None, "--duration", help="Seconds of data to use.", rich_help_panel=_IO
     ),
+    segments: str | None = typer.Option(
+        None,
+        "--segments",
+        help="Calibrate over several segments in one problem: auto (the best windows by "
+        "`licalib select-segments`) or START-END,... in seconds, e.g. 60-75,105-120.",
+        rich_help_panel=_IO,
+    ),
     model: ModelChoice = typer.Option(
         ModelChoice.CONFIG,
         "--model",
@@ -261,6 +270,30 @@ def calibrate_command(
             **_intrinsics_overrides(intrinsics),
         },
     )
+    if segments is not None:
+        from licalib_cli.commands.segments_render import run_segments
+
+        if model is ModelChoice.AUTO or start is not None or duration is not None:
+            msg = (
+                "--segments chooses the data itself; drop --start/--duration and --model auto "
+                "(select-segments --start/--duration restricts the search)."
+            )
+            raise ConfigError(msg)
+        drawn = [
+            o
+            for o, v in (
+                ("--plots", plots),
+                ("--report", report),
+                ("--map", map_file),
+                ("--map-before", map_before),
+            )
+            if v is not None
+        ]
+        if drawn:
+            msg = f"{drawn[0]} shows one segment's fit; drop it with --segments."
+            raise ConfigError(msg)
+        run_segments(bag, cfg, segments, out, config_out, reference)
+        return
     if plots is not None:
         from licalib_cli.plots import prepare_plots
 

@@ -72,9 +72,9 @@ def info_command(
         typer.echo(json.dumps(report.to_dict(), indent=2))
     else:
         render_report(report)
-    err = report.error()
-    if err is not None:
-        raise err
+    problem = report.error()
+    if problem is not None:
+        raise problem
 
 
 def _fmt(value: object, fmt: str = "") -> str:
@@ -214,13 +214,13 @@ def render_report(report: BagReport) -> None:
     if report.factory_extrinsic is not None:
         f = report.factory_extrinsic
         d = factory_extrinsic_dict(f)
-        t = ", ".join(f"{v:+.6f}" for v in d["translation"])
+        t_text = ", ".join(f"{v:+.6f}" for v in d["translation"])
         rpy = ", ".join(f"{v:.2f}" for v in d["rotation_rpy_deg"])
         q = ", ".join(f"{v:.4f}" for v in d["rotation_quaternion"])
         who = f" of {escape(f.sensor)}" if f.sensor else ""
         out.print(
             f"Factory extrinsic{who} (Ouster metadata on {escape(f.topic)}, clouds in "
-            f"{f.cloud_frame}): T_imu_lidar t = ({t}) m, rpy = ({rpy}) deg, "
+            f"{f.cloud_frame}): T_imu_lidar t = ({t_text}) m, rpy = ({rpy}) deg, "
             f"quaternion xyzw = ({q}); p_imu = R p_lidar + t"
         )
     for note in report.notes:

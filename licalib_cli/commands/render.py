@@ -165,9 +165,9 @@ def render_run(run: CalibrationRun, truth: Truth | None) -> None:
     if r.observability is not None:
         for text in r.observability.unobservable:
             out.print(f"[yellow]Not observable:[/] {text}")
-    for f in run.checks.findings:
-        if f.severity == "note":
-            out.print(f"Note: {f.text}")
+    for finding in run.checks.findings:
+        if finding.severity == "note":
+            out.print(f"Note: {finding.text}")
     verdict = run.checks.verdict
     colour = {"pass": "green", "warn": "yellow", "fail": "red"}[verdict.status]
     out.print(f"Verdict: [bold {colour}]{verdict.status.upper()}[/]")

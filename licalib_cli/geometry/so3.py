@@ -347,9 +347,9 @@ def quat_normalize(q: npt.ArrayLike) -> FloatArray:
     Returns:
         (..., 4) unit quaternions, canonical sign ``w >= 0``.
     """
-    q = _as_float(q)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., 3:4] < 0.0, -q, q)
+    u = _as_float(q)
+    u = u / np.linalg.norm(u, axis=-1, keepdims=True)
+    return np.where(u[..., 3:4] < 0.0, -u, u)
 
 
 def quat_conjugate(q: npt.ArrayLike) -> FloatArray:
@@ -470,10 +470,10 @@ def quat_to_matrix(q: npt.ArrayLike) -> FloatArray:
     Returns:
         (..., 3, 3) rotation matrices.
     """
-    q = _as_float(q)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    out = np.empty((*q.shape[:-1], 3, 3))
+    u = _as_float(q)
+    u = u / np.linalg.norm(u, axis=-1, keepdims=True)
+    x, y, z, w = u[..., 0], u[..., 1], u[..., 2], u[..., 3]
+    out = np.empty((*u.shape[:-1], 3, 3))
     out[..., 0, 0] = 1.0 - 2.0 * (y * y + z * z)
     out[..., 0, 1] = 2.0 * (x * y - z * w)
     out[..., 0, 2] = 2.0 * (x * z + y * w)

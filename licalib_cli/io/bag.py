@@ -37,6 +37,7 @@ __all__ = [
     "TopicInfo",
     "bag_paths",
     "detect_format",
+    "imu_vectors_from_raw",
     "open_bag",
     "repair_hint",
     "select_topic",
@@ -280,6 +281,41 @@ def _stamp_from_raw(raw: bytes | memoryview, ros1: bool) -> int | None:
     return int(sec) * _NS + int(nsec)
 
 
+_IMU_TAIL = 296
+"""Bytes of a ``sensor_msgs/Imu`` after its header: orientation (4 doubles), three covariances
+(9 doubles each), angular velocity and linear acceleration (3 doubles each)."""
+
+
+def imu_vectors_from_raw(
+    raw: bytes | memoryview, ros1: bool
+) -> tuple[float, float, float, float, float, float] | None:
+    """``angular_velocity`` and ``linear_acceleration`` of a serialised ``sensor_msgs/Imu``
+    read at their fixed offsets, without deserialising (a tenth of the time).
+
+    ROS1: ``seq, sec, nsec, frame_id (u32 length + bytes)``, then the doubles packed; CDR: the
+    4-byte encapsulation header, ``sec, nanosec, frame_id (u32 length incl. NUL + bytes)``,
+    then the doubles aligned to 8 bytes from the end of the encapsulation header.
+
+    Returns:
+        ``(wx, wy, wz, ax, ay, az)``, or None when the bytes do not have exactly this layout
+        (the caller then deserialises the message).
+    """
+    n = len(raw)
+    if n < 16 + _IMU_TAIL:
+        return None
+    little = ros1 or raw[1] == 1
+    order = "<" if little else ">"
+    (length,) = struct.unpack_from(order + "I", raw, 12)
+    pos = 16 + int(length)
+    if not ros1:
+        pos = 4 + -(-(pos - 4) // 8) * 8
+    if pos + _IMU_TAIL != n:
+        return None
+    w = struct.unpack_from(order + "3d", raw, pos + 104)
+    a = struct.unpack_from(order + "3d", raw, pos + 200)
+    return (w[0], w[1], w[2], a[0], a[1], a[2])
+
+
 @dataclass
 class MessageLosses:
     """Messages of one topic that the bag lists but that could not be used.
@@ -345,11 +381,11 @@ class BagHandle:
         if self.ros1:
             return "ros1"
         paths = self._reader.paths
-        names = [p.name for p in paths]
+        names = [p.name for p in paths]  # type: ignore[attr-defined]
         if any(n.endswith(".mcap") for n in names):
             return "ros2-mcap"
         folder = paths[0]
-        if folder.is_dir() and any(folder.glob("*.mcap")):
+        if folder.is_dir() and any(folder.glob("*.mcap")):  # type: ignore[attr-defined]
             return "ros2-mcap"
         return "ros2-db3"
 

@@ -51,10 +51,14 @@ _PCD_TYPES = {"<f4": ("4", "F"), "<i4": ("4", "I"), "<f8": ("8", "F")}
 
 
 class _Chunk(Protocol):
-    xyz: npt.NDArray[np.float64]
-    beam: npt.NDArray[np.uint16]
-    time_s: npt.NDArray[np.float64]
-    intensity: npt.NDArray[np.float32]
+    @property
+    def xyz(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def beam(self) -> npt.NDArray[np.uint16]: ...
+    @property
+    def time_s(self) -> npt.NDArray[np.float64]: ...
+    @property
+    def intensity(self) -> npt.NDArray[np.float32]: ...
 
 
 def check_map_suffix(path: Path, option: str) -> None:

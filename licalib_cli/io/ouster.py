@@ -104,7 +104,8 @@ def metadata_transforms(
 
 
 def _sensor_name(metadata: dict[str, Any]) -> str:
-    info = metadata.get("sensor_info") if isinstance(metadata.get("sensor_info"), dict) else {}
+    sensor_info = metadata.get("sensor_info")
+    info: dict[str, Any] = sensor_info if isinstance(sensor_info, dict) else {}
     line = metadata.get("prod_line") or info.get("prod_line") or ""
     serial = metadata.get("prod_sn") or info.get("prod_sn") or ""
     return " ".join(x for x in (str(line), f"sn {serial}" if serial else "") if x)

@@ -241,7 +241,7 @@ def valid_mask(
     Returns:
         (N,) boolean mask to apply to xyz and to every per-point array alike.
     """
-    finite = np.isfinite(xyz).all(axis=1)
+    finite = np.all(np.isfinite(xyz), axis=1)
     safe = np.where(finite[:, None], xyz, 0.0)
     with np.errstate(over="ignore"):  # ranges beyond 1e154 m overflow to inf: out of range
         rng = np.sqrt(np.einsum("ij,ij->i", safe, safe))

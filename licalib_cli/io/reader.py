@@ -86,6 +86,7 @@ from licalib_cli.io.bag import (
     BagHandle,
     MessageLosses,
     RawMessage,
+    imu_vectors_from_raw,
     open_bag,
     select_topic,
 )
@@ -725,12 +726,21 @@ class RawImu:
 
 
 def read_raw_imu(bag: BagHandle, topic: str, window: SegmentWindow, offset_ns: int) -> RawImu:
-    """IMU messages of the window, deserialised one by one (memory grows with the window).
+    """IMU messages of the window (memory grows with the window). The vectors are read at
+    their fixed offsets (:func:`~licalib_cli.io.bag.imu_vectors_from_raw`) once the first
+    message read so agrees with its full decode; a message of another size is deserialised.
     Messages that do not decode are skipped (and counted in ``bag.losses``)."""
     t: list[int] = []
     rec: list[int] = []
     vals: list[tuple[float, float, float, float, float, float]] = []
+    fast: bool | None = None  # reading at fixed offsets, once checked against a full decode
     for m in window_messages(bag, topic, window, offset_ns):
+        quick = imu_vectors_from_raw(m.raw, bag.ros1) if fast is not False else None
+        if fast and quick is not None and m.stamp_ns is not None:
+            t.append(m.stamp_ns)
+            rec.append(m.record_ns)
+            vals.append(quick)
+            continue
         msg = bag.decode(m)
         if msg is None:
             continue
@@ -739,6 +749,8 @@ def read_raw_imu(bag: BagHandle, topic: str, window: SegmentWindow, offset_ns: i
         rec.append(m.record_ns)
         av, la = msg.angular_velocity, msg.linear_acceleration
         vals.append((av.x, av.y, av.z, la.x, la.y, la.z))
+        if fast is None:
+            fast = quick == vals[-1] and m.stamp_ns == t[-1]
     arr = np.asarray(vals, dtype=np.float64).reshape(-1, 6)
     return RawImu(
         np.asarray(t, dtype=np.int64),
@@ -773,9 +785,9 @@ def _nonfinite_findings(raw: RawImu, topic: str) -> tuple[npt.NDArray[np.bool_],
     ``(bad mask, findings)``. Isolated ones (at most 1 % of the samples, in runs of at most 3)
     are dropped with a warning; otherwise the IMU is unusable."""
     with np.errstate(invalid="ignore"):  # NaN compares False: bad
-        fine = (np.abs(raw.gyro) < _MAX_IMU_READING).all(axis=1) & (
-            np.abs(raw.accel) < _MAX_IMU_READING
-        ).all(axis=1)
+        fine = np.all(np.abs(raw.gyro) < _MAX_IMU_READING, axis=1) & np.all(
+            np.abs(raw.accel) < _MAX_IMU_READING, axis=1
+        )
     bad = ~fine
     n_bad = int(bad.sum())
     if n_bad == 0:
@@ -1576,7 +1588,7 @@ def read_lidar_stream(
     findings += tally.problems(cfg.lidar.max_skipped_fraction)
     findings += [Finding(w, False, ConfigError) for w in layout.time.warnings]
     findings += _loss_findings(topic, "LiDAR", lost)
-    if shift:
+    if shift and clock is not None:
         findings.append(
             Finding(
                 f"The IMU and LiDAR stamps use different clocks ({clock / _NS:+.3f} s apart); "
@@ -1686,8 +1698,9 @@ def read_segment(path: Path, cfg: CalibConfig, *, min_span_s: float = MIN_SEGMEN
     if cfg.bag.duration_s is None and window.stop_ns is not None:
         warnings.append(
             f"The bag lasts {(bag_end - bag_start) / _NS:.0f} s; only {cfg.bag.max_duration_s:g} "
-            f"s from {cfg.bag.start_s:g} s are used. Choose the part with the most varied motion "
-            "with --start/--duration (or raise bag.max_duration_s)."
+            f"s from {cfg.bag.start_s:g} s are used. Let --segments auto calibrate on its most "
+            "informative windows together (licalib select-segments ranks them), or choose a "
+            "part with --start/--duration (or raise bag.max_duration_s)."
         )
     for w in warnings:
         logger.warning(w)
@@ -1718,7 +1731,11 @@ def read_segment(path: Path, cfg: CalibConfig, *, min_span_s: float = MIN_SEGMEN
 
 
 def iter_scans(
-    path: Path, cfg: CalibConfig, shift_ns: int = 0, warnings: list[str] | None = None
+    path: Path,
+    cfg: CalibConfig,
+    shift_ns: int = 0,
+    warnings: list[str] | None = None,
+    every: int = 1,
 ) -> Iterator[LidarScan]:
     """Stream the LiDAR scans of the segment one at a time (constant memory).
 
@@ -1731,6 +1748,7 @@ def iter_scans(
         cfg: configuration (``bag`` and ``lidar`` sections).
         shift_ns: added to every LiDAR time (e.g. ``Recording.lidar_shift_ns``).
         warnings: list that receives non-fatal findings, or None.
+        every: decode only every ``every``-th cloud (the others are only counted).
 
     Yields:
         :class:`LidarScan` in stamp order.
@@ -1746,7 +1764,8 @@ def iter_scans(
         layout = detect_layout(bag, lid_t.name, window, off, cfg)
         tally = ScanTally(topic=lid_t.name)
         last: int | None = None
-        for scan in _scan_stream(bag, lid_t.name, window, off, layout, cfg, shift_ns, tally):
+        stream = _scan_stream(bag, lid_t.name, window, off, layout, cfg, shift_ns, tally, every)
+        for scan in stream:
             if last is not None and scan.stamp_ns <= last:
                 what = "go backwards" if scan.stamp_ns < last else "are duplicated"
                 at = (scan.stamp_ns - shift_ns - tally.stamps[0]) / _NS

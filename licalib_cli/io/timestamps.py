@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -112,8 +112,8 @@ class TimeLayout:
     scan_period_ns: int
     method: Literal["azimuth", "index"] | None = None
     clockwise: bool | None = None
-    notes: tuple[str, ...] = field(default=())
-    warnings: tuple[str, ...] = field(default=())
+    notes: tuple[str, ...] = ()
+    warnings: tuple[str, ...] = ()
 
 
 def find_time_field(names: Sequence[str], override: str | None) -> str | None:

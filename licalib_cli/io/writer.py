@@ -5,6 +5,7 @@ Used by the simulator and by the tests; one writer for all three formats.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from enum import Enum
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -183,9 +184,10 @@ class BagWriter:
             pts = pts.reshape(1, -1)
         height, width = pts.shape
         dt = pts.dtype
+        layout: Mapping[str, tuple[Any, ...]] = dt.fields or {}
         fields = []
         for name in dt.names or ():
-            base, offset = dt.fields[name][:2]  # type: ignore[index]
+            base, offset = layout[name][:2]
             count = 1
             if base.subdtype is not None:
                 base, shape = base.subdtype
@@ -196,10 +198,7 @@ class BagWriter:
                     name=name, offset=offset, datatype=code, count=count
                 )
             )
-        bigendian = any(
-            dt.fields[n][0].byteorder == ">"
-            for n in (dt.names or ())  # type: ignore[index]
-        )
+        bigendian = any(layout[n][0].byteorder == ">" for n in (dt.names or ()))
         point_step = dt.itemsize
         row_step = point_step * width + row_padding
         rows = np.zeros((height, row_step), dtype=np.uint8)

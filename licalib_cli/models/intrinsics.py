@@ -70,7 +70,7 @@ class ImuIntrinsics:
     gyro_bias: F64 = field(default_factory=_zeros3)
     accel_bias: F64 = field(default_factory=_zeros3)
 
-    def with_(self, **changes: object) -> ImuIntrinsics:
+    def with_(self, **changes: F64) -> ImuIntrinsics:
         """Copy with some fields replaced."""
         return replace(self, **changes)
 
@@ -113,6 +113,6 @@ class LidarIntrinsics:
         """
         return int(self.nominal_elevation.shape[0])
 
-    def with_(self, **changes: object) -> LidarIntrinsics:
+    def with_(self, **changes: F64) -> LidarIntrinsics:
         """Copy with some fields replaced."""
         return replace(self, **changes)

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from licalib_cli import __version__
-from licalib_cli.config import CalibConfig
+from licalib_cli.config import CalibConfig, config_fingerprint
 from licalib_cli.estimation import beam_point_counts
 from licalib_cli.io.frames import frame_ids
 from licalib_cli.measurements import Recording
@@ -17,7 +17,7 @@ from licalib_cli.pipeline.checks import Checks
 from licalib_cli.pipeline.initialise import InitialGuess
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.schedule import Fit
-from licalib_cli.results import CalibrationResult, Extrinsic
+from licalib_cli.results import CalibrationResult, Extrinsic, vec3
 from licalib_cli.sections import (
     FactoryExtrinsicSection,
     FitSection,
@@ -82,7 +82,8 @@ def factory_section(rec: Recording, calibrated: Extrinsic) -> FactoryExtrinsicSe
 
 def model_info(fit: Fit, cfg: CalibConfig) -> ModelInfo:
     """Which intrinsics were estimated, the gauge beam and the beams held for lack of points."""
-    gauge, held = -1, ()
+    gauge = -1
+    held: tuple[int, ...] = ()
     if cfg.model.lidar:
         counts = beam_point_counts(fit.inputs.lidar, fit.state.lidar_intrinsics.num_beams)
         enough = counts >= cfg.model.min_points_per_beam
@@ -110,7 +111,7 @@ def assemble(
         lidar_intrinsics=state.lidar_intrinsics if cfg.model.lidar else None,
         model=model_info(fit, cfg),
         intrinsics_uncertainty=checks.intrinsics_uncertainty,
-        gravity_G=tuple(round(float(x), 6) for x in state.gravity_G),  # type: ignore[arg-type]
+        gravity_G=vec3(round(float(x), 6) for x in state.gravity_G),
         uncertainty=checks.uncertainty,
         observability=checks.observability,
         verdict=checks.verdict,
@@ -126,7 +127,7 @@ def assemble(
             if hand_eye is None
             else float(f"{hand_eye.conditioning:.4g}"),
             translation_source=guess.translation_source,
-            initial_translation_m=tuple(round(float(x), 6) for x in guess.t_imu_lidar),  # type: ignore[arg-type]
+            initial_translation_m=vec3(round(float(x), 6) for x in guess.t_imu_lidar),
         ),
         fit=FitSection(
             rounds=len(fit.rounds),
@@ -145,5 +146,6 @@ def assemble(
             licalib_version=__version__,
             bag_fingerprint=bag_fingerprint(bag),
             created_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            config_fingerprint=config_fingerprint(cfg),
         ),
     )

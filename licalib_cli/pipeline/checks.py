@@ -14,10 +14,12 @@ sentence); the verdict is the worst severity. A check that could not be computed
 * split-half: the two halves of the segment disagree beyond their sigmas (``warn``);
 * map: few points on planar surfaces (``warn``), a very poor overall fit (``fail``).
 
-The reported sigmas are the solver's, inflated so that they cover what the checks found: by the
-root of the largest chi-square per sample of the sensors, by half the disagreement of the two
-halves, by the shift a material fixed effect would cause, and by the last round's change when
-the rounds only settled to within their jitter.
+The reported sigmas start from the solver's, each times its factor for the map planes' own
+uncertainty (:mod:`licalib_cli.pipeline.map_uncertainty`: the solver holds the planes fixed,
+although they were fitted to the same points), and are inflated so that they cover what the
+checks found: by the root of the largest chi-square per sample of the sensors, by half the
+disagreement of the two halves, by the shift a material fixed effect would cause, and by the
+last round's change when the rounds only settled to within their jitter.
 """
 
 from __future__ import annotations
@@ -35,9 +37,11 @@ from licalib_cli.pipeline.fitcheck import (
     sensor_checks,
 )
 from licalib_cli.pipeline.initialise import SINGLE_AXIS, InitialGuess
+from licalib_cli.pipeline.map_uncertainty import MapUncertainty, map_uncertainty
 from licalib_cli.pipeline.schedule import Fit
 from licalib_cli.pipeline.settings import NoiseLevels
 from licalib_cli.pipeline.split import SplitResult, split_half
+from licalib_cli.results import vec3
 from licalib_cli.sections import (
     Consistency,
     EffectCheck,
@@ -115,14 +119,20 @@ def _std(report: SolverReport, names: list[str]) -> F64:
     return np.asarray(out, dtype=np.float64)
 
 
-def raw_uncertainty(report: SolverReport) -> F64:
-    """(7,) solver sigmas: translation (m), rotation (rad, LiDAR axes), time offset (s)."""
-    return _std(
-        report,
-        [f"ext.translation.{a}" for a in "xyz"]
-        + [f"ext.rotation.r{a}" for a in "xyz"]
-        + ["ext.time_offset"],
-    )
+_EXTRINSIC_NAMES = (
+    *(f"ext.translation.{a}" for a in "xyz"),
+    *(f"ext.rotation.r{a}" for a in "xyz"),
+    "ext.time_offset",
+)
+
+
+def raw_uncertainty(report: SolverReport, planes: MapUncertainty | None = None) -> F64:
+    """(7,) solver sigmas: translation (m), rotation (rad, LiDAR axes), time offset (s); with
+    ``planes``, each times its factor for the map planes' own uncertainty."""
+    std = _std(report, list(_EXTRINSIC_NAMES))
+    if planes is not None:
+        std = std * np.array([planes.of(n) for n in _EXTRINSIC_NAMES])
+    return std
 
 
 def observability_of(report: SolverReport) -> Observability:
@@ -431,13 +441,14 @@ def check(fit: Fit, guess: InitialGuess, noise: NoiseLevels, cfg: CalibConfig) -
     sensors = sensor_checks(fit.state, fit.inputs, noise)
     effects = effect_evidence(fit.state, fit.inputs, fit.report.variance_factor)
     split = split_half(fit.state, fit.inputs, cfg)
-    notes = ()
+    planes = map_uncertainty(fit.state, fit.inputs, fit.report)
+    notes: tuple[str, ...] = ()
     if guess.rotation_source == SINGLE_AXIS:
         notes = (
             "The rig turned about one axis only; the rotation about it rests on the "
             "accelerations, and the translation along it is not observable.",
         )
-    return run_checks(fit, sensors, effects, split, cfg, notes)
+    return run_checks(fit, sensors, effects, split, cfg, notes, planes)
 
 
 def run_checks(
@@ -447,6 +458,7 @@ def run_checks(
     split: SplitResult,
     cfg: CalibConfig,
     notes: tuple[str, ...] = (),
+    planes: MapUncertainty | None = None,
 ) -> Checks:
     """Every check on the fit, the inflated sigmas and the verdict.
 
@@ -458,13 +470,22 @@ def run_checks(
         split: the split-half comparison.
         cfg: the configuration.
         notes: warnings of earlier stages (one sentence each), e.g. single-axis motion.
+        planes: the sigma factors of the map planes' own uncertainty
+            (:func:`~licalib_cli.pipeline.map_uncertainty.map_uncertainty`); None: not applied.
 
     Returns:
         The checks' outcome.
     """
     report = fit.report
-    raw = raw_uncertainty(report)
+    raw = raw_uncertainty(report, planes)
     sigma, why = inflate(raw, sensors, effects, split, fit)
+    worst = max((planes.of(n) for n in _EXTRINSIC_NAMES), default=1.0) if planes else 1.0
+    if planes is not None and worst > 1.005:
+        why = (
+            f"times up to {worst:.2f} for the {planes.planes} map planes estimated from the "
+            "same points (solver sigmas hold them fixed)",
+            *why,
+        )
     findings = [Finding("warn", n) for n in notes]
     findings += _convergence(fit, cfg)
     findings += _observability(report)
@@ -476,7 +497,7 @@ def run_checks(
     verdict, exit_status = judge(findings)
     chi = max((c.chi2_per_sample for c in sensors), default=1.0)
     intrinsics = intrinsics_uncertainty(
-        report, cfg, max(chi, 1.0) ** 0.5, fit.state.lidar_intrinsics.num_beams
+        report, cfg, max(chi, 1.0) ** 0.5, fit.state.lidar_intrinsics.num_beams, planes
     )
     consistency = Consistency(
         sensors=sensors,
@@ -487,8 +508,8 @@ def run_checks(
     return Checks(
         verdict=verdict,
         uncertainty=Uncertainty(
-            translation_std_m=tuple(float(x) for x in sigma[:3]),  # type: ignore[arg-type]
-            rotation_std_deg=tuple(float(np.degrees(x)) for x in sigma[3:6]),  # type: ignore[arg-type]
+            translation_std_m=vec3(sigma[:3]),
+            rotation_std_deg=vec3(np.degrees(x) for x in sigma[3:6]),
             time_offset_std_s=float(sigma[6]),
         ),
         raw_sigma=raw,
@@ -520,10 +541,15 @@ _LIDAR_KEYS = {
 
 
 def intrinsics_uncertainty(
-    report: SolverReport, cfg: CalibConfig, factor: float, num_beams: int
+    report: SolverReport,
+    cfg: CalibConfig,
+    factor: float,
+    num_beams: int,
+    planes: MapUncertainty | None = None,
 ) -> IntrinsicsUncertainty | None:
     """1-sigma of every intrinsic the model estimates (``None`` for held or unobservable ones),
-    enlarged by ``factor`` (the root of the largest chi-square per sample)."""
+    enlarged by ``factor`` (the root of the largest chi-square per sample) and, with ``planes``,
+    by each coordinate's factor for the map planes' own uncertainty."""
     if not (cfg.model.imu or cfg.model.lidar):
         return None
     std = dict(zip(report.calibration_names, report.std, strict=True))
@@ -533,12 +559,13 @@ def intrinsics_uncertainty(
         v = std.get(name)
         if v is None or not np.isfinite(v) or weight.get(name, 0.0) > 0.5:
             return None  # held, or not determined by the data (kept near nominal)
-        return float(np.degrees(v) if degrees else v) * factor
+        grow = factor * (planes.of(name) if planes is not None else 1.0)
+        return float(np.degrees(v) if degrees else v) * grow
 
     values: dict[str, tuple[float | None, ...]] = {}
     for block in cfg.model.imu:
         block_name = "imu.gyro_g_sensitivity" if block == "g_sensitivity" else f"imu.{block}"
-        key = "gyro_rotation_deg" if block == "gyro_rotation" else block
+        key: str = "gyro_rotation_deg" if block == "gyro_rotation" else block
         values[key] = tuple(
             get(f"{block_name}.{s}", block == "gyro_rotation") for s in _IMU_SUFFIXES[block]
         )
@@ -555,8 +582,8 @@ def _effect_section(e: EffectEvidence, raw: F64) -> EffectCheck:
         statistic=float(e.score.statistic),
         dof=int(e.score.rank),
         p_value=float(e.score.p_value),
-        shift_translation_m=tuple(float(x) for x in e.shift_translation_m),  # type: ignore[arg-type]
-        shift_rotation_deg=tuple(float(np.degrees(x)) for x in e.shift_rotation_rad),  # type: ignore[arg-type]
+        shift_translation_m=vec3(e.shift_translation_m),
+        shift_rotation_deg=vec3(np.degrees(x) for x in e.shift_rotation_rad),
         shift_time_offset_s=float(e.shift_time_offset_s),
         selected=e.selected,
         material=effect_is_material(e, raw),

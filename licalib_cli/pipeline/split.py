@@ -140,9 +140,9 @@ def _estimate_half(
     if np.count_nonzero(in_pts) < _MIN_HALF_POINTS:
         return f"a half holds only {int(np.count_nonzero(in_pts))} associated points"
     idx = np.flatnonzero(in_pts)
-    in_pts = idx[:: max(1, idx.size // MAX_HALF_POINTS)]
+    picked = idx[:: max(1, idx.size // MAX_HALF_POINTS)]
     half_imu = ImuData(imu.t_s[in_imu], imu.gyro[in_imu], imu.accel[in_imu])
-    half_lidar = lid.subset(in_pts)
+    half_lidar = lid.subset(picked)
     problem = build_problem(sub, half_imu, half_lidar, inputs.planes, inputs.noise, inputs.free)
     report = solve(problem, lm_params(cfg, max_iterations=_HALF_ITERATIONS))
     if report.status == "failed":

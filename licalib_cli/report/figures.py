@@ -27,6 +27,8 @@ __all__ = [
 ]
 
 F64 = npt.NDArray[np.float64]
+Floats = npt.NDArray[np.floating[Any]]
+"""Arrays of any float dtype (the report data keeps its long series as float32)."""
 _DPI = 100
 _AXES = ("x", "y", "z")
 _COLOURS = ("tab:red", "tab:green", "tab:blue")
@@ -137,7 +139,7 @@ def unobservable_png(text: str, rotation: F64, translation: F64) -> bytes:
     return _png(fig)
 
 
-def distances_png(before_m: F64, after_m: F64) -> bytes:
+def distances_png(before_m: Floats, after_m: Floats) -> bytes:
     """Histograms of the signed point-to-plane distances before round 1 and after the last."""
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7.5, 3.8))
@@ -167,7 +169,7 @@ def distances_png(before_m: F64, after_m: F64) -> bytes:
     return _png(fig)
 
 
-def imu_residuals_png(t_s: F64, gyro: F64, accel: F64) -> bytes:
+def imu_residuals_png(t_s: Floats, gyro: Floats, accel: Floats) -> bytes:
     """Gyro and accelerometer residuals (prediction minus reading) against time, per axis."""
     plt = pyplot()
     fig, (ax_g, ax_a) = plt.subplots(2, 1, figsize=(9.0, 5.0), sharex=True)
@@ -185,7 +187,7 @@ def imu_residuals_png(t_s: F64, gyro: F64, accel: F64) -> bytes:
 
 
 def rounds_png(
-    index: Sequence[int],
+    index: Sequence[int] | npt.NDArray[np.integer[Any]],
     translation_m: F64,
     rpy_deg: F64,
     time_offset_s: F64,
@@ -225,7 +227,7 @@ def rounds_png(
     return _png(fig)
 
 
-def motion_png(t_s: F64, angular_rate: F64, specific_force: F64, segments_s: F64) -> bytes:
+def motion_png(t_s: Floats, angular_rate: Floats, specific_force: Floats, segments_s: F64) -> bytes:
     """Angular rate and specific force over the recording read, the segment(s) used shaded."""
     plt = pyplot()
     fig, (ax_w, ax_a) = plt.subplots(2, 1, figsize=(9.0, 5.0), sharex=True)
@@ -248,14 +250,14 @@ def motion_png(t_s: F64, angular_rate: F64, specific_force: F64, segments_s: F64
 
 
 def map_png(
-    before_top: F64,
-    after_top: F64,
-    before_side: F64,
-    after_side: F64,
+    before_top: Floats,
+    after_top: Floats,
+    before_side: Floats,
+    after_side: Floats,
     region: F64,
     entropies: tuple[float, float],
     slabs: tuple[float, float],
-    zoom: tuple[F64, F64, F64] | None = None,
+    zoom: tuple[Floats, Floats, F64] | None = None,
 ) -> bytes:
     """Top view and side slice of the map with the initial and the final calibration, and a
     zoomed top view (``zoom``: the points before, after, and the window ``[x0, x1, y0, y1]``)."""

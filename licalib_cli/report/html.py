@@ -95,9 +95,9 @@ def _estimate(result: CalibrationResult, data: ReportData | None) -> str:
     r_std = unc.rotation_std_deg if unc else nan3
     c_std = unc.time_offset_std_s if unc else float("nan")
     truth: Extrinsic | None = data.truth if data is not None else None
-    initial = data is not None and data.initial_translation_m.size == 3
+    initial = data if data is not None and data.initial_translation_m.size == 3 else None
     header = ["parameter", "estimate", "1-sigma"]
-    if initial:
+    if initial is not None:
         header.append("initial guess")
     if truth is not None:
         header += ["truth", "error"]
@@ -106,8 +106,8 @@ def _estimate(result: CalibrationResult, data: ReportData | None) -> str:
     rows = []
     for i, axis in enumerate("xyz"):
         row = [f"t_{axis}", f"{ext.translation[i]:+.4f} m", _sigma(t_std[i], 1e3, "mm", 2)]
-        if initial:
-            row.append(f"{data.initial_translation_m[i]:+.4f} m")  # type: ignore[union-attr]
+        if initial is not None:
+            row.append(f"{initial.initial_translation_m[i]:+.4f} m")
         if truth is not None:
             row += [
                 f"{truth.translation[i]:+.4f} m",
@@ -116,14 +116,14 @@ def _estimate(result: CalibrationResult, data: ReportData | None) -> str:
         rows.append(row)
     for i, name in enumerate(("roll", "pitch", "yaw")):
         row = [name, f"{rpy[i]:+.4f} deg", _sigma(r_std[i], 1.0, "deg", 4)]
-        if initial:
-            row.append(f"{data.initial_rpy_deg[i]:+.4f} deg")  # type: ignore[union-attr]
+        if initial is not None:
+            row.append(f"{initial.initial_rpy_deg[i]:+.4f} deg")
         if t_rpy is not None:
             row += [f"{t_rpy[i]:+.4f} deg", f"{rpy[i] - t_rpy[i]:+.4f} deg"]
         rows.append(row)
     row = ["time offset", f"{1e3 * ext.time_offset_s:+.3f} ms", _sigma(c_std, 1e3, "ms", 3)]
-    if initial:
-        row.append(f"{1e3 * float(data.initial_time_offset_s[0]):+.3f} ms")  # type: ignore[union-attr]
+    if initial is not None:
+        row.append(f"{1e3 * float(initial.initial_time_offset_s[0]):+.3f} ms")
     if truth is not None:
         row += [
             f"{1e3 * truth.time_offset_s:+.3f} ms",

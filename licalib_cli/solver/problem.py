@@ -373,6 +373,11 @@ class Problem:
         """All residual blocks in insertion order."""
         return tuple(self._residuals)
 
+    @property
+    def losses(self) -> tuple[Loss | None, ...]:
+        """The robust loss of each residual block (None: plain squares), in the same order."""
+        return tuple(self._losses)
+
     def __getitem__(self, name: str) -> ParameterBlock:
         """The parameter block called ``name``."""
         return self._blocks[name]
@@ -515,6 +520,36 @@ class Problem:
         h_tt, h_tc, h_cc = acc.result()
         self._tt_pattern = acc.pattern
         return Linearization(layout, evaluation.cost, evaluation.num_residuals, h_tt, h_tc, h_cc, g)
+
+    def jacobian_matrix(self, evaluation: Evaluation, block: int, layout: Layout) -> sp.csr_matrix:
+        """The Jacobian of one residual block on the free coordinates, robust-loss weighted.
+
+        Args:
+            evaluation: An evaluation with Jacobians.
+            block: Index of the residual block in ``evaluation.evals``.
+            layout: The coordinate layout.
+
+        Returns:
+            (n m, Nt + Nc) sparse ``sqrt(w) J`` (rows ``i m + k``), the Jacobian whose Gram
+            matrix is the block's share of :meth:`linearize`'s ``H``.
+        """
+        ev = evaluation.evals[block]
+        loss = evaluation.losses[block]
+        n, m = ev.residuals.shape
+        rows_all, cols_all, vals_all = [], [], []
+        for rows, cols, vals in self._sparse_pieces(ev, layout):
+            keep = cols >= 0
+            rows_all.append(rows[keep])
+            cols_all.append(cols[keep])
+            vals_all.append(vals[keep])
+        rows = np.concatenate(rows_all) if rows_all else np.zeros(0, dtype=np.intp)
+        cols = np.concatenate(cols_all) if cols_all else np.zeros(0, dtype=np.intp)
+        vals = np.concatenate(vals_all) if vals_all else np.zeros(0)
+        if loss is not None:
+            r = ev.residuals
+            sqrt_w = np.sqrt(loss(np.einsum("ij,ij->i", r, r))[1])
+            vals = vals * np.repeat(sqrt_w, m)[rows]
+        return sp.csr_matrix((vals, (rows, cols)), shape=(n * m, layout.num_free))
 
     def _block_index(self, jac: DenseJacobian | SparseJacobian, layout: Layout) -> IntArray | None:
         if jac.block not in self._blocks:

@@ -185,7 +185,7 @@ class UniformKnots:
 
     def control_point_times_s(self) -> FloatArray:
         """(N,) times at which each control point's basis function peaks, ``t0 + (k - 1) dt``."""
-        return self.t0_s + (np.arange(self.num_control_points) - 1.0) * self.dt_s
+        return self.t0_s + (np.arange(self.num_control_points, dtype=np.float64) - 1.0) * self.dt_s
 
     def contains(self, t_s: npt.ArrayLike) -> npt.NDArray[np.bool_]:
         """Mask of query times inside the valid range (with round-off slack).

@@ -102,6 +102,11 @@ def test_clean_bag_passes_every_check(tmp_path: Path, capsys: pytest.CaptureFixt
     assert not any(e["material"] for e in c["effects"])
     assert c["split_half"]["status"] == "agree"
     assert result["fit"]["converged"] is True
+    # the map planes were fitted to the same points: the reported sigmas carry their uncertainty
+    solver_std = np.array([run.fit.report.std_of(f"ext.translation.{a}") for a in "xyz"])
+    assert np.all(run.checks.raw_sigma[:3] >= solver_std)
+    assert np.any(run.checks.raw_sigma[:3] > 1.005 * solver_std)
+    assert any("map planes" in why for why in c["inflation"]), c["inflation"]
     render_run(run, sim.truth)
     printed = capsys.readouterr().out
     assert "Checks of the fit" in printed and "Verdict: PASS" in printed

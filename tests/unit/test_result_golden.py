@@ -92,7 +92,9 @@ def _result() -> CalibrationResult:
             imu_frame="imu_link",
             lidar_frame="velodyne",
         ),
-        provenance=Provenance("0.1.0", "0123456789abcdef", "2026-11-24T07:00:00Z"),
+        provenance=Provenance(
+            "0.1.0", "0123456789abcdef", "2026-11-24T07:00:00Z", "fedcba9876543210"
+        ),
     )
 
 

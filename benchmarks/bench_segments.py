@@ -1,0 +1,250 @@
+"""Segment selection and multi-segment calibration on simulated bags (issue: select-segments).
+
+Parts (all by default; choose with ``--parts``):
+
+* ``walk``: a 120 s walk with four shaking bursts (``licalib simulate --scenario walk``, seed 0;
+  the bursts' intervals come from truth.yaml). ``select-segments --length 10 --top 4``: the
+  selected windows must overlap the bursts' full-amplitude parts (the middle half of each
+  burst: its ``sin^4`` envelope is above 1/4 there) and every window that does must rank above
+  every calm window (one that touches no burst). Then ``calibrate --segments auto`` on the same
+  selection: the joint error against the truth (target 0.3 cm / 0.05 deg / 0.1 ms) and the
+  joint sigma against each segment's own.
+* ``planar``: a 20 s planar figure-8 (mounting A) and a 20 s hand-held shaking bag, one 10 s
+  window of each at the true extrinsic: the figure-8 window must rank below the shaking one,
+  with the vertical translation as its weakest direction.
+* ``long``: ranking a long walk (``--long-duration``, default 600 s = 10 minutes of VLP-16 at
+  full resolution) with 15 s windows, in a subprocess: wall and CPU time and peak RSS
+  (target: at most 60 s on the 2-core machine).
+
+Examples::
+
+    .venv/bin/python benchmarks/bench_segments.py
+    .venv/bin/python benchmarks/bench_segments.py --parts long --long-bag /tmp/walk600/bag.bag
+
+Bags are simulated into ``--workdir`` (default: a temporary folder) unless given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+KNOWN = """\
+initialization:
+  rotation_rpy_deg: [1.0, 2.0, 5.0]
+  translation_m: [0.3, 0.15, 0.05]
+  time_offset_s: 0.0
+"""
+
+
+def _simulate(workdir: Path, name: str, **spec: object) -> Path:
+    from licalib_cli.simulation import SimulationSpec, simulate
+
+    folder = workdir / name
+    if (folder / "bag.bag").exists():
+        return folder / "bag.bag"
+    t = time.perf_counter()
+    sim = simulate(SimulationSpec(intrinsics="none", **spec), folder)  # type: ignore[arg-type]
+    print(f"simulated {name} in {time.perf_counter() - t:.0f} s", flush=True)
+    return sim.bag_path
+
+
+def _config() -> Path:
+    from licalib_cli.config import load_config  # noqa: F401 - the package must import
+
+    return Path(__file__).resolve().parents[1] / "configs" / "vlp16.yaml"
+
+
+def walk(args: argparse.Namespace, workdir: Path) -> None:
+    import numpy as np
+    import yaml
+
+    from licalib_cli.config import load_config
+    from licalib_cli.pipeline.joint import calibrate_segments
+    from licalib_cli.pipeline.segments import select_segments
+    from licalib_cli.truth import Truth
+
+    bag = Path(args.walk_bag) if args.walk_bag else _simulate(workdir, "walk", scenario="walk")
+    truth_path = bag.parent / "truth.yaml"
+    bursts = np.asarray(yaml.safe_load(truth_path.read_text())["scenario"]["bursts_s"])
+    full = np.column_stack(
+        [bursts[:, 0] + 0.25 * np.diff(bursts)[:, 0], bursts[:, 1] - 0.25 * np.diff(bursts)[:, 0]]
+    )
+    cfg = load_config(_config())
+    t = time.perf_counter()
+    cpu = time.process_time()
+    sel = select_segments(bag, cfg, args.length, top=args.top)
+    print(
+        f"\nselect-segments --length {args.length:g} --top {args.top}: "
+        f"{time.perf_counter() - t:.1f} s wall, {time.process_time() - cpu:.1f} s CPU "
+        f"({', '.join(f'{k} {v:.1f} s' for k, v in sel.timings.items())}); "
+        f"common estimate from {sel.estimate.source}"
+    )
+
+    def overlap(w, iv: np.ndarray) -> bool:
+        return bool(np.any((iv[:, 0] < w.end_s) & (iv[:, 1] > w.start_s)))
+
+    print(f"bursts {bursts.tolist()}, full amplitude {np.round(full, 2).tolist()}")
+    print(" rank  window        min sv    kind   selected  weakest direction")
+    for w in sel.ranked:
+        kind = "burst" if overlap(w, full) else ("ramp" if overlap(w, bursts) else "calm")
+        weak = w.weak_directions[0].split(" (singular")[0] if w.weak_directions else ""
+        print(
+            f" {w.rank:4d}  {w.start_s:5.1f}-{w.end_s:5.1f}  {w.min_singular_value:8.4f}  "
+            f"{kind:5s}  {'yes' if w.selected else '':8s}  {weak}"
+        )
+    burst_vals = [w.min_singular_value for w in sel.windows if overlap(w, full)]
+    calm_vals = [w.min_singular_value for w in sel.windows if not overlap(w, bursts)]
+    sel_ok = all(overlap(w, full) for w in sel.selected)
+    rank_ok = min(burst_vals) > max(calm_vals)
+    print(
+        f"selected windows overlap the bursts' full-amplitude parts: {sel_ok}; every such window "
+        f"above every calm one: {rank_ok} (lowest burst {min(burst_vals):.3g}, highest calm "
+        f"{max(calm_vals):.3g})"
+    )
+
+    t = time.perf_counter()
+    cpu = time.process_time()
+    chosen = ",".join(f"{w.start_s:g}-{w.end_s:g}" for w in sel.selected)
+    run = calibrate_segments(bag, cfg, chosen)
+    wall = time.perf_counter() - t
+    truth = Truth.load(truth_path)
+    err = truth.extrinsic.error_to(run.result.extrinsic)
+    unc = run.result.uncertainty
+    print(
+        f"\ncalibrate --segments {chosen} (the selection above): {wall:.0f} s wall, "
+        f"{time.process_time() - cpu:.0f} s CPU "
+        f"({', '.join(f'{k} {v:.0f} s' for k, v in run.timings.items())})"
+    )
+    print(" segment        error t [mm]  rot [deg]  dt [ms]   sigma t [mm]        sigma rot [deg]")
+    for e in run.segments.segments:
+        from licalib_cli.results import Extrinsic, matrix_from_rpy_deg
+
+        own = Extrinsic(
+            matrix_from_rpy_deg(e.rotation_rpy_deg), np.asarray(e.translation), e.time_offset_s
+        )
+        oe = truth.extrinsic.error_to(own)
+        print(
+            f" {e.start_s:5.1f}-{e.end_s:5.1f}  {1e3 * oe['translation_m']:10.2f}  "
+            f"{oe['rotation_deg']:9.4f}  {1e3 * oe['time_offset_s']:7.3f}   "
+            f"{np.round(1e3 * np.asarray(e.translation_std_m), 2)}  "
+            f"{np.round(e.rotation_std_deg, 4)}  (off by {e.disagreement_sigmas:.1f} sigma)"
+        )
+    print(
+        f" joint        {1e3 * err['translation_m']:10.2f}  {err['rotation_deg']:9.4f}  "
+        f"{1e3 * err['time_offset_s']:7.3f}   "
+        f"{np.round(1e3 * np.asarray(unc.translation_std_m), 2)}"
+        f"  {np.round(unc.rotation_std_deg, 4)}"
+    )
+    within = (
+        err["translation_m"] <= 0.003
+        and err["rotation_deg"] <= 0.05
+        and err["time_offset_s"] <= 1e-4
+    )
+    smaller = all(
+        np.all(np.asarray(unc.translation_std_m) < np.asarray(e.translation_std_m))
+        and np.all(np.asarray(unc.rotation_std_deg) < np.asarray(e.rotation_std_deg))
+        for e in run.segments.segments
+    )
+    print(
+        f"joint within 0.3 cm / 0.05 deg / 0.1 ms: {within}; joint sigma below every segment's "
+        f"own: {smaller}; verdict {run.result.verdict.status}"
+    )
+
+
+def planar(args: argparse.Namespace, workdir: Path) -> None:
+    from licalib_cli.config import load_config
+    from licalib_cli.pipeline.segments import select_segments
+
+    cfg_path = workdir / "known.yaml"
+    cfg_path.write_text(KNOWN)
+    cfg = load_config(cfg_path)
+    out = {}
+    for name, scenario in (("figure8", "figure8"), ("shake", "shake")):
+        bag = _simulate(workdir, name, scenario=scenario, duration_s=20.0, seed=1)
+        sel = select_segments(bag, cfg, 10.0, top=1)
+        best = sel.ranked[0]
+        out[name] = best
+        weak = best.weak_directions[0] if best.weak_directions else ""
+        print(
+            f"{name:8s} best window {best.start_s:.0f}-{best.end_s:.0f} s: min sv "
+            f"{best.min_singular_value:.4g}, weakest: {weak}"
+        )
+    f8, sh = out["figure8"], out["shake"]
+    vertical = "ext.translation along [" in f8.weak_directions[0] and f8.weak_directions[0].split(
+        "ext.translation along ["
+    )[1].split("]")[0].split(", ")[2].lstrip("-") in (
+        "1.00",
+        "0.99",
+        "0.98",
+    )
+    print(
+        f"figure-8 ranks below shaking: {f8.min_singular_value < sh.min_singular_value}; its "
+        f"weakest direction is the vertical translation: {vertical}"
+    )
+
+
+def long_run(args: argparse.Namespace, workdir: Path) -> None:
+    bag = (
+        Path(args.long_bag)
+        if args.long_bag
+        else _simulate(workdir, "long", scenario="walk", duration_s=args.long_duration, seed=1)
+    )
+    size = sum(p.stat().st_size for p in ([bag] if bag.is_file() else bag.rglob("*")))
+    cmd = [
+        sys.executable,
+        "-m",
+        "licalib_cli",
+        "select-segments",
+        str(bag),
+        "-c",
+        str(_config()),
+        "--json",
+    ]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t = time.perf_counter()
+    res = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    wall = time.perf_counter() - t
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if res.returncode != 0:
+        print(res.stderr[-2000:])
+        raise SystemExit(res.returncode)
+    data = json.loads(res.stdout)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    print(
+        f"\nlong bag {bag} ({size / 1e9:.2f} GB, {len(data['segments'])} windows of 15 s): "
+        f"{wall:.1f} s wall, {cpu:.1f} s CPU, peak RSS {after.ru_maxrss / 1024:.0f} MB; "
+        f"stages {data['timings_s']}"
+    )
+    top = [(s["start_s"], s["end_s"]) for s in data["segments"] if s["selected"]]
+    print(f"selected {top}")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--parts", nargs="+", default=["walk", "planar", "long"])
+    p.add_argument("--workdir", default=None)
+    p.add_argument("--walk-bag", default=None, help="an existing 120 s walk bag (truth beside)")
+    p.add_argument("--long-bag", default=None, help="an existing long bag")
+    p.add_argument("--long-duration", type=float, default=600.0)
+    p.add_argument("--length", type=float, default=10.0)
+    p.add_argument("--top", type=int, default=4)
+    args = p.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        workdir = Path(args.workdir) if args.workdir else Path(tmp)
+        workdir.mkdir(parents=True, exist_ok=True)
+        for part in args.parts:
+            {"walk": walk, "planar": planar, "long": long_run}[part](args, workdir)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,116 @@
+"""``calibrate --segments``: run the multi-segment calibration and show each segment's estimate
+next to the joint one (the paper's Table segment_mit)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from rich.table import Table
+
+from licalib_cli.commands.render import console
+from licalib_cli.config import CalibConfig, dump_config
+from licalib_cli.errors import VerdictFailure
+from licalib_cli.results import rpy_deg_from_matrix, write_text_atomic
+
+if TYPE_CHECKING:
+    from licalib_cli.pipeline.joint import JointRun
+    from licalib_cli.truth import Truth
+
+
+def render_segments(run: JointRun, truth: Truth | None = None) -> Table:
+    """One row per segment (calibrated alone) and one for the joint estimate."""
+    table = Table(
+        title="T_imu_lidar per segment (calibrated alone) and jointly, largest 1-sigma in "
+        "brackets; time offset alone -> in the joint problem"
+    )
+    for col in ("segment", "t, mm", "roll/pitch/yaw, deg", "time offset, ms", "sigmas off"):
+        table.add_column(col, justify="left" if col == "segment" else "right")
+
+    def t_text(t: np.ndarray, s: tuple[float, ...]) -> str:
+        return " ".join(f"{1e3 * v:+.1f}" for v in t) + f" ({1e3 * max(s):.2f})"
+
+    def r_text(rot: np.ndarray, s: tuple[float, ...]) -> str:
+        rpy = rpy_deg_from_matrix(rot)
+        return " ".join(f"{v:+.3f}" for v in rpy) + f" ({max(s):.3f})"
+
+    for e in run.segments.segments:
+        from licalib_cli.results import matrix_from_rpy_deg
+
+        flag = f"{e.disagreement_sigmas:.1f}" + (" DISAGREES" if e.disagrees else "")
+        table.add_row(
+            f"{e.start_s:g}-{e.end_s:g} s",
+            t_text(np.asarray(e.translation), e.translation_std_m),
+            r_text(matrix_from_rpy_deg(e.rotation_rpy_deg), e.rotation_std_deg),
+            f"{1e3 * e.time_offset_s:+.3f} ({1e3 * e.time_offset_std_s:.3f}) -> "
+            f"{1e3 * e.joint_time_offset_s:+.3f}",
+            flag,
+        )
+    ext = run.result.extrinsic
+    unc = run.result.uncertainty
+    assert unc is not None
+    table.add_row(
+        "joint",
+        t_text(ext.translation, unc.translation_std_m),
+        r_text(ext.rotation, unc.rotation_std_deg),
+        f"{1e3 * ext.time_offset_s:+.3f} ({1e3 * unc.time_offset_std_s:.3f})",
+        "",
+        style="bold",
+    )
+    if truth is not None:
+        tr = truth.extrinsic
+        table.add_row(
+            "truth",
+            " ".join(f"{1e3 * v:+.1f}" for v in tr.translation),
+            " ".join(f"{v:+.3f}" for v in rpy_deg_from_matrix(tr.rotation)),
+            f"{1e3 * tr.time_offset_s:+.3f}",
+            "",
+        )
+    return table
+
+
+def run_segments(
+    bag: Path,
+    cfg: CalibConfig,
+    segments: str,
+    out: Path,
+    config_out: Path,
+    truth: Truth | None,
+) -> JointRun:
+    """Calibrate over the segments, write the result and its config, print the table.
+
+    Raises:
+        VerdictFailure: the joint verdict is fail (the result is written for inspection).
+    """
+    from licalib_cli.commands.calibrate import RichProgress
+    from licalib_cli.pipeline.joint import calibrate_segments
+
+    progress = RichProgress()
+    try:
+        run = calibrate_segments(bag, cfg, segments, progress)
+    finally:
+        progress.close()
+    run.result.save(out)
+    write_text_atomic(config_out, dump_config(cfg))
+    con = console()
+    con.print(render_segments(run, truth))
+    if truth is not None:
+        err = truth.extrinsic.error_to(run.result.extrinsic)
+        con.print(
+            f"Joint error against truth: translation {1e3 * err['translation_m']:.2f} mm, "
+            f"rotation {err['rotation_deg']:.4f} deg, time offset "
+            f"{1e3 * err['time_offset_s']:.3f} ms"
+        )
+    verdict = run.result.verdict
+    assert verdict is not None
+    for reason in verdict.reasons:
+        con.print(f"- {reason}")
+    con.print(f"Verdict: {verdict.status.upper()}")
+    stages = ", ".join(f"{k} {v:.1f} s" for k, v in run.timings.items())
+    con.print(f"Stages: {stages}")
+    con.print(f"Result: {out}  (resolved config: {config_out})")
+    if verdict.status == "fail":
+        msg = f"The verdict is FAIL; the result in {out} is for inspection only."
+        raise VerdictFailure(msg)
+    return run

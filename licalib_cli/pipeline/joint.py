@@ -1,0 +1,540 @@
+"""Multi-segment calibration (``calibrate --segments``): one problem over several segments of a
+bag (method.md section 8, the paper's Sec. VI "Calibration with Informative Segments").
+
+The segments share the extrinsic (``ext.rotation``, ``ext.translation``) and every intrinsic
+the model estimates; each keeps its own trajectory spline, IMU biases, gravity and time offset
+(and clock or bias drifts when estimated). How it runs:
+
+1. Every segment is calibrated on its own, exactly as ``calibrate --start/--duration`` does
+   (its rounds, checks and sigmas): these are the per-segment estimates of the result.
+2. The joint problem starts from those fits with the shared blocks at the estimate of the
+   segment with the smallest sigmas. Each segment's residual blocks keep their own parameter
+   block names; per-segment blocks are renamed ``seg<k>:<name>`` (a thin adapter renames the
+   Jacobians), shared blocks keep their name, so the solver's Schur complement, truncated SVD
+   and sigmas apply unchanged.
+3. :data:`JOINT_ROUNDS` rounds: the first on each segment's own final associations, the next
+   ones with every segment's map and associations rebuilt from the joint estimate.
+
+A segment whose own estimate differs from the joint one by more than
+:data:`DISAGREEMENT_SIGMAS` of its own sigma (any translation or rotation axis) is flagged.
+The verdict is ``warn`` when a segment disagrees, when a segment alone does not pass (a short
+segment may not determine everything; the joint problem may) or when the joint problem leaves
+an extrinsic direction unobservable; ``pass`` otherwise.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from licalib_cli.config import CalibConfig
+from licalib_cli.errors import ConfigError, ExcitationError, LicalibError
+from licalib_cli.estimation import (
+    BLOCK_SPECS,
+    CalibrationState,
+    FreeParameters,
+    Planes,
+    build_problem,
+    state_from_values,
+)
+from licalib_cli.geometry import so3
+from licalib_cli.io.bag import open_bag
+from licalib_cli.io.reader import MIN_SEGMENT_S
+from licalib_cli.pipeline import CalibrationRun, calibrate
+from licalib_cli.pipeline.points import points_in_global, solver_points, usable_points
+from licalib_cli.pipeline.round import RoundInputs
+from licalib_cli.pipeline.segments import _with_range, select_segments
+from licalib_cli.pipeline.settings import intrinsic_priors, lm_params, round_settings
+from licalib_cli.progress import NullProgress, Progress
+from licalib_cli.residuals import (
+    ACCEL_BIAS_DRIFT,
+    EXT_ROTATION,
+    EXT_TRANSLATION,
+    GYRO_BIAS_DRIFT,
+    TIME_DRIFT,
+    TIME_OFFSET,
+)
+from licalib_cli.results import CalibrationResult, Extrinsic, rpy_deg_from_matrix, vec3
+from licalib_cli.sections import (
+    Observability,
+    SegmentEstimate,
+    SegmentsSection,
+    Uncertainty,
+    VerdictSection,
+)
+from licalib_cli.solver.lm import SolverReport, solve
+from licalib_cli.solver.parameters import ParameterBlock
+from licalib_cli.solver.problem import Problem, ResidualBlock, ResidualEval
+from licalib_cli.surfels import associate_points, build_surfels
+
+__all__ = [
+    "DISAGREEMENT_SIGMAS",
+    "JOINT_ROUNDS",
+    "JointRun",
+    "calibrate_segments",
+    "joint_problem",
+    "parse_segments",
+    "per_segment_blocks",
+]
+
+logger = logging.getLogger(__name__)
+
+F64 = npt.NDArray[np.float64]
+_NS = 1_000_000_000
+
+DISAGREEMENT_SIGMAS = 3.0
+"""A segment whose estimate lies further than this many of its own sigmas from the joint one
+(on any translation or rotation axis) is flagged."""
+
+JOINT_ROUNDS = 2
+"""Joint optimisation rounds (the later ones on maps rebuilt from the joint estimate)."""
+
+_PER_SEGMENT_CALIBRATION = (TIME_OFFSET, TIME_DRIFT, GYRO_BIAS_DRIFT, ACCEL_BIAS_DRIFT)
+"""Calibration-group blocks that belong to a segment, not to the sensors."""
+
+
+def per_segment_blocks() -> frozenset[str]:
+    """Names of the blocks every segment has its own copy of (the rest is shared)."""
+    own = {s.name for s in BLOCK_SPECS if s.group == "trajectory"}
+    return frozenset(own | set(_PER_SEGMENT_CALIBRATION))
+
+
+def segment_name(index: int, block: str) -> str:
+    """The joint problem's name of segment ``index``'s own copy of ``block``."""
+    return f"seg{index + 1}:{block}"
+
+
+# ---------------------------------------------------------------------------- parsing
+
+
+def parse_segments(text: str, bag_s: float) -> list[tuple[float, float]]:
+    """``"60-75,105-120"`` as ``[(60, 75), (105, 120)]`` (seconds after the bag start).
+
+    Raises:
+        ConfigError: a malformed window, an end before its start, a window beyond the bag, or
+            overlapping windows.
+        ExcitationError: a window shorter than :data:`MIN_SEGMENT_S`.
+    """
+    out: list[tuple[float, float]] = []
+    for part in (p.strip() for p in text.split(",")):
+        try:
+            a_text, b_text = part.split("-")
+            a, b = float(a_text), float(b_text)
+        except ValueError:
+            msg = (
+                f"Invalid --segments window {part!r}: give START-END in seconds after the bag "
+                "start, separated by commas (for example 60-75,105-120), or auto."
+            )
+            raise ConfigError(msg) from None
+        if not (np.isfinite(a) and np.isfinite(b)) or b <= a:
+            msg = f"Invalid --segments window {part!r}: its end must come after its start."
+            raise ConfigError(msg)
+        if b > bag_s + 1e-6:
+            msg = (
+                f"The --segments window {part} reaches past the end of the bag ({bag_s:.1f} s); "
+                "give windows within the bag (licalib info shows its duration)."
+            )
+            raise ConfigError(msg)
+        if b - a < MIN_SEGMENT_S:
+            msg = (
+                f"The --segments window {part} lasts only {b - a:g} s, too short to calibrate; "
+                f"give at least {MIN_SEGMENT_S:g} s per window (10-20 s of varied motion)."
+            )
+            raise ExcitationError(msg)
+        out.append((a, b))
+    ordered = sorted(out)
+    for (a0, b0), (a1, b1) in itertools.pairwise(ordered):
+        if a1 < b0 - 1e-9:
+            msg = (
+                f"The --segments windows {a0:g}-{b0:g} and {a1:g}-{b1:g} overlap; give "
+                "separate windows (a segment's data may enter the problem only once)."
+            )
+            raise ConfigError(msg)
+    return ordered
+
+
+def bag_duration_s(bag: Path) -> float:
+    """Seconds from the bag's first to its last message."""
+    with open_bag(bag) as handle:
+        return (handle.end_ns - handle.start_ns) / _NS
+
+
+# ---------------------------------------------------------------------- joint problem
+
+
+class _Renamed:
+    """A segment's residual block in the joint problem: parameter names mapped both ways."""
+
+    def __init__(self, inner: ResidualBlock, rename: Mapping[str, str], prefix: str) -> None:
+        self.inner = inner
+        self.rename = dict(rename)
+        self.name = f"{prefix}{inner.name}"
+
+    def evaluate(self, params: Mapping[str, F64], jacobians: bool = True) -> ResidualEval:
+        local = {own: params[joint] for own, joint in self.rename.items() if joint in params}
+        ev = self.inner.evaluate(local, jacobians)
+        jac = tuple(replace(j, block=self.rename.get(j.block, j.block)) for j in ev.jacobians)
+        return ResidualEval(ev.residuals, jac)
+
+
+def joint_problem(
+    states: Sequence[CalibrationState],
+    inputs: Sequence[RoundInputs],
+    free: FreeParameters,
+    fix_shared: bool = False,
+) -> Problem:
+    """One problem over the segments: shared extrinsic and intrinsics, the rest per segment.
+
+    The shared blocks take their values from the first state.
+
+    Args:
+        states: each segment's estimate.
+        inputs: each segment's IMU data, associated points, planes and weights.
+        free: what is estimated (as in a single-segment round).
+        fix_shared: hold the shared blocks (to compare with the segments alone).
+    """
+    own = per_segment_blocks()
+    problem = Problem()
+    for k, (state, data) in enumerate(zip(states, inputs, strict=True)):
+        single = build_problem(
+            state,
+            data.imu,
+            data.lidar,
+            data.planes,
+            data.noise,
+            free,
+            extra_residuals=intrinsic_priors(state, free) if k == 0 else (),
+        )
+        rename: dict[str, str] = {}
+        mine = {segment_name(k, b) for b in own}
+        for block in single.parameter_blocks:
+            name = segment_name(k, block.name) if block.name in own else block.name
+            rename[block.name] = name
+            if name in problem:
+                continue
+            coords = block.coord_names
+            if name in mine and block.group == "calibration":
+                coords = tuple(f"seg{k + 1}:{c}" for c in coords)
+            fixed = block.fixed_mask
+            if fix_shared and name not in mine:
+                fixed[:] = True
+            problem.add_parameter_block(
+                ParameterBlock(
+                    name,
+                    block.value,
+                    manifold=block.manifold,
+                    group=block.group,
+                    coord_names=coords,
+                    scale=block.scale,
+                    fixed=fixed,
+                )
+            )
+        for residual, loss in zip(single.residual_blocks, single.losses, strict=True):
+            problem.add_residual_block(_Renamed(residual, rename, f"seg{k + 1}:"), loss)
+    return problem
+
+
+def _segment_values(problem: Problem, k: int) -> dict[str, F64]:
+    """Segment ``k``'s values under their single-segment block names."""
+    own = per_segment_blocks()
+    values = problem.values()
+    out = {}
+    for name in (spec.name for spec in BLOCK_SPECS):
+        joint = segment_name(k, name) if name in own else name
+        if joint in values:
+            out[name] = values[joint]
+    return out
+
+
+def _reassociate(
+    state: CalibrationState, data: RoundInputs, cfg: CalibConfig, run: CalibrationRun
+) -> RoundInputs:
+    """The segment's points associated afresh with a map built from ``state``."""
+    settings = round_settings(
+        cfg, run.noise, cfg.surfels.max_distance_m, bool(cfg.model.imu or cfg.model.lidar)
+    )
+    pts = usable_points(state, data.points, settings.margin_s)
+    p_g = points_in_global(state, pts)
+    surfels = build_surfels(p_g, settings.surfels)
+    assoc = associate_points(p_g, surfels, settings.surfels)
+    if len(assoc) < 100:
+        return data
+    order = np.argsort(assoc.point_index)
+    used = pts.subset(assoc.point_index[order])
+    lidar = solver_points(state, used, assoc.surfel_index[order])
+    planes = Planes(normal=surfels.normal, d=surfels.d, thickness=surfels.thickness)
+    return RoundInputs(data.imu, lidar, used, planes, data.noise, data.free)
+
+
+# ------------------------------------------------------------------------------- result
+
+
+@dataclass(frozen=True)
+class JointRun:
+    """What ``calibrate --segments`` produces.
+
+    Attributes:
+        result: the result file content (the joint extrinsic; ``segments`` lists each segment).
+        runs: each segment's own calibration.
+        windows: the segments, seconds after the bag start.
+        report: the joint solver's report.
+        states: each segment's state in the joint estimate.
+        timings: wall seconds per stage.
+    """
+
+    result: CalibrationResult
+    runs: tuple[CalibrationRun, ...]
+    windows: tuple[tuple[float, float], ...]
+    report: SolverReport
+    states: tuple[CalibrationState, ...]
+    timings: dict[str, float]
+
+    @property
+    def segments(self) -> SegmentsSection:
+        """The result's segments section."""
+        assert self.result.segments is not None
+        return self.result.segments
+
+
+def _std(report: SolverReport, prefix: str) -> F64:
+    names = report.calibration_names
+    out = [s for n, s in zip(names, report.std, strict=True) if n.startswith(prefix)]
+    return np.asarray(out, dtype=np.float64)
+
+
+def _uncertainty(report: SolverReport) -> Uncertainty:
+    t = _std(report, EXT_TRANSLATION)
+    r = np.degrees(_std(report, EXT_ROTATION))
+    return Uncertainty(vec3(t), vec3(r), float("nan"))
+
+
+def _disagreement(run: CalibrationRun, joint: Extrinsic) -> float:
+    """Largest ``|own - joint| / own sigma`` over the translation and rotation axes."""
+    own = run.result.extrinsic
+    unc = run.result.uncertainty
+    assert unc is not None
+    dt = np.abs(own.translation - joint.translation) / np.asarray(unc.translation_std_m)
+    dr = so3.log(joint.rotation.T @ own.rotation)  # LiDAR frame, rad
+    sr = np.radians(np.asarray(unc.rotation_std_deg))
+    z = np.concatenate([dt, np.abs(dr) / sr])
+    z = z[np.isfinite(z)]
+    return float(z.max()) if z.size else 0.0
+
+
+class _KeptOpen:
+    """The caller's progress for one segment's calibration after another: ``calibrate``
+    closes its progress when it is done, the segments must not."""
+
+    def __init__(self, inner: Progress) -> None:
+        self.inner = inner
+
+    def stage(self, name: str, total: int | None = None) -> None:
+        self.inner.stage(name, total)
+
+    def advance(self, done: int, total: int | None = None) -> None:
+        self.inner.advance(done, total)
+
+    def note(self, text: str) -> None:
+        self.inner.note(text)
+
+    def close(self) -> None:
+        return None
+
+
+def calibrate_segments(
+    bag: Path,
+    cfg: CalibConfig,
+    segments: str,
+    progress: Progress | None = None,
+    *,
+    length_s: float = 15.0,
+    top: int | None = None,
+) -> JointRun:
+    """Calibrate over several segments of a bag in one problem.
+
+    Args:
+        bag: the bag (only read).
+        cfg: configuration (``bag.start_s`` / ``duration_s`` restrict ``auto``'s search).
+        segments: ``"auto"`` (windows chosen by :func:`select_segments`) or windows
+            ``"60-75,105-120"`` in seconds after the bag start.
+        progress: stage progress.
+        length_s: window length of ``auto``, s.
+        top: windows ``auto`` selects (default 3).
+
+    Raises:
+        ConfigError, ExcitationError: invalid ``--segments``.
+        BagError, TopicError, DataError, TimestampError: unreadable input.
+        SolverError: the joint optimisation failed.
+    """
+    progress = progress or NullProgress()
+    timings: dict[str, float] = {}
+    clock = time.perf_counter()
+    if segments.strip().lower() == "auto":
+        sel = select_segments(bag, cfg, length_s, top=top)
+        windows = [(w.start_s, w.end_s) for w in sel.selected]
+        if not windows:
+            msg = "No window of the bag carries enough information to calibrate."
+            raise ExcitationError(msg)
+        logger.info("Segments selected: %s.", ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in windows))
+        timings["selection"] = time.perf_counter() - clock
+    else:
+        windows = parse_segments(segments, bag_duration_s(bag))
+    runs: list[CalibrationRun] = []
+    kept: list[tuple[float, float]] = []
+    shared_progress = _KeptOpen(progress)
+    for a, b in windows:
+        clock = time.perf_counter()
+        try:
+            run = calibrate(bag, _with_range(cfg, a, b - a), shared_progress)
+        except LicalibError as err:
+            if segments.strip().lower() != "auto" or isinstance(err, ConfigError):
+                raise
+            logger.warning("Segment %.1f-%.1f s left out: %s", a, b, err)
+            continue
+        runs.append(run)
+        kept.append((a, b))
+        timings[f"segment {a:.0f}-{b:.0f} s"] = time.perf_counter() - clock
+    if not runs:
+        msg = "None of the selected segments could be calibrated on its own."
+        raise ExcitationError(msg)
+
+    clock = time.perf_counter()
+    best = int(np.argmin([_sigma_size(r) for r in runs]))
+    ref = runs[best].state
+    shared = {
+        "R_imu_lidar": ref.R_imu_lidar,
+        "t_imu_lidar": ref.t_imu_lidar,
+        "imu_intrinsics": ref.imu_intrinsics,
+        "lidar_intrinsics": ref.lidar_intrinsics,
+    }
+    states = [r.state.with_(**shared) for r in runs]
+    inputs = [r.fit.inputs for r in runs]
+    free = inputs[best].free
+    report: SolverReport | None = None
+    for rnd in range(JOINT_ROUNDS):
+        if rnd > 0:
+            inputs = [
+                _reassociate(s, d, cfg, r) for s, d, r in zip(states, inputs, runs, strict=True)
+            ]
+        problem = joint_problem(states, inputs, free)
+        report = solve(problem, lm_params(cfg))
+        states = [state_from_values(s, _segment_values(problem, k)) for k, s in enumerate(states)]
+        logger.info(
+            "Joint round %d over %d segments: cost %.1f -> %.1f in %d iterations.",
+            rnd + 1,
+            len(states),
+            report.initial_cost,
+            report.final_cost,
+            report.iterations,
+        )
+    assert report is not None
+    timings["joint"] = time.perf_counter() - clock
+    result = _joint_result(runs, kept, states, report, best)
+    return JointRun(result, tuple(runs), tuple(kept), report, tuple(states), timings)
+
+
+def _sigma_size(run: CalibrationRun) -> float:
+    unc = run.result.uncertainty
+    if unc is None:
+        return float("inf")
+    t = np.asarray(unc.translation_std_m) / 0.01
+    r = np.asarray(unc.rotation_std_deg) / np.degrees(1e-3)
+    v = float(np.sum(t**2) + np.sum(r**2))
+    return v if np.isfinite(v) else float("inf")
+
+
+def _joint_result(
+    runs: Sequence[CalibrationRun],
+    windows: Sequence[tuple[float, float]],
+    states: Sequence[CalibrationState],
+    report: SolverReport,
+    best: int,
+) -> CalibrationResult:
+    names = report.calibration_names
+    std = dict(zip(names, report.std, strict=True))
+    # each segment's time offset is on its own LiDAR clock shift; put them on the reference's
+    shift = [
+        r.result.recording.lidar_clock_shift_s if r.result.recording is not None else 0.0
+        for r in runs
+    ]
+    offsets = np.array([s.time_offset_s + shift[k] - shift[best] for k, s in enumerate(states)])
+    sig = np.array([std.get(f"seg{k + 1}:{TIME_OFFSET}", np.inf) for k in range(len(states))])
+    w = np.where(np.isfinite(sig) & (sig > 0), 1.0 / np.maximum(sig, 1e-12) ** 2, 0.0)
+    if w.sum() > 0:
+        tc = float(np.sum(w * offsets) / w.sum())
+        tc_std = float(1.0 / np.sqrt(w.sum()))
+    else:
+        tc, tc_std = float(np.mean(offsets)), float("inf")
+    joint = Extrinsic(states[0].R_imu_lidar.copy(), states[0].t_imu_lidar.copy(), tc)
+    unc = replace(_uncertainty(report), time_offset_std_s=tc_std)
+    entries = []
+    worst = "pass"
+    reasons: list[str] = []
+    for k, (run, (a, b)) in enumerate(zip(runs, windows, strict=True)):
+        own = run.result.extrinsic
+        ou = run.result.uncertainty
+        assert ou is not None
+        z = _disagreement(run, joint)
+        disagrees = z > DISAGREEMENT_SIGMAS
+        status = run.checks.verdict.status
+        if status != "pass":
+            # expected of a short segment: what it cannot determine alone, the others may
+            worst = "warn"
+            reasons.append(
+                f"Segment {a:g}-{b:g} s alone: verdict {status} (its own sections and "
+                "reasons come from calibrating it alone)."
+            )
+        if disagrees:
+            reasons.append(
+                f"Segment {a:g}-{b:g} s disagrees with the joint estimate by {z:.1f} of its "
+                "sigmas; check that segment (a loose mount, a bad stretch of data)."
+            )
+        entries.append(
+            SegmentEstimate(
+                start_s=float(a),
+                end_s=float(b),
+                translation=vec3(own.translation),
+                rotation_rpy_deg=vec3(rpy_deg_from_matrix(own.rotation)),
+                time_offset_s=float(own.time_offset_s),
+                translation_std_m=vec3(ou.translation_std_m),
+                rotation_std_deg=vec3(ou.rotation_std_deg),
+                time_offset_std_s=float(ou.time_offset_std_s),
+                joint_time_offset_s=float(states[k].time_offset_s),
+                joint_time_offset_std_s=float(std.get(f"seg{k + 1}:{TIME_OFFSET}", np.inf)),
+                disagreement_sigmas=round(z, 3),
+                disagrees=bool(disagrees),
+                verdict=status,
+            )
+        )
+    if any(e.disagrees for e in entries) and worst == "pass":
+        worst = "warn"
+    truncated = tuple(d.text for d in report.truncated)
+    if any(any(bk.startswith("ext.") for bk, _ in d.blocks) for d in report.truncated):
+        worst = "warn" if worst == "pass" else worst
+        reasons += [f"Not observable from the segments together: {t}" for t in truncated]
+    base = runs[best].result
+    section = SegmentsSection(
+        reference=best + 1,
+        disagreement_threshold_sigmas=DISAGREEMENT_SIGMAS,
+        segments=tuple(entries),
+    )
+    return replace(
+        base,
+        extrinsic=joint,
+        uncertainty=unc,
+        observability=Observability(
+            scaling=report.scaling,
+            threshold=float(report.tsvd_threshold),
+            singular_values=tuple(float(s) for s in report.singular_values),
+            unobservable=truncated,
+        ),
+        verdict=VerdictSection(worst, tuple(reasons)),
+        segments=section,
+    )

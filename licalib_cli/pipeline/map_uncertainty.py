@@ -1,0 +1,146 @@
+"""How much the map's own uncertainty adds to the calibration's.
+
+The solver holds the surfel planes fixed within a round, but every plane was fitted to the points
+whose distances to it are the LiDAR residuals. Its sigmas therefore credit the data with knowing
+the map exactly. This stage treats each plane (two normal directions and its offset) as an
+unknown of the same residuals, eliminates the planes and the trajectory
+(:func:`licalib_cli.solver.nuisance.marginal_schur`) and compares the calibration covariance with
+the solver's, coordinate by coordinate, within the directions the solver kept. The ratio is at
+least 1; the checks multiply the solver's sigmas by it.
+
+The effect is small for the extrinsic when the rig moves through a structured scene (a few per
+cent to about 20 %), and large for LiDAR intrinsics that shift whole planes: a range offset is
+nearly indistinguishable from moving every plane towards the sensor.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from licalib_cli.estimation import CalibrationState, build_problem
+from licalib_cli.pipeline.round import RoundInputs
+from licalib_cli.pipeline.settings import intrinsic_priors
+from licalib_cli.residuals import TRAJ_R3, TRAJ_SO3, PointToPlaneResidual
+from licalib_cli.solver import SolverReport, s2_basis
+from licalib_cli.solver.nuisance import marginal_schur, nuisance_terms
+from licalib_cli.solver.observability import undamped_schur
+
+__all__ = ["MapUncertainty", "map_uncertainty"]
+
+F64 = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class MapUncertainty:
+    """The calibration sigmas' growth once the map planes are estimated with them.
+
+    Attributes:
+        names: (Nc,) calibration coordinates, as in the solver's report.
+        factor: (Nc,) ratio of the sigma with the planes marginalised to the solver's (>= 1;
+            1 for coordinates the solver found unobservable).
+        planes: planes marginalised.
+        seconds: wall time of the computation.
+    """
+
+    names: tuple[str, ...]
+    factor: F64
+    planes: int
+    seconds: float
+
+    def of(self, name: str) -> float:
+        """The factor of one coordinate (1 when it is not in the problem)."""
+        try:
+            return float(self.factor[self.names.index(name)])
+        except ValueError:
+            return 1.0
+
+
+def map_uncertainty(
+    state: CalibrationState, inputs: RoundInputs, report: SolverReport
+) -> MapUncertainty:
+    """Sigma factors of the calibration coordinates with the final round's planes marginalised.
+
+    Args:
+        state: the final estimate.
+        inputs: what the final round's problem was built from.
+        report: the final round's solver report (its kept directions and sigmas).
+
+    Returns:
+        The factors (all 1 when the round had no LiDAR points).
+    """
+    start = time.perf_counter()
+    names = tuple(report.calibration_names)
+    problem = build_problem(
+        state,
+        inputs.imu,
+        inputs.lidar,
+        inputs.planes,
+        inputs.noise,
+        inputs.free,
+        extra_residuals=intrinsic_priors(state, inputs.free),
+    )
+    layout = problem.layout()
+    lidar_block = next(
+        (
+            i
+            for i, r in enumerate(problem.residual_blocks)
+            if isinstance(r, PointToPlaneResidual) and len(r) > 0
+        ),
+        None,
+    )
+    ones = np.ones(len(names))
+    if lidar_block is None or tuple(layout.calibration_names) != names:
+        return MapUncertainty(names, ones, 0, time.perf_counter() - start)
+    evaluation = problem.evaluate(jacobians=True)
+    lin = problem.linearize(evaluation, layout)
+    residual = problem.residual_blocks[lidar_block]
+    assert isinstance(residual, PointToPlaneResidual)
+    plane = np.asarray(inputs.lidar.plane, dtype=np.intp)
+    num_planes = int(np.asarray(inputs.planes.d).shape[0])
+    p_g = residual.world_points(evaluation.values)
+    count = np.bincount(plane, minlength=num_planes).astype(np.float64)
+    centroid = (
+        np.stack([np.bincount(plane, p_g[:, a], minlength=num_planes) for a in range(3)], axis=1)
+        / np.maximum(count, 1.0)[:, None]
+    )
+    basis = s2_basis(np.asarray(inputs.planes.normal, dtype=np.float64))[plane]  # (N, 3, 2)
+    offset = p_g - centroid[plane]
+    jac_p = np.empty((plane.shape[0], 3))
+    jac_p[:, :2] = np.einsum("nij,ni->nj", basis, offset)
+    jac_p[:, 2] = 1.0
+    jac_p *= residual.inv_sigma[:, None]
+    terms = nuisance_terms(problem, evaluation, layout, lidar_block, jac_p, plane, num_planes)
+    hold = np.concatenate([layout.index[TRAJ_SO3][:3], layout.index[TRAJ_R3][:3]])
+    s_marg = marginal_schur(lin, terms, hold[hold >= 0])
+    s_plain = undamped_schur(lin)
+    factor = _sigma_ratio(s_plain, s_marg, layout.calibration_scale, report)
+    return MapUncertainty(names, factor, num_planes, time.perf_counter() - start)
+
+
+def _sigma_ratio(s_plain: F64, s_marg: F64, scale: F64, report: SolverReport) -> F64:
+    """Per coordinate ``sigma_marg / sigma_plain`` within the solver's kept directions."""
+    d = np.asarray(scale, dtype=np.float64)
+    plain_d = d[:, None] * s_plain * d[None, :]
+    marg_d = d[:, None] * s_marg * d[None, :]
+    vals, vecs = np.linalg.eigh(0.5 * (plain_d + plain_d.T))
+    keep = vals > max(float(report.tsvd_threshold), 1e-12 * max(float(vals.max(initial=0.0)), 1.0))
+    out = np.ones(d.shape[0])
+    if not np.any(keep):
+        return out
+    u = vecs[:, keep]
+    cov_plain = (u / vals[keep]) @ u.T
+    reduced = u.T @ marg_d @ u
+    reduced = 0.5 * (reduced + reduced.T)
+    r_vals, r_vecs = np.linalg.eigh(reduced)
+    floor = 1e-12 * max(float(r_vals.max(initial=0.0)), 1e-300)
+    cov_red = (r_vecs / np.maximum(r_vals, floor)) @ r_vecs.T
+    cov_marg = u @ cov_red @ u.T
+    var_plain = np.diag(cov_plain)
+    var_marg = np.diag(cov_marg)
+    ok = (var_plain > 0) & np.isfinite(var_marg) & np.asarray(report.observable, dtype=bool)
+    out[ok] = np.sqrt(np.maximum(var_marg[ok] / var_plain[ok], 1.0))
+    return out

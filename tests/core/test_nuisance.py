@@ -1,0 +1,109 @@
+"""Eliminating nuisance coordinates (the map planes) that enter the residuals of one block.
+
+The reference is the dense computation: the full normal matrix over trajectory, calibration and
+nuisance coordinates, the held trajectory coordinates removed, inverted; its calibration block's
+inverse is the information ``marginal_schur`` must return.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from test_assembly import dense_reference, make_problem
+
+from licalib_cli.solver import HuberLoss
+from licalib_cli.solver.nuisance import NuisanceTerms, marginal_schur, nuisance_terms
+from licalib_cli.solver.observability import undamped_schur
+
+NUM_GROUPS = 9
+K = 3
+
+
+def _nuisance(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
+    group = rng.integers(0, NUM_GROUPS, n)
+    group[:NUM_GROUPS] = np.arange(NUM_GROUPS)  # every group is seen
+    return rng.normal(size=(n, K)), group
+
+
+def _dense_marginal(h_full: np.ndarray, nt: int, nc: int, hold: np.ndarray) -> np.ndarray:
+    keep = np.setdiff1d(np.arange(h_full.shape[0]), hold)
+    cov = np.linalg.inv(h_full[np.ix_(keep, keep)])
+    pos = np.searchsorted(keep, np.arange(nt, nt + nc))
+    return np.linalg.inv(cov[np.ix_(pos, pos)])
+
+
+@pytest.mark.parametrize("huber", [False, True])
+def test_marginal_schur_matches_the_dense_elimination(huber: bool) -> None:
+    loss = HuberLoss(1.5) if huber else None
+    pr, block = make_problem(3, 900, 1, False, loss)
+    rng = np.random.default_rng(11)
+    jac_p, group = _nuisance(rng, 900)
+    evaluation = pr.evaluate()
+    layout = pr.layout()
+    lin = pr.linearize(evaluation, layout)
+    terms = nuisance_terms(pr, evaluation, layout, 0, jac_p, group, NUM_GROUPS)
+
+    # dense reference of the same weighted Jacobian, with the nuisance columns beside it
+    h, _ = dense_reference(pr, block, loss)
+    w = np.ones(900) if loss is None else loss(block.r[:, 0] ** 2)[1]
+    jp = np.zeros((900, NUM_GROUPS * K))
+    jp[np.arange(900)[:, None], group[:, None] * K + np.arange(K)] = jac_p
+    jp *= np.sqrt(w)[:, None]
+    jx = pr.jacobian_matrix(evaluation, 0, layout).toarray()
+    np.testing.assert_allclose(jx.T @ jx, h, atol=1e-10 * np.abs(h).max())
+    np.testing.assert_allclose(terms.H_xp.toarray(), jx.T @ jp, atol=1e-10 * np.abs(h).max())
+    np.testing.assert_allclose(
+        terms.H_pp,
+        np.stack(
+            [jp[:, g * K : g * K + K].T @ jp[:, g * K : g * K + K] for g in range(NUM_GROUPS)]
+        ),
+    )
+
+    nt, nc = layout.num_trajectory, layout.num_calibration
+    full = np.block([[h, jx.T @ jp], [jp.T @ jx, jp.T @ jp]])
+    hold = np.array([0, 1, 2])
+    expected = _dense_marginal(full, nt, nc, hold)
+    got = marginal_schur(lin, terms, hold)
+    np.testing.assert_allclose(got, expected, rtol=1e-7, atol=1e-9 * np.abs(expected).max())
+
+
+def test_eliminating_nuisance_never_adds_information() -> None:
+    pr, _ = make_problem(5, 900, 1, False, None)
+    rng = np.random.default_rng(2)
+    jac_p, group = _nuisance(rng, 900)
+    evaluation = pr.evaluate()
+    layout = pr.layout()
+    lin = pr.linearize(evaluation, layout)
+    terms = nuisance_terms(pr, evaluation, layout, 0, jac_p, group, NUM_GROUPS)
+    plain = undamped_schur(lin)
+    marg = marginal_schur(lin, terms)
+    # plain - marg is positive semi-definite: the calibration is never known better
+    eig = np.linalg.eigvalsh(plain - marg)
+    assert eig.min() > -1e-9 * np.abs(plain).max()
+    assert eig.max() > 1e-3 * np.abs(plain).max()  # and here it is known measurably worse
+
+
+def test_no_nuisance_gives_the_plain_schur_complement() -> None:
+    pr, _ = make_problem(8, 600, 1, False, None)
+    evaluation = pr.evaluate()
+    layout = pr.layout()
+    lin = pr.linearize(evaluation, layout)
+    empty = NuisanceTerms(sp.csr_matrix((layout.num_free, 0)), np.zeros((0, K, K)))
+    np.testing.assert_allclose(marginal_schur(lin, empty), undamped_schur(lin), rtol=1e-10)
+
+
+def test_a_group_the_data_do_not_determine_is_left_alone() -> None:
+    """A plane whose points give no information about one of its coordinates (all derivatives
+    zero along it) must not break the elimination."""
+    pr, _ = make_problem(4, 900, 1, False, None)
+    rng = np.random.default_rng(5)
+    jac_p, group = _nuisance(rng, 900)
+    jac_p[group == 0, 1] = 0.0
+    evaluation = pr.evaluate()
+    layout = pr.layout()
+    lin = pr.linearize(evaluation, layout)
+    terms = nuisance_terms(pr, evaluation, layout, 0, jac_p, group, NUM_GROUPS)
+    got = marginal_schur(lin, terms)
+    assert np.all(np.isfinite(got))
+    assert np.linalg.eigvalsh(got).min() > 0.0

@@ -1,0 +1,94 @@
+"""Window arithmetic of select-segments, the ranking rule, and --segments parsing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from licalib_cli.errors import ConfigError, ExcitationError
+from licalib_cli.pipeline.joint import parse_segments
+from licalib_cli.pipeline.segments import WindowScore, choose, plan_windows
+
+
+def test_windows_side_by_side_cover_the_range_exactly() -> None:
+    assert plan_windows(0.0, 12.0, 3.0, 3.0) == [(0, 3), (3, 6), (6, 9), (9, 12)]
+
+
+def test_a_tail_window_is_aligned_to_the_end() -> None:
+    # 10 s with 3 s windows: three regular ones, then [7, 10] so that no data are left out
+    assert plan_windows(0.0, 10.0, 3.0, 3.0) == [(0, 3), (3, 6), (6, 9), (7, 10)]
+
+
+def test_a_window_just_past_the_end_is_cut_there() -> None:
+    # the last IMU sample 2.5 ms before the nominal end must not add a nearly identical window
+    w = plan_windows(0.0, 39.9975, 10.0, 10.0)
+    assert w[-1] == (30.0, 39.9975) and len(w) == 4
+
+
+def test_overlapping_windows_with_a_shorter_step() -> None:
+    w = plan_windows(2.0, 8.0, 3.0, 1.5)
+    assert w == [(2.0, 5.0), (3.5, 6.5), (5.0, 8.0)]
+
+
+def test_a_range_shorter_than_a_window_is_one_window() -> None:
+    assert plan_windows(1.0, 6.0, 15.0, 15.0) == [(1.0, 6.0)]
+
+
+@pytest.mark.parametrize(
+    ("args", "error", "text"),
+    [
+        ((0.0, 1.5, 15.0, 15.0), ExcitationError, "lasts only 1.50 s"),
+        ((0.0, 60.0, 1.0, 1.0), ConfigError, "--length"),
+        ((0.0, 60.0, 15.0, 0.0), ConfigError, "--step"),
+        ((0.0, 60.0, -3.0, 1.0), ConfigError, "--length"),
+    ],
+)
+def test_invalid_window_plans(args, error, text) -> None:
+    with pytest.raises(error, match=text):
+        plan_windows(*args)
+
+
+def _score(a: float, b: float, smin: float) -> WindowScore:
+    return WindowScore(a, b, smin, 10 * smin, np.log(max(smin, 1e-300)), (), (), 0.0, 0.0, 1, 1)
+
+
+def test_choose_ranks_by_min_singular_value_and_skips_overlaps() -> None:
+    w = [_score(0, 4, 0.1), _score(2, 6, 5.0), _score(4, 8, 4.0), _score(6, 10, 3.0)]
+    out = choose(w, top=2, threshold=None)
+    assert [x.rank for x in out] == [4, 1, 2, 3]
+    # 4-8 overlaps the best (2-6) and is skipped; 6-10 is next
+    assert [x.selected for x in out] == [False, True, False, True]
+    assert [(x.start_s, x.end_s) for x in out] == [(0, 4), (2, 6), (4, 8), (6, 10)]
+
+
+def test_choose_by_threshold_and_default_top() -> None:
+    w = [_score(4 * i, 4 * i + 4, s) for i, s in enumerate([1.0, 0.2, 3.0, 2.0, 0.5])]
+    assert [x.selected for x in choose(w, None, 0.9)] == [True, False, True, True, False]
+    assert sum(x.selected for x in choose(w, None, None)) == 3
+    assert sum(x.selected for x in choose(w, 5, 1.5)) == 2
+    # a window without data is never selected
+    assert not any(x.selected for x in choose([_score(0, 4, 0.0)], 1, None))
+
+
+def test_parse_segments() -> None:
+    assert parse_segments("60-75, 105-120", 200.0) == [(60.0, 75.0), (105.0, 120.0)]
+    assert parse_segments("105-120,60-75", 200.0) == [(60.0, 75.0), (105.0, 120.0)]
+    assert parse_segments("0-2.5", 2.5) == [(0.0, 2.5)]
+
+
+@pytest.mark.parametrize(
+    ("text", "error", "match"),
+    [
+        ("60-75,abc", ConfigError, r"Invalid --segments window 'abc': give START-END"),
+        ("60:75", ConfigError, "give START-END"),
+        ("75-60", ConfigError, "its end must come after its start"),
+        ("60-75,70-90", ConfigError, "60-75 and 70-90 overlap"),
+        ("100-130", ConfigError, r"reaches past the end of the bag \(120.0 s\)"),
+        ("60-61", ExcitationError, "lasts only 1 s, too short to calibrate"),
+    ],
+)
+def test_parse_segments_errors_are_one_sentence(text, error, match) -> None:
+    with pytest.raises(error, match=match) as info:
+        parse_segments(text, 120.0)
+    message = str(info.value)
+    assert message.count(". ") == 0 and message.endswith(".")

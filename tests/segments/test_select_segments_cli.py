@@ -1,0 +1,153 @@
+"""select-segments and calibrate --segments on a short simulated walk with one shaking burst."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+from licalib_cli.cli import main
+from licalib_cli.simulation import SimulationSpec, simulate
+
+pytestmark = pytest.mark.slow
+
+KNOWN = """\
+initialization:
+  rotation_rpy_deg: [1.0, 2.0, 5.0]
+  translation_m: [0.3, 0.15, 0.05]
+  time_offset_s: 0.0
+"""
+
+
+@pytest.fixture(scope="module")
+def walk(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, list[list[float]]]:
+    """12 s of walking with a burst of shaking at 6.1-10.4 s (seed 0), and a config that gives
+    the extrinsic (the selection then skips the odometry)."""
+    folder = tmp_path_factory.mktemp("walk")
+    spec = SimulationSpec(
+        scenario="walk", duration_s=12.0, seed=0, intrinsics="none", azimuth_resolution_deg=2.0
+    )
+    sim = simulate(spec, folder / "sim")
+    truth = yaml.safe_load((sim.bag_path.parent / "truth.yaml").read_text())
+    config = folder / "known.yaml"
+    config.write_text(KNOWN)
+    return sim.bag_path, config, truth["scenario"]["bursts_s"]
+
+
+def test_the_burst_windows_rank_first_and_json_lists_every_window(walk, capsys) -> None:
+    bag, config, bursts = walk
+    assert bursts == [[6.143, 10.375]]
+    main(["select-segments", str(bag), "-c", str(config), "--length", "3", "--top", "2", "--json"])
+    out = json.loads(capsys.readouterr().out)
+    seg = out["segments"]
+    assert [(s["start_s"], s["end_s"]) for s in seg[:2]] == [(6.0, 9.0), (9.0, 12.0)]
+    assert {(s["start_s"], s["end_s"]) for s in seg} == {(0, 3), (3, 6), (6, 9), (9, 12)}
+    for s in seg:
+        for key in ("min_singular_value", "trace", "logdet", "weak_directions", "selected"):
+            assert key in s
+        assert s["weak_directions"] and s["weak_directions"][0].startswith("ext.")
+    assert [s["selected"] for s in seg] == [True, True, False, False]
+    # ranked by the minimum singular value; the shaking window by a wide margin
+    values = [s["min_singular_value"] for s in seg]
+    assert values == sorted(values, reverse=True)
+    assert values[0] > 5 * values[2]
+    assert out["estimate"]["source"] == "config"
+
+
+def test_table_overlapping_windows_and_plot(walk, tmp_path, capsys) -> None:
+    bag, config, _ = walk
+    plot = tmp_path / "figs" / "segments.png"
+    main(
+        [
+            "select-segments",
+            str(bag),
+            "-c",
+            str(config),
+            "--length",
+            "4",
+            "--step",
+            "2",
+            "--start",
+            "1",
+            "--plot",
+            str(plot),
+        ]
+    )
+    printed = capsys.readouterr().out
+    assert "weakest direction" in printed and "Selected: " in printed
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # windows 1-5, 3-7, 5-9, 7-11, then one aligned to the end of the bag
+    for w in ("1.0-5.0", "3.0-7.0", "5.0-9.0", "7.0-11.0"):
+        assert w in printed
+
+
+@pytest.mark.parametrize(
+    ("segments", "code", "text"),
+    [
+        ("1-5,4-8", 6, "overlap"),
+        ("5-20", 6, "reaches past the end of the bag"),
+        ("2-3", 7, "too short to calibrate"),
+        ("2-x", 6, "Invalid --segments window"),
+    ],
+)
+def test_segments_option_errors(walk, tmp_path, capsys, segments, code, text) -> None:
+    bag, _, _ = walk
+    with pytest.raises(SystemExit) as info:
+        main(["calibrate", str(bag), "--segments", segments, "-o", str(tmp_path / "r.yaml")])
+    assert info.value.code == code
+    err = capsys.readouterr().err
+    assert text in err and "Traceback" not in err
+    assert not (tmp_path / "r.yaml").exists()
+
+
+def test_segments_with_start_is_refused(walk, tmp_path, capsys) -> None:
+    bag, _, _ = walk
+    with pytest.raises(SystemExit) as info:
+        main(
+            [
+                "calibrate",
+                str(bag),
+                "--segments",
+                "auto",
+                "--start",
+                "2",
+                "-o",
+                str(tmp_path / "r.yaml"),
+            ]
+        )
+    assert info.value.code == 6
+
+
+def test_calibrate_two_segments_jointly(walk, tmp_path, capsys) -> None:
+    bag, config, _ = walk
+    out = tmp_path / "joint.yaml"
+    truth = bag.parent / "truth.yaml"
+    main(
+        [
+            "calibrate",
+            str(bag),
+            "-c",
+            str(config),
+            "--segments",
+            "6-9,9-12",
+            "-o",
+            str(out),
+            "--truth",
+            str(truth),
+        ]
+    )
+    printed = capsys.readouterr().out
+    assert "joint" in printed and "Verdict:" in printed
+    result = yaml.safe_load(out.read_text())
+    seg = result["segments"]
+    assert [(s["start_s"], s["end_s"]) for s in seg["segments"]] == [(6.0, 9.0), (9.0, 12.0)]
+    assert all(s["disagrees"] is False for s in seg["segments"])
+    ext = result["extrinsic"]
+    assert abs(ext["translation"][0] - 0.3) < 0.01
+    # the joint sigma is below each segment's own
+    joint_sigma = result["uncertainty"]["translation_std_m"]
+    for s in seg["segments"]:
+        assert all(j < o for j, o in zip(joint_sigma, s["translation_std_m"], strict=True))
+    assert (tmp_path / "joint.config.yaml").exists()
