@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -544,20 +544,80 @@ def _registration_pass(
     return out, n_rejected
 
 
-def _prepare_sweeps(
-    scans: Sequence[LidarScan],
-    t_ref: npt.NDArray[np.int64],
-    kcfg: KISSConfig,
-    refine: RefineConfig,
-    rotation_at: RotationAt | None,
-) -> list[_Sweep]:
-    """Range filter, map points with normals, keypoints and rotation priors of every scan.
+@dataclass(frozen=True)
+class PreparedSweeps:
+    """The scans' points prepared for :func:`refine_odometry`, independent of any rotation prior.
+
+    Preparing (range filter, voxel thinning, normals, keypoints) costs about as much as one
+    registration pass; a caller that refines the same scans several times (with different
+    rotation priors) prepares them once.
+
+    Attributes:
+        t_ns: (K,) int64 reference (latest point) time of every scan, ns.
+        sweeps: the K prepared scans (without rotation prior).
+        settings: the range limits and voxel sizes they were prepared with.
+    """
+
+    t_ns: npt.NDArray[np.int64]
+    sweeps: tuple[_Sweep, ...]
+    settings: tuple[float, ...]
+
+    def __len__(self) -> int:
+        return len(self.sweeps)
+
+
+def _prepare_settings(kcfg: KISSConfig, refine: RefineConfig) -> tuple[float, ...]:
+    return (
+        float(kcfg.data.min_range),
+        float(kcfg.data.max_range),
+        float(refine.map_voxel_size),
+        float(refine.voxel_size),
+        float(refine.normal_radius),
+        float(refine.normal_neighbors),
+    )
+
+
+def _reference_times(scans: Sequence[LidarScan]) -> npt.NDArray[np.int64]:
+    """(K,) latest point time of every scan, ns.
+
+    Raises:
+        DataError: the scans are out of time order.
+    """
+    t_out = np.array([int(s.t_ns.max()) for s in scans], dtype=np.int64)
+    bad = np.flatnonzero(np.diff(t_out) <= 0)
+    if bad.size:
+        i = int(bad[0]) + 1
+        msg = (
+            f"LiDAR scan {i} refers to time {t_out[i]} ns, not after scan {i - 1} "
+            f"({t_out[i - 1]} ns); sort the scans by time and drop duplicates."
+        )
+        raise DataError(msg)
+    return t_out
+
+
+def prepare_sweeps(
+    scans: Sequence[LidarScan], cfg: OdometryConfig, refine: RefineConfig | None = None
+) -> PreparedSweeps:
+    """Range filter, map points with normals and keypoints of every scan.
 
     Normals come from the raw points of the scan itself: neighbouring points of a spinning
     LiDAR are fired within microseconds, so motion does not bend a neighbourhood.
+
+    Raises:
+        DataError: no scans, a scan without points in range, or scans out of time order.
+        ConfigError: inconsistent range limits.
     """
     import open3d as o3d
 
+    refine = refine or RefineConfig()
+    if len(scans) == 0:
+        msg = "No LiDAR scans to run odometry on; check the LiDAR topic and the time window."
+        raise DataError(msg)
+    if any(len(s) == 0 for s in scans):
+        msg = "A LiDAR scan has no points; drop empty scans before odometry."
+        raise DataError(msg)
+    kcfg = kiss_icp_config(cfg)
+    t_ref = _reference_times(scans)
     search = o3d.geometry.KDTreeSearchParamHybrid(
         radius=refine.normal_radius, max_nn=refine.normal_neighbors
     )
@@ -579,32 +639,48 @@ def _prepare_sweeps(
         dt = np.asarray(scan.t_ns[keep][sel], dtype=np.int64) - t_ref[i]
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
         cloud.estimate_normals(search)
-        rot = None
-        if rotation_at is not None and np.any(dt):
-            r_pts = rotation_at(dt + t_ref[i])
-            r_end = rotation_at(t_ref[i : i + 1])
-            rot = np.asarray((r_end.inv() * r_pts).as_matrix(), dtype=np.float64)
         sweeps.append(
             _Sweep(
                 n_points=n_points,
                 xyz=xyz,
                 normals=np.asarray(cloud.normals, dtype=np.float64),
                 dt_ns=dt,
-                rot_to_end=rot,
+                rot_to_end=None,
                 keys=_voxel_first(xyz, refine.voxel_size),
             )
         )
-    return sweeps
+    return PreparedSweeps(t_ref, tuple(sweeps), _prepare_settings(kcfg, refine))
+
+
+def _with_rotation_prior(prepared: PreparedSweeps, rotation_at: RotationAt | None) -> list[_Sweep]:
+    """The prepared sweeps with ``R_end^T R(t)`` of every point from ``rotation_at`` (one call
+    for all points of all scans)."""
+    if rotation_at is None:
+        return list(prepared.sweeps)
+    sizes = [s.dt_ns.shape[0] for s in prepared.sweeps]
+    t_pts = np.concatenate(
+        [s.dt_ns + t for s, t in zip(prepared.sweeps, prepared.t_ns, strict=True)]
+    )
+    owner = np.repeat(np.arange(len(sizes)), sizes)
+    r_end = np.asarray(rotation_at(prepared.t_ns).as_matrix())
+    r_pts = np.asarray(rotation_at(t_pts).as_matrix())
+    rel = np.einsum("nji,njk->nik", r_end[owner], r_pts)  # R_end^T R(t)
+    out = []
+    for s, part in zip(prepared.sweeps, np.split(rel, np.cumsum(sizes)[:-1]), strict=True):
+        rot = np.ascontiguousarray(part) if np.any(s.dt_ns) else None
+        out.append(replace(s, rot_to_end=rot))
+    return out
 
 
 def refine_odometry(
     scans: Sequence[LidarScan],
-    poses: PoseSeries,
+    poses: PoseSeries | None,
     cfg: OdometryConfig,
     refine: RefineConfig | None = None,
     *,
     rotation_at: RotationAt | None = None,
     progress: ProgressFn | None = None,
+    prepared: PreparedSweeps | None = None,
 ) -> PoseSeries:
     """Re-register every scan against a local map with point-to-plane ICP, seeded by ``poses``.
 
@@ -635,7 +711,9 @@ def refine_odometry(
 
     Args:
         scans: the K scans given to :func:`run_odometry`, in time order.
-        poses: kiss-icp poses of those scans (:func:`run_odometry`).
+        poses: kiss-icp poses of those scans (:func:`run_odometry`), or None with
+            ``rotation_at``: the gyro alone predicts (rotation from ``rotation_at``, the
+            translation of the first motion zero, then constant velocity).
         cfg: odometry settings (the range filter is shared with kiss-icp).
         refine: refinement settings; defaults when None.
         rotation_at: optional ``R_w_lidar(t)`` (e.g. the gyro with a rotation extrinsic, see
@@ -643,50 +721,56 @@ def refine_odometry(
             within each sweep and the first pass's seed rotations. An extrinsic a few degrees
             off still deskews far better than any constant velocity on fast motion.
         progress: optional ``progress(done, total)`` callback; ``total`` is K times the passes.
+        prepared: ``scans`` already prepared with :func:`prepare_sweeps` (same ``cfg`` and
+            ``refine``), to skip that work when the same scans are refined again.
 
     Returns:
         One pose per scan in the frame of scan 0, each referring to (and stamped with) the
         latest point time of its scan. ``threshold_m`` holds the correspondence distance of the
         last pass, ``n_keypoints`` the keypoints registered, and ``deviation_m``/
-        ``deviation_deg`` the difference between the refined and the kiss-icp relative pose
-        from the previous scan (0 for scan 0).
+        ``deviation_deg`` the difference between the refined and the seed (kiss-icp, or the
+        gyro without ``poses``) relative pose from the previous scan (0 for scan 0).
 
     Raises:
         DataError: the scans and poses differ in number, there are no scans, a scan has no
-            point in range, or the scans are out of time order.
+            point in range, the scans are out of time order, or neither poses nor a rotation
+            prior are given.
         ConfigError: inconsistent range limits.
     """
     refine = refine or RefineConfig()
     k_total = len(scans)
-    if k_total != len(poses):
+    if poses is None and rotation_at is None:
+        msg = "Odometry refinement needs seed poses or a rotation prior; run run_odometry first."
+        raise DataError(msg)
+    if poses is not None and k_total != len(poses):
         msg = (
             f"Odometry refinement got {k_total} scans but {len(poses)} poses; pass the scans "
             "that run_odometry registered."
         )
         raise DataError(msg)
-    if k_total == 0:
-        msg = "No LiDAR scans to run odometry on; check the LiDAR topic and the time window."
-        raise DataError(msg)
-    if any(len(s) == 0 for s in scans):
-        msg = "A LiDAR scan has no points; drop empty scans before odometry."
-        raise DataError(msg)
-    kcfg = kiss_icp_config(cfg)
-    t_out = np.array([int(s.t_ns.max()) for s in scans], dtype=np.int64)
-    bad = np.flatnonzero(np.diff(t_out) <= 0)
-    if bad.size:
-        i = int(bad[0]) + 1
+    if prepared is None:
+        prepared = prepare_sweeps(scans, cfg, refine)
+    elif len(prepared) != k_total or prepared.settings != _prepare_settings(
+        kiss_icp_config(cfg), refine
+    ):
         msg = (
-            f"LiDAR scan {i} refers to time {t_out[i]} ns, not after scan {i - 1} "
-            f"({t_out[i - 1]} ns); sort the scans by time and drop duplicates."
+            "The prepared sweeps do not belong to these scans and settings; prepare them with "
+            "prepare_sweeps(scans, cfg, refine)."
         )
         raise DataError(msg)
-    sweeps = _prepare_sweeps(scans, t_out, kcfg, refine, rotation_at)
+    t_out = prepared.t_ns
+    sweeps = _with_rotation_prior(prepared, rotation_at)
 
-    kiss_rel = np.linalg.inv(poses.T_map_lidar[:-1]) @ poses.T_map_lidar[1:]
-    seed_rel = kiss_rel.copy()
+    if poses is not None:
+        seed_rel = np.linalg.inv(poses.T_map_lidar[:-1]) @ poses.T_map_lidar[1:]
+    else:
+        seed_rel = np.eye(4)[None].repeat(max(k_total - 1, 0), axis=0)
+    kiss_rel = seed_rel.copy()
     if rotation_at is not None and k_total > 1:
         r_w = rotation_at(t_out)
         seed_rel[:, :3, :3] = (r_w[:-1].inv() * r_w[1:]).as_matrix()
+        if poses is None:
+            kiss_rel = seed_rel.copy()
     n_passes = max(int(refine.passes), 1)
     n_warm = min(k_total, int(refine.warmup_scans))
     if n_warm > 2:

@@ -31,6 +31,7 @@ __all__ = [
     "GyroIntegrator",
     "HandEyeConfig",
     "HandEyeRotation",
+    "constant_velocity_error_deg",
     "estimate_rotation_extrinsic",
     "lidar_rotation_at",
     "relative_rotations",
@@ -153,6 +154,33 @@ def lidar_rotation_at(
         return gyro(np.clip(np.asarray(t_ns, dtype=np.int64) + shift, lo, hi)) * r_x
 
     return rotation_at
+
+
+def constant_velocity_error_deg(gyro: GyroIntegrator, t_ns: npt.NDArray[np.int64]) -> FloatArray:
+    """How far a constant-velocity model mispredicts the rotation from one interval to the next.
+
+    For consecutive intervals ``[t_{k-1}, t_k]`` and ``[t_k, t_{k+1}]`` of (K,) times, the angle
+    of ``R_{k-1,k}^T R_{k,k+1}`` of the gyro's relative rotations: what a LiDAR odometry that
+    predicts each scan's motion (and deskews it) with the previous one gets wrong in rotation.
+    The angle does not depend on the rotation between the IMU and the LiDAR (it is conjugation
+    invariant), so the gyro tells before any registration whether such odometry can follow.
+
+    Args:
+        gyro: integrated gyro orientation.
+        t_ns: (K,) increasing absolute IMU times (e.g. the scans' latest point times plus the
+            time offset); times outside the IMU data are dropped.
+
+    Returns:
+        (K', ) angles in degrees, one per pair of consecutive intervals (empty when fewer than
+        three times lie inside the IMU data).
+    """
+    t = np.asarray(t_ns, dtype=np.int64)
+    t = t[(t >= gyro.t_ns[0]) & (t <= gyro.t_ns[-1])]
+    if t.shape[0] < 3:
+        return np.zeros(0, dtype=np.float64)
+    r = gyro(t)
+    step = r[:-1].inv() * r[1:]
+    return np.asarray(np.degrees((step[:-1].inv() * step[1:]).magnitude()), dtype=np.float64)
 
 
 def relative_rotations(

@@ -220,8 +220,10 @@ def _scan_normals(
     if xyz.shape[0] < cfg.normal_min_points:
         return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
     key = np.floor(xyz / cfg.normal_cell_m).astype(np.int64)
-    _, cell, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    cell = cell.reshape(-1)
+    key -= key.min(axis=0)
+    span = key.max(axis=0) + 1
+    flat = (key[:, 0] * span[1] + key[:, 1]) * span[2] + key[:, 2]  # one integer per cell
+    _, cell, counts = np.unique(flat, return_inverse=True, return_counts=True)
     order = np.argsort(cell, kind="stable")
     xyz, t, cell = xyz[order], t[order], cell[order]
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])

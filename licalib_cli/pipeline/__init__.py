@@ -18,10 +18,7 @@ the splines carry ``T_G_I(t)`` on the IMU clock in seconds since ``t0_ns``, and 
 from __future__ import annotations
 
 import logging
-import time
-from collections.abc import Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from licalib_cli.config import CalibConfig
@@ -35,6 +32,7 @@ from licalib_cli.pipeline.read import read
 from licalib_cli.pipeline.round import RoundSummary
 from licalib_cli.pipeline.schedule import Fit, run_schedule
 from licalib_cli.pipeline.settings import NoiseLevels
+from licalib_cli.pipeline.timing import StageTime, Timer
 from licalib_cli.progress import NullProgress, Progress
 from licalib_cli.results import CalibrationResult
 from licalib_cli.sections import RecordingSection, VerdictSection
@@ -45,6 +43,8 @@ __all__ = [
     "InitialGuess",
     "Prepared",
     "RoundSummary",
+    "StageTime",
+    "Timer",
     "calibrate",
     "fit_and_check",
     "prepare",
@@ -68,6 +68,7 @@ class CalibrationRun:
         warnings: non-fatal findings of the reading stage.
         effects: the score tests of the effects the fit held fixed (selected ones first).
         segment: the segment's measurements (for the report and the map files), or None.
+        stage_times: wall and CPU seconds per stage, in order (the same stages as ``timings``).
     """
 
     result: CalibrationResult
@@ -80,6 +81,7 @@ class CalibrationRun:
     warnings: tuple[str, ...] = ()
     effects: tuple[EffectEvidence, ...] = ()
     segment: Recording | None = None
+    stage_times: dict[str, StageTime] = field(default_factory=dict)
 
     @property
     def rounds(self) -> tuple[RoundSummary, ...]:
@@ -101,22 +103,6 @@ class CalibrationRun:
         """The recording section."""
         assert self.result.recording is not None
         return self.result.recording
-
-
-class Timer:
-    """Wall seconds per named stage (a stage entered twice adds up)."""
-
-    def __init__(self) -> None:
-        self.timings: dict[str, float] = {}
-
-    @contextmanager
-    def stage(self, name: str, progress: Progress, total: int | None = None) -> Iterator[None]:
-        progress.stage(name, total)
-        start = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - start
 
 
 def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> CalibrationRun:
@@ -207,7 +193,8 @@ def fit_and_check(
         fit=fit,
         checks=checks,
         noise=noise,
-        timings=dict(timer.timings),
+        timings=timer.timings,
+        stage_times=dict(timer.stages),
         warnings=rec.warnings,
         effects=checks.effects,
         segment=rec,

@@ -29,10 +29,11 @@ from licalib_cli.geometry import so3
 from licalib_cli.initialization.rotation import (
     GyroIntegrator,
     HandEyeRotation,
+    constant_velocity_error_deg,
     estimate_rotation_extrinsic,
     lidar_rotation_at,
 )
-from licalib_cli.initialization.rotation_search import search_rotation_extrinsic
+from licalib_cli.initialization.rotation_search import RotationSearch, search_rotation_extrinsic
 from licalib_cli.initialization.single_axis import rotation_axes, single_axis_rotation
 from licalib_cli.initialization.time_offset import (
     TimeOffsetConfig,
@@ -44,7 +45,14 @@ from licalib_cli.initialization.time_offset import (
 from licalib_cli.initialization.translation import LeverArmEstimate, estimate_lever_arm
 from licalib_cli.measurements import Recording
 from licalib_cli.models.intrinsics import LidarIntrinsics
-from licalib_cli.odometry import PoseSeries, refine_odometry, run_odometry
+from licalib_cli.odometry import (
+    PoseSeries,
+    PreparedSweeps,
+    RefineConfig,
+    prepare_sweeps,
+    refine_odometry,
+    run_odometry,
+)
 from licalib_cli.pipeline.settings import (
     NoiseLevels,
     hand_eye_config,
@@ -79,17 +87,43 @@ _AGREEING_HAND_EYE_DEG = 0.25
 (no gyro-aided re-registration; the optimisation absorbs the rest)."""
 
 
+VIOLENT_MOTION_DEG = 3.0
+"""Median change (deg) of the gyro's rotation from one scan interval to the next above which the
+LiDAR-only odometry is not tried: its constant-velocity prediction and deskew cannot follow such
+motion (hand-held shaking: 8 deg; smooth motion such as the paper's sinusoid: 0.5 deg), so the
+rotation extrinsic is searched with the gyro first and every registration is deskewed and
+predicted with it."""
+
+
 @dataclass(frozen=True)
 class Odometry:
     """LiDAR odometry of the segment.
 
     Attributes:
-        kiss: kiss-icp's poses.
-        refined: the refined poses (a second registration pass seeded by kiss-icp).
+        kiss: kiss-icp's poses, or None when the gyro predicted that it cannot follow the motion
+            (see :data:`VIOLENT_MOTION_DEG`).
+        refined: the refined poses: a second registration pass seeded by kiss-icp, or, without
+            kiss-icp, the registration deskewed and predicted with the gyro and ``rotation``.
+        sweeps: the scans prepared for registration (reused by later gyro-aided rounds).
+        search: the rotation search by map sharpness when it ran (violent motion).
+        rotation: (3, 3) the rotation extrinsic ``refined`` was deskewed with, or None for the
+            LiDAR-only odometry.
+        time_offset_s: the time offset ``refined`` was deskewed with (0 without gyro).
+        constant_velocity_deg: median constant-velocity rotation error the gyro shows, deg.
     """
 
-    kiss: PoseSeries
+    kiss: PoseSeries | None
     refined: PoseSeries
+    sweeps: PreparedSweeps | None = None
+    search: RotationSearch | None = None
+    rotation: F64 | None = None
+    time_offset_s: float = 0.0
+    constant_velocity_deg: float = float("nan")
+
+    @property
+    def gyro_aided(self) -> bool:
+        """The refined poses were deskewed and predicted with the gyro from the start."""
+        return self.rotation is not None
 
 
 @dataclass(frozen=True)
@@ -131,13 +165,66 @@ class InitialGuess:
         return self.state.gravity_G
 
 
+def _violent_motion_deg(rec: Recording, gyro: GyroIntegrator, t_c: float) -> float:
+    """Median constant-velocity rotation error of the scan intervals, deg (NaN: too short)."""
+    t_end = np.array([int(s.t_ns.max()) for s in rec.scans], dtype=np.int64)
+    err = constant_velocity_error_deg(gyro, t_end + np.int64(round(t_c * 1e9)))
+    return float(np.median(err)) if err.size else float("nan")
+
+
 def lidar_odometry(
     rec: Recording, cfg: CalibConfig, progress: Callable[[int, int], None] | None = None
 ) -> Odometry:
-    """kiss-icp odometry of the segment and its refinement."""
+    """LiDAR odometry of the segment: kiss-icp and its refinement, or, when the gyro shows motion
+    a constant-velocity odometry cannot follow, registrations deskewed and predicted with the
+    gyro from the first scan on.
+
+    For violent motion (:data:`VIOLENT_MOTION_DEG`) the rotation extrinsic comes first: from
+    ``initialization.rotation_rpy_deg`` or the search by map sharpness; kiss-icp runs only when
+    the search cannot tell the rotation (rotation about one axis).
+    """
     ocfg = odometry_config(cfg)
+    ini = cfg.initialization
+    gyro = GyroIntegrator.from_imu(rec.imu)
+    t_c = 0.0 if ini.time_offset_s is None else float(ini.time_offset_s)
+    sweeps = prepare_sweeps(rec.scans, ocfg)
+    cv_deg = _violent_motion_deg(rec, gyro, t_c)
+    search: RotationSearch | None = None
+    if cv_deg > VIOLENT_MOTION_DEG and (ini.rotation_rpy_deg is not None or ini.rotation_search):
+        logger.info(
+            "The rotation changes by %.1f deg (median) from one scan interval to the next: the "
+            "scans are deskewed and predicted with the gyro from the first registration.",
+            cv_deg,
+        )
+        if ini.rotation_rpy_deg is not None:
+            rot: F64 | None = matrix_from_rpy_deg(ini.rotation_rpy_deg)
+        else:
+            try:
+                search = search_rotation_extrinsic(rec.scans, gyro, t_c)
+            except ExcitationError as err:
+                logger.info("Rotation search not possible: %s", err)
+            rot = search.R_imu_lidar if search is not None and _unambiguous(search) else None
+        if rot is not None:
+            # A searched rotation is a few degrees off and the next round redoes the
+            # registration with hand-eye's: one pass is enough for that hand-eye.
+            refine = RefineConfig(passes=1) if search is not None else RefineConfig()
+            refined = refine_odometry(
+                rec.scans,
+                None,
+                ocfg,
+                refine,
+                rotation_at=lidar_rotation_at(gyro, rot, t_c),
+                prepared=sweeps,
+                progress=progress,
+            )
+            return Odometry(None, refined, sweeps, search, rot, t_c, cv_deg)
     kiss = run_odometry(rec.scans, ocfg, progress=progress)
-    return Odometry(kiss=kiss, refined=refine_odometry(rec.scans, kiss, ocfg))
+    refined = refine_odometry(rec.scans, kiss, ocfg, prepared=sweeps)
+    return Odometry(kiss, refined, sweeps, search, None, 0.0, cv_deg)
+
+
+def _unambiguous(found: RotationSearch) -> bool:
+    return found.ambiguity >= 1.02
 
 
 def _with_rotation_hint(err: ExcitationError) -> ExcitationError:
@@ -161,14 +248,18 @@ def _searched_rotation(
     A global search over SO(3) by map and surface-normal sharpness
     (:mod:`~licalib_cli.initialization.rotation_search`) gives a rotation within a few degrees
     without any odometry; then rounds of gyro-aided odometry and hand-eye bring it to the
-    accuracy of hand-eye on good odometry.
+    accuracy of hand-eye on good odometry. The search and the first gyro-aided odometry are
+    those of ``odo`` when it already ran them. The rounds stop once hand-eye agrees with the
+    gyro (residual under :data:`_AGREEING_HAND_EYE_DEG`) or the rotation moves less than 0.5 deg.
 
     Raises:
         ExcitationError: the search is ambiguous (rotation about one axis only) or hand-eye on the
             gyro-aided odometry is still refused.
     """
-    found = search_rotation_extrinsic(rec.scans, gyro, t_c)
-    if found.ambiguity < 1.02:
+    found = (
+        odo.search if odo.search is not None else search_rotation_extrinsic(rec.scans, gyro, t_c)
+    )
+    if not _unambiguous(found):
         msg = (
             "Rotation excitation is too weak: the LiDAR odometry did not follow the motion and "
             "no rotation extrinsic makes the map clearly sharper than others (the rig turned "
@@ -177,17 +268,39 @@ def _searched_rotation(
         raise ExcitationError(msg)
     rot = found.R_imu_lidar
     ocfg = odometry_config(cfg)
+    toc = time_offset_config(cfg)
+    free_time = cfg.initialization.time_offset_s is None
     hand_eye: HandEyeRotation | None = None
-    poses = odo.kiss
-    for _ in range(max_rounds):
-        poses = refine_odometry(
-            rec.scans, odo.kiss, ocfg, rotation_at=lidar_rotation_at(gyro, rot, t_c)
-        )
+    poses = odo.refined
+    for k in range(max_rounds):
+        if k > 0 or not odo.gyro_aided:
+            poses = refine_odometry(
+                rec.scans,
+                odo.kiss,
+                ocfg,
+                rotation_at=lidar_rotation_at(gyro, rot, t_c),
+                prepared=odo.sweeps,
+            )
+        t_step = 0.0
+        if free_time:
+            # The time offset assumed for the deskew matters as much as the rotation: re-estimate
+            # it from the angular rates of these poses before hand-eye (as the later rounds do).
+            est = _coarse_time_offset(rec, poses, rot, toc)
+            if est is not None and est.ok:
+                t_step = abs(float(est.time_offset_s) - t_c)
+                t_c = float(est.time_offset_s)
         new = estimate_rotation_extrinsic(gyro, poses, time_offset_s=t_c, cfg=hand_eye_config(cfg))
         step = float(np.degrees(np.abs(so3.log(rot.T @ new.R_imu_lidar)).max()))
         rot, hand_eye = new.R_imu_lidar, new
-        logger.info("Gyro-aided hand-eye round after the search: rotation moved %.3f deg.", step)
-        if step < 0.5:  # the rounds at the coarse time offset that follow do the rest
+        logger.info(
+            "Gyro-aided hand-eye round after the search: rotation moved %.3f deg, residual "
+            "%.3f deg, time offset %+.4f s.",
+            step,
+            new.residual_rms_deg,
+            t_c,
+        )
+        if (step < 0.5 and t_step < 2e-3) or new.residual_rms_deg < _AGREEING_HAND_EYE_DEG:
+            # the rounds at the coarse time offset and the optimisation do the rest
             break
     assert hand_eye is not None
     return rot, poses, hand_eye
@@ -211,6 +324,13 @@ def _initial_rotation(
     """
     ini = cfg.initialization
     poses = odo.refined
+    if odo.gyro_aided:
+        # Violent motion: no LiDAR-only odometry ran; the search's rotation deskewed the scans.
+        try:
+            rot, poses, hand_eye = _searched_rotation(rec, odo, gyro, t_c, cfg)
+        except ExcitationError as err:
+            raise _with_rotation_hint(err) from err
+        return rot, poses, hand_eye, "search + gyro-aided hand-eye"
     first: HandEyeRotation | None = None
     failure: ExcitationError | None = None
     try:
@@ -342,7 +462,11 @@ def gyro_aided_alignment(
     toc = time_offset_config(cfg)
     for _ in range(3):
         poses = refine_odometry(
-            rec.scans, odo.kiss, ocfg, rotation_at=lidar_rotation_at(gyro, rot, t_c)
+            rec.scans,
+            odo.kiss,
+            ocfg,
+            rotation_at=lidar_rotation_at(gyro, rot, t_c),
+            prepared=odo.sweeps,
         )
         if ini.rotation_rpy_deg is not None:
             break

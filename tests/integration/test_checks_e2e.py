@@ -85,6 +85,10 @@ def test_clean_bag_passes_every_check(tmp_path: Path, capsys: pytest.CaptureFixt
     sim = simulate(_spec(), tmp_path / "sim")
     run = calibrate(sim.bag_path, load_config(CONFIG))
     assert list(run.timings) == ["read", "odometry", "initialisation", "optimisation", "checks"]
+    assert list(run.stage_times) == list(run.timings)
+    assert all(t.cpu_s > 0 and t.wall_s == run.timings[k] for k, t in run.stage_times.items())
+    steps = ["map", "surfels", "associations", "problem", "solver", "summary"]
+    assert all(list(r.stage_times) == steps for r in run.rounds)
     assert run.checks.exit_status == "ok"
     result = run.result.to_dict()
     assert result["verdict"]["status"] == "pass", result["verdict"]["reasons"]

@@ -25,6 +25,7 @@ from licalib_cli.odometry import (
     PoseSeries,
     RefineConfig,
     kiss_icp_config,
+    prepare_sweeps,
     refine_odometry,
     run_odometry,
 )
@@ -313,3 +314,17 @@ def test_refinement_with_gyro_on_simulated_shake(shake_bag: tuple[Path, Simulati
     assert np.median(step) < 0.15, step
     assert step.max() < 0.5, step
     assert np.median(step_kiss) > 1.0, step_kiss
+
+    # Without kiss-icp: the gyro predicts every registration from the first one, and the scans
+    # prepared once serve every rotation prior.
+    prepared = prepare_sweeps(rec.scans, cfg)
+    gyro_only = refine_odometry(rec.scans, None, cfg, rotation_at=rotation_at, prepared=prepared)
+    step_gyro = _step_errors_deg(gyro_only, true_rotations(gyro_only.t_ns))
+    assert np.median(step_gyro) < 0.15, step_gyro
+    assert step_gyro.max() < 0.5, step_gyro
+    again = refine_odometry(rec.scans, kiss, cfg, rotation_at=rotation_at, prepared=prepared)
+    np.testing.assert_allclose(again.T_map_lidar, poses.T_map_lidar, atol=1e-9)
+    with pytest.raises(DataError, match="seed poses or a rotation prior"):
+        refine_odometry(rec.scans, None, cfg)
+    with pytest.raises(DataError, match="prepare them with"):
+        refine_odometry(rec.scans[1:], None, cfg, rotation_at=rotation_at, prepared=prepared)

@@ -11,11 +11,13 @@ from licalib_cli.errors import ExcitationError, TimestampError
 from licalib_cli.initialization.rotation import (
     GyroIntegrator,
     HandEyeConfig,
+    constant_velocity_error_deg,
     estimate_rotation_extrinsic,
     lidar_rotation_at,
     relative_rotations,
     solve_hand_eye_rotation,
 )
+from licalib_cli.measurements import ImuSamples
 
 MOUNTINGS = {
     "identity": Rotation.identity(),
@@ -133,3 +135,29 @@ def test_rotation_extrinsic_from_gyro_and_poses() -> None:
     late = motion.lidar_poses(r_x, 0.0, 5.0, start_ns=T0_NS + 20 * 10**9)
     with pytest.raises(TimestampError, match="do not overlap"):
         estimate_rotation_extrinsic(imu, late)
+
+
+def test_constant_velocity_error_is_what_the_previous_interval_mispredicts() -> None:
+    """Zero for a constant rate; for a rate switching between two values, the angle between the
+    two intervals' rotations, the same whatever frame the rate is read in."""
+    t = T0_NS + np.arange(0, 4000) * 2_500_000  # 400 Hz, 10 s
+    scans = T0_NS + np.arange(1, 99) * 100_000_000  # 10 Hz interval ends
+    steady = GyroIntegrator.from_imu(
+        ImuSamples(t, np.tile([0.3, -0.2, 1.0], (t.size, 1)), np.zeros((t.size, 3)))
+    )
+    assert constant_velocity_error_deg(steady, scans).max() < 1e-6
+    # Rate alternating every 0.1 s between two vectors: each interval rotates by one of them.
+    w_a, w_b = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
+    even = ((t - T0_NS) // 100_000_000) % 2 == 0
+    rate = np.where(even[:, None], w_a, w_b)
+    expected = np.degrees(
+        (Rotation.from_rotvec(0.1 * w_a).inv() * Rotation.from_rotvec(0.1 * w_b)).magnitude()
+    )
+    for r_x in (Rotation.identity(), Rotation.random(random_state=3)):
+        gyro = GyroIntegrator.from_imu(ImuSamples(t, r_x.apply(rate), np.zeros((t.size, 3))))
+        err = constant_velocity_error_deg(gyro, scans)
+        assert err.shape == (scans.size - 2,)
+        # The rate is linear between samples, so the switch smears over one 2.5 ms sample.
+        assert np.median(np.abs(err - expected)) < 0.05 * expected, (np.median(err), expected)
+    # Fewer than three times inside the IMU data: nothing to compare.
+    assert constant_velocity_error_deg(steady, scans[:2]).size == 0
