@@ -479,9 +479,9 @@ def _registration_pass(
         # Constant velocity over sweep i from rel (the motion over rel_span ns); rel_own (the
         # sweep's own motion) replaces the translation when given.
         span = float(t_ns[max(i, 1)] - t_ns[max(i, 1) - 1])
-        xi = _log(np.linalg.inv(rel)) * (span / rel_span)
+        xi = _log(np.asarray(np.linalg.inv(rel), dtype=np.float64)) * (span / rel_span)
         if rel_own is not None:
-            xi[3:] = _log(np.linalg.inv(rel_own))[3:]
+            xi[3:] = _log(np.asarray(np.linalg.inv(rel_own), dtype=np.float64))[3:]
         return np.array([-span, 0.0]), np.stack([xi, np.zeros(6)])
 
     def prediction(i: int) -> tuple[npt.NDArray[np.float64], float]:

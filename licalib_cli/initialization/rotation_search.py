@@ -278,7 +278,10 @@ class _CombinedScorer:
         self.norms = [float(np.median(_batched(sc, reference))) or 1.0 for sc in scorers]
 
     def __call__(self, rotations: FloatArray) -> FloatArray:
-        return sum(sc(rotations) / n for sc, n in zip(self.scorers, self.norms, strict=True))
+        total = np.zeros(len(rotations))
+        for sc, n in zip(self.scorers, self.norms, strict=True):
+            total = total + sc(rotations) / n
+        return total
 
 
 class _Scorer:

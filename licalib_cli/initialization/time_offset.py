@@ -302,7 +302,7 @@ def correlate_angular_speed(
         peak_correlation=peak,
         ok=not reason,
         reason=reason,
-        lags_s=lags * h_ns * 1e-9,
+        lags_s=np.asarray(lags * h_ns * 1e-9, dtype=np.float64),
         correlation=r,
     )
 
@@ -479,7 +479,7 @@ def estimate_time_offset_joint(
         peak_correlation=peak,
         ok=not reason,
         reason=reason,
-        lags_s=lags,
+        lags_s=np.asarray(lags, dtype=np.float64),
         correlation=fit,
     )
     return est, rots[i]

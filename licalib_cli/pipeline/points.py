@@ -143,7 +143,7 @@ def sample_points(
 def query_times(state: CalibrationState, sample: PointSample) -> F64:
     """(N,) the trajectory time of each point, seconds on the splines' axis: its LiDAR time plus
     the time offset (and, when estimated, the clock drift and the per-point time error)."""
-    tau = (sample.t_ns - state.t0_ns) * 1e-9
+    tau = np.asarray((sample.t_ns - state.t0_ns) * 1e-9, dtype=np.float64)
     t = tau + state.time_offset_s
     if state.time_drift:
         t = t + state.time_drift * (tau - state.t_ref_s)
@@ -168,13 +168,13 @@ def solver_points(
     raw measurements, model gap and times as :func:`points_in_global` maps, so that the residual
     of a point that lies on its plane in the map is zero."""
     return LidarPoints(
-        t_s=(sample.t_ns - state.t0_ns) * 1e-9,
+        t_s=np.asarray((sample.t_ns - state.t0_ns) * 1e-9, dtype=np.float64),
         beam=sample.beam,
         rho=sample.rho,
         theta=sample.theta,
         plane=plane,
         model_gap=sample.model_gap,
-        sweep_start_s=(sample.sweep_start_ns - state.t0_ns) * 1e-9,
+        sweep_start_s=np.asarray((sample.sweep_start_ns - state.t0_ns) * 1e-9, dtype=np.float64),
     )
 
 

@@ -316,9 +316,9 @@ def _solve_spd(a: F64, b: F64) -> F64:
     if a.size == 0:
         return np.zeros(0)
     try:
-        return sla.solve(a, b, assume_a="pos")
+        return np.asarray(sla.solve(a, b, assume_a="pos"), dtype=np.float64)
     except (np.linalg.LinAlgError, sla.LinAlgError):
-        return np.linalg.lstsq(a, b, rcond=None)[0]
+        return np.asarray(np.linalg.lstsq(a, b, rcond=None)[0], dtype=np.float64)
 
 
 def solve(

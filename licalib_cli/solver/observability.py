@@ -146,8 +146,8 @@ def describe_direction(
             parts.append(f"{b} along [{', '.join(f'{x:.2f}' for x in shown)}]{frame}")
         else:
             ranked_sel = sel[np.argsort(-np.abs(v[sel]), kind="stable")]
-            shown = [i for i in ranked_sel if abs(v[i]) >= min_weight] or [ranked_sel[0]]
-            parts.append(f"{b} ({', '.join(f'{names[i]} {v[i]:+.2f}' for i in shown)})")
+            listed = [i for i in ranked_sel if abs(v[i]) >= min_weight] or [ranked_sel[0]]
+            parts.append(f"{b} ({', '.join(f'{names[i]} {v[i]:+.2f}' for i in listed)})")
     text = f"{' + '.join(parts)}: {verdict}" if verdict else " + ".join(parts)
     return DirectionDescription(v, components, tuple(ranked), text)
 

@@ -580,7 +580,7 @@ class Problem:
             a, d = jac.values.shape[2:]
             parts.append(
                 DensePart(
-                    jac.elements,
+                    np.asarray(jac.elements, dtype=np.intp),
                     idx.reshape(block.num_elements, d),
                     jac.values.reshape(n, m, a * d),
                     block.group == "trajectory",
@@ -592,11 +592,12 @@ class Problem:
         self, ev: ResidualEval, layout: Layout
     ) -> list[tuple[IntArray, IntArray, F64]]:
         """COO ``(rows, reduced columns (-1 fixed), values)`` of every Jacobian piece of ``ev``."""
-        pieces = []
+        pieces: list[tuple[IntArray, IntArray, F64]] = []
         for jac in ev.jacobians:
             idx = self._block_index(jac, layout)
             if idx is None:
                 continue
             coo = jac.to_coo() if isinstance(jac, DenseJacobian) else jac
-            pieces.append((coo.rows, idx[coo.cols], coo.values))
+            rows = np.asarray(coo.rows, dtype=np.intp)
+            pieces.append((rows, idx[coo.cols], coo.values))
         return pieces

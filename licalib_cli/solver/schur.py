@@ -269,7 +269,9 @@ class _BandedCholesky:
             solved = _band_solve(factor, coupling)
             s_c = a_cc - coupling.T @ solved
             try:
-                border_factor = np.linalg.cholesky(0.5 * (s_c + s_c.T))
+                border_factor = np.asarray(
+                    np.linalg.cholesky(0.5 * (s_c + s_c.T)), dtype=np.float64
+                )
             except np.linalg.LinAlgError:
                 return None
         else:
