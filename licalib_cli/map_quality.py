@@ -152,7 +152,7 @@ def mean_map_entropy(
         n_queried=int(q.size),
         radius_m=float(radius_m),
     )
-    logger.info("mean map entropy %.4f over %d points", result.mean, result.n_evaluated)
+    logger.debug("mean map entropy %.4f over %d points", result.mean, result.n_evaluated)
     return result
 
 
