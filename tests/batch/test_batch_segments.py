@@ -153,3 +153,47 @@ def test_a_changed_segments_choice_calibrates_again(fleet: Path, tmp_path: Path)
     assert [p.reason for p in plan([job], out)] == ["up to date"]
     for other in (replace(job, segments="0-5,10-20"), replace(job, segments=None)):
         assert [p.reason for p in plan([other], out)] == ["config changed"]
+
+
+@pytest.mark.slow
+def test_a_batch_calibrates_over_segments_on_a_local_cluster(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """4 s of sinusoid, calibrated over 0-2 and 2-4 s in one problem on a real LocalCluster."""
+    import json
+
+    from licalib_cli.simulation import SimulationSpec, simulate
+
+    spec = SimulationSpec(
+        scenario="sinusoid",
+        lidar="vlp16",
+        fmt="ros1",
+        duration_s=4.0,
+        seed=4,
+        intrinsics="none",
+        azimuth_resolution_deg=1.0,
+    )
+    bag = simulate(spec, tmp_path / "sim").bag_path
+    manifest = tmp_path / "m.csv"
+    manifest.write_text(f'path,rig,segments\n{bag},rigA,"2-4, 0-2"\n')
+    out = tmp_path / "out"
+    argv = ["batch", str(manifest), "-c", str(CONFIG), "-o", str(out), "--workers", "1"]
+    for rerun in (False, True):
+        with pytest.raises(SystemExit) as code:
+            main([*argv, "--json"])
+            raise SystemExit(0)
+        assert code.value.code == 0, capsys.readouterr().err
+        report = json.loads(capsys.readouterr().out)
+        if not rerun:
+            assert report["counts"]["calibrated"] == 1
+            result = CalibrationResult.load(out / "rigA" / f"{bag.stem}.yaml")
+            assert result.segments is not None
+            windows = [(e.start_s, e.end_s) for e in result.segments.segments]
+            assert windows == [(0.0, 2.0), (2.0, 4.0)]
+            assert result.verdict is not None and result.verdict.status != "fail"
+            assert (out / "rigA" / f"{bag.stem}.config.yaml").exists()
+            assert report["bags"][0]["status"] == "calibrated"
+        else:  # the rerun: the same bag, config and segments
+            assert report["counts"]["up_to_date"] == 1
+    job = read_inputs([str(manifest)], CONFIG)[0]
+    assert [p.reason for p in plan([replace(job, segments="auto")], out)] == ["config changed"]
