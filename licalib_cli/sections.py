@@ -469,8 +469,9 @@ class Provenance(Section):
         bag_fingerprint: :func:`licalib_cli.pipeline.assemble.bag_fingerprint` of the bag.
         created_utc: when, ISO 8601.
         config_fingerprint: :func:`licalib_cli.config.config_fingerprint` of the resolved
-            configuration (segment options included); None in files written before it existed
-            (not written then).
+            configuration (segment options included; ``batch`` writes
+            :func:`licalib_cli.batch.plan.job_fingerprint`, which adds its segments choice);
+            None in files written before it existed (not written then).
     """
 
     licalib_version: str

@@ -10,8 +10,10 @@ list) of mappings or plain paths; one row per bag (or per pattern)::
 Columns (YAML keys): ``path`` (required; a bag, a bag folder or a glob pattern), ``rig`` (the
 folder of the results; default: the name of the folder holding the bag), ``config`` (default:
 ``-c``), ``start`` and ``duration`` (seconds, as ``calibrate --start/--duration``),
-``imu_topic`` and ``lidar_topic``. Relative paths are read from the manifest's folder. An empty
-cell is not given.
+``imu_topic`` and ``lidar_topic``, ``segments`` (``auto`` or ``START-END,...`` in seconds, as
+``calibrate --segments``: the bag is calibrated over several segments in one problem; not with
+``start``/``duration``). Relative paths are read from the manifest's folder. An empty cell is not
+given.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from __future__ import annotations
 import csv
 import glob
 import io
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,11 +30,11 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from licalib_cli.config import read_yaml
-from licalib_cli.errors import ConfigError, ManifestError
+from licalib_cli.errors import ConfigError, LicalibError, ManifestError
 
-__all__ = ["COLUMNS", "BatchJob", "read_inputs"]
+__all__ = ["COLUMNS", "BatchJob", "normalise_segments", "read_inputs"]
 
-COLUMNS = ("path", "rig", "config", "start", "duration", "imu_topic", "lidar_topic")
+COLUMNS = ("path", "rig", "config", "start", "duration", "imu_topic", "lidar_topic", "segments")
 """The columns (YAML keys) a manifest may have, ``path`` required."""
 
 MANIFEST_SUFFIXES = (".csv", ".yaml", ".yml")
@@ -46,6 +49,7 @@ _FIX = {
     "duration": "give seconds of data (more than 0)",
     "imu_topic": "give the topic's name",
     "lidar_topic": "give the topic's name",
+    "segments": "give auto or START-END,... in seconds",
 }
 
 
@@ -61,6 +65,8 @@ class BatchJob:
         duration_s: ``bag.duration_s`` override, s; None: the config's.
         imu_topic: ``imu.topic`` override.
         lidar_topic: ``lidar.topic`` override.
+        segments: ``"auto"`` or windows ``"60-75,105-120"`` (normalised): calibrate over
+            several segments in one problem (``calibrate --segments``); None: one segment.
         source: where the job was given, for messages (``"manifest m.csv, line 3"``).
     """
 
@@ -71,6 +77,7 @@ class BatchJob:
     duration_s: float | None = None
     imu_topic: str | None = None
     lidar_topic: str | None = None
+    segments: str | None = None
     source: str = ""
 
     @property
@@ -107,6 +114,7 @@ class _Row(BaseModel):
     duration: float | None = Field(default=None, gt=0.0)
     imu_topic: str | None = None
     lidar_topic: str | None = None
+    segments: str | None = None
 
     @field_validator("rig")
     @classmethod
@@ -115,6 +123,24 @@ class _Row(BaseModel):
             msg = "not a folder name"
             raise ValueError(msg)
         return value
+
+
+def normalise_segments(text: str) -> str:
+    """A segments choice as ``calibrate --segments`` takes it, normalised: ``"auto"``, or the
+    windows in time order (``"60-75,105-120"``), so that equal choices compare equal.
+
+    Checked as ``calibrate --segments`` checks it, with the same sentences, except the bag's
+    length (the task checks that when it reads the bag).
+
+    Raises:
+        ConfigError, ExcitationError: a malformed, reversed, too short or overlapping window.
+    """
+    from licalib_cli.pipeline.joint import parse_segments
+
+    if text.strip().lower() == "auto":
+        return "auto"
+    windows = parse_segments(text, math.inf)
+    return ",".join(f"{a:.15g}-{b:.15g}" for a, b in windows)
 
 
 def _is_folder_name(name: str) -> bool:
@@ -146,28 +172,36 @@ def _is_manifest(text: str) -> bool:
     return Path(text).suffix.lower() in MANIFEST_SUFFIXES and not _is_pattern(text)
 
 
-def read_inputs(args: Sequence[str], config: Path | None = None) -> list[BatchJob]:
+def read_inputs(
+    args: Sequence[str], config: Path | None = None, segments: str | None = None
+) -> list[BatchJob]:
     """The jobs named on the command line: bags, glob patterns and manifests, in order.
 
     Args:
         args: bag paths (files or bag folders), glob patterns (``fleet/**/*.bag``) and
             manifests (``.csv``, ``.yaml``, ``.yml``).
         config: the config of every bag whose manifest row names none.
+        segments: ``batch --segments``: the segments choice (``"auto"`` or ``START-END,...``)
+            of every bag whose manifest row gives none; such a row may not give start or
+            duration.
 
     Returns:
         One job per bag; a bag named twice with the same settings once.
 
     Raises:
         ManifestError: no input, a manifest that cannot be read or has an unknown column or a
-            bad value, a bag that does not exist, a pattern that matches nothing.
+            bad value (segments with start or duration), a bag that does not exist, a pattern
+            that matches nothing.
+        ConfigError, ExcitationError: a bad ``segments`` (``calibrate --segments``'s sentence).
     """
+    default_segments = None if segments is None else normalise_segments(segments)
     if not args:
         msg = "No bags given; pass bag paths, glob patterns or a manifest (.csv or .yaml)."
         raise ManifestError(msg)
     jobs: list[BatchJob] = []
     for arg in args:
         if _is_manifest(arg):
-            jobs.extend(_read_manifest(Path(arg), config))
+            jobs.extend(_read_manifest(Path(arg), config, default_segments))
             continue
         paths = _expand(arg, None)
         if not paths:
@@ -180,7 +214,13 @@ def read_inputs(args: Sequence[str], config: Path | None = None) -> list[BatchJo
             msg = f"The bag {arg} does not exist; check the path."
             raise ManifestError(msg)
         jobs.extend(
-            BatchJob(bag=p, rig=_default_rig(p), config=config, source=f"argument {arg}")
+            BatchJob(
+                bag=p,
+                rig=_default_rig(p),
+                config=config,
+                segments=default_segments,
+                source=f"argument {arg}",
+            )
             for p in paths
         )
     return _unique(jobs)
@@ -191,14 +231,14 @@ def _unique(jobs: Iterable[BatchJob]) -> list[BatchJob]:
     seen: set[tuple[Any, ...]] = set()
     out = []
     for job in jobs:
-        key = (job.bag.resolve(), job.rig, job.config, *job.overrides().values())
+        key = (job.bag.resolve(), job.rig, job.config, job.segments, *job.overrides().values())
         if key not in seen:
             seen.add(key)
             out.append(job)
     return out
 
 
-def _read_manifest(path: Path, config: Path | None) -> list[BatchJob]:
+def _read_manifest(path: Path, config: Path | None, default_segments: str | None) -> list[BatchJob]:
     if path.suffix.lower() == ".csv":
         rows = _csv_rows(path)
         what = "column"
@@ -209,6 +249,7 @@ def _read_manifest(path: Path, config: Path | None) -> list[BatchJob]:
     jobs: list[BatchJob] = []
     for where, raw in rows:
         row = _validate(path, where, what, raw)
+        segments = _row_segments(path, where, row, default_segments)
         source = f"manifest {path}, {where}"
         bags = _expand(row.path, base)
         if not bags:
@@ -237,6 +278,7 @@ def _read_manifest(path: Path, config: Path | None) -> list[BatchJob]:
                     duration_s=row.duration,
                     imu_topic=row.imu_topic,
                     lidar_topic=row.lidar_topic,
+                    segments=segments,
                     source=source,
                 )
             )
@@ -244,6 +286,39 @@ def _read_manifest(path: Path, config: Path | None) -> list[BatchJob]:
         msg = f"The manifest {path} lists no bags; add one row per bag (column {COLUMNS[0]!r})."
         raise ManifestError(msg)
     return jobs
+
+
+def _row_segments(path: Path, where: str, row: _Row, default: str | None) -> str | None:
+    """The row's segments choice, normalised (the default when it gives none), checked as
+    ``calibrate --segments`` checks it; refused with ``start``/``duration`` as there."""
+    if row.segments is None and default is None:
+        return None
+    ranged = [c for c in ("start", "duration") if getattr(row, c) is not None]
+    if row.segments is None:
+        if ranged:
+            msg = (
+                f"The manifest {path} gives {' and '.join(ranged)} in {where}, but --segments "
+                f"{default} chooses the data of every bag without its own segments; drop "
+                f"{' and '.join(ranged)} from that row, or give it segments, or drop --segments."
+            )
+            raise ManifestError(msg)
+        return default
+    if ranged:
+        msg = (
+            f"The manifest {path} gives segments and {' and '.join(ranged)} in {where}; "
+            f"segments chooses the data itself, drop {' and '.join(ranged)} (as with "
+            "calibrate --segments)."
+        )
+        raise ManifestError(msg)
+    try:
+        return normalise_segments(row.segments)
+    except LicalibError as err:
+        text = str(err)
+        msg = (
+            f"The manifest {path} has bad segments in {where}: {row.segments!r}; "
+            f"{text[0].lower() + text[1:]}"
+        )
+        raise ManifestError(msg) from err
 
 
 def _validate(path: Path, where: str, what: str, raw: dict[str, Any]) -> _Row:
@@ -351,7 +426,7 @@ def _yaml_rows(path: Path) -> list[tuple[str, dict[str, Any]]]:
     if not isinstance(data, list):
         msg = (
             f"The manifest {path} is not a list of bags; give one entry per bag, a path or a "
-            "mapping with 'path' and optional rig, config, start, duration."
+            "mapping with 'path' and optional rig, config, start, duration, segments."
         )
         raise ManifestError(msg)
     rows = []
@@ -361,7 +436,7 @@ def _yaml_rows(path: Path) -> list[tuple[str, dict[str, Any]]]:
         if not isinstance(entry, dict):
             msg = (
                 f"The manifest {path} has entry {i} that is neither a path nor a mapping; give "
-                "a mapping with 'path' and optional rig, config, start, duration."
+                "a mapping with 'path' and optional rig, config, start, duration, segments."
             )
             raise ManifestError(msg)
         rows.append((f"entry {i}", {str(k): v for k, v in entry.items()}))

@@ -3,11 +3,12 @@
 Results are laid out as ``OUT/<rig>/<bag-stem>.yaml`` (schema v1, as ``calibrate`` writes) with
 the resolved config beside each as ``<bag-stem>.config.yaml``. A result is up to date, and its
 bag is not calibrated again, when its ``provenance`` holds the fingerprint of the same bag
-content and of the same resolved configuration (segment options included).
+content and of the same resolved configuration and segments choice (:func:`job_fingerprint`).
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -19,7 +20,7 @@ from licalib_cli.config import CalibConfig, config_fingerprint, load_config
 from licalib_cli.errors import ConfigError, LicalibError, ManifestError
 from licalib_cli.results import CalibrationResult, check_not_an_input
 
-__all__ = ["SUMMARY_FILES", "PlannedBag", "plan"]
+__all__ = ["SUMMARY_FILES", "PlannedBag", "job_fingerprint", "plan"]
 
 logger = logging.getLogger(__name__)
 
@@ -36,7 +37,8 @@ class PlannedBag:
         cfg: its resolved configuration.
         result_path: ``OUT/<rig>/<stem>.yaml``.
         bag_fingerprint: the bag's content fingerprint.
-        config_fingerprint: the resolved configuration's fingerprint.
+        config_fingerprint: the fingerprint of the resolved configuration and the segments
+            choice (:func:`job_fingerprint`).
         existing: the earlier result, when it is up to date (the bag is not calibrated).
         reason: why it is calibrated: ``new``, ``bag changed``, ``config changed``,
             ``result unreadable``; ``up to date`` when it is not.
@@ -102,7 +104,7 @@ def plan(jobs: Sequence[BatchJob], out_dir: Path) -> list[PlannedBag]:
             cfg=cfg,
             result_path=result,
             bag_fingerprint=bag_fingerprint(job.bag),
-            config_fingerprint=config_fingerprint(cfg),
+            config_fingerprint=job_fingerprint(cfg, job.segments),
             existing=None,
             reason="new",
         )
@@ -110,6 +112,18 @@ def plan(jobs: Sequence[BatchJob], out_dir: Path) -> list[PlannedBag]:
     for name in SUMMARY_FILES:
         check_not_an_input(out_dir / name, inputs, f"The batch summary {out_dir / name}")
     return planned
+
+
+def job_fingerprint(cfg: CalibConfig, segments: str | None) -> str:
+    """What a result's ``provenance.config_fingerprint`` holds in a batch: the resolved
+    configuration's fingerprint (as ``calibrate`` writes it) for one segment; with a segments
+    choice (normalised, see :func:`~licalib_cli.batch.inputs.normalise_segments`), the first 16
+    hex digits of the sha256 of that fingerprint and the choice, so that a changed choice
+    calibrates the bag again."""
+    base = config_fingerprint(cfg)
+    if segments is None:
+        return base
+    return hashlib.sha256(f"{base}\nsegments: {segments}\n".encode()).hexdigest()[:16]
 
 
 def _inputs(jobs: Sequence[BatchJob]) -> list[tuple[str, Path | None]]:

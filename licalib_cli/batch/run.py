@@ -14,7 +14,7 @@ import time
 import uuid
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -33,7 +33,7 @@ from licalib_cli.batch.task import TaskInput, TaskOutcome, calibrate_task
 from licalib_cli.config import dump_config
 from licalib_cli.errors import ConfigError
 from licalib_cli.progress import NullProgress, Progress
-from licalib_cli.results import create_folder, write_text_atomic
+from licalib_cli.results import CalibrationResult, create_folder, write_text_atomic
 
 if TYPE_CHECKING:
     from distributed import Client, Future
@@ -126,10 +126,11 @@ class _Tracker:
                 exit_code=outcome.exit_code,
             )
             return
+        result = _with_fingerprint(outcome.result, p.config_fingerprint)
         # The resolved config first: the result is what marks the bag as done.
         write_text_atomic(p.config_path, dump_config(p.cfg))
-        outcome.result.save(p.result_path)
-        self.rows[i] = self._row(i, "calibrated", outcome.result, outcome.seconds)
+        result.save(p.result_path)
+        self.rows[i] = self._row(i, "calibrated", result, outcome.seconds)
 
     def failed(self, i: int, sentence: str) -> None:
         self.rows[i] = self._row(i, "failed", None, None, error=sentence, exit_code=1)
@@ -142,6 +143,16 @@ class _Tracker:
             for i, row in enumerate(self.rows)
         ]
         return rig_rows(rows)
+
+
+def _with_fingerprint(result: CalibrationResult, fingerprint: str) -> CalibrationResult:
+    """The result with the planned ``provenance.config_fingerprint`` (the config's, and the
+    segments choice's: a multi-segment result carries its reference segment's provenance),
+    which a rerun compares to decide whether the bag is up to date."""
+    prov = result.provenance
+    if prov is None or prov.config_fingerprint == fingerprint:
+        return result
+    return replace(result, provenance=replace(prov, config_fingerprint=fingerprint))
 
 
 def _sentence(err: BaseException, attempts: int) -> str:
@@ -283,7 +294,7 @@ def _run(
     def submit(i: int) -> None:
         tracker.attempts[i] += 1
         p = planned[i]
-        spec = TaskInput(p.label, p.job.bag, p.cfg, tracker.attempts[i])
+        spec = TaskInput(p.label, p.job.bag, p.cfg, tracker.attempts[i], p.job.segments)
         key = f"licalib-calibrate-{p.label}-{tracker.attempts[i]}-{uuid.uuid4().hex[:8]}"
         future = client.submit(task, spec, key=key, pure=False)
         index[future] = i

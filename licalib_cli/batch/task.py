@@ -31,12 +31,15 @@ class TaskInput:
         bag: the bag, absolute (as the workers see it).
         cfg: the resolved configuration.
         attempt: 1 for the first try, 2 for the first retry, ...
+        segments: ``"auto"`` or ``"START-END,..."``: calibrate over several segments in one
+            problem (``calibrate --segments``); None: one segment (``calibrate``).
     """
 
     label: str
     bag: Path
     cfg: CalibConfig
     attempt: int = 1
+    segments: str | None = None
 
 
 @dataclass(frozen=True)
@@ -75,12 +78,12 @@ class _Collect(logging.Handler):
 
 
 def calibrate_task(task: TaskInput) -> TaskOutcome:
-    """Calibrate one bag (``licalib_cli.pipeline.calibrate``) and return the outcome.
+    """Calibrate one bag (``licalib_cli.pipeline.calibrate``, or
+    ``licalib_cli.pipeline.joint.calibrate_segments`` with ``task.segments``) and return the
+    outcome.
 
     Warnings are collected into the outcome instead of the worker's standard error.
     """
-    from licalib_cli.pipeline import calibrate
-
     log = logging.getLogger("licalib_cli")
     collect = _Collect()
     log.addHandler(collect)
@@ -88,7 +91,7 @@ def calibrate_task(task: TaskInput) -> TaskOutcome:
     log.propagate = False
     start = time.perf_counter()
     try:
-        run = calibrate(task.bag, task.cfg)
+        result, exit_status, warnings = _calibrate(task)
     except LicalibError as err:
         return TaskOutcome(
             result=None,
@@ -102,8 +105,25 @@ def calibrate_task(task: TaskInput) -> TaskOutcome:
         log.removeHandler(collect)
         log.propagate = propagate
     return TaskOutcome(
-        result=run.result,
-        exit_status=run.checks.exit_status,
+        result=result,
+        exit_status=exit_status,
         seconds=time.perf_counter() - start,
-        warnings=tuple(dict.fromkeys((*run.warnings, *collect.messages))),
+        warnings=tuple(dict.fromkeys((*warnings, *collect.messages))),
     )
+
+
+def _calibrate(task: TaskInput) -> tuple[CalibrationResult, str, tuple[str, ...]]:
+    """The result, the exit status and the warnings of one bag's calibration."""
+    if task.segments is None:
+        from licalib_cli.pipeline import calibrate
+
+        run = calibrate(task.bag, task.cfg)
+        return run.result, run.checks.exit_status, tuple(run.warnings)
+    from licalib_cli.pipeline.joint import calibrate_segments
+
+    joint = calibrate_segments(task.bag, task.cfg, task.segments)
+    verdict = joint.result.verdict
+    # as calibrate --segments: the joint verdict decides (each segment's own is a reason)
+    exit_status = "fail" if verdict is not None and verdict.status == "fail" else "ok"
+    warnings = tuple(w for run in joint.runs for w in run.warnings)
+    return joint.result, exit_status, warnings

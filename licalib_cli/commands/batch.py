@@ -194,7 +194,8 @@ def batch_command(
         ...,
         metavar="MANIFEST_OR_GLOB",
         help="Bags (files or bag folders), glob patterns such as 'fleet/*/*.bag' (quoted), or "
-        "manifests (.csv or .yaml: path, rig, config, start, duration, imu_topic, lidar_topic).",
+        "manifests (.csv or .yaml: path, rig, config, start, duration, imu_topic, lidar_topic, "
+        "segments).",
         show_default=False,
     ),
     out: Path = typer.Option(
@@ -209,6 +210,14 @@ def batch_command(
         "--config",
         "-c",
         help="YAML config of every bag whose manifest row names none.",
+        rich_help_panel=_IO,
+    ),
+    segments: str | None = typer.Option(
+        None,
+        "--segments",
+        help="Calibrate every bag whose manifest row gives no segments over several segments "
+        "in one problem, as calibrate --segments: auto (the best windows) or START-END,... in "
+        "seconds.",
         rich_help_panel=_IO,
     ),
     scheduler: str | None = typer.Option(
@@ -238,7 +247,7 @@ def batch_command(
     """Calibrate many bags on Dask (locally or on a cluster), resumably; summarise the fleet."""
     from licalib_cli.batch import read_inputs, run_batch
 
-    jobs = read_inputs(inputs, config)
+    jobs = read_inputs(inputs, config, segments)
     report = run_batch(
         jobs,
         out,
