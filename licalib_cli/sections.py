@@ -303,6 +303,51 @@ class Consistency(Section):
 
     _nested = {"sensors": SensorCheck, "effects": EffectCheck, "split_half": SplitHalf}  # noqa: RUF012
 
+    def rows(self) -> list[tuple[str, str, str, bool]]:
+        """One row per fit check, as the console table and the report show them:
+        ``(check, figure, outcome, warn)``; ``warn`` marks an outcome to highlight."""
+        names = {"gyro": "gyro", "accelerometer": "accelerometer", "lidar": "LiDAR"}
+        out = []
+        for s in self.sensors:
+            patterns = [p.feature for p in s.patterns if p.material]
+            misfit = s.status != "ok" or bool(patterns)
+            outcome = "misfit" if misfit else "ok"
+            if patterns:
+                outcome += " (depends on " + ", ".join(patterns) + ")"
+            figure = f"chi2/sample {s.chi2_per_sample:.2f}, noise {_noise_text(s)}"
+            out.append((f"{names.get(s.sensor, s.sensor)} residuals", figure, outcome, misfit))
+        material = [e for e in self.effects if e.material]
+        if material:
+            worst = max(material, key=lambda e: e.statistic)
+            figure = (
+                f"{worst.name}: score {worst.statistic:.0f} (dof {worst.dof}), moves "
+                f"{1e3 * float(np.linalg.norm(worst.shift_translation_m)):.1f} mm / "
+                f"{float(np.linalg.norm(worst.shift_rotation_deg)):.3f} deg"
+            )
+            out.append(("effects held fixed", figure, ", ".join(e.name for e in material), True))
+        elif self.effects:
+            strongest = min(self.effects, key=lambda e: e.p_value)
+            figure = f"strongest {strongest.name}: p = {strongest.p_value:.2g}"
+            out.append(("effects held fixed", figure, "none that moves the extrinsic", False))
+        sh = self.split_half
+        if sh.status == "not run":
+            out.append(("split halves", sh.reason, "not run", True))
+        else:
+            figure = (
+                f"{sh.halves_s:.1f} s each, chi-square {sh.chi2:.1f} on {sh.dof} "
+                f"(p = {sh.p_value:.2g})"
+            )
+            agree = sh.status == "agree"
+            out.append(("split halves", figure, "agree" if agree else "disagree", not agree))
+        return out
+
+
+def _noise_text(s: SensorCheck) -> str:
+    """A sensor's noise level (RMS over axes) in display units, and where it came from."""
+    scale, unit = (1e3, "mm") if s.unit == "m" else (1.0, s.unit)
+    value = float(np.sqrt(np.mean(np.square(s.noise)))) * scale if s.noise else float("nan")
+    return f"{value:.3g} {unit} ({'measured' if s.noise_source == 'data' else s.noise_source})"
+
 
 @dataclass(frozen=True)
 class ModelInfo(Section):

@@ -11,7 +11,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from licalib_cli.results import CalibrationResult, Extrinsic, rpy_deg_from_matrix
-from licalib_cli.sections import Consistency, SensorCheck
+from licalib_cli.sections import Consistency
 from licalib_cli.truth import Truth
 
 if TYPE_CHECKING:
@@ -81,54 +81,14 @@ def render_estimate(result: CalibrationResult, truth: Truth | None) -> Table:
     return table
 
 
-def _noise_text(s: SensorCheck) -> str:
-    scale, unit = (1e3, "mm") if s.unit == "m" else (1.0, s.unit)
-    value = float(np.sqrt(np.mean(np.square(s.noise)))) * scale
-    return f"{value:.3g} {unit} ({'measured' if s.noise_source == 'data' else s.noise_source})"
-
-
 def render_checks(consistency: Consistency) -> Table:
     """One row per fit check: what was compared, the figure, the outcome."""
     table = Table(title="Checks of the fit")
     table.add_column("check")
     table.add_column("figure")
     table.add_column("outcome")
-    names = {"gyro": "gyro", "accelerometer": "accelerometer", "lidar": "LiDAR"}
-    for s in consistency.sensors:
-        patterns = [p.feature for p in s.patterns if p.material]
-        outcome = "ok" if s.status == "ok" and not patterns else "[yellow]misfit[/]"
-        if patterns:
-            outcome += " (depends on " + ", ".join(patterns) + ")"
-        table.add_row(
-            f"{names.get(s.sensor, s.sensor)} residuals",
-            f"chi2/sample {s.chi2_per_sample:.2f}, noise {_noise_text(s)}",
-            outcome,
-        )
-    material = [e for e in consistency.effects if e.material]
-    if consistency.effects:
-        if material:
-            worst = max(material, key=lambda e: e.statistic)
-            figure = (
-                f"{worst.name}: score {worst.statistic:.0f} (dof {worst.dof}), moves "
-                f"{1e3 * float(np.linalg.norm(worst.shift_translation_m)):.1f} mm / "
-                f"{float(np.linalg.norm(worst.shift_rotation_deg)):.3f} deg"
-            )
-            outcome = "[yellow]" + ", ".join(e.name for e in material) + "[/]"
-        else:
-            strongest = min(consistency.effects, key=lambda e: e.p_value)
-            figure = f"strongest {strongest.name}: p = {strongest.p_value:.2g}"
-            outcome = "none that moves the extrinsic"
-        table.add_row("effects held fixed", figure, outcome)
-    sh = consistency.split_half
-    if sh.status == "not run":
-        table.add_row("split halves", sh.reason, "[yellow]not run[/]")
-    else:
-        table.add_row(
-            "split halves",
-            f"{sh.halves_s:.1f} s each, chi-square {sh.chi2:.1f} on {sh.dof} "
-            f"(p = {sh.p_value:.2g})",
-            "agree" if sh.status == "agree" else "[yellow]disagree[/]",
-        )
+    for check, figure, outcome, warn in consistency.rows():
+        table.add_row(check, figure, f"[yellow]{outcome}[/]" if warn else outcome)
     return table
 
 

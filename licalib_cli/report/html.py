@@ -19,7 +19,7 @@ from licalib_cli.geometry import so3
 from licalib_cli.report import figures
 from licalib_cli.report.data import ReportData
 from licalib_cli.results import CalibrationResult, Extrinsic, rpy_deg_from_matrix
-from licalib_cli.sections import Consistency, SensorCheck
+from licalib_cli.sections import Consistency
 
 __all__ = ["render_html"]
 
@@ -300,58 +300,8 @@ def _observability(result: CalibrationResult, data: ReportData | None) -> str:
     return "\n".join(out)
 
 
-def _noise_text(s: SensorCheck) -> str:
-    scale, unit = (1e3, "mm") if s.unit == "m" else (1.0, s.unit)
-    value = float(np.sqrt(np.mean(np.square(s.noise)))) * scale if s.noise else float("nan")
-    return f"{value:.3g} {unit} ({'measured' if s.noise_source == 'data' else s.noise_source})"
-
-
 def _checks(consistency: Consistency) -> str:
-    names = {"gyro": "gyro", "accelerometer": "accelerometer", "lidar": "LiDAR"}
-    rows = []
-    for s in consistency.sensors:
-        patterns = [p.feature for p in s.patterns if p.material]
-        outcome = "ok" if s.status == "ok" and not patterns else "misfit"
-        if patterns:
-            outcome += " (depends on " + ", ".join(patterns) + ")"
-        rows.append(
-            [
-                f"{names.get(s.sensor, s.sensor)} residuals",
-                f"chi2/sample {s.chi2_per_sample:.2f}, noise {_noise_text(s)}",
-                outcome,
-            ]
-        )
-    material = [e for e in consistency.effects if e.material]
-    if consistency.effects:
-        if material:
-            worst = max(material, key=lambda e: e.statistic)
-            figure = (
-                f"{worst.name}: score {worst.statistic:.0f} (dof {worst.dof}), moves "
-                f"{1e3 * float(np.linalg.norm(worst.shift_translation_m)):.1f} mm / "
-                f"{float(np.linalg.norm(worst.shift_rotation_deg)):.3f} deg"
-            )
-            rows.append(["effects held fixed", figure, ", ".join(e.name for e in material)])
-        else:
-            strongest = min(consistency.effects, key=lambda e: e.p_value)
-            rows.append(
-                [
-                    "effects held fixed",
-                    f"strongest {strongest.name}: p = {strongest.p_value:.2g}",
-                    "none that moves the extrinsic",
-                ]
-            )
-    sh = consistency.split_half
-    if sh.status == "not run":
-        rows.append(["split halves", sh.reason or "-", "not run"])
-    else:
-        rows.append(
-            [
-                "split halves",
-                f"{sh.halves_s:.1f} s each, chi-square {sh.chi2:.1f} on {sh.dof} "
-                f"(p = {sh.p_value:.2g})",
-                "agree" if sh.status == "agree" else "disagree",
-            ]
-        )
+    rows = [[check, figure or "-", outcome] for check, figure, outcome, _ in consistency.rows()]
     out = [_table(["check", "figure", "outcome"], rows, "checks")]
     for why in consistency.inflation:
         out.append(f'<p class="note">Sigmas enlarged {_e(why)}.</p>')
