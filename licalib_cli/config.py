@@ -316,6 +316,38 @@ class _UniqueKeyLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep=deep)
 
 
+def read_text(
+    path: Path, what: str, kind: str = "a YAML file", error: type[ConfigError] = ConfigError
+) -> str:
+    """The text of a file (UTF-8, a byte-order mark dropped), or one sentence naming why not.
+
+    Args:
+        path: the file.
+        what: how the message names the file, e.g. ``"The config file"``.
+        kind: what the file should be, for the fix, e.g. ``"a YAML file"``.
+        error: the error class raised.
+
+    Raises:
+        ConfigError: (``error``) the file is missing, a folder, unreadable or not text.
+    """
+    try:
+        data = Path(path).read_bytes()
+    except FileNotFoundError as err:
+        msg = f"{what} {path} does not exist; check the path."
+        raise error(msg) from err
+    except IsADirectoryError as err:
+        msg = f"{what} {path} is a folder; pass {kind}."
+        raise error(msg) from err
+    except OSError as err:
+        msg = f"{what} {path} cannot be read ({err.strerror}); check the path and its permissions."
+        raise error(msg) from err
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        msg = f"{what} {path} is not a text file (byte {err.start} is not UTF-8); pass {kind}."
+        raise error(msg) from err
+
+
 def read_yaml(path: Path, what: str) -> Any:
     """The YAML document of a file, or one sentence naming why it cannot be read.
 
@@ -328,22 +360,15 @@ def read_yaml(path: Path, what: str) -> Any:
     Raises:
         ConfigError: the file is missing, a folder, unreadable, not text, or not valid YAML.
     """
-    try:
-        data = Path(path).read_bytes()
-    except FileNotFoundError as err:
-        msg = f"{what} {path} does not exist; check the path."
-        raise ConfigError(msg) from err
-    except IsADirectoryError as err:
-        msg = f"{what} {path} is a folder; pass a YAML file."
-        raise ConfigError(msg) from err
-    except OSError as err:
-        msg = f"{what} {path} cannot be read ({err.strerror}); check the path and its permissions."
-        raise ConfigError(msg) from err
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as err:
-        msg = f"{what} {path} is not a text file (byte {err.start} is not UTF-8); pass a YAML file."
-        raise ConfigError(msg) from err
+    return parse_yaml(read_text(path, what), path, what)
+
+
+def parse_yaml(text: str, path: Path, what: str) -> Any:
+    """The YAML document of a file's text (:func:`read_yaml`'s parsing half).
+
+    Raises:
+        ConfigError: the text is not valid YAML or names a key twice.
+    """
     try:
         return yaml.load(text, Loader=_UniqueKeyLoader)  # a SafeLoader
     except DuplicateKeyError as err:

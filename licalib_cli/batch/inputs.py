@@ -29,7 +29,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from licalib_cli.config import read_yaml
+from licalib_cli.config import parse_yaml, read_text
 from licalib_cli.errors import ConfigError, LicalibError, ManifestError
 
 __all__ = ["COLUMNS", "BatchJob", "normalise_segments", "read_inputs"]
@@ -346,25 +346,7 @@ def _validate(path: Path, where: str, what: str, raw: dict[str, Any]) -> _Row:
 
 
 def _read_text(path: Path) -> str:
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError as err:
-        msg = f"The manifest {path} does not exist; check the path."
-        raise ManifestError(msg) from err
-    except IsADirectoryError as err:
-        msg = f"The manifest {path} is a folder; pass a .csv or .yaml file."
-        raise ManifestError(msg) from err
-    except OSError as err:
-        msg = f"The manifest {path} cannot be read ({err.strerror}); check its permissions."
-        raise ManifestError(msg) from err
-    try:
-        return data.decode("utf-8-sig")
-    except UnicodeDecodeError as err:
-        msg = (
-            f"The manifest {path} is not a text file (byte {err.start} is not UTF-8); pass a "
-            "CSV or YAML file."
-        )
-        raise ManifestError(msg) from err
+    return read_text(path, "The manifest", "a CSV or YAML file", ManifestError)
 
 
 def _csv_rows(path: Path) -> list[tuple[str, dict[str, Any]]]:
@@ -409,9 +391,9 @@ def _csv_rows(path: Path) -> list[tuple[str, dict[str, Any]]]:
 
 
 def _yaml_rows(path: Path) -> list[tuple[str, dict[str, Any]]]:
-    _read_text(path)  # the manifest's own sentences for a missing or binary file
+    text = _read_text(path)  # the manifest's own sentences for a missing or binary file
     try:
-        data = read_yaml(path, "The manifest")
+        data = parse_yaml(text, path, "The manifest")
     except ConfigError as err:
         raise ManifestError(str(err)) from err
     if isinstance(data, dict):
