@@ -22,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.estimation import CalibrationState, build_problem
+from licalib_cli.pipeline.points import points_in_global
 from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.pipeline.settings import intrinsic_priors
 from licalib_cli.residuals import TRAJ_R3, TRAJ_SO3, PointToPlaneResidual
@@ -101,7 +102,7 @@ def map_uncertainty(
     assert isinstance(residual, PointToPlaneResidual)
     plane = np.asarray(inputs.lidar.plane, dtype=np.intp)
     num_planes = int(np.asarray(inputs.planes.d).shape[0])
-    p_g = residual.world_points(evaluation.values)
+    p_g = points_in_global(state, inputs.points)  # the points the residuals measure
     count = np.bincount(plane, minlength=num_planes).astype(np.float64)
     centroid = (
         np.stack([np.bincount(plane, p_g[:, a], minlength=num_planes) for a in range(3)], axis=1)

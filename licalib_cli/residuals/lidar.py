@@ -163,31 +163,6 @@ class PointToPlaneResidual:
         ev = self.evaluate(params, jacobians=False)
         return ev.residuals[:, 0] / self.inv_sigma
 
-    def world_points(self, params: Mapping[str, F64]) -> F64:
-        """(N, 3) the modelled points in ``{G}`` at the query times (clipped to the spline)."""
-        tc = float(np.asarray(params.get(TIME_OFFSET, 0.0)).reshape(-1)[0])
-        drift = float(np.asarray(params.get(TIME_DRIFT, 0.0)).reshape(-1)[0])
-        k_point = float(np.asarray(params.get(POINT_TIME_SCALE, 0.0)).reshape(-1)[0])
-        t = np.clip(self.query_times(tc, drift, k_point), self.knots.t0_s, self.knots.t_end_s)
-        intr = params.get(LIDAR_INTRINSICS)
-        if intr is None:
-            intr = nominal_intrinsics_array(self.nominal_elevation.shape[0])
-        terms = lidar_point_terms(
-            self.nominal_elevation,
-            np.asarray(intr, dtype=np.float64).reshape(-1, NUM_BEAM_INTRINSICS),
-            self.beam,
-            self.rho,
-            self.theta,
-            self._cos_sin_theta,
-        )
-        p_lidar = terms.point if self.model_gap is None else terms.point + self.model_gap
-        rot = SO3Spline(self.knots, params[TRAJ_SO3]).evaluate(t, order=0).rotation
-        pos = R3Spline(self.knots, params[TRAJ_R3]).evaluate(t, order=0).position
-        p_imu = p_lidar @ quat_to_matrix(params[EXT_ROTATION]).T + np.asarray(
-            params[EXT_TRANSLATION], dtype=np.float64
-        )
-        return np.einsum("nij,nj->ni", rot, p_imu) + pos
-
     def evaluate(self, params: Mapping[str, F64], jacobians: bool = True) -> ResidualEval:
         """Whitened residuals (N, 1) and their Jacobians (see the module docstring)."""
         n = self.t_s.shape[0]
