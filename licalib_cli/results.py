@@ -368,6 +368,65 @@ def _represent_list(dumper: yaml.SafeDumper, data: list[Any]) -> yaml.Node:
 _Dumper.add_representer(list, _represent_list)
 
 
+def estimate_rows(
+    result: CalibrationResult,
+    truth: Extrinsic | None = None,
+    initial: tuple[Sequence[float], Sequence[float], float] | None = None,
+    unobservable: str = "unobservable",
+) -> list[list[str]]:
+    """The estimate table's rows, as the console and the report show them.
+
+    Columns: parameter, estimate, 1-sigma, then the initial guess (``initial``: translation m,
+    roll/pitch/yaw deg, time offset s) and the truth and error (``truth``) when given.
+
+    Args:
+        result: the result.
+        truth: the true extrinsic on the result's clock footing, or None.
+        initial: the initial guess, or None.
+        unobservable: the sigma cell of a direction that is not observable.
+    """
+    ext = result.extrinsic
+    unc = result.uncertainty
+    nan3 = (float("nan"),) * 3
+    t_std = unc.translation_std_m if unc else nan3
+    r_std = unc.rotation_std_deg if unc else nan3
+    c_std = unc.time_offset_std_s if unc else float("nan")
+
+    def sigma(v: float, scale: float, unit: str, digits: int) -> str:
+        return f"{v * scale:.{digits}f} {unit}" if np.isfinite(v) else unobservable
+
+    rpy = rpy_deg_from_matrix(ext.rotation)
+    t_rpy = rpy_deg_from_matrix(truth.rotation) if truth is not None else None
+    rows = []
+    for i, axis in enumerate("xyz"):
+        row = [f"t_{axis}", f"{ext.translation[i]:+.4f} m", sigma(t_std[i], 1e3, "mm", 2)]
+        if initial is not None:
+            row.append(f"{initial[0][i]:+.4f} m")
+        if truth is not None:
+            row += [
+                f"{truth.translation[i]:+.4f} m",
+                f"{1e3 * (ext.translation[i] - truth.translation[i]):+.2f} mm",
+            ]
+        rows.append(row)
+    for i, name in enumerate(("roll", "pitch", "yaw")):
+        row = [name, f"{rpy[i]:+.4f} deg", sigma(r_std[i], 1.0, "deg", 4)]
+        if initial is not None:
+            row.append(f"{initial[1][i]:+.4f} deg")
+        if t_rpy is not None:
+            row += [f"{t_rpy[i]:+.4f} deg", f"{rpy[i] - t_rpy[i]:+.4f} deg"]
+        rows.append(row)
+    row = ["time offset", f"{1e3 * ext.time_offset_s:+.3f} ms", sigma(c_std, 1e3, "ms", 3)]
+    if initial is not None:
+        row.append(f"{1e3 * initial[2]:+.3f} ms")
+    if truth is not None:
+        row += [
+            f"{1e3 * truth.time_offset_s:+.3f} ms",
+            f"{1e3 * (ext.time_offset_s - truth.time_offset_s):+.3f} ms",
+        ]
+    rows.append(row)
+    return rows
+
+
 def dump_yaml(data: dict[str, Any]) -> str:
     """YAML with short lists on one line and keys in insertion order."""
     return yaml.dump(data, Dumper=_Dumper, sort_keys=False, default_flow_style=False, width=120)

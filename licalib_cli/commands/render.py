@@ -10,7 +10,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from licalib_cli.results import CalibrationResult, Extrinsic, rpy_deg_from_matrix
+from licalib_cli.results import CalibrationResult, Extrinsic, estimate_rows
 from licalib_cli.sections import Consistency
 from licalib_cli.truth import Truth
 
@@ -44,40 +44,14 @@ def truth_on_result_clock(result: CalibrationResult, truth: Truth) -> Extrinsic:
 
 def render_estimate(result: CalibrationResult, truth: Truth | None) -> Table:
     """The extrinsic and time offset with their 1-sigma (and the truth and error if given)."""
-    ext = result.extrinsic
-    unc = result.uncertainty
-    nan3 = (float("nan"),) * 3
-    t_std = unc.translation_std_m if unc else nan3
-    r_std = unc.rotation_std_deg if unc else nan3
-    c_std = unc.time_offset_std_s if unc else float("nan")
     true_ext = truth_on_result_clock(result, truth) if truth is not None else None
     table = Table(
         title="T_imu_lidar (p_imu = R p_lidar + t) and time offset (t_imu = t_lidar + dt)"
     )
     for name in ("parameter", "estimate", "1-sigma") + (("truth", "error") if truth else ()):
         table.add_column(name, justify="left" if name == "parameter" else "right")
-    rpy = rpy_deg_from_matrix(ext.rotation)
-    true_rpy = rpy_deg_from_matrix(true_ext.rotation) if true_ext is not None else None
-    for i, axis in enumerate("xyz"):
-        row = [f"t_{axis}", f"{ext.translation[i]:+.4f} m", _fmt(t_std[i], "mm", 1e3, 2)]
-        if true_ext is not None:
-            row += [
-                f"{true_ext.translation[i]:+.4f} m",
-                f"{1e3 * (ext.translation[i] - true_ext.translation[i]):+.2f} mm",
-            ]
+    for row in estimate_rows(result, true_ext):
         table.add_row(*row)
-    for i, name in enumerate(("roll", "pitch", "yaw")):
-        row = [name, f"{rpy[i]:+.4f} deg", _fmt(r_std[i], "deg", 1.0, 4)]
-        if true_rpy is not None:
-            row += [f"{true_rpy[i]:+.4f} deg", f"{rpy[i] - true_rpy[i]:+.4f} deg"]
-        table.add_row(*row)
-    row = ["time offset", f"{1e3 * ext.time_offset_s:+.3f} ms", _fmt(c_std, "ms", 1e3, 3)]
-    if true_ext is not None:
-        row += [
-            f"{1e3 * true_ext.time_offset_s:+.3f} ms",
-            f"{1e3 * (ext.time_offset_s - true_ext.time_offset_s):+.3f} ms",
-        ]
-    table.add_row(*row)
     return table
 
 

@@ -18,7 +18,7 @@ import numpy as np
 from licalib_cli.geometry import so3
 from licalib_cli.report import figures
 from licalib_cli.report.data import ReportData
-from licalib_cli.results import CalibrationResult, Extrinsic, rpy_deg_from_matrix
+from licalib_cli.results import CalibrationResult, Extrinsic, estimate_rows, rpy_deg_from_matrix
 from licalib_cli.sections import Consistency
 
 __all__ = ["render_html"]
@@ -83,53 +83,22 @@ def _missing(what: str) -> str:
     )
 
 
-def _sigma(v: float, scale: float, unit: str, digits: int) -> str:
-    return f"{v * scale:.{digits}f} {unit}" if np.isfinite(v) else "not observable"
-
-
 def _estimate(result: CalibrationResult, data: ReportData | None) -> str:
     ext = result.extrinsic
-    unc = result.uncertainty
-    nan3 = (float("nan"),) * 3
-    t_std = unc.translation_std_m if unc else nan3
-    r_std = unc.rotation_std_deg if unc else nan3
-    c_std = unc.time_offset_std_s if unc else float("nan")
     truth: Extrinsic | None = data.truth if data is not None else None
-    initial = data if data is not None and data.initial_translation_m.size == 3 else None
+    initial = None
+    if data is not None and data.initial_translation_m.size == 3:
+        initial = (
+            [float(v) for v in data.initial_translation_m],
+            [float(v) for v in data.initial_rpy_deg],
+            float(data.initial_time_offset_s[0]),
+        )
     header = ["parameter", "estimate", "1-sigma"]
     if initial is not None:
         header.append("initial guess")
     if truth is not None:
         header += ["truth", "error"]
-    rpy = rpy_deg_from_matrix(ext.rotation)
-    t_rpy = rpy_deg_from_matrix(truth.rotation) if truth is not None else None
-    rows = []
-    for i, axis in enumerate("xyz"):
-        row = [f"t_{axis}", f"{ext.translation[i]:+.4f} m", _sigma(t_std[i], 1e3, "mm", 2)]
-        if initial is not None:
-            row.append(f"{initial.initial_translation_m[i]:+.4f} m")
-        if truth is not None:
-            row += [
-                f"{truth.translation[i]:+.4f} m",
-                f"{1e3 * (ext.translation[i] - truth.translation[i]):+.2f} mm",
-            ]
-        rows.append(row)
-    for i, name in enumerate(("roll", "pitch", "yaw")):
-        row = [name, f"{rpy[i]:+.4f} deg", _sigma(r_std[i], 1.0, "deg", 4)]
-        if initial is not None:
-            row.append(f"{initial.initial_rpy_deg[i]:+.4f} deg")
-        if t_rpy is not None:
-            row += [f"{t_rpy[i]:+.4f} deg", f"{rpy[i] - t_rpy[i]:+.4f} deg"]
-        rows.append(row)
-    row = ["time offset", f"{1e3 * ext.time_offset_s:+.3f} ms", _sigma(c_std, 1e3, "ms", 3)]
-    if initial is not None:
-        row.append(f"{1e3 * float(initial.initial_time_offset_s[0]):+.3f} ms")
-    if truth is not None:
-        row += [
-            f"{1e3 * truth.time_offset_s:+.3f} ms",
-            f"{1e3 * (ext.time_offset_s - truth.time_offset_s):+.3f} ms",
-        ]
-    rows.append(row)
+    rows = estimate_rows(result, truth, initial, unobservable="not observable")
     out = [
         "<h2>Estimate</h2>",
         '<p class="note">T_imu_lidar maps LiDAR points into the IMU frame: p_imu = R p_lidar + '
