@@ -59,6 +59,7 @@ __all__ = [
     "Checks",
     "Finding",
     "check",
+    "intrinsics_uncertainty",
     "judge",
     "observability_of",
     "raw_uncertainty",
@@ -96,6 +97,7 @@ class Checks:
         exit_status: ``"ok"``, ``"fail"`` or ``"not converged"``.
         intrinsics_uncertainty: 1-sigma of the estimated intrinsics (None when none were).
         effects: the score tests of the effects the fit held fixed (selected ones first).
+        planes: the sigma factors for the map planes' own uncertainty (None: not computed).
     """
 
     verdict: VerdictSection
@@ -107,6 +109,7 @@ class Checks:
     exit_status: str
     intrinsics_uncertainty: IntrinsicsUncertainty | None = None
     effects: tuple[EffectEvidence, ...] = ()
+    planes: MapUncertainty | None = None
 
 
 def _std(report: SolverReport, names: list[str]) -> F64:
@@ -519,6 +522,7 @@ def run_checks(
         exit_status=exit_status,
         intrinsics_uncertainty=intrinsics,
         effects=tuple(effects),
+        planes=planes,
     )
 
 

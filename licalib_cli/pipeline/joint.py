@@ -15,6 +15,15 @@ the model estimates; each keeps its own trajectory spline, IMU biases, gravity a
 3. :data:`JOINT_ROUNDS` rounds: the first on each segment's own final associations, the next
    ones with every segment's map and associations rebuilt from the joint estimate.
 
+The joint sigmas start from the joint solver's and are enlarged as each segment's own were, by
+the largest factor any segment needed (:func:`_growth`): the map planes' own uncertainty, the
+residuals' chi-square, the split halves and the effects the model holds fixed. The joint problem
+is not checked on its own beyond that, so a joint sigma is at most as optimistic as the most
+trusted segment's.
+
+The intrinsics written are the joint problem's (shared by the segments); the biases and gravity
+are the reference segment's (the one with the smallest sigmas).
+
 A segment whose own estimate differs from the joint one by more than
 :data:`DISAGREEMENT_SIGMAS` of its own sigma (any translation or rotation axis) is flagged.
 The verdict is ``warn`` when a segment disagrees, when a segment alone does not pass (a short
@@ -48,6 +57,8 @@ from licalib_cli.geometry import so3
 from licalib_cli.io.bag import open_bag
 from licalib_cli.io.reader import MIN_SEGMENT_S
 from licalib_cli.pipeline import CalibrationRun, calibrate
+from licalib_cli.pipeline.checks import intrinsics_uncertainty
+from licalib_cli.pipeline.map_uncertainty import MapUncertainty
 from licalib_cli.pipeline.points import points_in_global, solver_points, usable_points
 from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.pipeline.segments import _with_range, select_segments
@@ -436,8 +447,43 @@ def calibrate_segments(
         )
     assert report is not None
     timings["joint"] = time.perf_counter() - clock
-    result = _joint_result(runs, kept, states, report, best)
+    result = _joint_result(runs, kept, states, report, best, cfg)
     return JointRun(result, tuple(runs), tuple(kept), report, tuple(states), timings)
+
+
+def _growth(runs: Sequence[CalibrationRun]) -> tuple[F64, float, MapUncertainty | None]:
+    """How much the segments' checks enlarged their solver sigmas, the largest over segments.
+
+    Returns:
+        ``(factor (7,) for translation, rotation and time offset, the root of the largest
+        chi-square per sample, the largest map-plane factor of every coordinate or None)``.
+    """
+    grow = np.ones(7)
+    chi = 1.0
+    names: dict[str, float] = {}
+    planes_used = 0
+    for run in runs:
+        c = run.checks
+        u = c.uncertainty
+        shown = np.concatenate(
+            [
+                np.asarray(u.translation_std_m),
+                np.radians(np.asarray(u.rotation_std_deg)),
+                [u.time_offset_std_s],
+            ]
+        )
+        ratio = shown / np.asarray(c.raw_sigma)
+        ok = np.isfinite(ratio) & (np.asarray(c.raw_sigma) > 0)
+        grow[ok] = np.maximum(grow[ok], ratio[ok])
+        chi = max([chi, *(s.chi2_per_sample for s in c.consistency.sensors)])
+        if c.planes is not None:
+            planes_used = max(planes_used, c.planes.planes)
+            for n, f in zip(c.planes.names, c.planes.factor, strict=True):
+                names[n] = max(names.get(n, 1.0), float(f))
+    planes = None
+    if names:
+        planes = MapUncertainty(tuple(names), np.array(list(names.values())), planes_used, 0.0)
+    return grow, float(np.sqrt(chi)), planes
 
 
 def _sigma_size(run: CalibrationRun) -> float:
@@ -456,6 +502,7 @@ def _joint_result(
     states: Sequence[CalibrationState],
     report: SolverReport,
     best: int,
+    cfg: CalibConfig,
 ) -> CalibrationResult:
     names = report.calibration_names
     std = dict(zip(names, report.std, strict=True))
@@ -473,7 +520,13 @@ def _joint_result(
     else:
         tc, tc_std = float(np.mean(offsets)), float("inf")
     joint = Extrinsic(states[0].R_imu_lidar.copy(), states[0].t_imu_lidar.copy(), tc)
-    unc = replace(_uncertainty(report), time_offset_std_s=tc_std)
+    grow, chi_factor, planes = _growth(runs)
+    raw = _uncertainty(report)
+    unc = Uncertainty(
+        translation_std_m=vec3(np.asarray(raw.translation_std_m) * grow[:3]),
+        rotation_std_deg=vec3(np.asarray(raw.rotation_std_deg) * grow[3:6]),
+        time_offset_std_s=tc_std * float(grow[6]),
+    )
     entries = []
     worst = "pass"
     reasons: list[str] = []
@@ -519,15 +572,27 @@ def _joint_result(
     if any(any(bk.startswith("ext.") for bk, _ in d.blocks) for d in report.truncated):
         worst = "warn" if worst == "pass" else worst
         reasons += [f"Not observable from the segments together: {t}" for t in truncated]
+    if np.any(grow > 1.005):
+        reasons.append(
+            f"Joint sigmas enlarged up to {float(grow.max()):.2f} times, as the segments' own "
+            "were (map planes, residual chi-square, split halves, held effects)."
+        )
     base = runs[best].result
     section = SegmentsSection(
         reference=best + 1,
         disagreement_threshold_sigmas=DISAGREEMENT_SIGMAS,
         segments=tuple(entries),
     )
+    ref = states[best]
     return replace(
         base,
         extrinsic=joint,
+        imu_intrinsics=ref.imu_intrinsics,
+        lidar_intrinsics=ref.lidar_intrinsics if cfg.model.lidar else None,
+        intrinsics_uncertainty=intrinsics_uncertainty(
+            report, cfg, chi_factor, ref.lidar_intrinsics.num_beams, planes
+        ),
+        gravity_G=vec3(round(float(x), 6) for x in ref.gravity_G),
         uncertainty=unc,
         observability=Observability(
             scaling=report.scaling,

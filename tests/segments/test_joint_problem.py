@@ -21,10 +21,12 @@ from licalib_cli.geometry.so3 import exp as so3_exp
 from licalib_cli.models.intrinsics import LidarIntrinsics
 from licalib_cli.pipeline.joint import (
     _disagreement,
+    _growth,
     joint_problem,
     per_segment_blocks,
     segment_name,
 )
+from licalib_cli.pipeline.map_uncertainty import MapUncertainty
 from licalib_cli.pipeline.points import PointSample
 from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.residuals import (
@@ -182,3 +184,36 @@ def test_disagreement_is_measured_in_the_segments_own_sigmas() -> None:
         )
     )
     assert _disagreement(blind, moved) == 0.0
+
+
+def _checked_run(raw: list[float], shown_t: float, chi: float, plane_factor: float):
+    """A segment run whose checks enlarged the translation sigmas to ``shown_t``."""
+    checks = SimpleNamespace(
+        raw_sigma=np.array(raw),
+        uncertainty=Uncertainty((shown_t,) * 3, tuple(np.degrees(raw[3:6])), raw[6]),
+        consistency=SimpleNamespace(sensors=(SimpleNamespace(chi2_per_sample=chi),)),
+        planes=MapUncertainty(
+            ("ext.translation.x", "lidar.intrinsics[1].drho"),
+            np.array([1.1, plane_factor]),
+            40,
+            0.0,
+        ),
+    )
+    return SimpleNamespace(checks=checks)
+
+
+def test_joint_sigmas_grow_by_the_largest_factor_of_any_segment() -> None:
+    raw = [0.001, 0.001, 0.001, 1e-4, 1e-4, 1e-4, 1e-5]
+    a = _checked_run(raw, 0.0015, chi=1.44, plane_factor=3.0)
+    b = _checked_run(raw, 0.0030, chi=0.8, plane_factor=2.0)
+    grow, chi_factor, planes = _growth([a, b])
+    np.testing.assert_allclose(grow[:3], 3.0)  # the second segment's enlargement
+    np.testing.assert_allclose(grow[3:], 1.0, atol=1e-12)  # never below one
+    assert chi_factor == pytest.approx(1.2)  # root of the largest chi-square per sample
+    assert planes is not None
+    assert planes.of("lidar.intrinsics[1].drho") == pytest.approx(3.0)
+    assert planes.of("ext.translation.x") == pytest.approx(1.1)
+    # a coordinate a segment left undetermined (raw sigma infinite) does not poison the factor
+    c = _checked_run([np.inf, *raw[1:]], 0.0015, chi=1.0, plane_factor=1.0)
+    grow, _, _ = _growth([c])
+    assert np.all(np.isfinite(grow))
