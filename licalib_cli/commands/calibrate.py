@@ -8,6 +8,13 @@ from typing import TYPE_CHECKING
 
 import typer
 
+from licalib_cli.commands.options import (
+    INPUT_PANEL,
+    BagArgument,
+    ConfigOption,
+    ImuTopicOption,
+    LidarTopicOption,
+)
 from licalib_cli.commands.render import console, console_err, render_run
 from licalib_cli.config import INTRINSIC_PRESETS, dump_config, load_config
 from licalib_cli.errors import ConfigError, NotConverged, VerdictFailure
@@ -21,7 +28,7 @@ if TYPE_CHECKING:
     from licalib_cli.config import CalibConfig
     from licalib_cli.pipeline import CalibrationRun
 
-_IO = "Input"
+_IO = INPUT_PANEL
 _OUT = "Output"
 _MODEL = "Model"
 
@@ -160,20 +167,10 @@ def _write_report_outputs(
 
 
 def calibrate_command(
-    bag: Path = typer.Argument(
-        ...,
-        metavar="BAG",
-        help="ROS1 .bag (or folder of split bags), ROS2 bag folder, .db3 or .mcap.",
-    ),
-    config: Path | None = typer.Option(
-        None, "--config", "-c", help="YAML config.", rich_help_panel=_IO
-    ),
-    imu_topic: str | None = typer.Option(
-        None, "--imu-topic", help="sensor_msgs/Imu topic.", rich_help_panel=_IO
-    ),
-    lidar_topic: str | None = typer.Option(
-        None, "--lidar-topic", help="sensor_msgs/PointCloud2 topic.", rich_help_panel=_IO
-    ),
+    bag: BagArgument,
+    config: ConfigOption = None,
+    imu_topic: ImuTopicOption = None,
+    lidar_topic: LidarTopicOption = None,
     start: float | None = typer.Option(
         None, "--start", help="Seconds after the bag start.", rich_help_panel=_IO
     ),

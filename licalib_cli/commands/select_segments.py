@@ -11,6 +11,13 @@ import numpy as np
 import typer
 from rich.table import Table
 
+from licalib_cli.commands.options import (
+    INPUT_PANEL,
+    BagArgument,
+    ConfigOption,
+    ImuTopicOption,
+    LidarTopicOption,
+)
 from licalib_cli.commands.render import console
 from licalib_cli.config import load_config
 from licalib_cli.results import prepare_output
@@ -18,7 +25,7 @@ from licalib_cli.results import prepare_output
 if TYPE_CHECKING:
     from licalib_cli.pipeline.segments import Selection
 
-_IO = "Input"
+_IO = INPUT_PANEL
 _WIN = "Windows"
 _OUT = "Output"
 
@@ -99,20 +106,10 @@ def save_selection_plot(sel: Selection, path: Path) -> Path:
 
 
 def select_segments_command(
-    bag: Path = typer.Argument(
-        ...,
-        metavar="BAG",
-        help="ROS1 .bag (or folder of split bags), ROS2 bag folder, .db3 or .mcap.",
-    ),
-    config: Path | None = typer.Option(
-        None, "--config", "-c", help="YAML config.", rich_help_panel=_IO
-    ),
-    imu_topic: str | None = typer.Option(
-        None, "--imu-topic", help="sensor_msgs/Imu topic.", rich_help_panel=_IO
-    ),
-    lidar_topic: str | None = typer.Option(
-        None, "--lidar-topic", help="sensor_msgs/PointCloud2 topic.", rich_help_panel=_IO
-    ),
+    bag: BagArgument,
+    config: ConfigOption = None,
+    imu_topic: ImuTopicOption = None,
+    lidar_topic: LidarTopicOption = None,
     start: float | None = typer.Option(
         None,
         "--start",

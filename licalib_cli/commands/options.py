@@ -1,0 +1,40 @@
+"""Options several commands share, declared once so their names, help and panels agree.
+
+Each is an ``Annotated`` alias: a command writes ``config: ConfigOption = None``. Typer copies
+the option's description for every command that uses it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+__all__ = ["INPUT_PANEL", "BagArgument", "ConfigOption", "ImuTopicOption", "LidarTopicOption"]
+
+INPUT_PANEL = "Input"
+"""The help panel of the options that say what to read."""
+
+BagArgument = Annotated[
+    Path,
+    typer.Argument(
+        metavar="BAG",
+        help="ROS1 .bag (or folder of split bags), ROS2 bag folder, .db3 or .mcap.",
+        show_default=False,
+    ),
+]
+ConfigOption = Annotated[
+    Path | None,
+    typer.Option("--config", "-c", help="YAML config.", rich_help_panel=INPUT_PANEL),
+]
+ImuTopicOption = Annotated[
+    str | None,
+    typer.Option("--imu-topic", help="sensor_msgs/Imu topic.", rich_help_panel=INPUT_PANEL),
+]
+LidarTopicOption = Annotated[
+    str | None,
+    typer.Option(
+        "--lidar-topic", help="sensor_msgs/PointCloud2 topic.", rich_help_panel=INPUT_PANEL
+    ),
+]
