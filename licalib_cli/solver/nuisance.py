@@ -155,17 +155,20 @@ def marginal_schur(lin: Linearization, terms: NuisanceTerms, hold: npt.ArrayLike
     s_full[idx[:, :, None], idx[:, None, :]] += terms.H_pp
     s_cc, s_cp, s_pp = s_full[:nc, :nc], s_full[:nc, nc:], s_full[nc:, nc:]
     if npar:
-        s_c = s_cc - s_cp @ _pinv_psd(s_pp) @ s_cp.T
+        s_c = s_cc - _reduced_by(s_pp, s_cp)
     else:
         s_c = s_cc
     return 0.5 * (s_c + s_c.T)
 
 
-def _pinv_psd(a: F64) -> F64:
-    """Pseudo-inverse of a symmetric positive semi-definite matrix, Jacobi-scaled first.
+def _reduced_by(a: F64, b: F64) -> F64:
+    """``b a^+ b^T`` for a symmetric positive semi-definite ``a``, Jacobi-scaled first.
 
-    Directions whose scaled eigenvalue is below :data:`_NUISANCE_REGULARISATION` (what the data
-    do not determine, and rounding noise of the Schur complement) are dropped.
+    Directions of ``a`` whose scaled eigenvalue is below :data:`_NUISANCE_REGULARISATION` (what
+    the data do not determine, and rounding noise of the Schur complement) are dropped. When
+    none would be, ``a`` is factored by Cholesky and only ``b``'s few rows are solved for (``a``
+    is the nuisance's information, thousands of rows; ``b`` has one row per calibration
+    coordinate), instead of forming the inverse.
     """
     diag = np.diag(a).copy()
     if np.all(diag > 0.0):
@@ -173,18 +176,18 @@ def _pinv_psd(a: F64) -> F64:
         scaled = d[:, None] * a * d[None, :]
         try:
             low = np.linalg.cholesky(scaled)
-            # well conditioned enough that no direction would be dropped: invert by Cholesky
+            # well conditioned enough that no direction would be dropped
             if np.min(np.diag(low)) ** 2 > 10.0 * _NUISANCE_REGULARISATION:
-                inv_low = sla.solve_triangular(low, np.eye(a.shape[0]), lower=True)
-                return (d[:, None] * (inv_low.T @ inv_low)) * d[None, :]
+                y = sla.solve_triangular(low, (b * d[None, :]).T, lower=True)
+                return np.asarray(y.T @ y)
         except np.linalg.LinAlgError:
             pass
     d = np.where(diag > 0.0, 1.0 / np.sqrt(np.where(diag > 0.0, diag, 1.0)), 0.0)
     scaled = d[:, None] * a * d[None, :]
     vals, vecs = np.linalg.eigh(0.5 * (scaled + scaled.T))
     keep = vals > _NUISANCE_REGULARISATION * max(float(vals.max(initial=0.0)), 1e-300)
-    u = vecs[:, keep] * d[:, None]
-    return (u / vals[keep]) @ u.T
+    bu = b @ (vecs[:, keep] * d[:, None])
+    return np.asarray((bu / vals[keep]) @ bu.T)
 
 
 def _whiten(lin: Linearization, add: F64, rhs: F64) -> F64:

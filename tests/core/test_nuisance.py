@@ -107,3 +107,19 @@ def test_a_group_the_data_do_not_determine_is_left_alone() -> None:
     got = marginal_schur(lin, terms)
     assert np.all(np.isfinite(got))
     assert np.linalg.eigvalsh(got).min() > 0.0
+
+
+def test_reduction_by_a_psd_matrix_matches_the_pseudo_inverse() -> None:
+    from licalib_cli.solver.nuisance import _reduced_by
+
+    rng = np.random.default_rng(4)
+    m = rng.normal(size=(40, 30))
+    b = rng.normal(size=(5, 30))
+    full = m.T @ m + 0.1 * np.eye(30)  # well conditioned: the Cholesky path
+    np.testing.assert_allclose(_reduced_by(full, b), b @ np.linalg.inv(full) @ b.T, rtol=1e-8)
+    # rank 20 of 30 (the eigen path): for rows in its range, b a^+ b^T = c a c^T whatever
+    # generalised inverse (scaled or not) is used
+    low_rank = m[:20].T @ m[:20]
+    c = rng.normal(size=(5, 30))
+    in_range = c @ low_rank
+    np.testing.assert_allclose(_reduced_by(low_rank, in_range), c @ low_rank @ c.T, rtol=1e-6)
