@@ -536,6 +536,8 @@ class Problem:
         ev = evaluation.evals[block]
         loss = evaluation.losses[block]
         n, m = ev.residuals.shape
+        if all(isinstance(j, DenseJacobian) for j in ev.jacobians):
+            return self._dense_jacobian_matrix(ev, loss, layout)
         rows_all, cols_all, vals_all = [], [], []
         for rows, cols, vals in self._sparse_pieces(ev, layout):
             keep = cols >= 0
@@ -550,6 +552,38 @@ class Problem:
             sqrt_w = np.sqrt(loss(np.einsum("ij,ij->i", r, r))[1])
             vals = vals * np.repeat(sqrt_w, m)[rows]
         return sp.csr_matrix((vals, (rows, cols)), shape=(n * m, layout.num_free))
+
+    def _dense_jacobian_matrix(
+        self, ev: ResidualEval, loss: Loss | None, layout: Layout
+    ) -> sp.csr_matrix:
+        """:meth:`jacobian_matrix` when every piece is dense: every row has the same number of
+        entries, so the CSR arrays are laid out directly (no COO sort); a fixed coordinate's
+        entries stay as explicit zeros in column 0."""
+        n, m = ev.residuals.shape
+        cols_parts: list[IntArray] = []
+        vals_parts: list[F64] = []
+        for part in self._dense_parts(ev, layout):
+            a_d = part.values.shape[2]
+            touched = part.table[part.elements].reshape(n, 1, a_d)
+            cols_parts.append(np.broadcast_to(touched, (n, m, a_d)))
+            vals_parts.append(part.values)
+        if not cols_parts:
+            return sp.csr_matrix((n * m, layout.num_free))
+        cols = np.concatenate(cols_parts, axis=2).reshape(n * m, -1)
+        vals = np.concatenate(vals_parts, axis=2).reshape(n * m, -1)
+        fixed = cols < 0
+        if np.any(fixed):
+            vals = np.where(fixed, 0.0, vals)
+            cols = np.where(fixed, 0, cols)
+        if loss is not None:
+            r = ev.residuals
+            sqrt_w = np.sqrt(loss(np.einsum("ij,ij->i", r, r))[1])
+            vals = vals * np.repeat(sqrt_w, m)[:, None]
+        k = cols.shape[1]
+        indptr = np.arange(0, n * m * k + 1, k, dtype=np.intp)
+        return sp.csr_matrix(
+            (vals.reshape(-1), cols.reshape(-1), indptr), shape=(n * m, layout.num_free)
+        )
 
     def _block_index(self, jac: DenseJacobian | SparseJacobian, layout: Layout) -> IntArray | None:
         if jac.block not in self._blocks:

@@ -7,13 +7,20 @@ inverse is the information ``marginal_schur`` must return.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
 from test_assembly import dense_reference, make_problem
 
-from licalib_cli.solver import HuberLoss
-from licalib_cli.solver.nuisance import NuisanceTerms, marginal_schur, nuisance_terms
+from licalib_cli.solver import HuberLoss, ResidualEval
+from licalib_cli.solver.nuisance import (
+    NuisanceTerms,
+    _reduced_by,
+    marginal_schur,
+    nuisance_terms,
+)
 from licalib_cli.solver.observability import undamped_schur
 
 NUM_GROUPS = 9
@@ -110,8 +117,6 @@ def test_a_group_the_data_do_not_determine_is_left_alone() -> None:
 
 
 def test_reduction_by_a_psd_matrix_matches_the_pseudo_inverse() -> None:
-    from licalib_cli.solver.nuisance import _reduced_by
-
     rng = np.random.default_rng(4)
     m = rng.normal(size=(40, 30))
     b = rng.normal(size=(5, 30))
@@ -123,3 +128,22 @@ def test_reduction_by_a_psd_matrix_matches_the_pseudo_inverse() -> None:
     c = rng.normal(size=(5, 30))
     in_range = c @ low_rank
     np.testing.assert_allclose(_reduced_by(low_rank, in_range), c @ low_rank @ c.T, rtol=1e-6)
+
+
+@pytest.mark.parametrize("huber", [False, True])
+def test_dense_jacobian_matrix_matches_its_coo_form(huber: bool) -> None:
+    """Dense pieces laid out straight into CSR equal the COO assembly: two residuals per
+    measurement, repeated blocks, partly fixed blocks."""
+    loss = HuberLoss(1.5) if huber else None
+    pr, _ = make_problem(5, 300, 2, True, loss)
+    for name, mask in [("ctrl", np.arange(42) < 6), ("wide", np.arange(30) % 4 == 0)]:
+        next(b for b in pr.parameter_blocks if b.name == name).set_fixed(mask)
+    evaluation = pr.evaluate()
+    layout = pr.layout()
+    got = pr.jacobian_matrix(evaluation, 0, layout).toarray()
+    ev = evaluation.evals[0]
+    coo = ResidualEval(ev.residuals, tuple(j.to_coo() for j in ev.jacobians))
+    as_coo = replace(evaluation, evals=(coo,))
+    expected = pr.jacobian_matrix(as_coo, 0, layout).toarray()
+    assert np.count_nonzero(expected) > 0
+    np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12)
