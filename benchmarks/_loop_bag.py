@@ -1,10 +1,11 @@
 """A long ROS1 bag made by playing a shorter one several times in a row (for memory figures).
 
 Every message of the source bag is written ``times`` times, each pass shifted by the source's
-span plus one sweep period, with both the record time and the ``std_msgs/Header`` stamp moved
-(``sensor_msgs/Imu`` and ``sensor_msgs/PointCloud2`` start with a header: ``seq`` then the
-stamp's ``sec``/``nsec``, bytes 4-12 of the serialised message). The motion jumps at each seam;
-what the bag is for is its size and its message rate, not its trajectory.
+span plus ``gap_ns`` (one IMU period of the simulator, so the IMU stream has no gap), with both
+the record time and the ``std_msgs/Header`` stamp moved (``sensor_msgs/Imu`` and
+``sensor_msgs/PointCloud2`` start with a header: ``seq`` then the stamp's ``sec``/``nsec``,
+bytes 4-12 of the serialised message). The motion jumps at each seam; what the bag is for is
+its size and its message rate, not its trajectory.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from pathlib import Path
 _NS = 1_000_000_000
 
 
-def loop_bag(source: Path, target: Path, times: int, gap_ns: int = 100_000_000) -> Path:
+def loop_bag(source: Path, target: Path, times: int, gap_ns: int = 2_500_000) -> Path:
     """Write ``target`` as ``times`` back-to-back passes over ``source`` (ROS1 ``.bag``).
 
     Returns:
