@@ -19,22 +19,27 @@ then ``p`` gives the calibration information ``S = S_cc - S_cp S_pp^-1 S_pc`` wi
 ``S_** = H_** - W_*^T W_*``. With the nuisance free, the trajectory and the nuisance share a gauge
 (the whole map and trajectory may move together); the caller names trajectory coordinates to hold
 (e.g. the first control point), which removes it.
+
+:func:`nuisance_step` solves the same system for a Gauss-Newton step of all three (the nuisance
+estimated with the problem instead of held fixed), with the calibration step restricted to the
+directions the joint information determines.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 import scipy.linalg as sla
 import scipy.sparse as sp
 
+from licalib_cli.solver.observability import truncation_mask
 from licalib_cli.solver.problem import Evaluation, Layout, Linearization, Problem
 from licalib_cli.solver.schur import _BandedCholesky, _sparse_lu_solver, _trajectory_diagonal
 
-__all__ = ["NuisanceTerms", "marginal_schur", "nuisance_terms"]
+__all__ = ["NuisanceStep", "NuisanceTerms", "marginal_schur", "nuisance_step", "nuisance_terms"]
 
 F64 = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.intp]
@@ -55,10 +60,13 @@ class NuisanceTerms:
     Attributes:
         H_xp: (Nt + Nc, Np) coupling with the problem's free coordinates.
         H_pp: (G, k, k) diagonal blocks; group ``g`` holds nuisance columns ``g k .. g k + k``.
+        g_p: (G, k) gradient ``J_p^T r`` of the cost (robust-loss weighted); empty when not
+            computed.
     """
 
     H_xp: sp.csr_matrix
     H_pp: F64
+    g_p: F64 = field(default_factory=lambda: np.zeros((0, 0)))
 
     @property
     def num_nuisance(self) -> int:
@@ -105,8 +113,10 @@ def nuisance_terms(
         raise ValueError(msg)
     k = jp.shape[1]
     g = int(grp.max()) + 1 if num_groups is None and n else int(num_groups or 0)
-    if loss is not None:
-        jp = jp * np.sqrt(loss(r[:, 0] ** 2)[1])[:, None]
+    weight = np.ones(n) if loss is None else loss(r[:, 0] ** 2)[1]
+    g_p = np.zeros((g, k))
+    np.add.at(g_p, grp, jp * (weight * r[:, 0])[:, None])
+    jp = jp * np.sqrt(weight)[:, None]
     j_x = problem.jacobian_matrix(evaluation, block, layout)
     cols = grp[:, None] * k + np.arange(k)
     j_p = sp.csr_matrix(
@@ -115,7 +125,7 @@ def nuisance_terms(
     h_xp = sp.csr_matrix(j_x.T @ j_p)
     h_pp = np.zeros((g, k, k))
     np.add.at(h_pp, grp, jp[:, :, None] * jp[:, None, :])
-    return NuisanceTerms(h_xp, h_pp)
+    return NuisanceTerms(h_xp, h_pp, g_p)
 
 
 def marginal_schur(lin: Linearization, terms: NuisanceTerms, hold: npt.ArrayLike = ()) -> F64:
@@ -199,3 +209,116 @@ def _whiten(lin: Linearization, add: F64, rhs: F64) -> F64:
     gram = 0.5 * (gram + gram.T)
     vals, vecs = np.linalg.eigh(gram)
     return (vecs * np.sqrt(np.clip(vals, 0.0, None))).T
+
+
+@dataclass(frozen=True)
+class NuisanceStep:
+    """A Gauss-Newton step of the problem's free coordinates and the nuisance together.
+
+    Attributes:
+        dx: (Nt + Nc,) step of the problem's free coordinates, in solver order.
+        dp: (G, k) step of the nuisance coordinates.
+        predicted_reduction: cost reduction the quadratic model predicts for the step.
+        num_truncated: calibration directions the joint information does not determine (held).
+    """
+
+    dx: F64
+    dp: F64
+    predicted_reduction: float
+    num_truncated: int
+
+
+def nuisance_step(
+    lin: Linearization,
+    terms: NuisanceTerms,
+    hold: npt.ArrayLike = (),
+    *,
+    tsvd_threshold: float = 1.0,
+    tsvd_relative: bool = False,
+) -> NuisanceStep:
+    """The Gauss-Newton step over trajectory, calibration and nuisance.
+
+    The trajectory is eliminated by the banded factor of ``H_tt`` (held coordinates fixed), then
+    the nuisance (Jacobi-scaled pseudo-inverse, as :func:`marginal_schur`); the calibration step
+    solves the remaining system in the coordinates scaled by ``lin.layout.calibration_scale``,
+    restricted to its eigen-directions above ``tsvd_threshold`` (the solver's truncation rule);
+    the nuisance and the trajectory steps follow by back-substitution.
+
+    Args:
+        lin: The problem's normal equations.
+        terms: The nuisance's terms at the same state, with their gradient ``g_p``.
+        hold: Trajectory coordinates (reduced indices) held fixed: the shared gauge.
+        tsvd_threshold: Smallest scaled information of a calibration direction that moves.
+        tsvd_relative: ``tsvd_threshold`` is relative to the largest.
+
+    Returns:
+        The step.
+
+    Raises:
+        ValueError: ``terms`` carries no gradient.
+    """
+    nt = lin.layout.num_trajectory
+    nc = lin.layout.num_calibration
+    g, k, _ = terms.H_pp.shape
+    npar = g * k
+    if terms.g_p.shape != (g, k):
+        msg = "nuisance_step needs the nuisance gradient (nuisance_terms computes it)"
+        raise ValueError(msg)
+    h_xp = sp.csr_matrix(terms.H_xp)
+    h_tp = h_xp[:nt].toarray()
+    h_cp = h_xp[nt:].toarray()
+    g_t, g_c, g_p = lin.g_t, lin.g_c, terms.g_p.reshape(-1)
+    ny = nc + npar
+    s_full = np.zeros((ny, ny))
+    b = -np.concatenate([g_c, g_p])
+    solve_tt: Callable[[F64], F64] | None = None
+    if nt:
+        add = _trajectory_diagonal(lin.H_tt, 0.0)
+        held = np.asarray(hold, dtype=np.intp).reshape(-1)
+        if held.size:
+            add[held] += _HOLD * float(max(np.max(lin.H_tt.diagonal()), 1.0))
+        factor = _BandedCholesky.factorize(lin.H_tt, add)
+        solve_tt = factor.solve if factor is not None else _sparse_lu_solver(lin.H_tt, add)
+        rhs = np.empty((nt, ny + 1), order="F")
+        rhs[:, :nc] = lin.H_tc
+        rhs[:, nc:ny] = h_tp
+        rhs[:, ny] = g_t
+        if factor is not None:
+            w = factor.forward(rhs)
+            gram = w.T @ w
+        else:
+            gram = rhs.T @ solve_tt(rhs)
+            gram = 0.5 * (gram + gram.T)
+        s_full -= gram[:ny, :ny]
+        b += gram[:ny, ny]
+    s_full[:nc, :nc] += lin.H_cc
+    s_full[:nc, nc:] += h_cp
+    s_full[nc:, :nc] += h_cp.T
+    idx = nc + np.arange(npar).reshape(g, k)
+    s_full[idx[:, :, None], idx[:, None, :]] += terms.H_pp
+    s_cp, s_pp = s_full[:nc, nc:], s_full[nc:, nc:]
+    p_inv = _pinv_psd(s_pp) if npar else np.zeros((0, 0))
+    s_c = s_full[:nc, :nc] - s_cp @ p_inv @ s_cp.T
+    b_c = b[:nc] - s_cp @ (p_inv @ b[nc:])
+    num_truncated = 0
+    dc = np.zeros(nc)
+    if nc:
+        scale = np.asarray(lin.layout.calibration_scale, dtype=np.float64)
+        s_d = scale[:, None] * s_c * scale[None, :]
+        vals, vecs = np.linalg.eigh(0.5 * (s_d + s_d.T))
+        keep = truncation_mask(np.clip(vals, 0.0, None), tsvd_threshold, relative=tsvd_relative)
+        num_truncated = int(nc - np.count_nonzero(keep))
+        u = vecs[:, keep]
+        dc = scale * (u @ ((u.T @ (scale * b_c)) / vals[keep]))
+    dp = p_inv @ (b[nc:] - s_cp.T @ dc) if npar else np.zeros(0)
+    dt = np.zeros(nt)
+    if nt:
+        assert solve_tt is not None
+        dt = solve_tt(-(g_t + lin.H_tc @ dc + h_tp @ dp))
+    dx = np.concatenate([dt, dc])
+    # quadratic model of the full system at the step
+    hp_dp = h_xp @ dp
+    quad = lin.quadratic(dx) + 2.0 * float(dx @ hp_dp)
+    quad += float(np.einsum("gi,gij,gj->", dp.reshape(g, k), terms.H_pp, dp.reshape(g, k)))
+    predicted = -(float(lin.g @ dx) + float(g_p @ dp) + 0.5 * quad)
+    return NuisanceStep(dx, dp.reshape(g, k), predicted, num_truncated)
