@@ -22,11 +22,12 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.estimation import CalibrationState, build_problem
+from licalib_cli.pipeline.free_planes import plane_jacobian
 from licalib_cli.pipeline.points import points_in_global
 from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.pipeline.settings import intrinsic_priors
 from licalib_cli.residuals import TRAJ_R3, TRAJ_SO3, PointToPlaneResidual
-from licalib_cli.solver import SolverReport, s2_basis
+from licalib_cli.solver import SolverReport
 from licalib_cli.solver.nuisance import marginal_schur, nuisance_terms
 from licalib_cli.solver.observability import undamped_schur
 
@@ -103,17 +104,8 @@ def map_uncertainty(
     plane = np.asarray(inputs.lidar.plane, dtype=np.intp)
     num_planes = int(np.asarray(inputs.planes.d).shape[0])
     p_g = points_in_global(state, inputs.points)  # the points the residuals measure
-    count = np.bincount(plane, minlength=num_planes).astype(np.float64)
-    centroid = (
-        np.stack([np.bincount(plane, p_g[:, a], minlength=num_planes) for a in range(3)], axis=1)
-        / np.maximum(count, 1.0)[:, None]
-    )
-    basis = s2_basis(np.asarray(inputs.planes.normal, dtype=np.float64))[plane]  # (N, 3, 2)
-    offset = p_g - centroid[plane]
-    jac_p = np.empty((plane.shape[0], 3))
-    jac_p[:, :2] = np.einsum("nij,ni->nj", basis, offset)
-    jac_p[:, 2] = 1.0
-    jac_p *= residual.inv_sigma[:, None]
+    jac_p, _ = plane_jacobian(p_g, plane, np.asarray(inputs.planes.normal, dtype=np.float64))
+    jac_p *= residual.whitening(problem.values())[:, None]
     terms = nuisance_terms(problem, evaluation, layout, lidar_block, jac_p, plane, num_planes)
     hold = np.concatenate([layout.index[TRAJ_SO3][:3], layout.index[TRAJ_R3][:3]])
     s_marg = marginal_schur(lin, terms, hold[hold >= 0])

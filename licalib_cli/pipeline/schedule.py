@@ -21,6 +21,7 @@ from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import CalibrationState, ImuData, intrinsic_coordinates
 from licalib_cli.measurements import Recording
 from licalib_cli.models.lidar import lidar_point
+from licalib_cli.pipeline.free_planes import refine_with_planes
 from licalib_cli.pipeline.initialise import InitialGuess
 from licalib_cli.pipeline.points import PointSample, points_per_scan, sample_points
 from licalib_cli.pipeline.round import RoundInputs, RoundSummary, extrinsic_of, run_round
@@ -100,6 +101,13 @@ class Fit:
 def _change(before: CalibrationState, after: CalibrationState) -> Change:
     err = extrinsic_of(before).error_to(extrinsic_of(after))
     return Change(err["translation_m"], err["rotation_deg"], err["time_offset_s"])
+
+
+def _describe(c: Change) -> str:
+    return (
+        f"{1e3 * c.translation_m:.2f} mm / {c.rotation_deg:.4f} deg / "
+        f"{1e3 * c.time_offset_s:.3f} ms"
+    )
 
 
 def _threshold(report: SolverReport, cfg: CalibConfig) -> Change:
@@ -275,6 +283,20 @@ def run_schedule(
             dense_change.rotation_deg,
             1e3 * dense_change.time_offset_s,
         )
+    if intrinsics_on and inputs.free.any_lidar_intrinsics:
+        # The rounds hold each map fixed and stall along the common mode of the range offsets
+        # and scales; a last refinement estimates the planes with everything else.
+        refined = refine_with_planes(state, inputs, round_settings(cfg, noise, base, True).solver)
+        if refined is not None:
+            logger.info(
+                "Planes-free refinement: %d steps, cost %.1f -> %.1f, change %s (%.1f s).",
+                refined.steps,
+                refined.cost_start,
+                refined.cost_end,
+                _describe(_change(state, refined.state)),
+                refined.seconds,
+            )
+            state, report, inputs = refined.state, refined.report, refined.inputs
     return Fit(
         state=state,
         rounds=tuple(rounds),

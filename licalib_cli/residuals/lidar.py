@@ -7,7 +7,7 @@ seconds relative to the problem's reference time) and associated plane ``n^T x +
     p_L = lidar_point(intrinsics, beam, rho, theta)
     t   = tau_k + t_c
     p_G = R(t) (R_IL p_L + t_IL) + p(t)
-    r   = (n^T p_G + d) / sigma_k
+    r   = (n^T p_G + d) / (s_i sigma_k)     (s_i: the range scale of the point's beam)
 
 One scalar robust-loss group per point (use the solver's Huber loss). Jacobians: ``traj.so3``
 and ``traj.r3`` (4 control points around ``t``), ``ext.rotation`` (right perturbation of
@@ -29,6 +29,7 @@ import numpy.typing as npt
 from licalib_cli.geometry.so3 import quat_to_matrix
 from licalib_cli.models.lidar import (
     NUM_BEAM_INTRINSICS,
+    BeamIntrinsic,
     lidar_point_terms,
     nominal_intrinsics_array,
     point_to_plane,
@@ -158,10 +159,19 @@ class PointToPlaneResidual:
             t = t - point_time_scale * self.into_sweep
         return t
 
+    def whitening(self, params: Mapping[str, F64]) -> F64:
+        """(N,) what a distance in metres is multiplied by to give the residual:
+        ``1 / (s_i sigma_k)`` with ``s_i`` the range scale of the point's beam."""
+        intr = params.get(LIDAR_INTRINSICS)
+        if intr is None:
+            return self.inv_sigma
+        scale = np.asarray(intr, dtype=np.float64).reshape(-1, NUM_BEAM_INTRINSICS)
+        return self.inv_sigma / scale[self.beam, BeamIntrinsic.RANGE_SCALE]
+
     def distances(self, params: Mapping[str, F64]) -> F64:
         """(N,) signed point-to-plane distances in metres (not whitened)."""
         ev = self.evaluate(params, jacobians=False)
-        return ev.residuals[:, 0] / self.inv_sigma
+        return ev.residuals[:, 0] / self.whitening(params)
 
     def evaluate(self, params: Mapping[str, F64], jacobians: bool = True) -> ResidualEval:
         """Whitened residuals (N, 1) and their Jacobians (see the module docstring)."""
@@ -181,9 +191,10 @@ class PointToPlaneResidual:
         want_time = jacobians and any(
             b in params for b in (TIME_OFFSET, TIME_DRIFT, POINT_TIME_SCALE)
         )
+        intr = np.asarray(intr, dtype=np.float64).reshape(-1, NUM_BEAM_INTRINSICS)
         terms = lidar_point_terms(
             self.nominal_elevation,
-            np.asarray(intr, dtype=np.float64).reshape(-1, NUM_BEAM_INTRINSICS),
+            intr,
             self.beam,
             self.rho,
             self.theta,
@@ -204,7 +215,10 @@ class PointToPlaneResidual:
             rot_ev.angular_velocity,
             pos_ev.velocity,
         )
-        w = self.inv_sigma
+        # The noise is the raw range's: in metres it is s_i sigma (whitening in raw-range units
+        # keeps the cost invariant when the world and every length of the LiDAR model scale
+        # together; in metres a smaller range scale would shrink the residuals with the map).
+        w = self.inv_sigma / intr[self.beam, BeamIntrinsic.RANGE_SCALE]
         r = geo.distance * w
         if not all_inside:
             r = np.where(inside, r, np.inf)
@@ -250,5 +264,6 @@ class PointToPlaneResidual:
                 jacs.append(DenseJacobian(POINT_TIME_SCALE, self._zeros, j))
         if LIDAR_INTRINSICS in params:
             d_int = terms.vjp(geo.d_point * w[:, None])
+            d_int[:, BeamIntrinsic.RANGE_SCALE] -= r / intr[self.beam, BeamIntrinsic.RANGE_SCALE]
             jacs.append(DenseJacobian(LIDAR_INTRINSICS, self._beam_elements, d_int[:, None, None]))
         return ResidualEval(r[:, None], tuple(jacs))

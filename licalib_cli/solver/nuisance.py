@@ -19,22 +19,27 @@ then ``p`` gives the calibration information ``S = S_cc - S_cp S_pp^-1 S_pc`` wi
 ``S_** = H_** - W_*^T W_*``. With the nuisance free, the trajectory and the nuisance share a gauge
 (the whole map and trajectory may move together); the caller names trajectory coordinates to hold
 (e.g. the first control point), which removes it.
+
+:func:`nuisance_step` solves the same system for a Gauss-Newton step of all three (the nuisance
+estimated with the problem instead of held fixed), with the calibration step restricted to the
+directions the joint information determines.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 import scipy.linalg as sla
 import scipy.sparse as sp
 
+from licalib_cli.solver.observability import truncation_mask
 from licalib_cli.solver.problem import Evaluation, Layout, Linearization, Problem
 from licalib_cli.solver.schur import _BandedCholesky, _sparse_lu_solver, _trajectory_diagonal
 
-__all__ = ["NuisanceTerms", "marginal_schur", "nuisance_terms"]
+__all__ = ["NuisanceStep", "NuisanceTerms", "marginal_schur", "nuisance_step", "nuisance_terms"]
 
 F64 = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.intp]
@@ -55,10 +60,13 @@ class NuisanceTerms:
     Attributes:
         H_xp: (Nt + Nc, Np) coupling with the problem's free coordinates.
         H_pp: (G, k, k) diagonal blocks; group ``g`` holds nuisance columns ``g k .. g k + k``.
+        g_p: (G, k) gradient ``J_p^T r`` of the cost (robust-loss weighted); empty when not
+            computed.
     """
 
     H_xp: sp.csr_matrix
     H_pp: F64
+    g_p: F64 = field(default_factory=lambda: np.zeros((0, 0)))
 
     @property
     def num_nuisance(self) -> int:
@@ -105,8 +113,10 @@ def nuisance_terms(
         raise ValueError(msg)
     k = jp.shape[1]
     g = int(grp.max()) + 1 if num_groups is None and n else int(num_groups or 0)
-    if loss is not None:
-        jp = jp * np.sqrt(loss(r[:, 0] ** 2)[1])[:, None]
+    weight = np.ones(n) if loss is None else loss(r[:, 0] ** 2)[1]
+    g_p = np.zeros((g, k))
+    np.add.at(g_p, grp, jp * (weight * r[:, 0])[:, None])
+    jp = jp * np.sqrt(weight)[:, None]
     j_x = problem.jacobian_matrix(evaluation, block, layout)
     cols = grp[:, None] * k + np.arange(k)
     j_p = sp.csr_matrix(
@@ -115,7 +125,7 @@ def nuisance_terms(
     h_xp = sp.csr_matrix(j_x.T @ j_p)
     h_pp = np.zeros((g, k, k))
     np.add.at(h_pp, grp, jp[:, :, None] * jp[:, None, :])
-    return NuisanceTerms(h_xp, h_pp)
+    return NuisanceTerms(h_xp, h_pp, g_p)
 
 
 def marginal_schur(lin: Linearization, terms: NuisanceTerms, hold: npt.ArrayLike = ()) -> F64:
@@ -161,14 +171,14 @@ def marginal_schur(lin: Linearization, terms: NuisanceTerms, hold: npt.ArrayLike
     return 0.5 * (s_c + s_c.T)
 
 
-def _reduced_by(a: F64, b: F64) -> F64:
-    """``b a^+ b^T`` for a symmetric positive semi-definite ``a``, Jacobi-scaled first.
+def _psd_solver(a: F64) -> Callable[[F64], F64]:
+    """``rhs -> a^+ rhs`` for a symmetric positive semi-definite ``a``, Jacobi-scaled first.
 
     Directions of ``a`` whose scaled eigenvalue is below :data:`_NUISANCE_REGULARISATION` (what
     the data do not determine, and rounding noise of the Schur complement) are dropped. When
-    none would be, ``a`` is factored by Cholesky and only ``b``'s few rows are solved for (``a``
-    is the nuisance's information, thousands of rows; ``b`` has one row per calibration
-    coordinate), instead of forming the inverse.
+    none would be, ``a`` is factored by Cholesky and each right-hand side is solved for (``a`` is
+    the nuisance's information, thousands of rows; the right-hand sides are the calibration's
+    few columns), instead of forming the inverse.
     """
     diag = np.diag(a).copy()
     if np.all(diag > 0.0):
@@ -176,18 +186,36 @@ def _reduced_by(a: F64, b: F64) -> F64:
         scaled = d[:, None] * a * d[None, :]
         try:
             low = np.linalg.cholesky(scaled)
-            # well conditioned enough that no direction would be dropped
-            if np.min(np.diag(low)) ** 2 > 10.0 * _NUISANCE_REGULARISATION:
-                y = sla.solve_triangular(low, (b * d[None, :]).T, lower=True)
-                return np.asarray(y.T @ y)
         except np.linalg.LinAlgError:
-            pass
+            low = None
+        # well conditioned enough that no direction would be dropped
+        if low is not None and np.min(np.diag(low)) ** 2 > 10.0 * _NUISANCE_REGULARISATION:
+            factor = (low, True)
+
+            def cholesky_solve(rhs: F64) -> F64:
+                r = np.asarray(rhs, dtype=np.float64)
+                dr = d.reshape((-1,) + (1,) * (r.ndim - 1))
+                return np.asarray(dr * sla.cho_solve(factor, dr * r))
+
+            return cholesky_solve
     d = np.where(diag > 0.0, 1.0 / np.sqrt(np.where(diag > 0.0, diag, 1.0)), 0.0)
     scaled = d[:, None] * a * d[None, :]
     vals, vecs = np.linalg.eigh(0.5 * (scaled + scaled.T))
     keep = vals > _NUISANCE_REGULARISATION * max(float(vals.max(initial=0.0)), 1e-300)
-    bu = b @ (vecs[:, keep] * d[:, None])
-    return np.asarray((bu / vals[keep]) @ bu.T)
+    u = vecs[:, keep] * d[:, None]
+    inv_vals = 1.0 / vals[keep]
+
+    def eigen_solve(rhs: F64) -> F64:
+        r = np.asarray(rhs, dtype=np.float64)
+        proj = u.T @ r
+        return np.asarray(u @ (inv_vals.reshape((-1,) + (1,) * (r.ndim - 1)) * proj))
+
+    return eigen_solve
+
+
+def _reduced_by(a: F64, b: F64) -> F64:
+    """``b a^+ b^T`` for a symmetric positive semi-definite ``a`` (:func:`_psd_solver`)."""
+    return np.asarray(b @ _psd_solver(a)(b.T))
 
 
 def _whiten(lin: Linearization, add: F64, rhs: F64) -> F64:
@@ -202,3 +230,116 @@ def _whiten(lin: Linearization, add: F64, rhs: F64) -> F64:
     gram = 0.5 * (gram + gram.T)
     vals, vecs = np.linalg.eigh(gram)
     return (vecs * np.sqrt(np.clip(vals, 0.0, None))).T
+
+
+@dataclass(frozen=True)
+class NuisanceStep:
+    """A Gauss-Newton step of the problem's free coordinates and the nuisance together.
+
+    Attributes:
+        dx: (Nt + Nc,) step of the problem's free coordinates, in solver order.
+        dp: (G, k) step of the nuisance coordinates.
+        predicted_reduction: cost reduction the quadratic model predicts for the step.
+        num_truncated: calibration directions the joint information does not determine (held).
+    """
+
+    dx: F64
+    dp: F64
+    predicted_reduction: float
+    num_truncated: int
+
+
+def nuisance_step(
+    lin: Linearization,
+    terms: NuisanceTerms,
+    hold: npt.ArrayLike = (),
+    *,
+    tsvd_threshold: float = 1.0,
+    tsvd_relative: bool = False,
+) -> NuisanceStep:
+    """The Gauss-Newton step over trajectory, calibration and nuisance.
+
+    The trajectory is eliminated by the banded factor of ``H_tt`` (held coordinates fixed), then
+    the nuisance (Jacobi-scaled pseudo-inverse, as :func:`marginal_schur`); the calibration step
+    solves the remaining system in the coordinates scaled by ``lin.layout.calibration_scale``,
+    restricted to its eigen-directions above ``tsvd_threshold`` (the solver's truncation rule);
+    the nuisance and the trajectory steps follow by back-substitution.
+
+    Args:
+        lin: The problem's normal equations.
+        terms: The nuisance's terms at the same state, with their gradient ``g_p``.
+        hold: Trajectory coordinates (reduced indices) held fixed: the shared gauge.
+        tsvd_threshold: Smallest scaled information of a calibration direction that moves.
+        tsvd_relative: ``tsvd_threshold`` is relative to the largest.
+
+    Returns:
+        The step.
+
+    Raises:
+        ValueError: ``terms`` carries no gradient.
+    """
+    nt = lin.layout.num_trajectory
+    nc = lin.layout.num_calibration
+    g, k, _ = terms.H_pp.shape
+    npar = g * k
+    if terms.g_p.shape != (g, k):
+        msg = "nuisance_step needs the nuisance gradient (nuisance_terms computes it)"
+        raise ValueError(msg)
+    h_xp = sp.csr_matrix(terms.H_xp)
+    h_tp = h_xp[:nt].toarray()
+    h_cp = h_xp[nt:].toarray()
+    g_t, g_c, g_p = lin.g_t, lin.g_c, terms.g_p.reshape(-1)
+    ny = nc + npar
+    s_full = np.zeros((ny, ny))
+    b = -np.concatenate([g_c, g_p])
+    solve_tt: Callable[[F64], F64] | None = None
+    if nt:
+        add = _trajectory_diagonal(lin.H_tt, 0.0)
+        held = np.asarray(hold, dtype=np.intp).reshape(-1)
+        if held.size:
+            add[held] += _HOLD * float(max(np.max(lin.H_tt.diagonal()), 1.0))
+        factor = _BandedCholesky.factorize(lin.H_tt, add)
+        solve_tt = factor.solve if factor is not None else _sparse_lu_solver(lin.H_tt, add)
+        rhs = np.empty((nt, ny + 1), order="F")
+        rhs[:, :nc] = lin.H_tc
+        rhs[:, nc:ny] = h_tp
+        rhs[:, ny] = g_t
+        if factor is not None:
+            w = factor.forward(rhs)
+            gram = w.T @ w
+        else:
+            gram = rhs.T @ solve_tt(rhs)
+            gram = 0.5 * (gram + gram.T)
+        s_full -= gram[:ny, :ny]
+        b += gram[:ny, ny]
+    s_full[:nc, :nc] += lin.H_cc
+    s_full[:nc, nc:] += h_cp
+    s_full[nc:, :nc] += h_cp.T
+    idx = nc + np.arange(npar).reshape(g, k)
+    s_full[idx[:, :, None], idx[:, None, :]] += terms.H_pp
+    s_cp, s_pp = s_full[:nc, nc:], s_full[nc:, nc:]
+    solve_pp = _psd_solver(s_pp) if npar else (lambda r: np.zeros_like(r))
+    s_c = s_full[:nc, :nc] - s_cp @ solve_pp(s_cp.T)
+    b_c = b[:nc] - s_cp @ solve_pp(b[nc:])
+    num_truncated = 0
+    dc = np.zeros(nc)
+    if nc:
+        scale = np.asarray(lin.layout.calibration_scale, dtype=np.float64)
+        s_d = scale[:, None] * s_c * scale[None, :]
+        vals, vecs = np.linalg.eigh(0.5 * (s_d + s_d.T))
+        keep = truncation_mask(np.clip(vals, 0.0, None), tsvd_threshold, relative=tsvd_relative)
+        num_truncated = int(nc - np.count_nonzero(keep))
+        u = vecs[:, keep]
+        dc = scale * (u @ ((u.T @ (scale * b_c)) / vals[keep]))
+    dp = solve_pp(b[nc:] - s_cp.T @ dc) if npar else np.zeros(0)
+    dt = np.zeros(nt)
+    if nt:
+        assert solve_tt is not None
+        dt = solve_tt(-(g_t + lin.H_tc @ dc + h_tp @ dp))
+    dx = np.concatenate([dt, dc])
+    # quadratic model of the full system at the step
+    hp_dp = h_xp @ dp
+    quad = lin.quadratic(dx) + 2.0 * float(dx @ hp_dp)
+    quad += float(np.einsum("gi,gij,gj->", dp.reshape(g, k), terms.H_pp, dp.reshape(g, k)))
+    predicted = -(float(lin.g @ dx) + float(g_p @ dp) + 0.5 * quad)
+    return NuisanceStep(dx, dp.reshape(g, k), predicted, num_truncated)

@@ -12,16 +12,18 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import scipy.sparse as sp
-from test_assembly import dense_reference, make_problem
+from test_assembly import RandomBlock, dense_reference, make_problem
 
 from licalib_cli.solver import HuberLoss, ResidualEval
 from licalib_cli.solver.nuisance import (
     NuisanceTerms,
     _reduced_by,
     marginal_schur,
+    nuisance_step,
     nuisance_terms,
 )
 from licalib_cli.solver.observability import undamped_schur
+from licalib_cli.solver.problem import Evaluation, Layout, Problem
 
 NUM_GROUPS = 9
 K = 3
@@ -147,3 +149,73 @@ def test_dense_jacobian_matrix_matches_its_coo_form(huber: bool) -> None:
     expected = pr.jacobian_matrix(as_coo, 0, layout).toarray()
     assert np.count_nonzero(expected) > 0
     np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12)
+
+
+def _dense_full(
+    pr: Problem, block: RandomBlock, loss: HuberLoss | None, jac_p: np.ndarray, group: np.ndarray
+) -> tuple[Evaluation, Layout, np.ndarray, np.ndarray]:
+    """Full normal equations and gradient over (free coordinates, nuisance), dense."""
+    evaluation = pr.evaluate()
+    layout = pr.layout()
+    h, g = dense_reference(pr, block, loss)
+    n = jac_p.shape[0]
+    w = np.ones(n) if loss is None else loss(block.r[:, 0] ** 2)[1]
+    jp = np.zeros((n, NUM_GROUPS * K))
+    jp[np.arange(n)[:, None], group[:, None] * K + np.arange(K)] = jac_p
+    jx = pr.jacobian_matrix(evaluation, 0, layout).toarray()
+    jp_w = jp * np.sqrt(w)[:, None]
+    full = np.block([[h, jx.T @ jp_w], [jp_w.T @ jx, jp_w.T @ jp_w]])
+    grad = np.concatenate([g, jp.T @ (w * block.r[:, 0])])
+    return evaluation, layout, full, grad
+
+
+@pytest.mark.parametrize("huber", [False, True])
+def test_nuisance_step_matches_the_dense_gauss_newton_step(huber: bool) -> None:
+    loss = HuberLoss(1.5) if huber else None
+    pr, block = make_problem(6, 900, 1, False, loss)
+    rng = np.random.default_rng(17)
+    jac_p, group = _nuisance(rng, 900)
+    evaluation, layout, full, grad = _dense_full(pr, block, loss, jac_p, group)
+    lin = pr.linearize(evaluation, layout)
+    terms = nuisance_terms(pr, evaluation, layout, 0, jac_p, group, NUM_GROUPS)
+    np.testing.assert_allclose(terms.g_p.reshape(-1), grad[layout.num_free :], atol=1e-10)
+
+    hold = np.array([0, 1, 2])
+    step = nuisance_step(lin, terms, hold, tsvd_threshold=0.0)
+    keep = np.setdiff1d(np.arange(full.shape[0]), hold)
+    expected = np.zeros(full.shape[0])
+    expected[keep] = -np.linalg.solve(full[np.ix_(keep, keep)], grad[keep])
+    got = np.concatenate([step.dx, step.dp.reshape(-1)])
+    np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-8 * np.abs(expected).max())
+    assert step.num_truncated == 0
+    predicted = -(grad @ expected + 0.5 * expected @ full @ expected)
+    assert step.predicted_reduction == pytest.approx(predicted, rel=1e-8)
+
+
+def test_nuisance_step_holds_the_directions_the_joint_information_does_not_determine() -> None:
+    pr, block = make_problem(9, 900, 1, False, None)
+    rng = np.random.default_rng(3)
+    jac_p, group = _nuisance(rng, 900)
+    evaluation, layout, *_ = _dense_full(pr, block, None, jac_p, group)
+    lin = pr.linearize(evaluation, layout)
+    terms = nuisance_terms(pr, evaluation, layout, 0, jac_p, group, NUM_GROUPS)
+    scale = layout.calibration_scale
+    s_d = scale[:, None] * marginal_schur(lin, terms) * scale[None, :]
+    vals, vecs = np.linalg.eigh(s_d)
+    threshold = float(np.median(vals))
+    step = nuisance_step(lin, terms, tsvd_threshold=threshold)
+    weak = vecs[:, vals <= threshold]
+    assert step.num_truncated == weak.shape[1] > 0
+    dc_scaled = step.dx[layout.num_trajectory :] / scale
+    np.testing.assert_allclose(weak.T @ dc_scaled, 0.0, atol=1e-9 * np.abs(dc_scaled).max())
+    assert step.predicted_reduction > 0.0
+
+
+def test_nuisance_step_needs_the_gradient() -> None:
+    pr, _ = make_problem(8, 600, 1, False, None)
+    evaluation = pr.evaluate()
+    layout = pr.layout()
+    lin = pr.linearize(evaluation, layout)
+    terms = NuisanceTerms(sp.csr_matrix((layout.num_free, K)), np.ones((1, K, K)) * np.eye(K))
+    with pytest.raises(ValueError, match="gradient"):
+        nuisance_step(lin, terms)

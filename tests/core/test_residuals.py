@@ -213,9 +213,47 @@ def test_point_to_plane_residual_jacobians(seed: int) -> None:
         [TRAJ_SO3, TRAJ_R3, EXT_ROTATION, EXT_TRANSLATION, TIME_OFFSET, LIDAR_INTRINSICS],
         float(terms),
     )
-    # distances are the unwhitened residuals
+    # distances are the unwhitened residuals; the whitening is in raw-range units
     d = res.distances(params)
-    np.testing.assert_allclose(d / pts["sigma"], res.evaluate(params, False).residuals[:, 0])
+    scale = params[LIDAR_INTRINSICS][pts["beam"], 4]
+    np.testing.assert_allclose(
+        d / (pts["sigma"] * scale), res.evaluate(params, False).residuals[:, 0]
+    )
+
+
+def test_point_to_plane_residual_is_invariant_to_the_scale_of_the_world() -> None:
+    """The range noise is the raw range's: when the world (trajectory, planes) and every length
+    of the model (lever arm, range scales and offsets, beam offsets) scale together the raw
+    measurements are unchanged, and so must the residuals be (in metres they would shrink with
+    the world, and a fit with the map free would shrink it)."""
+    rng = np.random.default_rng(31)
+    params = _random_params(rng)
+    pts = _points(rng, 40)
+
+    def residuals(k: float) -> np.ndarray:
+        scaled = dict(params)
+        scaled[TRAJ_R3] = k * params[TRAJ_R3]
+        scaled[EXT_TRANSLATION] = k * params[EXT_TRANSLATION]
+        intr = params[LIDAR_INTRINSICS].copy()
+        intr[:, 2:] *= k  # V, H, s, drho
+        scaled[LIDAR_INTRINSICS] = intr
+        res = PointToPlaneResidual(
+            KNOTS,
+            pts["t"],
+            pts["beam"],
+            pts["rho"],
+            pts["theta"],
+            pts["normal"],
+            k * pts["offset"],
+            pts["sigma"],
+            np.deg2rad([-10.0, 0.0, 10.0]),
+        )
+        return res.evaluate(scaled, jacobians=False).residuals[:, 0]
+
+    base = residuals(1.0)
+    assert np.abs(base).max() > 1.0
+    np.testing.assert_allclose(residuals(0.97), base, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(residuals(1.05), base, rtol=1e-9, atol=1e-9)
 
 
 def test_point_to_plane_outside_spline_is_infinite() -> None:

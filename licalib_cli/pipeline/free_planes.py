@@ -1,0 +1,230 @@
+"""A last refinement with the map planes estimated together with the calibration.
+
+The rounds fit the surfel planes to the points mapped with the current estimate and then hold
+them fixed. Along directions that move whole planes (the common mode of the range offsets and
+scales: every point moving along its ray), a fixed plane pulls the estimate back towards the
+values the map was built with, so the rounds move it by less than their tolerance and stop
+short of the optimum. This stage takes the final round's points and associations and runs
+Gauss-Newton steps of the joint problem: trajectory, calibration and every plane (two normal
+directions about the plane's centroid and its offset), the planes eliminated per plane
+(:func:`licalib_cli.solver.nuisance.nuisance_step`), the gauge (the whole map and trajectory
+moving together) held at the first control point. A step is kept only when it lowers the cost
+with the stepped planes. The solver then settles the state on the final planes and reports the
+sigmas there.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+import numpy.typing as npt
+
+from licalib_cli.estimation import (
+    CalibrationState,
+    Planes,
+    build_problem,
+    state_from_problem,
+    state_from_values,
+)
+from licalib_cli.pipeline.points import points_in_global
+from licalib_cli.pipeline.round import RoundInputs
+from licalib_cli.pipeline.settings import intrinsic_priors
+from licalib_cli.residuals import TRAJ_R3, TRAJ_SO3, PointToPlaneResidual
+from licalib_cli.solver import s2_basis
+from licalib_cli.solver.lm import LMParams, SolverReport, solve
+from licalib_cli.solver.nuisance import nuisance_step, nuisance_terms
+from licalib_cli.solver.problem import Problem
+
+__all__ = ["PlaneRefinement", "plane_jacobian", "refine_with_planes", "stepped_planes"]
+
+logger = logging.getLogger(__name__)
+
+F64 = npt.NDArray[np.float64]
+
+MAX_STEPS = 4
+"""Gauss-Newton steps at most (the first usually does nearly all of it)."""
+
+RELATIVE_DECREASE = 1e-6
+"""Stop when a step lowers the cost by less than this fraction."""
+
+_STEP_FRACTIONS = (1.0, 0.5, 0.25)
+
+
+@dataclass(frozen=True)
+class PlaneRefinement:
+    """The outcome of the refinement.
+
+    Attributes:
+        state: the refined estimate.
+        inputs: the final round's inputs with the refined planes.
+        report: the solver's report at the refined estimate (planes held at their refined
+            values).
+        steps: steps kept.
+        cost_start: cost with the final round's planes before the refinement.
+        cost_end: cost with the refined planes after it.
+        seconds: wall time.
+    """
+
+    state: CalibrationState
+    inputs: RoundInputs
+    report: SolverReport
+    steps: int
+    cost_start: float
+    cost_end: float
+    seconds: float
+
+
+def plane_jacobian(p_g: F64, plane: npt.ArrayLike, normal: F64) -> tuple[F64, F64]:
+    """Derivatives of point-to-plane distances with respect to their plane, and the centroids.
+
+    The plane ``n^T x + d = 0`` is perturbed about the centroid ``c`` of its points: the normal
+    by ``B delta`` (``B`` = :func:`~licalib_cli.solver.s2_basis` of ``n``) and the distance at
+    the centroid by ``delta_d``, so ``dist = (n + B delta)^T (p - c) + n^T c + d + delta_d``.
+
+    Args:
+        p_g: (N, 3) points in the planes' frame, m.
+        plane: (N,) plane of each point.
+        normal: (P, 3) unit normals.
+
+    Returns:
+        (N, 3) ``[B^T (p - c), 1]`` per point (unwhitened) and the (P, 3) centroids.
+    """
+    idx = np.asarray(plane, dtype=np.intp)
+    num = normal.shape[0]
+    count = np.bincount(idx, minlength=num).astype(np.float64)
+    centroid = (
+        np.stack([np.bincount(idx, p_g[:, a], minlength=num) for a in range(3)], axis=1)
+        / np.maximum(count, 1.0)[:, None]
+    )
+    basis = s2_basis(normal)[idx]  # (N, 3, 2)
+    jac = np.empty((idx.shape[0], 3))
+    jac[:, :2] = np.einsum("nij,ni->nj", basis, p_g - centroid[idx])
+    jac[:, 2] = 1.0
+    return jac, centroid
+
+
+def stepped_planes(planes: Planes, centroid: F64, dp: F64) -> Planes:
+    """The planes after a step ``dp`` (P, 3) of :func:`plane_jacobian`'s coordinates."""
+    n = np.asarray(planes.normal, dtype=np.float64)
+    basis = s2_basis(n)
+    moved = n + np.einsum("pij,pj->pi", basis, dp[:, :2])
+    at_centroid = np.einsum("pi,pi->p", n, centroid) + planes.d + dp[:, 2]
+    length = np.linalg.norm(moved, axis=1)
+    moved /= length[:, None]
+    d = at_centroid / length - np.einsum("pi,pi->p", moved, centroid)
+    return replace(planes, normal=moved, d=d)
+
+
+def _problem(state: CalibrationState, inputs: RoundInputs, planes: Planes) -> Problem:
+    return build_problem(
+        state,
+        inputs.imu,
+        inputs.lidar,
+        planes,
+        inputs.noise,
+        inputs.free,
+        extra_residuals=intrinsic_priors(state, inputs.free),
+    )
+
+
+def _lidar_block(problem: Problem) -> int | None:
+    return next(
+        (
+            i
+            for i, r in enumerate(problem.residual_blocks)
+            if isinstance(r, PointToPlaneResidual) and len(r) > 0
+        ),
+        None,
+    )
+
+
+def refine_with_planes(
+    state: CalibrationState, inputs: RoundInputs, lm: LMParams
+) -> PlaneRefinement | None:
+    """Gauss-Newton steps with the planes free, then the solver on the refined planes.
+
+    Args:
+        state: the final round's estimate.
+        inputs: what the final round's problem was built from.
+        lm: the solver settings (its truncation rule applies to the joint steps too).
+
+    Returns:
+        The refinement, or None when the round had no LiDAR points.
+
+    Raises:
+        SolverError: the solver failed on the refined planes.
+    """
+    start = time.perf_counter()
+    planes = inputs.planes
+    plane = np.asarray(inputs.lidar.plane, dtype=np.intp)
+    problem = _problem(state, inputs, planes)
+    block = _lidar_block(problem)
+    if block is None:
+        return None
+    cost = cost_start = problem.evaluate(jacobians=False).cost
+    steps = 0
+    for _ in range(MAX_STEPS):
+        layout = problem.layout()
+        evaluation = problem.evaluate(jacobians=True)
+        cost = evaluation.cost
+        lin = problem.linearize(evaluation, layout)
+        residual = problem.residual_blocks[block]
+        assert isinstance(residual, PointToPlaneResidual)
+        p_g = points_in_global(state, inputs.points)
+        jac, centroid = plane_jacobian(p_g, plane, np.asarray(planes.normal, dtype=np.float64))
+        jac *= residual.whitening(problem.values())[:, None]
+        terms = nuisance_terms(
+            problem, evaluation, layout, block, jac, plane, int(np.asarray(planes.d).shape[0])
+        )
+        hold = np.concatenate([layout.index[TRAJ_SO3][:3], layout.index[TRAJ_R3][:3]])
+        step = nuisance_step(
+            lin,
+            terms,
+            hold[hold >= 0],
+            tsvd_threshold=lm.tsvd_threshold if lm.use_tsvd else 0.0,
+            tsvd_relative=lm.tsvd_relative,
+        )
+        if step.predicted_reduction <= RELATIVE_DECREASE * cost:
+            break
+        accepted = None
+        for fraction in _STEP_FRACTIONS:
+            trial_state = state_from_values(
+                state, problem.retracted_values(fraction * step.dx, layout)
+            )
+            trial_planes = stepped_planes(planes, centroid, fraction * step.dp)
+            trial = _problem(trial_state, inputs, trial_planes)
+            trial_cost = trial.evaluate(jacobians=False).cost
+            if np.isfinite(trial_cost) and trial_cost < cost:
+                accepted = (trial_state, trial_planes, trial, trial_cost)
+                break
+        if accepted is None:
+            break
+        state, planes, problem, new_cost = accepted
+        steps += 1
+        logger.debug(
+            "Planes-free step %d: cost %.1f -> %.1f (predicted %.1f), %d directions held.",
+            steps,
+            cost,
+            new_cost,
+            cost - step.predicted_reduction,
+            step.num_truncated,
+        )
+        done = cost - new_cost < RELATIVE_DECREASE * cost
+        cost = new_cost
+        if done:
+            break
+    report = solve(problem, lm)
+    state = state_from_problem(state, problem)
+    refined = replace(inputs, planes=planes)
+    return PlaneRefinement(
+        state=state,
+        inputs=refined,
+        report=report,
+        steps=steps,
+        cost_start=cost_start,
+        cost_end=float(report.final_cost),
+        seconds=time.perf_counter() - start,
+    )

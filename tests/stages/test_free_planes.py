@@ -1,0 +1,58 @@
+"""The plane coordinates of the planes-free refinement: derivatives against finite differences."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from licalib_cli.estimation import Planes
+from licalib_cli.pipeline.free_planes import plane_jacobian, stepped_planes
+
+
+def _planes(rng: np.random.Generator, num: int) -> Planes:
+    normal = rng.standard_normal((num, 3))
+    normal[0] = [0.0, 0.05, 1.0]  # near the switch of the tangent basis
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    return Planes(normal=normal, d=rng.uniform(0.5, 6.0, num), thickness=np.full(num, 0.01))
+
+
+def _distances(points: np.ndarray, plane: np.ndarray, planes: Planes) -> np.ndarray:
+    return np.einsum("ni,ni->n", planes.normal[plane], points) + planes.d[plane]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_plane_jacobian_matches_finite_differences(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    planes = _planes(rng, 5)
+    plane = np.repeat(np.arange(5), 40)
+    points = rng.uniform(-8.0, 8.0, (plane.size, 3))
+    jac, centroid = plane_jacobian(points, plane, planes.normal)
+    for p in range(5):
+        np.testing.assert_allclose(centroid[p], points[plane == p].mean(axis=0))
+    base = _distances(points, plane, planes)
+    eps = 1e-6
+    for j in range(3):
+        dp = np.zeros((5, 3))
+        dp[:, j] = eps
+        plus = _distances(points, plane, stepped_planes(planes, centroid, dp))
+        minus = _distances(points, plane, stepped_planes(planes, centroid, -dp))
+        np.testing.assert_allclose((plus - minus) / (2 * eps), jac[:, j], atol=1e-6)
+    # a zero step keeps the planes; any step keeps unit normals
+    same = stepped_planes(planes, centroid, np.zeros((5, 3)))
+    np.testing.assert_allclose(_distances(points, plane, same), base, atol=1e-12)
+    moved = stepped_planes(planes, centroid, 0.1 * rng.standard_normal((5, 3)))
+    np.testing.assert_allclose(np.linalg.norm(moved.normal, axis=1), 1.0)
+    assert moved.thickness is planes.thickness
+
+
+def test_an_offset_step_moves_the_plane_along_its_normal_at_the_centroid() -> None:
+    rng = np.random.default_rng(4)
+    planes = _planes(rng, 3)
+    plane = np.repeat(np.arange(3), 10)
+    points = rng.uniform(-3.0, 3.0, (30, 3))
+    _, centroid = plane_jacobian(points, plane, planes.normal)
+    dp = np.zeros((3, 3))
+    dp[:, 2] = 0.004
+    moved = stepped_planes(planes, centroid, dp)
+    np.testing.assert_allclose(moved.normal, planes.normal)
+    np.testing.assert_allclose(moved.d - planes.d, 0.004)
