@@ -57,12 +57,26 @@ def diagnosis_dict(diag: Any) -> dict[str, Any]:
                 },
             }
         )
+    not_shown = []
+    for n in diag.not_shown:
+        size, unit = n.detectable
+        not_shown.append(
+            {
+                "effect": n.effect,
+                "statistic": _num(n.statistic),
+                "dof": n.dof,
+                "p_value": _num(n.p_value, 3),
+                "detectable_rms": _num(size, 3),
+                "unit": unit,
+            }
+        )
     residuals = {"base": _residuals(diag.base, diag.base_twin)}
     if diag.effects_found:
         residuals["final"] = _residuals(diag.final, diag.final_twin)
     return {
         "effects_found": list(diag.effects_found),
         "steps": steps,
+        "not_shown": not_shown,
         "residuals": residuals,
         "base_verdict": diag.base.verdict.status,
         "verdict": diag.final.verdict.status,
@@ -205,6 +219,20 @@ def render_diagnosis(diag: Any) -> None:
         )
     found = ", ".join(diag.effects_found) or "none"
     out.print(f"Effects added to the model: {found}")
+    if diag.not_shown:
+        quiet = Table(
+            title="Not shown by this bag: the size (RMS per axis or beam) it would take to show"
+        )
+        for name in ("effect", "score (dof)", "would show from"):
+            quiet.add_column(name)
+        for n in diag.not_shown:
+            size, unit = n.detectable
+            quiet.add_row(
+                n.effect,
+                f"{n.statistic:.1f} ({n.dof})",
+                f"{size:.2g} {unit}" if math.isfinite(size) else "not determinable from this bag",
+            )
+        out.print(quiet)
     colour = {"pass": "green", "warn": "yellow", "fail": "red"}
     v0, v1 = diag.base.verdict.status, diag.final.verdict.status
     out.print(

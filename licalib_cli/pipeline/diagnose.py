@@ -7,8 +7,13 @@
 3. Add the strongest significant candidate to the model, refit from the current estimate, and
    keep it only if the Bayesian information criterion improves: ``BIC = sum r^2 + k ln n`` over
    the same measurements and map (the model without the effect is re-solved on the new fit's
-   map, so that both see the same data).
+   map, so that both see the same data). ``n`` is the number of residuals of the sensor the
+   effect belongs to: an IMU scale is determined by some 10^4 IMU residuals, not by the 10^5
+   LiDAR points that dominate the total (with the total, an IMU effect with three parameters
+   needed a cost decrease of 38 where its score test was significant from 26).
 4. Repeat until no candidate is significant, or ``max_effects`` were added.
+5. For every candidate not added, say how large it would have to be for this bag to show it
+   (:class:`NotShown`): "not found" is then a statement about the data, not about the sensor.
 
 Each step records the effect, its test, its estimate with 1-sigma, the gap of its sensor before
 and after (chi-square per sample above what a model that explains the data leaves, the residual
@@ -48,10 +53,13 @@ from licalib_cli.solver.lm import solve
 
 __all__ = [
     "CANDIDATES",
+    "DISPLAY_UNITS",
     "GAP_NOISE_SIGMAS",
     "Diagnosis",
     "DiagnosisStep",
     "Gap",
+    "NotShown",
+    "detectable_rms",
     "diagnose",
     "twin_of",
 ]
@@ -101,6 +109,26 @@ _LIDAR_SUFFIX = {
     "lidar_horizontal_offset": ".H",
 }
 
+
+DISPLAY_UNITS: dict[str, tuple[float, str]] = {
+    "gyro_scale": (1e6, "ppm"),
+    "gyro_misalignment": (math.degrees(1.0), "deg"),
+    "gyro_rotation": (math.degrees(1.0), "deg"),
+    "accel_scale": (1e6, "ppm"),
+    "accel_misalignment": (math.degrees(1.0), "deg"),
+    "g_sensitivity": (math.degrees(1.0) * 9.80665, "deg/s per g"),
+    "gyro_bias_walk": (math.degrees(1.0), "deg/s^2"),
+    "accel_bias_walk": (1.0, "m/s^3"),
+    "imu_clock_drift": (1e6, "ppm"),
+    "lidar_range_offset": (1e3, "mm"),
+    "lidar_range_scale": (1e6, "ppm"),
+    "lidar_elevation": (math.degrees(1.0), "deg"),
+    "lidar_azimuth": (math.degrees(1.0), "deg"),
+    "lidar_vertical_offset": (1e3, "mm"),
+    "lidar_horizontal_offset": (1e3, "mm"),
+    "lidar_point_time": (100.0, "% of the sweep time"),
+}
+"""Effect -> (factor from its solver coordinates, unit) for printing sizes."""
 
 GAP_NOISE_SIGMAS = 3.0
 """A gap counts (and its shrink is measured) above this many of its noise sigmas."""
@@ -213,6 +241,71 @@ class DiagnosisStep:
 
 
 @dataclass(frozen=True)
+class NotShown:
+    """A candidate the data do not show, and how large it would have to be to show.
+
+    Attributes:
+        effect: its name (:data:`CANDIDATES`).
+        statistic: its score statistic on the final fit (tested with the effects added freed).
+        dof: degrees of freedom (directions of the effect the bag determines; 0: none).
+        p_value: the test's p-value.
+        detectable_rms: RMS per coordinate, in solver units, at which the test's expected
+            statistic reaches its significance threshold (``inf``: the bag determines no
+            direction of it): an effect well below this size cannot be told from noise in this
+            bag, one above it would have been named.
+    """
+
+    effect: str
+    statistic: float
+    dof: int
+    p_value: float
+    detectable_rms: float
+
+    @property
+    def detectable(self) -> tuple[float, str]:
+        """``detectable_rms`` in the unit of :data:`DISPLAY_UNITS`."""
+        factor, unit = DISPLAY_UNITS[self.effect]
+        return self.detectable_rms * factor, unit
+
+
+def detectable_rms(statistic_threshold: float, dof: int, information: float) -> float:
+    """RMS per coordinate of an effect whose expected score statistic, ``dof + a^2 *
+    information``, reaches ``statistic_threshold`` (``inf`` without information)."""
+    if dof <= 0 or not information > 0.0:
+        return float("inf")
+    return math.sqrt(max(statistic_threshold - dof, 0.0) / information)
+
+
+def _not_shown(
+    run: CalibrationRun, allowed: tuple[str, ...], found: tuple[str, ...]
+) -> tuple[NotShown, ...]:
+    """Every allowed candidate not added nor tried, with the size this bag would need to show
+    it (``found``: the effects added and those tried)."""
+    out = []
+    seen = set()
+    for e in run.effects:
+        name = e.score.name
+        if name not in allowed or name in found or name in seen:
+            continue
+        seen.add(name)
+        rank = int(e.score.rank)
+        threshold = float(stats.chi2.isf(EFFECT_P_VALUE, max(rank, 1)))
+        out.append(
+            NotShown(
+                effect=name,
+                statistic=float(e.score.statistic),
+                dof=rank,
+                p_value=float(e.score.p_value),
+                detectable_rms=detectable_rms(threshold, rank, float(e.score.information)),
+            )
+        )
+    for name in allowed:  # candidates with no free coordinate in this bag (e.g. no beam kept)
+        if name not in found and name not in seen:
+            out.append(NotShown(name, 0.0, 0, 1.0, float("inf")))
+    return tuple(out)
+
+
+@dataclass(frozen=True)
 class Diagnosis:
     """What ``diagnose`` found.
 
@@ -223,6 +316,7 @@ class Diagnosis:
         effects_found: the effects kept, in the order added.
         base_twin: the twin recordings of the base fit (None if none could be fitted).
         final_twin: those of the final fit.
+        not_shown: the candidates not added, each with the size this bag would need to show it.
     """
 
     base: CalibrationRun
@@ -231,6 +325,7 @@ class Diagnosis:
     effects_found: tuple[str, ...]
     base_twin: Twin | None = None
     final_twin: Twin | None = None
+    not_shown: tuple[NotShown, ...] = ()
 
 
 def _expected_chi2(sensor: str, cfg: CalibConfig, imu_rate_hz: float) -> float:
@@ -308,6 +403,13 @@ def _sum_of_squares(run: CalibrationRun, cfg: CalibConfig, refit: bool) -> tuple
     return 2.0 * cost, n_res, n_free
 
 
+def _sensor_samples(run: CalibrationRun, sensor: str) -> int:
+    """Residuals of ``sensor`` in ``run``'s final round (the ``n`` of an effect's BIC penalty)."""
+    consistency = run.result.consistency
+    assert consistency is not None
+    return int(next(c.samples for c in consistency.sensors if c.sensor == sensor))
+
+
 def _estimate(run: CalibrationRun, effect: str) -> dict[str, tuple[float, float]]:
     values = intrinsic_coordinates(run.state)
     std = dict(zip(run.solver.calibration_names, run.solver.std, strict=True))
@@ -355,10 +457,10 @@ def _try_effect(
     )
     start = replace(prepared.guess, state=run.state)
     new = fit_and_check(prepared, start, new_cfg, progress, timer, warm=True)
-    ss_new, n_res, k_new = _sum_of_squares(new, new_cfg, refit=False)
+    ss_new, _, k_new = _sum_of_squares(new, new_cfg, refit=False)
     base_on_new = replace(new, state=run.state)
     ss_old, _, k_old = _sum_of_squares(base_on_new, _with_effects(cfg, kept), refit=True)
-    delta_bic = (ss_new - ss_old) + (k_new - k_old) * math.log(max(n_res, 2))
+    delta_bic = (ss_new - ss_old) + (k_new - k_old) * math.log(max(_sensor_samples(run, sensor), 2))
     moved = extrinsic_of(new.state).error_to(extrinsic_of(run.state))
     new_twin = twin_of(new, cfg)
     alone = float(getattr(evidence, "statistic_alone", score.statistic))
@@ -479,4 +581,5 @@ def diagnose(
         effects_found=kept,
         base_twin=base_twin,
         final_twin=run_twin,
+        not_shown=_not_shown(run, allowed, (*kept, *sorted(tried))),
     )

@@ -164,6 +164,29 @@ def test_score_finds_the_effect_and_predicts_the_shift_of_a_linear_problem() -> 
     assert np.all(np.abs(res.estimate - effect) < 4 * res.sigma)
 
 
+def test_detectable_size_is_where_the_mean_statistic_reaches_the_threshold() -> None:
+    """An effect of the size diagnose calls detectable (random direction, that RMS per
+    coordinate) gives a mean statistic at the threshold; a third of it stays near the noise."""
+    from licalib_cli.consistency import score_effects
+    from licalib_cli.pipeline.diagnose import detectable_rms
+
+    rng = np.random.default_rng(9)
+    s, b, *_ = _linear_problem(rng, np.zeros(2))
+    (res,) = score_effects(s, b, [0, 1, 2], {"e": [3, 4]})
+    threshold = 30.0
+    size = detectable_rms(threshold, res.rank, res.information)
+    assert 0.0 < size < np.inf
+    for factor, lo, hi in ((1.0, 0.8 * threshold, 1.2 * threshold), (1 / 3, 2.0, 8.0)):
+        stats_ = []
+        for _ in range(300):
+            effect = factor * size * rng.normal(size=2)
+            s_k, b_k, *_ = _linear_problem(rng, effect)
+            (r,) = score_effects(s_k, b_k, [0, 1, 2], {"e": [3, 4]})
+            stats_.append(r.statistic)
+        assert lo < np.mean(stats_) < hi
+    assert detectable_rms(threshold, 0, 0.0) == np.inf
+
+
 def test_score_of_an_undetermined_direction_is_not_counted() -> None:
     from licalib_cli.consistency import score_effects
 

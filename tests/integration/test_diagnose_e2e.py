@@ -12,6 +12,7 @@ import yaml
 
 from licalib_cli.cli import main
 from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
+from licalib_cli.pipeline.diagnose import CANDIDATES
 from licalib_cli.results import CalibrationResult
 from licalib_cli.simulation import SimulationSpec, simulate
 
@@ -81,6 +82,14 @@ def test_a_hidden_gyro_scale_is_named_added_and_its_gap_shrinks(
     final = {r["sensor"]: r for r in data["residuals"]["final"]}
     assert abs(final["gyro"]["gap"]) < base["gyro"]["gap"] / 2
     assert data["calibration"]["model"]["imu"] == ["gyro_scale"]
+    # every candidate neither added nor tried says what size this bag would need to show it
+    quiet = {n["effect"]: n for n in data["not_shown"]}
+    tried = {s["effect"] for s in data["steps"]}
+    assert quiet and not set(quiet) & tried
+    assert set(quiet) | tried == set(CANDIDATES)
+    offset = quiet["lidar_range_offset"]
+    assert offset["unit"] == "mm" and 0.1 < offset["detectable_rms"] < 10.0
+    assert offset["p_value"] > 1e-5
     written = yaml.safe_load((out / "diagnosis.yaml").read_text())
     assert written["effects_found"] == data["effects_found"]
     assert CalibrationResult.load(out / "calibration.yaml").imu_intrinsics.gyro_scale[0] > 1.002
@@ -92,6 +101,7 @@ def test_a_clean_bag_shows_no_effect(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert code == 0
     assert "Effects added to the model: none" in printed
     assert "base model PASS" in printed
+    assert "Not shown by this bag" in printed and "gyro_bias_walk" in printed
 
 
 def test_score_tests_are_chi_square_on_clean_simulated_data(tmp_path: Path) -> None:
