@@ -234,7 +234,7 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
             if e.name in case["effects"]
         },
         # the size diagnose says this bag would need to show each candidate it did not add
-        "not_shown": {n.effect: list(n.detectable) for n in diag.not_shown},
+        "not_shown": {n.effect: [*n.detectable, n.detectable_best[0]] for n in diag.not_shown},
         "scale": scale,
         "duration_s": duration,
         "verdict_before": diag.base.verdict.status,
@@ -254,9 +254,10 @@ def judge(row: dict) -> list[str]:
         shown = row.get("not_shown", {}).get(effect)
         if shown is not None and effect in rms:
             below = "below" if rms[effect] < shown[0] else "above"
+            best = f", best direction {shown[2]:.2g}" if len(shown) > 2 else ""
             misses.append(
                 f"{effect} injected {rms[effect]:.2g} {shown[1]} RMS, {below} the "
-                f"{shown[0]:.2g} diagnose says this bag would show"
+                f"{shown[0]:.2g} from which diagnose says this bag shows it in any direction{best}"
             )
     for effect, shrink in row["shrink"].items():
         # NaN: the gap was within 3 sigma of its noise (only the score test shows the effect)

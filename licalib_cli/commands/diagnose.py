@@ -67,6 +67,7 @@ def diagnosis_dict(diag: Any) -> dict[str, Any]:
                 "dof": n.dof,
                 "p_value": _num(n.p_value, 3),
                 "detectable_rms": _num(size, 3),
+                "detectable_rms_best": _num(n.detectable_best[0], 3),
                 "unit": unit,
             }
         )
@@ -223,14 +224,16 @@ def render_diagnosis(diag: Any) -> None:
         quiet = Table(
             title="Not shown by this bag: the size (RMS per axis or beam) it would take to show"
         )
-        for name in ("effect", "score (dof)", "would show from"):
+        for name in ("effect", "score (dof)", "shows in any direction from", "best direction"):
             quiet.add_column(name)
         for n in diag.not_shown:
             size, unit = n.detectable
+            best = n.detectable_best[0]
             quiet.add_row(
                 n.effect,
                 f"{n.statistic:.1f} ({n.dof})",
                 f"{size:.2g} {unit}" if math.isfinite(size) else "not determinable from this bag",
+                f"{best:.2g} {unit}" if math.isfinite(best) else "-",
             )
         out.print(quiet)
     colour = {"pass": "green", "warn": "yellow", "fail": "red"}

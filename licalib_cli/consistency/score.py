@@ -47,9 +47,10 @@ class EffectScore:
         sigma: (k,) its standard deviation (``inf`` along undetermined directions).
         shift: (m,) change of the estimated coordinates if the group were freed (own units).
         shift_sigma: (m,) standard deviation of that change when the group is zero.
-        information: trace of the group's profiled information over its determined directions
-            (divided by the variance factor): an effect of RMS ``a`` per coordinate raises the
-            statistic's expectation from ``rank`` by about ``a^2 * information``.
+        information: (rank,) eigenvalues of the group's profiled information along the
+            directions the data determine, divided by the variance factor, ascending: an effect
+            ``d`` raises the statistic's expectation from ``rank`` by ``d^T I d``, between
+            ``|d|^2 information[0]`` and ``|d|^2 information[-1]`` depending on its direction.
     """
 
     name: str
@@ -60,7 +61,7 @@ class EffectScore:
     sigma: F64
     shift: F64
     shift_sigma: F64
-    information: float = 0.0
+    information: F64 = field(default_factory=lambda: np.zeros(0))
 
     @property
     def shift_z(self) -> F64:
@@ -140,7 +141,7 @@ def score_effects(
                 sigma=sigma_e,
                 shift=shift,
                 shift_sigma=np.sqrt(np.clip(np.diag(v_shift), 0.0, None)),
-                information=float(np.sum(w[~weak])) / vf if e.size else 0.0,
+                information=np.sort(w[~weak]) / vf if e.size else np.zeros(0),
             )
         )
     return out

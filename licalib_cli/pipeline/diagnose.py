@@ -33,6 +33,8 @@ import logging
 import math
 from dataclasses import dataclass, field, replace
 
+import numpy as np
+import numpy.typing as npt
 from scipy import stats
 
 from licalib_cli.config import CalibConfig
@@ -249,10 +251,12 @@ class NotShown:
         statistic: its score statistic on the final fit (tested with the effects added freed).
         dof: degrees of freedom (directions of the effect the bag determines; 0: none).
         p_value: the test's p-value.
-        detectable_rms: RMS per coordinate, in solver units, at which the test's expected
-            statistic reaches its significance threshold (``inf``: the bag determines no
-            direction of it): an effect well below this size cannot be told from noise in this
-            bag, one above it would have been named.
+        detectable_rms: RMS per coordinate, in solver units, from which an effect along any
+            direction the bag determines reaches the test's threshold on average (its weakest
+            direction; ``inf``: the bag determines no direction of it). Below it, an effect may
+            hide in this bag.
+        detectable_rms_best: the same along the best-determined direction: below it, no effect
+            of the kind can show in this bag.
     """
 
     effect: str
@@ -260,6 +264,7 @@ class NotShown:
     dof: int
     p_value: float
     detectable_rms: float
+    detectable_rms_best: float = float("inf")
 
     @property
     def detectable(self) -> tuple[float, str]:
@@ -267,13 +272,26 @@ class NotShown:
         factor, unit = DISPLAY_UNITS[self.effect]
         return self.detectable_rms * factor, unit
 
+    @property
+    def detectable_best(self) -> tuple[float, str]:
+        """``detectable_rms_best`` in the unit of :data:`DISPLAY_UNITS`."""
+        factor, unit = DISPLAY_UNITS[self.effect]
+        return self.detectable_rms_best * factor, unit
 
-def detectable_rms(statistic_threshold: float, dof: int, information: float) -> float:
-    """RMS per coordinate of an effect whose expected score statistic, ``dof + a^2 *
-    information``, reaches ``statistic_threshold`` (``inf`` without information)."""
-    if dof <= 0 or not information > 0.0:
-        return float("inf")
-    return math.sqrt(max(statistic_threshold - dof, 0.0) / information)
+
+def detectable_rms(
+    statistic_threshold: float, coordinates: int, information: npt.ArrayLike
+) -> tuple[float, float]:
+    """RMS per coordinate of an effect whose expected score statistic, ``rank + d^T I d``,
+    reaches ``statistic_threshold``: ``(along the weakest determined direction, along the
+    strongest)``; ``d`` has ``coordinates`` entries, ``information`` the eigenvalues of ``I``
+    along the determined directions (``inf`` without any)."""
+    info = np.asarray(information, dtype=np.float64)
+    info = info[info > 0.0]
+    if coordinates <= 0 or info.size == 0:
+        return float("inf"), float("inf")
+    excess = max(statistic_threshold - info.size, 0.0) / coordinates
+    return math.sqrt(excess / float(info.min())), math.sqrt(excess / float(info.max()))
 
 
 def _not_shown(
@@ -290,18 +308,20 @@ def _not_shown(
         seen.add(name)
         rank = int(e.score.rank)
         threshold = float(stats.chi2.isf(EFFECT_P_VALUE, max(rank, 1)))
+        weakest, best = detectable_rms(threshold, e.score.estimate.size, e.score.information)
         out.append(
             NotShown(
                 effect=name,
                 statistic=float(e.score.statistic),
                 dof=rank,
                 p_value=float(e.score.p_value),
-                detectable_rms=detectable_rms(threshold, rank, float(e.score.information)),
+                detectable_rms=weakest,
+                detectable_rms_best=best,
             )
         )
     for name in allowed:  # candidates with no free coordinate in this bag (e.g. no beam kept)
         if name not in found and name not in seen:
-            out.append(NotShown(name, 0.0, 0, 1.0, float("inf")))
+            out.append(NotShown(name, 0.0, 0, 1.0, float("inf"), float("inf")))
     return tuple(out)
 
 

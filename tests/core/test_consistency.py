@@ -164,9 +164,10 @@ def test_score_finds_the_effect_and_predicts_the_shift_of_a_linear_problem() -> 
     assert np.all(np.abs(res.estimate - effect) < 4 * res.sigma)
 
 
-def test_detectable_size_is_where_the_mean_statistic_reaches_the_threshold() -> None:
-    """An effect of the size diagnose calls detectable (random direction, that RMS per
-    coordinate) gives a mean statistic at the threshold; a third of it stays near the noise."""
+def test_detectable_sizes_bracket_where_the_statistic_reaches_the_threshold() -> None:
+    """An effect of the size diagnose calls detectable in any direction reaches the threshold
+    along its weakest direction; one of the best direction's size reaches it only along that
+    direction; a third of the best size stays near the noise whatever its direction."""
     from licalib_cli.consistency import score_effects
     from licalib_cli.pipeline.diagnose import detectable_rms
 
@@ -174,17 +175,30 @@ def test_detectable_size_is_where_the_mean_statistic_reaches_the_threshold() -> 
     s, b, *_ = _linear_problem(rng, np.zeros(2))
     (res,) = score_effects(s, b, [0, 1, 2], {"e": [3, 4]})
     threshold = 30.0
-    size = detectable_rms(threshold, res.rank, res.information)
-    assert 0.0 < size < np.inf
-    for factor, lo, hi in ((1.0, 0.8 * threshold, 1.2 * threshold), (1 / 3, 2.0, 8.0)):
+    weakest, best = detectable_rms(threshold, 2, res.information)
+    assert 0.0 < best < weakest < np.inf
+    # the directions of the profiled information (what the effect's direction is measured in)
+    s_bb = s[:3, :3]
+    s_eb = s[3:, :3]
+    _, v = np.linalg.eigh(s[3:, 3:] - s_eb @ np.linalg.solve(s_bb, s_eb.T))
+    cases = (
+        (weakest * np.sqrt(2) * v[:, 0], 0.8, 1.2),  # weakest direction, size "any"
+        (best * np.sqrt(2) * v[:, 1], 0.8, 1.2),  # strongest direction, size "best"
+    )
+    for effect, lo, hi in cases:
         stats_ = []
         for _ in range(300):
-            effect = factor * size * rng.normal(size=2)
             s_k, b_k, *_ = _linear_problem(rng, effect)
             (r,) = score_effects(s_k, b_k, [0, 1, 2], {"e": [3, 4]})
             stats_.append(r.statistic)
-        assert lo < np.mean(stats_) < hi
-    assert detectable_rms(threshold, 0, 0.0) == np.inf
+        assert lo * threshold < np.mean(stats_) < hi * threshold
+    stats_ = []
+    for _ in range(300):
+        s_k, b_k, *_ = _linear_problem(rng, best / 3 * rng.normal(size=2))
+        (r,) = score_effects(s_k, b_k, [0, 1, 2], {"e": [3, 4]})
+        stats_.append(r.statistic)
+    assert np.mean(stats_) < 0.3 * threshold
+    assert detectable_rms(threshold, 0, np.zeros(0)) == (np.inf, np.inf)
 
 
 def test_score_of_an_undetermined_direction_is_not_counted() -> None:
