@@ -221,10 +221,13 @@ def render_diagnosis(diag: Any) -> None:
     found = ", ".join(diag.effects_found) or "none"
     out.print(f"Effects added to the model: {found}")
     if diag.not_shown:
+        from licalib_cli.pipeline.diagnose import DETECTION_POWER
+
         quiet = Table(
-            title="Not shown by this bag: the size (RMS per axis or beam) it would take to show"
+            title="Not shown by this bag: the size (RMS per axis or beam) from which it would "
+            f"be named {DETECTION_POWER:.0%} of the time"
         )
-        for name in ("effect", "score (dof)", "shows in any direction from", "best direction"):
+        for name in ("effect", "score (dof)", "in any direction", "in its best direction"):
             quiet.add_column(name)
         for n in diag.not_shown:
             size, unit = n.detectable

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import numpy.typing as npt
-from scipy import stats
+from scipy import optimize, stats
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import build_problem, intrinsic_coordinates
@@ -55,6 +55,7 @@ from licalib_cli.solver.lm import solve
 
 __all__ = [
     "CANDIDATES",
+    "DETECTION_POWER",
     "DISPLAY_UNITS",
     "GAP_NOISE_SIGMAS",
     "Diagnosis",
@@ -252,11 +253,11 @@ class NotShown:
         dof: degrees of freedom (directions of the effect the bag determines; 0: none).
         p_value: the test's p-value.
         detectable_rms: RMS per coordinate, in solver units, from which an effect along any
-            direction the bag determines reaches the test's threshold on average (its weakest
-            direction; ``inf``: the bag determines no direction of it). Below it, an effect may
-            hide in this bag.
-        detectable_rms_best: the same along the best-determined direction: below it, no effect
-            of the kind can show in this bag.
+            direction the bag determines is named at least :data:`DETECTION_POWER` of the time
+            (its weakest direction; ``inf``: the bag determines no direction of it). Below it,
+            an effect may hide in this bag.
+        detectable_rms_best: the same along the best-determined direction: well below it, no
+            effect of the kind shows in this bag.
     """
 
     effect: str
@@ -279,19 +280,41 @@ class NotShown:
         return self.detectable_rms_best * factor, unit
 
 
+DETECTION_POWER = 0.9
+"""``not_shown`` sizes are those an effect needs to be named at least this often."""
+
+
 def detectable_rms(
-    statistic_threshold: float, coordinates: int, information: npt.ArrayLike
+    statistic_threshold: float,
+    coordinates: int,
+    information: npt.ArrayLike,
+    power: float = DETECTION_POWER,
 ) -> tuple[float, float]:
-    """RMS per coordinate of an effect whose expected score statistic, ``rank + d^T I d``,
-    reaches ``statistic_threshold``: ``(along the weakest determined direction, along the
-    strongest)``; ``d`` has ``coordinates`` entries, ``information`` the eigenvalues of ``I``
-    along the determined directions (``inf`` without any)."""
+    """RMS per coordinate of an effect whose score statistic exceeds ``statistic_threshold``
+    with probability ``power``: ``(along the weakest determined direction, along the
+    strongest)``.
+
+    The statistic of an effect ``d`` is non-central chi-square with ``rank`` degrees of freedom
+    and non-centrality ``d^T I d``; ``d`` has ``coordinates`` entries, ``information`` holds the
+    eigenvalues of ``I`` along the directions the data determine (``inf`` without any).
+    """
     info = np.asarray(information, dtype=np.float64)
     info = info[info > 0.0]
     if coordinates <= 0 or info.size == 0:
         return float("inf"), float("inf")
-    excess = max(statistic_threshold - info.size, 0.0) / coordinates
-    return math.sqrt(excess / float(info.min())), math.sqrt(excess / float(info.max()))
+    rank = info.size
+
+    def shortfall(nc: float) -> float:
+        return float(stats.ncx2.sf(statistic_threshold, rank, nc)) - power
+
+    hi = max(statistic_threshold, 1.0)
+    while shortfall(hi) < 0.0:
+        hi *= 2.0
+    needed = float(optimize.brentq(shortfall, 0.0, hi)) if shortfall(0.0) < 0.0 else 0.0
+    per_coordinate = needed / coordinates
+    return math.sqrt(per_coordinate / float(info.min())), math.sqrt(
+        per_coordinate / float(info.max())
+    )
 
 
 def _not_shown(
