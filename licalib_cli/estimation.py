@@ -124,7 +124,7 @@ CALIBRATION_SCALES: Mapping[str, tuple[float, ...]] = {
     EXT_ROTATION: (1e-3,) * 3,
     EXT_TRANSLATION: (0.01,) * 3,
     TIME_OFFSET: (1e-3,),
-    TIME_DRIFT: (1e-5,),
+    TIME_DRIFT: (1e-4,),
     POINT_TIME_SCALE: (1e-3,),
     GYRO_BIAS_DRIFT: (1e-5,) * 3,
     ACCEL_BIAS_DRIFT: (1e-4,) * 3,
