@@ -444,7 +444,7 @@ def check(fit: Fit, guess: InitialGuess, noise: NoiseLevels, cfg: CalibConfig) -
     sensors = sensor_checks(fit.state, fit.inputs, noise)
     effects = effect_evidence(fit.state, fit.inputs, fit.report.variance_factor)
     split = split_half(fit.state, fit.inputs, cfg)
-    planes = map_uncertainty(fit.state, fit.inputs, fit.report)
+    planes = map_uncertainty(fit.state, fit.inputs, fit.report, fit.solved)
     notes: tuple[str, ...] = ()
     if guess.rotation_source == SINGLE_AXIS:
         notes = (

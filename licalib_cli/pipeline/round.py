@@ -34,10 +34,19 @@ from licalib_cli.pipeline.points import (
 from licalib_cli.pipeline.settings import RoundSettings, intrinsic_priors
 from licalib_cli.pipeline.timing import StageTime, Stopwatch
 from licalib_cli.results import Extrinsic
-from licalib_cli.solver.lm import SolverReport, solve
+from licalib_cli.solver.lm import SolverReport, solve_with_linearization
+from licalib_cli.solver.problem import Evaluation, Linearization, Problem
 from licalib_cli.surfels import associate_points, build_surfels
 
-__all__ = ["RoundInputs", "RoundResult", "RoundSummary", "extrinsic_of", "free_names", "run_round"]
+__all__ = [
+    "RoundInputs",
+    "RoundResult",
+    "RoundSummary",
+    "SolvedProblem",
+    "extrinsic_of",
+    "free_names",
+    "run_round",
+]
 
 F32 = npt.NDArray[np.float32]
 
@@ -71,6 +80,23 @@ class RoundInputs:
     planes: Planes
     noise: NoiseModel
     free: FreeParameters
+
+
+@dataclass(frozen=True)
+class SolvedProblem:
+    """A round's problem at its estimate, with the solver's evaluation and normal equations there
+    (the checks analyse the final round's problem at the same state without evaluating and
+    linearising it again).
+
+    Attributes:
+        problem: the problem, its blocks at the estimate.
+        evaluation: residuals and Jacobians at the estimate.
+        linearization: the normal equations at the estimate (the report's spectrum and sigmas).
+    """
+
+    problem: Problem
+    evaluation: Evaluation
+    linearization: Linearization
 
 
 @dataclass(frozen=True)
@@ -142,12 +168,14 @@ class RoundResult:
         summary: the round's figures.
         report: the solver's report (spectrum and sigmas at the new estimate).
         inputs: what the round's problem was built from.
+        solved: the round's problem with its evaluation and normal equations at the estimate.
     """
 
     state: CalibrationState
     summary: RoundSummary
     report: SolverReport
     inputs: RoundInputs
+    solved: SolvedProblem | None = field(default=None, repr=False, compare=False)
 
 
 def run_round(
@@ -201,7 +229,8 @@ def run_round(
         extra_residuals=intrinsic_priors(state, free),
     )
     times["problem"] = watch.lap()
-    report = solve(problem, settings.solver)
+    solution = solve_with_linearization(problem, settings.solver)
+    report = solution.report
     times["solver"] = watch.lap()
     if report.status == "failed":
         msg = f"The optimisation failed in round {index}: {report.reason}."
@@ -244,4 +273,5 @@ def run_round(
         ", ".join(f"{k} {t.wall_s:.2f}/{t.cpu_s:.2f}" for k, t in times.items()),
     )
     inputs = RoundInputs(imu, lidar, used, planes, settings.weights, free)
-    return RoundResult(new_state, summary, report, inputs)
+    solved = SolvedProblem(problem, solution.evaluation, solution.linearization)
+    return RoundResult(new_state, summary, report, inputs, solved)
