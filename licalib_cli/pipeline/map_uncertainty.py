@@ -116,7 +116,8 @@ def map_uncertainty(
     assert isinstance(residual, PointToPlaneResidual)
     plane = np.asarray(inputs.lidar.plane, dtype=np.intp)
     num_planes = int(np.asarray(inputs.planes.d).shape[0])
-    p_g = points_in_global(state, inputs.points)  # the points the residuals measure
+    # the points the residuals measure
+    p_g = solved.points_global if solved is not None else points_in_global(state, inputs.points)
     jac_p, _ = plane_jacobian(p_g, plane, np.asarray(inputs.planes.normal, dtype=np.float64))
     jac_p *= residual.whitening(problem.values())[:, None]
     terms = nuisance_terms(problem, evaluation, layout, lidar_block, jac_p, plane, num_planes)

@@ -25,6 +25,7 @@ from licalib_cli.pipeline.free_planes import refine_with_planes
 from licalib_cli.pipeline.initialise import InitialGuess
 from licalib_cli.pipeline.points import PointSample, points_per_scan, sample_points
 from licalib_cli.pipeline.round import (
+    MappedSample,
     RoundInputs,
     RoundSummary,
     SolvedProblem,
@@ -210,14 +211,15 @@ def run_schedule(
     intrinsics_on = want_intrinsics and (warm or sch.intrinsics_from_round == 1)
     joined = 1 if intrinsics_on else 0
     intrinsic_sigmas = 0.0
+    mapped: MappedSample | None = None  # the last round's points mapped with its estimate
     for index in range(1, sch.max_rounds + 1):
         before = state
         solved = None  # the previous round's evaluation is not kept while this one runs
         done = run_round(
-            state, sample, imu, round_settings(cfg, noise, max_dist, intrinsics_on), index
+            state, sample, imu, round_settings(cfg, noise, max_dist, intrinsics_on), index, mapped
         )
         state, summary, report, inputs = done.state, done.summary, done.report, done.inputs
-        solved = done.solved
+        solved, mapped = done.solved, done.mapped
         del done
         rounds.append(summary)
         progress.advance(index, sch.max_rounds)
@@ -280,7 +282,7 @@ def run_schedule(
         # time offset and the translation shrinks with the number of points.
         dense = sample_points(rec.scans, phi, final, cfg, seed=1)
         before = state
-        solved = None
+        solved = mapped = None
         done = run_round(
             state, dense, imu, round_settings(cfg, noise, base, intrinsics_on), len(rounds) + 1
         )
