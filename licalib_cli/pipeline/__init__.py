@@ -18,7 +18,7 @@ the splines carry ``T_G_I(t)`` on the IMU clock in seconds since ``t0_ns``, and 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from licalib_cli.config import CalibConfig
@@ -185,6 +185,7 @@ def fit_and_check(
         fit = run_schedule(rec, start, noise, cfg, progress, warm=warm)
     with timer.stage("checks", progress):
         checks = check(fit, guess, noise, cfg)
+    fit = replace(fit, solved=None)  # the final problem's Jacobians are not kept with the run
     result = assemble(prepared.bag, rec, guess, fit, checks, cfg)
     return CalibrationRun(
         result=result,

@@ -441,10 +441,10 @@ def judge(findings: list[Finding]) -> tuple[VerdictSection, str]:
 def check(fit: Fit, guess: InitialGuess, noise: NoiseLevels, cfg: CalibConfig) -> Checks:
     """The checks stage: gather the evidence on the fit (residuals per sensor, score tests of
     the fixed effects, the two halves) and judge it (:func:`run_checks`)."""
-    sensors = sensor_checks(fit.state, fit.inputs, noise)
+    sensors = sensor_checks(fit.state, fit.inputs, noise, fit.solved)
     effects = effect_evidence(fit.state, fit.inputs, fit.report.variance_factor)
     split = split_half(fit.state, fit.inputs, cfg)
-    planes = map_uncertainty(fit.state, fit.inputs, fit.report)
+    planes = map_uncertainty(fit.state, fit.inputs, fit.report, fit.solved)
     notes: tuple[str, ...] = ()
     if guess.rotation_source == SINGLE_AXIS:
         notes = (

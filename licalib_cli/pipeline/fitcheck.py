@@ -29,7 +29,7 @@ from licalib_cli.consistency import (
     select_effects,
 )
 from licalib_cli.estimation import CalibrationState, LidarPoints, build_problem
-from licalib_cli.pipeline.round import RoundInputs
+from licalib_cli.pipeline.round import RoundInputs, SolvedProblem
 from licalib_cli.pipeline.settings import NoiseLevels
 from licalib_cli.residuals import TIME_OFFSET, AccelResidual, GyroResidual, PointToPlaneResidual
 from licalib_cli.sections import PatternCheck, SensorCheck
@@ -181,18 +181,39 @@ class ResidualTable:
     time_in_sweep_s: F64
 
 
-def residual_table(state: CalibrationState, inputs: RoundInputs) -> ResidualTable:
-    """The residuals of ``state`` on a round's measurements and map."""
-    problem = build_problem(
-        state, inputs.imu, inputs.lidar, inputs.planes, inputs.noise, inputs.free
-    )
+def residual_table(
+    state: CalibrationState, inputs: RoundInputs, solved: SolvedProblem | None = None
+) -> ResidualTable:
+    """The residuals of ``state`` on a round's measurements and map.
+
+    Args:
+        state: the estimate.
+        inputs: what the round's problem was built from.
+        solved: that problem at ``state`` with the solver's evaluation there, whose residuals
+            are then used instead of building and evaluating the problem again; None: they are
+            computed here.
+    """
+    if solved is not None:
+        problem = solved.problem
+        evaluated = dict(
+            zip(map(id, problem.residual_blocks), solved.evaluation.evals, strict=True)
+        )
+    else:
+        problem = build_problem(
+            state, inputs.imu, inputs.lidar, inputs.planes, inputs.noise, inputs.free
+        )
     params = problem.values()
     gyro = next(b for b in problem.residual_blocks if isinstance(b, GyroResidual))
     accel = next(b for b in problem.residual_blocks if isinstance(b, AccelResidual))
     points = next(b for b in problem.residual_blocks if isinstance(b, PointToPlaneResidual))
-    r_g = gyro.evaluate(params, jacobians=False).residuals / gyro.inv_sigma
-    r_a = accel.evaluate(params, jacobians=False).residuals / accel.inv_sigma
-    d = points.distances(params)
+    if solved is not None:
+        r_g = evaluated[id(gyro)].residuals / gyro.inv_sigma
+        r_a = evaluated[id(accel)].residuals / accel.inv_sigma
+        d = evaluated[id(points)].residuals[:, 0] / points.whitening(params)
+    else:
+        r_g = gyro.evaluate(params, jacobians=False).residuals / gyro.inv_sigma
+        r_a = accel.evaluate(params, jacobians=False).residuals / accel.inv_sigma
+        d = points.distances(params)
     tc = float(np.asarray(params[TIME_OFFSET]).reshape(-1)[0])
     rot = state.so3_spline.rotation(points.t_s + tc)
     phi = state.lidar_intrinsics.nominal_elevation[points.beam]
@@ -231,7 +252,10 @@ def beam_sigma(noise: NoiseLevels, num_beams: int) -> F64:
 
 
 def sensor_checks(
-    state: CalibrationState, inputs: RoundInputs, noise: NoiseLevels
+    state: CalibrationState,
+    inputs: RoundInputs,
+    noise: NoiseLevels,
+    solved: SolvedProblem | None = None,
 ) -> tuple[SensorCheck, ...]:
     """Residual size and structure per sensor at the final estimate.
 
@@ -239,11 +263,13 @@ def sensor_checks(
         state: the final estimate.
         inputs: the final round's problem inputs.
         noise: the noise the fit was weighted with.
+        solved: the final round's problem with the solver's evaluation at ``state``
+            (:func:`residual_table`), or None.
 
     Returns:
         The gyro's, the accelerometer's and the LiDAR's checks.
     """
-    r = residual_table(state, inputs)
+    r = residual_table(state, inputs, solved)
     out = [
         _sensor(
             "gyro",

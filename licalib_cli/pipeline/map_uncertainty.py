@@ -24,7 +24,7 @@ import numpy.typing as npt
 from licalib_cli.estimation import CalibrationState, build_problem
 from licalib_cli.pipeline.free_planes import plane_jacobian
 from licalib_cli.pipeline.points import points_in_global
-from licalib_cli.pipeline.round import RoundInputs
+from licalib_cli.pipeline.round import RoundInputs, SolvedProblem
 from licalib_cli.pipeline.settings import intrinsic_priors
 from licalib_cli.residuals import TRAJ_R3, TRAJ_SO3, PointToPlaneResidual
 from licalib_cli.solver import SolverReport
@@ -62,7 +62,10 @@ class MapUncertainty:
 
 
 def map_uncertainty(
-    state: CalibrationState, inputs: RoundInputs, report: SolverReport
+    state: CalibrationState,
+    inputs: RoundInputs,
+    report: SolverReport,
+    solved: SolvedProblem | None = None,
 ) -> MapUncertainty:
     """Sigma factors of the calibration coordinates with the final round's planes marginalised.
 
@@ -70,22 +73,29 @@ def map_uncertainty(
         state: the final estimate.
         inputs: what the final round's problem was built from.
         report: the final round's solver report (its kept directions and sigmas).
+        solved: that problem at ``state`` with the solver's evaluation and normal equations
+            there (reused instead of building, evaluating and linearising it again); None:
+            they are computed here.
 
     Returns:
         The factors (all 1 when the round had no LiDAR points).
     """
     start = time.perf_counter()
     names = tuple(report.calibration_names)
-    problem = build_problem(
-        state,
-        inputs.imu,
-        inputs.lidar,
-        inputs.planes,
-        inputs.noise,
-        inputs.free,
-        extra_residuals=intrinsic_priors(state, inputs.free),
-    )
-    layout = problem.layout()
+    if solved is not None:
+        problem = solved.problem
+        layout = solved.linearization.layout
+    else:
+        problem = build_problem(
+            state,
+            inputs.imu,
+            inputs.lidar,
+            inputs.planes,
+            inputs.noise,
+            inputs.free,
+            extra_residuals=intrinsic_priors(state, inputs.free),
+        )
+        layout = problem.layout()
     lidar_block = next(
         (
             i
@@ -97,13 +107,17 @@ def map_uncertainty(
     ones = np.ones(len(names))
     if lidar_block is None or tuple(layout.calibration_names) != names:
         return MapUncertainty(names, ones, 0, time.perf_counter() - start)
-    evaluation = problem.evaluate(jacobians=True)
-    lin = problem.linearize(evaluation, layout)
+    if solved is not None:
+        evaluation, lin = solved.evaluation, solved.linearization
+    else:
+        evaluation = problem.evaluate(jacobians=True)
+        lin = problem.linearize(evaluation, layout)
     residual = problem.residual_blocks[lidar_block]
     assert isinstance(residual, PointToPlaneResidual)
     plane = np.asarray(inputs.lidar.plane, dtype=np.intp)
     num_planes = int(np.asarray(inputs.planes.d).shape[0])
-    p_g = points_in_global(state, inputs.points)  # the points the residuals measure
+    # the points the residuals measure
+    p_g = solved.points_global if solved is not None else points_in_global(state, inputs.points)
     jac_p, _ = plane_jacobian(p_g, plane, np.asarray(inputs.planes.normal, dtype=np.float64))
     jac_p *= residual.whitening(problem.values())[:, None]
     terms = nuisance_terms(problem, evaluation, layout, lidar_block, jac_p, plane, num_planes)

@@ -28,6 +28,7 @@ __all__ = [
     "query_times",
     "sample_points",
     "solver_points",
+    "usable_mask",
     "usable_points",
 ]
 
@@ -178,10 +179,17 @@ def solver_points(
     )
 
 
-def usable_points(state: CalibrationState, sample: PointSample, margin_s: float) -> PointSample:
-    """Points whose trajectory time ``tau + t_c`` stays inside the spline with a margin."""
+def usable_mask(
+    state: CalibrationState, sample: PointSample, margin_s: float
+) -> npt.NDArray[np.bool_]:
+    """(N,) which points' trajectory time ``tau + t_c`` stays inside the spline with a margin."""
     t = query_times(state, sample)
     knots = state.knots
     lo = knots.t0_s + margin_s
     hi = knots.t_end_s - margin_s
-    return sample.subset((t >= lo) & (t <= hi))
+    return (t >= lo) & (t <= hi)
+
+
+def usable_points(state: CalibrationState, sample: PointSample, margin_s: float) -> PointSample:
+    """Points whose trajectory time ``tau + t_c`` stays inside the spline with a margin."""
+    return sample.subset(usable_mask(state, sample, margin_s))

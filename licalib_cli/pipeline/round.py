@@ -29,17 +29,28 @@ from licalib_cli.pipeline.points import (
     PointSample,
     points_in_global,
     solver_points,
-    usable_points,
+    usable_mask,
 )
 from licalib_cli.pipeline.settings import RoundSettings, intrinsic_priors
 from licalib_cli.pipeline.timing import StageTime, Stopwatch
 from licalib_cli.results import Extrinsic
-from licalib_cli.solver.lm import SolverReport, solve
+from licalib_cli.solver.lm import SolverReport, solve_with_linearization
+from licalib_cli.solver.problem import Evaluation, Linearization, Problem
 from licalib_cli.surfels import associate_points, build_surfels
 
-__all__ = ["RoundInputs", "RoundResult", "RoundSummary", "extrinsic_of", "free_names", "run_round"]
+__all__ = [
+    "MappedSample",
+    "RoundInputs",
+    "RoundResult",
+    "RoundSummary",
+    "SolvedProblem",
+    "extrinsic_of",
+    "free_names",
+    "run_round",
+]
 
 F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
 
 logger = logging.getLogger(__name__)
 
@@ -71,6 +82,46 @@ class RoundInputs:
     planes: Planes
     noise: NoiseModel
     free: FreeParameters
+
+
+@dataclass(frozen=True)
+class SolvedProblem:
+    """A round's problem at its estimate, with the solver's evaluation and normal equations there
+    (the checks analyse the final round's problem at the same state without evaluating and
+    linearising it again).
+
+    Attributes:
+        problem: the problem, its blocks at the estimate.
+        evaluation: residuals and Jacobians at the estimate.
+        linearization: the normal equations at the estimate (the report's spectrum and sigmas).
+        points_global: (P, 3) the problem's points (``RoundInputs.points``) mapped into ``{G}``
+            with the estimate, m.
+    """
+
+    problem: Problem
+    evaluation: Evaluation
+    linearization: Linearization
+    points_global: F64
+
+
+@dataclass(frozen=True)
+class MappedSample:
+    """A round's usable points mapped into ``{G}`` with its estimate: the next round's map when it
+    starts from that estimate on the same sample and the same points are usable.
+
+    Attributes:
+        state: the estimate the points were mapped with.
+        sample: the sample the points were taken from.
+        usable: (len(sample),) which of its points were usable.
+        points: those points.
+        p_g: (N, 3) the points in ``{G}``, m (read-only).
+    """
+
+    state: CalibrationState
+    sample: PointSample
+    usable: npt.NDArray[np.bool_]
+    points: PointSample
+    p_g: F64
 
 
 @dataclass(frozen=True)
@@ -142,12 +193,16 @@ class RoundResult:
         summary: the round's figures.
         report: the solver's report (spectrum and sigmas at the new estimate).
         inputs: what the round's problem was built from.
+        solved: the round's problem with its evaluation and normal equations at the estimate.
+        mapped: the round's usable points mapped with the estimate.
     """
 
     state: CalibrationState
     summary: RoundSummary
     report: SolverReport
     inputs: RoundInputs
+    solved: SolvedProblem | None = field(default=None, repr=False, compare=False)
+    mapped: MappedSample | None = field(default=None, repr=False, compare=False)
 
 
 def run_round(
@@ -156,8 +211,12 @@ def run_round(
     imu: ImuData,
     settings: RoundSettings,
     index: int,
+    mapped: MappedSample | None = None,
 ) -> RoundResult:
     """Rebuild surfels and associations from ``state``, then one LM round.
+
+    ``mapped`` (the previous round's :attr:`RoundResult.mapped`) is the map when it holds the same
+    points of ``sample`` mapped with ``state`` itself; else the points are mapped here.
 
     Raises:
         ExcitationError: the map has no planar surfaces, or too few points lie on them.
@@ -165,8 +224,17 @@ def run_round(
     """
     watch, total = Stopwatch(), Stopwatch()
     times: dict[str, StageTime] = {}
-    pts = usable_points(state, sample, settings.margin_s)
-    p_g = points_in_global(state, pts)
+    usable = usable_mask(state, sample, settings.margin_s)
+    if (
+        mapped is not None
+        and mapped.state is state
+        and mapped.sample is sample
+        and np.array_equal(mapped.usable, usable)
+    ):
+        pts, p_g = mapped.points, mapped.p_g
+    else:
+        pts = sample.subset(usable)
+        p_g = points_in_global(state, pts)
     times["map"] = watch.lap()
     scfg = settings.surfels
     surfels = build_surfels(p_g, scfg)
@@ -201,21 +269,24 @@ def run_round(
         extra_residuals=intrinsic_priors(state, free),
     )
     times["problem"] = watch.lap()
-    report = solve(problem, settings.solver)
+    solution = solve_with_linearization(problem, settings.solver)
+    report = solution.report
     times["solver"] = watch.lap()
     if report.status == "failed":
         msg = f"The optimisation failed in round {index}: {report.reason}."
         raise SolverError(msg)
     new_state = state_from_problem(state, problem)
+    # The usable points are mapped once with the new estimate: the entropy's map, the distances
+    # after the round and the next round's map (from the same estimate) are subsets of them.
+    p_new = points_in_global(new_state, pts)
+    p_new.flags.writeable = False
     try:
         stride = -(-len(pts) // _ENTROPY_MAP_POINTS)
-        thinned = pts.subset(np.arange(0, len(pts), stride)) if stride > 1 else pts
-        entropy = mean_map_entropy(
-            points_in_global(new_state, thinned), max_query_points=_ENTROPY_POINTS
-        ).mean
+        thinned = np.ascontiguousarray(p_new[::stride]) if stride > 1 else p_new
+        entropy = mean_map_entropy(thinned, max_query_points=_ENTROPY_POINTS).mean
     except DataError:
         entropy = float("nan")
-    p_after = points_in_global(new_state, used)
+    p_after = p_new[assoc.point_index[order]]
     dist = np.einsum("ij,ij->i", surfels.normal[plane_of], p_after) + surfels.d[plane_of]
     p_before = p_g[assoc.point_index[order]]
     dist0 = np.einsum("ij,ij->i", surfels.normal[plane_of], p_before) + surfels.d[plane_of]
@@ -244,4 +315,6 @@ def run_round(
         ", ".join(f"{k} {t.wall_s:.2f}/{t.cpu_s:.2f}" for k, t in times.items()),
     )
     inputs = RoundInputs(imu, lidar, used, planes, settings.weights, free)
-    return RoundResult(new_state, summary, report, inputs)
+    solved = SolvedProblem(problem, solution.evaluation, solution.linearization, p_after)
+    following = MappedSample(new_state, sample, usable, pts, p_new)
+    return RoundResult(new_state, summary, report, inputs, solved, following)

@@ -13,7 +13,7 @@ moves is a non-convergence, reported as such by the checks.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -24,7 +24,14 @@ from licalib_cli.models.lidar import lidar_point
 from licalib_cli.pipeline.free_planes import refine_with_planes
 from licalib_cli.pipeline.initialise import InitialGuess
 from licalib_cli.pipeline.points import PointSample, points_per_scan, sample_points
-from licalib_cli.pipeline.round import RoundInputs, RoundSummary, extrinsic_of, run_round
+from licalib_cli.pipeline.round import (
+    MappedSample,
+    RoundInputs,
+    RoundSummary,
+    SolvedProblem,
+    extrinsic_of,
+    run_round,
+)
 from licalib_cli.pipeline.settings import NoiseLevels, estimates_intrinsics, round_settings
 from licalib_cli.progress import Progress
 from licalib_cli.solver.lm import SolverReport
@@ -86,6 +93,8 @@ class Fit:
         jitter: the estimate moved within the jitter band at the cap (sigmas must cover it).
         last_change: how far the last regular round moved the extrinsic.
         settle_threshold: the tolerances that applied to that change.
+        solved: the final round's problem, evaluated and linearised at ``state`` (for the
+            checks; None when a later refinement moved the estimate).
     """
 
     state: CalibrationState
@@ -96,6 +105,7 @@ class Fit:
     jitter: bool
     last_change: Change
     settle_threshold: Change
+    solved: SolvedProblem | None = field(default=None, repr=False, compare=False)
 
 
 def _change(before: CalibrationState, after: CalibrationState) -> Change:
@@ -193,6 +203,7 @@ def run_schedule(
     rounds: list[RoundSummary] = []
     report: SolverReport | None = None
     inputs: RoundInputs | None = None
+    solved: SolvedProblem | None = None
     settled = False
     change = Change(np.inf, np.inf, np.inf)
     threshold = change
@@ -200,12 +211,16 @@ def run_schedule(
     intrinsics_on = want_intrinsics and (warm or sch.intrinsics_from_round == 1)
     joined = 1 if intrinsics_on else 0
     intrinsic_sigmas = 0.0
+    mapped: MappedSample | None = None  # the last round's points mapped with its estimate
     for index in range(1, sch.max_rounds + 1):
         before = state
+        solved = None  # the previous round's evaluation is not kept while this one runs
         done = run_round(
-            state, sample, imu, round_settings(cfg, noise, max_dist, intrinsics_on), index
+            state, sample, imu, round_settings(cfg, noise, max_dist, intrinsics_on), index, mapped
         )
         state, summary, report, inputs = done.state, done.summary, done.report, done.inputs
+        solved, mapped = done.solved, done.mapped
+        del done
         rounds.append(summary)
         progress.advance(index, sch.max_rounds)
         change = _change(before, state)
@@ -267,10 +282,13 @@ def run_schedule(
         # time offset and the translation shrinks with the number of points.
         dense = sample_points(rec.scans, phi, final, cfg, seed=1)
         before = state
+        solved = mapped = None
         done = run_round(
             state, dense, imu, round_settings(cfg, noise, base, intrinsics_on), len(rounds) + 1
         )
         state, summary, report, inputs = done.state, done.summary, done.report, done.inputs
+        solved = done.solved
+        del done
         rounds.append(summary)
         dense_change = _change(before, state)
         logger.info(
@@ -297,6 +315,7 @@ def run_schedule(
                 refined.seconds,
             )
             state, report, inputs = refined.state, refined.report, refined.inputs
+            solved = None
     return Fit(
         state=state,
         rounds=tuple(rounds),
@@ -306,4 +325,5 @@ def run_schedule(
         jitter=jitter,
         last_change=change,
         settle_threshold=threshold,
+        solved=solved,
     )

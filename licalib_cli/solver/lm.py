@@ -51,17 +51,19 @@ from licalib_cli.solver.observability import (
     truncation_mask,
     undamped_schur,
 )
-from licalib_cli.solver.problem import Linearization, Problem
+from licalib_cli.solver.problem import Evaluation, Linearization, Problem
 from licalib_cli.solver.schur import schur_complement
 
 __all__ = [
     "IterationSummary",
     "LMParams",
+    "Solution",
     "SolverReport",
     "Step",
     "compute_step",
     "observable_basis",
     "solve",
+    "solve_with_linearization",
 ]
 
 F64 = npt.NDArray[np.float64]
@@ -232,6 +234,22 @@ class SolverReport:
         return float(self.std[self.calibration_names.index(name)])
 
 
+@dataclass(frozen=True)
+class Solution:
+    """The solver's report with the problem's normal equations at the estimate.
+
+    Attributes:
+        report: the solver's report.
+        evaluation: residuals and Jacobians at the estimate (the problem's values on return).
+        linearization: the normal equations at the estimate, those the report's spectrum and
+            sigmas come from.
+    """
+
+    report: SolverReport
+    evaluation: Evaluation
+    linearization: Linearization
+
+
 def _damping_diagonal(diag: F64, params: LMParams) -> F64:
     return np.clip(diag, params.min_diagonal, params.max_diagonal)
 
@@ -340,6 +358,21 @@ def solve(
     Raises:
         SolverError: When the initial cost is not finite.
     """
+    return solve_with_linearization(problem, params, callback).report
+
+
+def solve_with_linearization(
+    problem: Problem,
+    params: LMParams | None = None,
+    callback: Callable[[IterationSummary], None] | None = None,
+) -> Solution:
+    """:func:`solve`, also returning the evaluation and the normal equations at the estimate
+    (for later analyses of the same problem at the same state, which then need not evaluate
+    and linearise it again).
+
+    Raises:
+        SolverError: When the initial cost is not finite.
+    """
     params = LMParams() if params is None else params
     start = time.perf_counter()
     log = logger.info if params.verbose else logger.debug
@@ -411,6 +444,7 @@ def solve(
             callback(summary)
         if accepted:
             problem.set_values(trial_values)
+            evaluation = trial
             lin = problem.linearize(trial, layout)
             info = _undamped_information(lin) if params.use_tsvd else None
             basis = None if info is None else observable_basis(info, params)
@@ -433,7 +467,8 @@ def solve(
                 break
     if info is None:
         info = _undamped_information(lin)
-    return _report(lin, info, params, status, reason, iteration, history, start)
+    report = _report(lin, info, params, status, reason, iteration, history, start)
+    return Solution(report, evaluation, lin)
 
 
 def _report(
