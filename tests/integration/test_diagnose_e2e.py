@@ -95,6 +95,35 @@ def test_a_hidden_gyro_scale_is_named_added_and_its_gap_shrinks(
     assert CalibrationResult.load(out / "calibration.yaml").imu_intrinsics.gyro_scale[0] > 1.002
 
 
+def test_a_clock_drift_the_score_test_finds_is_estimated_not_truncated(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A 300 ppm IMU clock drift over 8 s is found by its score test with a sigma of about
+    25 ppm; the refit must estimate it (the solver once held it as unobservable, its sigma being
+    above the drift's characteristic scale, so the BIC saw no gain and nothing was named)."""
+    spec = SimulationSpec(
+        scenario="sinusoid",
+        lidar="vlp16",
+        duration_s=8.0,
+        seed=41,
+        time_offset_s=0.004,
+        intrinsics="none",
+        azimuth_resolution_deg=0.4,
+        effects=("imu_clock_drift",),
+        imu_clock_drift_ppm=300.0,
+    )
+    bag = simulate(spec, tmp_path / "sim").bag_path
+    args = [str(bag), "-c", str(CONFIG), "--candidates", "imu_clock_drift", "--json"]
+    code, printed = _diagnose(args, capsys)
+    assert code == 0
+    data = json.loads(printed)
+    assert data["effects_found"] == ["imu_clock_drift"]
+    (step,) = data["steps"]
+    drift, sigma = step["estimate"]["ext.time_drift"], step["sigma"]["ext.time_drift"]
+    assert sigma is not None and sigma < 1e-4
+    assert abs(drift - 300e-6) < max(3 * sigma, 30e-6)
+
+
 def test_a_clean_bag_shows_no_effect(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     bag = _bag(tmp_path)
     code, printed = _diagnose([str(bag), "-c", str(CONFIG)], capsys)
