@@ -38,7 +38,7 @@ import numpy.typing as npt
 from scipy import optimize, stats
 
 from licalib_cli.config import CalibConfig
-from licalib_cli.estimation import build_problem, intrinsic_coordinates
+from licalib_cli.estimation import intrinsic_coordinates
 from licalib_cli.pipeline import (
     CalibrationRun,
     Prepared,
@@ -48,7 +48,7 @@ from licalib_cli.pipeline import (
 )
 from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE
 from licalib_cli.pipeline.round import extrinsic_of
-from licalib_cli.pipeline.settings import free_parameters, intrinsic_priors, lm_params
+from licalib_cli.pipeline.settings import free_parameters, lm_params
 from licalib_cli.pipeline.twin import TWIN_ITERATIONS, Twin, twin_checks
 from licalib_cli.progress import NullProgress, Progress
 from licalib_cli.solver.lm import solve
@@ -423,18 +423,8 @@ def _sum_of_squares(run: CalibrationRun, cfg: CalibConfig, refit: bool) -> tuple
 
     With ``refit``, the model of ``cfg`` is first re-solved (a few iterations) on that data.
     """
-    inputs = run.fit.inputs
     free = free_parameters(cfg, bool(cfg.model.imu or cfg.model.lidar))
-    state = run.state
-    problem = build_problem(
-        state,
-        inputs.imu,
-        inputs.lidar,
-        inputs.planes,
-        inputs.noise,
-        free,
-        extra_residuals=intrinsic_priors(state, free),
-    )
+    problem = run.fit.inputs.problem(run.state, free=free)
     if refit:
         report = solve(problem, lm_params(cfg, max_iterations=4))
         cost = report.final_cost

@@ -202,18 +202,21 @@ def residual_table(
         problem = build_problem(
             state, inputs.imu, inputs.lidar, inputs.planes, inputs.noise, inputs.free
         )
+        evaluated = {}
     params = problem.values()
+
+    def whitened(block: GyroResidual | AccelResidual | PointToPlaneResidual) -> F64:
+        ev = evaluated.get(id(block))
+        if ev is None:
+            ev = block.evaluate(params, jacobians=False)
+        return np.asarray(ev.residuals, dtype=np.float64)
+
     gyro = next(b for b in problem.residual_blocks if isinstance(b, GyroResidual))
     accel = next(b for b in problem.residual_blocks if isinstance(b, AccelResidual))
     points = next(b for b in problem.residual_blocks if isinstance(b, PointToPlaneResidual))
-    if solved is not None:
-        r_g = evaluated[id(gyro)].residuals / gyro.inv_sigma
-        r_a = evaluated[id(accel)].residuals / accel.inv_sigma
-        d = evaluated[id(points)].residuals[:, 0] / points.whitening(params)
-    else:
-        r_g = gyro.evaluate(params, jacobians=False).residuals / gyro.inv_sigma
-        r_a = accel.evaluate(params, jacobians=False).residuals / accel.inv_sigma
-        d = points.distances(params)
+    r_g = whitened(gyro) / gyro.inv_sigma
+    r_a = whitened(accel) / accel.inv_sigma
+    d = whitened(points)[:, 0] / points.whitening(params)  # as PointToPlaneResidual.distances
     tc = float(np.asarray(params[TIME_OFFSET]).reshape(-1)[0])
     rot = state.so3_spline.rotation(points.t_s + tc)
     phi = state.lidar_intrinsics.nominal_elevation[points.beam]

@@ -25,13 +25,11 @@ import numpy.typing as npt
 from licalib_cli.estimation import (
     CalibrationState,
     Planes,
-    build_problem,
     state_from_problem,
     state_from_values,
 )
 from licalib_cli.pipeline.points import points_in_global
 from licalib_cli.pipeline.round import RoundInputs
-from licalib_cli.pipeline.settings import intrinsic_priors
 from licalib_cli.residuals import TRAJ_R3, TRAJ_SO3, PointToPlaneResidual
 from licalib_cli.solver import s2_basis
 from licalib_cli.solver.lm import LMParams, SolverReport, solve
@@ -118,18 +116,6 @@ def stepped_planes(planes: Planes, centroid: F64, dp: F64) -> Planes:
     return replace(planes, normal=moved, d=d)
 
 
-def _problem(state: CalibrationState, inputs: RoundInputs, planes: Planes) -> Problem:
-    return build_problem(
-        state,
-        inputs.imu,
-        inputs.lidar,
-        planes,
-        inputs.noise,
-        inputs.free,
-        extra_residuals=intrinsic_priors(state, inputs.free),
-    )
-
-
 def _lidar_block(problem: Problem) -> int | None:
     return next(
         (
@@ -160,7 +146,7 @@ def refine_with_planes(
     start = time.perf_counter()
     planes = inputs.planes
     plane = np.asarray(inputs.lidar.plane, dtype=np.intp)
-    problem = _problem(state, inputs, planes)
+    problem = inputs.problem(state, planes)
     block = _lidar_block(problem)
     if block is None:
         return None
@@ -195,7 +181,7 @@ def refine_with_planes(
                 state, problem.retracted_values(fraction * step.dx, layout)
             )
             trial_planes = stepped_planes(planes, centroid, fraction * step.dp)
-            trial = _problem(trial_state, inputs, trial_planes)
+            trial = inputs.problem(trial_state, trial_planes)
             trial_cost = trial.evaluate(jacobians=False).cost
             if np.isfinite(trial_cost) and trial_cost < cost:
                 accepted = (trial_state, trial_planes, trial, trial_cost)

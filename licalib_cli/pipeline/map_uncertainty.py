@@ -21,11 +21,10 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from licalib_cli.estimation import CalibrationState, build_problem
+from licalib_cli.estimation import CalibrationState
 from licalib_cli.pipeline.free_planes import plane_jacobian
 from licalib_cli.pipeline.points import points_in_global
 from licalib_cli.pipeline.round import RoundInputs, SolvedProblem
-from licalib_cli.pipeline.settings import intrinsic_priors
 from licalib_cli.residuals import TRAJ_R3, TRAJ_SO3, PointToPlaneResidual
 from licalib_cli.solver import SolverReport
 from licalib_cli.solver.nuisance import marginal_schur, nuisance_terms
@@ -86,15 +85,7 @@ def map_uncertainty(
         problem = solved.problem
         layout = solved.linearization.layout
     else:
-        problem = build_problem(
-            state,
-            inputs.imu,
-            inputs.lidar,
-            inputs.planes,
-            inputs.noise,
-            inputs.free,
-            extra_residuals=intrinsic_priors(state, inputs.free),
-        )
+        problem = inputs.problem(state)
         layout = problem.layout()
     lidar_block = next(
         (

@@ -83,6 +83,25 @@ class RoundInputs:
     noise: NoiseModel
     free: FreeParameters
 
+    def problem(
+        self,
+        state: CalibrationState,
+        planes: Planes | None = None,
+        free: FreeParameters | None = None,
+    ) -> Problem:
+        """The round's problem at ``state`` (the intrinsics' priors included), on other
+        ``planes`` or with other ``free`` parameters when given."""
+        free = self.free if free is None else free
+        return build_problem(
+            state,
+            self.imu,
+            self.lidar,
+            self.planes if planes is None else planes,
+            self.noise,
+            free,
+            extra_residuals=intrinsic_priors(state, free),
+        )
+
 
 @dataclass(frozen=True)
 class SolvedProblem:
@@ -259,15 +278,8 @@ def run_round(
     lidar = solver_points(state, used, plane_of)
     planes = Planes(normal=surfels.normal, d=surfels.d, thickness=surfels.thickness)
     free = settings.free
-    problem = build_problem(
-        state,
-        imu,
-        lidar,
-        planes,
-        settings.weights,
-        free,
-        extra_residuals=intrinsic_priors(state, free),
-    )
+    inputs = RoundInputs(imu, lidar, used, planes, settings.weights, free)
+    problem = inputs.problem(state)
     times["problem"] = watch.lap()
     solution = solve_with_linearization(problem, settings.solver)
     report = solution.report
@@ -314,7 +326,6 @@ def run_round(
         index,
         ", ".join(f"{k} {t.wall_s:.2f}/{t.cpu_s:.2f}" for k, t in times.items()),
     )
-    inputs = RoundInputs(imu, lidar, used, planes, settings.weights, free)
     solved = SolvedProblem(problem, solution.evaluation, solution.linearization, p_after)
     following = MappedSample(new_state, sample, usable, pts, p_new)
     return RoundResult(new_state, summary, report, inputs, solved, following)

@@ -47,7 +47,7 @@ from licalib_cli.models.lidar import lidar_point
 from licalib_cli.pipeline.fitcheck import beam_sigma, residual_table, sensor_checks
 from licalib_cli.pipeline.points import query_times
 from licalib_cli.pipeline.round import RoundInputs
-from licalib_cli.pipeline.settings import NoiseLevels, intrinsic_priors
+from licalib_cli.pipeline.settings import NoiseLevels
 from licalib_cli.residuals import PointToPlaneResidual
 from licalib_cli.sections import SensorCheck
 from licalib_cli.solver.lm import LMParams, solve
@@ -240,15 +240,7 @@ def _refit_planes(planes: Planes, plane: npt.NDArray[np.intp], p_g: F64) -> Plan
 def _fit(
     state: CalibrationState, inputs: RoundInputs, params: LMParams
 ) -> tuple[CalibrationState, bool]:
-    problem = build_problem(
-        state,
-        inputs.imu,
-        inputs.lidar,
-        inputs.planes,
-        inputs.noise,
-        inputs.free,
-        extra_residuals=intrinsic_priors(state, inputs.free),
-    )
+    problem = inputs.problem(state)
     report = solve(problem, params)
     return state_from_problem(state, problem), report.status != "failed"
 

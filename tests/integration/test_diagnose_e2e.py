@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -22,7 +23,9 @@ VLP16_ELEVATION = np.radians(np.arange(-15.0, 16.0, 2.0))
 pytestmark = pytest.mark.slow
 
 
-def _bag(tmp_path: Path, imu: ImuIntrinsics | None = None) -> Path:
+def _bag(tmp_path: Path, imu: ImuIntrinsics | None = None, **effects: Any) -> Path:
+    """An 8 s sinusoid with the IMU intrinsics ``imu`` (default: none) and the simulator's
+    named ``effects`` (``SimulationSpec`` keywords)."""
     path = tmp_path / "intrinsics.yaml"
     CalibrationResult(
         imu_intrinsics=imu or ImuIntrinsics(),
@@ -36,6 +39,7 @@ def _bag(tmp_path: Path, imu: ImuIntrinsics | None = None) -> Path:
         time_offset_s=0.004,
         intrinsics_file=path,
         azimuth_resolution_deg=0.4,
+        **effects,
     )
     return simulate(spec, tmp_path / "sim").bag_path
 
@@ -101,18 +105,7 @@ def test_a_clock_drift_the_score_test_finds_is_estimated_not_truncated(
     """A 300 ppm IMU clock drift over 8 s is found by its score test with a sigma of about
     25 ppm; the refit must estimate it (the solver once held it as unobservable, its sigma being
     above the drift's characteristic scale, so the BIC saw no gain and nothing was named)."""
-    spec = SimulationSpec(
-        scenario="sinusoid",
-        lidar="vlp16",
-        duration_s=8.0,
-        seed=41,
-        time_offset_s=0.004,
-        intrinsics="none",
-        azimuth_resolution_deg=0.4,
-        effects=("imu_clock_drift",),
-        imu_clock_drift_ppm=300.0,
-    )
-    bag = simulate(spec, tmp_path / "sim").bag_path
+    bag = _bag(tmp_path, effects=("imu_clock_drift",), imu_clock_drift_ppm=300.0)
     args = [str(bag), "-c", str(CONFIG), "--candidates", "imu_clock_drift", "--json"]
     code, printed = _diagnose(args, capsys)
     assert code == 0
