@@ -72,8 +72,7 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
     run = calibrate(out.bag_path, cfg)
     wall = time.perf_counter() - t
     assert run.result.recording is not None and run.result.observability is not None
-    shift = run.result.recording.lidar_clock_shift_s
-    truth = out.truth.extrinsic.on_shifted_clock(spec.lidar_clock_offset_s, shift)
+    truth = out.truth.extrinsic_for(run.result)
     err = run.result.extrinsic.error_to(truth)
     return {
         "seed": seed,

@@ -28,7 +28,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import replace
 from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -156,15 +155,8 @@ def one_run(case: dict, workdir: Path) -> dict:
         return row
     wall = time.perf_counter() - t0
     res = run.result
-    shift = res.recording.lidar_clock_shift_s
-    truth = out.truth.extrinsic.on_shifted_clock(spec.lidar_clock_offset_s, shift)
-    if "imu_clock_drift" in case["effects"]:
-        # A drifting clock has no single time offset: compare with the one at the middle of the
-        # segment (where a calibration over the whole segment puts it).
-        assert out.truth.simulation is not None
-        ppm = out.truth.simulation.imu.clock_drift_ppm
-        mid = 0.5 * spec.duration_s
-        truth = replace(truth, time_offset_s=truth.time_offset_s + 1e-6 * ppm * mid)
+    # a drifting clock's offset is compared at the time the calibration's refers to
+    truth = out.truth.extrinsic_for(res)
     unc = res.uncertainty.to_dict()
     t_err = res.extrinsic.translation - truth.translation
     r_err = _rotation_error_lidar(res.extrinsic.rotation, truth.rotation)

@@ -178,17 +178,10 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
     t0 = time.perf_counter()
     diag = diagnose(out.bag_path, load_config(None))
     wall = time.perf_counter() - t0
-    truth = out.truth.extrinsic
-    if "imu_clock_drift" in case["effects"]:
-        assert out.truth.simulation is not None
-        ppm = out.truth.simulation.imu.clock_drift_ppm
-        from dataclasses import replace
-
-        truth = replace(truth, time_offset_s=truth.time_offset_s + 1e-6 * ppm * duration / 2)
 
     def err(run: object) -> dict:
         res = run.result  # type: ignore[attr-defined]
-        t = truth.on_shifted_clock(spec.lidar_clock_offset_s, res.recording.lidar_clock_shift_s)
+        t = out.truth.extrinsic_for(res)
         e = res.extrinsic.error_to(t)
         return {
             "translation_mm": 1e3 * e["translation_m"],

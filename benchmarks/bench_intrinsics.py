@@ -71,9 +71,7 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
     run = calibrate(out.bag_path, cfg)
     wall = time.perf_counter() - t0
     res = run.result
-    truth = out.truth.extrinsic.on_shifted_clock(
-        spec.lidar_clock_offset_s, res.recording.lidar_clock_shift_s
-    )
+    truth = out.truth.extrinsic_for(res)
     err = res.extrinsic.error_to(truth)
     row: dict = {
         "seed": seed,

@@ -154,9 +154,7 @@ def one_run(folder: Path, config: Path) -> dict:
     wall0, cpu0 = time.perf_counter(), time.process_time()
     run = calibrate(bag, cfg)
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
-    rec = run.result.recording
-    shift = rec.lidar_clock_shift_s if rec is not None else 0.0
-    ref = truth.extrinsic.on_shifted_clock(truth.lidar_clock_offset_s, shift)
+    ref = truth.extrinsic_for(run.result)
     err = run.result.extrinsic.error_to(ref)
     stage_times = getattr(run, "stage_times", None) or {}
     stages = {
@@ -169,7 +167,8 @@ def one_run(folder: Path, config: Path) -> dict:
             acc = steps.setdefault(k, [0.0, 0.0])
             acc[0] += t.wall_s
             acc[1] += t.cpu_s
-    imu_t = run.result.recording.duration_s if rec is not None else float("nan")
+    rec = run.result.recording
+    imu_t = rec.duration_s if rec is not None else float("nan")
     return {
         "duration_s": float(imu_t),
         "wall_s": wall,

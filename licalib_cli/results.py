@@ -37,6 +37,7 @@ from licalib_cli.geometry import so3
 from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
 from licalib_cli.sections import (
     Consistency,
+    ExtraTerms,
     FactoryExtrinsicSection,
     FitSection,
     InitializationSection,
@@ -253,6 +254,7 @@ _SECTIONS: tuple[tuple[str, type[Section]], ...] = (
     ("factory_extrinsic", FactoryExtrinsicSection),
     ("provenance", Provenance),
     ("segments", SegmentsSection),
+    ("extra_terms", ExtraTerms),
 )
 
 
@@ -266,7 +268,8 @@ class CalibrationResult:
         lidar_intrinsics: per-beam LiDAR intrinsics, or None when not part of the file.
         gravity_G: (3,) gravity in the first IMU frame, m/s^2, or None.
         model, uncertainty, intrinsics_uncertainty, observability, verdict, consistency,
-            initialization, fit, recording, factory_extrinsic, provenance, segments: the typed
+            initialization, fit, recording, factory_extrinsic, provenance, segments,
+            extra_terms: the typed
             sections ``calibrate`` writes (:mod:`licalib_cli.sections`), None when the file
             has none.
     """
@@ -287,6 +290,7 @@ class CalibrationResult:
     factory_extrinsic: FactoryExtrinsicSection | None = None
     provenance: Provenance | None = None
     segments: SegmentsSection | None = None
+    extra_terms: ExtraTerms | None = None
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"schema_version": SCHEMA_VERSION}
@@ -373,6 +377,7 @@ def estimate_rows(
     truth: Extrinsic | None = None,
     initial: tuple[Sequence[float], Sequence[float], float] | None = None,
     unobservable: str = "unobservable",
+    true_clock_drift: float | None = None,
 ) -> list[list[str]]:
     """The estimate table's rows, as the console and the report show them.
 
@@ -384,6 +389,8 @@ def estimate_rows(
         truth: the true extrinsic on the result's clock footing, or None.
         initial: the initial guess, or None.
         unobservable: the sigma cell of a direction that is not observable.
+        true_clock_drift: the true IMU clock drift (s/s) for the clock drift's row, when the
+            model estimates one and ``truth`` is given.
     """
     ext = result.extrinsic
     unc = result.uncertainty
@@ -415,7 +422,10 @@ def estimate_rows(
         if t_rpy is not None:
             row += [f"{t_rpy[i]:+.4f} deg", f"{rpy[i] - t_rpy[i]:+.4f} deg"]
         rows.append(row)
-    row = ["time offset", f"{1e3 * ext.time_offset_s:+.3f} ms", sigma(c_std, 1e3, "ms", 3)]
+    extra = result.extra_terms
+    drifting = extra is not None and extra.clock_drift is not None
+    label = "time offset (mid)" if drifting else "time offset"
+    row = [label, f"{1e3 * ext.time_offset_s:+.3f} ms", sigma(c_std, 1e3, "ms", 3)]
     if initial is not None:
         row.append(f"{1e3 * initial[2]:+.3f} ms")
     if truth is not None:
@@ -424,6 +434,24 @@ def estimate_rows(
             f"{1e3 * (ext.time_offset_s - truth.time_offset_s):+.3f} ms",
         ]
     rows.append(row)
+    if drifting:
+        assert extra is not None and extra.clock_drift is not None
+        stds = result.intrinsics_uncertainty.values if result.intrinsics_uncertainty else {}
+        std = (stds.get("clock_drift") or (None,))[0]
+        row = ["clock drift", f"{1e6 * extra.clock_drift:+.2f} ppm"]
+        row.append(sigma(std, 1e6, "ppm", 2) if std is not None else unobservable)
+        row += [""] * (initial is not None)
+        if truth is not None:
+            k = true_clock_drift
+            row += (
+                ["", ""]
+                if k is None
+                else [
+                    f"{1e6 * k:+.2f} ppm",
+                    f"{1e6 * (extra.clock_drift - k):+.2f} ppm",
+                ]
+            )
+        rows.append(row)
     return rows
 
 

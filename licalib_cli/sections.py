@@ -21,6 +21,8 @@ section            content
                    difference from it, when the bag carries one
 ``provenance``     licalib version, bag fingerprint, creation time
 ``segments``       multi-segment calibration: each segment's own estimate next to the joint one
+``extra_terms``    the terms beyond the paper's model that the model estimated (clock drift, bias
+                   drifts, per-point time scale) and the stamp at which the time offset holds
 =================  =============================================================================
 """
 
@@ -35,6 +37,7 @@ import numpy as np
 __all__ = [
     "Consistency",
     "EffectCheck",
+    "ExtraTerms",
     "FactoryExtrinsicSection",
     "FitSection",
     "InitializationSection",
@@ -389,6 +392,39 @@ class IntrinsicsUncertainty(Section):
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> IntrinsicsUncertainty:
         return cls({k: tuple(None if x is None else float(x) for x in v) for k, v in d.items()})
+
+
+@dataclass(frozen=True)
+class ExtraTerms(Section):
+    """The estimates of the terms beyond the paper's model (config ``model.imu`` /
+    ``model.lidar``: ``clock_drift``, ``gyro_bias_walk``, ``accel_bias_walk``, ``point_time``),
+    written only when the model holds one; their 1-sigma are in ``intrinsics_uncertainty`` under
+    the same keys. A term the model does not hold is ``None``.
+
+    With a clock drift ``k`` the time offset changes over the recording::
+
+        t_imu = t_lidar + time_offset_s + k (t_lidar - reference_ns 1e-9)
+
+    so ``extrinsic.time_offset_s`` is the offset at ``reference_ns``; likewise the biases of
+    ``imu_intrinsics`` hold at ``reference_ns`` and change by the bias drifts per second.
+
+    Attributes:
+        reference_ns: IMU-clock stamp (the segment's middle) at which the time offset and the
+            biases hold, ns.
+        clock_drift: ``k``, s/s (``1e-6`` = 1 ppm; positive: the IMU clock runs fast).
+        gyro_bias_walk: the gyro bias's drift per axis, rad/s^2.
+        accel_bias_walk: the accelerometer bias's drift per axis, m/s^3.
+        point_time: the fraction by which the per-point times within a sweep are off (a point
+            stamped ``tau`` was measured at ``tau - k_point (tau - sweep start)``).
+    """
+
+    reference_ns: int
+    clock_drift: float | None = None
+    gyro_bias_walk: tuple[float, float, float] | None = None
+    accel_bias_walk: tuple[float, float, float] | None = None
+    point_time: float | None = None
+
+    _digits = 8
 
 
 @dataclass(frozen=True)

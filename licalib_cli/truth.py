@@ -16,7 +16,7 @@ of its own::
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -240,6 +240,30 @@ class Truth:
     def lidar_clock_offset_s(self) -> float:
         """How far the LiDAR clock ran ahead of the IMU clock, s (0 when not simulated)."""
         return self.simulation.clock.lidar_clock_offset_s if self.simulation else 0.0
+
+    def extrinsic_for(self, result: CalibrationResult) -> Extrinsic:
+        """The true extrinsic in a calibration's terms, so that the two compare.
+
+        The time offset is put on the calibration's clock split (its
+        ``recording.lidar_clock_shift_s``, :meth:`Extrinsic.on_shifted_clock`) and, when the
+        simulated IMU clock drifts, taken at the time the calibration's offset refers to: the
+        stamp of its ``extra_terms.reference_ns`` when it estimated the drift, else the middle
+        of its recording (a constant offset fitted to a drifting clock is the mean offset). The
+        truth's ``time_offset_s`` holds at the simulation's first sample.
+        """
+        shift = result.recording.lidar_clock_shift_s if result.recording else 0.0
+        ext = self.extrinsic.on_shifted_clock(self.lidar_clock_offset_s, shift)
+        drift = 1e-6 * self.simulation.imu.clock_drift_ppm if self.simulation else 0.0
+        if drift == 0.0 or result.recording is None or self.simulation is None:
+            return ext
+        if result.extra_terms is not None:
+            ref_ns = result.extra_terms.reference_ns
+        else:
+            rec = result.recording
+            ref_ns = rec.start_ns + round(0.5e9 * rec.duration_s)
+        # IMU stamps run (1 + drift) times true time; the offset grows by drift per true second
+        t_true = (ref_ns - self.simulation.clock.base_time_ns) * 1e-9 / (1.0 + drift)
+        return replace(ext, time_offset_s=ext.time_offset_s + drift * t_true)
 
     def to_dict(self) -> dict[str, Any]:
         out = self.values.to_dict()

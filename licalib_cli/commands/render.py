@@ -37,9 +37,9 @@ def _fmt(v: float, unit: str, scale: float = 1.0, digits: int = 4) -> str:
 
 
 def truth_on_result_clock(result: CalibrationResult, truth: Truth) -> Extrinsic:
-    """The true extrinsic with its time offset on the result's footing (LiDAR clock shift)."""
-    shift = result.recording.lidar_clock_shift_s if result.recording else 0.0
-    return truth.extrinsic.on_shifted_clock(truth.lidar_clock_offset_s, shift)
+    """The true extrinsic with its time offset on the result's footing (LiDAR clock shift, and
+    the time a drifting clock's offset refers to)."""
+    return truth.extrinsic_for(result)
 
 
 def render_estimate(result: CalibrationResult, truth: Truth | None) -> Table:
@@ -50,7 +50,8 @@ def render_estimate(result: CalibrationResult, truth: Truth | None) -> Table:
     )
     for name in ("parameter", "estimate", "1-sigma") + (("truth", "error") if truth else ()):
         table.add_column(name, justify="left" if name == "parameter" else "right")
-    for row in estimate_rows(result, true_ext):
+    drift = 1e-6 * truth.simulation.imu.clock_drift_ppm if truth and truth.simulation else None
+    for row in estimate_rows(result, true_ext, true_clock_drift=drift):
         table.add_row(*row)
     return table
 

@@ -10,7 +10,7 @@ import numpy as np
 
 from licalib_cli import __version__
 from licalib_cli.config import CalibConfig, config_fingerprint
-from licalib_cli.estimation import beam_point_counts
+from licalib_cli.estimation import CalibrationState, beam_point_counts
 from licalib_cli.io.frames import frame_ids
 from licalib_cli.measurements import Recording
 from licalib_cli.pipeline.checks import Checks
@@ -19,6 +19,7 @@ from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.schedule import Fit
 from licalib_cli.results import CalibrationResult, Extrinsic, vec3
 from licalib_cli.sections import (
+    ExtraTerms,
     FactoryExtrinsicSection,
     FitSection,
     InitializationSection,
@@ -27,7 +28,7 @@ from licalib_cli.sections import (
     RecordingSection,
 )
 
-__all__ = ["assemble", "bag_fingerprint", "recording_section"]
+__all__ = ["assemble", "bag_fingerprint", "extra_terms", "recording_section"]
 
 _NS = 1_000_000_000
 
@@ -92,6 +93,20 @@ def model_info(fit: Fit, cfg: CalibConfig) -> ModelInfo:
     return ModelInfo(tuple(cfg.model.imu), tuple(cfg.model.lidar), gauge, held)
 
 
+def extra_terms(state: CalibrationState, cfg: CalibConfig) -> ExtraTerms | None:
+    """The estimates of the model's terms beyond the paper's (None when it holds none)."""
+    imu, lidar = set(cfg.model.imu), set(cfg.model.lidar)
+    if not ({"clock_drift", "gyro_bias_walk", "accel_bias_walk"} & imu or "point_time" in lidar):
+        return None
+    return ExtraTerms(
+        reference_ns=state.t0_ns + round(state.t_ref_s * _NS),
+        clock_drift=state.time_drift if "clock_drift" in imu else None,
+        gyro_bias_walk=vec3(state.gyro_bias_drift) if "gyro_bias_walk" in imu else None,
+        accel_bias_walk=vec3(state.accel_bias_drift) if "accel_bias_walk" in imu else None,
+        point_time=state.point_time_scale if "point_time" in lidar else None,
+    )
+
+
 def assemble(
     bag: Path,
     rec: Recording,
@@ -142,6 +157,7 @@ def assemble(
         ),
         recording=recording_section(bag, rec),
         factory_extrinsic=factory_section(rec, extrinsic_of(state)),
+        extra_terms=extra_terms(state, cfg),
         provenance=Provenance(
             licalib_version=__version__,
             bag_fingerprint=bag_fingerprint(bag),

@@ -57,6 +57,7 @@ from licalib_cli.geometry import so3
 from licalib_cli.io.bag import open_bag
 from licalib_cli.io.reader import MIN_SEGMENT_S
 from licalib_cli.pipeline import CalibrationRun, calibrate
+from licalib_cli.pipeline.assemble import extra_terms
 from licalib_cli.pipeline.checks import intrinsics_uncertainty
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty
 from licalib_cli.pipeline.points import points_in_global, solver_points, usable_points
@@ -602,4 +603,5 @@ def _joint_result(
         ),
         verdict=VerdictSection(worst, tuple(reasons)),
         segments=section,
+        extra_terms=extra_terms(ref, cfg),
     )

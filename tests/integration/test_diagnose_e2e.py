@@ -16,6 +16,7 @@ from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
 from licalib_cli.pipeline.diagnose import CANDIDATES
 from licalib_cli.results import CalibrationResult
 from licalib_cli.simulation import SimulationSpec, simulate
+from licalib_cli.truth import Truth
 
 CONFIG = Path(__file__).resolve().parents[2] / "configs" / "vlp16.yaml"
 VLP16_ELEVATION = np.radians(np.arange(-15.0, 16.0, 2.0))
@@ -106,8 +107,9 @@ def test_a_clock_drift_the_score_test_finds_is_estimated_not_truncated(
     25 ppm; the refit must estimate it (the solver once held it as unobservable, its sigma being
     above the drift's characteristic scale, so the BIC saw no gain and nothing was named)."""
     bag = _bag(tmp_path, effects=("imu_clock_drift",), imu_clock_drift_ppm=300.0)
+    out = tmp_path / "diag"
     args = [str(bag), "-c", str(CONFIG), "--candidates", "imu_clock_drift", "--json"]
-    code, printed = _diagnose(args, capsys)
+    code, printed = _diagnose([*args, "-o", str(out)], capsys)
     assert code == 0
     data = json.loads(printed)
     assert data["effects_found"] == ["imu_clock_drift"]
@@ -115,6 +117,20 @@ def test_a_clock_drift_the_score_test_finds_is_estimated_not_truncated(
     drift, sigma = step["estimate"]["ext.time_drift"], step["sigma"]["ext.time_drift"]
     assert sigma is not None and sigma < 1e-4
     assert abs(drift - 300e-6) < max(3 * sigma, 30e-6)
+    # the calibration file carries the drift, and the time at which its time offset holds,
+    # where the truth's offset (at the first sample) is compared
+    result = CalibrationResult.load(out / "calibration.yaml")
+    assert result.extra_terms is not None and result.recording is not None
+    assert result.extra_terms.clock_drift == pytest.approx(drift, rel=1e-6)
+    assert result.intrinsics_uncertainty is not None
+    assert result.intrinsics_uncertainty.values["clock_drift"][0] is not None
+    middle = result.recording.start_ns + 0.5e9 * result.recording.duration_s
+    assert abs(result.extra_terms.reference_ns - middle) < 0.05e9
+    truth = Truth.load(tmp_path / "sim" / "truth.yaml")
+    true_offset = truth.extrinsic_for(result).time_offset_s
+    assert true_offset - 0.004 == pytest.approx(300e-6 * 4.0, rel=0.02)
+    std = result.uncertainty.time_offset_std_s if result.uncertainty else 0.0
+    assert abs(result.extrinsic.time_offset_s - true_offset) < 3 * std
 
 
 def test_a_clean_bag_shows_no_effect(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

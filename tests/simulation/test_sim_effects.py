@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 
 from licalib_cli.errors import ConfigError
+from licalib_cli.results import CalibrationResult
+from licalib_cli.sections import ExtraTerms, RecordingSection
 from licalib_cli.simulation import SimulationSpec, build_setup, generate_imu
 from licalib_cli.simulation.effects import Effect
 from licalib_cli.simulation.ground_truth import draw_extrinsic
@@ -122,3 +124,39 @@ def test_random_time_offset_leaves_the_other_draws_unchanged() -> None:
 def test_random_time_offset_conflicts_with_a_given_offset() -> None:
     with pytest.raises(ConfigError, match="--random-time-offset"):
         SimulationSpec(random_time_offset=True, time_offset_s=0.01)
+
+
+def test_the_true_time_offset_of_a_drifting_clock_is_taken_where_the_result_refers() -> None:
+    """``Truth.extrinsic_for`` gives the offset ``t_imu - t_lidar`` of the simulated stamps at
+    the result's reference stamp (a drift the model estimated) or its recording's middle."""
+    spec = SimulationSpec(
+        duration_s=10.0, noise_free=True, imu_clock_drift_ppm=400.0, time_offset_s=0.003
+    )
+    truth = build_truth(spec, build_setup(spec))
+    imu, sampled = generate_imu(spec)
+    k = 3000  # the sample at 7.5 s
+
+    def offset_of_sample(i: int) -> float:
+        """IMU stamp minus the LiDAR stamp of the same instant (t - offset on the LiDAR clock)."""
+        lidar_rel_s = sampled.t_true_s[i] - spec.time_offset_s
+        return (int(imu.t_ns[i]) - spec.base_time_ns) * 1e-9 - lidar_rel_s
+
+    start = int(imu.t_ns[0])
+    recording = RecordingSection("b", "/imu", "/points", len(imu), 100, 10.0, start, 0.0, 0.0)
+    estimated = CalibrationResult(
+        recording=recording, extra_terms=ExtraTerms(reference_ns=int(imu.t_ns[k]))
+    )
+    assert truth.extrinsic_for(estimated).time_offset_s == pytest.approx(
+        offset_of_sample(k), abs=1e-9
+    )
+    assert offset_of_sample(k) - spec.time_offset_s == pytest.approx(400e-6 * 7.5, rel=1e-3)
+    # a constant offset fitted to the whole recording is compared at its middle
+    middle = int(np.searchsorted(imu.t_ns, start + 5_000_000_000))
+    constant = CalibrationResult(recording=recording)
+    assert truth.extrinsic_for(constant).time_offset_s == pytest.approx(
+        offset_of_sample(middle), abs=1e-8
+    )
+    # without a drift nothing but the clock split changes
+    steady = spec.with_(imu_clock_drift_ppm=0.0)
+    steady_truth = build_truth(steady, build_setup(steady))
+    assert steady_truth.extrinsic_for(estimated).time_offset_s == 0.003
