@@ -131,19 +131,34 @@ def cases() -> list[dict]:
     return out + singles[0] + pairs + singles[1]
 
 
+def named_for(row: dict) -> set[str]:
+    """The effects named, a named one that diagnose says this bag does not tell apart from an
+    injected one counted as that one (the ambiguity is what the data show)."""
+    injected = set(row["effects"])
+    out = set()
+    for n in row["named"]:
+        alike = [e for e in row.get("not_told_apart", {}).get(n, []) if e in injected]
+        out.add(alike[0] if n not in injected and alike else n)
+    return out
+
+
 def report(rows: list[dict]) -> None:
     """The confusion table (each injected effect against what was named for it: itself, or
     nothing; each effect named but not injected against "(none injected)") and the count of
     runs missing a target."""
     confusion: Counter = Counter()
     for r in rows:
-        injected, named = set(r["effects"]), set(r["named"])
+        injected, named = set(r["effects"]), named_for(r)
         rms = injected_rms(r)
         for e in sorted(injected) or ["(clean)"]:
             shown = r.get("not_shown", {}).get(e)
             quiet = shown is not None and e in rms and rms[e] < shown[0]
             label = "(not named, below what the bag shows)" if quiet else "(not named)"
-            confusion[(e, e if e in named else label)] += 1
+            alike = [
+                n for n in r["named"] if n != e and e in r.get("not_told_apart", {}).get(n, [])
+            ]
+            hit = f"{alike[0]}, not told apart from {e}" if alike and e not in r["named"] else e
+            confusion[(e, hit if e in named else label)] += 1
         for n in sorted(named - injected):
             for e in sorted(injected) or ["(clean)"]:
                 confusion[(e, f"{n} (extra)")] += 1
@@ -193,6 +208,8 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
         **case,
         "named": list(diag.effects_found),
         "shrink": {s.effect: s.shrink for s in diag.steps if s.kept},
+        # rivals the bag does not tell apart from a named effect (diagnose says so)
+        "not_told_apart": {s.effect: list(s.not_told_apart) for s in diag.steps if s.kept},
         "before": err(diag.base),
         "after": err(diag.final),
         "steps": [
@@ -245,7 +262,7 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
 def judge(row: dict) -> list[str]:
     misses = []
     injected = set(row["effects"])
-    named = set(row["named"])
+    named = named_for(row)
     if injected != named:
         misses.append(f"named {sorted(named)} for {sorted(injected)}")
     rms = injected_rms(row)
@@ -355,7 +372,13 @@ def main() -> None:
                 if evidence:
                     misses = [*misses, evidence] if misses else misses
                 injected = ",".join(row["effects"]) or "none"
-                named = ",".join(row["named"]) or "none"
+                named = (
+                    ",".join(
+                        n + "".join(f" (~{a})" for a in row.get("not_told_apart", {}).get(n, []))
+                        for n in row["named"]
+                    )
+                    or "none"
+                )
                 print(
                     f"{row['seed']} {row['scenario']:<8} {row['lidar']:<6} injected {injected:<40} "
                     f"named {named:<40} before {b['translation_mm']:.1f} mm "

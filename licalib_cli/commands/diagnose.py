@@ -45,6 +45,8 @@ def diagnosis_dict(diag: Any) -> dict[str, Any]:
                 "p_value": _num(s.p_value, 3),
                 "delta_bic": _num(s.delta_bic),
                 "kept": s.kept,
+                "not_told_apart": list(s.not_told_apart),
+                "rival_delta_bic": _num(s.rival_delta_bic),
                 "estimate": {k: _num(v[0]) for k, v in s.estimate.items()},
                 "sigma": {k: _num(v[1]) for k, v in s.estimate.items()},
                 "gap_before": _gap_dict(s.gap_before),
@@ -220,6 +222,14 @@ def render_diagnosis(diag: Any) -> None:
         )
     found = ", ".join(diag.effects_found) or "none"
     out.print(f"Effects added to the model: {found}")
+    for s in diag.steps:
+        if s.kept and s.not_told_apart:
+            out.print(
+                f"This bag does not tell {s.effect} from {' or '.join(s.not_told_apart)}: "
+                "each one's score test with the other freed is not significant "
+                f"(BIC on the same data {s.rival_delta_bic:+.1f}); it shows an effect of the "
+                "kind, not which one."
+            )
     if diag.not_shown:
         from licalib_cli.pipeline.diagnose import DETECTION_POWER
 

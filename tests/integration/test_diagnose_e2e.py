@@ -225,3 +225,39 @@ def test_the_sigmas_of_every_candidate_block_go_into_the_result() -> None:
     assert values["clock_drift"] == pytest.approx((2e-4,))
     assert values["point_time"] == pytest.approx((2e-4,))
     assert values["gyro_scale"] == (None, None, None)  # not in the report: held
+
+
+def _trial(effect: str, delta_bic: float, rival_scores: dict[str, float]) -> Any:
+    """A refitted rival: its BIC change against the base and, on its refit, the p-values of
+    the score tests of the other candidates."""
+    from types import SimpleNamespace
+
+    from licalib_cli.consistency import EffectScore
+
+    def score(name: str, p: float) -> Any:
+        z = np.zeros(1)
+        return SimpleNamespace(score=EffectScore(name, 1.0, 1, p, z, z, z, z))
+
+    after = SimpleNamespace(effects=[score(n, p) for n, p in rival_scores.items()])
+    return SimpleNamespace(effect=effect, delta_bic=delta_bic, after=after)
+
+
+def test_rivals_are_compared_on_the_same_data_and_an_indistinguishable_pair_is_named() -> None:
+    """A range scale against a range offset on one bag (shake, OS1-64, 150 ppm scales): each
+    refit's BIC change against the base was measured on its own data, the offset's 234 lower
+    only because the base model left 239 more on the offset's data; on the same data the scale
+    fitted better by 2.4, and neither showed anything given the other (p 0.89 and 0.99)."""
+    from licalib_cli.pipeline.diagnose import not_told_apart, pick_rival
+
+    offset = _trial("lidar_range_offset", -57.2, {"lidar_range_scale": 0.89})
+    scale = _trial("lidar_range_scale", -20.0, {"lidar_range_offset": 0.99})
+    # both pay: the comparison on the same data decides, not the BIC changes on own data
+    assert pick_rival([offset.delta_bic, scale.delta_bic], [2.4, -2.4]) == 1
+    # only one pays: it is named whatever the comparison on the same data says
+    assert pick_rival([-57.2, 177.1], [2.4, -2.4]) == 0
+    assert pick_rival([57.2, 177.1], [2.4, -2.4]) == 1
+    assert not_told_apart(offset, scale) and not_told_apart(scale, offset)
+    # a range offset of centimetres shows clearly with the scale freed: told apart
+    scale_of_offset_bag = _trial("lidar_range_scale", -900.0, {"lidar_range_offset": 1e-40})
+    offset_of_offset_bag = _trial("lidar_range_offset", -5000.0, {"lidar_range_scale": 0.5})
+    assert not not_told_apart(offset_of_offset_bag, scale_of_offset_bag)
