@@ -54,6 +54,14 @@ JOIN_BY = 3
 """Without ``schedule.intrinsics_from_round``, the intrinsics join after this many rounds at the
 latest."""
 
+CRAWL_RATIO = 0.5
+"""Rounds with LiDAR intrinsics crawl when one moves the translation by more than this fraction
+of what the round before moved it (a settling estimate shrinks its steps faster): the
+planes-free refinement then takes a step before the next round."""
+
+MAX_CRAWL_STEPS = 3
+"""Planes-free steps between the rounds at most (each costs about a round)."""
+
 _PROBE_POINTS = 5000
 """Points whose displacement between rounds measures how much the map moved."""
 
@@ -212,6 +220,8 @@ def run_schedule(
     joined = 1 if intrinsics_on else 0
     intrinsic_sigmas = 0.0
     mapped: MappedSample | None = None  # the last round's points mapped with its estimate
+    previous: Change | None = None  # the change of the round before
+    crawl_steps = 0
     for index in range(1, sch.max_rounds + 1):
         before = state
         solved = None  # the previous round's evaluation is not kept while this one runs
@@ -261,6 +271,33 @@ def run_schedule(
         enough_rounds = index >= 2 and (not want_intrinsics or index >= joined + 1)
         if settled and enough_rounds and max_dist <= base:
             break
+        if (
+            not settled
+            and crawl_steps < MAX_CRAWL_STEPS
+            and intrinsics_on
+            and inputs.free.any_lidar_intrinsics
+            and max_dist <= base
+            and previous is not None
+            and change.translation_m > CRAWL_RATIO * previous.translation_m
+        ):
+            # The rounds crawl: each holds its map's planes fixed, which pull the common mode of
+            # the range offsets and scales back towards the map's own values, so the estimate
+            # moves by a nearly constant fraction of what is left per round (on a 10 s shake
+            # with 2-7 cm range offsets: 2.3, 2.1, 2.0, ... 1.2 mm over eight rounds, then 12 mm
+            # at once with the planes free). A step with the planes free goes there; the next
+            # rounds, on a map rebuilt from it, check that it has settled.
+            refined = refine_with_planes(
+                state, inputs, round_settings(cfg, noise, base, True).solver
+            )
+            if refined is not None:
+                logger.info(
+                    "The rounds crawl (change %.2f mm after %.2f mm): planes-free step, change %s.",
+                    1e3 * change.translation_m,
+                    1e3 * previous.translation_m,
+                    _describe(_change(state, refined.state)),
+                )
+                state, mapped, crawl_steps = refined.state, None, crawl_steps + 1
+        previous = change
         max_dist = max(base, min(max_dist, 3.0 * moved))
     assert report is not None and inputs is not None
     jitter = not settled and _within(change, threshold, JITTER_FACTOR)
