@@ -296,7 +296,8 @@ def run_schedule(
                     1e3 * previous.translation_m,
                     _describe(_change(state, refined.state)),
                 )
-                state, mapped, crawl_steps = refined.state, None, crawl_steps + 1
+                state, crawl_steps = refined.state, crawl_steps + 1
+                mapped = solved = None  # both were at the round's estimate
         previous = change
         max_dist = max(base, min(max_dist, 3.0 * moved))
     assert report is not None and inputs is not None
