@@ -134,11 +134,10 @@ def _write_report_outputs(
 ) -> None:
     """The report data beside the result, and the report and map files asked for."""
     from licalib_cli.cli import command_line
-    from licalib_cli.commands.render import truth_on_result_clock
     from licalib_cli.report import build_report_data, write_report
 
     assert run.segment is not None
-    truth = truth_on_result_clock(run.result, reference) if reference is not None else None
+    truth = reference.extrinsic_for(run.result) if reference is not None else None
     data = build_report_data(
         run,
         run.segment,

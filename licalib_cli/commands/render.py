@@ -10,7 +10,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from licalib_cli.results import CalibrationResult, Extrinsic, estimate_rows
+from licalib_cli.results import CalibrationResult, estimate_rows
 from licalib_cli.sections import Consistency
 from licalib_cli.truth import Truth
 
@@ -36,15 +36,9 @@ def _fmt(v: float, unit: str, scale: float = 1.0, digits: int = 4) -> str:
     return f"{v * scale:.{digits}f} {unit}"
 
 
-def truth_on_result_clock(result: CalibrationResult, truth: Truth) -> Extrinsic:
-    """The true extrinsic with its time offset on the result's footing (LiDAR clock shift, and
-    the time a drifting clock's offset refers to)."""
-    return truth.extrinsic_for(result)
-
-
 def render_estimate(result: CalibrationResult, truth: Truth | None) -> Table:
     """The extrinsic and time offset with their 1-sigma (and the truth and error if given)."""
-    true_ext = truth_on_result_clock(result, truth) if truth is not None else None
+    true_ext = truth.extrinsic_for(result) if truth is not None else None
     table = Table(
         title="T_imu_lidar (p_imu = R p_lidar + t) and time offset (t_imu = t_lidar + dt)"
     )
@@ -81,7 +75,7 @@ def render_run(run: CalibrationRun, truth: Truth | None) -> None:
             + ("; the truth is shown on the same footing." if truth is not None else ".")
         )
     if truth is not None:
-        err = r.extrinsic.error_to(truth_on_result_clock(r, truth))
+        err = r.extrinsic.error_to(truth.extrinsic_for(r))
         out.print(
             f"Error against truth: translation {1e3 * err['translation_m']:.2f} mm, rotation "
             f"{err['rotation_deg']:.4f} deg, time offset {1e3 * err['time_offset_s']:.3f} ms"

@@ -30,9 +30,7 @@ def report_inputs(result_path: Path) -> list[tuple[str, Path | None]]:
 
 def with_truth(data: ReportData | None, result: CalibrationResult, truth: Truth) -> ReportData:
     """``data`` (or empty report data) with ``truth`` on the result's clock."""
-    from licalib_cli.commands.render import truth_on_result_clock
-
-    ext = truth_on_result_clock(result, truth)
+    ext = truth.extrinsic_for(result)
     created = result.provenance.created_utc if result.provenance else ""
     base = data if data is not None else ReportData(result_created_utc=created)
     return replace(base, truth_matrix=ext.matrix(), truth_time_offset=np.array([ext.time_offset_s]))

@@ -199,9 +199,7 @@ def residual_table(
             zip(map(id, problem.residual_blocks), solved.evaluation.evals, strict=True)
         )
     else:
-        problem = build_problem(
-            state, inputs.imu, inputs.lidar, inputs.planes, inputs.noise, inputs.free
-        )
+        problem = inputs.problem(state)  # the same problem as the solver's
         evaluated = {}
     params = problem.values()
 
