@@ -116,3 +116,18 @@ def test_truth_on_a_shifted_clock_compares_totals() -> None:
     assert on.time_offset_s == pytest.approx(-0.001, abs=1e-9)
     assert true.on_shifted_clock(0.0, 0.0).time_offset_s == -0.012
     np.testing.assert_array_equal(on.rotation, true.rotation)
+
+
+def test_extra_terms_round_trip_and_an_incomplete_section_is_one_sentence(tmp_path):
+    from licalib_cli.sections import ExtraTerms
+
+    terms = ExtraTerms(reference_ns=1_700_000_004_000_000_123, clock_drift=2.8e-4)
+    path = tmp_path / "r.yaml"
+    CalibrationResult(extra_terms=terms).save(path)
+    back = CalibrationResult.load(path).extra_terms
+    assert back == terms and isinstance(back.reference_ns, int)  # stamps stay exact
+    data = yaml.safe_load(path.read_text())
+    del data["extra_terms"]["reference_ns"]
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match="'extra_terms' section is incomplete"):
+        CalibrationResult.load(path)
