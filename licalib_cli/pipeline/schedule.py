@@ -36,7 +36,15 @@ from licalib_cli.pipeline.settings import NoiseLevels, estimates_intrinsics, rou
 from licalib_cli.progress import Progress
 from licalib_cli.solver.lm import SolverReport
 
-__all__ = ["COARSE_FACTOR", "Change", "Fit", "run_schedule"]
+__all__ = [
+    "COARSE_FACTOR",
+    "CRAWL_RATIO",
+    "MAX_CRAWL_STEPS",
+    "Change",
+    "Fit",
+    "crawls",
+    "run_schedule",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -181,6 +189,37 @@ def _within(c: Change, t: Change, factor: float = 1.0) -> bool:
     )
 
 
+def crawls(
+    change: Change,
+    previous: Change | None,
+    *,
+    lidar_intrinsics_free: bool,
+    at_base_distance: bool,
+    steps_taken: int,
+) -> bool:
+    """Whether the rounds crawl and a planes-free step should be taken before the next one.
+
+    Only with LiDAR intrinsics free, once the association is at its configured distance (the
+    coarse rounds shrink their steps for another reason), while fewer than
+    :data:`MAX_CRAWL_STEPS` steps were taken, and when this round moved the translation by more
+    than :data:`CRAWL_RATIO` of what the round before moved it.
+
+    Args:
+        change: how far this (unsettled) round moved the extrinsic.
+        previous: how far the round before moved it (None for the first round).
+        lidar_intrinsics_free: the round estimated LiDAR intrinsics.
+        at_base_distance: the round associated at the configured distance.
+        steps_taken: planes-free steps already taken between rounds.
+    """
+    return (
+        lidar_intrinsics_free
+        and at_base_distance
+        and steps_taken < MAX_CRAWL_STEPS
+        and previous is not None
+        and change.translation_m > CRAWL_RATIO * previous.translation_m
+    )
+
+
 def run_schedule(
     rec: Recording,
     guess: InitialGuess,
@@ -271,14 +310,12 @@ def run_schedule(
         enough_rounds = index >= 2 and (not want_intrinsics or index >= joined + 1)
         if settled and enough_rounds and max_dist <= base:
             break
-        if (
-            not settled
-            and crawl_steps < MAX_CRAWL_STEPS
-            and intrinsics_on
-            and inputs.free.any_lidar_intrinsics
-            and max_dist <= base
-            and previous is not None
-            and change.translation_m > CRAWL_RATIO * previous.translation_m
+        if not settled and crawls(
+            change,
+            previous,
+            lidar_intrinsics_free=intrinsics_on and inputs.free.any_lidar_intrinsics,
+            at_base_distance=max_dist <= base,
+            steps_taken=crawl_steps,
         ):
             # The rounds crawl: each holds its map's planes fixed, which pull the common mode of
             # the range offsets and scales back towards the map's own values, so the estimate
