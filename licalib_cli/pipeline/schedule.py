@@ -327,6 +327,7 @@ def run_schedule(
                 state, inputs, round_settings(cfg, noise, base, True).solver
             )
             if refined is not None:
+                assert previous is not None  # crawls() needs the round before
                 logger.info(
                     "The rounds crawl (change %.2f mm after %.2f mm): planes-free step, change %s.",
                     1e3 * change.translation_m,
