@@ -34,7 +34,14 @@ import scipy.sparse as sp
 if TYPE_CHECKING:
     from licalib_cli.solver.problem import Layout
 
-__all__ = ["Accumulator", "DensePart", "TrajectoryPattern", "add_dense", "add_sparse"]
+__all__ = [
+    "Accumulator",
+    "DensePart",
+    "GroupCache",
+    "TrajectoryPattern",
+    "add_dense",
+    "add_sparse",
+]
 
 F64 = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.intp]
@@ -121,6 +128,55 @@ def _joint_key(p: _GroupKey, q: _GroupKey) -> _GroupKey:
     """The partition refining both ``p`` and ``q`` (both with keys)."""
     assert p.key is not None and q.key is not None
     return _compress_key(p.key.astype(np.int64) * q.num_groups + q.key)
+
+
+class GroupCache:
+    """Groupings and Gram plans of the dense residual blocks, kept from one assembly to the next.
+
+    They depend only on the elements each measurement touches, which stay the same from one
+    iteration of a solve to the next (unless a step of the time offset moves a query into
+    another spline segment): the cache compares the elements and reuses what was computed for
+    equal ones. Only what the previous assembly used is kept.
+    """
+
+    def __init__(self) -> None:
+        self._keys: list[tuple[npt.NDArray[np.intp], _GroupKey]] = []
+        self._plans: list[tuple[_GroupKey, tuple[int, int, int, int], _GroupPlan]] = []
+        self._used_keys: list[tuple[npt.NDArray[np.intp], _GroupKey]] = []
+        self._used_plans: list[tuple[_GroupKey, tuple[int, int, int, int], _GroupPlan]] = []
+
+    def key(self, elements: npt.NDArray[np.intp]) -> _GroupKey:
+        """:func:`_element_key` of ``elements``."""
+        entry = next(
+            (
+                e
+                for e in (*self._used_keys, *self._keys)
+                if e[0] is elements
+                or (e[0].shape == elements.shape and np.array_equal(e[0], elements))
+            ),
+            None,
+        )
+        if entry is None:
+            entry = (elements.copy(), _element_key(elements))
+        self._used_keys.append(entry)
+        return entry[1]
+
+    def plan(self, key: _GroupKey, n: int, m: int, left: int, right: int) -> _GroupPlan:
+        """``_GroupPlan(key, n, m, left, right)`` for a key returned by :meth:`key`."""
+        shape = (n, m, left, right)
+        entry = next(
+            (e for e in (*self._used_plans, *self._plans) if e[0] is key and e[1] == shape),
+            None,
+        )
+        if entry is None:
+            entry = (key, shape, _GroupPlan(key, n, m, left, right))
+        self._used_plans.append(entry)
+        return entry[2]
+
+    def done(self) -> None:
+        """End of an assembly: keep what it used, drop the rest."""
+        self._keys, self._used_keys = self._used_keys, []
+        self._plans, self._used_plans = self._used_plans, []
 
 
 @dataclass
@@ -634,6 +690,7 @@ def add_dense(
     layout: Layout,
     g: F64,
     acc: Accumulator,
+    cache: GroupCache | None = None,
 ) -> None:
     """Add the contribution of a residual block whose Jacobians are all dense.
 
@@ -654,8 +711,11 @@ def add_dense(
         layout: the coordinate layout.
         g: (Nt + Nc,) gradient, added to.
         acc: receives the ``H`` contributions.
+        cache: groupings and plans of earlier assemblies to reuse (see :class:`GroupCache`).
     """
     n, m = r.shape
+    element_key = _element_key if cache is None else cache.key
+    group_plan = _GroupPlan if cache is None else cache.plan
     patterns: list[tuple[npt.NDArray[np.intp], list[DensePart]]] = []
     for part in parts:
         for elements, members in patterns:
@@ -671,7 +731,7 @@ def add_dense(
     keyed: list[_PartGroup] = []
     constant: list[DensePart] = []
     for elements, members in patterns:
-        key = _element_key(elements)
+        key = element_key(elements)
         if key.key is None:
             constant.extend(members)
             continue
@@ -693,7 +753,7 @@ def add_dense(
             _add_gradient(g, c_cols, blocks[:, pc])
 
     if not keyed:
-        plan = _GroupPlan(const.key, n, m, pc, pc + 1)
+        plan = group_plan(const.key, n, m, pc, pc + 1)
         buf = plan.pad_stacked([*const.values, r], sqrt_w)
         add_constant(plan.gram(buf, slice(0, pc), slice(None)).sum(axis=0))
         return
@@ -712,7 +772,7 @@ def add_dense(
             blocks = _one_hot_gram(group.key, stacked, left)
             rep = _first_of_each_group(group.key)
         else:
-            plan = _GroupPlan(group.key, n, m, left, width)
+            plan = group_plan(group.key, n, m, left, width)
             if keep_stacks:
                 stacked = _stack(values, sqrt_w)
                 buf = plan.pad(stacked)
