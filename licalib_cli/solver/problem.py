@@ -41,6 +41,7 @@ import scipy.sparse as sp
 from licalib_cli.solver.assembly import (
     Accumulator,
     DensePart,
+    GroupCache,
     TrajectoryPattern,
     add_dense,
     add_sparse,
@@ -333,6 +334,8 @@ class Problem:
         self._losses: list[Loss | None] = []
         # sparsity pattern of the last assembled H_tt, reused while the contributions keep it
         self._tt_pattern: TrajectoryPattern | None = None
+        # groupings of the measurements of the dense residual blocks, reused while unchanged
+        self._group_cache = GroupCache()
 
     # ------------------------------------------------------------------------------ building
     def add_parameter_block(self, block: ParameterBlock) -> ParameterBlock:
@@ -516,7 +519,10 @@ class Problem:
                 r_w = r if sqrt_w is None else r * sqrt_w[:, None]
                 add_sparse(self._sparse_pieces(ev, layout), r_w, sqrt_w, g, acc)
             else:
-                add_dense(self._dense_parts(ev, layout), r, sqrt_w, layout, g, acc)
+                add_dense(
+                    self._dense_parts(ev, layout), r, sqrt_w, layout, g, acc, self._group_cache
+                )
+        self._group_cache.done()
         h_tt, h_tc, h_cc = acc.result()
         self._tt_pattern = acc.pattern
         return Linearization(layout, evaluation.cost, evaluation.num_residuals, h_tt, h_tc, h_cc, g)

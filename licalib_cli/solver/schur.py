@@ -171,6 +171,108 @@ def _band_solve(factor: F64, rhs: F64) -> F64:
 
 
 @dataclass(frozen=True)
+class _BandStructure:
+    """What :meth:`_BandedCholesky.factorize` derives from the sparsity pattern of ``H_tt`` alone.
+
+    Entries are positions in the CSC data of ``H_tt``; flat indices address the dense arrays
+    the entries are summed into.
+
+    Attributes:
+        order: (Nb,) H_tt indices of the band coordinates, in band order.
+        border: (Nk,) H_tt indices of the border coordinates.
+        bandwidth: Number of sub-diagonals of ``A_bb`` in band order.
+        band: Entries of the lower band (both coordinates in the band, row >= column in band
+            order).
+        band_flat: Their flat indices in the (bandwidth + 1, Nb) LAPACK band storage.
+        coupling: Entries with a band row and a border column.
+        coupling_flat: Their flat indices in (Nb, Nk) ``A_bc``.
+        corner: Entries with a border row and column.
+        corner_flat: Their flat indices in (Nk, Nk) ``A_cc``.
+    """
+
+    order: IntArray
+    border: IntArray
+    bandwidth: int
+    band: IntArray
+    band_flat: IntArray
+    coupling: IntArray
+    coupling_flat: IntArray
+    corner: IntArray
+    corner_flat: IntArray
+
+
+# Band structures of the latest patterns (a solve factorises matrices of one pattern many
+# times); None for a pattern that is not banded enough.
+_STRUCTURES: list[tuple[IntArray, IntArray, _BandStructure | None]] = []
+_MAX_STRUCTURES = 4
+
+
+def _band_structure(h: sp.csc_matrix) -> _BandStructure | None:
+    """The band structure of the pattern of ``h`` (kept for the latest patterns), or None when
+    the pattern is not banded enough for :class:`_BandedCholesky`."""
+    indptr = h.indptr.astype(np.intp, copy=False)
+    row = h.indices.astype(np.intp, copy=False)
+    for cached_ptr, cached_row, structure in _STRUCTURES:
+        if (
+            cached_ptr.shape == indptr.shape
+            and cached_row.shape == row.shape
+            and np.array_equal(cached_ptr, indptr)
+            and np.array_equal(cached_row, row)
+        ):
+            return structure
+    structure = _new_band_structure(indptr, row)
+    _STRUCTURES.insert(0, (indptr.copy(), row.copy(), structure))
+    del _STRUCTURES[_MAX_STRUCTURES:]
+    return structure
+
+
+def _new_band_structure(indptr: IntArray, row: IntArray) -> _BandStructure | None:
+    """:func:`_band_structure` computed from the CSC pattern ``(indptr, row)``."""
+    n = indptr.shape[0] - 1
+    counts = np.diff(indptr)  # non-zeros per column = per row (symmetric)
+    col = np.repeat(np.arange(n, dtype=np.intp), counts)
+    cutoff = max(_BORDER_FACTOR * float(np.median(counts)), _BORDER_MIN_NONZEROS)
+    is_border = counts > cutoff
+    border = np.flatnonzero(is_border)
+    nk = border.size
+    if nk > _MAX_BORDER or nk == n:
+        return None
+    row_b, col_b = is_border[row], is_border[col]
+    inner = np.flatnonzero(~row_b & ~col_b)
+    r_in, c_in = row[inner], col[inner]
+    # The pattern without the border, as a CSR graph built without sorting (the CSC arrays of
+    # a symmetric matrix are the CSR arrays of its transpose).
+    inner_ptr = np.zeros(n + 1, dtype=np.intp)
+    np.cumsum(np.bincount(c_in, minlength=n), out=inner_ptr[1:])
+    graph = sp.csr_matrix((np.ones(r_in.size), r_in, inner_ptr), shape=(n, n))
+    order = reverse_cuthill_mckee(graph, symmetric_mode=True).astype(np.intp)
+    order = order[~is_border[order]]
+    nb = order.size
+    pos = np.empty(n, dtype=np.intp)
+    pos[order] = np.arange(nb)
+    pos[border] = np.arange(nk)
+    pr, pc = pos[r_in], pos[c_in]
+    lower = pr >= pc
+    offset = pr[lower] - pc[lower]
+    bandwidth = int(offset.max()) if offset.size else 0
+    if bandwidth > _MAX_BANDWIDTH:
+        return None
+    coupling = np.flatnonzero(~row_b & col_b)
+    corner = np.flatnonzero(row_b & col_b)
+    return _BandStructure(
+        order=order,
+        border=border,
+        bandwidth=bandwidth,
+        band=inner[lower],
+        band_flat=offset * nb + pc[lower],
+        coupling=coupling,
+        coupling_flat=pos[row[coupling]] * nk + pos[col[coupling]],
+        corner=corner,
+        corner_flat=pos[row[corner]] * nk + pos[col[corner]],
+    )
+
+
+@dataclass(frozen=True)
 class _BandedCholesky:
     """Cholesky factorisation of ``A = H_tt + diag(add)`` as a band plus a dense border.
 
@@ -218,50 +320,22 @@ class _BandedCholesky:
             The factorisation, or None when the structure is not banded enough or the matrix is
             not numerically positive definite (the caller then uses a sparse LU).
         """
-        n = h_tt.shape[0]
         h = sp.csc_matrix(h_tt)
-        indptr = h.indptr.astype(np.intp, copy=False)
-        row = h.indices.astype(np.intp, copy=False)
+        structure = _band_structure(h)
+        if structure is None:
+            return None
+        order, border = structure.order, structure.border
+        nb, nk = order.size, border.size
         val = h.data
-        counts = np.diff(indptr)  # non-zeros per column = per row (symmetric)
-        col = np.repeat(np.arange(n, dtype=np.intp), counts)
-        cutoff = max(_BORDER_FACTOR * float(np.median(counts)), _BORDER_MIN_NONZEROS)
-        is_border = counts > cutoff
-        border = np.flatnonzero(is_border)
-        nk = border.size
-        if nk > _MAX_BORDER or nk == n:
-            return None
-        row_b, col_b = is_border[row], is_border[col]
-        inner = ~row_b & ~col_b
-        r_in, c_in, v_in = row[inner], col[inner], val[inner]
-        # The pattern without the border, as a CSR graph built without sorting (the CSC arrays of
-        # a symmetric matrix are the CSR arrays of its transpose).
-        inner_ptr = np.zeros(n + 1, dtype=np.intp)
-        np.cumsum(np.bincount(c_in, minlength=n), out=inner_ptr[1:])
-        graph = sp.csr_matrix((np.ones(r_in.size), r_in, inner_ptr), shape=(n, n))
-        order = reverse_cuthill_mckee(graph, symmetric_mode=True).astype(np.intp)
-        order = order[~is_border[order]]
-        nb = order.size
-        pos = np.empty(n, dtype=np.intp)
-        pos[order] = np.arange(nb)
-        pos[border] = np.arange(nk)
-        pr, pc = pos[r_in], pos[c_in]
-        lower = pr >= pc
-        offset = pr[lower] - pc[lower]
-        bandwidth = int(offset.max()) if offset.size else 0
-        if bandwidth > _MAX_BANDWIDTH:
-            return None
-        ab = _scatter(offset * nb + pc[lower], v_in[lower], (bandwidth + 1, nb))
+        ab = _scatter(structure.band_flat, val[structure.band], (structure.bandwidth + 1, nb))
         ab[0] += add[order]
         try:
             factor = sla.cholesky_banded(ab, lower=True, check_finite=False)
         except np.linalg.LinAlgError:
             return None
         # A_bc and A_cc from the entries touching the border.
-        bc = ~row_b & col_b
-        coupling = _scatter(pos[row[bc]] * nk + pos[col[bc]], val[bc], (nb, nk))
-        cc = row_b & col_b
-        a_cc = _scatter(pos[row[cc]] * nk + pos[col[cc]], val[cc], (nk, nk))
+        coupling = _scatter(structure.coupling_flat, val[structure.coupling], (nb, nk))
+        a_cc = _scatter(structure.corner_flat, val[structure.corner], (nk, nk))
         a_cc[np.diag_indices(nk)] += add[border]
         if not np.all(np.isfinite(factor)):
             return None

@@ -115,7 +115,9 @@ class R3Spline:
                 outs.append(None)
                 ws.append(None)
                 continue
-            w = blending(u, k) * inv_dt**k  # (M, 4) view of (4, M) storage
+            w = blending(u, k)  # (M, 4) view of (4, M) storage
+            if k:
+                w = w * inv_dt**k
             ws.append(w)
             value = w[:, 0] * cps[0]
             for j in range(1, 4):

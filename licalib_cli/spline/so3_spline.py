@@ -170,10 +170,17 @@ def _fn_of_hat(
 
 
 def _store(out: FloatArray, val: FloatArray) -> None:
-    """Write component-major ``val`` (..., m) into query-major ``out`` (m, ...), column-wise."""
+    """Write component-major ``val`` (..., m) into query-major ``out`` (m, ...).
+
+    Vectors are written column by column; matrices (more than 3 components) by one transposing
+    copy, about twice as fast as their 9 or 12 narrow column writes (measured).
+    """
     m = out.shape[0]
     o = out.reshape(m, -1)
     v = val.reshape(-1, m)
+    if v.shape[0] > 3:
+        o[...] = v.T
+        return
     for k in range(v.shape[0]):
         o[:, k] = v[k]
 
@@ -252,8 +259,8 @@ def _vjp_block(block: _VJPBlock, v: FloatArray) -> FloatArray:
 
     out = np.empty((4, 3, v.shape[1]))
     out[0] = ft(0, 0)
-    out[1] = ft(1, 0) - ft(2, 1)
-    out[2] = ft(3, 1) - ft(4, 2)
+    np.subtract(ft(1, 0), ft(2, 1), out=out[1])
+    np.subtract(ft(3, 1), ft(4, 2), out=out[2])
     out[3] = ft(5, 2)
     return out
 
@@ -497,9 +504,11 @@ class SO3Spline:
         a_mats: list[FloatArray] = []
         coef_a: list[FloatArray] = []
         coef_b: list[FloatArray] = []
+        angle: list[FloatArray] = []  # |lambda_j d_j|
         for j in range(3):
             lj = lam[:, j + 1]
-            x = lj * np.sqrt(th2[j])  # |lambda_j d_j|
+            x = lj * np.sqrt(th2[j])
+            angle.append(x)
             a = _sin_over_theta(x)
             b = _one_minus_cos_over_theta2(x)
             coef_a.append(a)
@@ -547,18 +556,30 @@ class SO3Spline:
         c0: FloatArray | None = None
         for j in range(3):
             lj = lam[:, j + 1]
-            c = _theta_minus_sin_over_theta3(lj * np.sqrt(th2[j]))
+            c = _theta_minus_sin_over_theta3(angle[j])
             coef_c.append(c)
             p1 = -coef_b[j] * lj
             p2 = c * lj * lj
             e = ecoef[j]
             for s, dest in ((0.5, f_plus), (-0.5, f_minus)):
-                g1 = lj * (p1 + s - th2[j] * (p1 * e + p2 * s))
-                g2 = lj * (p2 + e + p1 * s - th2[j] * p2 * e)
-                if j == 0 and s < 0:
+                # slots C_0, F_0^+, F_1^-, F_1^+, F_2^-, F_2^+ receive (a, b, c) of F in place
+                coef = None if coef_out is None else coef_out[2 * j + int(s > 0)]
+                first = j == 0 and s < 0
+                into = None if coef is None or first else coef
+                g1 = np.multiply(
+                    lj, p1 + s - th2[j] * (p1 * e + p2 * s), out=None if into is None else into[1]
+                )
+                g2 = np.multiply(
+                    lj, p2 + e + p1 * s - th2[j] * p2 * e, out=None if into is None else into[2]
+                )
+                if first:
                     # Only A_0^T - F_0^- is needed: the direct dependence on R_i
                     # (P^T = Q_0^T A_0^T) folded with the d_0 term.
-                    f = (1.0 - lj, -coef_a[0] * lj - g1, coef_b[0] * lj * lj - g2)
+                    f = (
+                        1.0 - lj,
+                        np.subtract(-coef_a[0] * lj, g1, out=None if coef is None else coef[1]),
+                        np.subtract(coef_b[0] * lj * lj, g2, out=None if coef is None else coef[2]),
+                    )
                     if jacobians:
                         dest.append(np.empty(0))  # placeholder, F_0^- itself is never used
                         c0 = _fn_of_hat(d[0], outer[0], th2[0], *f)
@@ -566,11 +587,8 @@ class SO3Spline:
                     f = (lj, g1, g2)
                     if jacobians:
                         dest.append(_fn_of_hat(d[j], outer[j], th2[j], *f))
-                if coef_out is not None:  # slots C_0, F_0^+, F_1^-, F_1^+, F_2^-, F_2^+
-                    coef = coef_out[2 * j + int(s > 0)]
+                if coef is not None:
                     np.subtract(f[0], f[2] * th2[j], out=coef[0])
-                    coef[1] = f[1]
-                    coef[2] = f[2]
         if not jacobians:
             return rot, vel, acc
         assert c0 is not None
