@@ -170,9 +170,11 @@ def report(rows: list[dict]) -> None:
 
 
 def one_run(case: dict, workdir: Path, scale: float) -> dict:
+    import numpy as np
     from _effects import effect_spec_kwargs
 
     from licalib_cli.config import load_config
+    from licalib_cli.geometry import so3
     from licalib_cli.pipeline.diagnose import diagnose
     from licalib_cli.simulation import SimulationSpec, simulate
 
@@ -198,10 +200,22 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
         res = run.result  # type: ignore[attr-defined]
         t = out.truth.extrinsic_for(res)
         e = res.extrinsic.error_to(t)
+        u = res.uncertainty
+        ratio = np.concatenate(
+            [
+                np.abs(res.extrinsic.translation - t.translation) / np.asarray(u.translation_std_m),
+                np.abs(so3.log(t.rotation.T @ res.extrinsic.rotation))
+                / np.radians(np.asarray(u.rotation_std_deg)),
+                [abs(res.extrinsic.time_offset_s - t.time_offset_s) / u.time_offset_std_s],
+            ]
+        )
+        finite = ratio[np.isfinite(ratio)]
         return {
             "translation_mm": 1e3 * e["translation_m"],
             "rotation_deg": e["rotation_deg"],
             "time_offset_ms": 1e3 * e["time_offset_s"],
+            # the largest error per axis in its reported sigmas (not observable axes left out)
+            "max_error_over_sigma": float(finite.max()) if finite.size else float("nan"),
         }
 
     return {
@@ -282,6 +296,9 @@ def judge(row: dict) -> list[str]:
     a = row["after"]
     if a["translation_mm"] > 3.0 or a["rotation_deg"] > 0.05 or a["time_offset_ms"] > 0.1:
         misses.append("extrinsic after diagnosis outside 0.3 cm / 0.05 deg / 0.1 ms")
+    z = a.get("max_error_over_sigma", float("nan"))
+    if row.get("verdict_after") == "pass" and z > 3.0:
+        misses.append(f"wrong PASS after diagnosis: an axis off by {z:.1f} of its sigmas")
     return misses
 
 
@@ -384,6 +401,8 @@ def main() -> None:
                     f"named {named:<40} before {b['translation_mm']:.1f} mm "
                     f"{b['rotation_deg']:.3f} deg -> after {a['translation_mm']:.1f} mm "
                     f"{a['rotation_deg']:.3f} deg {a['time_offset_ms']:.3f} ms "
+                    f"{row['verdict_after']} (at most "
+                    f"{a.get('max_error_over_sigma', float('nan')):.1f} sigma) "
                     f"{row['seconds']:.0f} s  {'ok' if not misses else '; '.join(misses)}",
                     flush=True,
                 )

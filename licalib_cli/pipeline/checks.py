@@ -38,7 +38,7 @@ from licalib_cli.pipeline.fitcheck import (
 )
 from licalib_cli.pipeline.initialise import SINGLE_AXIS, InitialGuess
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty, map_uncertainty
-from licalib_cli.pipeline.schedule import Fit
+from licalib_cli.pipeline.schedule import MAX_FINAL_ROUNDS, Fit
 from licalib_cli.pipeline.settings import NoiseLevels
 from licalib_cli.pipeline.split import SplitResult, split_half
 from licalib_cli.results import vec3
@@ -153,6 +153,18 @@ def observability_of(report: SolverReport) -> Observability:
 
 def _convergence(fit: Fit, cfg: CalibConfig) -> list[Finding]:
     c = fit.last_change
+    if fit.final_unsettled:
+        return [
+            Finding(
+                "fail",
+                f"The calibration did not converge: each of the {MAX_FINAL_ROUNDS} denser final "
+                f"rounds moved the estimate by many of its sigmas (the last "
+                f"{1e3 * c.translation_m:.1f} mm / {c.rotation_deg:.3f} deg / "
+                f"{1e3 * c.time_offset_s:.2f} ms): the denser data determine a direction the "
+                "regular rounds could not, and the estimate has not settled along it, so the "
+                "result is not trustworthy; record more varied motion in a structured scene.",
+            )
+        ]
     if not fit.converged:
         return [
             Finding(

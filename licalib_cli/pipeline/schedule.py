@@ -39,10 +39,13 @@ from licalib_cli.solver.lm import SolverReport
 __all__ = [
     "COARSE_FACTOR",
     "CRAWL_RATIO",
+    "FINAL_SETTLE_SIGMAS",
     "MAX_CRAWL_STEPS",
+    "MAX_FINAL_ROUNDS",
     "Change",
     "Fit",
     "crawls",
+    "final_jump",
     "run_schedule",
 ]
 
@@ -63,12 +66,19 @@ JOIN_BY = 3
 latest."""
 
 CRAWL_RATIO = 0.5
-"""Rounds with LiDAR intrinsics crawl when one moves the translation by more than this fraction
-of what the round before moved it (a settling estimate shrinks its steps faster): the
-planes-free refinement then takes a step before the next round."""
+"""Rounds with LiDAR intrinsics crawl when one moves the translation onward, along the way the
+round before moved it, by more than this fraction of that move (a settling estimate shrinks its
+steps faster): the planes-free refinement then takes a step before the next round."""
 
 MAX_CRAWL_STEPS = 3
 """Planes-free steps between the rounds at most (each costs about a round)."""
+
+FINAL_SETTLE_SIGMAS = 5.0
+"""A denser final round that moves the extrinsic by more than this many of its own sigmas (and
+beyond the configured tolerances) has not settled: another dense round follows."""
+
+MAX_FINAL_ROUNDS = 3
+"""Dense final rounds at most; one still moving after them is a non-convergence."""
 
 _PROBE_POINTS = 5000
 """Points whose displacement between rounds measures how much the map moved."""
@@ -89,11 +99,14 @@ class Change:
         translation_m: norm of the translation change, m.
         rotation_deg: rotation angle, deg.
         time_offset_s: absolute time-offset change, s.
+        translation_step_m: the translation's change as a vector (after minus before, IMU
+            frame), m; None when not known.
     """
 
     translation_m: float
     rotation_deg: float
     time_offset_s: float
+    translation_step_m: tuple[float, float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -105,12 +118,16 @@ class Fit:
         rounds: one summary per round (the denser final round last).
         report: the final round's solver report (spectrum and sigmas at the estimate).
         inputs: what the final round's problem was built from.
-        converged: whether a regular round settled (or only jittered) before the cap.
+        converged: whether a regular round settled (or only jittered) before the cap, and the
+            denser final rounds settled too.
         jitter: the estimate moved within the jitter band at the cap (sigmas must cover it).
         last_change: how far the last regular round moved the extrinsic.
         settle_threshold: the tolerances that applied to that change.
         solved: the final round's problem, evaluated and linearised at ``state`` (for the
             checks; None when a later refinement moved the estimate).
+        final_unsettled: the denser final rounds still moved the estimate by more than
+            :data:`FINAL_SETTLE_SIGMAS` of its sigmas after :data:`MAX_FINAL_ROUNDS` of them
+            (``last_change`` is then the last dense round's change).
     """
 
     state: CalibrationState
@@ -122,11 +139,19 @@ class Fit:
     last_change: Change
     settle_threshold: Change
     solved: SolvedProblem | None = field(default=None, repr=False, compare=False)
+    final_unsettled: bool = False
 
 
 def _change(before: CalibrationState, after: CalibrationState) -> Change:
-    err = extrinsic_of(before).error_to(extrinsic_of(after))
-    return Change(err["translation_m"], err["rotation_deg"], err["time_offset_s"])
+    a, b = extrinsic_of(before), extrinsic_of(after)
+    err = a.error_to(b)
+    step = np.asarray(b.translation, dtype=np.float64) - np.asarray(a.translation)
+    return Change(
+        err["translation_m"],
+        err["rotation_deg"],
+        err["time_offset_s"],
+        (float(step[0]), float(step[1]), float(step[2])),
+    )
 
 
 def _describe(c: Change) -> str:
@@ -153,6 +178,28 @@ def _threshold(report: SolverReport, cfg: CalibConfig) -> Change:
         max(sch.rotation_tolerance_deg, 0.5 * float(np.degrees(largest("ext.rotation")))),
         max(sch.time_offset_tolerance_s, 0.5 * largest("ext.time_offset")),
     )
+
+
+def final_jump(change: Change, report: SolverReport, cfg: CalibConfig) -> float:
+    """How far a round moved the extrinsic in its own sigmas: the largest of the translation's
+    change over its largest 1-sigma, the rotation's and the time offset's. A part within its
+    configured tolerance, or without a finite sigma (not observable), counts as 0."""
+    sch = cfg.schedule
+    parts = (
+        ("ext.translation", change.translation_m, sch.translation_tolerance_m, 1.0),
+        ("ext.rotation", change.rotation_deg, sch.rotation_tolerance_deg, float(np.degrees(1.0))),
+        ("ext.time_offset", change.time_offset_s, sch.time_offset_tolerance_s, 1.0),
+    )
+    worst = 0.0
+    for prefix, moved, tolerance, unit in parts:
+        sig = [
+            s * unit
+            for n, s in zip(report.calibration_names, report.std, strict=True)
+            if n.startswith(prefix) and np.isfinite(s) and s > 0
+        ]
+        if moved > tolerance and sig:
+            worst = max(worst, moved / max(sig))
+    return worst
 
 
 def map_movement(before: CalibrationState, after: CalibrationState, probe: PointSample) -> float:
@@ -201,8 +248,11 @@ def crawls(
 
     Only with LiDAR intrinsics free, once the association is at its configured distance (the
     coarse rounds shrink their steps for another reason), while fewer than
-    :data:`MAX_CRAWL_STEPS` steps were taken, and when this round moved the translation by more
-    than :data:`CRAWL_RATIO` of what the round before moved it.
+    :data:`MAX_CRAWL_STEPS` steps were taken, and when this round moved the translation onward,
+    along the way the round before moved it, by more than :data:`CRAWL_RATIO` of that move. A
+    round that moves back (after a planes-free step the rounds pull the estimate back towards
+    their fixed planes by about as much) or sideways does not crawl: another step would only
+    repeat the swing.
 
     Args:
         change: how far this (unsettled) round moved the extrinsic.
@@ -211,13 +261,17 @@ def crawls(
         at_base_distance: the round associated at the configured distance.
         steps_taken: planes-free steps already taken between rounds.
     """
-    return (
-        lidar_intrinsics_free
-        and at_base_distance
-        and steps_taken < MAX_CRAWL_STEPS
-        and previous is not None
-        and change.translation_m > CRAWL_RATIO * previous.translation_m
-    )
+    if not (lidar_intrinsics_free and at_base_distance and steps_taken < MAX_CRAWL_STEPS):
+        return False
+    if previous is None or previous.translation_m <= 0.0:
+        return False
+    if change.translation_step_m is None or previous.translation_step_m is None:
+        onward = change.translation_m
+    else:
+        d = np.asarray(change.translation_step_m)
+        before = np.asarray(previous.translation_step_m)
+        onward = float(d @ before) / float(np.linalg.norm(before))
+    return onward > CRAWL_RATIO * previous.translation_m
 
 
 def run_schedule(
@@ -353,30 +407,58 @@ def run_schedule(
     final = cfg.surfels.final_points_per_scan
     if final is not None:
         final = points_per_scan(cfg, len(rec.scans), final)
+    final_unsettled = False
     if final is not None and final > points_per_scan(cfg, len(rec.scans)):
         # One more round on a denser sample from the settled estimate: the uncertainty of the
-        # time offset and the translation shrinks with the number of points.
+        # time offset and the translation shrinks with the number of points. The denser data
+        # may also determine a direction the regular rounds held (below the truncation
+        # threshold there): a move of many of its own sigmas is then checked by another dense
+        # round on a map rebuilt at the moved estimate, as the regular rounds are.
         dense = sample_points(rec.scans, phi, final, cfg, seed=1)
-        before = state
         solved = mapped = None
-        done = run_round(
-            state, dense, imu, round_settings(cfg, noise, base, intrinsics_on), len(rounds) + 1
-        )
-        state, summary, report, inputs = done.state, done.summary, done.report, done.inputs
-        solved = done.solved
-        del done
-        rounds.append(summary)
-        dense_change = _change(before, state)
-        logger.info(
-            "Final round: %d points on %d surfels, RMS %.2f cm, change %.2f mm / %.4f deg / "
-            "%.3f ms.",
-            summary.points,
-            summary.surfels,
-            100 * summary.rms_m,
-            1e3 * dense_change.translation_m,
-            dense_change.rotation_deg,
-            1e3 * dense_change.time_offset_s,
-        )
+        for attempt in range(1, MAX_FINAL_ROUNDS + 1):
+            before = state
+            done = run_round(
+                state,
+                dense,
+                imu,
+                round_settings(cfg, noise, base, intrinsics_on),
+                len(rounds) + 1,
+                mapped,
+            )
+            state, summary, report, inputs = done.state, done.summary, done.report, done.inputs
+            solved, mapped = done.solved, done.mapped
+            del done
+            rounds.append(summary)
+            dense_change = _change(before, state)
+            jump = final_jump(dense_change, report, cfg)
+            logger.info(
+                "Final round%s: %d points on %d surfels, RMS %.2f cm, change %.2f mm / %.4f deg "
+                "/ %.3f ms (%.1f of its sigmas).",
+                f" {attempt}" if attempt > 1 else "",
+                summary.points,
+                summary.surfels,
+                100 * summary.rms_m,
+                1e3 * dense_change.translation_m,
+                dense_change.rotation_deg,
+                1e3 * dense_change.time_offset_s,
+                jump,
+            )
+            if jump <= FINAL_SETTLE_SIGMAS:
+                break
+        else:
+            final_unsettled = True
+            change = dense_change
+            logger.warning(
+                "The denser final round still moved the estimate %.2f mm / %.4f deg / %.3f ms "
+                "(%.1f of its sigmas) after %d dense rounds.",
+                1e3 * dense_change.translation_m,
+                dense_change.rotation_deg,
+                1e3 * dense_change.time_offset_s,
+                jump,
+                MAX_FINAL_ROUNDS,
+            )
+        mapped = None
     if intrinsics_on and inputs.free.any_lidar_intrinsics:
         # The rounds hold each map fixed and stall along the common mode of the range offsets
         # and scales; a last refinement estimates the planes with everything else.
@@ -397,9 +479,10 @@ def run_schedule(
         rounds=tuple(rounds),
         report=report,
         inputs=inputs,
-        converged=converged,
-        jitter=jitter,
+        converged=converged and not final_unsettled,
+        jitter=jitter and not final_unsettled,
         last_change=change,
         settle_threshold=threshold,
         solved=solved,
+        final_unsettled=final_unsettled,
     )
