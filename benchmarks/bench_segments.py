@@ -17,6 +17,12 @@ Parts (all by default; choose with ``--parts``):
   (target: at most 60 s on the 2-core machine). ``--long-repeat 6`` ranks an hour instead: the
   walk played six times in a row (``benchmarks/_loop_bag.py``; the motion jumps at the seams),
   for the peak RSS of a one-hour bag.
+* ``intrinsics`` (not run by default): 30 s sinusoids with the simulator's random intrinsic
+  errors (``licalib simulate --scenario sinusoid --duration 30 --seed S --random-time-offset``,
+  seeds ``--intrinsics-seeds``), ``calibrate --intrinsics all --segments 0-10,10-20,20-30``: each
+  segment's own error, the joint rounds' and the joint result's (after the planes-free
+  refinement of the joint problem) against the truth, translation and the mean of the LiDAR
+  range offsets (their common mode), with the refinement's time and peak traced memory.
 
 Examples::
 
@@ -24,6 +30,7 @@ Examples::
     .venv/bin/python benchmarks/bench_segments.py --parts long --long-bag /tmp/walk600/bag.bag
     .venv/bin/python benchmarks/bench_segments.py --parts long --long-bag /tmp/walk600/bag.bag \
         --long-repeat 6 --workdir /tmp/hour
+    .venv/bin/python benchmarks/bench_segments.py --parts intrinsics --intrinsics-seeds 3 5
 
 Bags are simulated into ``--workdir`` (default: a temporary folder) unless given.
 """
@@ -243,6 +250,87 @@ def long_run(args: argparse.Namespace, workdir: Path) -> None:
     print(f"selected {top}")
 
 
+def _intrinsics_row(label: str, state, ref, true_mean: float) -> None:
+    import numpy as np
+
+    from licalib_cli.geometry.so3 import log as so3_log
+
+    err_t = np.linalg.norm(state.t_imu_lidar - ref.translation)
+    rot = np.degrees(np.linalg.norm(so3_log(ref.rotation.T @ state.R_imu_lidar)))
+    mean = float(np.mean(state.lidar_intrinsics.range_offset))
+    print(
+        f" {label:14s} {1e3 * err_t:7.2f}  {rot:9.4f}  {1e3 * mean:+17.2f}  "
+        f"{1e3 * (mean - true_mean):+14.2f}"
+    )
+
+
+def intrinsics(args: argparse.Namespace, workdir: Path) -> None:
+    import tracemalloc
+
+    import numpy as np
+
+    import licalib_cli.pipeline.joint as joint
+    from licalib_cli.config import INTRINSIC_PRESETS, load_config
+    from licalib_cli.simulation import SimulationSpec, simulate
+    from licalib_cli.truth import Truth
+
+    imu_blocks, lidar_blocks = INTRINSIC_PRESETS["all"]
+    cfg = load_config(_config(), {"model.imu": list(imu_blocks), "model.lidar": list(lidar_blocks)})
+    refine = joint.refine_segments_with_planes
+    seen: dict = {}
+
+    def traced(states, inputs, free, lm):
+        seen["rounds"] = states[0]  # the joint rounds' estimate
+        tracemalloc.start()
+        try:
+            seen["refined"] = refine(states, inputs, free, lm)
+        finally:
+            seen["peak_mb"] = tracemalloc.get_traced_memory()[1] / 1e6
+            tracemalloc.stop()
+        return seen["refined"]
+
+    joint.refine_segments_with_planes = traced
+    try:
+        for seed in args.intrinsics_seeds:
+            folder = workdir / f"sinusoid30-{seed}"
+            if not (folder / "bag.bag").exists():
+                spec = SimulationSpec(
+                    scenario="sinusoid", duration_s=30.0, seed=seed, random_time_offset=True
+                )
+                simulate(spec, folder)
+            truth = Truth.load(folder / "truth.yaml")
+            seen.clear()
+            t = time.perf_counter()
+            cpu = time.process_time()
+            run = joint.calibrate_segments(folder / "bag.bag", cfg, args.intrinsics_segments)
+            wall = time.perf_counter() - t
+            ref = truth.extrinsic_for(run.result)
+            true_mean = float(np.mean(truth.lidar_intrinsics.range_offset))
+            print(
+                f"\nseed {seed}: calibrate --intrinsics all --segments "
+                f"{args.intrinsics_segments}: {wall:.0f} s wall, "
+                f"{time.process_time() - cpu:.0f} s CPU "
+                f"({', '.join(f'{k} {v:.0f} s' for k, v in run.timings.items())}); "
+                f"true mean range offset {1e3 * true_mean:+.2f} mm"
+            )
+            print(" estimate        t [mm]  rot [deg]  offsets mean [mm]  its error [mm]")
+            for r, (a, b) in zip(run.runs, run.windows, strict=True):
+                _intrinsics_row(f"{a:g}-{b:g} s alone", r.state, ref, true_mean)
+            if "rounds" in seen:
+                _intrinsics_row("joint rounds", seen["rounds"], ref, true_mean)
+            _intrinsics_row("joint", run.states[0], ref, true_mean)
+            refined = seen.get("refined")
+            if refined is not None:
+                print(
+                    f" planes-free refinement: {refined.steps} steps, cost "
+                    f"{refined.cost_start:.1f} -> {refined.cost_end:.1f}, {refined.seconds:.1f} s, "
+                    f"traced peak {seen['peak_mb']:.0f} MB; verdict {run.result.verdict.status}"
+                )
+    finally:
+        joint.refine_segments_with_planes = refine
+    print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--parts", nargs="+", default=["walk", "planar", "long"])
@@ -258,12 +346,15 @@ def main() -> None:
     )
     p.add_argument("--length", type=float, default=10.0)
     p.add_argument("--top", type=int, default=4)
+    p.add_argument("--intrinsics-seeds", type=int, nargs="+", default=[3, 5])
+    p.add_argument("--intrinsics-segments", default="0-10,10-20,20-30")
     args = p.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         workdir = Path(args.workdir) if args.workdir else Path(tmp)
         workdir.mkdir(parents=True, exist_ok=True)
         for part in args.parts:
-            {"walk": walk, "planar": planar, "long": long_run}[part](args, workdir)
+            parts = {"walk": walk, "planar": planar, "long": long_run, "intrinsics": intrinsics}
+            parts[part](args, workdir)
 
 
 if __name__ == "__main__":

@@ -36,7 +36,15 @@ from licalib_cli.solver.lm import LMParams, SolverReport, solve
 from licalib_cli.solver.nuisance import nuisance_step, nuisance_terms
 from licalib_cli.solver.problem import Problem
 
-__all__ = ["PlaneRefinement", "plane_jacobian", "refine_with_planes", "stepped_planes"]
+__all__ = [
+    "MAX_STEPS",
+    "RELATIVE_DECREASE",
+    "STEP_FRACTIONS",
+    "PlaneRefinement",
+    "plane_jacobian",
+    "refine_with_planes",
+    "stepped_planes",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -48,7 +56,8 @@ MAX_STEPS = 4
 RELATIVE_DECREASE = 1e-6
 """Stop when a step lowers the cost by less than this fraction."""
 
-_STEP_FRACTIONS = (1.0, 0.5, 0.25)
+STEP_FRACTIONS = (1.0, 0.5, 0.25)
+"""The fractions of a step tried in turn; the first that lowers the cost is kept."""
 
 
 @dataclass(frozen=True)
@@ -176,7 +185,7 @@ def refine_with_planes(
         if step.predicted_reduction <= RELATIVE_DECREASE * cost:
             break
         accepted = None
-        for fraction in _STEP_FRACTIONS:
+        for fraction in STEP_FRACTIONS:
             trial_state = state_from_values(
                 state, problem.retracted_values(fraction * step.dx, layout)
             )

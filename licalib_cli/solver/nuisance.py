@@ -23,11 +23,26 @@ then ``p`` gives the calibration information ``S = S_cc - S_cp S_pp^-1 S_pc`` wi
 :func:`nuisance_step` solves the same system for a Gauss-Newton step of all three (the nuisance
 estimated with the problem instead of held fixed), with the calibration step restricted to the
 directions the joint information determines.
+
+:func:`segmented_nuisance_step` is the same step for a problem made of segments that share only
+the calibration (the multi-segment calibration: each segment has its own trajectory and its own
+map planes). Ordered by segment, the full matrix is block-arrow shaped::
+
+    [ A_1            C_1 ]      A_k = [ H_tt,k  H_tp,k ]    C_k = [ H_tc,k ]
+    [      A_2       C_2 ]            [ H_pt,k  H_pp,k ]          [ H_pc,k ]
+    [           ...  ... ]
+    [ C_1^T C_2^T ... H_cc ]
+
+so ``S = H_cc - sum_k C_k^T A_k^-1 C_k``: each segment is eliminated on its own (trajectory by its
+banded factor, then its planes, as above) and only its reduced ``(Nc, Nc)`` share is kept.
+Forming the dense blocks of all segments at once instead would take memory growing with the
+product of the segments' trajectories and their planes. The back-substitution keeps per segment
+only ``S_pp^-1 S_pc`` and ``S_pp^-1 b_p`` (planes by calibration) and the banded factor.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,7 +54,15 @@ from licalib_cli.solver.observability import truncation_mask
 from licalib_cli.solver.problem import Evaluation, Layout, Linearization, Problem
 from licalib_cli.solver.schur import _BandedCholesky, _sparse_lu_solver, _trajectory_diagonal
 
-__all__ = ["NuisanceStep", "NuisanceTerms", "marginal_schur", "nuisance_step", "nuisance_terms"]
+__all__ = [
+    "NuisanceSegment",
+    "NuisanceStep",
+    "NuisanceTerms",
+    "marginal_schur",
+    "nuisance_step",
+    "nuisance_terms",
+    "segmented_nuisance_step",
+]
 
 F64 = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.intp]
@@ -238,7 +261,8 @@ class NuisanceStep:
 
     Attributes:
         dx: (Nt + Nc,) step of the problem's free coordinates, in solver order.
-        dp: (G, k) step of the nuisance coordinates.
+        dp: (G, k) step of the nuisance coordinates (of a segmented step: every segment's groups
+            in turn).
         predicted_reduction: cost reduction the quadratic model predicts for the step.
         num_truncated: calibration directions the joint information does not determine (held).
     """
@@ -247,6 +271,229 @@ class NuisanceStep:
     dp: F64
     predicted_reduction: float
     num_truncated: int
+
+
+@dataclass(frozen=True)
+class NuisanceSegment:
+    """One independent part of a problem with nuisance: its own trajectory and nuisance.
+
+    A segment's trajectory coordinates couple with no other segment's trajectory (``H_tt`` is
+    block diagonal over the segments) and its nuisance enters only its own residuals, so it
+    couples with its own trajectory and with calibration coordinates only.
+
+    Attributes:
+        trajectory: (Nt_k,) reduced indices of the segment's trajectory coordinates, increasing.
+        terms: the nuisance's terms (rows of ``H_xp`` over all ``Nt + Nc`` free coordinates),
+            with their gradient.
+        hold: reduced indices of the segment's trajectory coordinates held fixed (its gauge).
+        calibration: (Nc_k,) the calibration coordinates (``0 .. Nc``) the segment's residuals
+            touch, increasing; None: all.
+    """
+
+    trajectory: IntArray
+    terms: NuisanceTerms
+    hold: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.intp))
+    calibration: IntArray | None = None
+
+
+@dataclass(frozen=True)
+class _Reduced:
+    """What the back-substitution needs of one eliminated segment (no dense block of its
+    nuisance or of its trajectory-by-nuisance coupling: those are what grows with its size).
+
+    ``dp = y - x dc[calibration]`` and ``dt = A_tt^-1 (-(g_t + H_tc dc + H_tp dp))``.
+    """
+
+    trajectory: IntArray
+    calibration: IntArray
+    solve_tt: Callable[[F64], F64] | None
+    h_xp: sp.csr_matrix
+    x: F64
+    y: F64
+
+
+def _check_segments(lin: Linearization, segments: Sequence[NuisanceSegment]) -> None:
+    """Raise ValueError unless the segments partition the trajectory and couple as stated."""
+    nt = lin.layout.num_trajectory
+    nc = lin.layout.num_calibration
+    label = np.full(nt, -1, dtype=np.intp)
+    for i, seg in enumerate(segments):
+        t = np.asarray(seg.trajectory, dtype=np.intp)
+        if np.any(np.diff(t) <= 0):
+            msg = "a nuisance segment's trajectory coordinates must be increasing"
+            raise ValueError(msg)
+        if np.any(label[t] >= 0):
+            msg = "nuisance segments must not share trajectory coordinates"
+            raise ValueError(msg)
+        label[t] = i
+        g, k, _ = seg.terms.H_pp.shape
+        if seg.terms.g_p.shape != (g, k):
+            msg = "nuisance_step needs the nuisance gradient (nuisance_terms computes it)"
+            raise ValueError(msg)
+        if seg.terms.H_xp.shape != (nt + nc, g * k):
+            msg = "a nuisance segment's H_xp must have a row per free coordinate"
+            raise ValueError(msg)
+    for seg in segments:
+        if not np.all(np.isin(np.asarray(seg.hold, dtype=np.intp), seg.trajectory)):
+            msg = "a nuisance segment can hold only its own trajectory coordinates"
+            raise ValueError(msg)
+    if np.any(label < 0):
+        msg = "nuisance segments must cover every free trajectory coordinate"
+        raise ValueError(msg)
+    h_tt = sp.coo_matrix(lin.H_tt)
+    if np.any(label[h_tt.row[h_tt.data != 0.0]] != label[h_tt.col[h_tt.data != 0.0]]):
+        msg = "H_tt couples the trajectories of two nuisance segments"
+        raise ValueError(msg)
+    for i, seg in enumerate(segments):
+        allowed = np.zeros(nt + nc, dtype=bool)
+        allowed[seg.trajectory] = True
+        cal = np.arange(nc) if seg.calibration is None else np.asarray(seg.calibration)
+        allowed[nt + cal] = True
+        h_xp = sp.csr_matrix(seg.terms.H_xp)
+        rows = np.repeat(np.arange(nt + nc), np.diff(h_xp.indptr))[h_xp.data != 0.0]
+        other = np.ones(nc, dtype=bool)
+        other[cal] = False
+        if not np.all(allowed[rows]) or np.any(lin.H_tc[np.ix_(label == i, other)] != 0.0):
+            msg = f"nuisance segment {i} touches coordinates outside its own and its calibration"
+            raise ValueError(msg)
+
+
+def _eliminate_segment(lin: Linearization, seg: NuisanceSegment, s_c: F64, b_c: F64) -> _Reduced:
+    """Eliminate one segment's trajectory and nuisance, adding its share to ``s_c`` and ``b_c``.
+
+    The segment's trajectory is eliminated by the banded factor of its ``H_tt`` block (held
+    coordinates fixed), then its nuisance (:func:`_psd_solver`); what is left acts on its
+    calibration coordinates: ``S_k = -W_c^T W_c - S_cp S_pp^+ S_pc`` and the matching right-hand
+    side, added in place.
+    """
+    nt = lin.layout.num_trajectory
+    nc = lin.layout.num_calibration
+    t = np.asarray(seg.trajectory, dtype=np.intp)
+    c = np.arange(nc) if seg.calibration is None else np.asarray(seg.calibration, dtype=np.intp)
+    terms = seg.terms
+    g, k, _ = terms.H_pp.shape
+    npar = g * k
+    ncs = c.size
+    ny = ncs + npar
+    h_xp = sp.csr_matrix(terms.H_xp)
+    h_cp = h_xp[nt + c].toarray()
+    s_full = np.zeros((ny, ny))
+    b = np.concatenate([np.zeros(ncs), -terms.g_p.reshape(-1)])
+    solve_tt: Callable[[F64], F64] | None = None
+    if t.size:
+        h_tt = lin.H_tt if t.size == nt else sp.csc_matrix(lin.H_tt[t][:, t])
+        add = _trajectory_diagonal(h_tt, 0.0)
+        held = np.searchsorted(t, np.asarray(seg.hold, dtype=np.intp).reshape(-1))
+        if held.size:
+            add[held] += _HOLD * float(max(np.max(h_tt.diagonal()), 1.0))
+        factor = _BandedCholesky.factorize(h_tt, add)
+        solve_tt = factor.solve if factor is not None else _sparse_lu_solver(h_tt, add)
+        rhs = np.empty((t.size, ny + 1), order="F")
+        rhs[:, :ncs] = lin.H_tc[np.ix_(t, c)]
+        rhs[:, ncs:ny] = h_xp[t].toarray()
+        rhs[:, ny] = lin.g_t[t]
+        if factor is not None:
+            w = factor.forward(rhs)
+            del rhs
+            gram = w.T @ w
+            del w
+        else:
+            gram = rhs.T @ solve_tt(rhs)
+            del rhs
+            gram = 0.5 * (gram + gram.T)
+        s_full -= gram[:ny, :ny]
+        b += gram[:ny, ny]
+        del gram
+    s_full[:ncs, ncs:] += h_cp
+    s_full[ncs:, :ncs] += h_cp.T
+    idx = ncs + np.arange(npar).reshape(g, k)
+    s_full[idx[:, :, None], idx[:, None, :]] += terms.H_pp
+    s_cp, s_pp = s_full[:ncs, ncs:], s_full[ncs:, ncs:]
+    if npar:
+        solve_pp = _psd_solver(s_pp)
+        x, y = solve_pp(s_cp.T), solve_pp(b[ncs:])
+    else:
+        x, y = np.zeros((0, ncs)), np.zeros(0)
+    s_c[np.ix_(c, c)] += s_full[:ncs, :ncs] - s_cp @ x
+    b_c[c] += b[:ncs] - s_cp @ y
+    return _Reduced(t, c, solve_tt, h_xp, x, y)
+
+
+def segmented_nuisance_step(
+    lin: Linearization,
+    segments: Sequence[NuisanceSegment],
+    *,
+    tsvd_threshold: float = 1.0,
+    tsvd_relative: bool = False,
+) -> NuisanceStep:
+    """The Gauss-Newton step over trajectory, calibration and nuisance, segment by segment.
+
+    The segments share the calibration and nothing else, so the full system is block-arrow
+    shaped: each segment's trajectory and nuisance couple with themselves and with the
+    calibration. Each segment is eliminated in turn (its trajectory by the banded factor of its
+    ``H_tt`` block, then its nuisance) and its reduced contribution added to the calibration
+    system ``S = H_cc + sum_k S_k``, ``b = -g_c + sum_k b_k``; only one segment's dense blocks
+    (its ``(Nc_k + Np_k)^2`` system and ``Nt_k x (Nc_k + Np_k)`` whitened coupling) exist at a
+    time. The calibration step solves ``S`` in the coordinates scaled by
+    ``lin.layout.calibration_scale``, restricted to its eigen-directions above
+    ``tsvd_threshold`` (the solver's truncation rule); each segment's nuisance and trajectory
+    steps follow by back-substitution. With one segment holding the whole trajectory this is
+    :func:`nuisance_step`.
+
+    Args:
+        lin: The problem's normal equations.
+        segments: The segments, their trajectories partitioning the free trajectory
+            coordinates.
+        tsvd_threshold: Smallest scaled information of a calibration direction that moves.
+        tsvd_relative: ``tsvd_threshold`` is relative to the largest.
+
+    Returns:
+        The step; ``dp`` holds every segment's groups in turn.
+
+    Raises:
+        ValueError: a segment carries no gradient, the segments do not partition the
+            trajectory, or a segment couples with another's coordinates.
+    """
+    _check_segments(lin, segments)
+    nt = lin.layout.num_trajectory
+    nc = lin.layout.num_calibration
+    s_c = np.zeros((nc, nc))
+    b_c = np.zeros(nc)
+    reduced = [_eliminate_segment(lin, seg, s_c, b_c) for seg in segments]
+    s_c += lin.H_cc
+    b_c -= lin.g_c
+    num_truncated = 0
+    dc = np.zeros(nc)
+    if nc:
+        scale = np.asarray(lin.layout.calibration_scale, dtype=np.float64)
+        s_d = scale[:, None] * s_c * scale[None, :]
+        vals, vecs = np.linalg.eigh(0.5 * (s_d + s_d.T))
+        keep = truncation_mask(np.clip(vals, 0.0, None), tsvd_threshold, relative=tsvd_relative)
+        num_truncated = int(nc - np.count_nonzero(keep))
+        u = vecs[:, keep]
+        dc = scale * (u @ ((u.T @ (scale * b_c)) / vals[keep]))
+    dt = np.zeros(nt)
+    dps: list[F64] = []
+    # quadratic model of the full system at the step, the nuisance's terms segment by segment
+    quad_p = cross = grad_p = 0.0
+    for seg, red in zip(segments, reduced, strict=True):
+        dp = red.y - red.x @ dc[red.calibration]
+        t = red.trajectory
+        if t.size:
+            assert red.solve_tt is not None
+            rhs = lin.g_t[t] + lin.H_tc[np.ix_(t, red.calibration)] @ dc[red.calibration]
+            dt[t] = red.solve_tt(-(rhs + red.h_xp[t] @ dp))
+        g, k, _ = seg.terms.H_pp.shape
+        dps.append(dp.reshape(g, k))
+        quad_p += float(np.einsum("gi,gij,gj->", dps[-1], seg.terms.H_pp, dps[-1]))
+        grad_p += float(seg.terms.g_p.reshape(-1) @ dp)
+    dx = np.concatenate([dt, dc])
+    for dp_k, red in zip(dps, reduced, strict=True):
+        cross += float(dx @ (red.h_xp @ dp_k.reshape(-1)))
+    quad = lin.quadratic(dx) + 2.0 * cross + quad_p
+    predicted = -(float(lin.g @ dx) + grad_p + 0.5 * quad)
+    dp_all = np.concatenate(dps) if dps else np.zeros((0, 0))
+    return NuisanceStep(dx, dp_all, predicted, num_truncated)
 
 
 def nuisance_step(
@@ -263,7 +510,8 @@ def nuisance_step(
     the nuisance (Jacobi-scaled pseudo-inverse, as :func:`marginal_schur`); the calibration step
     solves the remaining system in the coordinates scaled by ``lin.layout.calibration_scale``,
     restricted to its eigen-directions above ``tsvd_threshold`` (the solver's truncation rule);
-    the nuisance and the trajectory steps follow by back-substitution.
+    the nuisance and the trajectory steps follow by back-substitution. This is
+    :func:`segmented_nuisance_step` with one segment.
 
     Args:
         lin: The problem's normal equations.
@@ -278,68 +526,8 @@ def nuisance_step(
     Raises:
         ValueError: ``terms`` carries no gradient.
     """
-    nt = lin.layout.num_trajectory
-    nc = lin.layout.num_calibration
-    g, k, _ = terms.H_pp.shape
-    npar = g * k
-    if terms.g_p.shape != (g, k):
-        msg = "nuisance_step needs the nuisance gradient (nuisance_terms computes it)"
-        raise ValueError(msg)
-    h_xp = sp.csr_matrix(terms.H_xp)
-    h_tp = h_xp[:nt].toarray()
-    h_cp = h_xp[nt:].toarray()
-    g_t, g_c, g_p = lin.g_t, lin.g_c, terms.g_p.reshape(-1)
-    ny = nc + npar
-    s_full = np.zeros((ny, ny))
-    b = -np.concatenate([g_c, g_p])
-    solve_tt: Callable[[F64], F64] | None = None
-    if nt:
-        add = _trajectory_diagonal(lin.H_tt, 0.0)
-        held = np.asarray(hold, dtype=np.intp).reshape(-1)
-        if held.size:
-            add[held] += _HOLD * float(max(np.max(lin.H_tt.diagonal()), 1.0))
-        factor = _BandedCholesky.factorize(lin.H_tt, add)
-        solve_tt = factor.solve if factor is not None else _sparse_lu_solver(lin.H_tt, add)
-        rhs = np.empty((nt, ny + 1), order="F")
-        rhs[:, :nc] = lin.H_tc
-        rhs[:, nc:ny] = h_tp
-        rhs[:, ny] = g_t
-        if factor is not None:
-            w = factor.forward(rhs)
-            gram = w.T @ w
-        else:
-            gram = rhs.T @ solve_tt(rhs)
-            gram = 0.5 * (gram + gram.T)
-        s_full -= gram[:ny, :ny]
-        b += gram[:ny, ny]
-    s_full[:nc, :nc] += lin.H_cc
-    s_full[:nc, nc:] += h_cp
-    s_full[nc:, :nc] += h_cp.T
-    idx = nc + np.arange(npar).reshape(g, k)
-    s_full[idx[:, :, None], idx[:, None, :]] += terms.H_pp
-    s_cp, s_pp = s_full[:nc, nc:], s_full[nc:, nc:]
-    solve_pp = _psd_solver(s_pp) if npar else (lambda r: np.zeros_like(r))
-    s_c = s_full[:nc, :nc] - s_cp @ solve_pp(s_cp.T)
-    b_c = b[:nc] - s_cp @ solve_pp(b[nc:])
-    num_truncated = 0
-    dc = np.zeros(nc)
-    if nc:
-        scale = np.asarray(lin.layout.calibration_scale, dtype=np.float64)
-        s_d = scale[:, None] * s_c * scale[None, :]
-        vals, vecs = np.linalg.eigh(0.5 * (s_d + s_d.T))
-        keep = truncation_mask(np.clip(vals, 0.0, None), tsvd_threshold, relative=tsvd_relative)
-        num_truncated = int(nc - np.count_nonzero(keep))
-        u = vecs[:, keep]
-        dc = scale * (u @ ((u.T @ (scale * b_c)) / vals[keep]))
-    dp = solve_pp(b[nc:] - s_cp.T @ dc) if npar else np.zeros(0)
-    dt = np.zeros(nt)
-    if nt:
-        assert solve_tt is not None
-        dt = solve_tt(-(g_t + lin.H_tc @ dc + h_tp @ dp))
-    dx = np.concatenate([dt, dc])
-    # quadratic model of the full system at the step
-    hp_dp = h_xp @ dp
-    quad = lin.quadratic(dx) + 2.0 * float(dx @ hp_dp)
-    quad += float(np.einsum("gi,gij,gj->", dp.reshape(g, k), terms.H_pp, dp.reshape(g, k)))
-    predicted = -(float(lin.g @ dx) + float(g_p @ dp) + 0.5 * quad)
-    return NuisanceStep(dx, dp.reshape(g, k), predicted, num_truncated)
+    held = np.unique(np.asarray(hold, dtype=np.intp).reshape(-1))
+    whole = NuisanceSegment(np.arange(lin.layout.num_trajectory), terms, held)
+    return segmented_nuisance_step(
+        lin, [whole], tsvd_threshold=tsvd_threshold, tsvd_relative=tsvd_relative
+    )

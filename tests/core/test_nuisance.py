@@ -14,13 +14,15 @@ import pytest
 import scipy.sparse as sp
 from test_assembly import RandomBlock, dense_reference, make_problem
 
-from licalib_cli.solver import HuberLoss, ResidualEval
+from licalib_cli.solver import HuberLoss, ParameterBlock, ResidualEval
 from licalib_cli.solver.nuisance import (
+    NuisanceSegment,
     NuisanceTerms,
     _reduced_by,
     marginal_schur,
     nuisance_step,
     nuisance_terms,
+    segmented_nuisance_step,
 )
 from licalib_cli.solver.observability import undamped_schur
 from licalib_cli.solver.problem import Evaluation, Layout, Problem
@@ -219,3 +221,125 @@ def test_nuisance_step_needs_the_gradient() -> None:
     terms = NuisanceTerms(sp.csr_matrix((layout.num_free, K)), np.ones((1, K, K)) * np.eye(K))
     with pytest.raises(ValueError, match="gradient"):
         nuisance_step(lin, terms)
+
+
+# ------------------------------------------------------------------ segment by segment
+
+_OWN = ("ctrl", "bias", "pair", "wide")
+"""Blocks each segment has its own copy of (``wide`` is a calibration block: a per-segment
+calibration coordinate, like a segment's time offset); the rest is shared."""
+
+
+def _two_segments(seed: int) -> tuple[Problem, list[np.ndarray], list[np.ndarray]]:
+    """Two random blocks as two segments: own trajectory and ``wide``, shared calibration.
+
+    The segments' blocks are added interleaved, so each segment's trajectory coordinates are not
+    contiguous in the solver order. Returns the problem and each segment's nuisance (Jacobian
+    and group; 9 and 6 groups).
+    """
+    rng = np.random.default_rng(seed)
+    pr = Problem()
+    for name, shape, group in [
+        ("ctrl", (14, 3), "trajectory"),
+        ("bias", (3,), "trajectory"),
+        ("pair", (6, 2), "trajectory"),
+        ("wide", (3, 10), "calibration"),
+    ]:
+        for s in (1, 2):
+            pr.add_parameter_block(ParameterBlock(f"s{s}:{name}", np.zeros(shape), group=group))
+    pr.add_parameter_block(ParameterBlock("beam", np.zeros((5, 2)), group="calibration"))
+    pr.add_parameter_block(ParameterBlock("ext", np.zeros(3), group="calibration"))
+    pr.add_parameter_block(ParameterBlock("shared", np.zeros((4, 1)), group="calibration"))
+    nuisance = []
+    groups = []
+    for s, (n, num_groups) in enumerate([(700, 9), (500, 6)], start=1):
+        block = RandomBlock(rng, n, 1, False)
+        block.jacobians = tuple(
+            replace(j, block=f"s{s}:{j.block}" if j.block in _OWN else j.block)
+            for j in block.jacobians
+        )
+        block.name = f"s{s}"
+        pr.add_residual_block(block, HuberLoss(1.5))
+        group = rng.integers(0, num_groups, n)
+        group[:num_groups] = np.arange(num_groups)
+        nuisance.append(rng.normal(size=(n, K)))
+        groups.append(group)
+    pr["s1:ctrl"].fix([0, 1, 2])  # the shared gauge's first coordinates fixed outright
+    return pr, nuisance, groups
+
+
+def _segments(
+    pr: Problem, nuisance: list[np.ndarray], groups: list[np.ndarray], own_calibration: bool
+) -> tuple[Evaluation, Layout, list[NuisanceSegment]]:
+    evaluation = pr.evaluate()
+    layout = pr.layout()
+    nt = layout.num_trajectory
+    segments = []
+    for s in (1, 2):
+        owner = np.asarray(layout.owner)
+        traj = np.flatnonzero(np.char.startswith(owner[:nt].astype(str), f"s{s}:"))
+        other = f"s{3 - s}:"
+        cal = np.flatnonzero(~np.char.startswith(owner[nt:].astype(str), other))
+        terms = nuisance_terms(
+            pr,
+            evaluation,
+            layout,
+            s - 1,
+            nuisance[s - 1],
+            groups[s - 1],
+            int(groups[s - 1].max()) + 1,
+        )
+        hold = layout.index[f"s{s}:ctrl"][3:6]  # the second control point: each one's gauge
+        segments.append(NuisanceSegment(traj, terms, hold, cal if own_calibration else None))
+    return evaluation, layout, segments
+
+
+@pytest.mark.parametrize("own_calibration", [False, True])
+@pytest.mark.parametrize("truncated", [False, True])
+def test_segmented_step_equals_the_dense_nuisance_step(
+    own_calibration: bool, truncated: bool
+) -> None:
+    pr, nuisance, groups = _two_segments(21)
+    evaluation, layout, segments = _segments(pr, nuisance, groups, own_calibration)
+    lin = pr.linearize(evaluation, layout)
+    # every segment's nuisance at once, as one set of groups
+    whole = NuisanceTerms(
+        sp.hstack([s.terms.H_xp for s in segments]).tocsr(),
+        np.concatenate([s.terms.H_pp for s in segments]),
+        np.concatenate([s.terms.g_p for s in segments]),
+    )
+    hold = np.concatenate([s.hold for s in segments])
+    tsvd, expected = 0.0, 0
+    if truncated:  # between two eigenvalues, half the directions held
+        scale = layout.calibration_scale
+        vals = np.linalg.eigvalsh(scale[:, None] * marginal_schur(lin, whole, hold) * scale)
+        expected = vals.size // 2
+        tsvd = float(np.sqrt(vals[expected - 1] * vals[expected]))
+    dense = nuisance_step(lin, whole, hold, tsvd_threshold=tsvd)
+    got = segmented_nuisance_step(lin, segments, tsvd_threshold=tsvd)
+    assert got.num_truncated == dense.num_truncated == expected
+    np.testing.assert_allclose(got.dx, dense.dx, rtol=1e-7, atol=1e-9 * np.abs(dense.dx).max())
+    np.testing.assert_allclose(got.dp, dense.dp, rtol=1e-7, atol=1e-9 * np.abs(dense.dp).max())
+    assert got.predicted_reduction == pytest.approx(dense.predicted_reduction, rel=1e-9)
+    assert np.abs(got.dx[layout.index["s2:wide"]]).min() > 0.0  # a segment's own coordinates
+
+
+def test_segmented_step_refuses_segments_that_do_not_partition_the_problem() -> None:
+    pr, nuisance, groups = _two_segments(22)
+    evaluation, layout, segments = _segments(pr, nuisance, groups, True)
+    lin = pr.linearize(evaluation, layout)
+    a, b = segments
+    swapped = [replace(a, terms=b.terms), replace(b, terms=a.terms)]
+    with pytest.raises(ValueError, match="outside"):
+        segmented_nuisance_step(lin, swapped)
+    wrong_calibration = [replace(a, calibration=b.calibration), b]
+    with pytest.raises(ValueError, match="outside"):
+        segmented_nuisance_step(lin, wrong_calibration)
+    with pytest.raises(ValueError, match="cover"):
+        segmented_nuisance_step(lin, [a])
+    mixed = np.concatenate([a.trajectory[:-5], b.trajectory[-5:]])
+    rest = np.setdiff1d(np.arange(layout.num_trajectory), mixed)
+    with pytest.raises(ValueError, match="couples"):
+        segmented_nuisance_step(lin, [replace(a, trajectory=mixed), replace(b, trajectory=rest)])
+    with pytest.raises(ValueError, match="hold"):
+        segmented_nuisance_step(lin, [replace(a, hold=b.hold), b])
