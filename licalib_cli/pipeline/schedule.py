@@ -66,9 +66,9 @@ JOIN_BY = 3
 latest."""
 
 CRAWL_RATIO = 0.5
-"""Rounds with LiDAR intrinsics crawl when one moves the translation onward, along the way the
-round before moved it, by more than this fraction of that move (a settling estimate shrinks its
-steps faster): the planes-free refinement then takes a step before the next round."""
+"""Rounds with LiDAR intrinsics crawl when one moves the translation by more than this fraction
+of what the round before moved it (a settling estimate shrinks its steps faster): the
+planes-free refinement then takes a step before the next round."""
 
 MAX_CRAWL_STEPS = 3
 """Planes-free steps between the rounds at most (each costs about a round)."""
@@ -99,14 +99,11 @@ class Change:
         translation_m: norm of the translation change, m.
         rotation_deg: rotation angle, deg.
         time_offset_s: absolute time-offset change, s.
-        translation_step_m: the translation's change as a vector (after minus before, IMU
-            frame), m; None when not known.
     """
 
     translation_m: float
     rotation_deg: float
     time_offset_s: float
-    translation_step_m: tuple[float, float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -143,15 +140,8 @@ class Fit:
 
 
 def _change(before: CalibrationState, after: CalibrationState) -> Change:
-    a, b = extrinsic_of(before), extrinsic_of(after)
-    err = a.error_to(b)
-    step = np.asarray(b.translation, dtype=np.float64) - np.asarray(a.translation)
-    return Change(
-        err["translation_m"],
-        err["rotation_deg"],
-        err["time_offset_s"],
-        (float(step[0]), float(step[1]), float(step[2])),
-    )
+    err = extrinsic_of(before).error_to(extrinsic_of(after))
+    return Change(err["translation_m"], err["rotation_deg"], err["time_offset_s"])
 
 
 def _describe(c: Change) -> str:
@@ -248,11 +238,8 @@ def crawls(
 
     Only with LiDAR intrinsics free, once the association is at its configured distance (the
     coarse rounds shrink their steps for another reason), while fewer than
-    :data:`MAX_CRAWL_STEPS` steps were taken, and when this round moved the translation onward,
-    along the way the round before moved it, by more than :data:`CRAWL_RATIO` of that move. A
-    round that moves back (after a planes-free step the rounds pull the estimate back towards
-    their fixed planes by about as much) or sideways does not crawl: another step would only
-    repeat the swing.
+    :data:`MAX_CRAWL_STEPS` steps were taken, and when this round moved the translation by more
+    than :data:`CRAWL_RATIO` of what the round before moved it.
 
     Args:
         change: how far this (unsettled) round moved the extrinsic.
@@ -261,17 +248,13 @@ def crawls(
         at_base_distance: the round associated at the configured distance.
         steps_taken: planes-free steps already taken between rounds.
     """
-    if not (lidar_intrinsics_free and at_base_distance and steps_taken < MAX_CRAWL_STEPS):
-        return False
-    if previous is None or previous.translation_m <= 0.0:
-        return False
-    if change.translation_step_m is None or previous.translation_step_m is None:
-        onward = change.translation_m
-    else:
-        d = np.asarray(change.translation_step_m)
-        before = np.asarray(previous.translation_step_m)
-        onward = float(d @ before) / float(np.linalg.norm(before))
-    return onward > CRAWL_RATIO * previous.translation_m
+    return (
+        lidar_intrinsics_free
+        and at_base_distance
+        and steps_taken < MAX_CRAWL_STEPS
+        and previous is not None
+        and change.translation_m > CRAWL_RATIO * previous.translation_m
+    )
 
 
 def run_schedule(
