@@ -160,9 +160,11 @@ def _convergence(fit: Fit, cfg: CalibConfig) -> list[Finding]:
                 f"The calibration did not converge: each of the {MAX_FINAL_ROUNDS} denser final "
                 f"rounds moved the estimate by many of its sigmas (the last "
                 f"{1e3 * c.translation_m:.1f} mm / {c.rotation_deg:.3f} deg / "
-                f"{1e3 * c.time_offset_s:.2f} ms): the denser data determine a direction the "
-                "regular rounds could not, and the estimate has not settled along it, so the "
-                "result is not trustworthy; record more varied motion in a structured scene.",
+                f"{1e3 * c.time_offset_s:.2f} ms): the denser points pull the estimate away "
+                "from where the regular rounds settled (a direction those could not determine, "
+                "or a model that does not fit the data) and it has not settled, so the result "
+                "is not trustworthy; record more varied motion in a structured scene, and see "
+                "the other findings for effects the model lacks.",
             )
         ]
     if not fit.converged:
