@@ -8,25 +8,19 @@ the model estimates; each keeps its own trajectory spline, IMU biases, gravity a
 1. Every segment is calibrated on its own, exactly as ``calibrate --start/--duration`` does
    (its rounds, checks and sigmas): these are the per-segment estimates of the result.
 2. The joint problem starts from those fits with the shared blocks at the estimate of the
-   segment with the smallest sigmas. Each segment's residual blocks keep their own parameter
+   segment with the smallest sigmas (the problem: :mod:`licalib_cli.pipeline.joint_problem`).
+   Each segment's residual blocks keep their own parameter
    block names; per-segment blocks are renamed ``seg<k>:<name>`` (a thin adapter renames the
    Jacobians), shared blocks keep their name, so the solver's Schur complement, truncated SVD
    and sigmas apply unchanged.
 3. :data:`JOINT_ROUNDS` rounds: the first on each segment's own final associations, the next
    ones with every segment's map and associations rebuilt from the joint estimate.
 4. With LiDAR intrinsics estimated, a planes-free refinement of the joint problem
-   (:func:`refine_segments_with_planes`): the rounds hold each segment's map planes fixed, which
-   pull the common mode of the range offsets and scales towards the values the maps were built
-   with, as in a single segment's rounds (:mod:`licalib_cli.pipeline.free_planes`). Gauss-Newton
-   steps estimate the trajectories, the calibration and every segment's planes together. A
-   segment's planes couple only with its own trajectory and blocks and with the shared
-   calibration, so the step eliminates one segment at a time (its trajectory by the banded
-   factor, then its planes) and adds its reduced system to the shared calibration's
-   (:func:`~licalib_cli.solver.nuisance.segmented_nuisance_step`): memory is bounded by one
-   segment's dense blocks, not by the product of all trajectories and all planes. Each
-   segment's gauge is held at its first control point; a step is kept only when it lowers the
-   joint cost. The solver then settles the joint problem on the refined planes and its report
-   gives the joint sigmas.
+   (:func:`~licalib_cli.pipeline.joint_planes.refine_segments_with_planes`): the rounds hold
+   each segment's map planes fixed, which pull the common mode of the range offsets and scales
+   towards the values the maps were built with; the refinement estimates every segment's planes
+   with the rest, one segment eliminated at a time. The solver then settles the joint problem on
+   the refined planes and its report gives the joint sigmas.
 
 The joint sigmas start from the joint solver's and are enlarged as each segment's own were, by
 the largest factor any segment needed (:func:`_growth`): the map planes' own uncertainty, the
@@ -49,7 +43,7 @@ from __future__ import annotations
 import itertools
 import logging
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -59,11 +53,8 @@ import numpy.typing as npt
 from licalib_cli.config import CalibConfig
 from licalib_cli.errors import ConfigError, ExcitationError, LicalibError
 from licalib_cli.estimation import (
-    BLOCK_SPECS,
     CalibrationState,
-    FreeParameters,
     Planes,
-    build_problem,
     state_from_values,
 )
 from licalib_cli.geometry import so3
@@ -72,29 +63,18 @@ from licalib_cli.io.reader import MIN_SEGMENT_S
 from licalib_cli.pipeline import CalibrationRun, calibrate
 from licalib_cli.pipeline.assemble import extra_terms
 from licalib_cli.pipeline.checks import intrinsics_uncertainty
-from licalib_cli.pipeline.free_planes import (
-    MAX_STEPS,
-    RELATIVE_DECREASE,
-    STEP_FRACTIONS,
-    plane_jacobian,
-    stepped_planes,
-)
+from licalib_cli.pipeline.joint_planes import refine_segments_with_planes
+from licalib_cli.pipeline.joint_problem import joint_problem, segment_values
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty
 from licalib_cli.pipeline.points import points_in_global, solver_points, usable_points
 from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.pipeline.segments import _with_range, select_segments
-from licalib_cli.pipeline.settings import intrinsic_priors, lm_params, round_settings
+from licalib_cli.pipeline.settings import lm_params, round_settings
 from licalib_cli.progress import NullProgress, Progress
 from licalib_cli.residuals import (
-    ACCEL_BIAS_DRIFT,
     EXT_ROTATION,
     EXT_TRANSLATION,
-    GYRO_BIAS_DRIFT,
-    TIME_DRIFT,
     TIME_OFFSET,
-    TRAJ_R3,
-    TRAJ_SO3,
-    PointToPlaneResidual,
 )
 from licalib_cli.results import CalibrationResult, Extrinsic, rpy_deg_from_matrix, vec3
 from licalib_cli.sections import (
@@ -104,22 +84,15 @@ from licalib_cli.sections import (
     Uncertainty,
     VerdictSection,
 )
-from licalib_cli.solver.lm import LMParams, SolverReport, solve
-from licalib_cli.solver.nuisance import NuisanceSegment, nuisance_terms, segmented_nuisance_step
-from licalib_cli.solver.parameters import ParameterBlock
-from licalib_cli.solver.problem import Evaluation, Layout, Problem, ResidualBlock, ResidualEval
+from licalib_cli.solver.lm import SolverReport, solve
 from licalib_cli.surfels import associate_points, build_surfels
 
 __all__ = [
     "DISAGREEMENT_SIGMAS",
     "JOINT_ROUNDS",
-    "JointPlaneRefinement",
     "JointRun",
     "calibrate_segments",
-    "joint_problem",
     "parse_segments",
-    "per_segment_blocks",
-    "refine_segments_with_planes",
 ]
 
 logger = logging.getLogger(__name__)
@@ -133,21 +106,6 @@ DISAGREEMENT_SIGMAS = 3.0
 
 JOINT_ROUNDS = 2
 """Joint optimisation rounds (the later ones on maps rebuilt from the joint estimate)."""
-
-_PER_SEGMENT_CALIBRATION = (TIME_OFFSET, TIME_DRIFT, GYRO_BIAS_DRIFT, ACCEL_BIAS_DRIFT)
-"""Calibration-group blocks that belong to a segment, not to the sensors."""
-
-
-def per_segment_blocks() -> frozenset[str]:
-    """Names of the blocks every segment has its own copy of (the rest is shared)."""
-    own = {s.name for s in BLOCK_SPECS if s.group == "trajectory"}
-    return frozenset(own | set(_PER_SEGMENT_CALIBRATION))
-
-
-def segment_name(index: int, block: str) -> str:
-    """The joint problem's name of segment ``index``'s own copy of ``block``."""
-    return f"seg{index + 1}:{block}"
-
 
 # ---------------------------------------------------------------------------- parsing
 
@@ -204,98 +162,6 @@ def bag_duration_s(bag: Path) -> float:
         return (handle.end_ns - handle.start_ns) / _NS
 
 
-# ---------------------------------------------------------------------- joint problem
-
-
-class _Renamed:
-    """A segment's residual block in the joint problem: parameter names mapped both ways."""
-
-    def __init__(self, inner: ResidualBlock, rename: Mapping[str, str], prefix: str) -> None:
-        self.inner = inner
-        self.rename = dict(rename)
-        self.name = f"{prefix}{inner.name}"
-
-    def evaluate(self, params: Mapping[str, F64], jacobians: bool = True) -> ResidualEval:
-        local = {own: params[joint] for own, joint in self.rename.items() if joint in params}
-        ev = self.inner.evaluate(local, jacobians)
-        jac = tuple(replace(j, block=self.rename.get(j.block, j.block)) for j in ev.jacobians)
-        return ResidualEval(ev.residuals, jac)
-
-
-def joint_problem(
-    states: Sequence[CalibrationState],
-    inputs: Sequence[RoundInputs],
-    free: FreeParameters,
-    fix_shared: bool = False,
-) -> Problem:
-    """One problem over the segments: shared extrinsic and intrinsics, the rest per segment.
-
-    The shared blocks take their values from the first state.
-
-    Args:
-        states: each segment's estimate.
-        inputs: each segment's IMU data, associated points, planes and weights.
-        free: what is estimated (as in a single-segment round).
-        fix_shared: hold the shared blocks (to compare with the segments alone).
-    """
-    own = per_segment_blocks()
-    problem = Problem()
-    for k, (state, data) in enumerate(zip(states, inputs, strict=True)):
-        single = build_problem(
-            state,
-            data.imu,
-            data.lidar,
-            data.planes,
-            data.noise,
-            free,
-            extra_residuals=intrinsic_priors(state, free) if k == 0 else (),
-        )
-        rename: dict[str, str] = {}
-        mine = {segment_name(k, b) for b in own}
-        for block in single.parameter_blocks:
-            name = segment_name(k, block.name) if block.name in own else block.name
-            rename[block.name] = name
-            if name in problem:
-                continue
-            coords = block.coord_names
-            if name in mine and block.group == "calibration":
-                coords = tuple(f"seg{k + 1}:{c}" for c in coords)
-            fixed = block.fixed_mask
-            if fix_shared and name not in mine:
-                fixed[:] = True
-            problem.add_parameter_block(
-                ParameterBlock(
-                    name,
-                    block.value,
-                    manifold=block.manifold,
-                    group=block.group,
-                    coord_names=coords,
-                    scale=block.scale,
-                    fixed=fixed,
-                )
-            )
-        for residual, loss in zip(single.residual_blocks, single.losses, strict=True):
-            problem.add_residual_block(_Renamed(residual, rename, f"seg{k + 1}:"), loss)
-    return problem
-
-
-def _segment_values(problem: Problem, k: int) -> dict[str, F64]:
-    """Segment ``k``'s values under their single-segment block names."""
-    return _values_of_segment(problem.values(), k)
-
-
-def _values_of_segment(values: Mapping[str, F64], k: int) -> dict[str, F64]:
-    """Segment ``k``'s entries of the joint problem's ``values``, under their single-segment
-    block names."""
-    own = per_segment_blocks()
-    out = {}
-    for name in (spec.name for spec in BLOCK_SPECS):
-        joint = segment_name(k, name) if name in own else name
-        if joint in values:
-            out[name] = values[joint]
-    return out
-
-
 def _reassociate(
     state: CalibrationState, data: RoundInputs, cfg: CalibConfig, run: CalibrationRun
 ) -> RoundInputs:
@@ -314,209 +180,6 @@ def _reassociate(
     lidar = solver_points(state, used, assoc.surfel_index[order])
     planes = Planes(normal=surfels.normal, d=surfels.d, thickness=surfels.thickness)
     return RoundInputs(data.imu, lidar, used, planes, data.noise, data.free)
-
-
-# ------------------------------------------------------------------ planes-free refinement
-
-
-@dataclass(frozen=True)
-class JointPlaneRefinement:
-    """The outcome of :func:`refine_segments_with_planes`.
-
-    Attributes:
-        states: each segment's refined state (shared blocks equal).
-        inputs: each segment's inputs with its refined planes.
-        report: the joint solver's report at the refined estimate (planes held at their refined
-            values).
-        steps: steps kept.
-        cost_start: joint cost with the rounds' planes before the refinement.
-        cost_end: joint cost with the refined planes after it.
-        seconds: wall time.
-    """
-
-    states: tuple[CalibrationState, ...]
-    inputs: tuple[RoundInputs, ...]
-    report: SolverReport
-    steps: int
-    cost_start: float
-    cost_end: float
-    seconds: float
-
-
-def _lidar_blocks(problem: Problem, count: int) -> list[int] | None:
-    """Index of each segment's point-to-plane block in the joint problem (None if one has
-    none)."""
-    found: list[int] = []
-    for k in range(count):
-        prefix = segment_name(k, "")
-        index = next(
-            (
-                i
-                for i, r in enumerate(problem.residual_blocks)
-                if isinstance(r, _Renamed)
-                and r.name.startswith(prefix)
-                and isinstance(r.inner, PointToPlaneResidual)
-                and len(r.inner) > 0
-            ),
-            None,
-        )
-        if index is None:
-            return None
-        found.append(index)
-    return found
-
-
-def _nuisance_segment(
-    problem: Problem,
-    evaluation: Evaluation,
-    layout: Layout,
-    k: int,
-    block: int,
-    state: CalibrationState,
-    data: RoundInputs,
-    planes: Planes,
-) -> tuple[NuisanceSegment, F64]:
-    """Segment ``k``'s part of the joint problem with its planes as nuisance, and the planes'
-    centroids.
-
-    Its trajectory coordinates are those of its own blocks; its calibration coordinates the
-    shared ones and its own (time offset, drifts); its gauge is its first control point.
-    """
-    residual = problem.residual_blocks[block]
-    assert isinstance(residual, _Renamed) and isinstance(residual.inner, PointToPlaneResidual)
-    plane = np.asarray(data.lidar.plane, dtype=np.intp)
-    p_g = points_in_global(state, data.points)
-    jac, centroid = plane_jacobian(p_g, plane, np.asarray(planes.normal, dtype=np.float64))
-    jac *= residual.inner.whitening(_segment_values(problem, k))[:, None]
-    count = int(np.asarray(planes.d).shape[0])
-    terms = nuisance_terms(problem, evaluation, layout, block, jac, plane, count)
-    nt = layout.num_trajectory
-    prefix = segment_name(k, "")
-    owner = np.asarray(layout.owner, dtype=str)
-    mine = np.char.startswith(owner, prefix)
-    trajectory = np.flatnonzero(mine[:nt])
-    foreign = [b for b in layout.block_names if _per_segment(b) and not b.startswith(prefix)]
-    calibration = np.flatnonzero(~np.isin(owner[nt:], foreign))
-    hold = np.concatenate(
-        [layout.index[segment_name(k, TRAJ_SO3)][:3], layout.index[segment_name(k, TRAJ_R3)][:3]]
-    )
-    return NuisanceSegment(trajectory, terms, hold[hold >= 0], calibration), centroid
-
-
-def _per_segment(block: str) -> bool:
-    """Whether a joint block name is some segment's own copy."""
-    head, sep, _ = block.partition(":")
-    return bool(sep) and head.startswith("seg") and head[3:].isdigit()
-
-
-def refine_segments_with_planes(
-    states: Sequence[CalibrationState],
-    inputs: Sequence[RoundInputs],
-    free: FreeParameters,
-    lm: LMParams,
-) -> JointPlaneRefinement | None:
-    """Gauss-Newton steps of the joint problem with every segment's planes free, then the solver.
-
-    As :func:`~licalib_cli.pipeline.free_planes.refine_with_planes` for one segment: the joint
-    rounds hold each segment's map planes fixed, which pull the common mode of the range offsets
-    and scales back towards the values the maps were built with. Each step estimates the
-    trajectories, the calibration and every plane together
-    (:func:`~licalib_cli.solver.nuisance.segmented_nuisance_step`: a segment's planes couple only
-    with its own trajectory and blocks and with the shared calibration, so the segments are
-    eliminated one at a time and only one segment's dense blocks exist at once), each segment's
-    gauge held at its first control point. A step (or a half or a quarter of it) is kept only
-    when it lowers the joint cost with the stepped planes.
-
-    Args:
-        states: each segment's estimate after the joint rounds (shared blocks equal).
-        inputs: each segment's final round inputs (points, associations, planes).
-        free: what the joint problem estimates.
-        lm: the solver settings (their truncation rule applies to the steps too).
-
-    Returns:
-        The refinement, or None when a segment has no LiDAR points.
-
-    Raises:
-        SolverError: the solver failed on the refined planes.
-    """
-    start = time.perf_counter()
-    states = list(states)
-    planes = [d.planes for d in inputs]
-
-    def build(st: Sequence[CalibrationState], pl: Sequence[Planes]) -> Problem:
-        return joint_problem(
-            st, [replace(d, planes=p) for d, p in zip(inputs, pl, strict=True)], free
-        )
-
-    problem = build(states, planes)
-    blocks = _lidar_blocks(problem, len(states))
-    if blocks is None:
-        return None
-    cost = cost_start = problem.evaluate(jacobians=False).cost
-    steps = 0
-    for _ in range(MAX_STEPS):
-        layout = problem.layout()
-        evaluation = problem.evaluate(jacobians=True)
-        cost = evaluation.cost
-        lin = problem.linearize(evaluation, layout)
-        parts = [
-            _nuisance_segment(problem, evaluation, layout, k, b, states[k], inputs[k], planes[k])
-            for k, b in enumerate(blocks)
-        ]
-        del evaluation
-        step = segmented_nuisance_step(
-            lin,
-            [seg for seg, _ in parts],
-            tsvd_threshold=lm.tsvd_threshold if lm.use_tsvd else 0.0,
-            tsvd_relative=lm.tsvd_relative,
-        )
-        del lin
-        if step.predicted_reduction <= RELATIVE_DECREASE * cost:
-            break
-        split = np.cumsum([p.d.shape[0] for p in planes])[:-1]
-        dps = np.split(step.dp, split)
-        accepted = None
-        for fraction in STEP_FRACTIONS:
-            values = problem.retracted_values(fraction * step.dx, layout)
-            trial_states = [
-                state_from_values(s, _values_of_segment(values, k)) for k, s in enumerate(states)
-            ]
-            trial_planes = [
-                stepped_planes(p, c, fraction * dp)
-                for p, (_, c), dp in zip(planes, parts, dps, strict=True)
-            ]
-            trial = build(trial_states, trial_planes)
-            trial_cost = trial.evaluate(jacobians=False).cost
-            if np.isfinite(trial_cost) and trial_cost < cost:
-                accepted = (trial_states, trial_planes, trial, trial_cost)
-                break
-        if accepted is None:
-            break
-        states, planes, problem, new_cost = accepted
-        steps += 1
-        logger.debug(
-            "Joint planes-free step %d: cost %.1f -> %.1f (predicted %.1f), %d directions held.",
-            steps,
-            cost,
-            new_cost,
-            cost - step.predicted_reduction,
-            step.num_truncated,
-        )
-        done = cost - new_cost < RELATIVE_DECREASE * cost
-        cost = new_cost
-        if done:
-            break
-    report = solve(problem, lm)
-    states = [state_from_values(s, _segment_values(problem, k)) for k, s in enumerate(states)]
-    return JointPlaneRefinement(
-        states=tuple(states),
-        inputs=tuple(replace(d, planes=p) for d, p in zip(inputs, planes, strict=True)),
-        report=report,
-        steps=steps,
-        cost_start=cost_start,
-        cost_end=float(report.final_cost),
-        seconds=time.perf_counter() - start,
-    )
 
 
 # ------------------------------------------------------------------------------- result
@@ -671,7 +334,7 @@ def calibrate_segments(
             ]
         problem = joint_problem(states, inputs, free)
         report = solve(problem, lm_params(cfg))
-        states = [state_from_values(s, _segment_values(problem, k)) for k, s in enumerate(states)]
+        states = [state_from_values(s, segment_values(problem, k)) for k, s in enumerate(states)]
         logger.info(
             "Joint round %d over %d segments: cost %.1f -> %.1f in %d iterations.",
             rnd + 1,

@@ -19,13 +19,8 @@ from licalib_cli.estimation import (
 )
 from licalib_cli.geometry.so3 import exp as so3_exp
 from licalib_cli.models.intrinsics import LidarIntrinsics
-from licalib_cli.pipeline.joint import (
-    _disagreement,
-    _growth,
-    joint_problem,
-    per_segment_blocks,
-    segment_name,
-)
+from licalib_cli.pipeline.joint import _disagreement, _growth
+from licalib_cli.pipeline.joint_problem import joint_problem, per_segment_blocks, segment_name
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty
 from licalib_cli.pipeline.points import PointSample
 from licalib_cli.pipeline.round import RoundInputs

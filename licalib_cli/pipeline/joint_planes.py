@@ -1,0 +1,253 @@
+"""A planes-free refinement of the joint multi-segment problem.
+
+With LiDAR intrinsics estimated, the joint rounds hold each segment's map planes fixed, which
+pull the common mode of the range offsets and scales towards the values the maps were built
+with, as in a single segment's rounds (:mod:`licalib_cli.pipeline.free_planes`). Gauss-Newton
+steps here estimate the trajectories, the calibration and every segment's planes together. A
+segment's planes couple only with its own trajectory and blocks and with the shared
+calibration, so the step eliminates one segment at a time (its trajectory by the banded
+factor, then its planes) and adds its reduced system to the shared calibration's
+(:func:`~licalib_cli.solver.nuisance.segmented_nuisance_step`): memory is bounded by one
+segment's dense blocks, not by the product of all trajectories and all planes. Each segment's
+gauge is held at its first control point; a step is kept only when it lowers the joint cost.
+The solver then settles the joint problem on the refined planes and its report gives the joint
+sigmas.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+import numpy.typing as npt
+
+from licalib_cli.estimation import CalibrationState, FreeParameters, Planes, state_from_values
+from licalib_cli.pipeline.free_planes import (
+    MAX_STEPS,
+    RELATIVE_DECREASE,
+    STEP_FRACTIONS,
+    plane_jacobian,
+    stepped_planes,
+)
+from licalib_cli.pipeline.joint_problem import (
+    RenamedBlock,
+    joint_problem,
+    segment_name,
+    segment_values,
+    values_of_segment,
+)
+from licalib_cli.pipeline.points import points_in_global
+from licalib_cli.pipeline.round import RoundInputs
+from licalib_cli.residuals import TRAJ_R3, TRAJ_SO3, PointToPlaneResidual
+from licalib_cli.solver.lm import LMParams, SolverReport, solve
+from licalib_cli.solver.nuisance import NuisanceSegment, nuisance_terms, segmented_nuisance_step
+from licalib_cli.solver.problem import Evaluation, Layout, Problem
+
+__all__ = ["JointPlaneRefinement", "refine_segments_with_planes"]
+
+logger = logging.getLogger(__name__)
+
+F64 = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class JointPlaneRefinement:
+    """The outcome of :func:`refine_segments_with_planes`.
+
+    Attributes:
+        states: each segment's refined state (shared blocks equal).
+        inputs: each segment's inputs with its refined planes.
+        report: the joint solver's report at the refined estimate (planes held at their refined
+            values).
+        steps: steps kept.
+        cost_start: joint cost with the rounds' planes before the refinement.
+        cost_end: joint cost with the refined planes after it.
+        seconds: wall time.
+    """
+
+    states: tuple[CalibrationState, ...]
+    inputs: tuple[RoundInputs, ...]
+    report: SolverReport
+    steps: int
+    cost_start: float
+    cost_end: float
+    seconds: float
+
+
+def _lidar_blocks(problem: Problem, count: int) -> list[int] | None:
+    """Index of each segment's point-to-plane block in the joint problem (None if one has
+    none)."""
+    found: list[int] = []
+    for k in range(count):
+        prefix = segment_name(k, "")
+        index = next(
+            (
+                i
+                for i, r in enumerate(problem.residual_blocks)
+                if isinstance(r, RenamedBlock)
+                and r.name.startswith(prefix)
+                and isinstance(r.inner, PointToPlaneResidual)
+                and len(r.inner) > 0
+            ),
+            None,
+        )
+        if index is None:
+            return None
+        found.append(index)
+    return found
+
+
+def _nuisance_segment(
+    problem: Problem,
+    evaluation: Evaluation,
+    layout: Layout,
+    k: int,
+    block: int,
+    state: CalibrationState,
+    data: RoundInputs,
+    planes: Planes,
+) -> tuple[NuisanceSegment, F64]:
+    """Segment ``k``'s part of the joint problem with its planes as nuisance, and the planes'
+    centroids.
+
+    Its trajectory coordinates are those of its own blocks; its calibration coordinates the
+    shared ones and its own (time offset, drifts); its gauge is its first control point.
+    """
+    residual = problem.residual_blocks[block]
+    assert isinstance(residual, RenamedBlock) and isinstance(residual.inner, PointToPlaneResidual)
+    plane = np.asarray(data.lidar.plane, dtype=np.intp)
+    p_g = points_in_global(state, data.points)
+    jac, centroid = plane_jacobian(p_g, plane, np.asarray(planes.normal, dtype=np.float64))
+    jac *= residual.inner.whitening(segment_values(problem, k))[:, None]
+    count = int(np.asarray(planes.d).shape[0])
+    terms = nuisance_terms(problem, evaluation, layout, block, jac, plane, count)
+    nt = layout.num_trajectory
+    prefix = segment_name(k, "")
+    owner = np.asarray(layout.owner, dtype=str)
+    mine = np.char.startswith(owner, prefix)
+    trajectory = np.flatnonzero(mine[:nt])
+    foreign = [b for b in layout.block_names if _per_segment(b) and not b.startswith(prefix)]
+    calibration = np.flatnonzero(~np.isin(owner[nt:], foreign))
+    hold = np.concatenate(
+        [layout.index[segment_name(k, TRAJ_SO3)][:3], layout.index[segment_name(k, TRAJ_R3)][:3]]
+    )
+    return NuisanceSegment(trajectory, terms, hold[hold >= 0], calibration), centroid
+
+
+def _per_segment(block: str) -> bool:
+    """Whether a joint block name is some segment's own copy."""
+    head, sep, _ = block.partition(":")
+    return bool(sep) and head.startswith("seg") and head[3:].isdigit()
+
+
+def refine_segments_with_planes(
+    states: Sequence[CalibrationState],
+    inputs: Sequence[RoundInputs],
+    free: FreeParameters,
+    lm: LMParams,
+) -> JointPlaneRefinement | None:
+    """Gauss-Newton steps of the joint problem with every segment's planes free, then the solver.
+
+    As :func:`~licalib_cli.pipeline.free_planes.refine_with_planes` for one segment: the joint
+    rounds hold each segment's map planes fixed, which pull the common mode of the range offsets
+    and scales back towards the values the maps were built with. Each step estimates the
+    trajectories, the calibration and every plane together
+    (:func:`~licalib_cli.solver.nuisance.segmented_nuisance_step`: a segment's planes couple only
+    with its own trajectory and blocks and with the shared calibration, so the segments are
+    eliminated one at a time and only one segment's dense blocks exist at once), each segment's
+    gauge held at its first control point. A step (or a half or a quarter of it) is kept only
+    when it lowers the joint cost with the stepped planes.
+
+    Args:
+        states: each segment's estimate after the joint rounds (shared blocks equal).
+        inputs: each segment's final round inputs (points, associations, planes).
+        free: what the joint problem estimates.
+        lm: the solver settings (their truncation rule applies to the steps too).
+
+    Returns:
+        The refinement, or None when a segment has no LiDAR points.
+
+    Raises:
+        SolverError: the solver failed on the refined planes.
+    """
+    start = time.perf_counter()
+    states = list(states)
+    planes = [d.planes for d in inputs]
+
+    def build(st: Sequence[CalibrationState], pl: Sequence[Planes]) -> Problem:
+        return joint_problem(
+            st, [replace(d, planes=p) for d, p in zip(inputs, pl, strict=True)], free
+        )
+
+    problem = build(states, planes)
+    blocks = _lidar_blocks(problem, len(states))
+    if blocks is None:
+        return None
+    cost = cost_start = problem.evaluate(jacobians=False).cost
+    steps = 0
+    for _ in range(MAX_STEPS):
+        layout = problem.layout()
+        evaluation = problem.evaluate(jacobians=True)
+        cost = evaluation.cost
+        lin = problem.linearize(evaluation, layout)
+        parts = [
+            _nuisance_segment(problem, evaluation, layout, k, b, states[k], inputs[k], planes[k])
+            for k, b in enumerate(blocks)
+        ]
+        del evaluation
+        step = segmented_nuisance_step(
+            lin,
+            [seg for seg, _ in parts],
+            tsvd_threshold=lm.tsvd_threshold if lm.use_tsvd else 0.0,
+            tsvd_relative=lm.tsvd_relative,
+        )
+        del lin
+        if step.predicted_reduction <= RELATIVE_DECREASE * cost:
+            break
+        split = np.cumsum([p.d.shape[0] for p in planes])[:-1]
+        dps = np.split(step.dp, split)
+        accepted = None
+        for fraction in STEP_FRACTIONS:
+            values = problem.retracted_values(fraction * step.dx, layout)
+            trial_states = [
+                state_from_values(s, values_of_segment(values, k)) for k, s in enumerate(states)
+            ]
+            trial_planes = [
+                stepped_planes(p, c, fraction * dp)
+                for p, (_, c), dp in zip(planes, parts, dps, strict=True)
+            ]
+            trial = build(trial_states, trial_planes)
+            trial_cost = trial.evaluate(jacobians=False).cost
+            if np.isfinite(trial_cost) and trial_cost < cost:
+                accepted = (trial_states, trial_planes, trial, trial_cost)
+                break
+        if accepted is None:
+            break
+        states, planes, problem, new_cost = accepted
+        steps += 1
+        logger.debug(
+            "Joint planes-free step %d: cost %.1f -> %.1f (predicted %.1f), %d directions held.",
+            steps,
+            cost,
+            new_cost,
+            cost - step.predicted_reduction,
+            step.num_truncated,
+        )
+        done = cost - new_cost < RELATIVE_DECREASE * cost
+        cost = new_cost
+        if done:
+            break
+    report = solve(problem, lm)
+    states = [state_from_values(s, segment_values(problem, k)) for k, s in enumerate(states)]
+    return JointPlaneRefinement(
+        states=tuple(states),
+        inputs=tuple(replace(d, planes=p) for d, p in zip(inputs, planes, strict=True)),
+        report=report,
+        steps=steps,
+        cost_start=cost_start,
+        cost_end=float(report.final_cost),
+        seconds=time.perf_counter() - start,
+    )
