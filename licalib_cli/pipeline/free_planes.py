@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -33,7 +35,7 @@ from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.residuals import TRAJ_R3, TRAJ_SO3, PointToPlaneResidual
 from licalib_cli.solver import s2_basis
 from licalib_cli.solver.lm import LMParams, SolverReport, solve
-from licalib_cli.solver.nuisance import nuisance_step, nuisance_terms
+from licalib_cli.solver.nuisance import NuisanceStep, nuisance_step, nuisance_terms
 from licalib_cli.solver.problem import Problem
 
 __all__ = [
@@ -42,6 +44,7 @@ __all__ = [
     "STEP_FRACTIONS",
     "PlaneRefinement",
     "plane_jacobian",
+    "planes_free_steps",
     "refine_with_planes",
     "stepped_planes",
 ]
@@ -49,6 +52,10 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 F64 = npt.NDArray[np.float64]
+
+T = TypeVar("T")
+Stepped = tuple[T, Problem]
+"""A stepped estimate (with its planes) and the problem built from it."""
 
 MAX_STEPS = 4
 """Gauss-Newton steps at most (the first usually does nearly all of it)."""
@@ -136,6 +143,63 @@ def _lidar_block(problem: Problem) -> int | None:
     )
 
 
+def planes_free_steps(
+    problem: Problem,
+    current: T,
+    step_at: Callable[[Problem, T], tuple[float, NuisanceStep, Callable[[float], Stepped[T]]]],
+    what: str,
+) -> tuple[T, Problem, int, float]:
+    """Gauss-Newton steps with the planes free, each kept only when it lowers the cost.
+
+    ``step_at(problem, current)`` linearises ``problem`` (built from ``current``: the estimate
+    and its planes) and returns its cost there, the step over trajectory, calibration and planes,
+    and a function of a step fraction that gives the stepped estimate and its problem. The
+    fractions :data:`STEP_FRACTIONS` are tried in turn; the first whose cost is lower is kept.
+    At most :data:`MAX_STEPS` steps; the steps stop when one would gain, or gained, less than
+    :data:`RELATIVE_DECREASE` of the cost.
+
+    Args:
+        problem: the problem at ``current``.
+        current: the estimate and its planes, in the caller's form.
+        step_at: see above.
+        what: what the debug log calls a step.
+
+    Returns:
+        The last kept estimate, its problem, the steps kept and the cost before them.
+    """
+    cost = cost_start = problem.evaluate(jacobians=False).cost
+    steps = 0
+    for _ in range(MAX_STEPS):
+        cost, step, trial_at = step_at(problem, current)
+        if step.predicted_reduction <= RELATIVE_DECREASE * cost:
+            break
+        accepted: tuple[T, Problem, float] | None = None
+        for fraction in STEP_FRACTIONS:
+            candidate, trial = trial_at(fraction)
+            trial_cost = trial.evaluate(jacobians=False).cost
+            if np.isfinite(trial_cost) and trial_cost < cost:
+                accepted = (candidate, trial, trial_cost)
+                break
+        if accepted is None:
+            break
+        current, problem, new_cost = accepted
+        steps += 1
+        logger.debug(
+            "%s %d: cost %.1f -> %.1f (predicted %.1f), %d directions held.",
+            what,
+            steps,
+            cost,
+            new_cost,
+            cost - step.predicted_reduction,
+            step.num_truncated,
+        )
+        done = cost - new_cost < RELATIVE_DECREASE * cost
+        cost = new_cost
+        if done:
+            break
+    return current, problem, steps, cost_start
+
+
 def refine_with_planes(
     state: CalibrationState, inputs: RoundInputs, lm: LMParams
 ) -> PlaneRefinement | None:
@@ -153,18 +217,18 @@ def refine_with_planes(
         SolverError: the solver failed on the refined planes.
     """
     start = time.perf_counter()
-    planes = inputs.planes
     plane = np.asarray(inputs.lidar.plane, dtype=np.intp)
-    problem = inputs.problem(state, planes)
+    problem = inputs.problem(state, inputs.planes)
     block = _lidar_block(problem)
     if block is None:
         return None
-    cost = cost_start = problem.evaluate(jacobians=False).cost
-    steps = 0
-    for _ in range(MAX_STEPS):
+
+    def step_at(
+        problem: Problem, current: tuple[CalibrationState, Planes]
+    ) -> tuple[float, NuisanceStep, Callable[[float], Stepped[tuple[CalibrationState, Planes]]]]:
+        state, planes = current
         layout = problem.layout()
         evaluation = problem.evaluate(jacobians=True)
-        cost = evaluation.cost
         lin = problem.linearize(evaluation, layout)
         residual = problem.residual_blocks[block]
         assert isinstance(residual, PointToPlaneResidual)
@@ -182,35 +246,17 @@ def refine_with_planes(
             tsvd_threshold=lm.tsvd_threshold if lm.use_tsvd else 0.0,
             tsvd_relative=lm.tsvd_relative,
         )
-        if step.predicted_reduction <= RELATIVE_DECREASE * cost:
-            break
-        accepted = None
-        for fraction in STEP_FRACTIONS:
-            trial_state = state_from_values(
-                state, problem.retracted_values(fraction * step.dx, layout)
-            )
-            trial_planes = stepped_planes(planes, centroid, fraction * step.dp)
-            trial = inputs.problem(trial_state, trial_planes)
-            trial_cost = trial.evaluate(jacobians=False).cost
-            if np.isfinite(trial_cost) and trial_cost < cost:
-                accepted = (trial_state, trial_planes, trial, trial_cost)
-                break
-        if accepted is None:
-            break
-        state, planes, problem, new_cost = accepted
-        steps += 1
-        logger.debug(
-            "Planes-free step %d: cost %.1f -> %.1f (predicted %.1f), %d directions held.",
-            steps,
-            cost,
-            new_cost,
-            cost - step.predicted_reduction,
-            step.num_truncated,
-        )
-        done = cost - new_cost < RELATIVE_DECREASE * cost
-        cost = new_cost
-        if done:
-            break
+
+        def trial(fraction: float) -> Stepped[tuple[CalibrationState, Planes]]:
+            moved = state_from_values(state, problem.retracted_values(fraction * step.dx, layout))
+            stepped = stepped_planes(planes, centroid, fraction * step.dp)
+            return (moved, stepped), inputs.problem(moved, stepped)
+
+        return evaluation.cost, step, trial
+
+    (state, planes), problem, steps, cost_start = planes_free_steps(
+        problem, (state, inputs.planes), step_at, "Planes-free step"
+    )
     report = solve(problem, lm)
     state = state_from_problem(state, problem)
     refined = replace(inputs, planes=planes)

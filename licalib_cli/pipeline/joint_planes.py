@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -26,10 +26,9 @@ import numpy.typing as npt
 
 from licalib_cli.estimation import CalibrationState, FreeParameters, Planes, state_from_values
 from licalib_cli.pipeline.free_planes import (
-    MAX_STEPS,
-    RELATIVE_DECREASE,
-    STEP_FRACTIONS,
+    Stepped,
     plane_jacobian,
+    planes_free_steps,
     stepped_planes,
 )
 from licalib_cli.pipeline.joint_problem import (
@@ -43,7 +42,12 @@ from licalib_cli.pipeline.points import points_in_global
 from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.residuals import TRAJ_R3, TRAJ_SO3, PointToPlaneResidual
 from licalib_cli.solver.lm import LMParams, SolverReport, solve
-from licalib_cli.solver.nuisance import NuisanceSegment, nuisance_terms, segmented_nuisance_step
+from licalib_cli.solver.nuisance import (
+    NuisanceSegment,
+    NuisanceStep,
+    nuisance_terms,
+    segmented_nuisance_step,
+)
 from licalib_cli.solver.problem import Evaluation, Layout, Problem
 
 __all__ = ["JointPlaneRefinement", "refine_segments_with_planes"]
@@ -174,72 +178,56 @@ def refine_segments_with_planes(
         SolverError: the solver failed on the refined planes.
     """
     start = time.perf_counter()
-    states = list(states)
-    planes = [d.planes for d in inputs]
 
     def build(st: Sequence[CalibrationState], pl: Sequence[Planes]) -> Problem:
         return joint_problem(
             st, [replace(d, planes=p) for d, p in zip(inputs, pl, strict=True)], free
         )
 
-    problem = build(states, planes)
+    problem = build(states, [d.planes for d in inputs])
     blocks = _lidar_blocks(problem, len(states))
     if blocks is None:
         return None
-    cost = cost_start = problem.evaluate(jacobians=False).cost
-    steps = 0
-    for _ in range(MAX_STEPS):
+    Current = tuple[list[CalibrationState], list[Planes]]
+
+    def step_at(
+        problem: Problem, current: Current
+    ) -> tuple[float, NuisanceStep, Callable[[float], Stepped[Current]]]:
+        states, planes = current
         layout = problem.layout()
         evaluation = problem.evaluate(jacobians=True)
-        cost = evaluation.cost
         lin = problem.linearize(evaluation, layout)
         parts = [
             _nuisance_segment(problem, evaluation, layout, k, b, states[k], inputs[k], planes[k])
             for k, b in enumerate(blocks)
         ]
-        del evaluation
         step = segmented_nuisance_step(
             lin,
             [seg for seg, _ in parts],
             tsvd_threshold=lm.tsvd_threshold if lm.use_tsvd else 0.0,
             tsvd_relative=lm.tsvd_relative,
         )
-        del lin
-        if step.predicted_reduction <= RELATIVE_DECREASE * cost:
-            break
         split = np.cumsum([p.d.shape[0] for p in planes])[:-1]
         dps = np.split(step.dp, split)
-        accepted = None
-        for fraction in STEP_FRACTIONS:
+
+        def trial(fraction: float) -> Stepped[Current]:
             values = problem.retracted_values(fraction * step.dx, layout)
-            trial_states = [
+            moved = [
                 state_from_values(s, values_of_segment(values, k)) for k, s in enumerate(states)
             ]
-            trial_planes = [
+            stepped = [
                 stepped_planes(p, c, fraction * dp)
                 for p, (_, c), dp in zip(planes, parts, dps, strict=True)
             ]
-            trial = build(trial_states, trial_planes)
-            trial_cost = trial.evaluate(jacobians=False).cost
-            if np.isfinite(trial_cost) and trial_cost < cost:
-                accepted = (trial_states, trial_planes, trial, trial_cost)
-                break
-        if accepted is None:
-            break
-        states, planes, problem, new_cost = accepted
-        steps += 1
-        logger.debug(
-            "Joint planes-free step %d: cost %.1f -> %.1f (predicted %.1f), %d directions held.",
-            steps,
-            cost,
-            new_cost,
-            cost - step.predicted_reduction,
-            step.num_truncated,
-        )
-        done = cost - new_cost < RELATIVE_DECREASE * cost
-        cost = new_cost
-        if done:
-            break
+            return (moved, stepped), build(moved, stepped)
+
+        # the evaluation and the normal equations are freed on return: while the fractions
+        # are tried only the step and the segments' terms and centroids are held
+        return evaluation.cost, step, trial
+
+    (states, planes), problem, steps, cost_start = planes_free_steps(
+        problem, (list(states), [d.planes for d in inputs]), step_at, "Joint planes-free step"
+    )
     report = solve(problem, lm)
     states = [state_from_values(s, segment_values(problem, k)) for k, s in enumerate(states)]
     return JointPlaneRefinement(

@@ -151,22 +151,28 @@ def _describe(c: Change) -> str:
     )
 
 
+def _largest_std(report: SolverReport, prefix: str) -> float:
+    """The largest finite 1-sigma of the calibration coordinates named ``prefix...`` (0 if
+    none)."""
+    vals = [
+        s
+        for n, s in zip(report.calibration_names, report.std, strict=True)
+        if n.startswith(prefix) and np.isfinite(s)
+    ]
+    return float(max(vals)) if vals else 0.0
+
+
 def _threshold(report: SolverReport, cfg: CalibConfig) -> Change:
     """Settle tolerances: the configured ones or half the estimate's own 1-sigma."""
     sch = cfg.schedule
 
-    def largest(prefix: str) -> float:
-        vals = [
-            s
-            for n, s in zip(report.calibration_names, report.std, strict=True)
-            if n.startswith(prefix) and np.isfinite(s)
-        ]
-        return float(max(vals)) if vals else 0.0
-
     return Change(
-        max(sch.translation_tolerance_m, 0.5 * largest("ext.translation")),
-        max(sch.rotation_tolerance_deg, 0.5 * float(np.degrees(largest("ext.rotation")))),
-        max(sch.time_offset_tolerance_s, 0.5 * largest("ext.time_offset")),
+        max(sch.translation_tolerance_m, 0.5 * _largest_std(report, "ext.translation")),
+        max(
+            sch.rotation_tolerance_deg,
+            0.5 * float(np.degrees(_largest_std(report, "ext.rotation"))),
+        ),
+        max(sch.time_offset_tolerance_s, 0.5 * _largest_std(report, "ext.time_offset")),
     )
 
 
@@ -182,13 +188,9 @@ def final_jump(change: Change, report: SolverReport, cfg: CalibConfig) -> float:
     )
     worst = 0.0
     for prefix, moved, tolerance, unit in parts:
-        sig = [
-            s * unit
-            for n, s in zip(report.calibration_names, report.std, strict=True)
-            if n.startswith(prefix) and np.isfinite(s) and s > 0
-        ]
-        if moved > tolerance and sig:
-            worst = max(worst, moved / max(sig))
+        sigma = unit * _largest_std(report, prefix)
+        if moved > tolerance and sigma > 0.0:
+            worst = max(worst, moved / sigma)
     return worst
 
 
@@ -441,7 +443,7 @@ def run_schedule(
                 jump,
                 MAX_FINAL_ROUNDS,
             )
-        mapped = None
+        mapped = None  # the dense points' map is not needed further
     if intrinsics_on and inputs.free.any_lidar_intrinsics:
         # The rounds hold each map fixed and stall along the common mode of the range offsets
         # and scales; a last refinement estimates the planes with everything else.
