@@ -240,6 +240,8 @@ class EffectCheck(Section):
         selected: added by the forward selection (significant beyond the stronger effects;
             the statistic of an effect not selected is conditional on the selected ones).
         material: selected and moving the extrinsic by more than its sigma.
+        covered: the reported sigmas include its shift (material, or hinted at: p below
+            ``checks.COVER_P_VALUE``) and the spread its estimate would add.
     """
 
     _digits = 6
@@ -254,6 +256,7 @@ class EffectCheck(Section):
     shift_time_offset_s: float
     selected: bool = False
     material: bool = False
+    covered: bool = False
 
 
 @dataclass(frozen=True)

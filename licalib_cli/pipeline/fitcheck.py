@@ -16,7 +16,7 @@ Three kinds of evidence, each naming the sensor it concerns:
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -368,6 +368,7 @@ class EffectEvidence:
     shift_rotation_rad: F64
     shift_time_offset_s: float
     statistic_alone: float = float("nan")
+    shift_std: F64 = field(default_factory=lambda: np.zeros(7))
 
     @property
     def shift(self) -> F64:
@@ -469,6 +470,12 @@ def effect_evidence(
             t = pick("ext.translation", s.shift)
             r = pick("ext.rotation", s.shift)
             c = pick("ext.time_offset", s.shift)
+            sd = np.concatenate(
+                [
+                    pick(p, s.shift_sigma)
+                    for p in ("ext.translation", "ext.rotation", "ext.time_offset")
+                ]
+            )
             out.append(
                 EffectEvidence(
                     score=s,
@@ -478,6 +485,7 @@ def effect_evidence(
                     shift_rotation_rad=r if r.size == 3 else np.zeros(3),
                     shift_time_offset_s=float(c[0]) if c.size else 0.0,
                     statistic_alone=float(selection.alone.get(s.name, s.statistic)),
+                    shift_std=sd if sd.size == 7 else np.zeros(7),
                 )
             )
     logger.debug(

@@ -1,0 +1,82 @@
+"""Which fixed effects the reported sigmas cover (``licalib_cli.pipeline.checks.inflate``).
+
+An effect the fit holds fixed biases the extrinsic by about the shift estimating it would cause.
+A significant one (the stricter level that names effects) that moves the extrinsic beyond its
+sigma is covered, and so is one the data only hint at (p below ``COVER_P_VALUE``): simulated
+accelerometer scales just short of being named left the extrinsic 3.3 of its sigmas off. The
+added variance is the shift squared plus the spread the effect's estimate would add.
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from licalib_cli.consistency.score import EffectScore
+from licalib_cli.pipeline.checks import COVER_P_VALUE, effect_to_cover, inflate
+from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
+
+RAW = np.array([1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4, 1e-5])
+
+
+def evidence(p_value: float, shift_z_mm: float, *, selected: bool = False) -> EffectEvidence:
+    """An accelerometer scale moving t_z by ``shift_z_mm``, with a shift sigma of 0.5 mm."""
+    score = EffectScore(
+        name="accel_scale",
+        statistic=10.0,
+        rank=3,
+        p_value=p_value,
+        estimate=np.zeros(3),
+        sigma=np.ones(3),
+        shift=np.zeros(7),
+        shift_sigma=np.zeros(7),
+    )
+    std = np.zeros(7)
+    std[2] = 0.5e-3
+    return EffectEvidence(
+        score=score,
+        sensor="imu",
+        selected=selected,
+        shift_translation_m=np.array([0.0, 0.0, 1e-3 * shift_z_mm]),
+        shift_rotation_rad=np.zeros(3),
+        shift_time_offset_s=0.0,
+        shift_std=std,
+    )
+
+
+def run(effects: list[EffectEvidence]) -> tuple[np.ndarray, tuple[str, ...]]:
+    return inflate(RAW, (), effects, SimpleNamespace(ran=False), SimpleNamespace(jitter=False))
+
+
+@pytest.mark.parametrize(
+    ("p_value", "selected", "shift_mm", "covered"),
+    [
+        (0.1 * EFFECT_P_VALUE, True, 3.0, True),  # named and material
+        (0.5 * COVER_P_VALUE, False, 3.0, True),  # hinted at, moves beyond the sigma
+        (2.0 * COVER_P_VALUE, False, 3.0, False),  # nothing the data show
+        (0.5 * COVER_P_VALUE, False, 0.5, False),  # hinted at, moves less than the sigma
+    ],
+)
+def test_which_effects_are_covered(
+    p_value: float, selected: bool, shift_mm: float, covered: bool
+) -> None:
+    e = evidence(p_value, shift_mm, selected=selected)
+    assert effect_to_cover(e, RAW) is covered
+    sigma, why = run([e])
+    if covered:
+        expected = np.sqrt(1.0 + shift_mm**2 + 0.25) * 1e-3
+        assert sigma[2] == pytest.approx(expected)
+        assert any("accel_scale" in w for w in why)
+        np.testing.assert_allclose(np.delete(sigma, 2), np.delete(RAW, 2))
+    else:
+        np.testing.assert_array_equal(sigma, RAW)
+        assert why == ()
+
+
+def test_a_hinted_effect_is_named_as_such() -> None:
+    _, why = run([evidence(0.5 * COVER_P_VALUE, 3.0)])
+    assert "hint" in why[0] and "p = " in why[0]
+    _, why = run([evidence(0.1 * EFFECT_P_VALUE, 3.0, selected=True)])
+    assert "hint" not in why[0]
