@@ -7,10 +7,17 @@ with them (review the diff before committing).
 from __future__ import annotations
 
 import difflib
+import os
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+
+# The solver's dense products are small: OpenBLAS threads only add contention on them (and, with
+# pytest -n, with the other workers). The command line sets this before numpy is imported
+# (licalib_cli/cli.py); a test process imports numpy first, so the tests set it here, before
+# the test modules are imported.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 GOLDEN = Path(__file__).parent / "golden"
 
