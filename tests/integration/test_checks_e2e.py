@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 from licalib_cli.cli import main
 from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
 from licalib_cli.results import CalibrationResult
-from licalib_cli.simulation import SimulationSpec, simulate
+from licalib_cli.simulation import SimulationOutput, SimulationSpec, simulate
 
 CONFIG = Path(__file__).resolve().parents[2] / "configs" / "vlp16.yaml"
 VLP16_ELEVATION = np.radians(np.arange(-15.0, 16.0, 2.0))
@@ -51,10 +51,19 @@ def _intrinsics_file(
     return path
 
 
+@pytest.fixture(scope="module")
+def clean_sim(tmp_path_factory: pytest.TempPathFactory) -> SimulationOutput:
+    """The clean bag of ``_spec()``, simulated once for the tests that calibrate it with
+    different settings (each writes its own result and config beside its own ``tmp_path``)."""
+    return simulate(_spec(), tmp_path_factory.mktemp("clean") / "sim")
+
+
 def _calibrate(
-    tmp_path: Path, spec: SimulationSpec, config_extra: dict | None = None
+    tmp_path: Path, spec: SimulationSpec | SimulationOutput, config_extra: dict | None = None
 ) -> tuple[dict, str, int]:
-    sim = simulate(spec, tmp_path / "sim")
+    """Calibrate a bag through the command line: ``spec`` is simulated into ``tmp_path / "sim"``
+    first, unless it is an already simulated bag."""
+    sim = spec if isinstance(spec, SimulationOutput) else simulate(spec, tmp_path / "sim")
     cfg_path = CONFIG
     if config_extra:
         cfg = yaml.safe_load(CONFIG.read_text())
@@ -75,14 +84,16 @@ def _sensor(result: dict, name: str) -> dict:
     return next(s for s in result["consistency"]["sensors"] if s["sensor"] == name)
 
 
-def test_clean_bag_passes_every_check(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_clean_bag_passes_every_check(
+    clean_sim: SimulationOutput, capsys: pytest.CaptureFixture[str]
+) -> None:
     """Through the library (no command line): the run, its result file content and its
     rendering."""
     from licalib_cli.commands.render import render_run
     from licalib_cli.config import load_config
     from licalib_cli.pipeline import calibrate
 
-    sim = simulate(_spec(), tmp_path / "sim")
+    sim = clean_sim
     run = calibrate(sim.bag_path, load_config(CONFIG))
     assert list(run.timings) == ["read", "odometry", "initialisation", "optimisation", "checks"]
     assert list(run.stage_times) == list(run.timings)
@@ -127,9 +138,9 @@ def test_known_large_lever_arm_is_initialised_from_odometry_and_accelerometer(
 
 
 def test_rounds_that_run_out_are_a_non_convergence_with_its_own_exit_code(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, clean_sim: SimulationOutput, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    result, _, code = _calibrate(tmp_path, _spec(), {"schedule": {"max_rounds": 1}})
+    result, _, code = _calibrate(tmp_path, clean_sim, {"schedule": {"max_rounds": 1}})
     err = capsys.readouterr().err
     assert code == 10
     assert result["verdict"]["status"] == "fail"
@@ -138,9 +149,11 @@ def test_rounds_that_run_out_are_a_non_convergence_with_its_own_exit_code(
     assert "did not converge" in err
 
 
-def test_a_wrong_noise_setting_shows_as_a_misfit_of_that_sensor(tmp_path: Path) -> None:
+def test_a_wrong_noise_setting_shows_as_a_misfit_of_that_sensor(
+    tmp_path: Path, clean_sim: SimulationOutput
+) -> None:
     # The gyro is configured ten times quieter than it is.
-    result, _, code = _calibrate(tmp_path, _spec(), {"noise": {"gyro_noise_density": 1.75e-5}})
+    result, _, code = _calibrate(tmp_path, clean_sim, {"noise": {"gyro_noise_density": 1.75e-5}})
     assert code == 0
     gyro = _sensor(result, "gyro")
     assert gyro["status"] == "excess" and gyro["noise_source"] == "config"
