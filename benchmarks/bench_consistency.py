@@ -175,6 +175,9 @@ def one_run(case: dict, workdir: Path) -> dict:
         error_over_sigma=[round(float(x), 2) for x in ratio],
         calibrate_s=wall,
         simulate_s=sim_s,
+        # what enlarged the sigmas, and the fixed effects whose shifts they cover
+        inflation=list(res.consistency.inflation) if res.consistency else [],
+        covered=[e.name for e in res.consistency.effects if e.covered] if res.consistency else [],
     )
     return row
 
