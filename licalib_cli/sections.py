@@ -334,7 +334,13 @@ class Consistency(Section):
         elif self.effects:
             strongest = min(self.effects, key=lambda e: e.p_value)
             figure = f"strongest {strongest.name}: p = {strongest.p_value:.2g}"
-            out.append(("effects held fixed", figure, "none that moves the extrinsic", False))
+            hinted = [e.name for e in self.effects if e.covered]
+            outcome = (
+                "hinted at: " + ", ".join(hinted) + " (shift in the sigmas)"
+                if hinted
+                else "none that moves the extrinsic"
+            )
+            out.append(("effects held fixed", figure, outcome, False))
         sh = self.split_half
         if sh.status == "not run":
             out.append(("split halves", sh.reason, "not run", True))

@@ -80,3 +80,31 @@ def test_a_hinted_effect_is_named_as_such() -> None:
     assert "hint" in why[0] and "p = " in why[0]
     _, why = run([evidence(0.1 * EFFECT_P_VALUE, 3.0, selected=True)])
     assert "hint" not in why[0]
+
+
+def test_the_checks_table_names_a_hinted_effect() -> None:
+    """The console and report table say which effect the sigmas cover though it is not named,
+    instead of "none that moves the extrinsic"."""
+    from licalib_cli.sections import Consistency, EffectCheck
+
+    def check(name: str, p_value: float, covered: bool) -> EffectCheck:
+        return EffectCheck(
+            name=name,
+            sensor="imu",
+            statistic=20.0,
+            dof=3,
+            p_value=p_value,
+            shift_translation_m=(0.0, 0.0, 1e-3),
+            shift_rotation_deg=(0.0, 0.0, 0.0),
+            shift_time_offset_s=0.0,
+            covered=covered,
+        )
+
+    def outcome(effects: tuple[EffectCheck, ...]) -> str:
+        rows = Consistency(effects=effects).rows()
+        return next(r[2] for r in rows if r[0] == "effects held fixed")
+
+    quiet = check("gyro_scale", 0.4, False)
+    assert outcome((quiet,)) == "none that moves the extrinsic"
+    hinted = check("accel_scale", 1e-5, True)
+    assert "accel_scale" in outcome((quiet, hinted)) and "hinted" in outcome((quiet, hinted))
