@@ -16,6 +16,11 @@ and ``traj.r3`` (4 control points around ``t``), ``ext.rotation`` (right perturb
 
 If a time-offset step moves a query time outside the spline range, that point's residual is
 ``inf`` so that the solver rejects the step (the builder checks the initial state).
+
+The points are evaluated in blocks of the splines' block size (8192), each from the spline
+evaluation to its whitened derivatives, written into its own rows of preallocated outputs; the
+blocks share the threads of :mod:`licalib_cli.spline.threads` and give bit-for-bit what one
+evaluation of all points gives.
 """
 
 from __future__ import annotations
@@ -48,6 +53,7 @@ from licalib_cli.residuals import (
 )
 from licalib_cli.solver.problem import DenseJacobian, ResidualEval
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
+from licalib_cli.spline.threads import map_blocks
 
 __all__ = ["PointToPlaneResidual"]
 
@@ -56,6 +62,9 @@ F64 = npt.NDArray[np.float64]
 logger = logging.getLogger(__name__)
 
 _OFFSETS = np.arange(4, dtype=np.intp)
+# Points per evaluation block: the block size of the spline evaluations, so that evaluating
+# the splines block by block computes exactly what one evaluation of all points does.
+_BLOCK = 8192
 
 
 class PointToPlaneResidual:
@@ -224,57 +233,85 @@ class PointToPlaneResidual:
         )
         intr = np.asarray(intr, dtype=np.float64).reshape(-1, NUM_BEAM_INTRINSICS)
         terms, point, w = self._model_terms(intr)
-        rot_ev = SO3Spline(self.knots, params[TRAJ_SO3]).evaluate(
-            t, order=1 if want_time else 0, rotation_vjp=jacobians
-        )
-        pos_ev = R3Spline(self.knots, params[TRAJ_R3]).evaluate(t, order=1 if want_time else 0)
-        geo = point_to_plane(
-            rot_ev.rotation,
-            pos_ev.position,
-            quat_to_matrix(params[EXT_ROTATION]),
-            np.asarray(params[EXT_TRANSLATION], dtype=np.float64),
-            point,
-            self.normal,
-            self.d,
-            rot_ev.angular_velocity,
-            pos_ev.velocity,
-        )
-        # The noise is the raw range's: in metres it is s_i sigma (whitening in raw-range units
-        # keeps the cost invariant when the world and every length of the LiDAR model scale
-        # together; in metres a smaller range scale would shrink the residuals with the map).
-        r = geo.distance * w
+        so3_spline = SO3Spline(self.knots, params[TRAJ_SO3])
+        r3_spline = R3Spline(self.knots, params[TRAJ_R3])
+        r_il = quat_to_matrix(params[EXT_ROTATION])
+        t_il = np.asarray(params[EXT_TRANSLATION], dtype=np.float64)
+        order = 1 if want_time else 0
+        want_intr = jacobians and LIDAR_INTRINSICS in params
+        r = np.empty(n)
+        elements = np.empty((n, 4), dtype=np.intp) if jacobians else None
+        j_so3 = np.empty((n, 1, 4, 3)) if jacobians else None
+        j_r3 = np.empty((n, 1, 4, 3)) if jacobians else None
+        d_ext_rotation = np.empty((n, 3)) if jacobians and EXT_ROTATION in params else None
+        d_ext_translation = np.empty((n, 3)) if jacobians and EXT_TRANSLATION in params else None
+        d_time = np.empty(n) if want_time else None
+        d_point = np.empty((n, 3)) if want_intr else None
+
+        def block(b: int) -> None:
+            """Points of block ``b``: splines, geometry and whitened derivatives, written into
+            the block's rows of the outputs."""
+            sl = slice(b * _BLOCK, min((b + 1) * _BLOCK, n))
+            tb, wb = t[sl], w[sl]
+            rot_ev = so3_spline.evaluate(tb, order=order, rotation_vjp=jacobians)
+            pos_ev = r3_spline.evaluate(tb, order=order)
+            geo = point_to_plane(
+                rot_ev.rotation,
+                pos_ev.position,
+                r_il,
+                t_il,
+                point[sl],
+                self.normal[sl],
+                self.d[sl],
+                rot_ev.angular_velocity,
+                pos_ev.velocity,
+            )
+            # The noise is the raw range's: in metres it is s_i sigma (whitening in raw-range
+            # units keeps the cost invariant when the world and every length of the LiDAR model
+            # scale together; in metres a smaller range scale would shrink the residuals with
+            # the map).
+            np.multiply(geo.distance, wb, out=r[sl])
+            if not jacobians:
+                return
+            assert rot_ev.rotation_vjp is not None and elements is not None
+            assert j_so3 is not None and j_r3 is not None
+            wc = wb[:, None]
+            np.add(rot_ev.index[:, None], _OFFSETS, out=elements[sl])
+            j_so3[sl, 0] = rot_ev.rotation_vjp(geo.d_rotation * wc)
+            # outer products of the weighted blending weights and the normals (einsum is about
+            # twice as fast as broadcasting over the short trailing axes)
+            np.einsum("ni,nj->nij", pos_ev.weights * wc, self.normal[sl], out=j_r3[sl, 0])
+            if d_ext_rotation is not None:
+                np.multiply(geo.d_ext_rotation, wc, out=d_ext_rotation[sl])
+            if d_ext_translation is not None:
+                np.multiply(geo.d_ext_translation, wc, out=d_ext_translation[sl])
+            if d_time is not None:
+                assert geo.d_time is not None
+                np.multiply(geo.d_time, wb, out=d_time[sl])
+            if d_point is not None:
+                np.multiply(geo.d_point, wc, out=d_point[sl])
+
+        # Blocks of the spline evaluations' size, each from the splines to its whitened
+        # derivatives while its arrays are in cache, shared by the threads of
+        # licalib_cli.spline.threads (the splines evaluate each block serially there).
+        map_blocks(block, -(-n // _BLOCK))
         if not all_inside:
             r = np.where(inside, r, np.inf)
         if not jacobians:
             return ResidualEval(r[:, None])
-        assert rot_ev.rotation_vjp is not None
-        elements = rot_ev.index[:, None] + _OFFSETS
-        j_so3 = rot_ev.rotation_vjp(geo.d_rotation * w[:, None])[:, None]
-        j_r3 = np.empty((n, 1, 4, 3))
-        # outer products of the weighted blending weights and the normals (einsum is about
-        # twice as fast as broadcasting over the short trailing axes)
-        np.einsum("ni,nj->nij", pos_ev.weights * w[:, None], self.normal, out=j_r3[:, 0])
+        assert elements is not None and j_so3 is not None and j_r3 is not None
         jacs: list[DenseJacobian] = [
             DenseJacobian(TRAJ_SO3, elements, j_so3),
             DenseJacobian(TRAJ_R3, elements, j_r3),
         ]
-        if EXT_ROTATION in params:
+        if d_ext_rotation is not None:
+            jacs.append(DenseJacobian(EXT_ROTATION, self._zeros, d_ext_rotation[:, None, None]))
+        if d_ext_translation is not None:
             jacs.append(
-                DenseJacobian(
-                    EXT_ROTATION, self._zeros, (geo.d_ext_rotation * w[:, None])[:, None, None]
-                )
+                DenseJacobian(EXT_TRANSLATION, self._zeros, d_ext_translation[:, None, None])
             )
-        if EXT_TRANSLATION in params:
-            jacs.append(
-                DenseJacobian(
-                    EXT_TRANSLATION,
-                    self._zeros,
-                    (geo.d_ext_translation * w[:, None])[:, None, None],
-                )
-            )
-        if want_time:
-            assert geo.d_time is not None
-            d_t = geo.d_time * w
+        if d_time is not None:
+            d_t = d_time
             if TIME_OFFSET in params:
                 jacs.append(DenseJacobian(TIME_OFFSET, self._zeros, d_t[:, None, None, None]))
             if TIME_DRIFT in params:
@@ -283,8 +320,8 @@ class PointToPlaneResidual:
             if POINT_TIME_SCALE in params and self.into_sweep is not None:
                 j = (-d_t * self.into_sweep)[:, None, None, None]
                 jacs.append(DenseJacobian(POINT_TIME_SCALE, self._zeros, j))
-        if LIDAR_INTRINSICS in params:
-            d_int = terms.vjp(geo.d_point * w[:, None])
+        if d_point is not None:
+            d_int = terms.vjp(d_point)
             d_int[:, BeamIntrinsic.RANGE_SCALE] -= r / intr[self.beam, BeamIntrinsic.RANGE_SCALE]
             jacs.append(DenseJacobian(LIDAR_INTRINSICS, self._beam_elements, d_int[:, None, None]))
         return ResidualEval(r[:, None], tuple(jacs))

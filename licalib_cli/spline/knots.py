@@ -66,13 +66,18 @@ CUMULATIVE_BASIS_MATRIX.setflags(write=False)
 _EDGE_TOLERANCE = 1e-9
 
 
-def _weights_by_row(u: FloatArray, derivative: int, matrix: FloatArray) -> FloatArray:
+def _weights_by_row(
+    u: FloatArray, derivative: int, matrix: FloatArray, out: FloatArray | None = None
+) -> FloatArray:
     """Rows ``j`` of ``d^k/du^k [1, u, u^2, u^3] @ matrix`` as a contiguous (4, M) array.
 
     Written as broadcasting products (not a BLAS matmul, whose per-call threading overhead
-    dominates for a (M, 4) @ (4, 4) product).
+    dominates for a (M, 4) @ (4, 4) product). ``out``, a (4, M) array (e.g. the columns of one
+    evaluation block in a larger buffer), receives the weights instead of a new array.
     """
     u = np.atleast_1d(np.asarray(u, dtype=np.float64))
+    if out is None:
+        out = np.empty((4, u.shape[0]))
     if derivative == 0:
         powers = [None, u, u * u, u * u * u]
         coef = [1.0, 1.0, 1.0, 1.0]
@@ -86,8 +91,8 @@ def _weights_by_row(u: FloatArray, derivative: int, matrix: FloatArray) -> Float
         powers = [None, None, None, None]
         coef = [0.0, 0.0, 0.0, 6.0]
     else:
-        return np.zeros((4, u.shape[0]))
-    out = np.empty((4, u.shape[0]))
+        out[...] = 0.0
+        return out
     # the constant term of the derivative is the coefficient of u^derivative
     out[...] = (coef[derivative] * matrix[derivative])[:, None]
     for p in range(derivative + 1, 4):

@@ -21,7 +21,8 @@ import numpy.typing as npt
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from licalib_cli.spline.knots import UniformKnots, blending
+from licalib_cli.spline.knots import BASIS_MATRIX, UniformKnots, _weights_by_row, blending
+from licalib_cli.spline.threads import map_blocks
 
 __all__ = ["R3Spline", "R3SplineEval"]
 
@@ -29,6 +30,9 @@ FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 _OFFSETS = np.arange(4, dtype=np.int64)
+# Queries per evaluation block: temporaries stay in cache, and the blocks can share the pool of
+# licalib_cli.spline.threads (as in licalib_cli.spline.so3_spline).
+_BLOCK = 8192
 
 
 @dataclass(frozen=True)
@@ -105,24 +109,33 @@ class R3Spline:
             ValueError: if a time is outside the spline range.
         """
         index, u = self.knots.locate(t_s)
-        # component-major gathers (3, M) of the 4 active control points
-        cps = [np.take(self._cp_soa, index + j, axis=1) for j in range(4)]
+        m = index.shape[0]
         inv_dt = 1.0 / self.knots.dt_s
-        outs: list[FloatArray | None] = []
-        ws: list[FloatArray | None] = []
-        for k in range(4):
-            if k > order:
-                outs.append(None)
-                ws.append(None)
-                continue
-            w = blending(u, k)  # (M, 4) view of (4, M) storage
-            if k:
-                w = w * inv_dt**k
-            ws.append(w)
-            value = w[:, 0] * cps[0]
-            for j in range(1, 4):
-                value += w[:, j] * cps[j]
-            outs.append(np.ascontiguousarray(value.T))
+        orders = range(min(order, 3) + 1)
+        outs: list[FloatArray | None] = [np.empty((m, 3)) if k <= order else None for k in range(4)]
+        # weights of derivative k: (M, 4) views of (4, M) storage
+        wbuf = [np.empty((4, m)) for _ in orders]
+
+        def block(b: int) -> None:
+            """Weights and values of block ``b`` into its columns/rows of the outputs."""
+            sl = slice(b * _BLOCK, min((b + 1) * _BLOCK, m))
+            idx = index[sl]
+            # component-major gathers (3, m) of the 4 active control points
+            cps = [np.take(self._cp_soa, idx + j, axis=1) for j in range(4)]
+            for k in orders:
+                w = _weights_by_row(u[sl], k, BASIS_MATRIX, out=wbuf[k][:, sl])
+                if k:
+                    w *= inv_dt**k
+                value = w[0] * cps[0]
+                for j in range(1, 4):
+                    value += w[j] * cps[j]
+                out = outs[k]
+                assert out is not None
+                out[sl] = value.T
+
+        # blocks write disjoint slices; see licalib_cli.spline.threads
+        map_blocks(block, -(-m // _BLOCK))
+        ws: list[FloatArray | None] = [wbuf[k].T if k < len(wbuf) else None for k in range(4)]
         assert outs[0] is not None and ws[0] is not None
         return R3SplineEval(
             index=index,

@@ -33,7 +33,11 @@ Evaluation is vectorised over queries; internally arrays are stored component-ma
 transposed layouts) and processed in blocks of 8192 queries: temporaries of a few hundred kB
 stay in cache, and numpy's per-call overhead is spread over enough queries (smaller blocks were
 measured slower). The only Python loops are over the 3 segments of a cubic spline and over those
-blocks.
+blocks. The blocks are independent (each writes its own slices of preallocated outputs, and the
+VJP terms are collected in block order), so with two or more blocks they are shared between the
+threads of :mod:`licalib_cli.spline.threads` (numpy releases the GIL in its loops); every block
+computes what the serial loop computes, so the results are bit-for-bit the same.
+``LICALIB_THREADS=1`` runs the serial loop.
 """
 
 from __future__ import annotations
@@ -54,6 +58,7 @@ from licalib_cli.geometry.so3 import (
     _theta_minus_sin_over_theta3,
 )
 from licalib_cli.spline.knots import UniformKnots, cumulative_blending
+from licalib_cli.spline.threads import map_blocks
 
 __all__ = ["SO3EvaluationCache", "SO3RotationVJP", "SO3Spline", "SO3SplineEval"]
 
@@ -237,8 +242,13 @@ class SO3RotationVJP:
             msg = f"v must have shape ({self.size}, 3), got {np.shape(v)}"
             raise ValueError(msg)
         out = np.empty((self.size, 4, 3))
-        for block in self.blocks:
+
+        def product(k: int) -> None:
+            """Block ``k``'s products into its rows of ``out``."""
+            block = self.blocks[k]
             _store(out[block.rows], _vjp_block(block, vt[:, block.rows]))
+
+        map_blocks(product, len(self.blocks))
         return out
 
 
@@ -449,16 +459,27 @@ class SO3Spline:
         jac_buf = [
             np.empty((4, 3, 3, m)) if jacobians and jac_order >= k else None for k in range(3)
         ]
-        vjp_blocks: list[_VJPBlock] | None = [] if rotation_vjp else None
-        for start in range(0, m, _BLOCK):
-            sl = slice(start, min(start + _BLOCK, m))
+
+        def block(k: int) -> _VJPBlock | None:
+            """Evaluate block ``k`` into its slices of the outputs; its VJP terms if asked."""
+            sl = slice(k * _BLOCK, min((k + 1) * _BLOCK, m))
             jac_out = [None if b is None else b[..., sl] for b in jac_buf]
-            res = self._evaluate_block(index[sl], u[sl], order, jac_out, vjp_blocks, sl)
+            vjp_block: list[_VJPBlock] | None = [] if rotation_vjp else None
+            res = self._evaluate_block(index[sl], u[sl], order, jac_out, vjp_block, sl)
             for out, val in zip((rot, vel, acc), res, strict=True):
                 if out is not None and val is not None:
                     _store(out[sl], val)
+            return vjp_block[0] if vjp_block else None
+
+        # blocks write disjoint slices, so they may run on the shared pool in any order; the
+        # VJP terms come back in block order
+        vjp_blocks = map_blocks(block, -(-m // _BLOCK))
         j_rot, j_vel, j_acc = (None if b is None else np.moveaxis(b, -1, 0) for b in jac_buf)
-        vjp = None if vjp_blocks is None else SO3RotationVJP(m, tuple(vjp_blocks))
+        vjp = (
+            SO3RotationVJP(m, tuple(b for b in vjp_blocks if b is not None))
+            if rotation_vjp
+            else None
+        )
         return SO3SplineEval(index, rot, vel, acc, j_rot, j_vel, j_acc, vjp)
 
     def _evaluate_block(
