@@ -18,6 +18,8 @@ Examples::
     .venv/bin/python benchmarks/bench_intrinsics.py --lidar os1-64 --seeds 0 1 2
     .venv/bin/python benchmarks/bench_intrinsics.py --duration 15 --seeds 0   # the speed case
     .venv/bin/python benchmarks/bench_intrinsics.py --intrinsics-mode none --model none
+    .venv/bin/python benchmarks/bench_intrinsics.py --seeds 1 \
+        --set surfels.final_points_per_scan=8000
 
 Each run happens in a fresh subprocess.
 """
@@ -32,6 +34,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+import yaml
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -66,7 +70,11 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
     out = simulate(spec, workdir / f"seed{seed}", force=True)
     sim_s = time.perf_counter() - t0
     imu_blocks, lidar_blocks = INTRINSIC_PRESETS[args.model]
-    cfg = load_config(None, {"model.imu": list(imu_blocks), "model.lidar": list(lidar_blocks)})
+    overrides = {"model.imu": list(imu_blocks), "model.lidar": list(lidar_blocks)}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        overrides[key] = yaml.safe_load(value)
+    cfg = load_config(None, overrides)
     t0 = time.perf_counter()
     run = calibrate(out.bag_path, cfg)
     wall = time.perf_counter() - t0
@@ -161,6 +169,13 @@ def main() -> None:
     p.add_argument("--model", default="all", choices=["none", "imu", "lidar", "all"])
     p.add_argument("--intrinsics-mode", default="random", choices=["random", "none"])
     p.add_argument("--json", default=None)
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="config override, e.g. surfels.final_points_per_scan=8000 (repeatable)",
+    )
     p.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--workdir", default=None, help=argparse.SUPPRESS)
     args = p.parse_args()

@@ -28,9 +28,16 @@ __all__ = ["connect", "default_workers"]
 logger = logging.getLogger(__name__)
 
 _DASK_LOGGERS = ("distributed", "tornado", "bokeh")
-_WORKER_ENVIRON = {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1}
+_WORKER_ENVIRON = {
+    "OMP_NUM_THREADS": 1,
+    "MKL_NUM_THREADS": 1,
+    "OPENBLAS_NUM_THREADS": 1,
+    "LICALIB_THREADS": 1,
+}
 """Environment of the local workers: Dask's default less ``MALLOC_TRIM_THRESHOLD_=65536``,
-which makes the solver's many short-lived arrays about three times slower to allocate."""
+which makes the solver's many short-lived arrays about three times slower to allocate; one
+worker per core, so the spline evaluation runs on one thread in each
+(:mod:`licalib_cli.spline.threads`)."""
 _WORKER_SETUP = "licalib_cli.batch.worker_setup"
 """Preload of the local workers: they leave Ctrl-C to the client."""
 
