@@ -534,9 +534,12 @@ def _licalib(code: str, *args: str, **kwargs: Any) -> subprocess.CompletedProces
 
 
 def test_ctrl_c_while_the_command_line_loads_is_quiet() -> None:
-    """An interrupt that lands while typer, numpy and rosbags are imported."""
+    """An interrupt that lands while typer, numpy and rosbags are imported. The child starts
+    with Python's own Ctrl-C handler, as from a terminal: a process started with SIGINT ignored
+    (a test runner's worker may ignore it) passes that on, and would never see the interrupt."""
     code = (
         "import builtins, os, signal, sys\n"
+        "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
         "sys.argv = ['licalib', '--version']\n"
         "from licalib_cli.__main__ import run\n"
         "real = builtins.__import__\n"
@@ -570,7 +573,12 @@ def test_ctrl_c_turned_into_another_error_by_a_library_is_an_interrupt(
             raise ImportError("initialization failed") from None
 
     monkeypatch.setattr(info, "inspect_bag", interrupted_import)
-    code, out, err = run(["info", str(tmp_path / "any.bag")], capsys)
+    # Python's own Ctrl-C handler, as from a terminal (a test runner's worker may ignore SIGINT)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        code, out, err = run(["info", str(tmp_path / "any.bag")], capsys)
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert (code, err.strip(), out) == (130, "Interrupted.", "")
 
 
