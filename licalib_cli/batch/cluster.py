@@ -13,12 +13,12 @@ client (:mod:`~licalib_cli.batch.worker_setup`) and run without Dask's default
 from __future__ import annotations
 
 import logging
-import os
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from typing import TYPE_CHECKING, Any
 
 from licalib_cli.errors import ClusterError, ConfigError
+from licalib_cli.spline.threads import usable_cores
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -44,10 +44,7 @@ _WORKER_SETUP = "licalib_cli.batch.worker_setup"
 
 def default_workers() -> int:
     """Worker processes of a local cluster: the cores this process may use."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
+    return usable_cores()
 
 
 def _import_distributed() -> Any:

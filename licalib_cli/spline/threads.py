@@ -37,13 +37,13 @@ from concurrent.futures import Future, ThreadPoolExecutor, wait
 from contextlib import contextmanager
 from typing import TypeVar
 
-__all__ = ["MIN_BLOCKS", "THREADS", "map_blocks", "serial", "threads"]
+__all__ = ["MIN_BLOCKS", "THREADS", "map_blocks", "serial", "threads", "usable_cores"]
 
 T = TypeVar("T")
 
 
-def _usable_cores() -> int:
-    """Cores this process may run on."""
+def usable_cores() -> int:
+    """Cores this process may run on (its CPU affinity; all CPUs where that is unknown)."""
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):
@@ -55,7 +55,7 @@ def _threads_from_env() -> int:
     thread would only add the hand-over). A value that is not an integer falls back to 1."""
     raw = os.environ.get("LICALIB_THREADS", "").strip()
     if not raw:
-        return min(2, _usable_cores())
+        return min(2, usable_cores())
     try:
         value = int(raw)
     except ValueError:
