@@ -297,19 +297,17 @@ def _size(value: float, unit: str) -> str:
 def effect_is_material(e: EffectEvidence, raw_sigma: F64) -> bool:
     """Selected (significant beyond the stronger effects) and moving some extrinsic coordinate
     by more than its sigma."""
-    if not e.selected or e.score.p_value >= EFFECT_P_VALUE:
-        return False
-    ratio = np.abs(e.shift) / np.where(np.isfinite(raw_sigma), raw_sigma, np.inf)
-    return bool(np.nanmax(ratio) > 1.0)
+    return e.selected and e.score.p_value < EFFECT_P_VALUE and _moves_extrinsic(e, raw_sigma)
 
 
 def effect_to_cover(e: EffectEvidence, raw_sigma: F64) -> bool:
-    """Material (:func:`effect_is_material`), or hinted at (p below :data:`COVER_P_VALUE`) and
-    moving some extrinsic coordinate by more than its sigma: the sigmas cover its shift."""
-    if effect_is_material(e, raw_sigma):
-        return True
-    if e.score.p_value >= COVER_P_VALUE:
-        return False
+    """Hinted at (p below :data:`COVER_P_VALUE`, which every material effect is) and moving
+    some extrinsic coordinate by more than its sigma: the sigmas cover its shift."""
+    return e.score.p_value < COVER_P_VALUE and _moves_extrinsic(e, raw_sigma)
+
+
+def _moves_extrinsic(e: EffectEvidence, raw_sigma: F64) -> bool:
+    """Estimating the effect would move some extrinsic coordinate by more than its sigma."""
     ratio = np.abs(e.shift) / np.where(np.isfinite(raw_sigma), raw_sigma, np.inf)
     return bool(np.nanmax(ratio) > 1.0)
 

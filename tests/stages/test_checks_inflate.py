@@ -108,3 +108,8 @@ def test_the_checks_table_names_a_hinted_effect() -> None:
     assert outcome((quiet,)) == "none that moves the extrinsic"
     hinted = check("accel_scale", 1e-5, True)
     assert "accel_scale" in outcome((quiet, hinted)) and "hinted" in outcome((quiet, hinted))
+
+
+def test_every_material_effect_is_covered() -> None:
+    """A named effect is also one the data hint at: the covering level is the looser one."""
+    assert EFFECT_P_VALUE <= COVER_P_VALUE
