@@ -53,7 +53,7 @@ from licalib_cli.residuals import (
 )
 from licalib_cli.solver.problem import DenseJacobian, ResidualEval
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
-from licalib_cli.spline.threads import map_blocks
+from licalib_cli.spline.threads import map_slices
 
 __all__ = ["PointToPlaneResidual"]
 
@@ -62,9 +62,6 @@ F64 = npt.NDArray[np.float64]
 logger = logging.getLogger(__name__)
 
 _OFFSETS = np.arange(4, dtype=np.intp)
-# Points per evaluation block: the block size of the spline evaluations, so that evaluating
-# the splines block by block computes exactly what one evaluation of all points does.
-_BLOCK = 8192
 
 
 class PointToPlaneResidual:
@@ -248,10 +245,9 @@ class PointToPlaneResidual:
         d_time = np.empty(n) if want_time else None
         d_point = np.empty((n, 3)) if want_intr else None
 
-        def block(b: int) -> None:
-            """Points of block ``b``: splines, geometry and whitened derivatives, written into
-            the block's rows of the outputs."""
-            sl = slice(b * _BLOCK, min((b + 1) * _BLOCK, n))
+        def block(sl: slice) -> None:
+            """Points ``sl``: splines, geometry and whitened derivatives, written into their
+            rows of the outputs."""
             tb, wb = t[sl], w[sl]
             rot_ev = so3_spline.evaluate(tb, order=order, rotation_vjp=jacobians)
             pos_ev = r3_spline.evaluate(tb, order=order)
@@ -294,7 +290,7 @@ class PointToPlaneResidual:
         # Blocks of the spline evaluations' size, each from the splines to its whitened
         # derivatives while its arrays are in cache, shared by the threads of
         # licalib_cli.spline.threads (the splines evaluate each block serially there).
-        map_blocks(block, -(-n // _BLOCK))
+        map_slices(block, n)
         if not all_inside:
             r = np.where(inside, r, np.inf)
         if not jacobians:

@@ -22,7 +22,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from licalib_cli.spline.knots import BASIS_MATRIX, UniformKnots, _weights_by_row, blending
-from licalib_cli.spline.threads import map_blocks
+from licalib_cli.spline.threads import map_slices
 
 __all__ = ["R3Spline", "R3SplineEval"]
 
@@ -30,9 +30,6 @@ FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 _OFFSETS = np.arange(4, dtype=np.int64)
-# Queries per evaluation block: temporaries stay in cache, and the blocks can share the pool of
-# licalib_cli.spline.threads (as in licalib_cli.spline.so3_spline).
-_BLOCK = 8192
 
 
 @dataclass(frozen=True)
@@ -116,9 +113,8 @@ class R3Spline:
         # weights of derivative k: (M, 4) views of (4, M) storage
         wbuf = [np.empty((4, m)) for _ in orders]
 
-        def block(b: int) -> None:
-            """Weights and values of block ``b`` into its columns/rows of the outputs."""
-            sl = slice(b * _BLOCK, min((b + 1) * _BLOCK, m))
+        def block(sl: slice) -> None:
+            """Weights and values of the queries ``sl`` into their columns/rows of the outputs."""
             idx = index[sl]
             # component-major gathers (3, m) of the 4 active control points
             cps = [np.take(self._cp_soa, idx + j, axis=1) for j in range(4)]
@@ -134,7 +130,7 @@ class R3Spline:
                 out[sl] = value.T
 
         # blocks write disjoint slices; see licalib_cli.spline.threads
-        map_blocks(block, -(-m // _BLOCK))
+        map_slices(block, m)
         ws: list[FloatArray | None] = [wbuf[k].T if k < len(wbuf) else None for k in range(4)]
         assert outs[0] is not None and ws[0] is not None
         return R3SplineEval(

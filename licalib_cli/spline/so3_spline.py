@@ -28,16 +28,16 @@ Conventions:
   depends on an estimated parameter would have to add it first.
 * Times are float seconds relative to the problem's reference time.
 
-Evaluation is vectorised over queries; internally arrays are stored component-major
-(``(3, 3, M)``, C-contiguous: gathers use ``np.take`` because fancy indexing would return
-transposed layouts) and processed in blocks of 8192 queries: temporaries of a few hundred kB
-stay in cache, and numpy's per-call overhead is spread over enough queries (smaller blocks were
-measured slower). The only Python loops are over the 3 segments of a cubic spline and over those
-blocks. The blocks are independent (each writes its own slices of preallocated outputs, and the
-VJP terms are collected in block order), so with two or more blocks they are shared between the
-threads of :mod:`licalib_cli.spline.threads` (numpy releases the GIL in its loops); every block
-computes what the serial loop computes, so the results are bit-for-bit the same.
-``LICALIB_THREADS=1`` runs the serial loop.
+Evaluation is vectorised over queries; internally arrays are stored component-major (``(3, 3, M)``,
+C-contiguous: gathers use ``np.take`` because fancy indexing would return transposed layouts) and
+processed in blocks of ``threads.BLOCK`` (8192) queries: temporaries of a few hundred kB stay in
+cache, and numpy's per-call overhead is spread over enough queries (smaller blocks were measured
+slower). The only Python loops are over the 3 segments of a cubic spline and over those blocks. The
+blocks are independent (each writes its own slices of preallocated outputs, and the VJP terms are
+collected in block order), so with two or more blocks they are shared between the threads of
+:mod:`licalib_cli.spline.threads` (numpy releases the GIL in its loops); every block computes what
+the serial loop computes, so the results are bit-for-bit the same. ``LICALIB_THREADS=1`` runs the
+serial loop.
 """
 
 from __future__ import annotations
@@ -58,14 +58,13 @@ from licalib_cli.geometry.so3 import (
     _theta_minus_sin_over_theta3,
 )
 from licalib_cli.spline.knots import UniformKnots, cumulative_blending
-from licalib_cli.spline.threads import map_blocks
+from licalib_cli.spline.threads import map_blocks, map_slices
 
 __all__ = ["SO3EvaluationCache", "SO3RotationVJP", "SO3Spline", "SO3SplineEval"]
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
-_BLOCK = 8192
 _OFFSETS = np.arange(4, dtype=np.int64)
 
 
@@ -460,9 +459,9 @@ class SO3Spline:
             np.empty((4, 3, 3, m)) if jacobians and jac_order >= k else None for k in range(3)
         ]
 
-        def block(k: int) -> _VJPBlock | None:
-            """Evaluate block ``k`` into its slices of the outputs; its VJP terms if asked."""
-            sl = slice(k * _BLOCK, min((k + 1) * _BLOCK, m))
+        def block(sl: slice) -> _VJPBlock | None:
+            """Evaluate the queries ``sl`` into their slices of the outputs; their VJP terms if
+            asked."""
             jac_out = [None if b is None else b[..., sl] for b in jac_buf]
             vjp_block: list[_VJPBlock] | None = [] if rotation_vjp else None
             res = self._evaluate_block(index[sl], u[sl], order, jac_out, vjp_block, sl)
@@ -473,7 +472,7 @@ class SO3Spline:
 
         # blocks write disjoint slices, so they may run on the shared pool in any order; the
         # VJP terms come back in block order
-        vjp_blocks = map_blocks(block, -(-m // _BLOCK))
+        vjp_blocks = map_slices(block, m)
         j_rot, j_vel, j_acc = (None if b is None else np.moveaxis(b, -1, 0) for b in jac_buf)
         vjp = (
             SO3RotationVJP(m, tuple(b for b in vjp_blocks if b is not None))

@@ -21,10 +21,10 @@ from licalib_cli.residuals import (
 )
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
 from licalib_cli.spline import threads as thr
-from licalib_cli.spline.so3_spline import _BLOCK
+from licalib_cli.spline.threads import BLOCK
 
 # several blocks and a partial last one
-NUM_QUERIES = 3 * _BLOCK + 1234
+NUM_QUERIES = 3 * BLOCK + 1234
 
 
 @pytest.fixture(autouse=True)
@@ -101,7 +101,7 @@ def test_so3_evaluate_threaded_equals_serial(
         ref_vjp = ref.rotation_vjp(v)
     got = spline.evaluate(t, rotation_vjp=True, **kwargs)
     assert got.rotation_vjp is not None
-    assert len(got.rotation_vjp.blocks) == len(ref.rotation_vjp.blocks) == -(-t.size // _BLOCK)
+    assert len(got.rotation_vjp.blocks) == len(ref.rotation_vjp.blocks) == -(-t.size // BLOCK)
     assert [b.rows for b in got.rotation_vjp.blocks] == [b.rows for b in ref.rotation_vjp.blocks]
     for name in (
         "index",
@@ -122,7 +122,7 @@ def test_so3_evaluate_threaded_equals_serial(
 
 def test_so3_evaluate_small_and_empty_queries(rng: np.random.Generator) -> None:
     spline = _spline(rng)
-    for m in (0, 1, _BLOCK, _BLOCK + 1):
+    for m in (0, 1, BLOCK, BLOCK + 1):
         t = _times(spline.knots, rng, m)
         with thr.serial():
             ref = spline.evaluate(t, order=2, jacobians=True, rotation_vjp=True)
