@@ -49,6 +49,15 @@ PAPER_LIDAR_MAE = {
 }
 
 
+def _override(item: str) -> tuple[str, object]:
+    """``KEY=VALUE`` of ``--set``: the dotted config key and its YAML value."""
+    key, sep, value = item.partition("=")
+    if not sep or not key.strip():
+        msg = f"expected KEY=VALUE (e.g. surfels.final_points_per_scan=8000), got {item!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return key.strip(), yaml.safe_load(value)
+
+
 def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
     import numpy as np
 
@@ -71,9 +80,7 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
     sim_s = time.perf_counter() - t0
     imu_blocks, lidar_blocks = INTRINSIC_PRESETS[args.model]
     overrides = {"model.imu": list(imu_blocks), "model.lidar": list(lidar_blocks)}
-    for item in args.set:
-        key, _, value = item.partition("=")
-        overrides[key] = yaml.safe_load(value)
+    overrides.update(args.set)
     cfg = load_config(None, overrides)
     t0 = time.perf_counter()
     run = calibrate(out.bag_path, cfg)
@@ -173,6 +180,7 @@ def main() -> None:
         "--set",
         action="append",
         default=[],
+        type=_override,
         metavar="KEY=VALUE",
         help="config override, e.g. surfels.final_points_per_scan=8000 (repeatable)",
     )
