@@ -30,6 +30,7 @@ pool its own caller occupies.
 from __future__ import annotations
 
 import itertools
+import logging
 import os
 import threading
 from collections.abc import Callable, Iterator
@@ -50,6 +51,8 @@ __all__ = [
 
 T = TypeVar("T")
 
+logger = logging.getLogger(__name__)
+
 
 def usable_cores() -> int:
     """Cores this process may run on (its CPU affinity; all CPUs where that is unknown)."""
@@ -61,15 +64,23 @@ def usable_cores() -> int:
 
 def _threads_from_env() -> int:
     """``LICALIB_THREADS`` as a positive int; unset: 2, or 1 on a single usable core (a second
-    thread would only add the hand-over). A value that is not an integer falls back to 1."""
+    thread would only add the hand-over). A value that is not a positive integer falls back to
+    1, with a warning saying so."""
     raw = os.environ.get("LICALIB_THREADS", "").strip()
     if not raw:
         return min(2, usable_cores())
     try:
         value = int(raw)
     except ValueError:
+        value = 0
+    if value < 1:
+        logger.warning(
+            "LICALIB_THREADS=%r is not a positive whole number; the evaluations run on one "
+            "thread (unset it, or set 1 or 2).",
+            raw,
+        )
         return 1
-    return max(value, 1)
+    return value
 
 
 THREADS: int = _threads_from_env()

@@ -194,3 +194,24 @@ def test_point_to_plane_threaded_equals_serial(
         for a, b in zip(got.jacobians, ref.jacobians, strict=True):
             _assert_same(np.asarray(a.elements), np.asarray(b.elements), f"{a.block} elements")
             _assert_same(a.values, b.values, f"{a.block} values")
+
+
+@pytest.mark.parametrize(
+    ("value", "expected", "warns"),
+    [("1", 1, False), ("3", 3, False), (" 2 ", 2, False), ("0", 1, True), ("two", 1, True)],
+)
+def test_licalib_threads_from_the_environment(
+    value: str,
+    expected: int,
+    warns: bool,
+    monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """``LICALIB_THREADS``: a positive whole number is taken as is; anything else runs serially
+    and says so in one sentence; unset, two threads (one on a single usable core)."""
+    monkeypatch.setenv("LICALIB_THREADS", value)
+    with caplog.at_level("WARNING", logger="licalib_cli.spline.threads"):
+        assert thr._threads_from_env() == expected
+    assert any("LICALIB_THREADS" in r.getMessage() for r in caplog.records) is warns
+    monkeypatch.delenv("LICALIB_THREADS")
+    assert thr._threads_from_env() == min(2, thr.usable_cores())
