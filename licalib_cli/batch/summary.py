@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy import stats
 
+from licalib_cli.consistency.distributions import chi2_sf
 from licalib_cli.geometry import so3
 from licalib_cli.results import CalibrationResult, rpy_deg_from_matrix, write_text_atomic
 
@@ -234,7 +234,7 @@ def compare_within_rig(
     z = diff / np.sqrt(var)
     chi2 = (z**2).sum(axis=1)
     dof = valid.sum(axis=1).astype(np.float64)
-    p = np.where(dof > 0, stats.chi2.sf(chi2, np.maximum(dof, 1.0)), 1.0)
+    p = np.where(dof > 0, chi2_sf(chi2, np.maximum(dof, 1.0)), 1.0)
     return z, diff, chi2, dof, p
 
 

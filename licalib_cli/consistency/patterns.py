@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy import stats
+
+from licalib_cli.consistency.distributions import f_sf
 
 __all__ = [
     "Chi2",
@@ -175,7 +176,7 @@ def _pattern(
     if df1 <= 0 or df2 <= 0 or ss_total <= 0.0:
         return Pattern(name, 0.0, 0.0, 1.0, (max(df1, 0), max(df2, 0)), 0.0)
     f = (ss_model / df1) / max(ss_resid / df2, 1e-300)
-    p = float(stats.f.sf(f, df1, df2))
+    p = f_sf(f, df1, df2)
     return Pattern(
         feature=name,
         explained=ss_model / ss_total,

@@ -26,7 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
-from scipy import stats
+
+from licalib_cli.consistency.distributions import chi2_logsf, chi2_sf
 
 __all__ = ["EffectScore", "EffectSelection", "score_effects", "select_effects"]
 
@@ -120,7 +121,7 @@ def score_effects(
         g_e = rhs[e] - s_eb @ step_base
         inv, rank = _pinv_psd(s_ee_b, relative_rank)
         statistic = float(g_e @ inv @ g_e) / vf
-        p_value = float(stats.chi2.sf(statistic, rank)) if rank else 1.0
+        p_value = float(chi2_sf(statistic, rank)) if rank else 1.0
         d_e = inv @ g_e
         shift = -s_bb_inv @ s_eb.T @ d_e
         v_shift = s_bb_inv @ s_eb.T @ inv @ s_eb @ s_bb_inv * max(vf, 1.0)
@@ -203,7 +204,7 @@ def select_effects(
         scores = score_effects(S, b, current, todo, variance_factor)
         if not alone:
             alone = {s.name: s.statistic for s in scores}
-        best = max(scores, key=lambda s: -float(stats.chi2.logsf(s.statistic, max(s.rank, 1))))
+        best = max(scores, key=lambda s: -chi2_logsf(s.statistic, max(s.rank, 1)))
         if not best.p_value < p_value:
             break
         # Keep only the shift of the original base coordinates.

@@ -39,9 +39,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import numpy.typing as npt
-from scipy import optimize, stats
+from scipy import optimize
 
 from licalib_cli.config import CalibConfig
+from licalib_cli.consistency.distributions import chi2_isf, chi2_sf, ncx2_sf
 from licalib_cli.estimation import intrinsic_coordinates
 from licalib_cli.pipeline import (
     CalibrationRun,
@@ -316,7 +317,7 @@ def detectable_rms(
     rank = info.size
 
     def shortfall(nc: float) -> float:
-        return float(stats.ncx2.sf(statistic_threshold, rank, nc)) - power
+        return ncx2_sf(statistic_threshold, rank, nc) - power
 
     hi = max(statistic_threshold, 1.0)
     while shortfall(hi) < 0.0:
@@ -341,7 +342,7 @@ def _not_shown(
             continue
         seen.add(name)
         rank = int(e.score.rank)
-        threshold = float(stats.chi2.isf(EFFECT_P_VALUE, max(rank, 1)))
+        threshold = chi2_isf(EFFECT_P_VALUE, max(rank, 1))
         weakest, best = detectable_rms(threshold, e.score.estimate.size, e.score.information)
         out.append(
             NotShown(
@@ -603,7 +604,7 @@ def _try_effect(
         effect=name,
         statistic=statistic,
         dof=int(score.rank),
-        p_value=float(stats.chi2.sf(statistic, max(int(score.rank), 1))),
+        p_value=float(chi2_sf(statistic, max(int(score.rank), 1))),
         delta_bic=float(delta_bic),
         kept=bool(delta_bic < 0.0),
         estimate=_estimate(new, name),

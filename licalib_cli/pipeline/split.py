@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
-from scipy import stats
 
 from licalib_cli.config import CalibConfig
+from licalib_cli.consistency.distributions import chi2_sf
 from licalib_cli.errors import LicalibError
 from licalib_cli.estimation import (
     CalibrationState,
@@ -197,7 +197,7 @@ def split_half(state: CalibrationState, inputs: RoundInputs, cfg: CalibConfig) -
     proj = v[:, keep].T @ diff
     chi2 = float(np.sum(proj**2 / w[keep]))
     dof = int(keep.sum())
-    p_value = float(stats.chi2.sf(chi2, dof)) if dof else 1.0
+    p_value = float(chi2_sf(chi2, dof)) if dof else 1.0
     result = SplitResult(True, "", half, diff, sigma, z, chi2, dof, p_value)
     logger.info(
         "Split-half: the halves (%.1f s each) differ by %.2f mm / %.4f deg / %.3f ms; largest "
