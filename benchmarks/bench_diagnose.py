@@ -13,6 +13,7 @@ Examples::
 
     .venv/bin/python benchmarks/bench_diagnose.py --jobs 2
     .venv/bin/python benchmarks/bench_diagnose.py --only gyro_scale --list
+    .venv/bin/python benchmarks/bench_diagnose.py --jobs 2 --first-seed 500   # new bags
 
 Sizes: every effect at ``--scale`` (default 3) times its reference size: the paper's table for
 the intrinsics, 0.1 deg/s/g g-sensitivity, 50 ppm clock drift, bias walks ten times the
@@ -100,11 +101,12 @@ def injected_rms(row: dict) -> dict[str, float]:
     return out
 
 
-def cases() -> list[dict]:
+def cases(first_seed: int = 200) -> list[dict]:
     """Clean controls, then every effect once, the pairs, then every effect a second time (so
-    that a run cut short has covered each effect)."""
+    that a run cut short has covered each effect). ``first_seed`` gives the same cases on other
+    bags (the seed decides the mounting, the time offset and the effects' draws)."""
     out = []
-    seed = 200
+    seed = first_seed
     combos = [
         ("shake", "vlp16"),
         ("sinusoid", "os1-64"),
@@ -311,6 +313,12 @@ def main() -> None:
     p.add_argument("--json", default=None)
     p.add_argument("--jsonl", default=None, help="append each row to this file as it comes")
     p.add_argument("--skip", default="", help="seeds not to run (comma separated)")
+    p.add_argument(
+        "--first-seed",
+        type=int,
+        default=200,
+        help="seed of the first case (the others follow); another value gives new bags",
+    )
     p.add_argument("--report", default=None, help="only print the tables of a --jsonl file")
     p.add_argument("--one", default=None, help=argparse.SUPPRESS)
     p.add_argument("--workdir", default=None, help=argparse.SUPPRESS)
@@ -327,7 +335,7 @@ def main() -> None:
         return
     todo = [
         c
-        for c in cases()
+        for c in cases(args.first_seed)
         if (
             args.only is None
             or args.only in c["effects"]
