@@ -41,6 +41,7 @@ from scipy.spatial.transform import Rotation
 
 from licalib_cli.errors import ConfigError, DataError
 from licalib_cli.measurements import LidarScan
+from licalib_cli.spline.threads import threads
 
 if TYPE_CHECKING:
     from kiss_icp.config import KISSConfig
@@ -468,7 +469,7 @@ def _register_with_sweep_motion(
     ]:
         ry = y @ rot.T
         world = ry + a * pos + (1.0 - a) * beg
-        dist, idx = tree.query(world, distance_upper_bound=correspondence)
+        dist, idx = tree.query(world, distance_upper_bound=correspondence, workers=threads())
         return ry, np.flatnonzero(np.isfinite(dist)), idx
 
     for _ in range(int(refine.max_iterations)):

@@ -34,6 +34,7 @@ from scipy.spatial.transform import Rotation
 from licalib_cli.errors import ExcitationError
 from licalib_cli.initialization.rotation import GyroIntegrator
 from licalib_cli.measurements import LidarScan
+from licalib_cli.spline.threads import map_blocks
 
 __all__ = [
     "RotationSearch",
@@ -313,8 +314,14 @@ class _Scorer:
 def _batched(
     scorer: _Scorer | _CombinedScorer, rotations: FloatArray, batch: int = 64
 ) -> FloatArray:
+    """Scores of ``rotations``, ``batch`` candidates at a time; the batches are independent,
+    so they are shared between the threads of :mod:`licalib_cli.spline.threads` (numpy works
+    on each batch's large arrays without the GIL), with the scores of the serial loop."""
     return np.concatenate(
-        [scorer(rotations[i : i + batch]) for i in range(0, rotations.shape[0], batch)]
+        map_blocks(
+            lambda k: scorer(rotations[k * batch : (k + 1) * batch]),
+            -(-rotations.shape[0] // batch),
+        )
     )
 
 

@@ -32,6 +32,7 @@ from licalib_cli.odometry import (
 from licalib_cli.simulation.ground_truth import build_setup
 from licalib_cli.simulation.simulate import simulate
 from licalib_cli.simulation.spec import IntrinsicsMode, Scenario, SimulationSpec
+from licalib_cli.spline import threads as thr
 
 SCAN_PERIOD_NS = 100_000_000
 T0_NS = 1_700_000_000_000_000_000
@@ -283,7 +284,9 @@ def shake_bag(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Simulatio
     return out.bag_path, spec
 
 
-def test_refinement_with_gyro_on_simulated_shake(shake_bag: tuple[Path, SimulationSpec]) -> None:
+def test_refinement_with_gyro_on_simulated_shake(
+    shake_bag: tuple[Path, SimulationSpec], monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Fast shaking (about 8 deg per sweep, the rate changing by as much within one sweep).
 
     kiss-icp's constant-velocity deskew and point-to-point registration are off by degrees per
@@ -324,6 +327,14 @@ def test_refinement_with_gyro_on_simulated_shake(shake_bag: tuple[Path, Simulati
     assert step_gyro.max() < 0.5, step_gyro
     again = refine_odometry(rec.scans, kiss, cfg, rotation_at=rotation_at, prepared=prepared)
     np.testing.assert_allclose(again.T_map_lidar, poses.T_map_lidar, atol=1e-9)
+    # The map lookups run on the block threads: the poses of one thread (to the last digits,
+    # which differ from run to run anyway: open3d's parallel normals and registration).
+    with monkeypatch.context() as m:
+        m.setattr(thr, "THREADS", 2)  # also when the suite runs with LICALIB_THREADS=1
+        threaded = refine_odometry(rec.scans, None, cfg, rotation_at=rotation_at, prepared=prepared)
+    with thr.serial():
+        alone = refine_odometry(rec.scans, None, cfg, rotation_at=rotation_at, prepared=prepared)
+    np.testing.assert_allclose(threaded.T_map_lidar, alone.T_map_lidar, atol=1e-9)
     with pytest.raises(DataError, match="seed poses or a rotation prior"):
         refine_odometry(rec.scans, None, cfg)
     with pytest.raises(DataError, match="prepare them with"):

@@ -28,6 +28,7 @@ from licalib_cli.pipeline.initialise import (
 from licalib_cli.simulation.ground_truth import build_setup
 from licalib_cli.simulation.simulate import simulate
 from licalib_cli.simulation.spec import IntrinsicsMode, Mounting, Scenario, SimulationSpec
+from licalib_cli.spline import threads as thr
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -73,6 +74,22 @@ def test_search_finds_any_mounting_without_odometry(shake: tuple[Path, Simulatio
     assert _angle_deg(found.R_imu_lidar, truth) < 20.0
     assert found.ambiguity > 1.03
     assert found.smear_score > 1.15 * found.score
+
+
+def test_search_threaded_is_the_serial_search(
+    shake: tuple[Path, SimulationSpec], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The candidate batches run on the block threads: the same scores, bit for bit."""
+    bag, _ = shake
+    rec = read_segment(bag, load_config(None))
+    gyro = GyroIntegrator.from_imu(rec.imu)
+    monkeypatch.setattr(thr, "THREADS", 2)  # also when the suite runs with LICALIB_THREADS=1
+    threaded = search_rotation_extrinsic(rec.scans, gyro)
+    with thr.serial():
+        alone = search_rotation_extrinsic(rec.scans, gyro)
+    assert np.array_equal(threaded.R_imu_lidar, alone.R_imu_lidar)
+    assert threaded.score == alone.score
+    assert threaded.ambiguity == alone.ambiguity
 
 
 def test_search_is_ambiguous_for_rotation_about_one_axis(tmp_path: Path) -> None:
