@@ -19,6 +19,7 @@ from licalib_cli.errors import ConfigError, DataError
 from licalib_cli.estimation import CalibrationState, LidarPoints
 from licalib_cli.measurements import LidarScan
 from licalib_cli.models.lidar import lidar_point, nominal_point
+from licalib_cli.spline.threads import map_slices
 
 __all__ = [
     "PointSample",
@@ -158,8 +159,16 @@ def points_in_global(state: CalibrationState, sample: PointSample) -> F64:
     t = query_times(state, sample)
     p_l = lidar_point(state.lidar_intrinsics, sample.beam, sample.rho, sample.theta)
     p_i = (p_l + sample.model_gap) @ state.R_imu_lidar.T + state.t_imu_lidar
-    rot = state.so3_spline.rotation(t)
-    return np.einsum("nij,nj->ni", rot, p_i) + state.r3_spline.position(t)
+    out = np.empty_like(p_i)
+
+    def block(sl: slice) -> None:
+        # the splines' own blocks (BLOCK queries): the values of one evaluation of all points
+        rot = state.so3_spline.rotation(t[sl])
+        np.einsum("nij,nj->ni", rot, p_i[sl], out=out[sl])
+        out[sl] += state.r3_spline.position(t[sl])
+
+    map_slices(block, t.shape[0])
+    return out
 
 
 def solver_points(

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import (
@@ -24,9 +25,15 @@ from licalib_cli.estimation import (
 from licalib_cli.geometry.so3 import exp as so3_exp
 from licalib_cli.measurements import LidarScan
 from licalib_cli.models.intrinsics import LidarIntrinsics
-from licalib_cli.models.lidar import nominal_point
-from licalib_cli.pipeline.points import points_in_global, sample_points, solver_points
+from licalib_cli.models.lidar import lidar_point, nominal_point
+from licalib_cli.pipeline.points import (
+    points_in_global,
+    query_times,
+    sample_points,
+    solver_points,
+)
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
+from licalib_cli.spline import threads as thr
 
 TABLE = np.radians(np.arange(-15.0, 16.0, 2.0))
 T0_NS = 5_000_000_000
@@ -98,3 +105,26 @@ def test_with_the_drivers_table_the_gap_vanishes() -> None:
     rng = np.random.default_rng(4)
     sample = sample_points(_scans(rng, TABLE), TABLE, 400, CalibConfig())
     assert np.abs(sample.model_gap).max() < 1e-9
+
+
+def test_the_map_on_block_threads_is_the_map_of_one_evaluation(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """points_in_global maps its points block by block, on the block threads: the same numbers,
+    bit for bit, as the rotations and positions of all points evaluated at once."""
+    rng = np.random.default_rng(5)
+    state = _state(rng)
+    scans = _scans(rng, TABLE) * 5  # 20 000 points: three blocks, the last one short
+    sample = sample_points(scans, TABLE, 400, CalibConfig())
+    assert len(sample) > 2 * thr.BLOCK
+    t = query_times(state, sample)
+    p_l = lidar_point(state.lidar_intrinsics, sample.beam, sample.rho, sample.theta)
+    p_i = (p_l + sample.model_gap) @ state.R_imu_lidar.T + state.t_imu_lidar
+    with thr.serial():
+        expected = np.einsum(
+            "nij,nj->ni", state.so3_spline.rotation(t), p_i
+        ) + state.r3_spline.position(t)
+    monkeypatch.setattr(thr, "THREADS", 2)  # also when the suite runs with LICALIB_THREADS=1
+    assert np.array_equal(points_in_global(state, sample), expected)
+    with thr.serial():
+        assert np.array_equal(points_in_global(state, sample), expected)
