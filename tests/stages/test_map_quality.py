@@ -8,6 +8,7 @@ import pytest
 
 from licalib_cli.errors import DataError
 from licalib_cli.map_quality import mean_map_entropy, plane_thickness, point_entropies
+from licalib_cli.spline import threads as thr
 from licalib_cli.surfels import Association
 
 
@@ -68,3 +69,16 @@ def test_sparse_map_and_thickness() -> None:
     assert plane_thickness(assoc) == pytest.approx(np.sqrt(0.00025))
     empty = Association(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
     assert np.isnan(plane_thickness(empty))
+
+
+def test_entropies_on_block_threads_are_the_serial_ones(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The query chunks are shared between the block threads: the values of the serial loop."""
+    gen = np.random.default_rng(9)
+    lifted = _plane(gen, 6000, 0.03) + np.array([0.0, 0.0, 2.0])
+    pts = np.concatenate([_plane(gen, 6000, 0.01), lifted])
+    query = np.arange(0, pts.shape[0], 2)  # 6000 queries: two chunks of 4096, the last short
+    with thr.serial():
+        expected = point_entropies(pts, query)
+    monkeypatch.setattr(thr, "THREADS", 2)  # also when the suite runs with LICALIB_THREADS=1
+    assert np.array_equal(point_entropies(pts, query), expected, equal_nan=True)
+    assert np.isfinite(expected).sum() > 5000
