@@ -105,25 +105,34 @@ def map_chunks(
     """
     phi = state.lidar_intrinsics.nominal_elevation
     margin = spline_margin_s(cfg)
-    scans = [s for s in rec.scans if s.ring is not None and len(s) > 0]
     count = 0
-    for scan in scans:  # loop over sweeps, not points: the count goes into a file header first
+    for scan in _mappable(rec):  # sweeps, not points: the count goes into a file header first
         sample, _ = _scan_sample(scan, phi, cfg, every)
         count += int(np.count_nonzero(_inside(state, sample, margin)))
+    return count, _chunks(rec, state, cfg, every)
 
-    def chunks() -> Iterator[MapChunk]:
-        group: list[tuple[PointSample, npt.NDArray[np.float32]]] = []
-        size = 0
-        for k, scan in enumerate(scans):
-            sample, intensity = _scan_sample(scan, phi, cfg, every)
-            keep = _inside(state, sample, margin)
-            group.append((sample.subset(keep), intensity[keep]))
-            size += int(np.count_nonzero(keep))
-            if size >= CHUNK_POINTS or k == len(scans) - 1:
-                yield _mapped(state, group)
-                group, size = [], 0
 
-    return count, chunks()
+def _mappable(rec: Recording) -> list[LidarScan]:
+    return [s for s in rec.scans if s.ring is not None and len(s) > 0]
+
+
+def _chunks(
+    rec: Recording, state: CalibrationState, cfg: CalibConfig, every: int
+) -> Iterator[MapChunk]:
+    """The chunks of :func:`map_chunks` (without counting their points first)."""
+    phi = state.lidar_intrinsics.nominal_elevation
+    margin = spline_margin_s(cfg)
+    scans = _mappable(rec)
+    group: list[tuple[PointSample, npt.NDArray[np.float32]]] = []
+    size = 0
+    for k, scan in enumerate(scans):
+        sample, intensity = _scan_sample(scan, phi, cfg, every)
+        keep = _inside(state, sample, margin)
+        group.append((sample.subset(keep), intensity[keep]))
+        size += int(np.count_nonzero(keep))
+        if size >= CHUNK_POINTS or k == len(scans) - 1:
+            yield _mapped(state, group)
+            group, size = [], 0
 
 
 def _mapped(
@@ -146,8 +155,7 @@ def map_points(
     rec: Recording, state: CalibrationState, cfg: CalibConfig, every: int = 1
 ) -> MapChunk:
     """The whole map of the segment under ``state`` in one chunk (see :func:`map_chunks`)."""
-    _, chunks = map_chunks(rec, state, cfg, every)
-    parts = list(chunks)
+    parts = list(_chunks(rec, state, cfg, every))
     if not parts:
         return MapChunk(
             np.zeros((0, 3)), np.zeros(0, np.uint16), np.zeros(0), np.zeros(0, np.float32)
