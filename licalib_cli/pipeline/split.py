@@ -29,9 +29,10 @@ from licalib_cli.geometry import so3
 from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.pipeline.settings import lm_params, spline_margin_s
 from licalib_cli.solver.lm import SolverReport, solve
+from licalib_cli.solver.problem import Problem
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
 
-__all__ = ["MIN_HALF_S", "SplitResult", "split_half"]
+__all__ = ["MIN_HALF_S", "SplitResult", "half_problem", "split_half"]
 
 logger = logging.getLogger(__name__)
 
@@ -125,15 +126,22 @@ def _covariance(report: SolverReport) -> F64:
     return cov
 
 
-def _estimate_half(
+def half_problem(
     state: CalibrationState, inputs: RoundInputs, lo_s: float, hi_s: float, cfg: CalibConfig
-) -> tuple[CalibrationState, SolverReport] | str:
-    """Re-estimate on IMU-clock seconds ``[lo, hi]``; a sentence when it cannot be done."""
+) -> tuple[CalibrationState, Problem] | str:
+    """The problem of IMU-clock seconds ``[lo, hi]``: the state's splines cut to the half
+    (with the spline margin), the IMU samples over that sub-spline and the associated points of
+    the half; a sentence when the half holds too few points."""
     margin = spline_margin_s(cfg)
     sub = _sub_state(state, lo_s - margin, hi_s + margin)
     knots = sub.knots
     imu = inputs.imu
-    in_imu = (imu.t_s >= lo_s) & (imu.t_s <= hi_s) & knots.contains(imu.t_s)
+    # The IMU samples over the whole sub-spline, margins included: with the samples of
+    # [lo, hi] only, the control points of the margins were touched by a few samples' tails
+    # alone (information 1e-20 of the others'), and the half's steps along them (1e7 of their
+    # scale) made its estimate depend on the last digits of the input (chi-square 5 or 17 in
+    # runs of the same bag). The margins are a few knots: the halves share no LiDAR point.
+    in_imu = knots.contains(imu.t_s)
     lid = inputs.lidar
     t_pt = np.asarray(lid.t_s) + state.time_offset_s
     in_pts = (t_pt >= lo_s) & (t_pt <= hi_s)
@@ -144,6 +152,17 @@ def _estimate_half(
     half_imu = ImuData(imu.t_s[in_imu], imu.gyro[in_imu], imu.accel[in_imu])
     half_lidar = lid.subset(picked)
     problem = build_problem(sub, half_imu, half_lidar, inputs.planes, inputs.noise, inputs.free)
+    return sub, problem
+
+
+def _estimate_half(
+    state: CalibrationState, inputs: RoundInputs, lo_s: float, hi_s: float, cfg: CalibConfig
+) -> tuple[CalibrationState, SolverReport] | str:
+    """Re-estimate on IMU-clock seconds ``[lo, hi]``; a sentence when it cannot be done."""
+    built = half_problem(state, inputs, lo_s, hi_s, cfg)
+    if isinstance(built, str):
+        return built
+    sub, problem = built
     report = solve(problem, lm_params(cfg, max_iterations=_HALF_ITERATIONS))
     if report.status == "failed":
         return f"the optimisation of a half failed ({report.reason})"
