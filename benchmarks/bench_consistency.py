@@ -235,6 +235,9 @@ def main() -> None:
     p.add_argument("--list", action="store_true", help="print the cases and exit")
     p.add_argument("--jobs", type=int, default=1, help="runs at a time")
     p.add_argument("--json", default=None, help="also write the rows to this JSON file")
+    p.add_argument(
+        "--keep", default=None, help="simulate into this folder and keep the bags (run<seed>/)"
+    )
     p.add_argument("--one", default=None, help=argparse.SUPPRESS)
     p.add_argument("--workdir", default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
@@ -257,7 +260,9 @@ def main() -> None:
         "verdict, wall time, target check",
         flush=True,
     )
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as scratch:
+        tmp = scratch if args.keep is None else str(Path(args.keep).resolve())
+        Path(tmp).mkdir(parents=True, exist_ok=True)
         running: list[tuple[subprocess.Popen, dict]] = []
         queue = list(todo)
         while queue or running:

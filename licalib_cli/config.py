@@ -7,6 +7,7 @@ override the file. ``licalib config dump`` prints the resolved tree.
 from __future__ import annotations
 
 import hashlib
+import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -248,6 +249,38 @@ INTRINSIC_PRESETS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
 only when listed in ``model.imu``)."""
 
 
+class ImuPriorSection(_Section):
+    """How well the IMU intrinsics the model holds fixed are known (one sigma each): the
+    residual error of the IMU's factory calibration, from its datasheet.
+
+    The reported sigmas of the extrinsic and the time offset include what these uncertainties
+    move them by, as far as the recording does not determine the intrinsics better itself
+    (README, "How far to trust the result"); 0 treats a block as known exactly. Blocks the
+    model estimates (``model.imu``) are not affected.
+    """
+
+    gyro_scale: float = Field(default=1e-3, ge=0.0, le=0.1)
+    """Gyro scale factor error per axis, as a fraction (1e-3 = 0.1 %)."""
+    gyro_misalignment: float = Field(default=1e-3, ge=0.0, le=0.1)
+    """Gyro axis misalignment per pair of axes, rad."""
+    gyro_rotation_deg: float = Field(default=0.05, ge=0.0, le=5.0)
+    """Rotation between the gyro and accelerometer triads per axis, degrees."""
+    accel_scale: float = Field(default=1e-3, ge=0.0, le=0.1)
+    """Accelerometer scale factor error per axis, as a fraction."""
+    accel_misalignment: float = Field(default=1e-3, ge=0.0, le=0.1)
+    """Accelerometer axis misalignment per pair of axes, rad."""
+    g_sensitivity: float = Field(default=0.0, ge=0.0, le=0.01)
+    """Gyro g-sensitivity per entry, rad/s per m/s^2 (0.1 deg/s/g is about 1.8e-4); 0 by
+    default, as the model leaves it out unless asked."""
+
+    def sigma_of(self, effect: str) -> float:
+        """Prior sigma of an IMU effect by its check name (``gyro_rotation`` in radians); 0
+        for an effect without a prior here."""
+        if effect == "gyro_rotation":
+            return math.radians(self.gyro_rotation_deg)
+        return float(getattr(self, effect, 0.0))
+
+
 class ModelSection(_Section):
     """Which intrinsics the calibration estimates; the others stay at their nominal values (and
     the checks test whether the data show them)."""
@@ -264,6 +297,9 @@ class ModelSection(_Section):
     a sweep off by a constant fraction)."""
     min_points_per_beam: int = Field(default=200, ge=10)
     """Beams with fewer associated points keep their intrinsics at nominal (and are named)."""
+    imu_prior: ImuPriorSection = ImuPriorSection()
+    """How well the IMU intrinsics held fixed are known (their sigmas enter the reported
+    sigmas)."""
 
 
 class CalibConfig(_Section):

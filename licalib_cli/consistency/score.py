@@ -52,6 +52,10 @@ class EffectScore:
             directions the data determine, divided by the variance factor, ascending: an effect
             ``d`` raises the statistic's expectation from ``rank`` by ``d^T I d``, between
             ``|d|^2 information[0]`` and ``|d|^2 information[-1]`` depending on its direction.
+        prior_shift_sigma: (m,) standard deviation the estimated coordinates gain when the
+            group, held at zero, is in truth known only to within a prior (each coordinate with
+            its own standard deviation, independent): the spread of the group's posterior (data
+            and prior) carried into the estimated coordinates; zeros without a prior.
     """
 
     name: str
@@ -63,6 +67,7 @@ class EffectScore:
     shift: F64
     shift_sigma: F64
     information: F64 = field(default_factory=lambda: np.zeros(0))
+    prior_shift_sigma: F64 = field(default_factory=lambda: np.zeros(0))
 
     @property
     def shift_z(self) -> F64:
@@ -87,6 +92,7 @@ def score_effects(
     groups: Mapping[str, npt.ArrayLike],
     variance_factor: float = 1.0,
     relative_rank: float = 1e-8,
+    prior_sigma: Mapping[str, npt.ArrayLike] | None = None,
 ) -> list[EffectScore]:
     """Score tests of several candidate groups against the same estimated coordinates.
 
@@ -103,6 +109,14 @@ def score_effects(
             significant.
         relative_rank: eigenvalues below this fraction of a group's largest do not count
             (directions the data cannot determine).
+        prior_sigma: name -> (k,) prior standard deviation of each coordinate of a group (its
+            own units; 0 for a coordinate known exactly) for
+            :attr:`EffectScore.prior_shift_sigma`. Freeing a group ``e`` with the Gaussian prior
+            ``N(0, P)`` adds ``A (S_ee.b / f + P^-1)^-1 A^T`` to the covariance of the estimated
+            coordinates, ``A = S_bb^-1 S_be`` its shift per unit of ``e``, ``S_ee.b`` its
+            profiled information and ``f`` the variance factor (at least 1): between nothing
+            (a prior far inside what the data determine) and the shift's null variance (a prior
+            far wider).
 
     Returns:
         One :class:`EffectScore` per group, in the order given.
@@ -132,6 +146,7 @@ def score_effects(
         weak = w <= relative_rank * max(float(w.max()) if w.size else 0.0, 1e-300)
         undetermined = np.sum(v[:, weak] ** 2, axis=1) > 1e-4 if e.size else np.zeros(0, bool)
         sigma_e = np.where(undetermined, np.inf, np.sqrt(np.clip(var_e, 0.0, None)))
+        prior = None if prior_sigma is None else prior_sigma.get(name)
         out.append(
             EffectScore(
                 name=name,
@@ -143,9 +158,28 @@ def score_effects(
                 shift=shift,
                 shift_sigma=np.sqrt(np.clip(np.diag(v_shift), 0.0, None)),
                 information=np.sort(w[~weak]) / vf if e.size else np.zeros(0),
+                prior_shift_sigma=_prior_shift_sigma(
+                    s_bb_inv @ s_eb.T, s_ee_b / max(vf, 1.0), prior, bi.size
+                ),
             )
         )
     return out
+
+
+def _prior_shift_sigma(
+    shift_map: F64, information: F64, prior: npt.ArrayLike | None, m: int
+) -> F64:
+    """(m,) root of the diagonal of ``A (I + P^-1)^-1 A^T`` over the coordinates with a
+    positive prior standard deviation (see :func:`score_effects`); zeros without any."""
+    if prior is None:
+        return np.zeros(m)
+    p = np.broadcast_to(np.asarray(prior, dtype=np.float64), (information.shape[0],))
+    on = p > 0.0
+    if not np.any(on):
+        return np.zeros(m)
+    a = shift_map[:, on]
+    post = np.linalg.inv(information[np.ix_(on, on)] + np.diag(1.0 / p[on] ** 2))
+    return np.sqrt(np.clip(np.einsum("ij,jk,ik->i", a, 0.5 * (post + post.T), a), 0.0, None))
 
 
 @dataclass(frozen=True)
@@ -177,6 +211,7 @@ def select_effects(
     p_value: float,
     variance_factor: float = 1.0,
     max_effects: int | None = None,
+    prior_sigma: Mapping[str, npt.ArrayLike] | None = None,
 ) -> EffectSelection:
     """Add the most significant group, re-test the others with it freed, repeat.
 
@@ -186,7 +221,7 @@ def select_effects(
     separates them: only the groups that explain something the selected ones do not are added.
 
     Args:
-        S, b, base, variance_factor: as for :func:`score_effects`.
+        S, b, base, variance_factor, prior_sigma: as for :func:`score_effects`.
         groups: candidate groups.
         p_value: a group is selected while its conditional p-value is below this.
         max_effects: at most this many groups (default: no limit).
@@ -201,7 +236,7 @@ def select_effects(
     current = list(bi)
     alone: dict[str, float] = {}
     while todo and (max_effects is None or len(chosen) < max_effects):
-        scores = score_effects(S, b, current, todo, variance_factor)
+        scores = score_effects(S, b, current, todo, variance_factor, prior_sigma=prior_sigma)
         if not alone:
             alone = {s.name: s.statistic for s in scores}
         best = max(scores, key=lambda s: -chi2_logsf(s.statistic, max(s.rank, 1)))
@@ -220,6 +255,7 @@ def select_effects(
                 best.shift[pos],
                 best.shift_sigma[pos],
                 best.information,
+                best.prior_shift_sigma[pos],
             )
         )
         chosen_idx.append(todo.pop(best.name))
@@ -236,8 +272,13 @@ def select_effects(
             r.shift[pos],
             r.shift_sigma[pos],
             r.information,
+            r.prior_shift_sigma[pos],
         )
-        for r in (score_effects(S, b, current, todo, variance_factor) if todo else [])
+        for r in (
+            score_effects(S, b, current, todo, variance_factor, prior_sigma=prior_sigma)
+            if todo
+            else []
+        )
     )
     if chosen_idx:
         freed = np.concatenate(chosen_idx)

@@ -433,6 +433,7 @@ def inflate(
         if np.any(grown > sigma * (1 + 1e-9)):
             why.append("at least half the difference between the two halves of the segment")
         sigma = grown
+    prior_var = np.zeros(7)
     for e in effects:
         # Held fixed, the effect biases the estimate by about its shift; freed, the estimate
         # would move by the shift and its sigma grow by shift_std. Both are added, so that
@@ -446,6 +447,21 @@ def inflate(
                 else f", which the data hint at (p = {e.score.p_value:.1g})"
             )
             why.append(f"by the shift estimating {e.score.name} would cause{hint}")
+        else:
+            # Not shown by the data, the effect is still only known to within its prior (an
+            # IMU's factory calibration): its posterior spread moves the estimate too.
+            prior_var += e.prior_std**2
+    if np.any(prior_var > 0.0):
+        grown = np.sqrt(sigma**2 + prior_var)
+        finite = np.isfinite(sigma) & (sigma > 0.0)
+        factor = float(np.max(grown[finite] / sigma[finite])) if np.any(finite) else 1.0
+        fixed = [e for e in effects if not effect_to_cover(e, raw)]
+        strongest = max(fixed, key=lambda e: float(np.max(np.where(finite, e.prior_std, 0.0))))
+        why.append(
+            "by the IMU intrinsics held fixed, each known to within model.imu_prior "
+            f"(times up to {factor:.2f}; most from {strongest.score.name})"
+        )
+        sigma = grown
     if fit.jitter:
         c = fit.last_change
         jitter = np.array(
@@ -482,7 +498,9 @@ def check(fit: Fit, guess: InitialGuess, noise: NoiseLevels, cfg: CalibConfig) -
     """The checks stage: gather the evidence on the fit (residuals per sensor, score tests of
     the fixed effects, the two halves) and judge it (:func:`run_checks`)."""
     sensors = sensor_checks(fit.state, fit.inputs, noise, fit.solved)
-    effects = effect_evidence(fit.state, fit.inputs, fit.report.variance_factor)
+    effects = effect_evidence(
+        fit.state, fit.inputs, fit.report.variance_factor, cfg.model.imu_prior
+    )
     split = split_half(fit.state, fit.inputs, cfg)
     planes = map_uncertainty(fit.state, fit.inputs, fit.report, fit.solved)
     notes: tuple[str, ...] = ()

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import numpy.typing as npt
 
+from licalib_cli.config import ImuPriorSection
 from licalib_cli.consistency import (
     EffectScore,
     group_pattern,
@@ -359,6 +360,10 @@ class EffectEvidence:
         shift_time_offset_s: s.
         statistic_alone: the score statistic tested against the estimated coordinates only
             (before any other effect was selected).
+        shift_std: (7,) standard deviation of the shift when the effect is truly zero (in the
+            order of :attr:`shift`).
+        prior_std: (7,) what the effect, known only to within its prior (``model.imu_prior``),
+            adds to the sigmas of the extrinsic and time offset (zeros without a prior).
     """
 
     score: EffectScore
@@ -369,6 +374,7 @@ class EffectEvidence:
     shift_time_offset_s: float
     statistic_alone: float = float("nan")
     shift_std: F64 = field(default_factory=lambda: np.zeros(7))
+    prior_std: F64 = field(default_factory=lambda: np.zeros(7))
 
     @property
     def shift(self) -> F64:
@@ -388,7 +394,10 @@ def _effect_of(name: str) -> str | None:
 
 
 def effect_evidence(
-    state: CalibrationState, inputs: RoundInputs, variance_factor: float
+    state: CalibrationState,
+    inputs: RoundInputs,
+    variance_factor: float,
+    imu_prior: ImuPriorSection | None = None,
 ) -> list[EffectEvidence]:
     """Score tests of every effect the final round held fixed, with forward selection.
 
@@ -402,6 +411,8 @@ def effect_evidence(
         state: the final estimate.
         inputs: the final round's problem inputs.
         variance_factor: the fit's a-posteriori variance factor (clamped below at 1).
+        imu_prior: how well the IMU intrinsics held fixed are known, for
+            :attr:`EffectEvidence.prior_std` (none: known exactly).
 
     Returns:
         One entry per fixed group with at least one free coordinate: the selected ones first,
@@ -456,8 +467,13 @@ def effect_evidence(
             base.append(i)
         else:
             groups.setdefault(effect, []).append(i)
+    prior = {
+        name: np.full(len(idx), imu_prior.sigma_of(name))
+        for name, idx in groups.items()
+        if imu_prior is not None and imu_prior.sigma_of(name) > 0.0
+    }
     selection = select_effects(
-        sch.S, sch.b, base, groups, EFFECT_P_VALUE, max(variance_factor, 1.0)
+        sch.S, sch.b, base, groups, EFFECT_P_VALUE, max(variance_factor, 1.0), prior_sigma=prior
     )
     base_names = [names[i] for i in base]
 
@@ -470,11 +486,11 @@ def effect_evidence(
             t = pick("ext.translation", s.shift)
             r = pick("ext.rotation", s.shift)
             c = pick("ext.time_offset", s.shift)
-            sd = np.concatenate(
-                [
-                    pick(p, s.shift_sigma)
-                    for p in ("ext.translation", "ext.rotation", "ext.time_offset")
-                ]
+            sd, ps = (
+                np.concatenate(
+                    [pick(p, x) for p in ("ext.translation", "ext.rotation", "ext.time_offset")]
+                )
+                for x in (s.shift_sigma, s.prior_shift_sigma)
             )
             out.append(
                 EffectEvidence(
@@ -486,6 +502,7 @@ def effect_evidence(
                     shift_time_offset_s=float(c[0]) if c.size else 0.0,
                     statistic_alone=float(selection.alone.get(s.name, s.statistic)),
                     shift_std=sd if sd.size == 7 else np.zeros(7),
+                    prior_std=ps if ps.size == 7 else np.zeros(7),
                 )
             )
     logger.debug(

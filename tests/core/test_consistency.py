@@ -164,6 +164,42 @@ def test_score_finds_the_effect_and_predicts_the_shift_of_a_linear_problem() -> 
     assert np.all(np.abs(res.estimate - effect) < 4 * res.sigma)
 
 
+def test_prior_shift_sigma_is_the_extra_spread_of_marginalising_a_prior() -> None:
+    """A group held at zero but known only to within a Gaussian prior: the estimated
+    coordinates' covariance with the group marginalised is ``S_bb^-1`` plus the prior term,
+    between nothing (a tight prior) and the shift's null variance (a prior far wider than the
+    data determine the group)."""
+    from licalib_cli.consistency import score_effects
+
+    rng = np.random.default_rng(8)
+    s, b, *_ = _linear_problem(rng, np.zeros(2))
+    base, e = [0, 1, 2], [3, 4]
+    prior = np.array([0.05, 0.2])
+    (res,) = score_effects(s, b, base, {"e": e}, prior_sigma={"e": prior})
+    # the joint Gaussian model with x_e ~ N(0, diag(prior^2)), marginalised over x_e
+    joint = s.copy()
+    joint[np.ix_(e, e)] += np.diag(1.0 / prior**2)
+    marginal = np.linalg.inv(joint)[np.ix_(base, base)]
+    extra = np.diag(marginal - np.linalg.inv(s[np.ix_(base, base)]))
+    np.testing.assert_allclose(res.prior_shift_sigma, np.sqrt(extra), rtol=1e-9)
+    assert np.all(res.prior_shift_sigma > 0.0)
+    (wide,) = score_effects(s, b, base, {"e": e}, prior_sigma={"e": np.full(2, 1e6)})
+    np.testing.assert_allclose(wide.prior_shift_sigma, wide.shift_sigma, rtol=1e-6)
+    (tight,) = score_effects(s, b, base, {"e": e}, prior_sigma={"e": np.full(2, 1e-6)})
+    assert np.all(tight.prior_shift_sigma < 1e-4 * wide.shift_sigma)
+    (exact,) = score_effects(s, b, base, {"e": e}, prior_sigma={"e": np.zeros(2)})
+    (none,) = score_effects(s, b, base, {"e": e})
+    assert np.all(exact.prior_shift_sigma == 0.0) and np.all(none.prior_shift_sigma == 0.0)
+    # a coordinate known exactly adds nothing: only the other's prior counts
+    (half,) = score_effects(s, b, base, {"e": e}, prior_sigma={"e": np.array([0.0, 0.2])})
+    joint = s.copy()
+    joint[4, 4] += 1.0 / 0.2**2
+    keep = [0, 1, 2, 4]
+    marginal = np.linalg.inv(joint[np.ix_(keep, keep)])[:3, :3]
+    extra = np.diag(marginal - np.linalg.inv(s[np.ix_(base, base)]))
+    np.testing.assert_allclose(half.prior_shift_sigma, np.sqrt(extra), rtol=1e-9)
+
+
 def test_detectable_sizes_are_named_nine_times_in_ten() -> None:
     """An effect of the size diagnose calls detectable in any direction exceeds the threshold
     in 90 % of recordings along its weakest direction, one of the best direction's size along

@@ -21,8 +21,11 @@ from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
 RAW = np.array([1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4, 1e-5])
 
 
-def evidence(p_value: float, shift_z_mm: float, *, selected: bool = False) -> EffectEvidence:
-    """An accelerometer scale moving t_z by ``shift_z_mm``, with a shift sigma of 0.5 mm."""
+def evidence(
+    p_value: float, shift_z_mm: float, *, selected: bool = False, prior_z_mm: float = 0.0
+) -> EffectEvidence:
+    """An accelerometer scale moving t_z by ``shift_z_mm``, with a shift sigma of 0.5 mm (and,
+    known to within its prior, adding ``prior_z_mm`` to the sigma of t_z)."""
     score = EffectScore(
         name="accel_scale",
         statistic=10.0,
@@ -43,6 +46,7 @@ def evidence(p_value: float, shift_z_mm: float, *, selected: bool = False) -> Ef
         shift_rotation_rad=np.zeros(3),
         shift_time_offset_s=0.0,
         shift_std=std,
+        prior_std=np.array([0.0, 0.0, 1e-3 * prior_z_mm, 0.0, 0.0, 0.0, 0.0]),
     )
 
 
@@ -113,3 +117,20 @@ def test_the_checks_table_names_a_hinted_effect() -> None:
 def test_every_material_effect_is_covered() -> None:
     """A named effect is also one the data hint at: the covering level is the looser one."""
     assert EFFECT_P_VALUE <= COVER_P_VALUE
+
+
+def test_an_effect_the_data_do_not_show_adds_its_prior_spread() -> None:
+    """Not shown, an IMU intrinsic held fixed is still only known to within model.imu_prior:
+    its posterior spread enters the sigmas, once (a covered effect adds its shift instead)."""
+    quiet = evidence(2.0 * COVER_P_VALUE, 3.0, prior_z_mm=2.0)
+    sigma, why = run([quiet])
+    assert sigma[2] == pytest.approx(np.sqrt(1.0 + 4.0) * 1e-3)
+    np.testing.assert_allclose(np.delete(sigma, 2), np.delete(RAW, 2))
+    assert len(why) == 1 and "model.imu_prior" in why[0] and "accel_scale" in why[0]
+    assert "2.24" in why[0]  # times up to sqrt(5)
+    covered = evidence(0.5 * COVER_P_VALUE, 3.0, prior_z_mm=2.0)
+    sigma, why = run([covered])
+    assert sigma[2] == pytest.approx(np.sqrt(1.0 + 9.0 + 0.25) * 1e-3)  # the shift, not the prior
+    assert not any("imu_prior" in w for w in why)
+    sigma, _ = run([quiet, evidence(2.0 * COVER_P_VALUE, 0.0, prior_z_mm=1.0)])
+    assert sigma[2] == pytest.approx(np.sqrt(1.0 + 4.0 + 1.0) * 1e-3)  # variances add

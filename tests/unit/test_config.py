@@ -113,3 +113,19 @@ def test_override_into_a_section_given_as_a_scalar(tmp_path):
     path.write_text("bag: 3\n")
     with pytest.raises(ConfigError, match="'bag'"):
         load_config(path, {"bag.start_s": 1.0})
+
+
+def test_imu_prior_defaults_units_and_limits(tmp_path):
+    prior = load_config(None).model.imu_prior
+    assert prior.accel_scale == 1e-3 and prior.g_sensitivity == 0.0
+    assert prior.sigma_of("gyro_rotation") == pytest.approx(0.05 * 3.141592653589793 / 180)
+    assert prior.sigma_of("accel_scale") == 1e-3
+    assert prior.sigma_of("imu_clock_drift") == 0.0  # not an IMU intrinsic: no prior
+    path = tmp_path / "c.yaml"
+    path.write_text("model:\n  imu_prior:\n    accel_scale: 0.0\n    gyro_rotation_deg: 0.2\n")
+    cfg = load_config(path)
+    assert cfg.model.imu_prior.accel_scale == 0.0  # known exactly
+    assert cfg.model.imu_prior.gyro_rotation_deg == 0.2
+    path.write_text("model:\n  imu_prior:\n    accel_scale: -0.001\n")
+    with pytest.raises(ConfigError, match="accel_scale"):
+        load_config(path)
