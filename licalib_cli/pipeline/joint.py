@@ -62,7 +62,7 @@ from licalib_cli.io.bag import open_bag
 from licalib_cli.io.reader import MIN_SEGMENT_S
 from licalib_cli.pipeline import CalibrationRun, calibrate
 from licalib_cli.pipeline.assemble import extra_terms
-from licalib_cli.pipeline.checks import intrinsics_uncertainty
+from licalib_cli.pipeline.checks import Checks, effect_to_cover, intrinsics_uncertainty
 from licalib_cli.pipeline.joint_planes import refine_segments_with_planes
 from licalib_cli.pipeline.joint_problem import joint_problem, segment_values
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty
@@ -368,17 +368,33 @@ def calibrate_segments(
     return JointRun(result, tuple(runs), tuple(kept), report, tuple(states), timings)
 
 
-def _growth(runs: Sequence[CalibrationRun]) -> tuple[F64, float, MapUncertainty | None]:
+def _prior_variance(checks: Checks) -> F64:
+    """(7,) what the IMU priors added to a segment's sigmas, in variance (``model.imu_prior``;
+    the effects the segment's sigmas cover by their shift add nothing here)."""
+    out = np.zeros(7)
+    for e in checks.effects:
+        if not effect_to_cover(e, checks.raw_sigma):
+            out += e.prior_std**2
+    return out
+
+
+def _growth(runs: Sequence[CalibrationRun]) -> tuple[F64, float, MapUncertainty | None, F64]:
     """How much the segments' checks enlarged their solver sigmas, the largest over segments.
 
+    The IMU priors' part is taken apart: an IMU error the data do not show moves every segment
+    alike, so it does not shrink with the joint sigma; the joint keeps the smallest segment's
+    (all segments' data together determine the IMU blocks at least as well as the best one).
+
     Returns:
-        ``(factor (7,) for translation, rotation and time offset, the root of the largest
-        chi-square per sample, the largest map-plane factor of every coordinate or None)``.
+        ``(factor (7,) for translation, rotation and time offset without the priors' part, the
+        root of the largest chi-square per sample, the largest map-plane factor of every
+        coordinate or None, the priors' variance (7,) to add)``.
     """
     grow = np.ones(7)
     chi = 1.0
     names: dict[str, float] = {}
     planes_used = 0
+    prior = np.full(7, np.inf)
     for run in runs:
         c = run.checks
         u = c.uncertainty
@@ -389,7 +405,10 @@ def _growth(runs: Sequence[CalibrationRun]) -> tuple[F64, float, MapUncertainty 
                 [u.time_offset_std_s],
             ]
         )
-        ratio = shown / np.asarray(c.raw_sigma)
+        own_prior = _prior_variance(c)
+        prior = np.minimum(prior, own_prior)
+        without = np.sqrt(np.clip(shown**2 - own_prior, 0.0, None))
+        ratio = without / np.asarray(c.raw_sigma)
         ok = np.isfinite(ratio) & (np.asarray(c.raw_sigma) > 0)
         grow[ok] = np.maximum(grow[ok], ratio[ok])
         chi = max([chi, *(s.chi2_per_sample for s in c.consistency.sensors)])
@@ -400,7 +419,8 @@ def _growth(runs: Sequence[CalibrationRun]) -> tuple[F64, float, MapUncertainty 
     planes = None
     if names:
         planes = MapUncertainty(tuple(names), np.array(list(names.values())), planes_used, 0.0)
-    return grow, float(np.sqrt(chi)), planes
+    prior = np.where(np.isfinite(prior), prior, 0.0)
+    return grow, float(np.sqrt(chi)), planes, prior
 
 
 def _sigma_size(run: CalibrationRun) -> float:
@@ -437,12 +457,15 @@ def _joint_result(
     else:
         tc, tc_std = float(np.mean(offsets)), float("inf")
     joint = Extrinsic(states[0].R_imu_lidar.copy(), states[0].t_imu_lidar.copy(), tc)
-    grow, chi_factor, planes = _growth(runs)
+    grow, chi_factor, planes, prior = _growth(runs)
     raw = _uncertainty(report)
+    prior_deg = np.degrees(np.sqrt(prior[3:6]))
     unc = Uncertainty(
-        translation_std_m=vec3(np.asarray(raw.translation_std_m) * grow[:3]),
-        rotation_std_deg=vec3(np.asarray(raw.rotation_std_deg) * grow[3:6]),
-        time_offset_std_s=tc_std * float(grow[6]),
+        translation_std_m=vec3(
+            np.hypot(np.asarray(raw.translation_std_m) * grow[:3], np.sqrt(prior[:3]))
+        ),
+        rotation_std_deg=vec3(np.hypot(np.asarray(raw.rotation_std_deg) * grow[3:6], prior_deg)),
+        time_offset_std_s=float(np.hypot(tc_std * float(grow[6]), np.sqrt(prior[6]))),
     )
     entries = []
     worst = "pass"
@@ -493,6 +516,11 @@ def _joint_result(
         reasons.append(
             f"Joint sigmas enlarged up to {float(grow.max()):.2f} times, as the segments' own "
             "were (map planes, residual chi-square, split halves, held effects)."
+        )
+    if np.any(prior > 0.0):
+        reasons.append(
+            "Joint sigmas include the IMU intrinsics held fixed (model.imu_prior) as the "
+            "best-determined segment's do: an IMU error moves every segment alike."
         )
     base = runs[best].result
     section = SegmentsSection(

@@ -193,6 +193,7 @@ def _checked_run(raw: list[float], shown_t: float, chi: float, plane_factor: flo
             40,
             0.0,
         ),
+        effects=(),  # no IMU prior (tests/segments/test_joint_sigmas.py)
     )
     return SimpleNamespace(checks=checks)
 
@@ -201,7 +202,8 @@ def test_joint_sigmas_grow_by_the_largest_factor_of_any_segment() -> None:
     raw = [0.001, 0.001, 0.001, 1e-4, 1e-4, 1e-4, 1e-5]
     a = _checked_run(raw, 0.0015, chi=1.44, plane_factor=3.0)
     b = _checked_run(raw, 0.0030, chi=0.8, plane_factor=2.0)
-    grow, chi_factor, planes = _growth([a, b])
+    grow, chi_factor, planes, prior = _growth([a, b])
+    np.testing.assert_array_equal(prior, 0.0)
     np.testing.assert_allclose(grow[:3], 3.0)  # the second segment's enlargement
     np.testing.assert_allclose(grow[3:], 1.0, atol=1e-12)  # never below one
     assert chi_factor == pytest.approx(1.2)  # root of the largest chi-square per sample
@@ -210,5 +212,5 @@ def test_joint_sigmas_grow_by_the_largest_factor_of_any_segment() -> None:
     assert planes.of("ext.translation.x") == pytest.approx(1.1)
     # a coordinate a segment left undetermined (raw sigma infinite) does not poison the factor
     c = _checked_run([np.inf, *raw[1:]], 0.0015, chi=1.0, plane_factor=1.0)
-    grow, _, _ = _growth([c])
+    grow, _, _, _ = _growth([c])
     assert np.all(np.isfinite(grow))
