@@ -25,6 +25,7 @@ last round's change when the rounds only settled to within their jitter.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,6 +64,7 @@ __all__ = [
     "intrinsics_uncertainty",
     "judge",
     "observability_of",
+    "prior_variance",
     "raw_uncertainty",
     "run_checks",
 ]
@@ -306,6 +308,17 @@ def effect_to_cover(e: EffectEvidence, raw_sigma: F64) -> bool:
     return e.score.p_value < COVER_P_VALUE and _moves_extrinsic(e, raw_sigma)
 
 
+def prior_variance(effects: Sequence[EffectEvidence], raw_sigma: F64) -> F64:
+    """(7,) variance the IMU priors add to the sigmas (``model.imu_prior``): an effect the data
+    do not show is still only known to within its prior (an IMU's factory calibration), and its
+    posterior spread moves the estimate too; a covered effect adds its shift instead."""
+    out = np.zeros(7)
+    for e in effects:
+        if not effect_to_cover(e, raw_sigma):
+            out += e.prior_std**2
+    return out
+
+
 def _moves_extrinsic(e: EffectEvidence, raw_sigma: F64) -> bool:
     """Estimating the effect would move some extrinsic coordinate by more than its sigma."""
     ratio = np.abs(e.shift) / np.where(np.isfinite(raw_sigma), raw_sigma, np.inf)
@@ -433,7 +446,6 @@ def inflate(
         if np.any(grown > sigma * (1 + 1e-9)):
             why.append("at least half the difference between the two halves of the segment")
         sigma = grown
-    prior_var = np.zeros(7)
     for e in effects:
         # Held fixed, the effect biases the estimate by about its shift; freed, the estimate
         # would move by the shift and its sigma grow by shift_std. Both are added, so that
@@ -447,10 +459,7 @@ def inflate(
                 else f", which the data hint at (p = {e.score.p_value:.1g})"
             )
             why.append(f"by the shift estimating {e.score.name} would cause{hint}")
-        else:
-            # Not shown by the data, the effect is still only known to within its prior (an
-            # IMU's factory calibration): its posterior spread moves the estimate too.
-            prior_var += e.prior_std**2
+    prior_var = prior_variance(effects, raw)
     if np.any(prior_var > 0.0):
         grown = np.sqrt(sigma**2 + prior_var)
         finite = np.isfinite(sigma) & (sigma > 0.0)

@@ -62,7 +62,7 @@ from licalib_cli.io.bag import open_bag
 from licalib_cli.io.reader import MIN_SEGMENT_S
 from licalib_cli.pipeline import CalibrationRun, calibrate
 from licalib_cli.pipeline.assemble import extra_terms
-from licalib_cli.pipeline.checks import Checks, effect_to_cover, intrinsics_uncertainty
+from licalib_cli.pipeline.checks import intrinsics_uncertainty, prior_variance
 from licalib_cli.pipeline.joint_planes import refine_segments_with_planes
 from licalib_cli.pipeline.joint_problem import joint_problem, segment_values
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty
@@ -368,16 +368,6 @@ def calibrate_segments(
     return JointRun(result, tuple(runs), tuple(kept), report, tuple(states), timings)
 
 
-def _prior_variance(checks: Checks) -> F64:
-    """(7,) what the IMU priors added to a segment's sigmas, in variance (``model.imu_prior``;
-    the effects the segment's sigmas cover by their shift add nothing here)."""
-    out = np.zeros(7)
-    for e in checks.effects:
-        if not effect_to_cover(e, checks.raw_sigma):
-            out += e.prior_std**2
-    return out
-
-
 def _growth(runs: Sequence[CalibrationRun]) -> tuple[F64, float, MapUncertainty | None, F64]:
     """How much the segments' checks enlarged their solver sigmas, the largest over segments.
 
@@ -405,7 +395,7 @@ def _growth(runs: Sequence[CalibrationRun]) -> tuple[F64, float, MapUncertainty 
                 [u.time_offset_std_s],
             ]
         )
-        own_prior = _prior_variance(c)
+        own_prior = prior_variance(c.effects, c.raw_sigma)
         prior = np.minimum(prior, own_prior)
         without = np.sqrt(np.clip(shown**2 - own_prior, 0.0, None))
         ratio = without / np.asarray(c.raw_sigma)
