@@ -23,7 +23,7 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from licalib_cli.errors import DataError
-from licalib_cli.spline.threads import map_blocks
+from licalib_cli.spline.threads import map_slices
 from licalib_cli.surfels import Association
 
 __all__ = [
@@ -83,14 +83,13 @@ def point_entropies(
     iu, ju = np.triu_indices(3)
     const = 3.0 * np.log(2.0 * np.pi * np.e)
 
-    def chunk(k: int) -> None:
-        start = k * chunk_size
-        sel = q_idx[start : start + chunk_size]
+    def chunk(rows: slice) -> None:
+        sel = q_idx[rows]
         qtree = cKDTree(pts[sel])
         pairs = qtree.sparse_distance_matrix(tree, radius_m, output_type="ndarray")
         qi, pj = pairs["i"], pairs["j"]
         m = sel.shape[0]
-        k_n = np.bincount(qi, minlength=m).astype(np.float64)
+        k = np.bincount(qi, minlength=m).astype(np.float64)
         local = pts[pj] - pts[sel][qi]  # relative to the query point: no cancellation
         s1 = np.stack([np.bincount(qi, local[:, a], minlength=m) for a in range(3)], axis=1)
         s2 = np.stack(
@@ -100,17 +99,17 @@ def point_entropies(
             ],
             axis=1,
         )
-        ok = k_n >= max(min_neighbors, 2)
-        ks = np.where(ok, k_n, 2.0)
+        ok = k >= max(min_neighbors, 2)
+        ks = np.where(ok, k, 2.0)
         cov = np.empty((m, 3, 3))
         cov[:, iu, ju] = (s2 - s1[:, iu] * s1[:, ju] / ks[:, None]) / (ks[:, None] - 1.0)
         cov[:, ju, iu] = cov[:, iu, ju]
         sign, logdet = np.linalg.slogdet(cov)
         h = 0.5 * (const + logdet)
-        out[start : start + m] = np.where(ok & (sign > 0), h, np.nan)
+        out[rows] = np.where(ok & (sign > 0), h, np.nan)
 
     # the chunks write disjoint slices: shared by the block threads, the values of the serial loop
-    map_blocks(chunk, -(-q_idx.shape[0] // chunk_size))
+    map_slices(chunk, q_idx.shape[0], chunk_size)
     return out
 
 

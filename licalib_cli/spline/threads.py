@@ -193,7 +193,7 @@ def map_blocks(fn: Callable[[int], T], count: int) -> list[T]:
     return results  # type: ignore[return-value]  # every slot was filled
 
 
-def map_slices(fn: Callable[[slice], T], size: int) -> list[T]:
-    """``fn`` on the consecutive slices of ``range(size)`` of :data:`BLOCK` items (the last
-    one shorter), shared as :func:`map_blocks` shares its blocks; results in slice order."""
-    return map_blocks(lambda k: fn(slice(k * BLOCK, min((k + 1) * BLOCK, size))), -(-size // BLOCK))
+def map_slices(fn: Callable[[slice], T], size: int, block: int = BLOCK) -> list[T]:
+    """``fn`` on the consecutive slices of ``range(size)`` of ``block`` items (the last one
+    shorter), shared as :func:`map_blocks` shares its blocks; results in slice order."""
+    return map_blocks(lambda k: fn(slice(k * block, min((k + 1) * block, size))), -(-size // block))
