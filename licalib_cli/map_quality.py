@@ -23,7 +23,7 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from licalib_cli.errors import DataError
-from licalib_cli.spline.threads import map_slices
+from licalib_cli.parallel.threads import map_slices
 from licalib_cli.surfels import Association
 
 __all__ = [

@@ -41,7 +41,7 @@ from scipy.spatial.transform import Rotation
 
 from licalib_cli.errors import ConfigError, DataError
 from licalib_cli.measurements import LidarScan
-from licalib_cli.spline.threads import threads
+from licalib_cli.parallel.threads import threads
 
 if TYPE_CHECKING:
     from kiss_icp.config import KISSConfig

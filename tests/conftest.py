@@ -19,7 +19,7 @@ import pytest
 # the test modules are imported.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 # Under pytest -n every core already runs a worker: the spline's block loops stay on one thread
-# (licalib_cli.spline.threads; tests/core/test_spline_threads.py forces both paths itself).
+# (licalib_cli.parallel.threads; tests/core/test_threads.py forces both paths itself).
 if os.environ.get("PYTEST_XDIST_WORKER"):
     os.environ.setdefault("LICALIB_THREADS", "1")
 

@@ -18,7 +18,7 @@ from contextlib import contextmanager, suppress
 from typing import TYPE_CHECKING, Any
 
 from licalib_cli.errors import ClusterError, ConfigError
-from licalib_cli.spline.threads import usable_cores
+from licalib_cli.parallel.threads import usable_cores
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -37,7 +37,7 @@ _WORKER_ENVIRON = {
 """Environment of the local workers: Dask's default less ``MALLOC_TRIM_THRESHOLD_=65536``,
 which makes the solver's many short-lived arrays about three times slower to allocate; one
 worker per core, so the spline evaluation runs on one thread in each
-(:mod:`licalib_cli.spline.threads`)."""
+(:mod:`licalib_cli.parallel.threads`)."""
 _WORKER_SETUP = "licalib_cli.batch.worker_setup"
 """Preload of the local workers: they leave Ctrl-C to the client."""
 

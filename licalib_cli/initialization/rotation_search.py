@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation
 from licalib_cli.errors import ExcitationError
 from licalib_cli.initialization.rotation import GyroIntegrator
 from licalib_cli.measurements import LidarScan
-from licalib_cli.spline.threads import map_slices
+from licalib_cli.parallel.threads import map_slices
 
 __all__ = [
     "RotationSearch",
@@ -315,7 +315,7 @@ def _batched(
     scorer: _Scorer | _CombinedScorer, rotations: FloatArray, batch: int = 64
 ) -> FloatArray:
     """Scores of ``rotations``, ``batch`` candidates at a time; the batches are independent,
-    so they are shared between the threads of :mod:`licalib_cli.spline.threads` (numpy works
+    so they are shared between the threads of :mod:`licalib_cli.parallel.threads` (numpy works
     on each batch's large arrays without the GIL), with the scores of the serial loop."""
     return np.concatenate(map_slices(lambda sl: scorer(rotations[sl]), rotations.shape[0], batch))
 

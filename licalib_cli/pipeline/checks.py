@@ -32,6 +32,7 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig
+from licalib_cli.parallel import forked
 from licalib_cli.pipeline.fitcheck import (
     EFFECT_P_VALUE,
     EffectEvidence,
@@ -506,12 +507,15 @@ def judge(findings: list[Finding]) -> tuple[VerdictSection, str]:
 def check(fit: Fit, guess: InitialGuess, noise: NoiseLevels, cfg: CalibConfig) -> Checks:
     """The checks stage: gather the evidence on the fit (residuals per sensor, score tests of
     the fixed effects, the two halves) and judge it (:func:`run_checks`)."""
-    sensors = sensor_checks(fit.state, fit.inputs, noise, fit.solved)
-    effects = effect_evidence(
-        fit.state, fit.inputs, fit.report.variance_factor, cfg.model.imu_prior
-    )
-    split = split_half(fit.state, fit.inputs, cfg)
-    planes = map_uncertainty(fit.state, fit.inputs, fit.report, fit.solved)
+    # The map planes' uncertainty is computed in a second process meanwhile (each of the
+    # checks holds the GIL for most of its time).
+    with forked.start(map_uncertainty, fit.state, fit.inputs, fit.report, fit.solved) as pending:
+        sensors = sensor_checks(fit.state, fit.inputs, noise, fit.solved)
+        effects = effect_evidence(
+            fit.state, fit.inputs, fit.report.variance_factor, cfg.model.imu_prior
+        )
+        split = split_half(fit.state, fit.inputs, cfg)
+        planes = pending.result()
     notes: tuple[str, ...] = ()
     if guess.rotation_source == SINGLE_AXIS:
         notes = (

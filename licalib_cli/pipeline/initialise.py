@@ -53,6 +53,7 @@ from licalib_cli.odometry import (
     refine_odometry,
     run_odometry,
 )
+from licalib_cli.parallel import forked
 from licalib_cli.pipeline.settings import (
     NoiseLevels,
     hand_eye_config,
@@ -187,9 +188,9 @@ def lidar_odometry(
     ini = cfg.initialization
     gyro = GyroIntegrator.from_imu(rec.imu)
     t_c = 0.0 if ini.time_offset_s is None else float(ini.time_offset_s)
-    sweeps = prepare_sweeps(rec.scans, ocfg)
     cv_deg = _violent_motion_deg(rec, gyro, t_c)
     search: RotationSearch | None = None
+    sweeps: PreparedSweeps | None = None
     if cv_deg > VIOLENT_MOTION_DEG and (ini.rotation_rpy_deg is not None or ini.rotation_search):
         logger.info(
             "The rotation changes by %.1f deg (median) from one scan interval to the next: the "
@@ -204,6 +205,7 @@ def lidar_odometry(
             except ExcitationError as err:
                 logger.info("Rotation search not possible: %s", err)
             rot = search.R_imu_lidar if search is not None and _unambiguous(search) else None
+        sweeps = prepare_sweeps(rec.scans, ocfg)
         if rot is not None:
             # A searched rotation is a few degrees off and the next round redoes the
             # registration with hand-eye's: one pass is enough for that hand-eye.
@@ -218,8 +220,17 @@ def lidar_odometry(
                 progress=progress,
             )
             return Odometry(None, refined, sweeps, search, rot, t_c, cv_deg)
-    kiss = run_odometry(rec.scans, ocfg, progress=progress)
-    refined = refine_odometry(rec.scans, kiss, ocfg, prepared=sweeps)
+    if sweeps is None and forked.enabled():
+        # kiss-icp in a second process while this one imports open3d and prepares the scans
+        # for the refinement (both hold the GIL); the progress then follows the refinement.
+        with forked.start(run_odometry, rec.scans, ocfg) as pending:
+            sweeps = prepare_sweeps(rec.scans, ocfg)
+            kiss = pending.result()
+        refined = refine_odometry(rec.scans, kiss, ocfg, prepared=sweeps, progress=progress)
+    else:
+        kiss = run_odometry(rec.scans, ocfg, progress=progress)
+        sweeps = sweeps or prepare_sweeps(rec.scans, ocfg)
+        refined = refine_odometry(rec.scans, kiss, ocfg, prepared=sweeps)
     return Odometry(kiss, refined, sweeps, search, None, 0.0, cv_deg)
 
 

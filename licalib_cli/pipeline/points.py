@@ -19,7 +19,7 @@ from licalib_cli.errors import ConfigError, DataError
 from licalib_cli.estimation import CalibrationState, LidarPoints
 from licalib_cli.measurements import LidarScan
 from licalib_cli.models.lidar import lidar_point, nominal_point
-from licalib_cli.spline.threads import map_slices
+from licalib_cli.parallel.threads import map_slices
 
 __all__ = [
     "PointSample",

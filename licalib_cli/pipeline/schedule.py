@@ -300,11 +300,20 @@ def run_schedule(
     mapped: MappedSample | None = None  # the last round's points mapped with its estimate
     previous: Change | None = None  # the change of the round before
     crawl_steps = 0
+    final = cfg.surfels.final_points_per_scan
+    if final is not None:
+        final = points_per_scan(cfg, len(rec.scans), final)
+    dense_after = final is not None and final > points_per_scan(cfg, len(rec.scans))
     for index in range(1, sch.max_rounds + 1):
         before = state
         solved = None  # the previous round's evaluation is not kept while this one runs
         done = run_round(
-            state, sample, imu, round_settings(cfg, noise, max_dist, intrinsics_on), index, mapped
+            state,
+            sample,
+            imu,
+            round_settings(cfg, noise, max_dist, intrinsics_on, provisional=dense_after),
+            index,
+            mapped,
         )
         state, summary, report, inputs = done.state, done.summary, done.report, done.inputs
         solved, mapped = done.solved, done.mapped
@@ -389,16 +398,14 @@ def run_schedule(
             len(rounds),
             sch.max_rounds,
         )
-    final = cfg.surfels.final_points_per_scan
-    if final is not None:
-        final = points_per_scan(cfg, len(rec.scans), final)
     final_unsettled = False
-    if final is not None and final > points_per_scan(cfg, len(rec.scans)):
+    if dense_after:
         # One more round on a denser sample from the settled estimate: the uncertainty of the
         # time offset and the translation shrinks with the number of points. The denser data
         # may also determine a direction the regular rounds held (below the truncation
         # threshold there): a move of many of its own sigmas is then checked by another dense
         # round on a map rebuilt at the moved estimate, as the regular rounds are.
+        assert final is not None
         dense = sample_points(rec.scans, phi, final, cfg, seed=1)
         solved = mapped = None
         for attempt in range(1, MAX_FINAL_ROUNDS + 1):

@@ -156,7 +156,9 @@ def noise_model(cfg: CalibConfig, noise: NoiseLevels) -> NoiseModel:
     )
 
 
-def lm_params(cfg: CalibConfig, max_iterations: int | None = None) -> LMParams:
+def lm_params(
+    cfg: CalibConfig, max_iterations: int | None = None, cost_tolerance: float = 0.0
+) -> LMParams:
     """Levenberg-Marquardt settings of a round."""
     return LMParams(
         max_iterations=cfg.schedule.iterations_per_round
@@ -164,6 +166,7 @@ def lm_params(cfg: CalibConfig, max_iterations: int | None = None) -> LMParams:
         else max_iterations,
         initial_lambda=1e-6,
         min_decrease=0.1,
+        cost_tolerance=cost_tolerance,
         use_tsvd=cfg.solver.use_tsvd,
         tsvd_threshold=cfg.solver.tsvd_threshold,
     )
@@ -281,15 +284,32 @@ class RoundSettings:
     margin_s: float
 
 
+PROVISIONAL_COST_TOLERANCE = 0.1
+"""Cost (half the whitened chi-square) a provisional round's next step must still remove:
+stopping there leaves the estimate within about ``sqrt(2 * 0.1)``, 0.45, of a sigma of that
+round's optimum along the direction the step would take."""
+
+
 def round_settings(
-    cfg: CalibConfig, noise: NoiseLevels, max_distance_m: float, intrinsics: bool
+    cfg: CalibConfig,
+    noise: NoiseLevels,
+    max_distance_m: float,
+    intrinsics: bool,
+    *,
+    provisional: bool = False,
 ) -> RoundSettings:
     """The settings of a round associating within ``max_distance_m``, with the intrinsics of
-    the ``model:`` section free when ``intrinsics``."""
+    the ``model:`` section free when ``intrinsics``.
+
+    A ``provisional`` round is followed by another on a map rebuilt from its estimate (and, when
+    the estimate settles, by the denser final round): its solve stops once a step would lower
+    the cost by less than :data:`PROVISIONAL_COST_TOLERANCE`, the last few tenths of a sigma
+    being left to the rounds after it."""
+    tolerance = PROVISIONAL_COST_TOLERANCE if provisional else 0.0
     return RoundSettings(
         surfels=surfel_config(cfg, noise, max_distance_m),
         weights=noise_model(cfg, noise),
-        solver=lm_params(cfg),
+        solver=lm_params(cfg, cost_tolerance=tolerance),
         free=free_parameters(cfg, intrinsics),
         margin_s=spline_margin_s(cfg),
     )

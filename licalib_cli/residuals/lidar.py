@@ -19,7 +19,7 @@ If a time-offset step moves a query time outside the spline range, that point's 
 
 The points are evaluated in blocks of the splines' block size (8192), each from the spline
 evaluation to its whitened derivatives, written into its own rows of preallocated outputs; the
-blocks share the threads of :mod:`licalib_cli.spline.threads` and give bit-for-bit what one
+blocks share the threads of :mod:`licalib_cli.parallel.threads` and give bit-for-bit what one
 evaluation of all points gives.
 """
 
@@ -41,6 +41,7 @@ from licalib_cli.models.lidar import (
     nominal_intrinsics_array,
     point_to_plane,
 )
+from licalib_cli.parallel.threads import map_slices
 from licalib_cli.residuals import (
     EXT_ROTATION,
     EXT_TRANSLATION,
@@ -53,7 +54,6 @@ from licalib_cli.residuals import (
 )
 from licalib_cli.solver.problem import DenseJacobian, ResidualEval
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
-from licalib_cli.spline.threads import map_slices
 
 __all__ = ["PointToPlaneResidual"]
 
@@ -289,7 +289,7 @@ class PointToPlaneResidual:
 
         # Blocks of the spline evaluations' size, each from the splines to its whitened
         # derivatives while its arrays are in cache, shared by the threads of
-        # licalib_cli.spline.threads (the splines evaluate each block serially there).
+        # licalib_cli.parallel.threads (the splines evaluate each block serially there).
         map_slices(block, n)
         if not all_inside:
             r = np.where(inside, r, np.inf)

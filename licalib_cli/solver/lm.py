@@ -96,6 +96,9 @@ class LMParams:
             in characteristic scales).
         gradient_tolerance: Converged when ``max_i |g_i| * scale_i`` is below this (cost per
             characteristic scale).
+        cost_tolerance: Converged when the next step is predicted to reduce the cost by less
+            than this (absolute, in the cost's units: half the whitened chi-square); 0 leaves it
+            to ``function_tolerance``.
         use_tsvd: Solve the calibration step with the truncated SVD (else a plain damped solve).
         tsvd_threshold: ``epsilon`` on the singular values of the scaled Schur complement
             ``S_d``; absolute by default (1.0 = standard deviation of one characteristic scale).
@@ -116,6 +119,7 @@ class LMParams:
     function_tolerance: float = 1e-8
     step_tolerance: float = 1e-6
     gradient_tolerance: float = 1e-10
+    cost_tolerance: float = 0.0
     use_tsvd: bool = True
     tsvd_threshold: float = 1.0
     tsvd_relative: bool = False
@@ -409,9 +413,12 @@ def solve_with_linearization(
             status = "converged"
             reason = f"step {step_norm:.3g} below step_tolerance"
             break
-        if step.predicted_reduction <= params.function_tolerance * cost:
+        tolerance = max(params.function_tolerance * cost, params.cost_tolerance)
+        if step.predicted_reduction <= tolerance:
             status = "converged"
-            reason = "predicted cost reduction below function_tolerance"
+            reason = "predicted cost reduction below " + (
+                "cost_tolerance" if tolerance == params.cost_tolerance else "function_tolerance"
+            )
             break
         trial_values = problem.retracted_values(step.dx, layout)
         trial = problem.evaluate(trial_values, jacobians=True)

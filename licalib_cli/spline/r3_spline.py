@@ -21,8 +21,8 @@ import numpy.typing as npt
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from licalib_cli.parallel.threads import map_slices
 from licalib_cli.spline.knots import BASIS_MATRIX, UniformKnots, _weights_by_row, blending
-from licalib_cli.spline.threads import map_slices
 
 __all__ = ["R3Spline", "R3SplineEval"]
 
@@ -129,7 +129,7 @@ class R3Spline:
                 assert out is not None
                 out[sl] = value.T
 
-        # blocks write disjoint slices; see licalib_cli.spline.threads
+        # blocks write disjoint slices; see licalib_cli.parallel.threads
         map_slices(block, m)
         ws: list[FloatArray | None] = [wbuf[k].T if k < len(wbuf) else None for k in range(4)]
         assert outs[0] is not None and ws[0] is not None

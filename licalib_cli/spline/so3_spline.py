@@ -35,7 +35,7 @@ cache, and numpy's per-call overhead is spread over enough queries (smaller bloc
 slower). The only Python loops are over the 3 segments of a cubic spline and over those blocks. The
 blocks are independent (each writes its own slices of preallocated outputs, and the VJP terms are
 collected in block order), so with two or more blocks they are shared between the threads of
-:mod:`licalib_cli.spline.threads` (numpy releases the GIL in its loops); every block computes what
+:mod:`licalib_cli.parallel.threads` (numpy releases the GIL in its loops); every block computes what
 the serial loop computes, so the results are bit-for-bit the same. ``LICALIB_THREADS=1`` runs the
 serial loop.
 """
@@ -57,8 +57,8 @@ from licalib_cli.geometry.so3 import (
     _sin_over_theta,
     _theta_minus_sin_over_theta3,
 )
+from licalib_cli.parallel.threads import map_blocks, map_slices
 from licalib_cli.spline.knots import UniformKnots, cumulative_blending
-from licalib_cli.spline.threads import map_blocks, map_slices
 
 __all__ = ["SO3EvaluationCache", "SO3RotationVJP", "SO3Spline", "SO3SplineEval"]
 

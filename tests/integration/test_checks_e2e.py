@@ -239,3 +239,30 @@ def test_a_segment_too_short_to_split_says_so(
     assert split["status"] == "not run"
     assert "too short to split" in split["reason"]
     assert "Split-half check not run" in printed
+
+
+def test_checks_in_a_forked_process_give_the_same_sigmas(
+    clean_sim: SimulationOutput, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The map planes' uncertainty computed in a second process while the other checks run
+    here gives the checks of one process, number for number."""
+    from licalib_cli.config import load_config
+    from licalib_cli.parallel import threads as thr
+    from licalib_cli.pipeline import Timer, prepare
+    from licalib_cli.pipeline.checks import check
+    from licalib_cli.pipeline.schedule import run_schedule
+    from licalib_cli.progress import NullProgress
+
+    cfg = load_config(CONFIG)
+    progress = NullProgress()
+    prepared = prepare(clean_sim.bag_path, cfg, progress, Timer())
+    fit = run_schedule(prepared.rec, prepared.guess, prepared.noise, cfg, progress)
+    outcome = {}
+    for threads in (1, 2):
+        monkeypatch.setattr(thr, "THREADS", threads)
+        outcome[threads] = check(fit, prepared.guess, prepared.noise, cfg)
+    here, there = outcome[1], outcome[2]
+    assert here.planes is not None and there.planes is not None
+    np.testing.assert_array_equal(there.raw_sigma, here.raw_sigma)
+    assert there.uncertainty == here.uncertainty
+    assert there.verdict == here.verdict

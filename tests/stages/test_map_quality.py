@@ -8,7 +8,7 @@ import pytest
 
 from licalib_cli.errors import DataError
 from licalib_cli.map_quality import mean_map_entropy, plane_thickness, point_entropies
-from licalib_cli.spline import threads as thr
+from licalib_cli.parallel import threads as thr
 from licalib_cli.surfels import Association
 
 

@@ -29,10 +29,10 @@ from licalib_cli.odometry import (
     refine_odometry,
     run_odometry,
 )
+from licalib_cli.parallel import threads as thr
 from licalib_cli.simulation.ground_truth import build_setup
 from licalib_cli.simulation.simulate import simulate
 from licalib_cli.simulation.spec import IntrinsicsMode, Scenario, SimulationSpec
-from licalib_cli.spline import threads as thr
 
 SCAN_PERIOD_NS = 100_000_000
 T0_NS = 1_700_000_000_000_000_000
@@ -382,3 +382,33 @@ def test_gyro_aided_refinement_follows_a_long_lever_arm(tmp_path: Path) -> None:
         step = _step_errors_deg(poses, Rotation.from_matrix(setup.lidar_pose_at(t)[0]))
         assert np.median(step) < 0.09, (passes, step)
         assert np.percentile(step, 90) < 0.15, (passes, step)
+
+
+def test_kiss_icp_in_a_forked_process_gives_the_same_odometry(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The segment's odometry with kiss-icp run in a second process while the scans are
+    prepared here, against everything in this process: the same poses (kiss-icp's own threads
+    sum in any order: 4e-15 from run to run)."""
+    from licalib_cli.pipeline.initialise import lidar_odometry
+
+    spec = SimulationSpec(
+        scenario=Scenario.SINUSOID,
+        duration_s=2.0,
+        seed=4,
+        intrinsics=IntrinsicsMode.NONE,
+        azimuth_resolution_deg=0.8,
+    )
+    out = simulate(spec, tmp_path)
+    cfg = load_config(None)
+    rec = read_segment(out.bag_path, cfg)
+    runs = {}
+    for threads in (1, 2):
+        monkeypatch.setattr(thr, "THREADS", threads)
+        runs[threads] = lidar_odometry(rec, cfg)
+    here, there = runs[1], runs[2]
+    assert here.kiss is not None and there.kiss is not None
+    np.testing.assert_allclose(there.kiss.T_map_lidar, here.kiss.T_map_lidar, atol=1e-9)
+    np.testing.assert_allclose(there.refined.T_map_lidar, here.refined.T_map_lidar, atol=1e-9)
+    for a, b in zip(there.sweeps.sweeps, here.sweeps.sweeps, strict=True):
+        np.testing.assert_array_equal(a.normals, b.normals)

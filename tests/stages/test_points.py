@@ -26,6 +26,7 @@ from licalib_cli.geometry.so3 import exp as so3_exp
 from licalib_cli.measurements import LidarScan
 from licalib_cli.models.intrinsics import LidarIntrinsics
 from licalib_cli.models.lidar import lidar_point, nominal_point
+from licalib_cli.parallel import threads as thr
 from licalib_cli.pipeline.points import (
     points_in_global,
     query_times,
@@ -33,7 +34,6 @@ from licalib_cli.pipeline.points import (
     solver_points,
 )
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
-from licalib_cli.spline import threads as thr
 
 TABLE = np.radians(np.arange(-15.0, 16.0, 2.0))
 T0_NS = 5_000_000_000

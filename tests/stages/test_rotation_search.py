@@ -19,6 +19,7 @@ from licalib_cli.initialization.single_axis import single_axis_rotation
 from licalib_cli.io.reader import read_segment
 from licalib_cli.measurements import ImuSamples
 from licalib_cli.odometry import PoseSeries
+from licalib_cli.parallel import threads as thr
 from licalib_cli.pipeline.initialise import (
     SINGLE_AXIS,
     align_rotation_and_time,
@@ -28,7 +29,6 @@ from licalib_cli.pipeline.initialise import (
 from licalib_cli.simulation.ground_truth import build_setup
 from licalib_cli.simulation.simulate import simulate
 from licalib_cli.simulation.spec import IntrinsicsMode, Mounting, Scenario, SimulationSpec
-from licalib_cli.spline import threads as thr
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:

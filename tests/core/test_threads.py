@@ -10,6 +10,8 @@ import pytest
 from licalib_cli.geometry import so3
 from licalib_cli.geometry.so3 import quat_exp
 from licalib_cli.models.lidar import nominal_intrinsics_array
+from licalib_cli.parallel import threads as thr
+from licalib_cli.parallel.threads import BLOCK
 from licalib_cli.residuals import (
     EXT_ROTATION,
     EXT_TRANSLATION,
@@ -20,8 +22,6 @@ from licalib_cli.residuals import (
     PointToPlaneResidual,
 )
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
-from licalib_cli.spline import threads as thr
-from licalib_cli.spline.threads import BLOCK
 
 # several blocks and a partial last one
 NUM_QUERIES = 3 * BLOCK + 1234
@@ -210,7 +210,7 @@ def test_licalib_threads_from_the_environment(
     """``LICALIB_THREADS``: a positive whole number is taken as is; anything else runs serially
     and says so in one sentence; unset, two threads (one on a single usable core)."""
     monkeypatch.setenv("LICALIB_THREADS", value)
-    with caplog.at_level("WARNING", logger="licalib_cli.spline.threads"):
+    with caplog.at_level("WARNING", logger="licalib_cli.parallel.threads"):
         assert thr._threads_from_env() == expected
     assert any("LICALIB_THREADS" in r.getMessage() for r in caplog.records) is warns
     monkeypatch.delenv("LICALIB_THREADS")
