@@ -121,7 +121,8 @@ def test_a_clock_drift_the_score_test_finds_is_estimated_not_truncated(
     # where the truth's offset (at the first sample) is compared
     result = CalibrationResult.load(out / "calibration.yaml")
     assert result.extra_terms is not None and result.recording is not None
-    assert result.extra_terms.clock_drift == pytest.approx(drift, rel=1e-5)  # the JSON prints 6 digits
+    # the JSON prints 6 digits
+    assert result.extra_terms.clock_drift == pytest.approx(drift, rel=1e-5)
     assert result.intrinsics_uncertainty is not None
     assert result.intrinsics_uncertainty.values["clock_drift"][0] is not None
     middle = result.recording.start_ns + 0.5e9 * result.recording.duration_s
