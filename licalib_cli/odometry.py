@@ -369,8 +369,18 @@ def _voxel_first(xyz: npt.NDArray[np.float64], voxel: float) -> npt.NDArray[np.i
     keys -= keys.min(axis=0)
     span = keys.max(axis=0) + 1
     flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
-    _, first = np.unique(flat, return_index=True)
-    return np.sort(first)
+    n = flat.shape[0]
+    if n == 0 or int(flat.max()) >= (2**62) // n:
+        _, first = np.unique(flat, return_index=True)
+        return np.sort(first)
+    # Voxel and index in one int64 (an unstable sort of plain integers is several times faster
+    # than the stable argsort np.unique's indices need): the smallest index of every voxel
+    # comes first in its run.
+    packed = np.sort(flat * n + np.arange(n, dtype=np.int64))
+    voxel_of = packed // n
+    starts = np.ones(n, dtype=bool)
+    starts[1:] = voxel_of[1:] != voxel_of[:-1]
+    return np.sort(packed[starts] % n)
 
 
 def _log(T: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
@@ -413,6 +423,13 @@ def _deskew(
     return pts, nrm
 
 
+_SETTLED_ROTATION_RAD = 3e-4
+_SETTLED_TRANSLATION_M = 1e-3
+"""A sweep's registration stops once a step turns it by less than 0.3 mrad and moves each of its
+two positions by less than 1 mm. The positions' steps level off at a few tenths of a millimetre
+(nearest map points switching from step to step) while the rotation keeps converging; a finer
+translation limit was reached by few sweeps, which then ran all ``refine.max_iterations``."""
+
 _BEGIN_PRIOR = 1e-3
 """Weight of the sweep's start position at the previous scan's end, relative to the summed
 weights of the matched points (:func:`_register_with_sweep_motion`)."""
@@ -435,8 +452,9 @@ def _register_with_sweep_motion(
     ``R y + w p + (1 - w) p_begin`` in the map, with ``w`` its ``end_weight``. ``R``, ``p`` and
     ``p_begin`` are estimated together (Gauss-Newton, Tukey weights of scale
     ``refine.robust_scale``, nearest map points within ``correspondence`` found again every
-    step, at most ``refine.max_iterations`` steps, fewer once a step moves less than 0.3 mm and
-    0.3 mrad), ``p_begin`` held softly at ``p_before`` (:data:`_BEGIN_PRIOR`).
+    step, at most ``refine.max_iterations`` steps, fewer once a step moves less than 1 mm and
+    0.3 mrad: :data:`_SETTLED_ROTATION_RAD`), ``p_begin`` held softly at ``p_before``
+    (:data:`_BEGIN_PRIOR`).
 
     On hand-held shaking the LiDAR's translation turns from one sweep to the next (the more so
     the longer the lever arm): a translation deskewed with the previous motion, even once
@@ -493,9 +511,11 @@ def _register_with_sweep_motion(
         rot = Rotation.from_rotvec(step[:3]).as_matrix() @ rot
         pos = pos + step[3:6]
         beg = beg + step[6:]
-        if np.linalg.norm(step[:3]) < 3e-4 and np.linalg.norm(step[3:]) < 3e-4:
-            break
-    _, ok, _ = correspondences()
+        moved = max(float(np.linalg.norm(step[3:6])), float(np.linalg.norm(step[6:])))
+        if np.linalg.norm(step[:3]) < _SETTLED_ROTATION_RAD and moved < _SETTLED_TRANSLATION_M:
+            break  # the fitness is that of this step's correspondences (it moved so little)
+    else:
+        _, ok, _ = correspondences()
     out = np.eye(4)
     out[:3, :3], out[:3, 3] = rot, pos
     return out, beg, float(ok.shape[0]) / max(y.shape[0], 1)

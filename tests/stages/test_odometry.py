@@ -412,3 +412,17 @@ def test_kiss_icp_in_a_forked_process_gives_the_same_odometry(
     np.testing.assert_allclose(there.refined.T_map_lidar, here.refined.T_map_lidar, atol=1e-9)
     for a, b in zip(there.sweeps.sweeps, here.sweeps.sweeps, strict=True):
         np.testing.assert_array_equal(a.normals, b.normals)
+
+
+@pytest.mark.parametrize("voxel", [0.05, 0.5, 3.0])
+def test_voxel_first_keeps_the_first_point_of_every_voxel(voxel: float) -> None:
+    """The packed sort gives np.unique's first index per voxel, in ascending order."""
+    from licalib_cli.odometry import _voxel_first
+
+    rng = np.random.default_rng(3)
+    xyz = np.concatenate([rng.normal(scale=15.0, size=(5000, 3)), np.zeros((7, 3))])
+    xyz = xyz[rng.permutation(xyz.shape[0])]
+    keys = np.floor(xyz / voxel).astype(np.int64)
+    _, expected = np.unique(keys, axis=0, return_index=True)
+    np.testing.assert_array_equal(_voxel_first(xyz, voxel), np.sort(expected))
+    np.testing.assert_array_equal(_voxel_first(xyz[:1], voxel), [0])
