@@ -156,7 +156,8 @@ def planes_free_steps(
     and a function of a step fraction that gives the stepped estimate and its problem. The
     fractions :data:`STEP_FRACTIONS` are tried in turn; the first whose cost is lower is kept.
     At most :data:`MAX_STEPS` steps; the steps stop when one would gain, or gained, less than
-    :data:`RELATIVE_DECREASE` of the cost.
+    :data:`RELATIVE_DECREASE` of the cost, or when the next is expected to (its gain taken as
+    this step's times the ratio of this step's gain to the one before's).
 
     Args:
         problem: the problem at ``current``.
@@ -169,6 +170,7 @@ def planes_free_steps(
     """
     cost = cost_start = problem.evaluate(jacobians=False).cost
     steps = 0
+    previous = 0.0  # what the step before gained
     for _ in range(MAX_STEPS):
         cost, step, trial_at = step_at(problem, current)
         if step.predicted_reduction <= RELATIVE_DECREASE * cost:
@@ -193,7 +195,13 @@ def planes_free_steps(
             cost - step.predicted_reduction,
             step.num_truncated,
         )
-        done = cost - new_cost < RELATIVE_DECREASE * cost
+        gained = cost - new_cost
+        # Gauss-Newton converges linearly here (the planes and the range intrinsics' common
+        # mode trade off): the next step would gain about gained * (gained / the step before's);
+        # when that is below the tolerance it is not worth a linearisation.
+        expected = gained * gained / previous if previous > 0.0 else np.inf
+        done = min(gained, expected) < RELATIVE_DECREASE * cost
+        previous = gained
         cost = new_cost
         if done:
             break

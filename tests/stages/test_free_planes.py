@@ -56,3 +56,37 @@ def test_an_offset_step_moves_the_plane_along_its_normal_at_the_centroid() -> No
     moved = stepped_planes(planes, centroid, dp)
     np.testing.assert_allclose(moved.normal, planes.normal)
     np.testing.assert_allclose(moved.d - planes.d, 0.004)
+
+
+class _Cost:
+    """A stand-in for a problem: only its cost is read by planes_free_steps."""
+
+    def __init__(self, cost: float) -> None:
+        self.cost = cost
+
+    def evaluate(self, jacobians: bool = False) -> _Cost:
+        return self
+
+
+def test_planes_free_steps_stop_when_the_next_step_is_expected_to_gain_too_little() -> None:
+    """Linear convergence (each step gains a thousandth of the one before): after the second
+    step the third is expected to gain 1e-4 of a cost of 1000, below the 1e-6 relative
+    tolerance, so it is not linearised; the first step's own gain keeps the steps going."""
+    from types import SimpleNamespace
+
+    from licalib_cli.pipeline.free_planes import planes_free_steps
+
+    def cost(k: int) -> float:
+        return 1000.0 + 100.0 * 0.001**k
+
+    calls: list[int] = []
+
+    def step_at(problem: _Cost, k: int):  # type: ignore[no-untyped-def]
+        calls.append(k)
+        step = SimpleNamespace(predicted_reduction=cost(k) - cost(k + 1), num_truncated=0)
+        return cost(k), step, lambda fraction: (k + 1, _Cost(cost(k + 1)))
+
+    final, problem, steps, start = planes_free_steps(_Cost(cost(0)), 0, step_at, "step")
+    assert calls == [0, 1]
+    assert (final, steps, start) == (2, 2, cost(0))
+    assert problem.cost == cost(2)
