@@ -241,22 +241,29 @@ def test_a_segment_too_short_to_split_says_so(
     assert "Split-half check not run" in printed
 
 
-def test_checks_in_a_forked_process_give_the_same_sigmas(
-    clean_sim: SimulationOutput, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """The map planes' uncertainty computed in a second process while the other checks run
-    here gives the checks of one process, number for number."""
+@pytest.fixture(scope="module")
+def clean_fit(clean_sim: SimulationOutput):  # type: ignore[no-untyped-def]
+    """The clean bag's prepared segment and its fit (the rounds, not the checks)."""
     from licalib_cli.config import load_config
-    from licalib_cli.parallel import threads as thr
     from licalib_cli.pipeline import Timer, prepare
-    from licalib_cli.pipeline.checks import check
     from licalib_cli.pipeline.schedule import run_schedule
     from licalib_cli.progress import NullProgress
 
     cfg = load_config(CONFIG)
-    progress = NullProgress()
-    prepared = prepare(clean_sim.bag_path, cfg, progress, Timer())
-    fit = run_schedule(prepared.rec, prepared.guess, prepared.noise, cfg, progress)
+    prepared = prepare(clean_sim.bag_path, cfg, NullProgress(), Timer())
+    fit = run_schedule(prepared.rec, prepared.guess, prepared.noise, cfg, NullProgress())
+    return cfg, prepared, fit
+
+
+def test_checks_in_a_forked_process_give_the_same_sigmas(
+    clean_fit: tuple, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The map planes' uncertainty computed in a second process while the other checks run
+    here gives the checks of one process, number for number."""
+    from licalib_cli.parallel import threads as thr
+    from licalib_cli.pipeline.checks import check
+
+    cfg, prepared, fit = clean_fit
     outcome = {}
     for threads in (1, 2):
         monkeypatch.setattr(thr, "THREADS", threads)
@@ -266,3 +273,19 @@ def test_checks_in_a_forked_process_give_the_same_sigmas(
     np.testing.assert_array_equal(there.raw_sigma, here.raw_sigma)
     assert there.uncertainty == here.uncertainty
     assert there.verdict == here.verdict
+
+
+def test_the_halves_are_compared_at_their_own_optima(
+    clean_fit: tuple, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each half is solved until it converges: more iterations do not change the comparison
+    (four, as once, stopped them short and pulled both towards the common start)."""
+    from licalib_cli.pipeline import split
+
+    cfg, _, fit = clean_fit
+    found = split.split_half(fit.state, fit.inputs, cfg)
+    monkeypatch.setattr(split, "_HALF_ITERATIONS", 40)
+    longer = split.split_half(fit.state, fit.inputs, cfg)
+    assert found.ran and longer.ran
+    assert found.chi2 == pytest.approx(longer.chi2, rel=1e-6, abs=1e-9)
+    np.testing.assert_allclose(found.difference, longer.difference, rtol=1e-6, atol=1e-12)
