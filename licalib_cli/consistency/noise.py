@@ -121,12 +121,13 @@ def range_noise(
     b = np.asarray(beam, dtype=np.int64).reshape(-1)
     az = np.mod(np.asarray(azimuth, dtype=np.float64).reshape(-1), 2 * np.pi)
     r = np.asarray(rho, dtype=np.float64).reshape(-1)
-    groups = (int(scan.max()) + 1) * max(num_beams, int(b.max()) + 1) if scan.size else 0
+    beams = max(num_beams, int(b.max()) + 1) if b.size else num_beams
+    groups = (int(scan.max()) + 1) * beams if scan.size else 0
     if 0 < groups < _PACKED_GROUPS and scan.min() >= 0 and b.min() >= 0:
         # (scan, beam, azimuth) as one float: the azimuth, below 8, in the group's own interval
         # of 8; one stable sort of it is what lexsort of the three keys gives, in a third of
         # the time (resolution at the largest key: 2e-9 rad).
-        order = np.argsort((scan * max(num_beams, int(b.max()) + 1) + b) * 8.0 + az, kind="stable")
+        order = np.argsort((scan * beams + b) * 8.0 + az, kind="stable")
     else:
         order = np.lexsort((az, b, scan))
     scan, b, az, r = scan[order], b[order], az[order], r[order]

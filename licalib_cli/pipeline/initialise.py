@@ -220,17 +220,15 @@ def lidar_odometry(
                 progress=progress,
             )
             return Odometry(None, refined, sweeps, search, rot, t_c, cv_deg)
-    if sweeps is None and forked.enabled():
+    if sweeps is None:
         # kiss-icp in a second process while this one imports open3d and prepares the scans
-        # for the refinement (both hold the GIL); the progress then follows the refinement.
+        # for the refinement (both hold the GIL); the progress follows the refinement.
         with forked.start(run_odometry, rec.scans, ocfg) as pending:
             sweeps = prepare_sweeps(rec.scans, ocfg)
             kiss = pending.result()
-        refined = refine_odometry(rec.scans, kiss, ocfg, prepared=sweeps, progress=progress)
     else:
-        kiss = run_odometry(rec.scans, ocfg, progress=progress)
-        sweeps = sweeps or prepare_sweeps(rec.scans, ocfg)
-        refined = refine_odometry(rec.scans, kiss, ocfg, prepared=sweeps)
+        kiss = run_odometry(rec.scans, ocfg)
+    refined = refine_odometry(rec.scans, kiss, ocfg, prepared=sweeps, progress=progress)
     return Odometry(kiss, refined, sweeps, search, None, 0.0, cv_deg)
 
 
