@@ -83,3 +83,18 @@ def test_leaving_the_block_stops_the_child(two_cores: None) -> None:
         pid = pending._pid
     with pytest.raises(ProcessLookupError):
         os.kill(pid, 0)  # reaped: no such process any more
+
+
+def _bad_scans() -> None:
+    from licalib_cli.errors import DataError
+
+    raise DataError("A LiDAR scan has no points; drop empty scans before odometry.")
+
+
+def test_a_user_error_in_the_child_keeps_its_class_and_sentence(two_cores: None) -> None:
+    """The command line turns licalib's errors into one sentence and an exit code by class: an
+    error raised in the child arrives as that class with that sentence."""
+    from licalib_cli.errors import DataError
+
+    with pytest.raises(DataError, match="^A LiDAR scan has no points; drop empty scans"):
+        forked.start(_bad_scans).result()
