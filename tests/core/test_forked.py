@@ -96,5 +96,5 @@ def test_a_user_error_in_the_child_keeps_its_class_and_sentence(two_cores: None)
     error raised in the child arrives as that class with that sentence."""
     from licalib_cli.errors import DataError
 
-    with pytest.raises(DataError, match="^A LiDAR scan has no points; drop empty scans"):
+    with pytest.raises(DataError, match=r"^A LiDAR scan has no points; drop empty scans"):
         forked.start(_bad_scans).result()
