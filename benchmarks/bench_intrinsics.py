@@ -18,6 +18,7 @@ Examples::
     .venv/bin/python benchmarks/bench_intrinsics.py --lidar os1-64 --seeds 0 1 2
     .venv/bin/python benchmarks/bench_intrinsics.py --duration 15 --seeds 0   # the speed case
     .venv/bin/python benchmarks/bench_intrinsics.py --intrinsics-mode none --model none
+    .venv/bin/python benchmarks/bench_intrinsics.py --scenario shake --lidar os1-64 --model lidar
     .venv/bin/python benchmarks/bench_intrinsics.py --seeds 1 \
         --set surfels.final_points_per_scan=8000
 
@@ -67,7 +68,7 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
     from licalib_cli.simulation import SimulationSpec, simulate
 
     spec = SimulationSpec(
-        scenario="sinusoid",
+        scenario=args.scenario,
         lidar=args.lidar,
         fmt=args.format,
         duration_s=args.duration,
@@ -171,6 +172,12 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--seeds", type=int, nargs="+", default=list(range(10)))
     p.add_argument("--lidar", default="vlp16")
+    p.add_argument(
+        "--scenario",
+        default="sinusoid",
+        choices=["sinusoid", "shake"],
+        help="motion: the paper's sinusoid (the targets) or a hand-held shake",
+    )
     p.add_argument("--format", default="ros1")
     p.add_argument("--duration", type=float, default=10.0)
     p.add_argument("--model", default="all", choices=["none", "imu", "lidar", "all"])

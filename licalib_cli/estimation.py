@@ -712,8 +712,8 @@ def parameter_blocks(
     Args:
         state: the state (initial values).
         free: what may change (default :class:`FreeParameters`).
-        beam_counts: (B,) points per beam, for the LiDAR intrinsics mask (default: all beams
-            fixed unless ``free.lidar_intrinsics`` and counts are given).
+        beam_counts: (B,) points per beam, for the LiDAR intrinsics mask (None: no points,
+            every beam's intrinsics fixed).
         fix_gauge: hold the first rotation and first two position control points (IMU-only
             problems with a free trajectory).
 
@@ -727,12 +727,7 @@ def parameter_blocks(
         g_sensitivity=free.imu_block_free(GYRO_G_SENSITIVITY) or None,
         effects=free_effect_blocks(free),
     )
-    n_beams = state.lidar_intrinsics.num_beams
-    counts = (
-        np.zeros(n_beams, dtype=np.int64)
-        if beam_counts is None
-        else np.asarray(beam_counts, dtype=np.int64)
-    )
+    counts = None if beam_counts is None else np.asarray(beam_counts, dtype=np.int64)
     gauge = {TRAJ_SO3: 3, TRAJ_R3: 6}  # leading coordinates held by fix_gauge
     blocks = []
     for spec in BLOCK_SPECS:
@@ -742,15 +737,17 @@ def parameter_blocks(
         if spec.name in gauge and free.trajectory and fix_gauge:
             fixed = np.zeros(3 * state.knots.num_control_points, dtype=bool)
             fixed[: gauge[spec.name]] = True
-        elif spec.name == LIDAR_INTRINSICS:
+        elif spec.name == LIDAR_INTRINSICS and counts is not None:
             fixed = _lidar_fixed_mask(counts, free)
+        elif spec.name == LIDAR_INTRINSICS:
+            fixed = True  # no points: nothing to estimate them from, and nothing to name
         blocks.append(
             ParameterBlock(
                 spec.name,
                 values[spec.name],
                 manifold=spec.manifold,
                 group=spec.group,
-                coord_names=spec.coord_names(n_beams),
+                coord_names=spec.coord_names(state.lidar_intrinsics.num_beams),
                 scale=np.asarray(CALIBRATION_SCALES[spec.name], dtype=np.float64),
                 fixed=fixed,
             )
@@ -816,7 +813,9 @@ def build_problem(
         fix_gauge = free.trajectory and not has_lidar
     counts = beam_point_counts(lidar, state.lidar_intrinsics.num_beams)
     problem = Problem()
-    for block in parameter_blocks(state, free, beam_counts=counts, fix_gauge=fix_gauge):
+    for block in parameter_blocks(
+        state, free, beam_counts=counts if has_lidar else None, fix_gauge=fix_gauge
+    ):
         problem.add_parameter_block(block)
     use_gs = GYRO_G_SENSITIVITY in problem
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+from collections import Counter
 from functools import cache
 from typing import TYPE_CHECKING
 
@@ -61,6 +63,41 @@ def render_checks(consistency: Consistency) -> Table:
     return table
 
 
+_MAX_INTRINSIC_DIRECTIONS = 3
+"""Intrinsic-only unobservable directions printed one by one; more are summarised."""
+
+_BEAM_COORDINATE = re.compile(r"lidar\.intrinsics\[\d+\]\.(\w+)")
+_BEAM_KIND = {
+    "dphi": "elevation",
+    "dtheta": "azimuth",
+    "V": "vertical offset",
+    "H": "horizontal offset",
+    "s": "range scale",
+    "drho": "range offset",
+}
+
+
+def unobservable_lines(texts: tuple[str, ...] | list[str]) -> list[str]:
+    """The unobservable directions as printed: every one that involves the extrinsic or the
+    time offset, and the intrinsic-only ones one by one up to
+    :data:`_MAX_INTRINSIC_DIRECTIONS`; beyond that one line counts them by the beam
+    coordinate that leads each (the result file lists them all)."""
+    about_extrinsic = [t for t in texts if "ext." in t.split(":", 1)[0]]
+    intrinsic = [t for t in texts if "ext." not in t.split(":", 1)[0]]
+    if len(intrinsic) <= _MAX_INTRINSIC_DIRECTIONS:
+        return about_extrinsic + intrinsic
+    kinds: Counter[str] = Counter()
+    for t in intrinsic:
+        lead = _BEAM_COORDINATE.search(t.split(":", 1)[0])
+        kinds[_BEAM_KIND.get(lead.group(1), lead.group(1)) if lead else "IMU intrinsics"] += 1
+    led = ", ".join(f"{n} by {k}" for k, n in kinds.most_common())
+    return [
+        *about_extrinsic,
+        f"{len(intrinsic)} directions of the intrinsics alone ({led}) stay at their initial "
+        "values; the result file lists each (observability.unobservable).",
+    ]
+
+
 def render_run(run: CalibrationRun, truth: Truth | None) -> None:
     """Print the estimate table, the checks, the observability findings, the verdict and the
     stage timings."""
@@ -92,8 +129,8 @@ def render_run(run: CalibrationRun, truth: Truth | None) -> None:
         for why in r.consistency.inflation:
             out.print(f"Sigmas enlarged {why}.")
     if r.observability is not None:
-        for text in r.observability.unobservable:
-            out.print(f"[yellow]Not observable:[/] {text}")
+        for text in unobservable_lines(r.observability.unobservable):
+            out.print(f"[yellow]Not observable:[/] {escape(text)}")
     for finding in run.checks.findings:
         if finding.severity == "note":
             out.print(f"Note: {finding.text}")

@@ -4,6 +4,7 @@ planes."""
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -182,6 +183,18 @@ def test_imu_only_free_trajectory_holds_the_gauge() -> None:
     planes = Planes(np.array([[0.0, 0.0, 1.0]]), np.array([1.0]))
     with_lidar = build_problem(state, imu, pts, planes)
     assert with_lidar[TRAJ_SO3].num_free == with_lidar[TRAJ_SO3].size
+
+
+def test_imu_only_problem_names_no_beam(caplog: pytest.LogCaptureFixture) -> None:
+    """Without LiDAR points the beams' intrinsics are fixed, and no beam is reported as having
+    too few points (the report's IMU residuals build such a problem after every calibration)."""
+    so3, r3 = _true_splines(1.0, 0.1)
+    state = _state(so3, r3)
+    imu = ImuData(np.linspace(0.0, 0.9, 10), np.zeros((10, 3)), np.zeros((10, 3)))
+    with caplog.at_level(logging.INFO, logger="licalib_cli.estimation"):
+        problem = build_problem(state, imu, None, None, free=FreeParameters(lidar_intrinsics=True))
+    assert problem[LIDAR_INTRINSICS].num_free == 0
+    assert "stay fixed" not in caplog.text
 
 
 def test_build_problem_checks_spline_coverage() -> None:
