@@ -16,6 +16,7 @@ Examples::
     .venv/bin/python benchmarks/bench_consistency.py --list          # the cases, no run
     .venv/bin/python benchmarks/bench_consistency.py --jobs 2        # two runs at a time
     .venv/bin/python benchmarks/bench_consistency.py --first-seed 300  # the same cases, new bags
+    .venv/bin/python benchmarks/bench_consistency.py --model lidar     # LiDAR intrinsics estimated
 
 Each run happens in a fresh subprocess; rows print as they finish (JSON with ``--json``).
 """
@@ -119,7 +120,7 @@ def _rotation_error_lidar(r_est, r_true):
 def one_run(case: dict, workdir: Path) -> dict:
     import numpy as np
 
-    from licalib_cli.config import load_config
+    from licalib_cli.config import INTRINSIC_PRESETS, load_config
     from licalib_cli.pipeline import calibrate
     from licalib_cli.simulation import SimulationSpec, simulate
 
@@ -144,7 +145,8 @@ def one_run(case: dict, workdir: Path) -> dict:
     t0 = time.perf_counter()
     out = simulate(spec, workdir / f"run{case['seed']}", force=True)
     sim_s = time.perf_counter() - t0
-    cfg = load_config(None)
+    imu_blocks, lidar_blocks = INTRINSIC_PRESETS[case.get("model", "none")]
+    cfg = load_config(None, {"model.imu": list(imu_blocks), "model.lidar": list(lidar_blocks)})
     t0 = time.perf_counter()
     row = {**case, "rpy_deg": [round(x, 1) for x in rpy], "lever_m": [round(x, 3) for x in lever]}
     try:
@@ -232,6 +234,12 @@ def main() -> None:
         default=100,
         help="seed of the first case (the others follow); another value gives new bags",
     )
+    p.add_argument(
+        "--model",
+        default="none",
+        choices=["none", "imu", "lidar", "all"],
+        help="intrinsics the calibration estimates (calibrate --intrinsics); default none",
+    )
     p.add_argument("--list", action="store_true", help="print the cases and exit")
     p.add_argument("--jobs", type=int, default=1, help="runs at a time")
     p.add_argument("--json", default=None, help="also write the rows to this JSON file")
@@ -245,7 +253,7 @@ def main() -> None:
         print(json.dumps(one_run(json.loads(args.one), Path(args.workdir))))
         return
     todo = [
-        c
+        {**c, "model": args.model}
         for c in cases(args.first_seed)
         if (args.only is None or args.only in c["name"])
         and (args.seeds is None or c["seed"] in args.seeds)

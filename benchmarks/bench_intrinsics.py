@@ -110,6 +110,9 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
         ]
     )
     row["extrinsic_max_error_over_sigma"] = float(np.max(ratio[np.isfinite(ratio)]))
+    # t_x t_y t_z (IMU frame), rotation about the LiDAR axes, time offset
+    row["extrinsic_error_over_sigma"] = [round(float(x), 2) for x in ratio]
+    row["reasons"] = list(run.verdict.reasons)
     unc = res.intrinsics_uncertainty.values if res.intrinsics_uncertainty else {}
     within, total = 0, 0
     per_kind: dict[str, list[int]] = {}
@@ -217,7 +220,8 @@ def main() -> None:
                 f"(max err/sigma {row['extrinsic_max_error_over_sigma']:.2f})  "
                 f"{row['calibrate_s']:.1f} s {row['stages']} rounds {row['rounds']}\n"
                 f"    IMU max error: {imu}\n    LiDAR MAE: {lid}\n"
-                f"    within 3 sigma: {row['within_3_sigma'][0]}/{row['within_3_sigma'][1]}",
+                f"    within 3 sigma: {row['within_3_sigma'][0]}/{row['within_3_sigma'][1]}"
+                + "".join(f"\n    {row['verdict']}: {r}" for r in row.get("reasons", [])),
                 flush=True,
             )
     if rows:
