@@ -811,11 +811,9 @@ def build_problem(
     has_lidar = lidar is not None and len(lidar) > 0
     if fix_gauge is None:
         fix_gauge = free.trajectory and not has_lidar
-    counts = beam_point_counts(lidar, state.lidar_intrinsics.num_beams)
+    counts = beam_point_counts(lidar, state.lidar_intrinsics.num_beams) if has_lidar else None
     problem = Problem()
-    for block in parameter_blocks(
-        state, free, beam_counts=counts if has_lidar else None, fix_gauge=fix_gauge
-    ):
+    for block in parameter_blocks(state, free, beam_counts=counts, fix_gauge=fix_gauge):
         problem.add_parameter_block(block)
     use_gs = GYRO_G_SENSITIVITY in problem
 

@@ -32,12 +32,7 @@ from licalib_cli.pipeline.round import (
     extrinsic_of,
     run_round,
 )
-from licalib_cli.pipeline.settings import (
-    NoiseLevels,
-    estimates_intrinsics,
-    free_parameters,
-    round_settings,
-)
+from licalib_cli.pipeline.settings import NoiseLevels, estimates_intrinsics, round_settings
 from licalib_cli.progress import Progress
 from licalib_cli.solver.lm import SolverReport
 
@@ -413,16 +408,13 @@ def run_schedule(
         assert final is not None
         dense = sample_points(rec.scans, phi, final, cfg, seed=1)
         solved = mapped = None
-        # With LiDAR intrinsics free the planes-free refinement below re-solves everything from
-        # the dense round's estimate: that round need not converge to the last tenth of a sigma.
-        planes_after = intrinsics_on and free_parameters(cfg, True).any_lidar_intrinsics
         for attempt in range(1, MAX_FINAL_ROUNDS + 1):
             before = state
             done = run_round(
                 state,
                 dense,
                 imu,
-                round_settings(cfg, noise, base, intrinsics_on, provisional=planes_after),
+                round_settings(cfg, noise, base, intrinsics_on),
                 len(rounds) + 1,
                 mapped,
             )
