@@ -6,11 +6,12 @@ unknowns are the LiDAR translation and, per beam, a range offset and an elevatio
 (the directions of ``calibrate --intrinsics lidar`` that take a z-translation: the range
 offsets its part along each ray, the elevations its part across it, as far as the ranges
 within a beam agree). The ranges carry Gaussian noise along the rays. The derivative of a point
-with respect to its beam's elevation is proportional to its range; the fit is solved twice per
-noise draw, with that derivative from the measured range (as the calibration does) and from
-the true one. The mean of the translation over the draws shows the bias: with the measured
-range the noise in the derivative is the residual's own, and their product does not average
-out.
+with respect to its beam's elevation is proportional to its range; the fit is solved three ways
+per noise draw, with that derivative from the measured range, from the true one, and from the
+range the fit itself predicts (where the ray meets its plane, refitted three times; what the
+calibration uses since the bias was found). The mean of the translation over the draws shows
+the bias: with the measured range the noise in the derivative is the residual's own, and their
+product does not average out.
 
     .venv/bin/python benchmarks/study_range_noise_bias.py            # 200 draws, about 1 min
     .venv/bin/python benchmarks/study_range_noise_bias.py --draws 50 --sigma 0.005
@@ -57,16 +58,32 @@ def scan() -> tuple[np.ndarray, ...]:
     return u, e_phi, beam, rho, normal, offset
 
 
-def fit(rho_meas: np.ndarray, rho_jac: np.ndarray, geometry: tuple[np.ndarray, ...]) -> np.ndarray:
-    """Translation (3,) of the linear fit, the elevation derivative taken at ``rho_jac``."""
+def fit(
+    rho_meas: np.ndarray,
+    rho_jac: np.ndarray | None,
+    geometry: tuple[np.ndarray, ...],
+    iterations: int = 3,
+) -> np.ndarray:
+    """Translation (3,) of the linear fit, the elevation derivative taken at ``rho_jac``.
+
+    ``rho_jac=None``: at the range the fit predicts (where each ray meets its plane after the
+    fit), starting from the measured range and refitting ``iterations`` times.
+    """
     u, e_phi, beam, _, normal, offset = geometry
     rows = np.arange(u.shape[0])
-    residual = np.einsum("ij,ij->i", normal, rho_meas[:, None] * u) + offset
+    along = np.einsum("ij,ij->i", normal, u)
+    residual = along * rho_meas + offset
     jac = np.zeros((u.shape[0], 3 + 2 * BEAMS))
     jac[:, :3] = normal
-    jac[rows, 3 + beam] = np.einsum("ij,ij->i", normal, u)
-    jac[rows, 3 + BEAMS + beam] = rho_jac * np.einsum("ij,ij->i", normal, e_phi)
-    x, *_ = np.linalg.lstsq(jac, -residual, rcond=None)
+    jac[rows, 3 + beam] = along
+    across = np.einsum("ij,ij->i", normal, e_phi)
+    rho_at = rho_meas if rho_jac is None else rho_jac
+    x = np.zeros(jac.shape[1])
+    for _ in range(1 if rho_jac is not None else 1 + iterations):
+        jac[rows, 3 + BEAMS + beam] = rho_at * across
+        x, *_ = np.linalg.lstsq(jac, -residual, rcond=None)
+        # the fitted distance of each point; the ray meets its plane that far along it
+        rho_at = rho_meas - (residual + jac @ x) / along
     return x[:3]
 
 
@@ -78,17 +95,22 @@ def main() -> None:
     geometry = scan()
     rho = geometry[3]
     rng = np.random.default_rng(0)
-    measured, true = [], []
+    measured, true, predicted = [], [], []
     for _ in range(args.draws):
         rho_meas = rho + rng.standard_normal(rho.shape[0]) * args.sigma
         measured.append(fit(rho_meas, rho_meas, geometry))
         true.append(fit(rho_meas, rho, geometry))
+        predicted.append(fit(rho_meas, None, geometry))
     print(f"{args.draws} draws, range noise {1e3 * args.sigma:.1f} mm, ranges 3-7 m")
-    for label, rows in (("measured range", measured), ("true range", true)):
+    for label, rows in (
+        ("measured range", measured),
+        ("true range", true),
+        ("predicted range", predicted),
+    ):
         t = np.array(rows) * 1e3
         sem = t.std(axis=0) / np.sqrt(t.shape[0])
         print(
-            f"elevation derivative at the {label:<14}: mean translation "
+            f"elevation derivative at the {label:<15}: mean translation "
             f"{np.array2string(t.mean(axis=0), precision=2)} mm "
             f"(standard error {np.array2string(sem, precision=2)})"
         )

@@ -184,18 +184,36 @@ class LidarPointTerms:
         jac[:, 2, _E.RANGE_OFFSET] = sp
         return jac
 
-    def vjp(self, v: F64) -> F64:
-        """(N, 6) ``v_k^T d p_L / d intrinsics`` for (N, 3) row vectors ``v`` (no (N, 3, 6))."""
+    def vjp(self, v: F64, range_shift: F64 | None = None, range_scale: F64 | None = None) -> F64:
+        """(N, 6) ``v_k^T d p_L / d intrinsics`` for (N, 3) row vectors ``v`` (no (N, 3, 6)).
+
+        Args:
+            v: (N, 3) row vectors.
+            range_shift: (N,) metres added to each corrected range ``rho_bar`` before the
+                derivatives are taken (the derivative at another range along the same ray); None
+                for the derivative at the measured range.
+            range_scale: (N,) range scale ``s_i`` of each point's beam, which turns the shift
+                into raw range for the range-scale column; needed with ``range_shift``.
+        """
         vx, vy, vz = v[:, 0], v[:, 1], v[:, 2]
         cp, sp, ct, st = self.cos_phi, self.sin_phi, self.cos_theta, self.sin_theta
         horizontal = vx * ct + vy * st
         along = cp * horizontal + sp * vz  # v . u
+        rho_bar, rho, px, py = self.rho_bar, self.rho, self.point[:, 0], self.point[:, 1]
+        if range_shift is not None:
+            if range_scale is None:
+                msg = "a range shift needs the beams' range scales"
+                raise ValueError(msg)
+            rho_bar = rho_bar + range_shift
+            rho = rho + range_shift / range_scale
+            px = px + range_shift * cp * ct
+            py = py + range_shift * cp * st
         out = np.empty((v.shape[0], NUM_BEAM_INTRINSICS))
-        out[:, _E.ELEVATION] = self.rho_bar * (cp * vz - sp * horizontal)
-        out[:, _E.AZIMUTH] = vy * self.point[:, 0] - vx * self.point[:, 1]
+        out[:, _E.ELEVATION] = rho_bar * (cp * vz - sp * horizontal)
+        out[:, _E.AZIMUTH] = vy * px - vx * py
         out[:, _E.VERTICAL_OFFSET] = vz
         out[:, _E.HORIZONTAL_OFFSET] = vx * st - vy * ct
-        out[:, _E.RANGE_SCALE] = self.rho * along
+        out[:, _E.RANGE_SCALE] = rho * along
         out[:, _E.RANGE_OFFSET] = along
         return out
 

@@ -14,6 +14,16 @@ and ``traj.r3`` (4 control points around ``t``), ``ext.rotation`` (right perturb
 ``R_IL``), ``ext.translation``, ``ext.time_offset`` (``n^T (R hat(w) p_I + v)``) and
 ``lidar.intrinsics`` (the 6 coordinates of the point's own beam).
 
+The derivatives w.r.t. the beam intrinsics are taken at the range the model predicts, where
+the point's ray meets its plane, not at the measured range. The derivatives of the elevation,
+azimuth and range scale grow with the range; at the measured range they carry the range noise,
+which is also the residual's, and the product of the two does not average out: freeing the
+elevations under 15 mm of range noise moved the LiDAR's translation by millimetres along its z
+axis (``benchmarks/study_range_noise_bias.py``). At the predicted range the derivatives are
+those of the noise-free point, as far as the estimate is right. With this, the Jacobian is not
+the residual's exact derivative away from zero residuals; ``intrinsics_at_predicted_range=False``
+gives the exact one.
+
 If a time-offset step moves a query time outside the spline range, that point's residual is
 ``inf`` so that the solver rejects the step (the builder checks the initial state).
 
@@ -82,6 +92,7 @@ class PointToPlaneResidual:
         model_gap: npt.ArrayLike | None = None,
         t_ref_s: float = 0.0,
         sweep_start_s: npt.ArrayLike | None = None,
+        intrinsics_at_predicted_range: bool = True,
         name: str = "lidar.point_to_plane",
     ) -> None:
         """Create the block.
@@ -105,6 +116,10 @@ class PointToPlaneResidual:
             sweep_start_s: (N,) time of each point's sweep start, LiDAR-clock seconds, for an
                 error of the per-point times within a sweep (``tau - k_point (tau - start)``);
                 None: that term is not available.
+            intrinsics_at_predicted_range: take the derivatives w.r.t. the beam intrinsics at
+                the range the model predicts (where the point's ray meets its plane) instead of
+                the measured range (see the module docstring); False gives the exact
+                derivatives of the residual.
             name: residual block name.
 
         Raises:
@@ -149,6 +164,7 @@ class PointToPlaneResidual:
             if sweep_start_s is None
             else self.t_s - np.ascontiguousarray(sweep_start_s, dtype=np.float64).reshape(n)
         )
+        self.intrinsics_at_predicted_range = bool(intrinsics_at_predicted_range)
         self._zeros = np.zeros((n, 1), dtype=np.intp)
         self._beam_elements = self.beam[:, None].copy()
         # (intrinsics, sigmas, what they give) of the last evaluation: see _model_terms
@@ -244,6 +260,7 @@ class PointToPlaneResidual:
         d_ext_translation = np.empty((n, 3)) if jacobians and EXT_TRANSLATION in params else None
         d_time = np.empty(n) if want_time else None
         d_point = np.empty((n, 3)) if want_intr else None
+        shift = np.zeros(n) if want_intr and self.intrinsics_at_predicted_range else None
 
         def block(sl: slice) -> None:
             """Points ``sl``: splines, geometry and whitened derivatives, written into their
@@ -286,6 +303,8 @@ class PointToPlaneResidual:
                 np.multiply(geo.d_time, wb, out=d_time[sl])
             if d_point is not None:
                 np.multiply(geo.d_point, wc, out=d_point[sl])
+            if shift is not None:
+                shift[sl] = _predicted_range_shift(terms, sl, geo.d_point, geo.distance, 1.0 / wb)
 
         # Blocks of the spline evaluations' size, each from the splines to its whitened
         # derivatives while its arrays are in cache, shared by the threads of
@@ -317,7 +336,35 @@ class PointToPlaneResidual:
                 j = (-d_t * self.into_sweep)[:, None, None, None]
                 jacs.append(DenseJacobian(POINT_TIME_SCALE, self._zeros, j))
         if d_point is not None:
-            d_int = terms.vjp(d_point)
-            d_int[:, BeamIntrinsic.RANGE_SCALE] -= r / intr[self.beam, BeamIntrinsic.RANGE_SCALE]
+            scale = intr[self.beam, BeamIntrinsic.RANGE_SCALE]
+            d_int = terms.vjp(d_point, shift, scale if shift is not None else None)
+            d_int[:, BeamIntrinsic.RANGE_SCALE] -= r / scale
             jacs.append(DenseJacobian(LIDAR_INTRINSICS, self._beam_elements, d_int[:, None, None]))
         return ResidualEval(r[:, None], tuple(jacs))
+
+
+#: Smallest cosine between a ray and its plane's normal at which the predicted range is used
+#: (about 75 deg of incidence; beyond, a small distance moves the intersection far).
+_MIN_RAY_COSINE = 0.25
+#: Largest shift from the measured to the predicted range, in noise sigmas (outliers keep theirs).
+_MAX_SHIFT_SIGMAS = 3.0
+
+
+def _predicted_range_shift(
+    terms: LidarPointTerms, sl: slice, n_lidar: F64, distance: F64, sigma_m: F64
+) -> F64:
+    """(n,) metres from each measured corrected range to where its ray meets its plane.
+
+    The distance changes by ``n_L . u`` per metre of range along the ray ``u``, so the model
+    predicts the range ``rho_bar - distance / (n_L . u)``. Rays within about 15 deg of their
+    plane keep the measured range; the shift is clipped to ``_MAX_SHIFT_SIGMAS`` noise sigmas
+    ``sigma_m`` (m).
+    """
+    cp = terms.cos_phi[sl]
+    along = (
+        cp * (n_lidar[:, 0] * terms.cos_theta[sl] + n_lidar[:, 1] * terms.sin_theta[sl])
+        + n_lidar[:, 2] * terms.sin_phi[sl]
+    )
+    steep = np.abs(along) >= _MIN_RAY_COSINE
+    limit = _MAX_SHIFT_SIGMAS * sigma_m
+    return np.where(steep, np.clip(-distance / np.where(steep, along, 1.0), -limit, limit), 0.0)

@@ -204,6 +204,7 @@ def test_point_to_plane_residual_jacobians(seed: int) -> None:
         pts["offset"],
         pts["sigma"],
         np.deg2rad([-10.0, 0.0, 10.0]),
+        intrinsics_at_predicted_range=False,
     )
     # the distance is a difference of terms of the size of the range and the plane offset
     terms = (pts["rho"].max() + np.abs(pts["offset"]).max()) / pts["sigma"].min()
@@ -254,6 +255,84 @@ def test_point_to_plane_residual_is_invariant_to_the_scale_of_the_world() -> Non
     assert np.abs(base).max() > 1.0
     np.testing.assert_allclose(residuals(0.97), base, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(residuals(1.05), base, rtol=1e-9, atol=1e-9)
+
+
+def _intrinsics_jacobian(res: PointToPlaneResidual, params: Mapping[str, np.ndarray]) -> np.ndarray:
+    ev = res.evaluate(params, jacobians=True)
+    return _analytic(ev, LIDAR_INTRINSICS, params[LIDAR_INTRINSICS].size)
+
+
+def test_point_to_plane_intrinsics_derivatives_at_the_predicted_range() -> None:
+    """With range noise, the intrinsics' derivatives are those of the noise-free point (where
+    the ray meets its plane); on the plane they are the exact derivatives."""
+    rng = np.random.default_rng(40)
+    params = _random_params(rng)
+    pts = _points(rng, 40)
+    nominal = np.deg2rad([-10.0, 0.0, 10.0])
+    sigma = 0.02
+
+    def block(rho: np.ndarray, offset: np.ndarray, at_predicted: bool) -> PointToPlaneResidual:
+        return PointToPlaneResidual(
+            KNOTS,
+            pts["t"],
+            pts["beam"],
+            rho,
+            pts["theta"],
+            pts["normal"],
+            offset,
+            sigma,
+            nominal,
+            intrinsics_at_predicted_range=at_predicted,
+        )
+
+    # planes through the noise-free points: zero residuals
+    offset = pts["offset"] - block(pts["rho"], pts["offset"], False).distances(params)
+    exact = block(pts["rho"], offset, False)
+    np.testing.assert_allclose(exact.distances(params), 0.0, atol=1e-9)
+    j_true = _intrinsics_jacobian(exact, params)
+    np.testing.assert_allclose(
+        _intrinsics_jacobian(block(pts["rho"], offset, True), params), j_true, atol=1e-9
+    )
+    # rays that meet their plane steeply, range noise of one sigma: the derivatives at the
+    # predicted range are the noise-free ones; the exact derivatives at the measured range are not
+    ray = _rays_in_world(exact, params)
+    steep = np.abs(np.einsum("ij,ij->i", ray, pts["normal"])) > 0.3
+    assert steep.sum() >= 10
+    noisy = pts["rho"] + sigma * rng.choice([-1.0, 1.0], pts["rho"].shape[0])
+    j_pred = _intrinsics_jacobian(block(noisy, offset, True), params)
+    j_meas = _intrinsics_jacobian(block(noisy, offset, False), params)
+    # rows of the steep rays; the range-scale column also carries the whitening's own term
+    cols = [c for c in range(j_true.shape[1]) if c % 6 != 4]
+    np.testing.assert_allclose(j_pred[np.ix_(steep, cols)], j_true[np.ix_(steep, cols)], atol=1e-9)
+    assert np.abs(j_meas[np.ix_(steep, cols)] - j_true[np.ix_(steep, cols)]).max() > 1e-4
+    # the shift is held to three sigmas: an outlier keeps (about) its measured range
+    far = pts["rho"] + 50.0 * sigma
+    j_far = _intrinsics_jacobian(block(far, offset, True), params)
+    j_far_meas = _intrinsics_jacobian(block(far, offset, False), params)
+    shifted = np.abs(j_far[steep] - j_far_meas[steep]).max()
+    assert 0.0 < shifted < np.abs(j_far_meas[steep] - j_true[steep]).max()
+
+
+def _rays_in_world(res: PointToPlaneResidual, params: Mapping[str, np.ndarray]) -> np.ndarray:
+    """(N, 3) unit rays of the block's points in the world frame, by differencing the points
+    along their ranges."""
+    from licalib_cli.geometry.so3 import quat_to_matrix
+    from licalib_cli.models.lidar import lidar_point_terms
+    from licalib_cli.spline import SO3Spline
+
+    terms = lidar_point_terms(
+        res.nominal_elevation, params[LIDAR_INTRINSICS], res.beam, res.rho, res.theta
+    )
+    u = np.column_stack(
+        [
+            terms.cos_phi * terms.cos_theta,
+            terms.cos_phi * terms.sin_theta,
+            terms.sin_phi,
+        ]
+    )
+    t = res.query_times(float(params[TIME_OFFSET][0]))
+    rot = SO3Spline(KNOTS, params[TRAJ_SO3]).evaluate(t).rotation
+    return np.einsum("nij,nj->ni", rot, u @ quat_to_matrix(params[EXT_ROTATION]).T)
 
 
 def test_point_to_plane_outside_spline_is_infinite() -> None:
@@ -348,6 +427,7 @@ def test_clock_drift_and_point_time_jacobians() -> None:
         np.deg2rad([-10.0, 0.0, 10.0]),
         t_ref_s=0.5,
         sweep_start_s=start,
+        intrinsics_at_predicted_range=False,
     )
     terms = (pts["rho"].max() + np.abs(pts["offset"]).max()) / pts["sigma"].min()
     _check_all(
