@@ -147,7 +147,7 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
         determined = [abs(x) for x, s in zip(e.reshape(-1), sig, strict=True) if s is not None]
         imu_err[key] = max(determined) if determined else None
     row["imu_max_error"] = imu_err
-    lidar_mae = {}
+    lidar_mae, lidar_mean = {}, {}
     if lidar_blocks and res.lidar_intrinsics is not None:
         est_l, true_l = res.lidar_intrinsics, out.truth.lidar_intrinsics
         pairs = {
@@ -165,7 +165,10 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
             tally(e, sig, key)
             used = [abs(x) for x, s in zip(e, sig, strict=True) if s is not None]
             lidar_mae[key] = float(np.mean(used)) if used else None
+            signed = [x for x, s in zip(e, sig, strict=True) if s is not None]
+            lidar_mean[key] = float(np.mean(signed)) if signed else None
     row["lidar_mae"] = lidar_mae
+    row["lidar_mean_error"] = lidar_mean  # the common mode over the beams, signed
     row["within_3_sigma"] = [within, total]
     row["within_3_sigma_by_kind"] = per_kind
     return row
@@ -214,12 +217,16 @@ def main() -> None:
                 f"{k} {v:.2g}" for k, v in row["imu_max_error"].items() if v is not None
             )
             lid = ", ".join(f"{k} {v:.2g}" for k, v in row["lidar_mae"].items() if v is not None)
+            common = ", ".join(
+                f"{k} {v:+.2g}" for k, v in row["lidar_mean_error"].items() if v is not None
+            )
             print(
                 f"seed {seed}: t {row['translation_mm']:.2f} mm  r {row['rotation_deg']:.4f} deg  "
                 f"dt {row['time_offset_ms']:.3f} ms  {row['verdict']} "
                 f"(max err/sigma {row['extrinsic_max_error_over_sigma']:.2f})  "
                 f"{row['calibrate_s']:.1f} s {row['stages']} rounds {row['rounds']}\n"
                 f"    IMU max error: {imu}\n    LiDAR MAE: {lid}\n"
+                f"    LiDAR mean error over the beams: {common}\n"
                 f"    within 3 sigma: {row['within_3_sigma'][0]}/{row['within_3_sigma'][1]}"
                 + "".join(f"\n    {row['verdict']}: {r}" for r in row.get("reasons", [])),
                 flush=True,

@@ -869,6 +869,7 @@ def build_problem(
             model_gap=lidar.model_gap,
             t_ref_s=state.t_ref_s,
             sweep_start_s=lidar.sweep_start_s,
+            whitening_range_scale=state.lidar_intrinsics.range_scale,
         )
         loss = None if noise.huber_threshold is None else HuberLoss(noise.huber_threshold)
         problem.add_residual_block(residual, loss)
