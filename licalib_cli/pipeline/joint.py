@@ -354,8 +354,8 @@ def calibrate_segments(
         refined = refine_segments_with_planes(states, inputs, free, lm_params(cfg))
         if refined is not None:
             logger.info(
-                "Joint planes-free refinement: %d steps, cost %.1f -> %.1f, translation moved "
-                "%.2f mm (%.1f s).",
+                "Joint planes-free refinement: %d steps, cost without the range noise %.1f -> "
+                "%.1f, translation moved %.2f mm (%.1f s).",
                 refined.steps,
                 refined.cost_start,
                 refined.cost_end,

@@ -27,6 +27,8 @@ import numpy.typing as npt
 from licalib_cli.estimation import CalibrationState, FreeParameters, Planes, state_from_values
 from licalib_cli.pipeline.free_planes import (
     Stepped,
+    noise_corrected,
+    noise_cost,
     plane_jacobian,
     planes_free_steps,
     stepped_planes,
@@ -67,8 +69,9 @@ class JointPlaneRefinement:
         report: the joint solver's report at the refined estimate (planes held at their refined
             values).
         steps: steps kept.
-        cost_start: joint cost with the rounds' planes before the refinement.
-        cost_end: joint cost with the refined planes after it.
+        cost_start: joint cost with the rounds' planes before the refinement, without the range
+            noise's expected part (the cost the steps lower).
+        cost_end: the same with the refined planes after it.
         seconds: wall time.
     """
 
@@ -113,9 +116,10 @@ def _nuisance_segment(
     state: CalibrationState,
     data: RoundInputs,
     planes: Planes,
-) -> tuple[NuisanceSegment, F64]:
-    """Segment ``k``'s part of the joint problem with its planes as nuisance, and the planes'
-    centroids.
+) -> tuple[NuisanceSegment, F64, float]:
+    """Segment ``k``'s part of the joint problem with its planes as nuisance (their terms
+    without the range noise's expected part: :func:`~licalib_cli.pipeline.free_planes.
+    noise_corrected`), the planes' centroids and the noise's expected part of its cost.
 
     Its trajectory coordinates are those of its own blocks; its calibration coordinates the
     shared ones and its own (time offset, drifts); its gauge is its first control point.
@@ -124,10 +128,15 @@ def _nuisance_segment(
     assert isinstance(residual, RenamedBlock) and isinstance(residual.inner, PointToPlaneResidual)
     plane = np.asarray(data.lidar.plane, dtype=np.intp)
     p_g = points_in_global(state, data.points)
-    jac, centroid = plane_jacobian(p_g, plane, np.asarray(planes.normal, dtype=np.float64))
-    jac *= residual.inner.whitening(segment_values(problem, k))[:, None]
+    normal = np.asarray(planes.normal, dtype=np.float64)
+    jac, centroid = plane_jacobian(p_g, plane, normal)
+    w = residual.inner.whitening()
+    jac *= w[:, None]
     count = int(np.asarray(planes.d).shape[0])
     terms = nuisance_terms(problem, evaluation, layout, block, jac, plane, count)
+    noise = w * float(data.noise.range_sigma)
+    expected, rays = noise_cost(state, data, normal, noise)
+    terms = noise_corrected(terms, plane, normal, rays, noise)
     nt = layout.num_trajectory
     prefix = segment_name(k, "")
     owner = np.asarray(layout.owner, dtype=str)
@@ -138,7 +147,7 @@ def _nuisance_segment(
     hold = np.concatenate(
         [layout.index[segment_name(k, TRAJ_SO3)][:3], layout.index[segment_name(k, TRAJ_R3)][:3]]
     )
-    return NuisanceSegment(trajectory, terms, hold[hold >= 0], calibration), centroid
+    return NuisanceSegment(trajectory, terms, hold[hold >= 0], calibration), centroid, expected
 
 
 def _per_segment(block: str) -> bool:
@@ -203,7 +212,7 @@ def refine_segments_with_planes(
         ]
         step = segmented_nuisance_step(
             lin,
-            [seg for seg, _ in parts],
+            [seg for seg, _, _ in parts],
             tsvd_threshold=lm.tsvd_threshold if lm.use_tsvd else 0.0,
             tsvd_relative=lm.tsvd_relative,
         )
@@ -217,16 +226,32 @@ def refine_segments_with_planes(
             ]
             stepped = [
                 stepped_planes(p, c, fraction * dp)
-                for p, (_, c), dp in zip(planes, parts, dps, strict=True)
+                for p, (_, c, _), dp in zip(planes, parts, dps, strict=True)
             ]
             return (moved, stepped), build(moved, stepped)
 
         # the evaluation and the normal equations are freed on return: while the fractions
         # are tried only the step and the segments' terms and centroids are held
-        return evaluation.cost, step, trial
+        return evaluation.cost - sum(e for _, _, e in parts), step, trial
+
+    def corrected_cost(problem: Problem, current: Current) -> float:
+        states, planes = current
+        expected = 0.0
+        for k, b in enumerate(blocks):
+            residual = problem.residual_blocks[b]
+            assert isinstance(residual, RenamedBlock)
+            assert isinstance(residual.inner, PointToPlaneResidual)
+            noise = residual.inner.whitening() * float(inputs[k].noise.range_sigma)
+            normal = np.asarray(planes[k].normal, dtype=np.float64)
+            expected += noise_cost(states[k], inputs[k], normal, noise)[0]
+        return problem.evaluate(jacobians=False).cost - expected
 
     (states, planes), problem, steps, cost_start = planes_free_steps(
-        problem, (list(states), [d.planes for d in inputs]), step_at, "Joint planes-free step"
+        problem,
+        (list(states), [d.planes for d in inputs]),
+        step_at,
+        "Joint planes-free step",
+        corrected_cost,
     )
     report = solve(problem, lm)
     states = [state_from_values(s, segment_values(problem, k)) for k, s in enumerate(states)]
@@ -236,6 +261,6 @@ def refine_segments_with_planes(
         report=report,
         steps=steps,
         cost_start=cost_start,
-        cost_end=float(report.final_cost),
+        cost_end=corrected_cost(problem, (states, planes)),
         seconds=time.perf_counter() - start,
     )

@@ -24,6 +24,7 @@ from licalib_cli.parallel.threads import map_slices
 __all__ = [
     "PointSample",
     "nominal_elevations",
+    "points_and_rays_in_global",
     "points_in_global",
     "points_per_scan",
     "query_times",
@@ -156,19 +157,38 @@ def query_times(state: CalibrationState, sample: PointSample) -> F64:
 
 def points_in_global(state: CalibrationState, sample: PointSample) -> F64:
     """(N, 3) sampled points mapped into ``{G}`` with the state's trajectory and calibration."""
+    return _mapped(state, sample, rays=False)[0]
+
+
+def points_and_rays_in_global(state: CalibrationState, sample: PointSample) -> tuple[F64, F64]:
+    """:func:`points_in_global` and (N, 3) each point's unit ray direction in ``{G}`` (the
+    direction of its range, along which its range noise moves it)."""
+    p_g, rays = _mapped(state, sample, rays=True)
+    assert rays is not None
+    return p_g, rays
+
+
+def _mapped(state: CalibrationState, sample: PointSample, rays: bool) -> tuple[F64, F64 | None]:
     t = query_times(state, sample)
     p_l = lidar_point(state.lidar_intrinsics, sample.beam, sample.rho, sample.theta)
+    u_i = None
+    if rays:
+        u_i = p_l @ state.R_imu_lidar.T
+        u_i /= np.maximum(np.linalg.norm(u_i, axis=1, keepdims=True), 1e-12)
     p_i = (p_l + sample.model_gap) @ state.R_imu_lidar.T + state.t_imu_lidar
     out = np.empty_like(p_i)
+    ray_out = np.empty_like(p_i) if rays else None
 
     def block(sl: slice) -> None:
         # the splines' own blocks (BLOCK queries): the values of one evaluation of all points
         rot = state.so3_spline.rotation(t[sl])
         np.einsum("nij,nj->ni", rot, p_i[sl], out=out[sl])
         out[sl] += state.r3_spline.position(t[sl])
+        if ray_out is not None and u_i is not None:
+            np.einsum("nij,nj->ni", rot, u_i[sl], out=ray_out[sl])
 
     map_slices(block, t.shape[0])
-    return out
+    return out, ray_out
 
 
 def solver_points(

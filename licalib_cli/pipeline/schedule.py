@@ -457,7 +457,8 @@ def run_schedule(
         refined = refine_with_planes(state, inputs, round_settings(cfg, noise, base, True).solver)
         if refined is not None:
             logger.info(
-                "Planes-free refinement: %d steps, cost %.1f -> %.1f, change %s (%.1f s).",
+                "Planes-free refinement: %d steps, cost without the range noise %.1f -> %.1f, "
+                "change %s (%.1f s).",
                 refined.steps,
                 refined.cost_start,
                 refined.cost_end,

@@ -90,3 +90,45 @@ def test_planes_free_steps_stop_when_the_next_step_is_expected_to_gain_too_littl
     assert calls == [0, 1]
     assert (final, steps, start) == (2, 2, cost(0))
     assert problem.cost == cost(2)
+
+
+def test_noise_corrected_plane_steps_remove_the_range_noise_tilt() -> None:
+    """A patch seen obliquely from one point, its range noise along the rays: a Gauss-Newton
+    step of the plane from its true normal tilts the normal away from the rays on average; with
+    the noise's expected part removed (``noise_corrected``) the mean tilt is zero."""
+    import scipy.sparse as sp
+
+    from licalib_cli.pipeline.free_planes import noise_corrected
+    from licalib_cli.solver import s2_basis
+    from licalib_cli.solver.nuisance import NuisanceTerms
+
+    rng = np.random.default_rng(7)
+    normal = np.array([[-1.0, 0.0, 0.0]])  # the wall x = 1.5, facing the sensor at the origin
+    sigma, n = 0.05, 400
+    plain, corrected = [], []
+    for _ in range(200):
+        wall = np.column_stack(
+            [np.full(n, 1.5), rng.uniform(1.0, 2.0, n), rng.uniform(-0.5, 0.5, n)]
+        )
+        rays = wall / np.linalg.norm(wall, axis=1, keepdims=True)
+        points = wall + rays * (sigma * rng.standard_normal(n))[:, None]
+        plane = np.zeros(n, dtype=np.intp)
+        jac, _ = plane_jacobian(points, plane, normal)
+        r = points @ normal[0] + 1.5
+        r -= r.mean()  # the offset at the centroid, solved with the normal
+        jac = jac / sigma  # whitened
+        terms = NuisanceTerms(
+            sp.csr_matrix((0, 3)),
+            (jac.T @ jac)[None],
+            (jac.T @ (r / sigma))[None],
+        )
+        for out, t in (
+            (plain, terms),
+            (corrected, noise_corrected(terms, plane, normal, rays, np.ones(n))),
+        ):
+            step = -np.linalg.solve(t.H_pp[0], t.g_p[0])
+            out.append(s2_basis(normal)[0] @ step[:2])  # the normal's change
+    tilt_plain, tilt_corrected = np.array(plain)[:, 1], np.array(corrected)[:, 1]
+    se = tilt_plain.std() / np.sqrt(tilt_plain.size)
+    assert tilt_plain.mean() > 8 * se  # the bias: the normal turns away from the rays (+y)
+    assert abs(tilt_corrected.mean()) < 3 * se
