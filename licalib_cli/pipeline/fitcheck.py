@@ -215,7 +215,7 @@ def residual_table(
     points = next(b for b in problem.residual_blocks if isinstance(b, PointToPlaneResidual))
     r_g = whitened(gyro) / gyro.inv_sigma
     r_a = whitened(accel) / accel.inv_sigma
-    d = whitened(points)[:, 0] / points.whitening(params)  # as PointToPlaneResidual.distances
+    d = whitened(points)[:, 0] / points.whitening()  # as PointToPlaneResidual.distances
     tc = float(np.asarray(params[TIME_OFFSET]).reshape(-1)[0])
     rot = state.so3_spline.rotation(points.t_s + tc)
     phi = state.lidar_intrinsics.nominal_elevation[points.beam]

@@ -40,7 +40,7 @@ from licalib_cli.estimation import (
     state_from_problem,
     state_from_values,
 )
-from licalib_cli.pipeline.points import points_and_rays_in_global, points_in_global
+from licalib_cli.pipeline.points import points_and_rays_in_global
 from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.residuals import TRAJ_R3, TRAJ_SO3, PointToPlaneResidual
 from licalib_cli.solver import s2_basis
@@ -169,7 +169,7 @@ def noise_corrected(
     """
     basis = s2_basis(normal)[plane]  # (N, 3, 2)
     across = np.einsum("nij,ni->nj", basis, rays) * noise[:, None]  # (N, 2)
-    along = np.einsum("ij,ij->i", normal[plane], rays) * noise
+    along = _noise_along(plane, normal, rays, noise)
     g_p = terms.g_p.copy()
     h_pp = terms.H_pp.copy()
     np.add.at(g_p[:, :2], plane, -across * along[:, None])
@@ -177,24 +177,16 @@ def noise_corrected(
     return replace(terms, g_p=g_p, H_pp=h_pp)
 
 
-def noise_cost(
-    state: CalibrationState, inputs: RoundInputs, normal: F64, noise: F64
-) -> tuple[float, F64]:
-    """The range noise's expected part of the cost, ``0.5 sum noise^2 (n . u)^2``, and the rays.
+def noise_cost(plane: npt.NDArray[np.intp], normal: F64, rays: F64, noise: F64) -> float:
+    """The range noise's expected part of the cost, ``0.5 sum noise^2 (n . u)^2`` (arguments as
+    :func:`noise_corrected`'s)."""
+    along = _noise_along(plane, normal, rays, noise)
+    return 0.5 * float(along @ along)
 
-    Args:
-        state: the estimate the points are mapped with.
-        inputs: the points and their planes.
-        normal: (P, 3) the planes' unit normals.
-        noise: (N,) each point's whitened range noise sigma.
 
-    Returns:
-        The cost's noise part and the (N, 3) unit rays in ``{G}``.
-    """
-    _, rays = points_and_rays_in_global(state, inputs.points)
-    plane = np.asarray(inputs.lidar.plane, dtype=np.intp)
-    along = noise * np.einsum("ij,ij->i", normal[plane], rays)
-    return 0.5 * float(along @ along), rays
+def _noise_along(plane: npt.NDArray[np.intp], normal: F64, rays: F64, noise: F64) -> F64:
+    """(N,) each point's whitened range noise along its plane's normal, ``noise (n . u)``."""
+    return noise * np.einsum("ij,ij->i", normal[plane], rays)
 
 
 def _lidar_block(problem: Problem) -> int | None:
@@ -311,7 +303,8 @@ def refine_with_planes(
         residual = problem.residual_blocks[block]
         assert isinstance(residual, PointToPlaneResidual)
         normal = np.asarray(planes.normal, dtype=np.float64)
-        expected, _ = noise_cost(state, inputs, normal, residual.whitening() * range_sigma)
+        _, rays = points_and_rays_in_global(state, inputs.points)
+        expected = noise_cost(plane, normal, rays, residual.whitening() * range_sigma)
         return problem.evaluate(jacobians=False).cost - expected
 
     def step_at(
@@ -323,7 +316,7 @@ def refine_with_planes(
         lin = problem.linearize(evaluation, layout)
         residual = problem.residual_blocks[block]
         assert isinstance(residual, PointToPlaneResidual)
-        p_g = points_in_global(state, inputs.points)
+        p_g, rays = points_and_rays_in_global(state, inputs.points)
         normal = np.asarray(planes.normal, dtype=np.float64)
         jac, centroid = plane_jacobian(p_g, plane, normal)
         w = residual.whitening()
@@ -331,9 +324,9 @@ def refine_with_planes(
         terms = nuisance_terms(
             problem, evaluation, layout, block, jac, plane, int(np.asarray(planes.d).shape[0])
         )
-        expected, rays = noise_cost(state, inputs, normal, w * range_sigma)
-        terms = noise_corrected(terms, plane, normal, rays, w * range_sigma)
-        cost = evaluation.cost - expected
+        noise = w * range_sigma
+        terms = noise_corrected(terms, plane, normal, rays, noise)
+        cost = evaluation.cost - noise_cost(plane, normal, rays, noise)
         hold = np.concatenate([layout.index[TRAJ_SO3][:3], layout.index[TRAJ_R3][:3]])
         step = nuisance_step(
             lin,

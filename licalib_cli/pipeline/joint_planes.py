@@ -40,7 +40,7 @@ from licalib_cli.pipeline.joint_problem import (
     segment_values,
     values_of_segment,
 )
-from licalib_cli.pipeline.points import points_in_global
+from licalib_cli.pipeline.points import points_and_rays_in_global
 from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.residuals import TRAJ_R3, TRAJ_SO3, PointToPlaneResidual
 from licalib_cli.solver.lm import LMParams, SolverReport, solve
@@ -127,7 +127,7 @@ def _nuisance_segment(
     residual = problem.residual_blocks[block]
     assert isinstance(residual, RenamedBlock) and isinstance(residual.inner, PointToPlaneResidual)
     plane = np.asarray(data.lidar.plane, dtype=np.intp)
-    p_g = points_in_global(state, data.points)
+    p_g, rays = points_and_rays_in_global(state, data.points)
     normal = np.asarray(planes.normal, dtype=np.float64)
     jac, centroid = plane_jacobian(p_g, plane, normal)
     w = residual.inner.whitening()
@@ -135,7 +135,7 @@ def _nuisance_segment(
     count = int(np.asarray(planes.d).shape[0])
     terms = nuisance_terms(problem, evaluation, layout, block, jac, plane, count)
     noise = w * float(data.noise.range_sigma)
-    expected, rays = noise_cost(state, data, normal, noise)
+    expected = noise_cost(plane, normal, rays, noise)
     terms = noise_corrected(terms, plane, normal, rays, noise)
     nt = layout.num_trajectory
     prefix = segment_name(k, "")
@@ -243,7 +243,9 @@ def refine_segments_with_planes(
             assert isinstance(residual.inner, PointToPlaneResidual)
             noise = residual.inner.whitening() * float(inputs[k].noise.range_sigma)
             normal = np.asarray(planes[k].normal, dtype=np.float64)
-            expected += noise_cost(states[k], inputs[k], normal, noise)[0]
+            plane = np.asarray(inputs[k].lidar.plane, dtype=np.intp)
+            _, rays = points_and_rays_in_global(states[k], inputs[k].points)
+            expected += noise_cost(plane, normal, rays, noise)
         return problem.evaluate(jacobians=False).cost - expected
 
     (states, planes), problem, steps, cost_start = planes_free_steps(

@@ -110,7 +110,7 @@ def map_uncertainty(
     # the points the residuals measure
     p_g = solved.points_global if solved is not None else points_in_global(state, inputs.points)
     jac_p, _ = plane_jacobian(p_g, plane, np.asarray(inputs.planes.normal, dtype=np.float64))
-    jac_p *= residual.whitening(problem.values())[:, None]
+    jac_p *= residual.whitening()[:, None]
     terms = nuisance_terms(problem, evaluation, layout, lidar_block, jac_p, plane, num_planes)
     hold = np.concatenate([layout.index[TRAJ_SO3][:3], layout.index[TRAJ_R3][:3]])
     s_marg = marginal_schur(lin, terms, hold[hold >= 0])

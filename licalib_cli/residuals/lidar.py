@@ -206,15 +206,15 @@ class PointToPlaneResidual:
             t = t - point_time_scale * self.into_sweep
         return t
 
-    def whitening(self, params: Mapping[str, F64] | None = None) -> F64:
+    def whitening(self) -> F64:
         """(N,) what a distance in metres is multiplied by to give the residual:
-        ``1 / (s0_i sigma_k)`` (the same for every state ``params``)."""
+        ``1 / (s0_i sigma_k)``, the same for every state."""
         return self.inv_sigma / self.whitening_range_scale[self.beam]
 
     def distances(self, params: Mapping[str, F64]) -> F64:
         """(N,) signed point-to-plane distances in metres (not whitened)."""
         ev = self.evaluate(params, jacobians=False)
-        return ev.residuals[:, 0] / self.whitening(params)
+        return ev.residuals[:, 0] / self.whitening()
 
     def _model_terms(self, intr: F64) -> tuple[LidarPointTerms, F64, F64]:
         """The LiDAR model's terms, the modelled points (model gap added) and each point's
