@@ -333,6 +333,10 @@ class NoiseModel:
         range_sigma: LiDAR range noise std, m (point-to-plane sigma before inflation).
         thickness_weight: the point sigma is ``sqrt(range_sigma^2 + (w * thickness)^2)``.
         huber_threshold: Huber threshold on the whitened point residual (None: plain squares).
+        range_noise_per_beam: (B,) the range noise each beam's returns carry, m, as measured
+            from the data; None: ``range_sigma`` for every beam. ``range_sigma`` weights the
+            residuals (a configured figure may be set wide on purpose); this is what the map
+            planes' errors-in-variables correction subtracts, which must be the noise itself.
     """
 
     gyro_sigma: float | F64 = 1e-3
@@ -340,6 +344,20 @@ class NoiseModel:
     range_sigma: float = 0.02
     thickness_weight: float = 0.0
     huber_threshold: float | None = 3.0
+    range_noise_per_beam: F64 | None = field(default=None, compare=False)
+
+    def range_noise(self, beam: npt.ArrayLike) -> F64:
+        """(N,) the range noise of returns from ``beam`` (N,), m (see ``range_noise_per_beam``;
+        a beam beyond it gets ``range_sigma``)."""
+        b = np.asarray(beam, dtype=np.int64).reshape(-1)
+        table = np.asarray(
+            [] if self.range_noise_per_beam is None else self.range_noise_per_beam,
+            dtype=np.float64,
+        ).reshape(-1)
+        if table.size == 0:
+            return np.full(b.shape, float(self.range_sigma))
+        inside = (b >= 0) & (b < table.size)
+        return np.where(inside, table[np.clip(b, 0, table.size - 1)], float(self.range_sigma))
 
     @classmethod
     def from_densities(

@@ -296,7 +296,7 @@ def refine_with_planes(
     block = _lidar_block(problem)
     if block is None:
         return None
-    range_sigma = float(inputs.noise.range_sigma)
+    range_noise = inputs.noise.range_noise(inputs.points.beam)
 
     def corrected_cost(problem: Problem, current: tuple[CalibrationState, Planes]) -> float:
         state, planes = current
@@ -304,7 +304,7 @@ def refine_with_planes(
         assert isinstance(residual, PointToPlaneResidual)
         normal = np.asarray(planes.normal, dtype=np.float64)
         _, rays = points_and_rays_in_global(state, inputs.points)
-        expected = noise_cost(plane, normal, rays, residual.whitening() * range_sigma)
+        expected = noise_cost(plane, normal, rays, residual.whitening() * range_noise)
         return problem.evaluate(jacobians=False).cost - expected
 
     def step_at(
@@ -324,7 +324,7 @@ def refine_with_planes(
         terms = nuisance_terms(
             problem, evaluation, layout, block, jac, plane, int(np.asarray(planes.d).shape[0])
         )
-        noise = w * range_sigma
+        noise = w * range_noise
         terms = noise_corrected(terms, plane, normal, rays, noise)
         cost = evaluation.cost - noise_cost(plane, normal, rays, noise)
         hold = np.concatenate([layout.index[TRAJ_SO3][:3], layout.index[TRAJ_R3][:3]])

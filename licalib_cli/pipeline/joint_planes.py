@@ -134,7 +134,7 @@ def _nuisance_segment(
     jac *= w[:, None]
     count = int(np.asarray(planes.d).shape[0])
     terms = nuisance_terms(problem, evaluation, layout, block, jac, plane, count)
-    noise = w * float(data.noise.range_sigma)
+    noise = w * data.noise.range_noise(data.points.beam)
     expected = noise_cost(plane, normal, rays, noise)
     terms = noise_corrected(terms, plane, normal, rays, noise)
     nt = layout.num_trajectory
@@ -241,7 +241,7 @@ def refine_segments_with_planes(
             residual = problem.residual_blocks[b]
             assert isinstance(residual, RenamedBlock)
             assert isinstance(residual.inner, PointToPlaneResidual)
-            noise = residual.inner.whitening() * float(inputs[k].noise.range_sigma)
+            noise = residual.inner.whitening() * inputs[k].noise.range_noise(inputs[k].points.beam)
             normal = np.asarray(planes[k].normal, dtype=np.float64)
             plane = np.asarray(inputs[k].lidar.plane, dtype=np.intp)
             _, rays = points_and_rays_in_global(states[k], inputs[k].points)

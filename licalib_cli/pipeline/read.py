@@ -123,13 +123,15 @@ def measure_noise(rec: Recording, cfg: CalibConfig, num_beams: int) -> NoiseLeve
     accel = np.maximum(np.nan_to_num(accel, nan=1e-2), 1e-5)
     rng = max(rng, 1e-4)
     logger.info(
-        "Noise: gyro %s rad/s (%s), accelerometer %s m/s^2 (%s), range %.4f m (%s).",
+        "Noise: gyro %s rad/s (%s), accelerometer %s m/s^2 (%s), range %.4f m (%s; measured "
+        "%.4f m).",
         np.array2string(gyro, precision=5),
         g_src,
         np.array2string(accel, precision=4),
         a_src,
         rng,
         r_src,
+        range_data,
     )
     return NoiseLevels(
         gyro_sigma=gyro,

@@ -285,3 +285,24 @@ def test_range_noise_packed_sort_is_the_three_key_sort(monkeypatch: pytest.Monke
     np.testing.assert_array_equal(packed.sigma, three.sigma)
     assert packed.samples == three.samples
     assert np.all(np.isfinite(packed.sigma))
+
+
+def test_range_noise_is_not_inflated_by_returns_across_edges() -> None:
+    """2 % of the returns jump by 0.1-1 m (an edge in the sweep, a mixed pixel): the estimate
+    stays within 1.5 % of the noise (the median absolute deviation: 6-8 % high), as the map
+    planes' correction subtracts its square."""
+    rng = np.random.default_rng(11)
+    n_az, n_scans, sigma = 1800, 20, 0.01
+    az = np.linspace(-np.pi, np.pi, n_az, endpoint=False)
+    scan, azs, rho = [], [], []
+    for s in range(n_scans):
+        r = 8.0 + rng.normal(scale=sigma, size=n_az)
+        jump = rng.random(n_az) < 0.02
+        r[jump] += rng.uniform(0.1, 1.0, jump.sum())
+        scan.append(np.full(n_az, s))
+        azs.append(az)
+        rho.append(r)
+    est = range_noise(
+        np.concatenate(scan), np.zeros(n_az * n_scans), np.concatenate(azs), np.concatenate(rho), 1
+    )
+    assert abs(est.sigma[0] / sigma - 1.0) < 0.015

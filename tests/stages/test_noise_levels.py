@@ -1,0 +1,34 @@
+"""The range noise the map planes' correction subtracts: measured per beam, not configured."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from licalib_cli.config import CalibConfig
+from licalib_cli.estimation import NoiseModel
+from licalib_cli.pipeline.settings import NoiseLevels, noise_model
+
+
+def _levels(per_beam: np.ndarray, measured: float, configured: float = 0.01) -> NoiseLevels:
+    gyro, accel = np.full(3, 1e-3), np.full(3, 1e-2)
+    return NoiseLevels(
+        gyro, accel, configured, "config", "config", "config", per_beam, gyro, accel, measured
+    )
+
+
+def test_the_weights_keep_the_configured_sigma_and_the_correction_gets_the_measured_noise() -> None:
+    per_beam = np.array([0.002, np.nan, 0.003, 0.0])
+    model = noise_model(CalibConfig(), _levels(per_beam, measured=0.0025))
+    assert model.range_sigma == 0.01  # weighting: the config's figure
+    # a beam too sparse to measure gets the beams' median; a noise-free beam keeps its zero
+    np.testing.assert_allclose(model.range_noise([0, 1, 2, 3, 3]), [0.002, 0.0025, 0.003, 0, 0])
+    # nothing measured at all: the weighting sigma
+    none = noise_model(CalibConfig(), _levels(np.full(4, np.nan), measured=float("nan")))
+    np.testing.assert_allclose(none.range_noise([0, 3]), [0.01, 0.01])
+
+
+def test_range_noise_without_a_measurement_or_beyond_the_beams_is_the_weighting_sigma() -> None:
+    assert np.all(NoiseModel(range_sigma=0.02).range_noise([0, 5, 7]) == 0.02)
+    model = NoiseModel(range_sigma=0.02, range_noise_per_beam=np.array([0.001, 0.004]))
+    np.testing.assert_allclose(model.range_noise([1, 0, 2, -1]), [0.004, 0.001, 0.02, 0.02])
+    assert model.range_noise(np.zeros(0, dtype=np.int64)).shape == (0,)
