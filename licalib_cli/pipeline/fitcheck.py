@@ -107,8 +107,18 @@ _IMU_EFFECTS = {
 
 
 def _patterns(
-    residuals: F64, features: list[tuple[str, npt.NDArray[np.number], bool]]
+    residuals: F64, features: list[tuple[str, npt.NDArray[np.number], bool]], sigma: F64
 ) -> tuple[PatternCheck, ...]:
+    """The residuals' dependence on each feature; ``sigma`` is the noise the fit is weighted
+    with (any shape; its RMS is used).
+
+    A pattern is material when it is significant, explains more than
+    :data:`PATTERN_EXPLAINED` of the residual variance, and would do so of residuals that were
+    only the weighted noise: residuals far quieter than the noise the fit assumes (a gyro ten
+    times better than its configuration) show the spline's own approximation as a "pattern"
+    that is a fraction of a percent of that noise and moves nothing.
+    """
+    floor = float(np.sqrt(PATTERN_EXPLAINED * np.mean(np.square(sigma))))
     out = []
     for name, x, grouped in features:
         p = group_pattern(residuals, x, name) if grouped else regression_pattern(residuals, x, name)
@@ -118,7 +128,7 @@ def _patterns(
                 explained=p.explained,
                 p_value=p.p_value,
                 size=p.size,
-                material=p.material(PATTERN_EXPLAINED, PATTERN_P_VALUE),
+                material=p.material(PATTERN_EXPLAINED, PATTERN_P_VALUE) and p.size > floor,
             )
         )
     return tuple(out)
@@ -287,6 +297,7 @@ def sensor_checks(
                     ("specific force", r.specific_force, False),
                     ("time", r.t_imu_s, False),
                 ],
+                noise.gyro_sigma,
             ),
         ),
         _sensor(
@@ -303,6 +314,7 @@ def sensor_checks(
                     ("angular rate", r.angular_rate, False),
                     ("time", r.t_imu_s, False),
                 ],
+                noise.accel_sigma,
             ),
         ),
     ]
@@ -327,6 +339,7 @@ def sensor_checks(
                     ("incidence angle", r.cos_incidence, False),
                     ("time within sweep", r.time_in_sweep_s, False),
                 ],
+                sigma,
             ),
         )
     )
