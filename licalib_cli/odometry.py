@@ -528,6 +528,7 @@ def _registration_pass(
     previous: npt.NDArray[np.float64] | None,
     refine: RefineConfig,
     progress: Callable[[int], None] | None,
+    seed_translation: bool = False,
 ) -> tuple[npt.NDArray[np.float64], int]:
     """One pass of scan-to-local-map point-to-plane ICP over all K >= 2 scans.
 
@@ -545,6 +546,12 @@ def _registration_pass(
             one the sweep is deskewed with the prediction.
         refine: settings.
         progress: optional callback with the number of scans done.
+        seed_translation: the seed's relative translations come from a registration (kiss-icp
+            without a rotation prior): the first pass starts each scan from the seed's whole
+            relative pose instead of this pass's constant velocity. A registration weakly
+            constrained along one direction then stays near the seed there; from its own
+            velocity it ran away on an OS1-64 sinusoid (1.2 m per scan where kiss-icp had
+            0.2 m), and the lever arm and the calibration with it.
 
     Returns:
         (K, 4, 4) poses (the first is the identity) and the number of rejected registrations.
@@ -612,6 +619,8 @@ def _registration_pass(
     for i in range(1, k_total):
         if previous is not None:
             guess = out[i - 1] @ np.linalg.inv(previous[i - 1]) @ previous[i]
+        elif seed_translation:
+            guess = out[i - 1] @ seed_rel[i - 1]
         elif i >= 2:
             # Translation from the constant velocity, rotation from the seed.
             step = np.linalg.inv(out[i - 2]) @ out[i - 1]
@@ -894,13 +903,14 @@ def refine_odometry(
         seed_rel[:, :3, :3] = (r_w[:-1].inv() * r_w[1:]).as_matrix()
         if poses is None:
             kiss_rel = seed_rel.copy()
+    seed_translation = poses is not None and rotation_at is None
     n_passes = max(int(refine.passes), 1)
     n_warm = min(k_total, int(refine.warmup_scans))
     if n_warm > 2:
         # Warm-up on the first scans: kiss-icp's first motions deskew them poorly and the
         # first map has a single scan, so register them twice and seed the pass with that.
         head = (sweeps[:n_warm], t_out[:n_warm], seed_rel[: n_warm - 1])
-        warm, _ = _registration_pass(*head, None, refine, None)
+        warm, _ = _registration_pass(*head, None, refine, None, seed_translation)
         warm, _ = _registration_pass(*head, warm, refine, None)
         seed_rel[: n_warm - 1] = np.linalg.inv(warm[:-1]) @ warm[1:]
     out = np.eye(4)[None].repeat(k_total, axis=0)
@@ -912,7 +922,9 @@ def refine_odometry(
             if progress is not None:
                 progress(p * k_total + done, n_passes * k_total)
 
-        out, n_rejected = _registration_pass(sweeps, t_out, seed_rel, previous, refine, tick)
+        out, n_rejected = _registration_pass(
+            sweeps, t_out, seed_rel, previous, refine, tick, seed_translation
+        )
         previous = out
     if progress is not None:
         progress(n_passes * k_total, n_passes * k_total)
