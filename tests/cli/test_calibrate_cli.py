@@ -145,11 +145,11 @@ def test_bad_output_paths_fail_before_any_work(tmp_path, capsys, monkeypatch, ar
 
 @pytest.mark.slow
 def test_fail_verdict_exits_9_and_keeps_the_result(tmp_path, capsys):
-    """3 s of the sample determine only part of the extrinsic: verdict fail, exit code 9, the
-    result is still written for inspection. Too short a segment is refused outright."""
+    """2.5 s of the sample determine less than half of the extrinsic: verdict fail, exit code 9,
+    the result is still written for inspection. Too short a segment is refused outright."""
     bag = Path(__file__).resolve().parents[2] / "sample_data" / "sinusoid_vlp16" / "bag.bag"
     out = tmp_path / "r.yaml"
-    code, printed, err = run(["calibrate", str(bag), "--duration", "3", "-o", str(out)], capsys)
+    code, printed, err = run(["calibrate", str(bag), "--duration", "2.5", "-o", str(out)], capsys)
     assert code == 9, err
     assert "Verdict: FAIL" in printed and "The data determine only" in printed
     assert yaml.safe_load(out.read_text())["verdict"]["status"] == "fail"

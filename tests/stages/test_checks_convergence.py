@@ -1,0 +1,37 @@
+"""Rounds still moving at the cap: a failure unless the move is within the reported sigmas."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from licalib_cli.config import CalibConfig
+from licalib_cli.pipeline.checks import _convergence, within_sigmas
+from licalib_cli.pipeline.schedule import Change
+
+# 1 mm, 0.5 deg and 0.2 ms of reported 1-sigma (translation, rotation, time offset)
+SIGMA = np.array([1e-3, 0.4e-3, 0.6e-3, *np.radians([0.5, 0.3, 0.2]), 2e-4])
+
+
+def test_a_change_below_every_reported_sigma_is_within_them() -> None:
+    assert within_sigmas(Change(0.4e-3, 0.035, 0.03e-3), SIGMA)  # the trust benchmark's 1300
+    assert not within_sigmas(Change(1.2e-3, 0.035, 0.03e-3), SIGMA)  # translation beyond
+    assert not within_sigmas(Change(0.4e-3, 0.6, 0.03e-3), SIGMA)  # rotation beyond
+    assert not within_sigmas(Change(0.4e-3, 0.035, 0.3e-3), SIGMA)  # time offset beyond
+    assert not within_sigmas(Change(0.4e-3, 0.035, 0.03e-3), np.full(7, np.nan))
+
+
+def test_rounds_moving_at_the_cap_fail_unless_within_the_sigmas() -> None:
+    fit = SimpleNamespace(
+        converged=False, final_unsettled=False, jitter=False, last_change=Change(4e-4, 0.035, 3e-5)
+    )
+    cfg = CalibConfig()
+    (failed,) = _convergence(fit, cfg)  # type: ignore[arg-type]
+    assert failed.severity == "fail" and "did not converge" in failed.text
+    (noted,) = _convergence(fit, cfg, settled_in_sigmas=True)  # type: ignore[arg-type]
+    assert noted.severity == "note" and "less than its reported sigmas" in noted.text
+    # dense final rounds that jump stay a failure whatever the sigmas
+    fit.final_unsettled = True
+    (jumped,) = _convergence(fit, cfg, settled_in_sigmas=True)  # type: ignore[arg-type]
+    assert jumped.severity == "fail"
