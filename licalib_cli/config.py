@@ -174,8 +174,8 @@ class SurfelSection(_Section):
     """Plane-likeness P = 2 (l1 - l0) / (l0 + l1 + l2) a cell needs to become a surfel."""
     max_thickness_m: float | None = Field(default=None, gt=0.0)
     """Cells whose points spread more than this off their plane (RMS) are not surfels; unset:
-    1.5 x noise.range_sigma_m. A thicker cell usually straddles two surfaces (a corner, a step)
-    and biases the translation by millimetres."""
+    1.5 x noise.range_sigma_m, at least 5 mm. A thicker cell usually straddles two surfaces (a
+    corner, a step) and biases the translation by millimetres."""
     max_distance_m: float = Field(default=0.03, gt=0.0)
     """Points further from their surfel's plane are not associated."""
     points_per_scan: int = Field(default=1000, ge=50)

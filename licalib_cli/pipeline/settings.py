@@ -37,6 +37,7 @@ from licalib_cli.surfels import SurfelConfig
 
 __all__ = [
     "LIDAR_COLUMNS",
+    "MIN_THICKNESS_M",
     "THICKNESS_PER_RANGE_SIGMA",
     "NoiseLevels",
     "RoundSettings",
@@ -58,6 +59,11 @@ F64 = npt.NDArray[np.float64]
 THICKNESS_PER_RANGE_SIGMA = 1.5
 """Default ``surfels.max_thickness_m`` in units of the range noise: range noise alone gives an
 RMS of at most one sigma off a plane; a cell much thicker than that straddles surfaces."""
+
+MIN_THICKNESS_M = 0.005
+"""Floor of the default ``surfels.max_thickness_m``: the map's own blur (the estimate, each
+sweep's deskew) and real surfaces make any cell a few millimetres thick, so a nearly noise-free
+LiDAR (a measured 0.03 mm) would otherwise leave no surfel at all ("No planar surfaces")."""
 
 
 @dataclass(frozen=True)
@@ -135,7 +141,7 @@ def surfel_config(cfg: CalibConfig, noise: NoiseLevels, max_distance_m: float) -
     thickness = (
         s.max_thickness_m
         if s.max_thickness_m is not None
-        else THICKNESS_PER_RANGE_SIGMA * noise.range_sigma_m
+        else max(THICKNESS_PER_RANGE_SIGMA * noise.range_sigma_m, MIN_THICKNESS_M)
     )
     return SurfelConfig(
         cell_sizes=tuple(s.cell_sizes_m),

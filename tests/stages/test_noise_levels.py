@@ -32,3 +32,18 @@ def test_range_noise_without_a_measurement_or_beyond_the_beams_is_the_weighting_
     model = NoiseModel(range_sigma=0.02, range_noise_per_beam=np.array([0.001, 0.004]))
     np.testing.assert_allclose(model.range_noise([1, 0, 2, -1]), [0.004, 0.001, 0.02, 0.02])
     assert model.range_noise(np.zeros(0, dtype=np.int64)).shape == (0,)
+
+
+def test_the_default_thickness_cut_has_a_floor_for_nearly_noise_free_ranges() -> None:
+    """A measured 0.1 mm of range noise would cut every surfel thicker than 0.15 mm, which no
+    map blurred by its estimate has: the default cut is at least 5 mm; a configured one stays."""
+    from licalib_cli.pipeline.settings import MIN_THICKNESS_M, surfel_config
+
+    cfg = CalibConfig()
+    base = cfg.surfels.max_distance_m
+    quiet = _levels(np.full(4, 1e-4), measured=1e-4, configured=1e-4)
+    assert surfel_config(cfg, quiet, base).max_thickness_m == MIN_THICKNESS_M == 0.005
+    noisy = _levels(np.full(4, 0.01), measured=0.01, configured=0.01)
+    assert surfel_config(cfg, noisy, base).max_thickness_m == 0.015
+    set_cfg = CalibConfig.model_validate({"surfels": {"max_thickness_m": 0.002}})
+    assert surfel_config(set_cfg, quiet, base).max_thickness_m == 0.002
