@@ -43,7 +43,7 @@ from licalib_cli.pipeline.fitcheck import (
 )
 from licalib_cli.pipeline.initialise import SINGLE_AXIS, InitialGuess
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty, map_uncertainty
-from licalib_cli.pipeline.schedule import JITTER_FACTOR, MAX_FINAL_ROUNDS, Change, Fit
+from licalib_cli.pipeline.schedule import JITTER_FACTOR, MAX_FINAL_ROUNDS, Change, Fit, within
 from licalib_cli.pipeline.settings import NoiseLevels
 from licalib_cli.pipeline.split import SplitResult, split_half
 from licalib_cli.results import vec3
@@ -168,12 +168,12 @@ def within_sigmas(change: Change, sigma: F64) -> bool:
     """Whether a round's change of the extrinsic is below its reported 1-sigma: the translation's
     norm below the largest translation sigma, and the rotation and time offset likewise (the
     schedule's jitter band, twice half a sigma, measured with the sigmas the result reports)."""
-    t, r, c = sigma[:3], np.degrees(sigma[3:6]), float(sigma[6])
-    return bool(
-        change.translation_m < JITTER_FACTOR * 0.5 * float(np.max(t))
-        and change.rotation_deg < JITTER_FACTOR * 0.5 * float(np.max(r))
-        and change.time_offset_s < JITTER_FACTOR * 0.5 * c
+    half = Change(
+        0.5 * float(np.max(sigma[:3])),
+        0.5 * float(np.degrees(np.max(sigma[3:6]))),
+        0.5 * float(sigma[6]),
     )
+    return bool(within(change, half, JITTER_FACTOR))
 
 
 def _convergence(fit: Fit, cfg: CalibConfig, settled_in_sigmas: bool = False) -> list[Finding]:

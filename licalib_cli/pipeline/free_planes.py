@@ -58,6 +58,7 @@ __all__ = [
     "RELATIVE_DECREASE",
     "STEP_FRACTIONS",
     "PlaneRefinement",
+    "expected_noise_cost",
     "noise_corrected",
     "noise_cost",
     "plane_jacobian",
@@ -184,6 +185,25 @@ def noise_cost(plane: npt.NDArray[np.intp], normal: F64, rays: F64, noise: F64) 
     return 0.5 * float(along @ along)
 
 
+def expected_noise_cost(
+    residual: PointToPlaneResidual,
+    inputs: RoundInputs,
+    state: CalibrationState,
+    planes: Planes,
+    range_noise: F64,
+) -> float:
+    """:func:`noise_cost` of ``inputs``' points at ``state`` on ``planes``, whitened as
+    ``residual`` (the LiDAR block of the problem at ``state``; its whitening follows the range
+    scales the problem was built with); ``range_noise`` (N,) is each point's range noise, m."""
+    _, rays = points_and_rays_in_global(state, inputs.points)
+    return noise_cost(
+        np.asarray(inputs.lidar.plane, dtype=np.intp),
+        np.asarray(planes.normal, dtype=np.float64),
+        rays,
+        residual.whitening() * range_noise,
+    )
+
+
 def _noise_along(plane: npt.NDArray[np.intp], normal: F64, rays: F64, noise: F64) -> F64:
     """(N,) each point's whitened range noise along its plane's normal, ``noise (n . u)``."""
     return noise * np.einsum("ij,ij->i", normal[plane], rays)
@@ -302,9 +322,7 @@ def refine_with_planes(
         state, planes = current
         residual = problem.residual_blocks[block]
         assert isinstance(residual, PointToPlaneResidual)
-        normal = np.asarray(planes.normal, dtype=np.float64)
-        _, rays = points_and_rays_in_global(state, inputs.points)
-        expected = noise_cost(plane, normal, rays, residual.whitening() * range_noise)
+        expected = expected_noise_cost(residual, inputs, state, planes, range_noise)
         return problem.evaluate(jacobians=False).cost - expected
 
     def step_at(

@@ -27,6 +27,7 @@ import numpy.typing as npt
 from licalib_cli.estimation import CalibrationState, FreeParameters, Planes, state_from_values
 from licalib_cli.pipeline.free_planes import (
     Stepped,
+    expected_noise_cost,
     noise_corrected,
     noise_cost,
     plane_jacobian,
@@ -116,10 +117,12 @@ def _nuisance_segment(
     state: CalibrationState,
     data: RoundInputs,
     planes: Planes,
+    range_noise: F64,
 ) -> tuple[NuisanceSegment, F64, float]:
     """Segment ``k``'s part of the joint problem with its planes as nuisance (their terms
     without the range noise's expected part: :func:`~licalib_cli.pipeline.free_planes.
-    noise_corrected`), the planes' centroids and the noise's expected part of its cost.
+    noise_corrected`), the planes' centroids and the noise's expected part of its cost
+    (``range_noise``: (N,) each of its points' range noise, m).
 
     Its trajectory coordinates are those of its own blocks; its calibration coordinates the
     shared ones and its own (time offset, drifts); its gauge is its first control point.
@@ -134,7 +137,7 @@ def _nuisance_segment(
     jac *= w[:, None]
     count = int(np.asarray(planes.d).shape[0])
     terms = nuisance_terms(problem, evaluation, layout, block, jac, plane, count)
-    noise = w * data.noise.range_noise(data.points.beam)
+    noise = w * range_noise
     expected = noise_cost(plane, normal, rays, noise)
     terms = noise_corrected(terms, plane, normal, rays, noise)
     nt = layout.num_trajectory
@@ -198,6 +201,7 @@ def refine_segments_with_planes(
     if blocks is None:
         return None
     Current = tuple[list[CalibrationState], list[Planes]]
+    range_noise = [d.noise.range_noise(d.points.beam) for d in inputs]
 
     def step_at(
         problem: Problem, current: Current
@@ -207,7 +211,9 @@ def refine_segments_with_planes(
         evaluation = problem.evaluate(jacobians=True)
         lin = problem.linearize(evaluation, layout)
         parts = [
-            _nuisance_segment(problem, evaluation, layout, k, b, states[k], inputs[k], planes[k])
+            _nuisance_segment(
+                problem, evaluation, layout, k, b, states[k], inputs[k], planes[k], range_noise[k]
+            )
             for k, b in enumerate(blocks)
         ]
         step = segmented_nuisance_step(
@@ -241,11 +247,9 @@ def refine_segments_with_planes(
             residual = problem.residual_blocks[b]
             assert isinstance(residual, RenamedBlock)
             assert isinstance(residual.inner, PointToPlaneResidual)
-            noise = residual.inner.whitening() * inputs[k].noise.range_noise(inputs[k].points.beam)
-            normal = np.asarray(planes[k].normal, dtype=np.float64)
-            plane = np.asarray(inputs[k].lidar.plane, dtype=np.intp)
-            _, rays = points_and_rays_in_global(states[k], inputs[k].points)
-            expected += noise_cost(plane, normal, rays, noise)
+            expected += expected_noise_cost(
+                residual.inner, inputs[k], states[k], planes[k], range_noise[k]
+            )
         return problem.evaluate(jacobians=False).cost - expected
 
     (states, planes), problem, steps, cost_start = planes_free_steps(

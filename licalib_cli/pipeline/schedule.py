@@ -47,6 +47,7 @@ __all__ = [
     "crawls",
     "final_jump",
     "run_schedule",
+    "within",
 ]
 
 logger = logging.getLogger(__name__)
@@ -220,7 +221,8 @@ def intrinsic_change(
     return worst
 
 
-def _within(c: Change, t: Change, factor: float = 1.0) -> bool:
+def within(c: Change, t: Change, factor: float = 1.0) -> bool:
+    """Whether every part of a round's change lies below ``factor`` times the tolerance ``t``."""
     return (
         c.translation_m < factor * t.translation_m
         and c.rotation_deg < factor * t.rotation_deg
@@ -339,7 +341,7 @@ def run_schedule(
             1e3 * moved,
             summary.map_entropy,
         )
-        settled = _within(change, threshold) and (
+        settled = within(change, threshold) and (
             not intrinsics_on or intrinsic_sigmas < sch.intrinsic_tolerance_sigmas
         )
         if want_intrinsics and not intrinsics_on:
@@ -387,7 +389,7 @@ def run_schedule(
         previous = change
         max_dist = max(base, min(max_dist, 3.0 * moved))
     assert report is not None and inputs is not None
-    jitter = not settled and _within(change, threshold, JITTER_FACTOR)
+    jitter = not settled and within(change, threshold, JITTER_FACTOR)
     converged = settled or jitter
     if not converged:
         logger.warning(

@@ -120,17 +120,24 @@ def test_what_planar_motion_cannot_excite_is_reported_not_guessed(tmp_path: Path
     assert any("imu.gyro_scale" in t for t in raw["observability"]["unobservable"])
 
 
+def _common_range_offset(
+    tmp_path: Path, draw: int, **kw: object
+) -> tuple[dict, CalibrationResult, CalibrationResult, np.ndarray]:
+    """A 5 s sinusoid whose beams all read about 5 mm short (offsets drawn with seed ``draw``),
+    calibrated with the LiDAR intrinsics free: the result and the range offsets' errors."""
+    rng = np.random.default_rng(draw)
+    offsets = 0.005 + rng.normal(0.0, 0.001, 16)
+    lidar = LidarIntrinsics.nominal(VLP16_ELEVATION).with_(range_offset=offsets)
+    raw, result, truth = _run(tmp_path, _spec(tmp_path, lidar=lidar, duration_s=5.0, **kw), "lidar")
+    assert result.lidar_intrinsics is not None
+    return raw, result, truth, result.lidar_intrinsics.range_offset - offsets
+
+
 def test_a_common_range_offset_is_recovered_not_pulled_back_by_the_map(tmp_path: Path) -> None:
     """Every beam's range reads 5 mm short: the whole map built from the points moves towards
     the sensor with them. Rounds that hold each map fixed recover only part of such a common
     mode; the planes-free refinement must recover it, within the reported sigmas."""
-    rng = np.random.default_rng(8)
-    offsets = 0.005 + rng.normal(0.0, 0.001, 16)
-    lidar = LidarIntrinsics.nominal(VLP16_ELEVATION).with_(range_offset=offsets)
-    spec = _spec(tmp_path, lidar=lidar, seed=33, duration_s=5.0)
-    raw, result, truth = _run(tmp_path, spec, "lidar")
-    assert result.lidar_intrinsics is not None
-    err = result.lidar_intrinsics.range_offset - offsets
+    raw, result, truth, err = _common_range_offset(tmp_path, 8, seed=33)
     sig = np.asarray(raw["intrinsics_uncertainty"]["range_offset_m"], dtype=float)
     assert abs(np.mean(err)) < 0.001
     assert np.all(np.abs(err) < 3 * sig)
@@ -143,13 +150,7 @@ def test_the_map_planes_correction_uses_the_range_noise_the_data_carry(tmp_path:
     configured 10 mm turns every plane towards the rays and moves the common range offset by
     about 0.7 mm on this bag (0.05-0.12 mm with the measured noise; 40 mm on a 10 s VLP-16
     shake with noise-free ranges)."""
-    rng = np.random.default_rng(9)
-    offsets = 0.005 + rng.normal(0.0, 0.001, 16)
-    lidar = LidarIntrinsics.nominal(VLP16_ELEVATION).with_(range_offset=offsets)
-    spec = _spec(tmp_path, lidar=lidar, seed=34, duration_s=5.0, range_noise_m=0.002)
-    raw, result, truth = _run(tmp_path, spec, "lidar")
-    assert result.lidar_intrinsics is not None
-    err = result.lidar_intrinsics.range_offset - offsets
+    raw, result, truth, err = _common_range_offset(tmp_path, 9, seed=34, range_noise_m=0.002)
     sig = np.asarray(raw["intrinsics_uncertainty"]["range_offset_m"], dtype=float)
     assert abs(np.mean(err)) < 0.0004
     assert np.all(np.abs(err) < 3 * sig)
