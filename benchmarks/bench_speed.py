@@ -147,6 +147,12 @@ def one_run(folder: Path, config: Path) -> dict:
     from licalib_cli.pipeline import calibrate
     from licalib_cli.truth import Truth
 
+    try:  # the allocator setting the command line makes at start (older checkouts lack it)
+        from licalib_cli.parallel.memory import keep_freed_memory
+    except ImportError:
+        pass
+    else:
+        keep_freed_memory()
     bag = Path((folder / "bag_path.txt").read_text())
     truth = Truth.load(folder / "truth.yaml")
     cfg = load_config(config)

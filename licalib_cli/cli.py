@@ -32,6 +32,7 @@ import typer
 
 from licalib_cli import __version__
 from licalib_cli.errors import ConfigError, LicalibError
+from licalib_cli.parallel.memory import keep_freed_memory
 
 app = typer.Typer(
     name="licalib",
@@ -216,6 +217,7 @@ def main(argv: list[str] | None = None) -> None:
     args = list(argv) if argv is not None else sys.argv[1:]
     _state["args"] = tuple(args)
     debug = "--debug" in args
+    keep_freed_memory()
     _interrupt.clear()
     _watch_interrupts()
     if not debug:

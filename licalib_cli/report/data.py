@@ -80,7 +80,11 @@ _MAX_IMU = 4_000
 _MAX_MOTION = 6_000
 _MAP_POINTS = 600_000
 """Points of each map mapped for the slices (every k-th point of the segment)."""
-_ENTROPY_POINTS = 300_000
+_ENTROPY_POINTS = 100_000
+"""Points of each map the report's entropy is taken over (every k-th of the mapped points).
+The neighbourhoods keep their 0.3 m, so a thinner map changes the entropies by their sampling
+scatter (0.02-0.05 on a 12 s shake, the difference between the two maps by less) at a third of
+the time (0.4 s instead of 1.2-1.5 s per map)."""
 _ENTROPY_QUERIES = 4_000
 _MAX_SLICE = 150_000
 TOP_SLAB_M = 0.3

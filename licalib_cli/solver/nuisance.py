@@ -139,13 +139,8 @@ def nuisance_terms(
     weight = np.ones(n) if loss is None else loss(r[:, 0] ** 2)[1]
     g_p = np.zeros((g, k))
     np.add.at(g_p, grp, jp * (weight * r[:, 0])[:, None])
+    h_xp = problem.coupling_matrix(evaluation, block, layout, jp * weight[:, None], grp, g)
     jp = jp * np.sqrt(weight)[:, None]
-    j_x = problem.jacobian_matrix(evaluation, block, layout)
-    cols = grp[:, None] * k + np.arange(k)
-    j_p = sp.csr_matrix(
-        (jp.reshape(-1), cols.reshape(-1), np.arange(0, n * k + 1, k)), shape=(n, g * k)
-    )
-    h_xp = sp.csr_matrix(j_x.T @ j_p)
     h_pp = np.zeros((g, k, k))
     np.add.at(h_pp, grp, jp[:, :, None] * jp[:, None, :])
     return NuisanceTerms(h_xp, h_pp, g_p)

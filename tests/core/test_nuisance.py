@@ -343,3 +343,43 @@ def test_segmented_step_refuses_segments_that_do_not_partition_the_problem() -> 
         segmented_nuisance_step(lin, [replace(a, trajectory=mixed), replace(b, trajectory=rest)])
     with pytest.raises(ValueError, match="hold"):
         segmented_nuisance_step(lin, [replace(a, hold=b.hold), b])
+
+
+@pytest.mark.parametrize("shuffled", [False, True])
+@pytest.mark.parametrize("as_coo", [False, True])
+def test_the_coupling_matches_the_product_of_the_two_jacobians(
+    shuffled: bool, as_coo: bool
+) -> None:
+    """Runs of measurements sharing their elements and group are summed before they are
+    scattered; the result is the product of the full Jacobians, with partly fixed blocks and
+    with Jacobians given as COO triplets (the general path)."""
+    loss = HuberLoss(1.5)
+    pr, block = make_problem(7, 1200, 1, shuffled, loss)
+    for name, mask in [("ctrl", np.arange(42) < 6), ("wide", np.arange(30) % 4 == 0)]:
+        next(b for b in pr.parameter_blocks if b.name == name).set_fixed(mask)
+    rng = np.random.default_rng(3)
+    jac_p, group = _nuisance(rng, 1200)
+    group[: 1200 // 2] = 4  # long runs of one group
+    evaluation = pr.evaluate()
+    if as_coo:
+        ev = evaluation.evals[0]
+        coo = ResidualEval(ev.residuals, tuple(j.to_coo() for j in ev.jacobians))
+        evaluation = replace(evaluation, evals=(coo,))
+    layout = pr.layout()
+    w = loss(block.r[:, 0] ** 2)[1]
+    got = pr.coupling_matrix(evaluation, 0, layout, jac_p * w[:, None], group, NUM_GROUPS)
+    jp = np.zeros((1200, NUM_GROUPS * K))
+    jp[np.arange(1200)[:, None], group[:, None] * K + np.arange(K)] = jac_p
+    jx = pr.jacobian_matrix(evaluation, 0, layout).toarray()  # with sqrt(w)
+    expected = jx.T @ (jp * np.sqrt(w)[:, None])
+    assert got.shape == expected.shape
+    np.testing.assert_allclose(got.toarray(), expected, atol=1e-12 * np.abs(expected).max())
+
+
+def test_the_coupling_refuses_more_than_one_residual_per_measurement() -> None:
+    pr, _ = make_problem(1, 100, 2, False, None)
+    evaluation = pr.evaluate()
+    with pytest.raises(ValueError, match="one residual per measurement"):
+        pr.coupling_matrix(
+            evaluation, 0, pr.layout(), np.zeros((100, K)), np.zeros(100, int), NUM_GROUPS
+        )
