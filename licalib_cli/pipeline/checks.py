@@ -466,7 +466,8 @@ def inflate(
             "per sample"
         )
     if split.ran:
-        half_gap = 0.5 * np.abs(split.difference)
+        # what the halves say only about the coordinates both determine
+        half_gap = np.where(np.isfinite(split.sigma), 0.5 * np.abs(split.difference), 0.0)
         grown = np.maximum(sigma, half_gap)
         if np.any(grown > sigma * (1 + 1e-9)):
             why.append("at least half the difference between the two halves of the segment")

@@ -32,7 +32,7 @@ from licalib_cli.solver.lm import SolverReport, solve
 from licalib_cli.solver.problem import Problem
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
 
-__all__ = ["MIN_HALF_S", "SplitResult", "half_problem", "split_half"]
+__all__ = ["MIN_HALF_S", "SplitResult", "compare_halves", "half_problem", "split_half"]
 
 logger = logging.getLogger(__name__)
 
@@ -67,8 +67,9 @@ class SplitResult:
             about the LiDAR axes), time offset (s).
         sigma: (7,) combined 1-sigma of the difference (``inf`` where a half cannot observe).
         z: (7,) ``|difference| / sigma``.
-        chi2: ``difference^T (C_1 + C_2)^+ difference`` with the halves' covariances.
-        dof: rank of ``C_1 + C_2`` (coordinates both halves determine).
+        chi2: ``difference^T (C_1 + C_2)^+ difference`` with the halves' covariances, over the
+            coordinates both halves determine (finite ``sigma``).
+        dof: rank of ``C_1 + C_2`` over those coordinates.
         p_value: probability of a ``chi2`` at least this large if the halves agree.
     """
 
@@ -212,16 +213,11 @@ def split_half(state: CalibrationState, inputs: RoundInputs, cfg: CalibConfig) -
             [s2.time_offset_s - s1.time_offset_s],
         ]
     )
-    sigma = np.sqrt(_sigmas(rep1) ** 2 + _sigmas(rep2) ** 2)
-    z = np.where(np.isfinite(sigma), np.abs(diff) / np.maximum(sigma, 1e-300), np.nan)
-    cov = _covariance(rep1) + _covariance(rep2)
-    w, v = np.linalg.eigh(0.5 * (cov + cov.T))
-    keep = w > 1e-12 * max(float(w.max()), 1e-300)
-    proj = v[:, keep].T @ diff
-    chi2 = float(np.sum(proj**2 / w[keep]))
-    dof = int(keep.sum())
-    p_value = float(chi2_sf(chi2, dof)) if dof else 1.0
-    result = SplitResult(True, "", half, diff, sigma, z, chi2, dof, p_value)
+    result = compare_halves(
+        diff, _sigmas(rep1), _sigmas(rep2), _covariance(rep1), _covariance(rep2), half
+    )
+    if not result.ran:
+        return result
     logger.info(
         "Split-half: the halves (%.1f s each) differ by %.2f mm / %.4f deg / %.3f ms; largest "
         "difference %.1f sigma, chi-square %.1f on %d (p = %.2g).",
@@ -230,8 +226,49 @@ def split_half(state: CalibrationState, inputs: RoundInputs, cfg: CalibConfig) -
         float(np.degrees(np.linalg.norm(diff[3:6]))),
         1e3 * abs(float(diff[6])),
         result.max_z,
-        chi2,
-        dof,
-        p_value,
+        result.chi2,
+        result.dof,
+        result.p_value,
     )
     return result
+
+
+def compare_halves(
+    diff: F64, sigma1: F64, sigma2: F64, cov1: F64, cov2: F64, half_s: float
+) -> SplitResult:
+    """The halves' difference against their combined covariance.
+
+    Only the coordinates both halves determine (finite sigma in each) are compared: a half that
+    does not determine one holds it near the whole segment's value, so the other half's spread
+    alone would stand for the difference's (a walk's window with one calm half: chi-square 56
+    on 7 with every coordinate within 0.4 of its sigmas).
+
+    Args:
+        diff: (7,) second half minus first.
+        sigma1, sigma2: (7,) each half's 1-sigma (``inf`` where it does not determine one).
+        cov1, cov2: (7, 7) each half's covariance.
+        half_s: duration of each half, s.
+
+    Returns:
+        The comparison; ``ran=False`` when no coordinate is determined by both halves.
+    """
+    sigma = np.sqrt(sigma1**2 + sigma2**2)
+    z = np.where(np.isfinite(sigma), np.abs(diff) / np.maximum(sigma, 1e-300), np.nan)
+    both = np.isfinite(sigma)
+    if not np.any(both):
+        return SplitResult(
+            False,
+            f"no coordinate of the extrinsic is determined by both halves ({half_s:.1f} s each; "
+            "a half with too little motion)",
+            half_s,
+        )
+    cov = (cov1 + cov2)[np.ix_(both, both)]
+    unit = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    corr = cov / np.outer(unit, unit)
+    w, v = np.linalg.eigh(0.5 * (corr + corr.T))
+    keep = w > 1e-12 * max(float(w.max()), 1e-300)
+    proj = v[:, keep].T @ (diff[both] / unit)
+    chi2 = float(np.sum(proj**2 / w[keep]))
+    dof = int(keep.sum())
+    p_value = float(chi2_sf(chi2, dof)) if dof else 1.0
+    return SplitResult(True, "", half_s, diff, sigma, z, chi2, dof, p_value)

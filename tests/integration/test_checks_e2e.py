@@ -225,7 +225,8 @@ def test_a_drifting_imu_clock_makes_the_halves_disagree(tmp_path: Path) -> None:
     result, _, _ = _calibrate(tmp_path, spec)
     split = result["consistency"]["split_half"]
     assert split["status"] == "disagree"
-    assert split["p_value"] < 1e-3 and split["dof"] == 7
+    # compared over the coordinates both halves determine (the time offset among them)
+    assert split["p_value"] < 1e-3 and 1 <= split["dof"] <= 7
     assert abs(split["difference_time_offset_s"]) > 5e-4  # 400 ppm, halves 4 s apart
     assert any("two halves" in r for r in result["verdict"]["reasons"])
 
