@@ -64,7 +64,6 @@ __all__ = [
     "plane_jacobian",
     "planes_free_steps",
     "refine_with_planes",
-    "step_with_planes",
     "stepped_planes",
 ]
 
@@ -312,47 +311,6 @@ def refine_with_planes(
         SolverError: the solver failed on the refined planes.
     """
     start = time.perf_counter()
-    stepped = _free_steps(state, inputs, lm)
-    if stepped is None:
-        return None
-    (state, planes), problem, steps, cost_start, corrected_cost = stepped
-    report = solve(problem, lm)
-    state = state_from_problem(state, problem)
-    cost_end = corrected_cost(problem, (state, planes))
-    refined = replace(inputs, planes=planes)
-    return PlaneRefinement(
-        state=state,
-        inputs=refined,
-        report=report,
-        steps=steps,
-        cost_start=cost_start,
-        cost_end=cost_end,
-        seconds=time.perf_counter() - start,
-    )
-
-
-def step_with_planes(
-    state: CalibrationState, inputs: RoundInputs, lm: LMParams
-) -> CalibrationState | None:
-    """The Gauss-Newton steps of :func:`refine_with_planes` without the solve that settles the
-    estimate on the refined planes: for a round that a next round, on a map rebuilt from the
-    stepped estimate, solves again (the crawling rounds of the schedule).
-
-    Returns:
-        The stepped estimate, or None when the round had no LiDAR points.
-    """
-    stepped = _free_steps(state, inputs, lm)
-    return None if stepped is None else stepped[0][0]
-
-
-_CostOf = Callable[[Problem, tuple[CalibrationState, Planes]], float]
-
-
-def _free_steps(
-    state: CalibrationState, inputs: RoundInputs, lm: LMParams
-) -> tuple[tuple[CalibrationState, Planes], Problem, int, float, _CostOf] | None:
-    """The planes-free steps from ``state``: the stepped estimate and planes, their problem, the
-    steps kept, the corrected cost before them and the corrected cost function."""
     plane = np.asarray(inputs.lidar.plane, dtype=np.intp)
     problem = inputs.problem(state, inputs.planes)
     block = _lidar_block(problem)
@@ -403,7 +361,19 @@ def _free_steps(
 
         return cost, step, trial
 
-    current, problem, steps, cost_start = planes_free_steps(
+    (state, planes), problem, steps, cost_start = planes_free_steps(
         problem, (state, inputs.planes), step_at, "Planes-free step", corrected_cost
     )
-    return current, problem, steps, cost_start, corrected_cost
+    report = solve(problem, lm)
+    state = state_from_problem(state, problem)
+    cost_end = corrected_cost(problem, (state, planes))
+    refined = replace(inputs, planes=planes)
+    return PlaneRefinement(
+        state=state,
+        inputs=refined,
+        report=report,
+        steps=steps,
+        cost_start=cost_start,
+        cost_end=cost_end,
+        seconds=time.perf_counter() - start,
+    )

@@ -21,7 +21,7 @@ from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import CalibrationState, ImuData, intrinsic_coordinates
 from licalib_cli.measurements import Recording
 from licalib_cli.models.lidar import lidar_point
-from licalib_cli.pipeline.free_planes import refine_with_planes, step_with_planes
+from licalib_cli.pipeline.free_planes import refine_with_planes
 from licalib_cli.pipeline.initialise import InitialGuess
 from licalib_cli.pipeline.points import PointSample, points_per_scan, sample_points
 from licalib_cli.pipeline.round import (
@@ -373,18 +373,18 @@ def run_schedule(
             # with 2-7 cm range offsets: 2.3, 2.1, 2.0, ... 1.2 mm over eight rounds, then 12 mm
             # at once with the planes free). A step with the planes free goes there; the next
             # rounds, on a map rebuilt from it, check that it has settled.
-            # The next round, on a map rebuilt from the stepped estimate, solves it again:
-            # the solve on the refined planes that the final refinement ends with is not run.
-            stepped = step_with_planes(state, inputs, round_settings(cfg, noise, base, True).solver)
-            if stepped is not None:
+            refined = refine_with_planes(
+                state, inputs, round_settings(cfg, noise, base, True).solver
+            )
+            if refined is not None:
                 assert previous is not None  # crawls() needs the round before
                 logger.info(
                     "The rounds crawl (change %.2f mm after %.2f mm): planes-free step, change %s.",
                     1e3 * change.translation_m,
                     1e3 * previous.translation_m,
-                    _describe(_change(state, stepped)),
+                    _describe(_change(state, refined.state)),
                 )
-                state, crawl_steps = stepped, crawl_steps + 1
+                state, crawl_steps = refined.state, crawl_steps + 1
                 mapped = solved = None  # both were at the round's estimate
         previous = change
         max_dist = max(base, min(max_dist, 3.0 * moved))

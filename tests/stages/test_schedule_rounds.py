@@ -144,8 +144,6 @@ def _schedule(
 
     monkeypatch.setattr(schedule, "run_round", run_round)
     monkeypatch.setattr(schedule, "refine_with_planes", refine)
-    # a crawl's step is the refinement without its settling solve
-    monkeypatch.setattr(schedule, "step_with_planes", lambda *a: refine(*a).state)
     monkeypatch.setattr(schedule, "_change", change)
     monkeypatch.setattr(schedule, "map_movement", lambda before, after, probe: 0.0)
     monkeypatch.setattr(schedule, "intrinsic_change", lambda before, after, report: 0.0)
