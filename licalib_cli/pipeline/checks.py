@@ -466,18 +466,11 @@ def inflate(
             "per sample"
         )
     if split.ran:
-        # Half of what the halves' difference exceeds their own sigmas by, on the coordinates
-        # both determine: a difference the halves' noise explains says nothing about a change
-        # over the recording (half of it made a walk window's t_x sigma 1.26 mm where the
-        # halves agreed within 0.6 of theirs and the error was 0.2 mm).
-        excess = np.clip(np.abs(split.difference) - split.sigma, 0.0, None)
-        half_gap = np.where(np.isfinite(split.sigma), 0.5 * excess, 0.0)
+        # what the halves say only about the coordinates both determine
+        half_gap = np.where(np.isfinite(split.sigma), 0.5 * np.abs(split.difference), 0.0)
         grown = np.maximum(sigma, half_gap)
         if np.any(grown > sigma * (1 + 1e-9)):
-            why.append(
-                "at least half of what the two halves of the segment differ by beyond their "
-                "own sigmas"
-            )
+            why.append("at least half the difference between the two halves of the segment")
         sigma = grown
     for e in effects:
         # Held fixed, the effect biases the estimate by about its shift; freed, the estimate
