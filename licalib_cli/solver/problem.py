@@ -544,15 +544,7 @@ class Problem:
         n, m = ev.residuals.shape
         if all(isinstance(j, DenseJacobian) for j in ev.jacobians):
             return self._dense_jacobian_matrix(ev, loss, layout)
-        rows_all, cols_all, vals_all = [], [], []
-        for rows, cols, vals in self._sparse_pieces(ev, layout):
-            keep = cols >= 0
-            rows_all.append(rows[keep])
-            cols_all.append(cols[keep])
-            vals_all.append(vals[keep])
-        rows = np.concatenate(rows_all) if rows_all else np.zeros(0, dtype=np.intp)
-        cols = np.concatenate(cols_all) if cols_all else np.zeros(0, dtype=np.intp)
-        vals = np.concatenate(vals_all) if vals_all else np.zeros(0)
+        rows, cols, vals = self._free_triplets(ev, layout)
         if loss is not None:
             r = ev.residuals
             sqrt_w = np.sqrt(loss(np.einsum("ij,ij->i", r, r))[1])
@@ -599,10 +591,11 @@ class Problem:
             msg = "coupling_matrix needs one residual per measurement and (n, k) derivatives"
             raise ValueError(msg)
         if not all(isinstance(j, DenseJacobian) for j in ev.jacobians):
-            j_x = self._unweighted_sparse_matrix(ev, layout)
-            cols = grp[:, None] * k + np.arange(k)
+            x_rows, x_cols, x_vals = self._free_triplets(ev, layout)
+            j_x = sp.csr_matrix((x_vals, (x_rows, x_cols)), shape=(n * m, layout.num_free))
+            p_cols = grp[:, None] * k + np.arange(k)
             j_p = sp.csr_matrix(
-                (jp.reshape(-1), cols.reshape(-1), np.arange(0, n * k + 1, k)),
+                (jp.reshape(-1), p_cols.reshape(-1), np.arange(0, n * k + 1, k)),
                 shape=(n, shape[1]),
             )
             return sp.csr_matrix(j_x.T @ j_p)
@@ -638,9 +631,9 @@ class Problem:
             shape=shape,
         )
 
-    def _unweighted_sparse_matrix(self, ev: ResidualEval, layout: Layout) -> sp.csr_matrix:
-        """The block's whitened Jacobian on the free coordinates, without robust-loss weights."""
-        n, m = ev.residuals.shape
+    def _free_triplets(self, ev: ResidualEval, layout: Layout) -> tuple[IntArray, IntArray, F64]:
+        """COO ``(rows, reduced columns, values)`` of every Jacobian piece of ``ev`` on the free
+        coordinates (whitened, without robust-loss weights)."""
         rows_all, cols_all, vals_all = [], [], []
         for rows, cols, vals in self._sparse_pieces(ev, layout):
             keep = cols >= 0
@@ -650,7 +643,7 @@ class Problem:
         rows = np.concatenate(rows_all) if rows_all else np.zeros(0, dtype=np.intp)
         cols = np.concatenate(cols_all) if cols_all else np.zeros(0, dtype=np.intp)
         vals = np.concatenate(vals_all) if vals_all else np.zeros(0)
-        return sp.csr_matrix((vals, (rows, cols)), shape=(n * m, layout.num_free))
+        return rows, cols, vals
 
     def _dense_jacobian_matrix(
         self, ev: ResidualEval, loss: Loss | None, layout: Layout
