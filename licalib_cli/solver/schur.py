@@ -25,6 +25,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
+from licalib_cli.parallel.threads import map_slices
+
 if TYPE_CHECKING:
     from licalib_cli.solver.problem import Linearization
 
@@ -156,6 +158,10 @@ _BORDER_MIN_NONZEROS = 64
 # Beyond these sizes the banded factorisation is not worth it; SuperLU handles the general case.
 _MAX_BORDER = 256
 _MAX_BANDWIDTH = 512
+# The forward substitution of many right-hand sides (the planes-free steps' couplings: a few
+# thousand columns) is shared between the block threads in four blocks of columns, each at least
+# this wide (0.20 -> 0.14 s for 2251 columns of a 4526-coordinate trajectory on 2 cores).
+_FORWARD_COLUMNS = 64
 
 
 def _scatter(flat: IntArray, vals: F64, shape: tuple[int, int]) -> F64:
@@ -366,16 +372,32 @@ class _BandedCholesky:
         Returns:
             (Nt, k) ``W``, rows in (band, border) order.
         """
-        r_b = np.asfortranarray(rhs[self.order])
-        w_b, info = lapack.dtbtrs(self.band_factor, r_b, uplo="L", overwrite_b=1)
-        if info != 0:
-            msg = f"banded triangular solve failed (info {info})"
-            raise np.linalg.LinAlgError(msg)
-        if not self.border.size:
-            return w_b  # type: ignore[no-any-return]
-        r_c = rhs[self.border] - self.coupling_solved.T @ rhs[self.order]
-        w_c = sla.solve_triangular(self.border_factor, r_c, lower=True, check_finite=False)
-        return np.concatenate([w_b, w_c])
+        rhs = np.asarray(rhs, dtype=np.float64)
+        nb, nk = self.order.size, self.border.size
+        out = np.empty((nb + nk, *rhs.shape[1:]), order="F")
+
+        def columns(cols: slice) -> None:
+            # Each column is substituted on its own (level-2 LAPACK).
+            r_b = np.asfortranarray(rhs[self.order, cols])
+            if nk:
+                r_c = rhs[self.border, cols] - self.coupling_solved.T @ r_b
+                out[nb:, cols] = sla.solve_triangular(
+                    self.border_factor, r_c, lower=True, check_finite=False
+                )
+            w_b, info = lapack.dtbtrs(self.band_factor, r_b, uplo="L", overwrite_b=1)
+            if info != 0:
+                msg = f"banded triangular solve failed (info {info})"
+                raise np.linalg.LinAlgError(msg)
+            out[:nb, cols] = w_b
+
+        if rhs.ndim == 1:
+            return self.forward(rhs[:, None])[:, 0]
+        k = rhs.shape[1]
+        # The same blocks with any number of threads: the border's matrix products need not
+        # give a column the same last bits in blocks of other widths.
+        block = max(_FORWARD_COLUMNS, -(-k // 4))
+        map_slices(columns, k, block)
+        return out
 
     def backward(self, w: F64) -> F64:
         """``L_A^-T w`` in H_tt order for (Nt,) ``w`` in (band, border) order."""

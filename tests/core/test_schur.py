@@ -13,8 +13,10 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
+from licalib_cli.parallel.threads import serial
 from licalib_cli.solver.problem import Layout, Linearization
 from licalib_cli.solver.schur import (
+    _FORWARD_COLUMNS,
     _BandedCholesky,
     _sparse_lu_solver,
     _trajectory_diagonal,
@@ -121,6 +123,25 @@ def test_banded_schur_matches_dense_and_sparse_lu(damping: float | str) -> None:
     _assert_rel(w.T @ w, rhs.T @ a_inv @ rhs)
     _assert_rel(factor.backward(w[:, -1]), a_inv @ rhs[:, -1])
     _assert_rel(factor.solve(rhs), a_inv @ rhs)
+
+
+def test_forward_of_many_columns_is_shared_between_threads_exactly() -> None:
+    """The forward substitution of a few hundred right-hand sides runs in column blocks on the
+    block threads, in the same blocks as serially: the result is the serial one, bit for bit,
+    with the border included, and a single vector gives its column."""
+    rng = np.random.default_rng(5)
+    h, _, nt = _banded_with_border(rng)
+    lin = _linearization(h, np.zeros(h.shape[0]), nt)
+    factor = _BandedCholesky.factorize(lin.H_tt, _trajectory_diagonal(lin.H_tt, 0.0))
+    assert factor is not None and factor.border.size == NUM_BORDER
+    rhs = np.asfortranarray(rng.normal(size=(nt, 3 * _FORWARD_COLUMNS + 5)))
+    with serial():
+        expected = factor.forward(rhs)
+    np.testing.assert_array_equal(factor.forward(rhs), expected)
+    np.testing.assert_array_equal(factor.forward(np.ascontiguousarray(rhs)), expected)
+    _assert_rel(factor.forward(rhs[:, 7]), expected[:, 7], 1e-12)
+    a_inv = np.linalg.inv(h[:nt, :nt])
+    _assert_rel(expected.T @ expected, rhs.T @ a_inv @ rhs)
 
 
 def test_untouched_trajectory_coordinates_get_a_zero_step() -> None:
