@@ -254,11 +254,13 @@ def planes_free_steps(
             return problem.evaluate(jacobians=False).cost
         return cost_of(problem, current)
 
-    cost = cost_start = cost_at(problem, current)
+    cost_start: float | None = None
     steps = 0
     previous = 0.0  # what the step before gained
     for _ in range(MAX_STEPS):
         cost, step, trial_at = step_at(problem, current)
+        if cost_start is None:
+            cost_start = cost  # step_at's cost is cost_at's: not evaluated twice
         if step.predicted_reduction <= RELATIVE_DECREASE * cost:
             break
         accepted: tuple[T, Problem, float] | None = None
@@ -291,6 +293,8 @@ def planes_free_steps(
         cost = new_cost
         if done:
             break
+    if cost_start is None:  # no step was asked for
+        cost_start = cost_at(problem, current)
     return current, problem, steps, cost_start
 
 
@@ -317,12 +321,24 @@ def refine_with_planes(
     if block is None:
         return None
     range_noise = inputs.noise.range_noise(inputs.points.beam)
+    mapped: list[tuple[CalibrationState, F64, F64]] = []  # the last state's points and rays
+
+    def points_and_rays(state: CalibrationState) -> tuple[F64, F64]:
+        # a kept trial's points are the next step's: mapped once
+        if not mapped or mapped[0][0] is not state:
+            mapped[:] = [(state, *points_and_rays_in_global(state, inputs.points))]
+        return mapped[0][1], mapped[0][2]
 
     def corrected_cost(problem: Problem, current: tuple[CalibrationState, Planes]) -> float:
         state, planes = current
         residual = problem.residual_blocks[block]
         assert isinstance(residual, PointToPlaneResidual)
-        expected = expected_noise_cost(residual, inputs, state, planes, range_noise)
+        expected = noise_cost(
+            plane,
+            np.asarray(planes.normal, dtype=np.float64),
+            points_and_rays(state)[1],
+            residual.whitening() * range_noise,
+        )
         return problem.evaluate(jacobians=False).cost - expected
 
     def step_at(
@@ -334,7 +350,7 @@ def refine_with_planes(
         lin = problem.linearize(evaluation, layout)
         residual = problem.residual_blocks[block]
         assert isinstance(residual, PointToPlaneResidual)
-        p_g, rays = points_and_rays_in_global(state, inputs.points)
+        p_g, rays = points_and_rays(state)
         normal = np.asarray(planes.normal, dtype=np.float64)
         jac, centroid = plane_jacobian(p_g, plane, normal)
         w = residual.whitening()
