@@ -22,11 +22,12 @@ the model estimates; each keeps its own trajectory spline, IMU biases, gravity a
    with the rest, one segment eliminated at a time. The solver then settles the joint problem on
    the refined planes and its report gives the joint sigmas.
 
-The joint sigmas start from the joint solver's and are enlarged as each segment's own were, by
-the largest factor any segment needed (:func:`_growth`): the map planes' own uncertainty, the
-residuals' chi-square, the split halves and the effects the model holds fixed. The joint problem
-is not checked on its own beyond that, so a joint sigma is at most as optimistic as the most
-trusted segment's.
+The joint sigmas start from the joint solver's and are enlarged from what each segment's checks
+found (:func:`_growth`): a segment's own enlargements (the residuals' chi-square, the split
+halves, the last round's change) weighted by the information the segment brings, and what every
+segment shares added whole (the IMU priors), and the shift of an effect held fixed that a
+segment's checks cover as a factor of the joint solver's sigma. The joint problem is not checked
+on its own beyond that and the segments' scatter and disagreement (below).
 
 The intrinsics written are the joint problem's (shared by the segments); the biases and gravity
 are the reference segment's (the one with the smallest sigmas).
@@ -62,7 +63,7 @@ from licalib_cli.io.bag import open_bag
 from licalib_cli.io.reader import MIN_SEGMENT_S
 from licalib_cli.pipeline import CalibrationRun, calibrate
 from licalib_cli.pipeline.assemble import extra_terms
-from licalib_cli.pipeline.checks import intrinsics_uncertainty, prior_variance
+from licalib_cli.pipeline.checks import effect_to_cover, intrinsics_uncertainty, prior_variance
 from licalib_cli.pipeline.joint_planes import refine_segments_with_planes
 from licalib_cli.pipeline.joint_problem import joint_problem, segment_values
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty
@@ -237,6 +238,42 @@ def _disagreement(run: CalibrationRun, joint: Extrinsic) -> float:
     return float(z.max()) if z.size else 0.0
 
 
+def _scatter_factor(runs: Sequence[CalibrationRun], joint: Extrinsic, clock: F64) -> F64:
+    """(7,) how much more the segments' own estimates scatter about the joint one than their
+    sigmas say: per coordinate the root of ``sum_k z_k^2 / (K - 1)`` (``z_k`` = a segment's
+    difference from the joint over its sigma; K the segments that determine the coordinate), at
+    least one. The joint sigma weighs the segments as independent, which holds only while they
+    agree within their sigmas; beyond that it grows by this factor (the Birge ratio).
+
+    ``clock`` (K,) puts each segment's time offset on the joint's LiDAR clock.
+    """
+    z = []
+    for k, run in enumerate(runs):
+        own, unc = run.result.extrinsic, run.result.uncertainty
+        assert unc is not None
+        sigma = np.concatenate(
+            [
+                np.asarray(unc.translation_std_m),
+                np.radians(np.asarray(unc.rotation_std_deg)),
+                [unc.time_offset_std_s],
+            ]
+        )
+        diff = np.concatenate(
+            [
+                own.translation - joint.translation,
+                so3.log(joint.rotation.T @ own.rotation),  # LiDAR frame, as the sigmas
+                [own.time_offset_s + clock[k] - joint.time_offset_s],
+            ]
+        )
+        ok = np.isfinite(sigma) & (sigma > 0.0)
+        z.append(np.where(ok, diff / np.where(ok, sigma, 1.0), np.nan))
+    zz = np.asarray(z)
+    count = np.sum(np.isfinite(zz), axis=0)
+    chi2 = np.nansum(zz**2, axis=0)
+    ratio = np.where(count > 1, chi2 / np.maximum(count - 1, 1), 1.0)
+    return np.sqrt(np.maximum(ratio, 1.0))
+
+
 class _KeptOpen:
     """The caller's progress for one segment's calibration after another: ``calibrate``
     closes its progress when it is done, the segments must not."""
@@ -368,26 +405,44 @@ def calibrate_segments(
     return JointRun(result, tuple(runs), tuple(kept), report, tuple(states), timings)
 
 
-def _growth(runs: Sequence[CalibrationRun]) -> tuple[F64, float, MapUncertainty | None, F64]:
-    """How much the segments' checks enlarged their solver sigmas, the largest over segments.
+def _growth(runs: Sequence[CalibrationRun]) -> tuple[F64, float, MapUncertainty | None, F64, F64]:
+    """How much the joint solver's sigmas grow, from how the segments' checks enlarged theirs.
 
-    The IMU priors' part is taken apart: an IMU error the data do not show moves every segment
-    alike, so it does not shrink with the joint sigma; the joint keeps the smallest segment's
-    (all segments' data together determine the IMU blocks at least as well as the best one).
+    A segment's reported sigma has a part of its own and a part every segment shares:
+
+    * its own: the solver's sigma times the root of its residuals' chi-square, at least half the
+      difference of its two halves, and the last round's change. These come from the segment's
+      own data and noise, so they combine between segments as the segments' information does:
+      with ``w_k = 1 / raw_k^2`` (the segment's solver information of a coordinate) and ``g_k``
+      its own part over ``raw_k``, the joint solver's sigma grows by
+      ``sqrt(sum w_k / sum (w_k / g_k^2))``, between the smallest and the largest ``g_k``. A
+      window whose halves differ thus weighs in by the information it brings, instead of
+      setting every coordinate's factor on its own.
+    * the shift of an effect the model holds fixed and a segment's checks cover: a real effect
+      moves every segment of the rig alike, a hint of one seen in a single window may be that
+      window's; the joint sigma keeps the largest ratio of such a variance to a segment's solver
+      variance, ``max_k effects_k / raw_k^2``, times its own solver variance (as it did before
+      the own parts were weighted; the joint problem does not test the effects itself).
+    * the IMU priors, which do not shrink with more data: the joint adds the smallest of the
+      segments' (all segments' data together determine the IMU blocks at least as well as the
+      best one).
 
     Returns:
-        ``(factor (7,) for translation, rotation and time offset without the priors' part, the
-        root of the largest chi-square per sample, the largest map-plane factor of every
-        coordinate or None, the priors' variance (7,) to add)``.
+        ``(factor (7,) of translation, rotation and time offset, the root of the largest
+        chi-square per sample, the largest map-plane factor of every coordinate or None, the
+        effects' variance over the solver's (7,), the priors' variance (7,) to add)``.
     """
-    grow = np.ones(7)
+    info = np.zeros(7)  # sum w_k
+    grown_info = np.zeros(7)  # sum w_k / g_k^2
     chi = 1.0
     names: dict[str, float] = {}
     planes_used = 0
     prior = np.full(7, np.inf)
+    effect_ratio = np.zeros(7)
     for run in runs:
         c = run.checks
         u = c.uncertainty
+        raw = np.asarray(c.raw_sigma, dtype=np.float64)
         shown = np.concatenate(
             [
                 np.asarray(u.translation_std_m),
@@ -395,22 +450,33 @@ def _growth(runs: Sequence[CalibrationRun]) -> tuple[F64, float, MapUncertainty 
                 [u.time_offset_std_s],
             ]
         )
-        own_prior = prior_variance(c.effects, c.raw_sigma)
+        own_prior = prior_variance(c.effects, raw)
         prior = np.minimum(prior, own_prior)
-        without = np.sqrt(np.clip(shown**2 - own_prior, 0.0, None))
-        ratio = without / np.asarray(c.raw_sigma)
-        ok = np.isfinite(ratio) & (np.asarray(c.raw_sigma) > 0)
-        grow[ok] = np.maximum(grow[ok], ratio[ok])
+        own_effects = np.zeros(7)
+        for e in c.effects:
+            if effect_to_cover(e, raw):
+                own_effects += np.asarray(e.shift) ** 2 + np.asarray(e.shift_std) ** 2
+        own = np.sqrt(np.clip(shown**2 - own_prior - own_effects, 0.0, None))
+        ok = np.isfinite(raw) & (raw > 0) & np.isfinite(own)
+        ratio = np.where(ok, own_effects / np.where(ok, raw, 1.0) ** 2, 0.0)
+        effect_ratio = np.maximum(effect_ratio, np.where(np.isfinite(ratio), ratio, 0.0))
+        w = np.where(ok, 1.0 / np.where(ok, raw, 1.0) ** 2, 0.0)
+        g = np.where(ok, np.maximum(own / np.where(ok, raw, 1.0), 1.0), 1.0)
+        info += w
+        grown_info += w / g**2
         chi = max([chi, *(s.chi2_per_sample for s in c.consistency.sensors)])
         if c.planes is not None:
             planes_used = max(planes_used, c.planes.planes)
             for n, f in zip(c.planes.names, c.planes.factor, strict=True):
                 names[n] = max(names.get(n, 1.0), float(f))
+    grow = np.ones(7)
+    some = grown_info > 0.0
+    grow[some] = np.sqrt(info[some] / grown_info[some])
     planes = None
     if names:
         planes = MapUncertainty(tuple(names), np.array(list(names.values())), planes_used, 0.0)
     prior = np.where(np.isfinite(prior), prior, 0.0)
-    return grow, float(np.sqrt(chi)), planes, prior
+    return grow, float(np.sqrt(chi)), planes, effect_ratio, prior
 
 
 def _sigma_size(run: CalibrationRun) -> float:
@@ -447,15 +513,17 @@ def _joint_result(
     else:
         tc, tc_std = float(np.mean(offsets)), float("inf")
     joint = Extrinsic(states[0].R_imu_lidar.copy(), states[0].t_imu_lidar.copy(), tc)
-    grow, chi_factor, planes, prior = _growth(runs)
+    own_grow, chi_factor, planes, effect_ratio, prior = _growth(runs)
+    scatter = _scatter_factor(runs, joint, np.asarray(shift) - shift[best])
+    grow = np.sqrt(own_grow**2 + effect_ratio) * scatter
     raw = _uncertainty(report)
-    prior_deg = np.degrees(np.sqrt(prior[3:6]))
+    shared = np.sqrt(prior)
     unc = Uncertainty(
-        translation_std_m=vec3(
-            np.hypot(np.asarray(raw.translation_std_m) * grow[:3], np.sqrt(prior[:3]))
+        translation_std_m=vec3(np.hypot(np.asarray(raw.translation_std_m) * grow[:3], shared[:3])),
+        rotation_std_deg=vec3(
+            np.hypot(np.asarray(raw.rotation_std_deg) * grow[3:6], np.degrees(shared[3:6]))
         ),
-        rotation_std_deg=vec3(np.hypot(np.asarray(raw.rotation_std_deg) * grow[3:6], prior_deg)),
-        time_offset_std_s=float(np.hypot(tc_std * float(grow[6]), np.sqrt(prior[6]))),
+        time_offset_std_s=float(np.hypot(tc_std * float(grow[6]), shared[6])),
     )
     entries = []
     worst = "pass"
@@ -502,10 +570,22 @@ def _joint_result(
     if any(any(bk.startswith("ext.") for bk, _ in d.blocks) for d in report.truncated):
         worst = "warn" if worst == "pass" else worst
         reasons += [f"Not observable from the segments together: {t}" for t in truncated]
-    if np.any(grow > 1.005):
+    if np.any(own_grow > 1.005) or np.any(scatter > 1.005):
         reasons.append(
-            f"Joint sigmas enlarged up to {float(grow.max()):.2f} times, as the segments' own "
-            "were (map planes, residual chi-square, split halves, held effects)."
+            f"Joint sigmas enlarged up to {float(own_grow.max()):.2f} times, the segments' own "
+            "enlargements (residual chi-square, split halves) weighted by their information"
+            + (
+                f", and the segments' scatter about the joint estimate (times up to "
+                f"{float(scatter.max()):.2f})."
+                if np.any(scatter > 1.005)
+                else "."
+            )
+        )
+    if np.any(effect_ratio > 0.0):
+        reasons.append(
+            "Joint sigmas enlarged up to "
+            f"{float(np.sqrt(1.0 + effect_ratio.max())):.2f} times by the shift of the effects "
+            "held fixed that a segment's checks cover."
         )
     if np.any(prior > 0.0):
         reasons.append(

@@ -19,7 +19,7 @@ from licalib_cli.estimation import (
 )
 from licalib_cli.geometry.so3 import exp as so3_exp
 from licalib_cli.models.intrinsics import LidarIntrinsics
-from licalib_cli.pipeline.joint import _disagreement, _growth
+from licalib_cli.pipeline.joint import _disagreement, _growth, _scatter_factor
 from licalib_cli.pipeline.joint_problem import joint_problem, per_segment_blocks, segment_name
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty
 from licalib_cli.pipeline.points import PointSample
@@ -198,19 +198,55 @@ def _checked_run(raw: list[float], shown_t: float, chi: float, plane_factor: flo
     return SimpleNamespace(checks=checks)
 
 
-def test_joint_sigmas_grow_by_the_largest_factor_of_any_segment() -> None:
+def test_joint_sigmas_grow_by_the_segments_factors_weighted_by_their_information() -> None:
     raw = [0.001, 0.001, 0.001, 1e-4, 1e-4, 1e-4, 1e-5]
     a = _checked_run(raw, 0.0015, chi=1.44, plane_factor=3.0)
     b = _checked_run(raw, 0.0030, chi=0.8, plane_factor=2.0)
-    grow, chi_factor, planes, prior = _growth([a, b])
+    grow, chi_factor, planes, effects, prior = _growth([a, b])
     np.testing.assert_array_equal(prior, 0.0)
-    np.testing.assert_allclose(grow[:3], 3.0)  # the second segment's enlargement
+    np.testing.assert_array_equal(effects, 0.0)
+    # equal information: 1 / g^2 = (1 / 1.5^2 + 1 / 3^2) / 2, between the two factors
+    np.testing.assert_allclose(grow[:3], np.sqrt(2.0 / (1 / 1.5**2 + 1 / 3.0**2)))
     np.testing.assert_allclose(grow[3:], 1.0, atol=1e-12)  # never below one
     assert chi_factor == pytest.approx(1.2)  # root of the largest chi-square per sample
     assert planes is not None
     assert planes.of("lidar.intrinsics[1].drho") == pytest.approx(3.0)
     assert planes.of("ext.translation.x") == pytest.approx(1.1)
+    # the joint sigma (the joint solver's, the segments' information summed, times the factor)
+    # is below each segment's enlarged sigma
+    joint_raw = 0.001 / np.sqrt(2.0)
+    assert joint_raw * grow[0] < min(0.0015, 0.0030)
+    # a segment that brings four times the information weighs four times as much
+    c = _checked_run([0.0005, 0.0005, 0.0005, *raw[3:]], 0.0005, chi=1.0, plane_factor=1.0)
+    grow, *_ = _growth([c, b])
+    np.testing.assert_allclose(grow[:3], np.sqrt(5.0 / (4.0 + 1 / 3.0**2)))
     # a coordinate a segment left undetermined (raw sigma infinite) does not poison the factor
-    c = _checked_run([np.inf, *raw[1:]], 0.0015, chi=1.0, plane_factor=1.0)
-    grow, _, _, _ = _growth([c])
+    d = _checked_run([np.inf, *raw[1:]], 0.0015, chi=1.0, plane_factor=1.0)
+    grow, *_ = _growth([d])
     assert np.all(np.isfinite(grow))
+    assert grow[0] == 1.0 and grow[1] == pytest.approx(1.5)
+
+
+def test_segments_scattering_beyond_their_sigmas_grow_the_joint_sigma() -> None:
+    def run(t: list[float], sigma: float, dt: float = 0.0) -> SimpleNamespace:
+        ext = Extrinsic(np.eye(3), np.array(t), 0.01 + dt)
+        unc = Uncertainty((sigma,) * 3, (0.01,) * 3, 1e-5)
+        return SimpleNamespace(result=SimpleNamespace(extrinsic=ext, uncertainty=unc))
+
+    joint = Extrinsic(np.eye(3), np.zeros(3), 0.01)
+    clock = np.zeros(3)
+    # within their sigmas: no growth
+    agree = [run([0.001, 0, 0], 0.002), run([-0.001, 0, 0], 0.002), run([0, 0, 0], 0.002)]
+    np.testing.assert_array_equal(_scatter_factor(agree, joint, clock), 1.0)
+    # x scattered by 3 and 4 sigmas: chi-square 25 on 2, the Birge ratio sqrt(12.5)
+    far = [run([0.006, 0, 0], 0.002), run([-0.008, 0, 0], 0.002), run([0, 0, 0], 0.002)]
+    f = _scatter_factor(far, joint, clock)
+    assert f[0] == pytest.approx(np.sqrt(12.5))
+    np.testing.assert_array_equal(f[1:], 1.0)
+    # time offsets are compared on one LiDAR clock: a segment's clock shift is taken out
+    shifted = [run([0, 0, 0], 0.002, dt=-0.5), run([0, 0, 0], 0.002), run([0, 0, 0], 0.002)]
+    assert _scatter_factor(shifted, joint, np.array([0.5, 0.0, 0.0]))[6] == 1.0
+    assert _scatter_factor(shifted, joint, clock)[6] > 100.0
+    # a single segment determining a coordinate says nothing about scatter
+    one = [run([0.01, 0, 0], 0.002), run([0.0, 0, 0], np.inf)]
+    assert _scatter_factor(one, joint, np.zeros(2))[0] == 1.0

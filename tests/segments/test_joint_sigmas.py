@@ -1,9 +1,10 @@
 """How the joint sigmas of a multi-segment calibration take over the segments' enlargements.
 
-The segments' checks enlarge their solver sigmas by factors (map planes, chi-square, split
-halves, covered effects), which the joint sigma takes over as factors, and by the IMU priors
-(``model.imu_prior``), which it must not shrink: an IMU error the data do not show moves every
-segment alike, so the joint keeps the best-determined segment's part as it is.
+The segments' checks enlarge their solver sigmas by factors of their own (chi-square, split
+halves), which the joint sigma takes over weighted by the segments' information, and by parts
+every segment shares, which it must not shrink: the IMU priors (``model.imu_prior``; an IMU error
+the data do not show moves every segment alike, so the joint keeps the best-determined
+segment's part as it is) and the shift of an effect held fixed that the checks cover.
 """
 
 from __future__ import annotations
@@ -64,7 +65,54 @@ def _segment(factor: float, prior_std: np.ndarray) -> SimpleNamespace:
 def test_the_priors_part_is_kept_apart_and_not_scaled() -> None:
     big = np.array([2e-3, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     small = np.array([1e-3, 5e-4, 0.0, 0.0, 0.0, 0.0, 0.0])
-    grow, chi, planes, prior = _growth([_segment(1.5, big), _segment(1.2, small)])  # type: ignore[list-item]
-    np.testing.assert_allclose(grow, 1.5)  # the factors alone, the priors taken out
+    grow, chi, planes, effects, prior = _growth([_segment(1.5, big), _segment(1.2, small)])  # type: ignore[list-item]
+    # the factors alone, the priors taken out, weighted by the (equal) information
+    np.testing.assert_allclose(grow, np.sqrt(2.0 / (1 / 1.5**2 + 1 / 1.2**2)))
+    np.testing.assert_array_equal(effects, 0.0)
     np.testing.assert_allclose(prior, np.minimum(big, small) ** 2)  # the best-determined segment
     assert chi == pytest.approx(1.0) and planes is None
+
+
+def test_a_covered_effects_shift_is_kept_apart_from_the_weighted_factors() -> None:
+    """An effect the data hint at and that moves the extrinsic by more than its sigma is covered
+    by its shift: the joint keeps the largest ratio of that variance to a segment's solver
+    variance instead of weighting it down with the other segments' information."""
+    shift = np.array([3e-3, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # 3 raw sigmas on t_x
+    score = EffectScore(
+        name="accel_scale",
+        statistic=30.0,
+        rank=3,
+        p_value=1e-5,
+        estimate=np.zeros(3),
+        sigma=np.ones(3),
+        shift=np.zeros(7),
+        shift_sigma=np.zeros(7),
+    )
+    covered = EffectEvidence(
+        score=score,
+        sensor="imu",
+        selected=True,
+        shift_translation_m=shift[:3],
+        shift_rotation_rad=shift[3:6],
+        shift_time_offset_s=0.0,
+        shift_std=np.full(7, 1e-4),
+    )
+    shown = np.sqrt((RAW * 1.2) ** 2 + shift**2 + 1e-4**2)
+    seg = SimpleNamespace(
+        checks=SimpleNamespace(
+            uncertainty=SimpleNamespace(
+                translation_std_m=shown[:3],
+                rotation_std_deg=np.degrees(shown[3:6]),
+                time_offset_std_s=float(shown[6]),
+            ),
+            raw_sigma=RAW,
+            consistency=SimpleNamespace(sensors=()),
+            planes=None,
+            effects=(covered,),
+        )
+    )
+    plain = _segment(1.2, np.zeros(7))
+    grow, _, _, effects, prior = _growth([seg, plain])  # type: ignore[list-item]
+    np.testing.assert_allclose(grow, 1.2)  # the own part: the effect taken out
+    np.testing.assert_allclose(effects, (shift**2 + 1e-4**2) / RAW**2)  # from the one segment
+    np.testing.assert_array_equal(prior, 0.0)
