@@ -12,8 +12,10 @@ from licalib_cli.commands.options import (
     INPUT_PANEL,
     BagArgument,
     ConfigOption,
+    DurationOption,
     ImuTopicOption,
     LidarTopicOption,
+    StartOption,
 )
 from licalib_cli.commands.render import console, console_err, render_run
 from licalib_cli.config import INTRINSIC_PRESETS, dump_config, load_config
@@ -170,12 +172,8 @@ def calibrate_command(
     config: ConfigOption = None,
     imu_topic: ImuTopicOption = None,
     lidar_topic: LidarTopicOption = None,
-    start: float | None = typer.Option(
-        None, "--start", help="Seconds after the bag start.", rich_help_panel=_IO
-    ),
-    duration: float | None = typer.Option(
-        None, "--duration", help="Seconds of data to use.", rich_help_panel=_IO
-    ),
+    start: StartOption = None,
+    duration: DurationOption = None,
     segments: str | None = typer.Option(
         None,
         "--segments",

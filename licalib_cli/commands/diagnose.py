@@ -12,6 +12,15 @@ from typing import Any
 import typer
 from rich.table import Table
 
+from licalib_cli.commands.options import (
+    INPUT_PANEL,
+    BagArgument,
+    ConfigOption,
+    DurationOption,
+    ImuTopicOption,
+    LidarTopicOption,
+    StartOption,
+)
 from licalib_cli.commands.render import console
 from licalib_cli.config import dump_config, load_config
 from licalib_cli.errors import ConfigError
@@ -22,7 +31,7 @@ from licalib_cli.results import (
     write_text_atomic,
 )
 
-_IO = "Input"
+_IO = INPUT_PANEL
 _OUT = "Output"
 
 
@@ -260,14 +269,12 @@ def render_diagnosis(diag: Any) -> None:
 
 
 def diagnose_command(
-    bag: Path = typer.Argument(
-        ...,
-        metavar="BAG",
-        help="ROS1 .bag (or folder of split bags), ROS2 bag folder, .db3 or .mcap.",
-    ),
-    config: Path | None = typer.Option(
-        None, "--config", "-c", help="YAML config.", rich_help_panel=_IO
-    ),
+    bag: BagArgument,
+    config: ConfigOption = None,
+    imu_topic: ImuTopicOption = None,
+    lidar_topic: LidarTopicOption = None,
+    start: StartOption = None,
+    duration: DurationOption = None,
     candidates: list[str] | None = typer.Option(
         None,
         "--candidates",
@@ -299,7 +306,15 @@ def diagnose_command(
     from licalib_cli.commands.calibrate import RichProgress
     from licalib_cli.pipeline.diagnose import CANDIDATES, diagnose
 
-    cfg = load_config(config)
+    cfg = load_config(
+        config,
+        {
+            "imu.topic": imu_topic,
+            "lidar.topic": lidar_topic,
+            "bag.start_s": start,
+            "bag.duration_s": duration,
+        },
+    )
     if candidates:
         unknown = [c for c in candidates if c not in CANDIDATES]
         if unknown:

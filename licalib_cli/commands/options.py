@@ -11,7 +11,15 @@ from typing import Annotated
 
 import typer
 
-__all__ = ["INPUT_PANEL", "BagArgument", "ConfigOption", "ImuTopicOption", "LidarTopicOption"]
+__all__ = [
+    "INPUT_PANEL",
+    "BagArgument",
+    "ConfigOption",
+    "DurationOption",
+    "ImuTopicOption",
+    "LidarTopicOption",
+    "StartOption",
+]
 
 INPUT_PANEL = "Input"
 """The help panel of the options that say what to read."""
@@ -37,4 +45,12 @@ LidarTopicOption = Annotated[
     typer.Option(
         "--lidar-topic", help="sensor_msgs/PointCloud2 topic.", rich_help_panel=INPUT_PANEL
     ),
+]
+StartOption = Annotated[
+    float | None,
+    typer.Option("--start", help="Seconds after the bag start.", rich_help_panel=INPUT_PANEL),
+]
+DurationOption = Annotated[
+    float | None,
+    typer.Option("--duration", help="Seconds of data to use.", rich_help_panel=INPUT_PANEL),
 ]

@@ -353,6 +353,9 @@ def test_bad_options_and_configs_exit_6(
     assert data["exit_code"] == 6 and fragment in data["problems"][0]["message"]
     code, _, err = run(["calibrate", str(bag), "-o", str(tmp_path / "c.yaml"), *options], capsys)
     assert code == 6 and fragment in error_line(err)
+    # diagnose reads the same window of the same bag with the same options
+    code, _, err = run(["diagnose", str(bag), *options], capsys)
+    assert code == 6 and fragment in error_line(err)
 
 
 # --------------------------------------------------------------------------------------------

@@ -136,8 +136,12 @@ def test_a_clock_drift_the_score_test_finds_is_estimated_not_truncated(
 
 def test_a_clean_bag_shows_no_effect(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     bag = _bag(tmp_path)
-    code, printed = _diagnose([str(bag), "-c", str(CONFIG)], capsys)
+    # a window of the bag, as calibrate takes one
+    args = [str(bag), "-c", str(CONFIG), "--start", "0.5", "--duration", "7", "-o", str(tmp_path)]
+    code, printed = _diagnose(args, capsys)
     assert code == 0
+    recording = yaml.safe_load((tmp_path / "calibration.yaml").read_text())["recording"]
+    assert recording["duration_s"] == pytest.approx(7.0, abs=0.01)
     assert "Effects added to the model: none" in printed
     assert "base model PASS" in printed
     assert "Not shown by this bag" in printed and "gyro_bias_walk" in printed
