@@ -24,10 +24,11 @@ the model estimates; each keeps its own trajectory spline, IMU biases, gravity a
 
 The joint sigmas start from the joint solver's and are enlarged from what each segment's checks
 found (:func:`_growth`): a segment's own enlargements (the residuals' chi-square, the split
-halves, the last round's change) weighted by the information the segment brings, and what every
-segment shares added whole (the IMU priors), and the shift of an effect held fixed that a
-segment's checks cover as a factor of the joint solver's sigma. The joint problem is not checked
-on its own beyond that and the segments' scatter and disagreement (below).
+halves, the last round's change) are weighted by the information the segment brings; the shift
+of an effect held fixed that a segment's checks cover enlarges the joint solver's sigma by the
+largest factor any segment needed; the IMU priors, which every segment shares, are added whole.
+The sigmas grow further when the segments' own estimates scatter about the joint one beyond
+their sigmas (:func:`_scatter_factor`). The joint problem is not checked on its own beyond that.
 
 The intrinsics written are the joint problem's (shared by the segments); the biases and gravity
 are the reference segment's (the one with the smallest sigmas).
@@ -421,8 +422,8 @@ def _growth(runs: Sequence[CalibrationRun]) -> tuple[F64, float, MapUncertainty 
     * the shift of an effect the model holds fixed and a segment's checks cover: a real effect
       moves every segment of the rig alike, a hint of one seen in a single window may be that
       window's; the joint sigma keeps the largest ratio of such a variance to a segment's solver
-      variance, ``max_k effects_k / raw_k^2``, times its own solver variance (as it did before
-      the own parts were weighted; the joint problem does not test the effects itself).
+      variance, ``max_k effects_k / raw_k^2``, times its own solver variance (the joint problem
+      does not test the effects itself, and cannot tell a rig's effect from a window's).
     * the IMU priors, which do not shrink with more data: the joint adds the smallest of the
       segments' (all segments' data together determine the IMU blocks at least as well as the
       best one).
