@@ -144,6 +144,16 @@ class Uncertainty(Section):
     rotation_std_deg: tuple[float, float, float]
     time_offset_std_s: float
 
+    def vector(self) -> np.ndarray:
+        """(7,) the sigmas as translation (m), rotation (rad), time offset (s)."""
+        return np.concatenate(
+            [
+                np.asarray(self.translation_std_m, dtype=np.float64),
+                np.radians(np.asarray(self.rotation_std_deg, dtype=np.float64)),
+                [float(self.time_offset_std_s)],
+            ]
+        )
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "translation_std_m": [float(x) for x in self.translation_std_m],

@@ -252,13 +252,7 @@ def _scatter_factor(runs: Sequence[CalibrationRun], joint: Extrinsic, clock: F64
     for k, run in enumerate(runs):
         own, unc = run.result.extrinsic, run.result.uncertainty
         assert unc is not None
-        sigma = np.concatenate(
-            [
-                np.asarray(unc.translation_std_m),
-                np.radians(np.asarray(unc.rotation_std_deg)),
-                [unc.time_offset_std_s],
-            ]
-        )
+        sigma = unc.vector()
         diff = np.concatenate(
             [
                 own.translation - joint.translation,
@@ -444,13 +438,7 @@ def _growth(runs: Sequence[CalibrationRun]) -> tuple[F64, float, MapUncertainty 
         c = run.checks
         u = c.uncertainty
         raw = np.asarray(c.raw_sigma, dtype=np.float64)
-        shown = np.concatenate(
-            [
-                np.asarray(u.translation_std_m),
-                np.radians(np.asarray(u.rotation_std_deg)),
-                [u.time_offset_std_s],
-            ]
-        )
+        shown = u.vector()
         own_prior = prior_variance(c.effects, raw)
         prior = np.minimum(prior, own_prior)
         own_effects = np.zeros(7)

@@ -17,6 +17,7 @@ import pytest
 from licalib_cli.consistency.score import EffectScore
 from licalib_cli.pipeline.fitcheck import EffectEvidence
 from licalib_cli.pipeline.joint import _growth
+from licalib_cli.sections import Uncertainty
 
 RAW = np.array([1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4, 1e-5])
 
@@ -47,11 +48,7 @@ def _segment(factor: float, prior_std: np.ndarray) -> SimpleNamespace:
     """A segment whose checks enlarged its solver sigmas ``factor`` times, then added the
     priors' ``prior_std`` in quadrature."""
     shown = np.sqrt((RAW * factor) ** 2 + prior_std**2)
-    uncertainty = SimpleNamespace(
-        translation_std_m=shown[:3],
-        rotation_std_deg=np.degrees(shown[3:6]),
-        time_offset_std_s=float(shown[6]),
-    )
+    uncertainty = Uncertainty(tuple(shown[:3]), tuple(np.degrees(shown[3:6])), float(shown[6]))
     checks = SimpleNamespace(
         uncertainty=uncertainty,
         raw_sigma=RAW,
@@ -100,10 +97,8 @@ def test_a_covered_effects_shift_is_kept_apart_from_the_weighted_factors() -> No
     shown = np.sqrt((RAW * 1.2) ** 2 + shift**2 + 1e-4**2)
     seg = SimpleNamespace(
         checks=SimpleNamespace(
-            uncertainty=SimpleNamespace(
-                translation_std_m=shown[:3],
-                rotation_std_deg=np.degrees(shown[3:6]),
-                time_offset_std_s=float(shown[6]),
+            uncertainty=Uncertainty(
+                tuple(shown[:3]), tuple(np.degrees(shown[3:6])), float(shown[6])
             ),
             raw_sigma=RAW,
             consistency=SimpleNamespace(sensors=()),
