@@ -94,6 +94,11 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
         "translation_mm": 1e3 * err["translation_m"],
         "rotation_deg": err["rotation_deg"],
         "time_offset_ms": 1e3 * err["time_offset_s"],
+        # signed (estimate - truth): a bias shows as a mean away from zero over the seeds
+        "time_offset_error_ms": 1e3 * (res.extrinsic.time_offset_s - truth.time_offset_s),
+        "translation_error_mm": [
+            round(float(x), 3) for x in 1e3 * (res.extrinsic.translation - truth.translation)
+        ],
         "verdict": run.verdict.status,
         "calibrate_s": wall,
         "simulate_s": sim_s,
@@ -237,6 +242,14 @@ def main() -> None:
         for k in ("translation_mm", "rotation_deg", "time_offset_ms", "calibrate_s"):
             vals = np.array([r[k] for r in rows])
             print(f"{k}: mean {vals.mean():.4g}, max {vals.max():.4g}")
+        signed_dt = np.array([r["time_offset_error_ms"] for r in rows])
+        signed_t = np.array([r["translation_error_mm"] for r in rows])
+        print(
+            f"signed mean over seeds (a bias): time offset {signed_dt.mean():+.4f} ms "
+            f"(scatter {signed_dt.std():.4f}), translation "
+            f"{np.array2string(signed_t.mean(axis=0), precision=2, sign='+')} mm "
+            f"(scatter {np.array2string(signed_t.std(axis=0), precision=2)})"
+        )
         w = sum(r["within_3_sigma"][0] for r in rows)
         n = sum(r["within_3_sigma"][1] for r in rows)
         print(f"within 3 sigma: {w}/{n} ({100 * w / max(n, 1):.1f} %)")
