@@ -16,6 +16,7 @@ from licalib_cli.commands.options import (
     ImuTopicOption,
     LidarTopicOption,
     StartOption,
+    input_overrides,
 )
 from licalib_cli.commands.render import console, console_err, render_run
 from licalib_cli.config import INTRINSIC_PRESETS, dump_config, load_config
@@ -257,10 +258,7 @@ def calibrate_command(
     cfg = load_config(
         config,
         {
-            "imu.topic": imu_topic,
-            "lidar.topic": lidar_topic,
-            "bag.start_s": start,
-            "bag.duration_s": duration,
+            **input_overrides(imu_topic, lidar_topic, start, duration),
             **_intrinsics_overrides(intrinsics),
         },
     )

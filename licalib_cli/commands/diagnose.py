@@ -20,6 +20,7 @@ from licalib_cli.commands.options import (
     ImuTopicOption,
     LidarTopicOption,
     StartOption,
+    input_overrides,
 )
 from licalib_cli.commands.render import console
 from licalib_cli.config import dump_config, load_config
@@ -308,12 +309,7 @@ def diagnose_command(
 
     cfg = load_config(
         config,
-        {
-            "imu.topic": imu_topic,
-            "lidar.topic": lidar_topic,
-            "bag.start_s": start,
-            "bag.duration_s": duration,
-        },
+        input_overrides(imu_topic, lidar_topic, start, duration),
     )
     if candidates:
         unknown = [c for c in candidates if c not in CANDIDATES]

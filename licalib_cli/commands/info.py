@@ -20,6 +20,7 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
+from licalib_cli.commands.options import input_overrides
 from licalib_cli.commands.render import console
 from licalib_cli.config import load_config
 from licalib_cli.errors import LicalibError
@@ -56,12 +57,7 @@ def info_command(
     try:
         cfg = load_config(
             config,
-            {
-                "imu.topic": imu_topic,
-                "lidar.topic": lidar_topic,
-                "bag.start_s": start,
-                "bag.duration_s": duration,
-            },
+            input_overrides(imu_topic, lidar_topic, start, duration),
         )
         report = inspect_bag(bag, cfg)
     except LicalibError as err:

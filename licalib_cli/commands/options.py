@@ -19,6 +19,7 @@ __all__ = [
     "ImuTopicOption",
     "LidarTopicOption",
     "StartOption",
+    "input_overrides",
 ]
 
 INPUT_PANEL = "Input"
@@ -54,3 +55,15 @@ DurationOption = Annotated[
     float | None,
     typer.Option("--duration", help="Seconds of data to use.", rich_help_panel=INPUT_PANEL),
 ]
+
+
+def input_overrides(
+    imu_topic: str | None, lidar_topic: str | None, start: float | None, duration: float | None
+) -> dict[str, object]:
+    """The config keys the input options set (None: the config's or the default value)."""
+    return {
+        "imu.topic": imu_topic,
+        "lidar.topic": lidar_topic,
+        "bag.start_s": start,
+        "bag.duration_s": duration,
+    }

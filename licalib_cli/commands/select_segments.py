@@ -17,6 +17,7 @@ from licalib_cli.commands.options import (
     ConfigOption,
     ImuTopicOption,
     LidarTopicOption,
+    input_overrides,
 )
 from licalib_cli.commands.render import console
 from licalib_cli.config import load_config
@@ -169,12 +170,7 @@ def select_segments_command(
         prepare_output(plot, [("the input bag", bag), ("the config file", config)])
     cfg = load_config(
         config,
-        {
-            "imu.topic": imu_topic,
-            "lidar.topic": lidar_topic,
-            "bag.start_s": start,
-            "bag.duration_s": duration,
-        },
+        input_overrides(imu_topic, lidar_topic, start, duration),
     )
     from licalib_cli.commands.calibrate import RichProgress
 
