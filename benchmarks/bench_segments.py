@@ -319,6 +319,16 @@ def intrinsics(args: argparse.Namespace, workdir: Path) -> None:
             if "rounds" in seen:
                 _intrinsics_row("joint rounds", seen["rounds"], ref, true_mean)
             _intrinsics_row("joint", run.states[0], ref, true_mean)
+            unc = run.result.uncertainty
+            if unc is not None:
+                sig_t = np.asarray(unc.translation_std_m)
+                err_t = np.abs(run.result.extrinsic.translation - ref.translation)
+                seg_t = [np.asarray(r.result.uncertainty.translation_std_m) for r in run.runs]
+                print(
+                    f" joint sigma t {np.round(1e3 * sig_t, 2)} mm (segments' smallest "
+                    f"{np.round(1e3 * np.min(seg_t, axis=0), 2)}), |error| / sigma "
+                    f"{np.round(err_t / sig_t, 2)}"
+                )
             refined = seen.get("refined")
             if refined is not None:
                 print(
