@@ -6,6 +6,7 @@ of its own::
 
     scenario:      name, duration, motion bursts (figure-8: mounting, vertical axis)
     seed:          the random seed
+    noise_seed:    the seed of the sensor noise, when ``--noise-seed`` gave another one
     simulation:    gravity, initial pose, IMU, LiDAR, clocks, bag and command line, and
                    ``effects``: every effect hidden in the data by name (the candidates of
                    ``licalib diagnose``) with its size and the values injected
@@ -214,12 +215,14 @@ class Truth:
         scenario: the simulated motion, or None.
         seed: the random seed, or None.
         simulation: the simulation settings, or None.
+        noise_seed: the seed of the sensor noise when it is not ``seed``, or None.
     """
 
     values: CalibrationResult
     scenario: Scenario | None = None
     seed: int | None = None
     simulation: Simulation | None = None
+    noise_seed: int | None = None
 
     @property
     def extrinsic(self) -> Extrinsic:
@@ -271,6 +274,8 @@ class Truth:
             out["scenario"] = self.scenario.to_dict()
         if self.seed is not None:
             out["seed"] = int(self.seed)
+        if self.noise_seed is not None:
+            out["noise_seed"] = int(self.noise_seed)
         if self.simulation is not None:
             out["simulation"] = self.simulation.to_dict()
         return out
@@ -295,7 +300,13 @@ class Truth:
                     )
                     raise ConfigError(msg) from err
         seed = d.get("seed")
-        return cls(values, seed=None if seed is None else int(seed), **sections)
+        noise_seed = d.get("noise_seed")
+        return cls(
+            values,
+            seed=None if seed is None else int(seed),
+            noise_seed=None if noise_seed is None else int(noise_seed),
+            **sections,
+        )
 
     def to_yaml(self) -> str:
         return dump_yaml(self.to_dict())

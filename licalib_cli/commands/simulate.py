@@ -91,6 +91,15 @@ def simulate_command(
     seed: Annotated[
         int, typer.Option("--seed", help="Seed of every random draw.", rich_help_panel=_SCENE)
     ] = 0,
+    noise_seed: Annotated[
+        int | None,
+        typer.Option(
+            "--noise-seed",
+            help="Seed of the sensor noise alone (default: --seed): new noise for the same "
+            "motion, mounting and intrinsics.",
+            rich_help_panel=_SCENE,
+        ),
+    ] = None,
     mounting: Annotated[
         Mounting, typer.Option("--mounting", help="Figure-8 mounting case.", rich_help_panel=_SCENE)
     ] = Mounting.A,
@@ -317,6 +326,7 @@ def simulate_command(
         fmt=fmt,
         duration_s=duration,
         seed=seed,
+        noise_seed=noise_seed,
         mounting=mounting,
         imu_rate_hz=imu_rate,
         lidar_rate_hz=lidar_rate,

@@ -81,7 +81,7 @@ def generate_imu(
     accel_true = state.specific_force(spec.gravity_w)
     gyro, accel = imu_measure(setup.imu_intrinsics, state.angular_velocity, accel_true)
 
-    rng = rng_for(spec.seed, Stream.IMU_NOISE)
+    rng = rng_for(spec.resolved_noise_seed, Stream.IMU_NOISE)
     white = rng.standard_normal((n, 6))
     walk = rng.standard_normal((n, 6))
     rate = spec.imu_rate_hz

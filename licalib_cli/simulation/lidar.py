@@ -151,7 +151,7 @@ def _scan(
     dir_w = np.einsum("nij,nj->ni", r_wl, dir_l)
     rho_bar, plane_id = setup.world.raycast(origin_w, dir_w)
 
-    rng = rng_for(spec.seed, Stream.LIDAR_NOISE, k)
+    rng = rng_for(spec.resolved_noise_seed, Stream.LIDAR_NOISE, k)
     noise = rng.standard_normal(rho_bar.shape[0]) * spec.resolved_range_noise_m
     keep = rng.uniform(size=rho_bar.shape[0]) >= spec.dropout
     rho = (rho_bar - kin.range_offset[ring]) / kin.range_scale[ring] + noise

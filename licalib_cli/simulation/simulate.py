@@ -263,7 +263,8 @@ def build_truth(
         imu_intrinsics=setup.imu_intrinsics,
         lidar_intrinsics=setup.lidar_intrinsics,
     )
-    return tr.Truth(values, scenario, int(spec.seed), simulation)
+    noise_seed = None if spec.resolved_noise_seed == spec.seed else spec.resolved_noise_seed
+    return tr.Truth(values, scenario, int(spec.seed), simulation, noise_seed)
 
 
 def _is_bag_like(path: Path) -> bool:

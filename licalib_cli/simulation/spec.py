@@ -110,6 +110,9 @@ class SimulationSpec:
         fmt: bag container format.
         duration_s: seconds of data; None for the scenario's default (10 s, walk 120 s).
         seed: seed of every random draw (trajectory, extrinsic, intrinsics, noise).
+        noise_seed: seed of the sensor noise alone (IMU white noise and bias walks, LiDAR range
+            noise and dropouts); None: ``seed``. Another noise seed with the same ``seed`` draws
+            new noise for the same motion, mounting and intrinsics (a Monte Carlo over noise).
         mounting: figure-8 mounting case (ignored by the other scenarios).
         imu_rate_hz: IMU sample rate.
         lidar_rate_hz: sweeps per second.
@@ -163,6 +166,7 @@ class SimulationSpec:
     fmt: BagFormat = BagFormat.ROS1
     duration_s: float | None = None
     seed: int = 0
+    noise_seed: int | None = None
     mounting: Mounting = Mounting.A
     imu_rate_hz: float = 400.0
     lidar_rate_hz: float = 10.0
@@ -388,6 +392,11 @@ class SimulationSpec:
         if self.resolved_accel_bias_walk_scale > 1.0:
             out.add(Effect.ACCEL_BIAS_WALK)
         return tuple(e for e in Effect if e in out)
+
+    @property
+    def resolved_noise_seed(self) -> int:
+        """The seed of the sensor noise draws."""
+        return self.seed if self.noise_seed is None else int(self.noise_seed)
 
     @property
     def resolved_range_noise_m(self) -> float:

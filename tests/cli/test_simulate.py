@@ -63,6 +63,13 @@ def test_simulate_smoke(tmp_path: Path) -> None:
     assert isinstance(again.exception, ConfigError) and "--force" in str(again.exception)
     forced = CliRunner().invoke(_app(), [*args, "--force"])
     assert forced.exit_code == 0, forced.output
+    assert Truth.load(out_dir / "truth.yaml").noise_seed is None  # the seed's own noise
+    # another noise draw for the same truth is recorded beside the seed
+    redrawn = CliRunner().invoke(_app(), [*args, "--force", "--noise-seed", "11"])
+    assert redrawn.exit_code == 0, redrawn.output
+    again_truth = Truth.load(out_dir / "truth.yaml")
+    assert again_truth.seed == 3 and again_truth.noise_seed == 11
+    assert again_truth.extrinsic.translation.tolist() == [-0.1, 0.2, 0.05]
 
 
 def test_invalid_option_is_a_clear_error(tmp_path: Path) -> None:
