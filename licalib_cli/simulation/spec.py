@@ -231,6 +231,11 @@ class SimulationSpec:
     def _validate(self) -> None:
         checks: list[tuple[bool, str]] = [
             (
+                self.seed >= 0 and (self.noise_seed is None or self.noise_seed >= 0),
+                f"--seed and --noise-seed must not be negative, got {self.seed} and "
+                f"{self.noise_seed}; pass e.g. --seed 0.",
+            ),
+            (
                 self.duration_s is None or self.duration_s > 0,
                 f"--duration must be positive, got {self.duration_s}; pass e.g. --duration 10.",
             ),

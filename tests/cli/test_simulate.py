@@ -76,6 +76,10 @@ def test_invalid_option_is_a_clear_error(tmp_path: Path) -> None:
     result = CliRunner().invoke(_app(), ["simulate", str(tmp_path), "--duration", "-1"])
     assert isinstance(result.exception, ConfigError)
     assert "--duration" in str(result.exception)
+    for option in ("--seed", "--noise-seed"):  # a seed sequence takes no negative number
+        result = CliRunner().invoke(_app(), ["simulate", str(tmp_path), option, "-1"])
+        assert isinstance(result.exception, ConfigError), result.output
+        assert "must not be negative" in str(result.exception)
     with pytest.raises(SystemExit) as exc:
         main(["simulate", str(tmp_path), "--scenario", "spiral"])
     assert exc.value.code == ConfigError.exit_code
