@@ -206,6 +206,22 @@ class Simulation(Section):
         return next((e for e in self.effects if e.name == name), None)
 
 
+def _seed(d: dict[str, Any], key: str) -> int | None:
+    """A truth file's whole-number seed under ``key``, or None when absent.
+
+    Raises:
+        ConfigError: the value is not a whole number.
+    """
+    value = d.get(key)
+    if value is None:
+        return None
+    try:
+        return int(value)
+    except (TypeError, ValueError) as err:
+        msg = f"The truth file's {key!r} is {value!r}, not a whole number; regenerate it."
+        raise ConfigError(msg) from err
+
+
 @dataclass(frozen=True)
 class Truth:
     """A ``truth.yaml``: the true values and, for a simulated run, how it was made.
@@ -299,14 +315,7 @@ class Truth:
                         "it with this licalib version (licalib simulate)."
                     )
                     raise ConfigError(msg) from err
-        seed = d.get("seed")
-        noise_seed = d.get("noise_seed")
-        return cls(
-            values,
-            seed=None if seed is None else int(seed),
-            noise_seed=None if noise_seed is None else int(noise_seed),
-            **sections,
-        )
+        return cls(values, seed=_seed(d, "seed"), noise_seed=_seed(d, "noise_seed"), **sections)
 
     def to_yaml(self) -> str:
         return dump_yaml(self.to_dict())

@@ -518,6 +518,10 @@ def test_truth_file_is_checked_before_the_run(
     code, _, err = run(["calibrate", str(bag), "--truth", str(truth), "-o", str(truth)], capsys)
     assert code == 6 and "is the truth file" in error_line(err)
     assert truth.read_text() == "schema_version: 1\n"
+    for key in ("seed", "noise_seed"):  # a seed that is not a whole number
+        truth.write_text(f"schema_version: 1\n{key}: abc\n")
+        code, _, err = run(["calibrate", str(bag), "--truth", str(truth), "-o", "x.yaml"], capsys)
+        assert code == 6 and f"The truth file's '{key}' is 'abc'" in error_line(err)
 
 
 # --------------------------------------------------------------------------------------------
