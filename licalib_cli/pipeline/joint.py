@@ -226,15 +226,27 @@ def _uncertainty(report: SolverReport) -> Uncertainty:
     return Uncertainty(vec3(t), vec3(r), float("nan"))
 
 
+def _segment_z(run: CalibrationRun, joint: Extrinsic, clock_s: float = 0.0) -> F64:
+    """(7,) a segment's own estimate minus the joint one over its own sigmas: translation,
+    rotation (LiDAR frame, as the sigmas) and time offset (``clock_s`` puts the segment's on the
+    joint's LiDAR clock); NaN where the segment's sigma is not finite and positive."""
+    own, unc = run.result.extrinsic, run.result.uncertainty
+    assert unc is not None
+    sigma = unc.vector()
+    diff = np.concatenate(
+        [
+            own.translation - joint.translation,
+            so3.log(joint.rotation.T @ own.rotation),
+            [own.time_offset_s + clock_s - joint.time_offset_s],
+        ]
+    )
+    ok = np.isfinite(sigma) & (sigma > 0.0)
+    return np.where(ok, diff / np.where(ok, sigma, 1.0), np.nan)
+
+
 def _disagreement(run: CalibrationRun, joint: Extrinsic) -> float:
     """Largest ``|own - joint| / own sigma`` over the translation and rotation axes."""
-    own = run.result.extrinsic
-    unc = run.result.uncertainty
-    assert unc is not None
-    dt = np.abs(own.translation - joint.translation) / np.asarray(unc.translation_std_m)
-    dr = so3.log(joint.rotation.T @ own.rotation)  # LiDAR frame, rad
-    sr = np.radians(np.asarray(unc.rotation_std_deg))
-    z = np.concatenate([dt, np.abs(dr) / sr])
+    z = np.abs(_segment_z(run, joint)[:6])
     z = z[np.isfinite(z)]
     return float(z.max()) if z.size else 0.0
 
@@ -242,27 +254,14 @@ def _disagreement(run: CalibrationRun, joint: Extrinsic) -> float:
 def _scatter_factor(runs: Sequence[CalibrationRun], joint: Extrinsic, clock: F64) -> F64:
     """(7,) how much more the segments' own estimates scatter about the joint one than their
     sigmas say: per coordinate the root of ``sum_k z_k^2 / (K - 1)`` (``z_k`` = a segment's
-    difference from the joint over its sigma; K the segments that determine the coordinate), at
-    least one. The joint sigma weighs the segments as independent, which holds only while they
-    agree within their sigmas; beyond that it grows by this factor (the Birge ratio).
+    difference from the joint over its sigma, :func:`_segment_z`; K the segments that determine
+    the coordinate), at least one. The joint sigma weighs the segments as independent, which
+    holds only while they agree within their sigmas; beyond that it grows by this factor (the
+    Birge ratio).
 
     ``clock`` (K,) puts each segment's time offset on the joint's LiDAR clock.
     """
-    z = []
-    for k, run in enumerate(runs):
-        own, unc = run.result.extrinsic, run.result.uncertainty
-        assert unc is not None
-        sigma = unc.vector()
-        diff = np.concatenate(
-            [
-                own.translation - joint.translation,
-                so3.log(joint.rotation.T @ own.rotation),  # LiDAR frame, as the sigmas
-                [own.time_offset_s + clock[k] - joint.time_offset_s],
-            ]
-        )
-        ok = np.isfinite(sigma) & (sigma > 0.0)
-        z.append(np.where(ok, diff / np.where(ok, sigma, 1.0), np.nan))
-    zz = np.asarray(z)
+    zz = np.asarray([_segment_z(run, joint, float(clock[k])) for k, run in enumerate(runs)])
     count = np.sum(np.isfinite(zz), axis=0)
     chi2 = np.nansum(zz**2, axis=0)
     ratio = np.where(count > 1, chi2 / np.maximum(count - 1, 1), 1.0)
