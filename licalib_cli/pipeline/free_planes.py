@@ -191,11 +191,14 @@ def expected_noise_cost(
     state: CalibrationState,
     planes: Planes,
     range_noise: F64,
+    rays: F64 | None = None,
 ) -> float:
     """:func:`noise_cost` of ``inputs``' points at ``state`` on ``planes``, whitened as
     ``residual`` (the LiDAR block of the problem at ``state``; its whitening follows the range
-    scales the problem was built with); ``range_noise`` (N,) is each point's range noise, m."""
-    _, rays = points_and_rays_in_global(state, inputs.points)
+    scales the problem was built with); ``range_noise`` (N,) is each point's range noise, m;
+    ``rays`` (N, 3) the points' rays at ``state`` when the caller has them (else mapped here)."""
+    if rays is None:
+        _, rays = points_and_rays_in_global(state, inputs.points)
     return noise_cost(
         np.asarray(inputs.lidar.plane, dtype=np.intp),
         np.asarray(planes.normal, dtype=np.float64),
@@ -333,12 +336,8 @@ def refine_with_planes(
         state, planes = current
         residual = problem.residual_blocks[block]
         assert isinstance(residual, PointToPlaneResidual)
-        expected = noise_cost(
-            plane,
-            np.asarray(planes.normal, dtype=np.float64),
-            points_and_rays(state)[1],
-            residual.whitening() * range_noise,
-        )
+        rays = points_and_rays(state)[1]
+        expected = expected_noise_cost(residual, inputs, state, planes, range_noise, rays)
         return problem.evaluate(jacobians=False).cost - expected
 
     def step_at(

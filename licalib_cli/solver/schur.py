@@ -373,8 +373,10 @@ class _BandedCholesky:
             (Nt, k) ``W``, rows in (band, border) order.
         """
         rhs = np.asarray(rhs, dtype=np.float64)
+        if rhs.ndim == 1:
+            return self.forward(rhs[:, None])[:, 0]
         nb, nk = self.order.size, self.border.size
-        out = np.empty((nb + nk, *rhs.shape[1:]), order="F")
+        out = np.empty((nb + nk, rhs.shape[1]), order="F")
 
         def columns(cols: slice) -> None:
             # Each column is substituted on its own (level-2 LAPACK).
@@ -390,8 +392,6 @@ class _BandedCholesky:
                 raise np.linalg.LinAlgError(msg)
             out[:nb, cols] = w_b
 
-        if rhs.ndim == 1:
-            return self.forward(rhs[:, None])[:, 0]
         k = rhs.shape[1]
         # The same blocks with any number of threads: the border's matrix products need not
         # give a column the same last bits in blocks of other widths.
