@@ -55,6 +55,7 @@ def one_draw(args: argparse.Namespace, noise_seed: int, folder: Path) -> dict:
         noise_seed=noise_seed,
         intrinsics="none",
         random_time_offset=True,
+        random_extrinsic=args.random_extrinsic,
         range_noise_m=args.range_noise,
     )
     out = simulate(spec, folder, force=True)
@@ -89,6 +90,9 @@ def main() -> None:
     p.add_argument("--lidar", default="vlp16", choices=["vlp16", "os1-64"])
     p.add_argument("--seed", type=int, default=1, help="motion, mounting and time offset")
     p.add_argument("--duration", type=float, default=None)
+    p.add_argument(
+        "--random-extrinsic", action="store_true", help="the seed draws the mounting (any rotation)"
+    )
     p.add_argument("--range-noise", type=float, default=None, help="m (default: the model's)")
     p.add_argument("--config", default=None, help="config file (default: configs/LIDAR.yaml)")
     p.add_argument("--draws", type=int, default=6, help="noise draws (noise seeds 101, 102, ...)")
@@ -119,6 +123,8 @@ def main() -> None:
         base += ["--config", str(Path(args.config).resolve())]
     if args.range_noise is not None:
         base += ["--range-noise", str(args.range_noise)]
+    if args.random_extrinsic:
+        base.append("--random-extrinsic")
 
     def run(noise_seed: int) -> dict:
         with tempfile.TemporaryDirectory() as tmp:

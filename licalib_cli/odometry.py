@@ -40,6 +40,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from licalib_cli.errors import ConfigError, DataError
+from licalib_cli.geometry.vectors import norms
 from licalib_cli.measurements import LidarScan
 from licalib_cli.parallel.threads import threads
 
@@ -233,7 +234,7 @@ def run_odometry(
                 "drop empty scans before odometry."
             )
             raise DataError(msg)
-        rng = np.linalg.norm(scan.xyz, axis=1)
+        rng = norms(scan.xyz)
         if not np.any((rng >= kcfg.data.min_range) & (rng <= kcfg.data.max_range)):
             msg = (
                 f"LiDAR scan {i} (stamp {scan.stamp_ns} ns) has no point between "
@@ -761,7 +762,7 @@ def prepare_sweeps(
     )
     sweeps = []
     for i, scan in enumerate(scans):
-        rng = np.linalg.norm(scan.xyz, axis=1)
+        rng = norms(scan.xyz)
         keep = (rng >= kcfg.data.min_range) & (rng <= kcfg.data.max_range)
         if not np.any(keep):
             msg = (

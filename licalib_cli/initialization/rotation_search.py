@@ -32,6 +32,7 @@ import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from licalib_cli.errors import ExcitationError
+from licalib_cli.geometry.vectors import norms
 from licalib_cli.initialization.rotation import GyroIntegrator
 from licalib_cli.measurements import LidarScan
 from licalib_cli.parallel.threads import map_slices
@@ -187,7 +188,7 @@ def _window_points(
     """
     pts, times = [], []
     for scan in scans[window[0] : window[1] + 1]:
-        rho = np.linalg.norm(scan.xyz, axis=1)
+        rho = norms(scan.xyz)
         t_imu = scan.t_ns + t_c_ns
         ok = np.flatnonzero(
             (rho >= cfg.min_range_m)
@@ -215,7 +216,7 @@ def _scan_normals(
     fired within a few milliseconds, so its normal is not distorted by the motion during the
     sweep. Normals face the sensor.
     """
-    rho = np.linalg.norm(scan.xyz, axis=1)
+    rho = norms(scan.xyz)
     ok = (rho >= cfg.min_range_m) & (rho <= cfg.max_range_m)
     xyz, t = scan.xyz[ok], scan.t_ns[ok]
     if xyz.shape[0] < cfg.normal_min_points:

@@ -241,8 +241,12 @@ def valid_mask(
     Returns:
         (N,) boolean mask to apply to xyz and to every per-point array alike.
     """
-    finite = np.all(np.isfinite(xyz), axis=1)
-    safe = np.where(finite[:, None], xyz, 0.0)
-    with np.errstate(over="ignore"):  # ranges beyond 1e154 m overflow to inf: out of range
-        rng = np.sqrt(np.einsum("ij,ij->i", safe, safe))
-    return finite & (rng > 0.0) & (rng >= min_range_m) & (rng <= max_range_m)
+    with np.errstate(over="ignore", invalid="ignore"):
+        # ranges beyond 1e154 m overflow to inf: out of range (as are NaN and inf points)
+        rng = np.sqrt(np.einsum("ij,ij->i", xyz, xyz))
+    if not np.all(np.isfinite(rng)):
+        finite = np.all(np.isfinite(xyz), axis=1)
+        safe = np.where(finite[:, None], xyz, 0.0)
+        with np.errstate(over="ignore"):
+            rng = np.where(finite, np.sqrt(np.einsum("ij,ij->i", safe, safe)), np.nan)
+    return (rng > 0.0) & (rng >= min_range_m) & (rng <= max_range_m)

@@ -1158,7 +1158,8 @@ def _content_skip(
     if valid < MIN_CLOUD_POINTS:
         return Skip("too few points", f"{valid} valid")
     if ring is not None:
-        one = np.unique(ring[mask]).size < 2
+        kept = ring[mask]
+        one = int(kept.min()) == int(kept.max())  # fewer than two distinct beams
     elif dec.height > 1 and dec.height * dec.width == len(dec):
         one = int(np.count_nonzero(mask.reshape(dec.height, dec.width).any(axis=1))) < 2
     else:

@@ -41,6 +41,7 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.errors import ConfigError, DataError, TimestampError
+from licalib_cli.geometry.vectors import norms
 
 __all__ = [
     "RING_FIELD_CANDIDATES",
@@ -455,7 +456,7 @@ def detect_beams(
     if xyz.shape[0] == 0:
         msg = "No valid LiDAR points to recover the beams from; check the LiDAR data."
         raise DataError(msg)
-    far = np.linalg.norm(xyz, axis=1) > 3.0
+    far = norms(xyz) > 3.0
     if far.sum() > 1000:
         xyz = xyz[far]
     el = np.sort(_elevation(xyz))

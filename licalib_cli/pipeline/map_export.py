@@ -25,6 +25,7 @@ import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import CalibrationState
+from licalib_cli.geometry.vectors import norms
 from licalib_cli.measurements import LidarScan, Recording
 from licalib_cli.models.lidar import nominal_point
 from licalib_cli.pipeline.points import PointSample, points_in_global, query_times
@@ -62,7 +63,7 @@ def _scan_sample(
     """The points of one sweep within the range limits (every ``every``-th), as raw
     measurements like :func:`~licalib_cli.pipeline.points.sample_points` keeps them, and their
     intensity."""
-    rho = np.linalg.norm(scan.xyz, axis=1)
+    rho = norms(scan.xyz)
     idx = np.flatnonzero((rho >= cfg.lidar.min_range_m) & (rho <= cfg.lidar.max_range_m))
     idx = idx[:: max(int(every), 1)]
     assert scan.ring is not None

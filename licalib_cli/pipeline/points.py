@@ -17,6 +17,7 @@ import numpy.typing as npt
 from licalib_cli.config import CalibConfig
 from licalib_cli.errors import ConfigError, DataError
 from licalib_cli.estimation import CalibrationState, LidarPoints
+from licalib_cli.geometry.vectors import norms
 from licalib_cli.measurements import LidarScan
 from licalib_cli.models.lidar import lidar_point, nominal_point
 from licalib_cli.parallel.threads import map_slices
@@ -97,7 +98,7 @@ def nominal_elevations(scans: tuple[LidarScan, ...], cfg: CalibConfig) -> F64:
     step = max(1, len(scans) // 20)
     xyz = np.concatenate([s.xyz for s in scans[::step] if s.ring is not None])
     ring = np.concatenate([s.ring for s in scans[::step] if s.ring is not None]).astype(np.int64)
-    elev = np.arcsin(np.clip(xyz[:, 2] / np.maximum(np.linalg.norm(xyz, axis=1), 1e-9), -1, 1))
+    elev = np.arcsin(np.clip(xyz[:, 2] / np.maximum(norms(xyz), 1e-9), -1, 1))
     order = np.argsort(ring, kind="stable")
     ring, elev = ring[order], elev[order]
     bounds = np.searchsorted(ring, np.arange(n_beams + 1))
@@ -124,7 +125,7 @@ def sample_points(
     for scan in scans:  # loop over sweeps, not points
         if scan.ring is None or len(scan) == 0:
             continue
-        rho = np.linalg.norm(scan.xyz, axis=1)
+        rho = norms(scan.xyz)
         ok = (rho >= cfg.lidar.min_range_m) & (rho <= cfg.lidar.max_range_m)
         idx = np.flatnonzero(ok)
         if idx.size > per_scan:

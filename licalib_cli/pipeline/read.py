@@ -12,6 +12,7 @@ import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.consistency import imu_noise, range_noise
+from licalib_cli.geometry.vectors import norms
 from licalib_cli.io.reader import MIN_SEGMENT_S, read_segment
 from licalib_cli.measurements import Recording
 from licalib_cli.pipeline.points import nominal_elevations
@@ -94,7 +95,7 @@ def measure_noise(rec: Recording, cfg: CalibConfig, num_beams: int) -> NoiseLeve
             np.concatenate([np.full(len(s), i) for i, s in enumerate(scans)]),
             np.concatenate([np.asarray(s.ring, dtype=np.int64) for s in scans]),
             np.arctan2(xyz[:, 1], xyz[:, 0]),
-            np.linalg.norm(xyz, axis=1),
+            norms(xyz),
             num_beams,
         ).sigma
     else:

@@ -54,6 +54,7 @@ from licalib_cli.estimation import (
     Planes,
     build_problem,
 )
+from licalib_cli.geometry.vectors import norms
 from licalib_cli.initialization.rotation import GyroIntegrator
 from licalib_cli.io.bag import IMU_TYPE, open_bag, select_topic
 from licalib_cli.io.reader import (
@@ -333,7 +334,7 @@ def sweep_planes(
     """
     if scan.ring is None or len(scan) == 0:
         return None
-    rho = np.linalg.norm(scan.xyz, axis=1)
+    rho = norms(scan.xyz)
     idx = np.flatnonzero((rho >= cfg.lidar.min_range_m) & (rho <= cfg.lidar.max_range_m))
     if idx.size > _SURFEL_POINTS:
         idx = np.sort(rng.choice(idx, _SURFEL_POINTS, replace=False))

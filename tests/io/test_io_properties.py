@@ -193,3 +193,30 @@ def test_imu_and_stamp_validation_raises_nothing(
     if not any(f.fatal for f in imu.findings):
         assert np.isfinite(imu.samples.gyro).all() and np.isfinite(imu.samples.accel).all()
         assert len(imu.samples) == imu.samples.t_ns.size
+
+
+floats64 = st.floats(allow_nan=True, allow_infinity=True)
+
+
+@settings(max_examples=400, deadline=None)
+@given(
+    rows=st.lists(st.tuples(floats64, floats64, floats64), min_size=0, max_size=50),
+    limits=st.tuples(st.floats(0.0, 5.0), st.sampled_from([10.0, 1e200, np.inf])),
+)
+def test_valid_mask_is_the_pointwise_rule(rows: list[tuple], limits: tuple[float, float]) -> None:
+    """Finite, not the origin, range within the limits, point by point (huge but finite
+    coordinates overflow the squared range and count as out of range unless the limit is inf)."""
+    xyz = np.array(rows, dtype=np.float64).reshape(-1, 3)
+    lo, hi = limits
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = valid_mask(xyz, lo, hi)
+    want = []
+    for p in xyz:
+        if not np.all(np.isfinite(p)):
+            want.append(False)
+            continue
+        with np.errstate(over="ignore"):
+            r = float(np.sqrt(np.sum(p * p)))
+        want.append(r > 0.0 and lo <= r <= hi)
+    assert got.tolist() == want
