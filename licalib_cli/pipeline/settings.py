@@ -60,6 +60,13 @@ THICKNESS_PER_RANGE_SIGMA = 1.5
 """Default ``surfels.max_thickness_m`` in units of the range noise: range noise alone gives an
 RMS of at most one sigma off a plane; a cell much thicker than that straddles surfaces."""
 
+SECOND_SURFACE_FACTOR = 4.0
+"""A cell with a point farther from its plane than this many thickness limits (6 range-noise
+sigmas by default, beyond any return of a single plane) holds a second surface and is not a
+surfel at its level (``SurfelConfig.max_point_distance_m``). Three limits (4.5 sigmas) removed
+the same bias on shaking but moved the sinusoids' extrinsic with the LiDAR intrinsics by a
+tenth of a millimetre more (benchmarks/RESULTS.md)."""
+
 MIN_THICKNESS_M = 0.005
 """Floor of the default ``surfels.max_thickness_m``: the map's own blur (the estimate, each
 sweep's deskew) and real surfaces make any cell a few millimetres thick, so a nearly noise-free
@@ -135,7 +142,8 @@ def surfel_config(cfg: CalibConfig, noise: NoiseLevels, max_distance_m: float) -
     """Surfel and association settings of a round.
 
     The thickness limit scales with the association distance: while the association is loose
-    (the map still blurred by the estimate) surfels may be thicker.
+    (the map still blurred by the estimate) surfels may be thicker. A cell with a point beyond
+    :data:`SECOND_SURFACE_FACTOR` thickness limits from its plane is left to the finer cells.
     """
     s = cfg.surfels
     thickness = (
@@ -143,11 +151,13 @@ def surfel_config(cfg: CalibConfig, noise: NoiseLevels, max_distance_m: float) -
         if s.max_thickness_m is not None
         else max(THICKNESS_PER_RANGE_SIGMA * noise.range_sigma_m, MIN_THICKNESS_M)
     )
+    limit = thickness * max_distance_m / s.max_distance_m
     return SurfelConfig(
         cell_sizes=tuple(s.cell_sizes_m),
         min_points=s.min_points,
         min_planarity=s.min_planarity,
-        max_thickness_m=thickness * max_distance_m / s.max_distance_m,
+        max_thickness_m=limit,
+        max_point_distance_m=SECOND_SURFACE_FACTOR * limit,
         max_distance_m=max_distance_m,
     )
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import NoiseModel
@@ -47,3 +48,19 @@ def test_the_default_thickness_cut_has_a_floor_for_nearly_noise_free_ranges() ->
     assert surfel_config(cfg, noisy, base).max_thickness_m == 0.015
     set_cfg = CalibConfig.model_validate({"surfels": {"max_thickness_m": 0.002}})
     assert surfel_config(set_cfg, quiet, base).max_thickness_m == 0.002
+
+
+def test_the_second_surface_limit_follows_the_thickness_cut() -> None:
+    """A cell is left to the finer cells once a point lies four thickness limits off its plane
+    (6 range-noise sigmas by default), in every round: both limits widen with the association
+    distance."""
+    from licalib_cli.pipeline.settings import SECOND_SURFACE_FACTOR, surfel_config
+
+    cfg = CalibConfig()
+    base = cfg.surfels.max_distance_m
+    noisy = _levels(np.full(4, 0.01), measured=0.01, configured=0.01)
+    for distance in (base, 4 * base):
+        sc = surfel_config(cfg, noisy, distance)
+        assert sc.max_thickness_m is not None and sc.max_point_distance_m is not None
+        assert sc.max_point_distance_m == pytest.approx(SECOND_SURFACE_FACTOR * sc.max_thickness_m)
+    assert surfel_config(cfg, noisy, 4 * base).max_point_distance_m == pytest.approx(0.24)

@@ -160,3 +160,37 @@ def test_downsampling_helpers() -> None:
     per_voxel = np.unique(cell_keys(pts[idx], 0.5), return_counts=True)[1]
     assert per_voxel.max() <= 2
     assert per_voxel.size == 64
+
+
+def _cell_with_a_corner(gen: np.random.Generator, chunk: int) -> npt.NDArray[np.float64]:
+    """A 1 m cell (0..1 on every axis) holding a floor z = 0.5 and, near x = 1, ``chunk``
+    returns of a wall x = 0.98 rising 6-20 cm above that floor (a corner of the scene)."""
+    floor = np.column_stack(
+        [gen.uniform(0.02, 0.98, 800), gen.uniform(0.02, 0.98, 800), np.full(800, 0.5)]
+    )
+    wall = np.column_stack(
+        [np.full(chunk, 0.98), gen.uniform(0.02, 0.98, chunk), gen.uniform(0.56, 0.70, chunk)]
+    )
+    pts = np.concatenate([floor, wall])
+    return pts + gen.normal(scale=0.002, size=pts.shape)
+
+
+def test_a_cell_holding_a_second_surface_is_left_to_the_finer_cells() -> None:
+    gen = np.random.default_rng(7)
+    pts = _cell_with_a_corner(gen, chunk=8)
+    loose = SurfelConfig(cell_sizes=(1.0,), max_thickness_m=0.02, min_planarity=0.6)
+    plane = build_surfels(pts, loose)
+    # the few wall returns hardly thicken the cell: it passes planarity and thickness, tilted
+    assert len(plane) == 1 and plane.thickness[0] < 0.02
+    assert np.degrees(np.arccos(abs(plane.normal[0, 2]))) > 0.3
+    strict = SurfelConfig(
+        cell_sizes=(1.0, 0.5), max_thickness_m=0.02, max_point_distance_m=0.06, min_planarity=0.6
+    )
+    found = build_surfels(pts, strict)
+    assert np.all(found.level == 1)  # no 1 m surfel; the finer cells without the wall remain
+    level = found.normal[found.thickness < 0.005]
+    assert len(level) >= 2
+    assert np.all(np.degrees(np.arccos(np.abs(level[:, 2]))) < 0.3)
+    # one plane with noise alone keeps its cell
+    clean = build_surfels(_cell_with_a_corner(np.random.default_rng(8), chunk=0), strict)
+    assert len(clean) == 1 and clean.level[0] == 0
