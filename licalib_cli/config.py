@@ -176,7 +176,7 @@ class SurfelSection(_Section):
     """Cells whose points spread more than this off their plane (RMS) are not surfels; unset:
     1.5 x noise.range_sigma_m, at least 5 mm. A thicker cell usually straddles two surfaces (a
     corner, a step) and biases the translation by millimetres. A cell with any point farther
-    than 4 x this from its plane holds a second surface too (a few returns of it hardly thicken
+    than 6 x this from its plane holds a second surface too (a few returns of it hardly thicken
     the cell) and is left to the finer cells."""
     max_distance_m: float = Field(default=0.03, gt=0.0)
     """Points further from their surfel's plane are not associated."""

@@ -60,12 +60,13 @@ THICKNESS_PER_RANGE_SIGMA = 1.5
 """Default ``surfels.max_thickness_m`` in units of the range noise: range noise alone gives an
 RMS of at most one sigma off a plane; a cell much thicker than that straddles surfaces."""
 
-SECOND_SURFACE_FACTOR = 4.0
-"""A cell with a point farther from its plane than this many thickness limits (6 range-noise
-sigmas by default, beyond any return of a single plane) holds a second surface and is not a
-surfel at its level (``SurfelConfig.max_point_distance_m``). Three limits (4.5 sigmas) removed
-the same bias on shaking but moved the sinusoids' extrinsic with the LiDAR intrinsics by a
-tenth of a millimetre more (benchmarks/RESULTS.md)."""
+SECOND_SURFACE_FACTOR = 6.0
+"""A cell with a point farther from its plane than this many thickness limits (9 range-noise
+sigmas by default, far beyond any return of a single plane) holds a second surface and is not a
+surfel at its level (``SurfelConfig.max_point_distance_m``). Three and four limits removed the
+same bias on shaking but split more cells than needed: with three the sinusoids' extrinsic with
+the LiDAR intrinsics moved by a tenth of a millimetre, with four diagnose lost two effects it
+had named (benchmarks/RESULTS.md)."""
 
 MIN_THICKNESS_M = 0.005
 """Floor of the default ``surfels.max_thickness_m``: the map's own blur (the estimate, each

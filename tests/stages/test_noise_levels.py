@@ -51,8 +51,8 @@ def test_the_default_thickness_cut_has_a_floor_for_nearly_noise_free_ranges() ->
 
 
 def test_the_second_surface_limit_follows_the_thickness_cut() -> None:
-    """A cell is left to the finer cells once a point lies four thickness limits off its plane
-    (6 range-noise sigmas by default), in every round: both limits widen with the association
+    """A cell is left to the finer cells once a point lies six thickness limits off its plane
+    (9 range-noise sigmas by default), in every round: both limits widen with the association
     distance."""
     from licalib_cli.pipeline.settings import SECOND_SURFACE_FACTOR, surfel_config
 
@@ -63,4 +63,4 @@ def test_the_second_surface_limit_follows_the_thickness_cut() -> None:
         sc = surfel_config(cfg, noisy, distance)
         assert sc.max_thickness_m is not None and sc.max_point_distance_m is not None
         assert sc.max_point_distance_m == pytest.approx(SECOND_SURFACE_FACTOR * sc.max_thickness_m)
-    assert surfel_config(cfg, noisy, 4 * base).max_point_distance_m == pytest.approx(0.24)
+    assert surfel_config(cfg, noisy, 4 * base).max_point_distance_m == pytest.approx(0.36)
