@@ -19,6 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.errors import DataError
+from licalib_cli.geometry.vectors import norms
 
 __all__ = [
     "MAX_POINT_STEP",
@@ -243,10 +244,8 @@ def valid_mask(
     """
     with np.errstate(over="ignore", invalid="ignore"):
         # ranges beyond 1e154 m overflow to inf: out of range (as are NaN and inf points)
-        rng = np.sqrt(np.einsum("ij,ij->i", xyz, xyz))
-    if not np.all(np.isfinite(rng)):
-        finite = np.all(np.isfinite(xyz), axis=1)
-        safe = np.where(finite[:, None], xyz, 0.0)
-        with np.errstate(over="ignore"):
-            rng = np.where(finite, np.sqrt(np.einsum("ij,ij->i", safe, safe)), np.nan)
+        rng = norms(xyz)
+        if not np.all(np.isfinite(rng)):
+            finite = np.all(np.isfinite(xyz), axis=1)
+            rng = np.where(finite, norms(np.where(finite[:, None], xyz, 0.0)), np.nan)
     return (rng > 0.0) & (rng >= min_range_m) & (rng <= max_range_m)
