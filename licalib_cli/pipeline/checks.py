@@ -21,7 +21,8 @@ uncertainty (:mod:`licalib_cli.pipeline.map_uncertainty`: the solver holds the p
 although they were fitted to the same points), and are inflated so that they cover what the
 checks found: by the root of the largest chi-square per sample of the sensors, by half the
 disagreement of the two halves, by the shift a fixed effect would cause (a material one, or one
-the data hint at: :data:`COVER_P_VALUE`) and the spread its estimate would add, and by the
+the data hint at: :data:`COVER_P_VALUE`; computed with the map planes estimated too,
+:mod:`licalib_cli.pipeline.effect_shift`) and the spread its estimate would add, and by the
 last round's change when the rounds only settled to within their jitter.
 """
 
@@ -254,25 +255,53 @@ def _observability(report: SolverReport) -> list[Finding]:
     return out
 
 
-def _uncertainty(sigma: F64) -> list[Finding]:
+def _uncertainty(sigma: F64, without_effects: F64, covered: Sequence[str] = ()) -> list[Finding]:
+    """Sigmas above 1 cm / 0.1 deg / 2 ms. ``without_effects`` are the sigmas without what the
+    ``covered`` effects (held fixed, shown by the data) add: when those alone are within the
+    limits, the finding names the effects instead of the motion as the cause."""
     out = []
     t, r, c = sigma[:3], np.degrees(sigma[3:6]), float(sigma[6])
+    causes = ", ".join(covered)
+
+    def cause(mask_over: bool, advice: str) -> str:
+        if covered and not mask_over:
+            return (
+                f" It comes from the effects the model holds fixed ({causes}); estimate them "
+                "(--intrinsics, or licalib diagnose)."
+            )
+        return advice
+
     finite_t = t[np.isfinite(t)]
     if finite_t.size and finite_t.max() > 0.01:
+        t0 = without_effects[:3]
         out.append(
             Finding(
                 "warn",
-                f"Translation is uncertain (1-sigma up to {100 * finite_t.max():.1f} cm); "
-                "record with more rotation about all axes.",
+                f"Translation is uncertain (1-sigma up to {100 * finite_t.max():.1f} cm)."
+                + cause(
+                    bool(np.any(t0[np.isfinite(t0)] > 0.01)),
+                    " Record with more rotation about all axes.",
+                ),
             )
         )
     finite_r = r[np.isfinite(r)]
     if finite_r.size and finite_r.max() > 0.1:
+        r0 = np.degrees(without_effects[3:6])
         out.append(
-            Finding("warn", f"Rotation is uncertain (1-sigma up to {finite_r.max():.2f} deg).")
+            Finding(
+                "warn",
+                f"Rotation is uncertain (1-sigma up to {finite_r.max():.2f} deg)."
+                + cause(bool(np.any(r0[np.isfinite(r0)] > 0.1)), ""),
+            )
         )
     if np.isfinite(c) and c > 0.002:
-        out.append(Finding("warn", f"Time offset is uncertain (1-sigma {1e3 * c:.1f} ms)."))
+        out.append(
+            Finding(
+                "warn",
+                f"Time offset is uncertain (1-sigma {1e3 * c:.1f} ms)."
+                + cause(bool(without_effects[6] > 0.002), ""),
+            )
+        )
     return out
 
 
@@ -539,7 +568,11 @@ def check(fit: Fit, guess: InitialGuess, noise: NoiseLevels, cfg: CalibConfig) -
     with forked.start(map_uncertainty, fit.state, fit.inputs, fit.report, fit.solved) as pending:
         sensors = sensor_checks(fit.state, fit.inputs, noise, fit.solved)
         effects = effect_evidence(
-            fit.state, fit.inputs, fit.report.variance_factor, cfg.model.imu_prior
+            fit.state,
+            fit.inputs,
+            fit.report.variance_factor,
+            cfg.model.imu_prior,
+            planes_free_p=COVER_P_VALUE,
         )
         split = split_half(fit.state, fit.inputs, cfg)
         planes = pending.result()
@@ -599,7 +632,9 @@ def run_checks(
     findings = [Finding("warn", n) for n in notes]
     findings += _convergence(fit, cfg, settled_in_sigmas)
     findings += _observability(report)
-    findings += _uncertainty(sigma)
+    covered = [e.score.name for e in effects if effect_to_cover(e, raw)]
+    without_effects, _ = inflate(raw, sensors, [], split, fit)
+    findings += _uncertainty(sigma, without_effects, covered)
     findings += _sensors(sensors)
     findings += _effects(effects, raw)
     findings += _split(split)

@@ -9,7 +9,8 @@ Three kinds of evidence, each naming the sensor it concerns:
 * per effect the model holds fixed (IMU scale, misalignment, gyro-to-IMU rotation,
   g-sensitivity, the six per-beam LiDAR intrinsics), a score test and how far estimating the
   effect would move the extrinsic (:mod:`licalib_cli.consistency.score`), from one
-  linearisation of the final problem with those effects freed;
+  linearisation of the final problem with those effects freed (for the effects the data show,
+  with the map planes freed too: :mod:`licalib_cli.pipeline.effect_shift`);
 * the split-half agreement (:mod:`licalib_cli.pipeline.split`).
 """
 
@@ -24,16 +25,19 @@ import numpy.typing as npt
 from licalib_cli.config import ImuPriorSection
 from licalib_cli.consistency import (
     EffectScore,
+    EffectSelection,
     group_pattern,
     normalised_chi2,
     regression_pattern,
     select_effects,
 )
 from licalib_cli.estimation import CalibrationState, LidarPoints, build_problem
+from licalib_cli.pipeline.effect_shift import planes_free_shifts
 from licalib_cli.pipeline.round import RoundInputs, SolvedProblem
 from licalib_cli.pipeline.settings import NoiseLevels
 from licalib_cli.residuals import TIME_OFFSET, AccelResidual, GyroResidual, PointToPlaneResidual
 from licalib_cli.sections import PatternCheck, SensorCheck
+from licalib_cli.solver.problem import Evaluation, Linearization, Problem
 from licalib_cli.solver.schur import schur_complement
 
 __all__ = [
@@ -74,12 +78,9 @@ MAX_EFFECT_POINTS = 80_000
 to spare, and the linearisation with every intrinsic free costs in proportion."""
 
 
-def _every_kth(lidar: LidarPoints, at_most: int) -> LidarPoints:
-    """A regular subset of at most ``at_most`` points."""
-    n = len(lidar)
-    if n <= at_most:
-        return lidar
-    return lidar.subset(np.arange(0, n, int(np.ceil(n / at_most))))
+def _every_kth(n: int, at_most: int) -> npt.NDArray[np.intp]:
+    """The indices of a regular subset of at most ``at_most`` of ``n`` points."""
+    return np.arange(0, n, max(int(np.ceil(n / at_most)), 1), dtype=np.intp)
 
 
 _LIDAR_EFFECTS = {
@@ -411,6 +412,7 @@ def effect_evidence(
     inputs: RoundInputs,
     variance_factor: float,
     imu_prior: ImuPriorSection | None = None,
+    planes_free_p: float = 0.0,
 ) -> list[EffectEvidence]:
     """Score tests of every effect the final round held fixed, with forward selection.
 
@@ -426,6 +428,9 @@ def effect_evidence(
         variance_factor: the fit's a-posteriori variance factor (clamped below at 1).
         imu_prior: how well the IMU intrinsics held fixed are known, for
             :attr:`EffectEvidence.prior_std` (none: known exactly).
+        planes_free_p: the effects with a p-value below this get their shift and its null
+            spread with the map planes estimated too (:mod:`licalib_cli.pipeline.effect_shift`);
+            the others keep the planes-fixed ones.
 
     Returns:
         One entry per fixed group with at least one free coordinate: the selected ones first,
@@ -442,7 +447,8 @@ def effect_evidence(
         time_drift=True,
         point_time=True,
     )
-    lidar = _every_kth(inputs.lidar, MAX_EFFECT_POINTS)
+    subset = _every_kth(len(inputs.lidar), MAX_EFFECT_POINTS)
+    lidar = inputs.lidar.subset(subset)
     problem = build_problem(state, inputs.imu, lidar, inputs.planes, inputs.noise, all_free)
     # The score statistic is chi-square only when every whitened residual has unit variance: the
     # fit weights a point-to-plane distance with the range noise, but the distance varies by
@@ -489,6 +495,19 @@ def effect_evidence(
         sch.S, sch.b, base, groups, EFFECT_P_VALUE, max(variance_factor, 1.0), prior_sigma=prior
     )
     base_names = [names[i] for i in base]
+    planes_free = _planes_free(
+        problem,
+        evaluation,
+        lin,
+        state,
+        inputs,
+        subset,
+        base,
+        groups,
+        selection,
+        planes_free_p,
+        max(variance_factor, 1.0),
+    )
 
     def pick(prefix: str, shift: F64) -> F64:
         return np.array([s for n, s in zip(base_names, shift, strict=True) if n.startswith(prefix)])
@@ -496,14 +515,15 @@ def effect_evidence(
     out = []
     for sel, scores in ((True, selection.selected), (False, selection.remaining)):
         for s in scores:
-            t = pick("ext.translation", s.shift)
-            r = pick("ext.rotation", s.shift)
-            c = pick("ext.time_offset", s.shift)
+            shift, shift_sigma = planes_free.get(s.name, (s.shift, s.shift_sigma))
+            t = pick("ext.translation", shift)
+            r = pick("ext.rotation", shift)
+            c = pick("ext.time_offset", shift)
             sd, ps = (
                 np.concatenate(
                     [pick(p, x) for p in ("ext.translation", "ext.rotation", "ext.time_offset")]
                 )
-                for x in (s.shift_sigma, s.prior_shift_sigma)
+                for x in (shift_sigma, s.prior_shift_sigma)
             )
             out.append(
                 EffectEvidence(
@@ -519,7 +539,49 @@ def effect_evidence(
                 )
             )
     logger.debug(
-        "effect scores: %s",
+        "effect scores (planes-free shifts for %s): %s",
+        ", ".join(planes_free) or "none",
         ", ".join(f"{e.score.name} {e.score.statistic:.1f} (dof {e.score.rank})" for e in out),
     )
     return out
+
+
+def _planes_free(
+    problem: Problem,
+    evaluation: Evaluation,
+    lin: Linearization,
+    state: CalibrationState,
+    inputs: RoundInputs,
+    subset: npt.NDArray[np.intp],
+    base: list[int],
+    groups: dict[str, list[int]],
+    selection: EffectSelection,
+    p_value: float,
+    variance_factor: float,
+) -> dict[str, tuple[F64, F64]]:
+    """:func:`~licalib_cli.pipeline.effect_shift.planes_free_shifts` of the effects tested below
+    ``p_value``, each freed with the effects selected before it (as the tests)."""
+    selected = [s.name for s in selection.selected]
+    wanted: dict[str, tuple[npt.NDArray[np.intp], list[npt.NDArray[np.intp]]]] = {}
+    for s in (*selection.selected, *selection.remaining):
+        if s.p_value < p_value:
+            before = selected[: selected.index(s.name)] if s.name in selected else selected
+            wanted[s.name] = (
+                np.asarray(groups[s.name], dtype=np.intp),
+                [np.asarray(groups[n], dtype=np.intp) for n in before],
+            )
+    if not wanted:
+        return {}
+    return planes_free_shifts(
+        problem,
+        evaluation,
+        lin,
+        state,
+        inputs.points.subset(subset),
+        np.asarray(inputs.lidar.plane, dtype=np.intp)[subset],
+        inputs.planes,
+        inputs.noise.range_noise(inputs.points.beam[subset]),
+        base,
+        wanted,
+        variance_factor,
+    )

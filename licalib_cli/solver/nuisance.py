@@ -59,6 +59,7 @@ __all__ = [
     "NuisanceStep",
     "NuisanceTerms",
     "marginal_schur",
+    "marginal_system",
     "nuisance_step",
     "nuisance_terms",
     "segmented_nuisance_step",
@@ -187,6 +188,48 @@ def marginal_schur(lin: Linearization, terms: NuisanceTerms, hold: npt.ArrayLike
     else:
         s_c = s_cc
     return 0.5 * (s_c + s_c.T)
+
+
+def marginal_system(
+    lin: Linearization,
+    terms: NuisanceTerms,
+    hold: npt.ArrayLike = (),
+    calibration: npt.ArrayLike | None = None,
+) -> tuple[F64, F64]:
+    """The calibration system with the trajectory and the nuisance eliminated, and its
+    right-hand side.
+
+    As :func:`marginal_schur`, with the right-hand side ``b = -g`` reduced the same way (the
+    trajectory's and the nuisance's gradients carried into the calibration coordinates), and
+    optionally over a subset of the calibration coordinates (the others held fixed).
+
+    Args:
+        lin: The problem's normal equations.
+        terms: The nuisance's terms at the same state, with their gradient ``g_p``.
+        hold: Trajectory coordinates (reduced indices) to hold fixed: the shared gauge.
+        calibration: (Nc_k,) calibration coordinates (``0 .. Nc``) to keep, increasing; None:
+            all.
+
+    Returns:
+        ``(S (Nc_k, Nc_k), b (Nc_k,))``, ``S`` symmetric.
+
+    Raises:
+        ValueError: ``terms`` carries no gradient.
+    """
+    g, k, _ = terms.H_pp.shape
+    if terms.g_p.shape != (g, k):
+        msg = "marginal_system needs the nuisance gradient (nuisance_terms computes it)"
+        raise ValueError(msg)
+    nc = lin.layout.num_calibration
+    cal = np.arange(nc) if calibration is None else np.asarray(calibration, dtype=np.intp)
+    held = np.unique(np.asarray(hold, dtype=np.intp).reshape(-1))
+    seg = NuisanceSegment(np.arange(lin.layout.num_trajectory), terms, held, cal)
+    s_c = np.zeros((nc, nc))
+    b_c = np.zeros(nc)
+    _eliminate_segment(lin, seg, s_c, b_c)
+    s = s_c[np.ix_(cal, cal)] + lin.H_cc[np.ix_(cal, cal)]
+    b = b_c[cal] - lin.g_c[cal]
+    return 0.5 * (s + s.T), b
 
 
 def _psd_solver(a: F64) -> Callable[[F64], F64]:

@@ -20,6 +20,7 @@ from licalib_cli.solver.nuisance import (
     NuisanceTerms,
     _reduced_by,
     marginal_schur,
+    marginal_system,
     nuisance_step,
     nuisance_terms,
     segmented_nuisance_step,
@@ -192,6 +193,45 @@ def test_nuisance_step_matches_the_dense_gauss_newton_step(huber: bool) -> None:
     assert step.num_truncated == 0
     predicted = -(grad @ expected + 0.5 * expected @ full @ expected)
     assert step.predicted_reduction == pytest.approx(predicted, rel=1e-8)
+
+
+@pytest.mark.parametrize("huber", [False, True])
+def test_marginal_system_gives_the_dense_calibration_step(huber: bool) -> None:
+    loss = HuberLoss(1.5) if huber else None
+    pr, block = make_problem(6, 900, 1, False, loss)
+    rng = np.random.default_rng(23)
+    jac_p, group = _nuisance(rng, 900)
+    evaluation, layout, full, grad = _dense_full(pr, block, loss, jac_p, group)
+    lin = pr.linearize(evaluation, layout)
+    terms = nuisance_terms(pr, evaluation, layout, 0, jac_p, group, NUM_GROUPS)
+    nt, nc = layout.num_trajectory, layout.num_calibration
+    hold = np.array([0, 1, 2])
+
+    s, b = marginal_system(lin, terms, hold)
+    np.testing.assert_allclose(s, marginal_schur(lin, terms, hold), rtol=1e-9, atol=1e-12)
+    keep = np.setdiff1d(np.arange(full.shape[0]), hold)
+    dense = np.zeros(full.shape[0])
+    dense[keep] = -np.linalg.solve(full[np.ix_(keep, keep)], grad[keep])
+    np.testing.assert_allclose(np.linalg.solve(s, b), dense[nt : nt + nc], rtol=1e-6)
+
+    # a subset of the calibration: the others held fixed (their rows and columns removed)
+    subset = np.arange(0, nc, 2)
+    s_sub, b_sub = marginal_system(lin, terms, hold, subset)
+    keep = np.setdiff1d(keep, nt + np.setdiff1d(np.arange(nc), subset))
+    dense = np.zeros(full.shape[0])
+    dense[keep] = -np.linalg.solve(full[np.ix_(keep, keep)], grad[keep])
+    np.testing.assert_allclose(np.linalg.solve(s_sub, b_sub), dense[nt + subset], rtol=1e-6)
+
+
+def test_marginal_system_needs_the_gradient() -> None:
+    pr, _ = make_problem(2, 300, 1, False, None)
+    rng = np.random.default_rng(5)
+    jac_p, group = _nuisance(rng, 300)
+    evaluation = pr.evaluate()
+    layout = pr.layout()
+    terms = nuisance_terms(pr, evaluation, layout, 0, jac_p, group, NUM_GROUPS)
+    with pytest.raises(ValueError, match="gradient"):
+        marginal_system(pr.linearize(evaluation, layout), replace(terms, g_p=np.zeros((0, 0))))
 
 
 def test_nuisance_step_holds_the_directions_the_joint_information_does_not_determine() -> None:

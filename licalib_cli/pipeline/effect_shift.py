@@ -1,0 +1,115 @@
+"""How far estimating a fixed effect would move the extrinsic, with the map planes estimated too.
+
+The score tests (:func:`~licalib_cli.pipeline.fitcheck.effect_evidence`) linearise the final
+problem with the surfel planes held where the final round fitted them. Those planes were fitted
+to points mapped with the biased estimate, so they already absorb part of an effect the model
+lacks, and a step with them held fixed pulls the extrinsic back towards the values the map was
+built with. For a LiDAR effect that moves whole planes (a range offset moves every point along
+its ray) the held planes hide most of the bias: on a 10 s OS1-64 shake with per-beam range
+offsets of twice the paper's size, the extrinsic was 18 mm off, the planes-fixed step moved it
+by 2.2 mm, a refit with the range offsets and the planes free by 16 mm, and the step computed
+here by 14 mm.
+
+This stage computes the same step with the planes as unknowns of the same residuals
+(:func:`~licalib_cli.solver.nuisance.marginal_system`; each plane's two normal directions and
+its offset, the range noise's expected part taken out as in
+:mod:`licalib_cli.pipeline.free_planes`, the gauge held at the first control point), for the
+effects whose shift the reported sigmas may have to cover. The tests' statistics are not
+changed: with the planes free, a range offset's common mode is nearly a move of every plane
+towards the sensor, and the test would lose the power that names it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import numpy.typing as npt
+
+from licalib_cli.consistency import score_effects
+from licalib_cli.estimation import CalibrationState, Planes
+from licalib_cli.pipeline.free_planes import noise_corrected, plane_jacobian
+from licalib_cli.pipeline.points import PointSample, points_and_rays_in_global
+from licalib_cli.residuals import TRAJ_R3, TRAJ_SO3, PointToPlaneResidual
+from licalib_cli.solver.nuisance import marginal_system, nuisance_terms
+from licalib_cli.solver.problem import Evaluation, Linearization, Problem
+
+__all__ = ["planes_free_shifts"]
+
+F64 = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.intp]
+
+
+def planes_free_shifts(
+    problem: Problem,
+    evaluation: Evaluation,
+    lin: Linearization,
+    state: CalibrationState,
+    sample: PointSample,
+    plane: IntArray,
+    planes: Planes,
+    range_noise: F64,
+    base: Sequence[int],
+    wanted: Mapping[str, tuple[IntArray, Sequence[IntArray]]],
+    variance_factor: float,
+) -> dict[str, tuple[F64, F64]]:
+    """The shift of the estimated coordinates, and its null spread, per effect, planes free.
+
+    Args:
+        problem: the final problem with every effect free (its LiDAR block's whitening as the
+            tests use it).
+        evaluation: its evaluation with Jacobians at ``state``.
+        lin: its normal equations.
+        state: the final estimate.
+        sample: the points of the LiDAR block, as sampled (the same order).
+        plane: (N,) each point's plane.
+        planes: the planes.
+        range_noise: (N,) each point's range noise, m.
+        base: calibration coordinates the round estimated (indices into ``lin``'s).
+        wanted: effect name -> (its coordinates, the groups freed with it: the effects selected
+            before it).
+        variance_factor: the fit's a-posteriori variance factor.
+
+    Returns:
+        name -> ``(shift, shift_sigma)``, each (len(base),) in ``base``'s order; empty when the
+        problem has no LiDAR points.
+    """
+    block = next(
+        (
+            i
+            for i, r in enumerate(problem.residual_blocks)
+            if isinstance(r, PointToPlaneResidual) and len(r) > 0
+        ),
+        None,
+    )
+    if block is None or not wanted:
+        return {}
+    residual = problem.residual_blocks[block]
+    assert isinstance(residual, PointToPlaneResidual)
+    layout = lin.layout
+    plane = np.asarray(plane, dtype=np.intp)
+    normal = np.asarray(planes.normal, dtype=np.float64)
+    p_g, rays = points_and_rays_in_global(state, sample)
+    jac, _ = plane_jacobian(p_g, plane, normal)
+    w = residual.whitening()
+    jac *= w[:, None]
+    terms = nuisance_terms(problem, evaluation, layout, block, jac, plane, normal.shape[0])
+    terms = noise_corrected(terms, plane, normal, rays, w * range_noise)
+    hold = np.concatenate([layout.index[TRAJ_SO3][:3], layout.index[TRAJ_R3][:3]])
+    base_idx = np.asarray(base, dtype=np.intp)
+    columns = np.unique(
+        np.concatenate(
+            [base_idx]
+            + [np.asarray(g, dtype=np.intp) for g, _ in wanted.values()]
+            + [np.asarray(c, dtype=np.intp) for _, cond in wanted.values() for c in cond]
+        )
+    )
+    s, b = marginal_system(lin, terms, hold[hold >= 0], columns)
+    at = np.full(layout.num_calibration, -1, dtype=np.intp)
+    at[columns] = np.arange(columns.size)
+    out = {}
+    for name, (group, freed) in wanted.items():
+        current = np.concatenate([at[base_idx], *(at[np.asarray(c)] for c in freed)])
+        score = score_effects(s, b, current, {name: at[np.asarray(group)]}, variance_factor)[0]
+        out[name] = (score.shift[: base_idx.size], score.shift_sigma[: base_idx.size])
+    return out
