@@ -27,6 +27,7 @@ from dataclasses import replace
 
 import numpy as np
 import numpy.typing as npt
+import scipy.sparse as sp
 
 from licalib_cli.consistency import score_effects
 from licalib_cli.estimation import CalibrationState, Planes
@@ -99,9 +100,8 @@ def planes_free_shifts(
     jac, _ = plane_jacobian(p_g, plane, normal)
     w = residual.whitening()
     jac *= w[:, None]
-    noise = w * range_noise
     terms = nuisance_terms(problem, evaluation, layout, block, jac, plane, normal.shape[0])
-    terms = noise_corrected(terms, plane, normal, rays, noise)
+    terms = noise_corrected(terms, plane, normal, rays, w * range_noise)
     held = _degenerate(terms.H_pp)
     if np.any(held):
         # Held where they are: a plane whose own information is singular or, with the range
@@ -109,11 +109,13 @@ def planes_free_shifts(
         # Its undetermined directions would be dropped anyway; held, the rest of the planes'
         # elimination takes a Cholesky factor instead of an eigen-decomposition (0.2 s
         # instead of 1.7 s for 750 planes).
-        on = held[plane]
-        jac[on] = 0.0
-        terms = nuisance_terms(problem, evaluation, layout, block, jac, plane, normal.shape[0])
-        terms = noise_corrected(terms, plane, normal, rays, np.where(on, 0.0, noise))
-        terms = replace(terms, H_pp=np.where(held[:, None, None], np.eye(3), terms.H_pp))
+        keep = np.repeat(~held, 3).astype(np.float64)
+        terms = replace(
+            terms,
+            H_xp=sp.csr_matrix(terms.H_xp @ sp.diags(keep)),
+            H_pp=np.where(held[:, None, None], np.eye(3), terms.H_pp),
+            g_p=np.where(held[:, None], 0.0, terms.g_p),
+        )
     hold = np.concatenate([layout.index[TRAJ_SO3][:3], layout.index[TRAJ_R3][:3]])
     base_idx = np.asarray(base, dtype=np.intp)
     columns = np.unique(
