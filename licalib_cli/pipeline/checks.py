@@ -21,7 +21,8 @@ uncertainty (:mod:`licalib_cli.pipeline.map_uncertainty`: the solver holds the p
 although they were fitted to the same points), and are inflated so that they cover what the
 checks found: by the root of the largest chi-square per sample of the sensors, by half the
 disagreement of the two halves, by the shift a fixed effect would cause (a material one, or one
-the data hint at: :data:`COVER_P_VALUE`; computed with the map planes estimated too,
+the data hint at: :data:`COVER_P_VALUE`; for a LiDAR effect computed with the map planes
+estimated too,
 :mod:`licalib_cli.pipeline.effect_shift`) and the spread its estimate would add, and by the
 last round's change when the rounds only settled to within their jitter.
 """

@@ -14,10 +14,11 @@ This stage computes the same step with the planes as unknowns of the same residu
 (:func:`~licalib_cli.solver.nuisance.marginal_system`; each plane's two normal directions and
 its offset, the range noise's expected part taken out as in
 :mod:`licalib_cli.pipeline.free_planes`, the gauge held at the first control point; a plane
-whose own information is singular or indefinite held where it is), for the
-effects whose shift the reported sigmas may have to cover. The tests' statistics are not
-changed: with the planes free, a range offset's common mode is nearly a move of every plane
-towards the sensor, and the test would lose the power that names it.
+whose own information is singular or indefinite held where it is), for the LiDAR effects
+whose shift the reported sigmas may have to cover. The tests' statistics are not changed: with
+the planes free, a range offset's common mode is nearly a move of every plane towards the
+sensor, and the test would lose the power that names it. IMU effects keep the planes-fixed
+shift (see :func:`~licalib_cli.pipeline.fitcheck.effect_evidence`).
 """
 
 from __future__ import annotations
