@@ -267,8 +267,8 @@ def _uncertainty(sigma: F64, without_effects: F64, covered: Sequence[str] = ()) 
     def cause(mask_over: bool, advice: str) -> str:
         if covered and not mask_over:
             return (
-                f" It comes from the effects the model holds fixed ({causes}); estimate them "
-                "(--intrinsics, or licalib diagnose)."
+                f" It comes from the effects the model holds fixed ({causes}); licalib "
+                "diagnose (or calibrate --model auto) adds those the data support."
             )
         return advice
 
