@@ -32,10 +32,10 @@ import scipy.sparse as sp
 
 from licalib_cli.consistency import score_effects
 from licalib_cli.estimation import CalibrationState, Planes
-from licalib_cli.pipeline.free_planes import noise_corrected, plane_jacobian
+from licalib_cli.pipeline.free_planes import corrected_plane_terms, gauge_hold, lidar_block
 from licalib_cli.pipeline.points import PointSample, points_and_rays_in_global
-from licalib_cli.residuals import TRAJ_R3, TRAJ_SO3, PointToPlaneResidual
-from licalib_cli.solver.nuisance import marginal_system, nuisance_terms
+from licalib_cli.residuals import PointToPlaneResidual
+from licalib_cli.solver.nuisance import marginal_system
 from licalib_cli.solver.problem import Evaluation, Linearization, Problem
 
 __all__ = ["MIN_PLANE_INFORMATION", "planes_free_shifts"]
@@ -82,14 +82,7 @@ def planes_free_shifts(
         name -> ``(shift, shift_sigma)``, each (len(base),) in ``base``'s order; empty when the
         problem has no LiDAR points.
     """
-    block = next(
-        (
-            i
-            for i, r in enumerate(problem.residual_blocks)
-            if isinstance(r, PointToPlaneResidual) and len(r) > 0
-        ),
-        None,
-    )
+    block = lidar_block(problem)
     if block is None or not wanted:
         return {}
     residual = problem.residual_blocks[block]
@@ -98,11 +91,18 @@ def planes_free_shifts(
     plane = np.asarray(plane, dtype=np.intp)
     normal = np.asarray(planes.normal, dtype=np.float64)
     p_g, rays = points_and_rays_in_global(state, sample)
-    jac, _ = plane_jacobian(p_g, plane, normal)
-    w = residual.whitening()
-    jac *= w[:, None]
-    terms = nuisance_terms(problem, evaluation, layout, block, jac, plane, normal.shape[0])
-    terms = noise_corrected(terms, plane, normal, rays, w * range_noise)
+    terms, _, _ = corrected_plane_terms(
+        problem,
+        evaluation,
+        layout,
+        block,
+        residual.whitening(),
+        p_g,
+        rays,
+        plane,
+        normal,
+        range_noise,
+    )
     held = _degenerate(terms.H_pp)
     if np.any(held):
         # Held where they are: a plane whose own information is singular or, with the range
@@ -117,7 +117,6 @@ def planes_free_shifts(
             H_pp=np.where(held[:, None, None], np.eye(3), terms.H_pp),
             g_p=np.where(held[:, None], 0.0, terms.g_p),
         )
-    hold = np.concatenate([layout.index[TRAJ_SO3][:3], layout.index[TRAJ_R3][:3]])
     base_idx = np.asarray(base, dtype=np.intp)
     columns = np.unique(
         np.concatenate(
@@ -126,7 +125,7 @@ def planes_free_shifts(
             + [np.asarray(c, dtype=np.intp) for _, cond in wanted.values() for c in cond]
         )
     )
-    s, b = marginal_system(lin, terms, hold[hold >= 0], columns)
+    s, b = marginal_system(lin, terms, gauge_hold(layout), columns)
     at = np.full(layout.num_calibration, -1, dtype=np.intp)
     at[columns] = np.arange(columns.size)
     out = {}

@@ -51,14 +51,17 @@ from licalib_cli.solver.nuisance import (
     nuisance_step,
     nuisance_terms,
 )
-from licalib_cli.solver.problem import Problem
+from licalib_cli.solver.problem import Evaluation, Layout, Problem
 
 __all__ = [
     "MAX_STEPS",
     "RELATIVE_DECREASE",
     "STEP_FRACTIONS",
     "PlaneRefinement",
+    "corrected_plane_terms",
     "expected_noise_cost",
+    "gauge_hold",
+    "lidar_block",
     "noise_corrected",
     "noise_cost",
     "plane_jacobian",
@@ -212,7 +215,8 @@ def _noise_along(plane: npt.NDArray[np.intp], normal: F64, rays: F64, noise: F64
     return noise * np.einsum("ij,ij->i", normal[plane], rays)
 
 
-def _lidar_block(problem: Problem) -> int | None:
+def lidar_block(problem: Problem) -> int | None:
+    """Index of the problem's point-to-plane block (None when it has no LiDAR points)."""
     return next(
         (
             i
@@ -221,6 +225,46 @@ def _lidar_block(problem: Problem) -> int | None:
         ),
         None,
     )
+
+
+def gauge_hold(layout: Layout, so3: str = TRAJ_SO3, r3: str = TRAJ_R3) -> npt.NDArray[np.intp]:
+    """The reduced indices of the first control point of the ``so3`` and ``r3`` trajectory
+    blocks (those free): held, they fix the gauge the trajectory and free planes share."""
+    hold = np.concatenate([layout.index[so3][:3], layout.index[r3][:3]])
+    return np.asarray(hold[hold >= 0], dtype=np.intp)
+
+
+def corrected_plane_terms(
+    problem: Problem,
+    evaluation: Evaluation,
+    layout: Layout,
+    block: int,
+    whitening: F64,
+    p_g: F64,
+    rays: F64,
+    plane: npt.NDArray[np.intp],
+    normal: F64,
+    range_noise: F64,
+) -> tuple[NuisanceTerms, F64, F64]:
+    """The planes as nuisance of the point-to-plane block ``block``, without the range noise's
+    expected part (:func:`noise_corrected`).
+
+    Args:
+        problem, evaluation, layout: the problem, its evaluation with Jacobians and its layout.
+        block: the point-to-plane block.
+        whitening: (N,) the block's whitening per point.
+        p_g: (N, 3) its points in the planes' frame; rays: (N, 3) their unit rays there.
+        plane: (N,) each point's plane; normal: (P, 3) the planes' unit normals.
+        range_noise: (N,) each point's range noise, m.
+
+    Returns:
+        ``(terms, centroids (P, 3), whitened range noise (N,))``.
+    """
+    jac, centroid = plane_jacobian(p_g, plane, normal)
+    jac *= whitening[:, None]
+    terms = nuisance_terms(problem, evaluation, layout, block, jac, plane, normal.shape[0])
+    noise = whitening * range_noise
+    return noise_corrected(terms, plane, normal, rays, noise), centroid, noise
 
 
 def planes_free_steps(
@@ -320,7 +364,7 @@ def refine_with_planes(
     start = time.perf_counter()
     plane = np.asarray(inputs.lidar.plane, dtype=np.intp)
     problem = inputs.problem(state, inputs.planes)
-    block = _lidar_block(problem)
+    block = lidar_block(problem)
     if block is None:
         return None
     range_noise = inputs.noise.range_noise(inputs.points.beam)
@@ -351,20 +395,23 @@ def refine_with_planes(
         assert isinstance(residual, PointToPlaneResidual)
         p_g, rays = points_and_rays(state)
         normal = np.asarray(planes.normal, dtype=np.float64)
-        jac, centroid = plane_jacobian(p_g, plane, normal)
-        w = residual.whitening()
-        jac *= w[:, None]
-        terms = nuisance_terms(
-            problem, evaluation, layout, block, jac, plane, int(np.asarray(planes.d).shape[0])
+        terms, centroid, noise = corrected_plane_terms(
+            problem,
+            evaluation,
+            layout,
+            block,
+            residual.whitening(),
+            p_g,
+            rays,
+            plane,
+            normal,
+            range_noise,
         )
-        noise = w * range_noise
-        terms = noise_corrected(terms, plane, normal, rays, noise)
         cost = evaluation.cost - noise_cost(plane, normal, rays, noise)
-        hold = np.concatenate([layout.index[TRAJ_SO3][:3], layout.index[TRAJ_R3][:3]])
         step = nuisance_step(
             lin,
             terms,
-            hold[hold >= 0],
+            gauge_hold(layout),
             tsvd_threshold=lm.tsvd_threshold if lm.use_tsvd else 0.0,
             tsvd_relative=lm.tsvd_relative,
         )

@@ -27,10 +27,10 @@ import numpy.typing as npt
 from licalib_cli.estimation import CalibrationState, FreeParameters, Planes, state_from_values
 from licalib_cli.pipeline.free_planes import (
     Stepped,
+    corrected_plane_terms,
     expected_noise_cost,
-    noise_corrected,
+    gauge_hold,
     noise_cost,
-    plane_jacobian,
     planes_free_steps,
     stepped_planes,
 )
@@ -48,7 +48,6 @@ from licalib_cli.solver.lm import LMParams, SolverReport, solve
 from licalib_cli.solver.nuisance import (
     NuisanceSegment,
     NuisanceStep,
-    nuisance_terms,
     segmented_nuisance_step,
 )
 from licalib_cli.solver.problem import Evaluation, Layout, Problem
@@ -132,14 +131,19 @@ def _nuisance_segment(
     plane = np.asarray(data.lidar.plane, dtype=np.intp)
     p_g, rays = points_and_rays_in_global(state, data.points)
     normal = np.asarray(planes.normal, dtype=np.float64)
-    jac, centroid = plane_jacobian(p_g, plane, normal)
-    w = residual.inner.whitening()
-    jac *= w[:, None]
-    count = int(np.asarray(planes.d).shape[0])
-    terms = nuisance_terms(problem, evaluation, layout, block, jac, plane, count)
-    noise = w * range_noise
+    terms, centroid, noise = corrected_plane_terms(
+        problem,
+        evaluation,
+        layout,
+        block,
+        residual.inner.whitening(),
+        p_g,
+        rays,
+        plane,
+        normal,
+        range_noise,
+    )
     expected = noise_cost(plane, normal, rays, noise)
-    terms = noise_corrected(terms, plane, normal, rays, noise)
     nt = layout.num_trajectory
     prefix = segment_name(k, "")
     owner = np.asarray(layout.owner, dtype=str)
@@ -147,10 +151,8 @@ def _nuisance_segment(
     trajectory = np.flatnonzero(mine[:nt])
     foreign = [b for b in layout.block_names if _per_segment(b) and not b.startswith(prefix)]
     calibration = np.flatnonzero(~np.isin(owner[nt:], foreign))
-    hold = np.concatenate(
-        [layout.index[segment_name(k, TRAJ_SO3)][:3], layout.index[segment_name(k, TRAJ_R3)][:3]]
-    )
-    return NuisanceSegment(trajectory, terms, hold[hold >= 0], calibration), centroid, expected
+    hold = gauge_hold(layout, segment_name(k, TRAJ_SO3), segment_name(k, TRAJ_R3))
+    return NuisanceSegment(trajectory, terms, hold, calibration), centroid, expected
 
 
 def _per_segment(block: str) -> bool:

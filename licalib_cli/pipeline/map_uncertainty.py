@@ -22,10 +22,10 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.estimation import CalibrationState
-from licalib_cli.pipeline.free_planes import plane_jacobian
+from licalib_cli.pipeline.free_planes import gauge_hold, lidar_block, plane_jacobian
 from licalib_cli.pipeline.points import points_in_global
 from licalib_cli.pipeline.round import RoundInputs, SolvedProblem
-from licalib_cli.residuals import TRAJ_R3, TRAJ_SO3, PointToPlaneResidual
+from licalib_cli.residuals import PointToPlaneResidual
 from licalib_cli.solver import SolverReport
 from licalib_cli.solver.nuisance import marginal_schur, nuisance_terms
 from licalib_cli.solver.observability import undamped_schur
@@ -87,23 +87,16 @@ def map_uncertainty(
     else:
         problem = inputs.problem(state)
         layout = problem.layout()
-    lidar_block = next(
-        (
-            i
-            for i, r in enumerate(problem.residual_blocks)
-            if isinstance(r, PointToPlaneResidual) and len(r) > 0
-        ),
-        None,
-    )
+    block = lidar_block(problem)
     ones = np.ones(len(names))
-    if lidar_block is None or tuple(layout.calibration_names) != names:
+    if block is None or tuple(layout.calibration_names) != names:
         return MapUncertainty(names, ones, 0, time.perf_counter() - start)
     if solved is not None:
         evaluation, lin = solved.evaluation, solved.linearization
     else:
         evaluation = problem.evaluate(jacobians=True)
         lin = problem.linearize(evaluation, layout)
-    residual = problem.residual_blocks[lidar_block]
+    residual = problem.residual_blocks[block]
     assert isinstance(residual, PointToPlaneResidual)
     plane = np.asarray(inputs.lidar.plane, dtype=np.intp)
     num_planes = int(np.asarray(inputs.planes.d).shape[0])
@@ -111,9 +104,8 @@ def map_uncertainty(
     p_g = solved.points_global if solved is not None else points_in_global(state, inputs.points)
     jac_p, _ = plane_jacobian(p_g, plane, np.asarray(inputs.planes.normal, dtype=np.float64))
     jac_p *= residual.whitening()[:, None]
-    terms = nuisance_terms(problem, evaluation, layout, lidar_block, jac_p, plane, num_planes)
-    hold = np.concatenate([layout.index[TRAJ_SO3][:3], layout.index[TRAJ_R3][:3]])
-    s_marg = marginal_schur(lin, terms, hold[hold >= 0])
+    terms = nuisance_terms(problem, evaluation, layout, block, jac_p, plane, num_planes)
+    s_marg = marginal_schur(lin, terms, gauge_hold(layout))
     s_plain = undamped_schur(lin)
     factor = _sigma_ratio(s_plain, s_marg, layout.calibration_scale, report)
     return MapUncertainty(names, factor, num_planes, time.perf_counter() - start)
