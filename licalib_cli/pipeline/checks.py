@@ -22,9 +22,8 @@ although they were fitted to the same points), and are inflated so that they cov
 checks found: by the root of the largest chi-square per sample of the sensors, by half the
 disagreement of the two halves, by the shift a fixed effect would cause (a material one, or one
 the data hint at: :data:`COVER_P_VALUE`; for a LiDAR effect computed with the map planes
-estimated too,
-:mod:`licalib_cli.pipeline.effect_shift`) and the spread its estimate would add, and by the
-last round's change when the rounds only settled to within their jitter.
+estimated too, :mod:`licalib_cli.pipeline.effect_shift`) and the spread its estimate would add,
+and by the last round's change when the rounds only settled to within their jitter.
 """
 
 from __future__ import annotations
@@ -264,8 +263,8 @@ def _uncertainty(sigma: F64, without_effects: F64, covered: Sequence[str] = ()) 
     t, r, c = sigma[:3], np.degrees(sigma[3:6]), float(sigma[6])
     causes = ", ".join(covered)
 
-    def cause(mask_over: bool, advice: str) -> str:
-        if covered and not mask_over:
+    def cause(over_without_effects: bool, advice: str) -> str:
+        if covered and not over_without_effects:
             return (
                 f" It comes from the effects the model holds fixed ({causes}); licalib "
                 "diagnose (or calibrate --model auto) adds those the data support."

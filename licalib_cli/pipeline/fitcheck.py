@@ -9,8 +9,8 @@ Three kinds of evidence, each naming the sensor it concerns:
 * per effect the model holds fixed (IMU scale, misalignment, gyro-to-IMU rotation,
   g-sensitivity, the six per-beam LiDAR intrinsics), a score test and how far estimating the
   effect would move the extrinsic (:mod:`licalib_cli.consistency.score`), from one
-  linearisation of the final problem with those effects freed (for the LiDAR effects the data show,
-  with the map planes freed too: :mod:`licalib_cli.pipeline.effect_shift`);
+  linearisation of the final problem with those effects freed (for the LiDAR effects the data
+  show, with the map planes freed too: :mod:`licalib_cli.pipeline.effect_shift`);
 * the split-half agreement (:mod:`licalib_cli.pipeline.split`).
 """
 
@@ -565,8 +565,8 @@ def _planes_free(
     The IMU effects keep their planes-fixed shifts: with the planes free as well, an IMU effect
     that trades off with the extrinsic rotation (a gyro-to-IMU rotation) is only weakly
     determined on a window with little motion, and its linearised shift grew to degrees where
-    the extrinsic was 0.03 deg off (a 10 s walking window with one fast burst, whose spline
-    misfit hints at a gyro rotation)."""
+    the extrinsic was 0.03 deg off (a 10 s walking window with one fast burst, whose gyro
+    misfit hints at a gyro rotation the data do not hold)."""
     selected = [s.name for s in selection.selected]
     wanted: dict[str, tuple[npt.NDArray[np.intp], list[npt.NDArray[np.intp]]]] = {}
     for s in (*selection.selected, *selection.remaining):
