@@ -26,7 +26,7 @@ from licalib_cli.solver.nuisance import (
     segmented_nuisance_step,
 )
 from licalib_cli.solver.observability import undamped_schur
-from licalib_cli.solver.problem import Evaluation, Layout, Problem
+from licalib_cli.solver.problem import Evaluation, Layout, Linearization, Problem
 
 NUM_GROUPS = 9
 K = 3
@@ -172,22 +172,35 @@ def _dense_full(
     return evaluation, layout, full, grad
 
 
-@pytest.mark.parametrize("huber", [False, True])
-def test_nuisance_step_matches_the_dense_gauss_newton_step(huber: bool) -> None:
+def _dense_case(
+    huber: bool, seed: int
+) -> tuple[Linearization, NuisanceTerms, Layout, np.ndarray, np.ndarray]:
+    """A random problem with nuisance: its normal equations, the nuisance's terms, the layout
+    and the dense full matrix and gradient over (free coordinates, nuisance)."""
     loss = HuberLoss(1.5) if huber else None
     pr, block = make_problem(6, 900, 1, False, loss)
-    rng = np.random.default_rng(17)
-    jac_p, group = _nuisance(rng, 900)
+    jac_p, group = _nuisance(np.random.default_rng(seed), 900)
     evaluation, layout, full, grad = _dense_full(pr, block, loss, jac_p, group)
     lin = pr.linearize(evaluation, layout)
     terms = nuisance_terms(pr, evaluation, layout, 0, jac_p, group, NUM_GROUPS)
+    return lin, terms, layout, full, grad
+
+
+def _dense_step(full: np.ndarray, grad: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """The Gauss-Newton step of the dense system over ``keep`` (zero elsewhere)."""
+    step = np.zeros(full.shape[0])
+    step[keep] = -np.linalg.solve(full[np.ix_(keep, keep)], grad[keep])
+    return step
+
+
+@pytest.mark.parametrize("huber", [False, True])
+def test_nuisance_step_matches_the_dense_gauss_newton_step(huber: bool) -> None:
+    lin, terms, layout, full, grad = _dense_case(huber, 17)
     np.testing.assert_allclose(terms.g_p.reshape(-1), grad[layout.num_free :], atol=1e-10)
 
     hold = np.array([0, 1, 2])
     step = nuisance_step(lin, terms, hold, tsvd_threshold=0.0)
-    keep = np.setdiff1d(np.arange(full.shape[0]), hold)
-    expected = np.zeros(full.shape[0])
-    expected[keep] = -np.linalg.solve(full[np.ix_(keep, keep)], grad[keep])
+    expected = _dense_step(full, grad, np.setdiff1d(np.arange(full.shape[0]), hold))
     got = np.concatenate([step.dx, step.dp.reshape(-1)])
     np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-8 * np.abs(expected).max())
     assert step.num_truncated == 0
@@ -197,29 +210,20 @@ def test_nuisance_step_matches_the_dense_gauss_newton_step(huber: bool) -> None:
 
 @pytest.mark.parametrize("huber", [False, True])
 def test_marginal_system_gives_the_dense_calibration_step(huber: bool) -> None:
-    loss = HuberLoss(1.5) if huber else None
-    pr, block = make_problem(6, 900, 1, False, loss)
-    rng = np.random.default_rng(23)
-    jac_p, group = _nuisance(rng, 900)
-    evaluation, layout, full, grad = _dense_full(pr, block, loss, jac_p, group)
-    lin = pr.linearize(evaluation, layout)
-    terms = nuisance_terms(pr, evaluation, layout, 0, jac_p, group, NUM_GROUPS)
+    lin, terms, layout, full, grad = _dense_case(huber, 23)
     nt, nc = layout.num_trajectory, layout.num_calibration
     hold = np.array([0, 1, 2])
 
     s, b = marginal_system(lin, terms, hold)
     np.testing.assert_allclose(s, marginal_schur(lin, terms, hold), rtol=1e-9, atol=1e-12)
     keep = np.setdiff1d(np.arange(full.shape[0]), hold)
-    dense = np.zeros(full.shape[0])
-    dense[keep] = -np.linalg.solve(full[np.ix_(keep, keep)], grad[keep])
+    dense = _dense_step(full, grad, keep)
     np.testing.assert_allclose(np.linalg.solve(s, b), dense[nt : nt + nc], rtol=1e-6)
 
     # a subset of the calibration: the others held fixed (their rows and columns removed)
     subset = np.arange(0, nc, 2)
     s_sub, b_sub = marginal_system(lin, terms, hold, subset)
-    keep = np.setdiff1d(keep, nt + np.setdiff1d(np.arange(nc), subset))
-    dense = np.zeros(full.shape[0])
-    dense[keep] = -np.linalg.solve(full[np.ix_(keep, keep)], grad[keep])
+    dense = _dense_step(full, grad, np.setdiff1d(keep, nt + np.setdiff1d(np.arange(nc), subset)))
     np.testing.assert_allclose(np.linalg.solve(s_sub, b_sub), dense[nt + subset], rtol=1e-6)
 
 
