@@ -134,7 +134,10 @@ CALIBRATION_SCALES: Mapping[str, tuple[float, ...]] = {
     # (sensor-to-case mounting; 0.5 deg per angle in the simulator): at 1 mrad a direction the
     # data determine to 0.1-0.5 deg was held at nominal and counted as known within 1 mrad.
     GYRO_ROTATION: (1e-2,) * 3,
-    ACCEL_SCALE: (1e-3,) * 3,
+    # Gravity stays near one axis on most recordings, so that axis's scale trades with its bias
+    # and is determined to 0.1-0.2 % at best: at 1e-3 the truncation held it at nominal, and a
+    # 0.5 % scale the score test showed at p = 3e-9 was neither estimated nor named.
+    ACCEL_SCALE: (5e-3,) * 3,
     ACCEL_MISALIGNMENT: (1e-3,) * 3,
     GYRO_G_SENSITIVITY: (1e-4,) * 9,
     LIDAR_INTRINSICS: (1e-3, 1e-3, 0.005, 0.005, 1e-4, 0.01),
