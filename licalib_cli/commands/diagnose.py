@@ -59,6 +59,7 @@ def diagnosis_dict(diag: Any) -> dict[str, Any]:
                 "rival_delta_bic": _num(s.rival_delta_bic),
                 "estimate": {k: _num(v[0]) for k, v in s.estimate.items()},
                 "sigma": {k: _num(v[1]) for k, v in s.estimate.items()},
+                "held": list(s.held),
                 "gap_before": _gap_dict(s.gap_before),
                 "gap_after": _gap_dict(s.gap_after),
                 "gap_shrink": _num(s.shrink, 3),
@@ -239,6 +240,17 @@ def render_diagnosis(diag: Any) -> None:
                 "each one's score test with the other freed is not significant "
                 f"(BIC on the same data {s.rival_delta_bic:+.1f}); it shows an effect of the "
                 "kind, not which one."
+            )
+    for s in diag.steps:
+        if s.held:
+            shown = ", ".join(s.held[:3]) + (
+                f" and {len(s.held) - 3} more" if len(s.held) > 3 else ""
+            )
+            out.print(
+                f"The refit with {s.effect} held {shown} at nominal: this bag determines "
+                f"{'them' if len(s.held) > 1 else 'it'} worse than the characteristic scale, so "
+                "the sigma shown is that scale, not a measurement, and the BIC sees no gain "
+                "from it."
             )
     if diag.not_shown:
         from licalib_cli.pipeline.diagnose import DETECTION_POWER

@@ -221,6 +221,9 @@ class DiagnosisStep:
             of this kind, not which of them it is.
         rival_delta_bic: BIC of the effect minus that of its rival on the same data (negative:
             it fits better; NaN without a rival), see :func:`_rival_delta_bic`.
+        held: the effect's coordinates the refit held at their nominal value (in a direction
+            the data determine worse than its characteristic scale): their sigma is that scale,
+            not a measurement, and the BIC sees no gain from them.
         before: the fit the effect was tested on.
         after: the refit with the effect.
         after_twin: the twin recordings of the refit.
@@ -240,6 +243,7 @@ class DiagnosisStep:
     moved_time_offset_s: float
     not_told_apart: tuple[str, ...] = ()
     rival_delta_bic: float = float("nan")
+    held: tuple[str, ...] = ()
     before: CalibrationRun | None = field(default=None, repr=False, compare=False)
     after: CalibrationRun | None = field(default=None, repr=False, compare=False)
     after_twin: Twin | None = field(default=None, repr=False, compare=False)
@@ -455,19 +459,33 @@ def _sensor_samples(run: CalibrationRun, sensor: str) -> int:
     return int(next(c.samples for c in consistency.sensors if c.sensor == sensor))
 
 
+def _of_effect(name: str, effect: str) -> bool:
+    """Whether calibration coordinate ``name`` belongs to candidate ``effect``."""
+    if effect in _LIDAR_SUFFIX:
+        return name.startswith("lidar.intrinsics[") and name.endswith(_LIDAR_SUFFIX[effect])
+    prefix = _COORDINATE_PREFIX[effect]
+    return name == prefix or name.startswith(prefix)
+
+
 def _estimate(run: CalibrationRun, effect: str) -> dict[str, tuple[float, float]]:
     values = intrinsic_coordinates(run.state)
     std = dict(zip(run.solver.calibration_names, run.solver.std, strict=True))
-    out = {}
-    for name, value in values.items():
-        if effect in _LIDAR_SUFFIX:
-            ok = name.startswith("lidar.intrinsics[") and name.endswith(_LIDAR_SUFFIX[effect])
-        else:
-            prefix = _COORDINATE_PREFIX[effect]
-            ok = name == prefix or name.startswith(prefix)
-        if ok and name in std:
-            out[name] = (float(value), float(std[name]))
-    return out
+    return {
+        name: (float(value), float(std[name]))
+        for name, value in values.items()
+        if _of_effect(name, effect) and name in std
+    }
+
+
+def _held(run: CalibrationRun, effect: str) -> tuple[str, ...]:
+    """The coordinates of ``effect`` that ``run``'s solver held where they started: they lie in
+    a direction the data determine worse than its characteristic scale (truncated SVD)."""
+    report = run.solver
+    return tuple(
+        name
+        for name, seen in zip(report.calibration_names, report.observable, strict=True)
+        if not seen and _of_effect(name, effect)
+    )
 
 
 def _rival_delta_bic(
@@ -608,6 +626,7 @@ def _try_effect(
         delta_bic=float(delta_bic),
         kept=bool(delta_bic < 0.0),
         estimate=_estimate(new, name),
+        held=_held(new, name),
         gap_before=_gap(run, sensor, cfg, rate, run_twin),
         gap_after=_gap(new, sensor, cfg, rate, new_twin),
         moved_translation_m=moved["translation_m"],

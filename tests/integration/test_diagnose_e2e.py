@@ -166,6 +166,31 @@ def test_an_accelerometer_scale_the_score_test_finds_is_estimated_in_every_axis(
         sigma = step["sigma"][f"imu.accel_scale.{a}"]
         assert sigma is not None and sigma < 3e-3
         assert abs(value - value_true) < 3 * sigma
+    assert step["held"] == []  # every axis estimated, none held at nominal by the truncation
+
+
+def test_the_coordinates_a_refit_held_at_nominal_are_named() -> None:
+    from types import SimpleNamespace
+
+    from licalib_cli.pipeline.diagnose import _held
+
+    names = (
+        "ext.translation.x",
+        "imu.accel_scale.x",
+        "imu.accel_scale.z",
+        "lidar.intrinsics[3].drho",
+        "lidar.intrinsics[3].H",
+        "lidar.intrinsics[4].drho",
+    )
+    run = SimpleNamespace(
+        solver=SimpleNamespace(
+            calibration_names=names,
+            observable=np.array([False, True, False, False, False, True]),
+        )
+    )
+    assert _held(run, "accel_scale") == ("imu.accel_scale.z",)  # type: ignore[arg-type]
+    assert _held(run, "lidar_range_offset") == ("lidar.intrinsics[3].drho",)  # type: ignore[arg-type]
+    assert _held(run, "gyro_scale") == ()  # type: ignore[arg-type]
 
 
 def test_a_clean_bag_shows_no_effect(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
