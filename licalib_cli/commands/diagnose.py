@@ -246,11 +246,12 @@ def render_diagnosis(diag: Any) -> None:
             shown = ", ".join(s.held[:3]) + (
                 f" and {len(s.held) - 3} more" if len(s.held) > 3 else ""
             )
+            them = "them" if len(s.held) > 1 else "it"
             out.print(
-                f"The refit with {s.effect} held {shown} at nominal: this bag determines "
-                f"{'them' if len(s.held) > 1 else 'it'} worse than the characteristic scale, so "
-                "the sigma shown is that scale, not a measurement, and the BIC sees no gain "
-                "from it."
+                f"The refit with {s.effect} could not estimate {shown}: this bag determines "
+                f"{them} worse than the characteristic scale, so the truncated SVD held {them} "
+                "near where it started; the sigma shown is that scale, not a measurement, and "
+                "the BIC sees no gain from it."
             )
     if diag.not_shown:
         from licalib_cli.pipeline.diagnose import DETECTION_POWER

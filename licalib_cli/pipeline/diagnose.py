@@ -221,9 +221,10 @@ class DiagnosisStep:
             of this kind, not which of them it is.
         rival_delta_bic: BIC of the effect minus that of its rival on the same data (negative:
             it fits better; NaN without a rival), see :func:`_rival_delta_bic`.
-        held: the effect's coordinates the refit held at their nominal value (in a direction
-            the data determine worse than its characteristic scale): their sigma is that scale,
-            not a measurement, and the BIC sees no gain from them.
+        held: the effect's coordinates the refit could not estimate (mostly in directions the
+            data determine worse than their characteristic scale, which the truncated SVD holds
+            near where they started): their sigma is that scale, not a measurement, and the BIC
+            sees no gain from them.
         before: the fit the effect was tested on.
         after: the refit with the effect.
         after_twin: the twin recordings of the refit.
@@ -477,14 +478,20 @@ def _estimate(run: CalibrationRun, effect: str) -> dict[str, tuple[float, float]
     }
 
 
+HELD_WEIGHT = 0.5
+"""A coordinate counts as held by the truncated SVD when at least this share of it (scaled)
+lies in truncated directions."""
+
+
 def _held(run: CalibrationRun, effect: str) -> tuple[str, ...]:
-    """The coordinates of ``effect`` that ``run``'s solver held where they started: they lie in
-    a direction the data determine worse than its characteristic scale (truncated SVD)."""
+    """The coordinates of ``effect`` that ``run``'s solver mostly held where they started: they
+    lie in directions the data determine worse than their characteristic scale (truncated SVD;
+    an intrinsic there keeps its nominal value and that scale as its sigma)."""
     report = run.solver
     return tuple(
         name
-        for name, seen in zip(report.calibration_names, report.observable, strict=True)
-        if not seen and _of_effect(name, effect)
+        for name, w in zip(report.calibration_names, report.truncated_weight, strict=True)
+        if w >= HELD_WEIGHT and _of_effect(name, effect)
     )
 
 

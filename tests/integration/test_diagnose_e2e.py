@@ -185,10 +185,11 @@ def test_the_coordinates_a_refit_held_at_nominal_are_named() -> None:
     run = SimpleNamespace(
         solver=SimpleNamespace(
             calibration_names=names,
-            observable=np.array([False, True, False, False, False, True]),
+            truncated_weight=np.array([0.9, 0.2, 0.99, 0.7, 0.6, 0.0]),
         )
     )
     assert _held(run, "accel_scale") == ("imu.accel_scale.z",)  # type: ignore[arg-type]
+    assert _held(run, "lidar_horizontal_offset") == ("lidar.intrinsics[3].H",)  # type: ignore[arg-type]
     assert _held(run, "lidar_range_offset") == ("lidar.intrinsics[3].drho",)  # type: ignore[arg-type]
     assert _held(run, "gyro_scale") == ()  # type: ignore[arg-type]
 
