@@ -246,12 +246,12 @@ def render_diagnosis(diag: Any) -> None:
             shown = ", ".join(s.held[:3]) + (
                 f" and {len(s.held) - 3} more" if len(s.held) > 3 else ""
             )
-            them = "them" if len(s.held) > 1 else "it"
+            them, their = ("them", "their") if len(s.held) > 1 else ("it", "its")
             out.print(
                 f"The refit with {s.effect} could not estimate {shown}: this bag determines "
                 f"{them} worse than the characteristic scale, so the truncated SVD held {them} "
-                "near where it started; the sigma shown is that scale, not a measurement, and "
-                "the BIC sees no gain from it."
+                f"near {their} starting value; the sigma shown is that scale, not a measurement, "
+                f"and the BIC sees no gain from {them}."
             )
     if diag.not_shown:
         from licalib_cli.pipeline.diagnose import DETECTION_POWER
