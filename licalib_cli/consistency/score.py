@@ -21,15 +21,21 @@ Everything here is plain linear algebra on ``S`` and ``b`` (no I/O); the pipelin
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass, field
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.consistency.distributions import chi2_logsf, chi2_sf
 
-__all__ = ["EffectScore", "EffectSelection", "score_effects", "select_effects"]
+__all__ = [
+    "EffectScore",
+    "EffectSelection",
+    "combined_score",
+    "score_effects",
+    "select_effects",
+]
 
 F64 = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.intp]
@@ -56,6 +62,12 @@ class EffectScore:
             group, held at zero, is in truth known only to within a prior (each coordinate with
             its own standard deviation, independent): the spread of the group's posterior (data
             and prior) carried into the estimated coordinates; zeros without a prior.
+        gradient: (k,) the group's gradient with the estimated coordinates profiled out,
+            divided by the variance factor (``statistic = gradient^T pinv(profiled_information)
+            gradient``): the tests of one group on several recordings of the same rig combine
+            by summing these two (:func:`combined_score`).
+        profiled_information: (k, k) the group's information with the estimated coordinates
+            profiled out, divided by the variance factor.
     """
 
     name: str
@@ -68,6 +80,8 @@ class EffectScore:
     shift_sigma: F64
     information: F64 = field(default_factory=lambda: np.zeros(0))
     prior_shift_sigma: F64 = field(default_factory=lambda: np.zeros(0))
+    gradient: F64 = field(default_factory=lambda: np.zeros(0))
+    profiled_information: F64 = field(default_factory=lambda: np.zeros((0, 0)))
 
     @property
     def shift_z(self) -> F64:
@@ -161,9 +175,37 @@ def score_effects(
                 prior_shift_sigma=_prior_shift_sigma(
                     s_bb_inv @ s_eb.T, s_ee_b / max(vf, 1.0), prior, bi.size
                 ),
+                gradient=g_e / vf,
+                profiled_information=s_ee_b / vf,
             )
         )
     return out
+
+
+def combined_score(
+    scores: Sequence[EffectScore], relative_rank: float = 1e-8
+) -> tuple[float, int, float]:
+    """Score test of one group on several recordings of the same rig (segments of a bag).
+
+    Each recording has its own estimated coordinates (profiled out in its own test); the group
+    is common to them. The profiled gradients and informations add up:
+    ``LM = (sum g_k)^T pinv(sum I_k) (sum g_k) ~ chi^2(rank)`` when the group is zero. A real
+    effect of the rig raises every recording's gradient along the same direction, so the
+    combined test is at least as strong as the strongest single one; a misfit of one
+    recording alone is diluted by the others' information.
+
+    Returns:
+        ``(statistic, rank, p_value)``; ``(nan, 0, nan)`` when the recordings' groups differ in
+        size or carry no gradient.
+    """
+    sizes = {s.gradient.shape[0] for s in scores}
+    if not scores or len(sizes) != 1 or 0 in sizes:
+        return float("nan"), 0, float("nan")
+    g = np.sum([s.gradient for s in scores], axis=0)
+    info = np.sum([s.profiled_information for s in scores], axis=0)
+    inv, rank = _pinv_psd(info, relative_rank)
+    statistic = float(g @ inv @ g)
+    return statistic, rank, float(chi2_sf(statistic, rank)) if rank else 1.0
 
 
 def _prior_shift_sigma(
@@ -245,34 +287,22 @@ def select_effects(
         # Keep only the shift of the original base coordinates.
         pos = [current.index(i) for i in bi]
         chosen.append(
-            EffectScore(
-                best.name,
-                best.statistic,
-                best.rank,
-                best.p_value,
-                best.estimate,
-                best.sigma,
-                best.shift[pos],
-                best.shift_sigma[pos],
-                best.information,
-                best.prior_shift_sigma[pos],
+            replace(
+                best,
+                shift=best.shift[pos],
+                shift_sigma=best.shift_sigma[pos],
+                prior_shift_sigma=best.prior_shift_sigma[pos],
             )
         )
         chosen_idx.append(todo.pop(best.name))
         current = current + list(chosen_idx[-1])
     pos = [current.index(i) for i in bi]
     remaining = tuple(
-        EffectScore(
-            r.name,
-            r.statistic,
-            r.rank,
-            r.p_value,
-            r.estimate,
-            r.sigma,
-            r.shift[pos],
-            r.shift_sigma[pos],
-            r.information,
-            r.prior_shift_sigma[pos],
+        replace(
+            r,
+            shift=r.shift[pos],
+            shift_sigma=r.shift_sigma[pos],
+            prior_shift_sigma=r.prior_shift_sigma[pos],
         )
         for r in (
             score_effects(S, b, current, todo, variance_factor, prior_sigma=prior_sigma)

@@ -26,7 +26,9 @@ The joint sigmas start from the joint solver's and are enlarged from what each s
 found (:func:`_growth`): a segment's own enlargements (the residuals' chi-square, the split
 halves, the last round's change) are weighted by the information the segment brings; the shift
 of an effect held fixed that a segment's checks cover enlarges the joint solver's sigma by the
-largest factor any segment needed; the IMU priors, which every segment shares, are added whole.
+largest factor any segment needed when the segments' tests of it together show it (an effect
+of the rig), by that segment's share of the information otherwise (that window's misfit, or a
+bias drift); the IMU priors, which every segment shares, are added whole.
 The sigmas grow further when the segments' own estimates scatter about the joint one beyond
 their sigmas (:func:`_scatter_factor`). The joint problem is not checked on its own beyond that.
 
@@ -53,6 +55,7 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig
+from licalib_cli.consistency.score import EffectScore, combined_score
 from licalib_cli.errors import ConfigError, ExcitationError, LicalibError
 from licalib_cli.estimation import (
     CalibrationState,
@@ -64,7 +67,12 @@ from licalib_cli.io.bag import open_bag
 from licalib_cli.io.reader import MIN_SEGMENT_S
 from licalib_cli.pipeline import CalibrationRun, calibrate
 from licalib_cli.pipeline.assemble import extra_terms
-from licalib_cli.pipeline.checks import effect_to_cover, intrinsics_uncertainty, prior_variance
+from licalib_cli.pipeline.checks import (
+    COVER_P_VALUE,
+    effect_to_cover,
+    intrinsics_uncertainty,
+    prior_variance,
+)
 from licalib_cli.pipeline.joint_planes import refine_segments_with_planes
 from licalib_cli.pipeline.joint_problem import joint_problem, segment_values
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty
@@ -412,11 +420,17 @@ def _growth(runs: Sequence[CalibrationRun]) -> tuple[F64, float, MapUncertainty 
       ``sqrt(sum w_k / sum (w_k / g_k^2))``, between the smallest and the largest ``g_k``. A
       window whose halves differ thus weighs in by the information it brings, instead of
       setting every coordinate's factor on its own.
-    * the shift of an effect the model holds fixed and a segment's checks cover: a real effect
-      moves every segment of the rig alike, a hint of one seen in a single window may be that
-      window's; the joint sigma keeps the largest ratio of such a variance to a segment's solver
-      variance, ``max_k effects_k / raw_k^2``, times its own solver variance (the joint problem
-      does not test the effects itself, and cannot tell a rig's effect from a window's).
+    * the shift of an effect the model holds fixed and a segment's checks cover. A real effect
+      of the rig (an IMU scale, a beam's offset) moves every segment alike: when the segments'
+      score tests of it, combined (:func:`~licalib_cli.consistency.score.combined_score`),
+      show it at the level at which a segment's checks cover an effect, the joint sigma keeps
+      the largest ratio of such a variance to a segment's solver variance,
+      ``max_k effects_k / raw_k^2``, times its own solver variance. When the segments together
+      do not show it, the misfit is that window's (a burst the model follows less well), and a
+      bias drift (:data:`WINDOW_EFFECTS`) differs from window to window anyway: the shift moves
+      the joint estimate by the segment's share of the information only, which adds
+      ``sum_k (w_k / sum w) effects_k / raw_k^2`` to that ratio. A group whose size differs
+      between the segments (beams held in one of them) counts as the rig's.
     * the IMU priors, which do not shrink with more data: the joint adds the smallest of the
       segments' (all segments' data together determine the IMU blocks at least as well as the
       best one).
@@ -433,6 +447,8 @@ def _growth(runs: Sequence[CalibrationRun]) -> tuple[F64, float, MapUncertainty 
     planes_used = 0
     prior = np.full(7, np.inf)
     effect_ratio = np.zeros(7)
+    window_ratio = np.zeros(7)  # sum w_k effects_k / raw_k^2 of the windows' own effects
+    rig = _rig_effects(runs)
     for run in runs:
         c = run.checks
         u = c.uncertainty
@@ -440,15 +456,21 @@ def _growth(runs: Sequence[CalibrationRun]) -> tuple[F64, float, MapUncertainty 
         shown = u.vector()
         own_prior = prior_variance(c.effects, raw)
         prior = np.minimum(prior, own_prior)
-        own_effects = np.zeros(7)
+        rig_effects, window_effects = np.zeros(7), np.zeros(7)
         for e in c.effects:
             if effect_to_cover(e, raw):
-                own_effects += np.asarray(e.shift) ** 2 + np.asarray(e.shift_std) ** 2
+                v = np.asarray(e.shift) ** 2 + np.asarray(e.shift_std) ** 2
+                if e.score.name in rig:
+                    rig_effects += v
+                else:
+                    window_effects += v
+        own_effects = rig_effects + window_effects
         own = np.sqrt(np.clip(shown**2 - own_prior - own_effects, 0.0, None))
         ok = np.isfinite(raw) & (raw > 0) & np.isfinite(own)
-        ratio = np.where(ok, own_effects / np.where(ok, raw, 1.0) ** 2, 0.0)
+        ratio = np.where(ok, rig_effects / np.where(ok, raw, 1.0) ** 2, 0.0)
         effect_ratio = np.maximum(effect_ratio, np.where(np.isfinite(ratio), ratio, 0.0))
         w = np.where(ok, 1.0 / np.where(ok, raw, 1.0) ** 2, 0.0)
+        window_ratio += np.where(ok, w * window_effects / np.where(ok, raw, 1.0) ** 2, 0.0)
         g = np.where(ok, np.maximum(own / np.where(ok, raw, 1.0), 1.0), 1.0)
         info += w
         grown_info += w / g**2
@@ -460,11 +482,35 @@ def _growth(runs: Sequence[CalibrationRun]) -> tuple[F64, float, MapUncertainty 
     grow = np.ones(7)
     some = grown_info > 0.0
     grow[some] = np.sqrt(info[some] / grown_info[some])
+    effect_ratio[info > 0.0] += window_ratio[info > 0.0] / info[info > 0.0]
     planes = None
     if names:
         planes = MapUncertainty(tuple(names), np.array(list(names.values())), planes_used, 0.0)
     prior = np.where(np.isfinite(prior), prior, 0.0)
     return grow, float(np.sqrt(chi)), planes, effect_ratio, prior
+
+
+WINDOW_EFFECTS = frozenset({"gyro_bias_walk", "accel_bias_walk"})
+"""Effects that differ from one segment to the next (a bias's drift within the window): a
+segment's shift of one moves the joint estimate by that segment's share only."""
+
+
+def _rig_effects(runs: Sequence[CalibrationRun]) -> frozenset[str]:
+    """The effects the segments' checks test whose combined score test (every segment's
+    profiled gradient and information summed) is significant at the level at which a
+    segment's checks cover an effect, or cannot be combined; never :data:`WINDOW_EFFECTS`."""
+    by_name: dict[str, list[EffectScore]] = {}
+    for run in runs:
+        for e in run.checks.effects:
+            by_name.setdefault(e.score.name, []).append(e.score)
+    out = set()
+    for name, scores in by_name.items():
+        if name in WINDOW_EFFECTS:
+            continue
+        _, _, p = combined_score(scores) if len(scores) == len(runs) else (0.0, 0, float("nan"))
+        if not p >= COVER_P_VALUE:  # NaN (not combinable) counts as the rig's
+            out.add(name)
+    return frozenset(out)
 
 
 def _sigma_size(run: CalibrationRun) -> float:
@@ -573,7 +619,8 @@ def _joint_result(
         reasons.append(
             "Joint sigmas enlarged up to "
             f"{float(np.sqrt(1.0 + effect_ratio.max())):.2f} times by the shift of the effects "
-            "held fixed that a segment's checks cover."
+            "held fixed that a segment's checks cover (by that segment's share of the "
+            "information where the segments together do not show the effect)."
         )
     if np.any(prior > 0.0):
         reasons.append(

@@ -111,3 +111,84 @@ def test_a_covered_effects_shift_is_kept_apart_from_the_weighted_factors() -> No
     np.testing.assert_allclose(grow, 1.2)  # the own part: the effect taken out
     np.testing.assert_allclose(effects, (shift**2 + 1e-4**2) / RAW**2)  # from the one segment
     np.testing.assert_array_equal(prior, 0.0)
+
+
+def _covering_segment(
+    name: str, gradient: np.ndarray, information: np.ndarray, shift: np.ndarray
+) -> SimpleNamespace:
+    """A segment whose checks cover effect ``name`` (p < 1e-3, moving t_x by ``shift``) with
+    the given profiled gradient and information; its sigmas are the solver's plus the shift."""
+    inv = np.linalg.pinv(information)
+    statistic = float(gradient @ inv @ gradient)
+    score = EffectScore(
+        name=name,
+        statistic=statistic,
+        rank=3,
+        p_value=1e-6,
+        estimate=inv @ gradient,
+        sigma=np.ones(3),
+        shift=np.zeros(7),
+        shift_sigma=np.zeros(7),
+        gradient=gradient,
+        profiled_information=information,
+    )
+    covered = EffectEvidence(
+        score=score,
+        sensor="imu",
+        selected=True,
+        shift_translation_m=shift[:3],
+        shift_rotation_rad=shift[3:6],
+        shift_time_offset_s=0.0,
+        shift_std=np.zeros(7),
+    )
+    shown = np.sqrt(RAW**2 + shift**2)
+    return SimpleNamespace(
+        checks=SimpleNamespace(
+            uncertainty=Uncertainty(
+                tuple(shown[:3]), tuple(np.degrees(shown[3:6])), float(shown[6])
+            ),
+            raw_sigma=RAW,
+            consistency=SimpleNamespace(sensors=()),
+            planes=None,
+            effects=(covered,),
+        )
+    )
+
+
+def _quiet_segment(name: str, gradient: np.ndarray, information: np.ndarray) -> SimpleNamespace:
+    """A segment whose test of ``name`` is not significant (not covered)."""
+    seg = _covering_segment(name, gradient, information, np.zeros(7))
+    (e,) = seg.checks.effects
+    score = EffectScore(**{**e.score.__dict__, "p_value": 0.5})
+    seg.checks.effects = (EffectEvidence(**{**e.__dict__, "score": score}),)
+    return seg
+
+
+SHIFT = np.array([3e-3, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # 3 raw sigmas on t_x
+
+
+@pytest.mark.parametrize("name", ["gyro_rotation", "accel_bias_walk"])
+def test_a_hint_the_segments_together_do_not_show_counts_by_its_segments_share(
+    name: str,
+) -> None:
+    """One window's checks show a gyro rotation (score 36 on 3), three others with as much
+    information of it show nothing: the four together do not (score 9 on 3, p = 0.03), so the
+    misfit is that window's and moves the joint estimate by the window's share of the
+    information (a quarter here), not as if every window were moved by it. A bias drift
+    differs between windows anyway and counts by its share too."""
+    info = np.eye(3)
+    hinted = _covering_segment(name, np.array([6.0, 0.0, 0.0]), info, SHIFT)
+    others = [_quiet_segment(name, np.zeros(3), info) for _ in range(3)]
+    _, _, _, effects, _ = _growth([hinted, *others])  # type: ignore[list-item]
+    np.testing.assert_allclose(effects, 0.25 * SHIFT**2 / RAW**2)
+
+
+def test_a_hint_the_segments_together_show_keeps_the_largest_ratio() -> None:
+    """The same window, but the others' gradients point the same way (each below the checks'
+    level alone): together they show the rig's gyro rotation, which moves every window alike,
+    so the joint keeps the window's whole ratio."""
+    info = np.eye(3)
+    hinted = _covering_segment("gyro_rotation", np.array([6.0, 0.0, 0.0]), info, SHIFT)
+    others = [_quiet_segment("gyro_rotation", np.array([2.0, 0.0, 0.0]), info) for _ in range(3)]
+    _, _, _, effects, _ = _growth([hinted, *others])  # type: ignore[list-item]
+    np.testing.assert_allclose(effects, SHIFT**2 / RAW**2)
