@@ -47,14 +47,30 @@ def _effect(prior_std: np.ndarray) -> EffectEvidence:
 def _segment(factor: float, prior_std: np.ndarray) -> SimpleNamespace:
     """A segment whose checks enlarged its solver sigmas ``factor`` times, then added the
     priors' ``prior_std`` in quadrature."""
-    shown = np.sqrt((RAW * factor) ** 2 + prior_std**2)
-    uncertainty = Uncertainty(tuple(shown[:3]), tuple(np.degrees(shown[3:6])), float(shown[6]))
+    return _checked(np.sqrt((RAW * factor) ** 2 + prior_std**2), (_effect(prior_std),))
+
+
+def _covered(score: EffectScore, shift: np.ndarray, shift_std: np.ndarray) -> EffectEvidence:
+    """An IMU effect selected by the checks, moving the (7,) extrinsic by ``shift``."""
+    return EffectEvidence(
+        score=score,
+        sensor="imu",
+        selected=True,
+        shift_translation_m=shift[:3],
+        shift_rotation_rad=shift[3:6],
+        shift_time_offset_s=0.0,
+        shift_std=shift_std,
+    )
+
+
+def _checked(shown: np.ndarray, effects: tuple[EffectEvidence, ...]) -> SimpleNamespace:
+    """A segment whose checks report the (7,) sigmas ``shown`` and the ``effects``."""
     checks = SimpleNamespace(
-        uncertainty=uncertainty,
+        uncertainty=Uncertainty(tuple(shown[:3]), tuple(np.degrees(shown[3:6])), float(shown[6])),
         raw_sigma=RAW,
         consistency=SimpleNamespace(sensors=()),
         planes=None,
-        effects=(_effect(prior_std),),
+        effects=effects,
     )
     return SimpleNamespace(checks=checks)
 
@@ -85,27 +101,8 @@ def test_a_covered_effects_shift_is_kept_apart_from_the_weighted_factors() -> No
         shift=np.zeros(7),
         shift_sigma=np.zeros(7),
     )
-    covered = EffectEvidence(
-        score=score,
-        sensor="imu",
-        selected=True,
-        shift_translation_m=shift[:3],
-        shift_rotation_rad=shift[3:6],
-        shift_time_offset_s=0.0,
-        shift_std=np.full(7, 1e-4),
-    )
-    shown = np.sqrt((RAW * 1.2) ** 2 + shift**2 + 1e-4**2)
-    seg = SimpleNamespace(
-        checks=SimpleNamespace(
-            uncertainty=Uncertainty(
-                tuple(shown[:3]), tuple(np.degrees(shown[3:6])), float(shown[6])
-            ),
-            raw_sigma=RAW,
-            consistency=SimpleNamespace(sensors=()),
-            planes=None,
-            effects=(covered,),
-        )
-    )
+    covered = _covered(score, shift, np.full(7, 1e-4))
+    seg = _checked(np.sqrt((RAW * 1.2) ** 2 + shift**2 + 1e-4**2), (covered,))
     plain = _segment(1.2, np.zeros(7))
     grow, _, _, effects, prior = _growth([seg, plain])  # type: ignore[list-item]
     np.testing.assert_allclose(grow, 1.2)  # the own part: the effect taken out
@@ -132,27 +129,7 @@ def _covering_segment(
         gradient=gradient,
         profiled_information=information,
     )
-    covered = EffectEvidence(
-        score=score,
-        sensor="imu",
-        selected=True,
-        shift_translation_m=shift[:3],
-        shift_rotation_rad=shift[3:6],
-        shift_time_offset_s=0.0,
-        shift_std=np.zeros(7),
-    )
-    shown = np.sqrt(RAW**2 + shift**2)
-    return SimpleNamespace(
-        checks=SimpleNamespace(
-            uncertainty=Uncertainty(
-                tuple(shown[:3]), tuple(np.degrees(shown[3:6])), float(shown[6])
-            ),
-            raw_sigma=RAW,
-            consistency=SimpleNamespace(sensors=()),
-            planes=None,
-            effects=(covered,),
-        )
-    )
+    return _checked(np.sqrt(RAW**2 + shift**2), (_covered(score, shift, np.zeros(7)),))
 
 
 def _quiet_segment(name: str, gradient: np.ndarray, information: np.ndarray) -> SimpleNamespace:
