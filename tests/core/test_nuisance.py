@@ -80,14 +80,18 @@ def test_marginal_schur_matches_the_dense_elimination(huber: bool) -> None:
     np.testing.assert_allclose(got, expected, rtol=1e-7, atol=1e-9 * np.abs(expected).max())
 
 
-def test_eliminating_nuisance_never_adds_information() -> None:
-    pr, _ = make_problem(5, 900, 1, False, None)
-    rng = np.random.default_rng(2)
-    jac_p, group = _nuisance(rng, 900)
+def _plain_case(problem_seed: int, n: int, seed: int) -> tuple[Linearization, NuisanceTerms]:
+    """A problem of ``n`` measurements (no loss) linearised, and random nuisance terms."""
+    pr, _ = make_problem(problem_seed, n, 1, False, None)
+    jac_p, group = _nuisance(np.random.default_rng(seed), n)
     evaluation = pr.evaluate()
     layout = pr.layout()
-    lin = pr.linearize(evaluation, layout)
     terms = nuisance_terms(pr, evaluation, layout, 0, jac_p, group, NUM_GROUPS)
+    return pr.linearize(evaluation, layout), terms
+
+
+def test_eliminating_nuisance_never_adds_information() -> None:
+    lin, terms = _plain_case(5, 900, 2)
     plain = undamped_schur(lin)
     marg = marginal_schur(lin, terms)
     # plain - marg is positive semi-definite: the calibration is never known better
@@ -228,14 +232,9 @@ def test_marginal_system_gives_the_dense_calibration_step(huber: bool) -> None:
 
 
 def test_marginal_system_needs_the_gradient() -> None:
-    pr, _ = make_problem(2, 300, 1, False, None)
-    rng = np.random.default_rng(5)
-    jac_p, group = _nuisance(rng, 300)
-    evaluation = pr.evaluate()
-    layout = pr.layout()
-    terms = nuisance_terms(pr, evaluation, layout, 0, jac_p, group, NUM_GROUPS)
+    lin, terms = _plain_case(2, 300, 5)
     with pytest.raises(ValueError, match="gradient"):
-        marginal_system(pr.linearize(evaluation, layout), replace(terms, g_p=np.zeros((0, 0))))
+        marginal_system(lin, replace(terms, g_p=np.zeros((0, 0))))
 
 
 def test_nuisance_step_holds_the_directions_the_joint_information_does_not_determine() -> None:
