@@ -191,7 +191,7 @@ def combined_score(
     is common to them. The profiled gradients and informations add up:
     ``LM = (sum g_k)^T pinv(sum I_k) (sum g_k) ~ chi^2(rank)`` when the group is zero. A real
     effect of the rig raises every recording's gradient along the same direction, so the
-    combined test is at least as strong as the strongest single one; a misfit of one
+    combined test's expectation is at least that of the strongest single one; a misfit of one
     recording alone is diluted by the others' information.
 
     Returns:
@@ -199,7 +199,7 @@ def combined_score(
         size or carry no gradient.
     """
     sizes = {s.gradient.shape[0] for s in scores}
-    if not scores or len(sizes) != 1 or 0 in sizes:
+    if len(sizes) != 1 or 0 in sizes:  # none, or groups of different sizes, or no gradient
         return float("nan"), 0, float("nan")
     g = np.sum([s.gradient for s in scores], axis=0)
     info = np.sum([s.profiled_information for s in scores], axis=0)

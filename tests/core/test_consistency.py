@@ -150,6 +150,30 @@ def test_score_statistic_is_chi_square_without_the_effect() -> None:
     assert np.std(np.asarray(shifts_z)) == pytest.approx(1.0, abs=0.15)
 
 
+def test_combined_score_is_the_test_of_the_recordings_stacked() -> None:
+    """Two recordings, each with its own estimated coordinates, one effect common to them: the
+    combined test equals the score test of the stacked problem (base coordinates of each
+    recording apart, the effect shared); groups of different sizes are not combined."""
+    from licalib_cli.consistency import score_effects
+    from licalib_cli.consistency.score import combined_score
+
+    rng = np.random.default_rng(9)
+    effect = np.array([0.2, -0.15])
+    parts = [_linear_problem(rng, effect) for _ in range(2)]
+    alone = [score_effects(s, b, [0, 1, 2], {"e": [3, 4]})[0] for s, b, *_ in parts]
+    (_, _, a_b1, a_e1, y1, xb1), (_, _, a_b2, a_e2, y2, xb2) = parts
+    j = np.block([[a_b1, np.zeros_like(a_b2), a_e1], [np.zeros_like(a_b1), a_b2, a_e2]])
+    r = np.concatenate([a_b1 @ xb1 - y1, a_b2 @ xb2 - y2])
+    (stacked,) = score_effects(j.T @ j, -(j.T @ r), list(range(6)), {"e": [6, 7]})
+    statistic, rank, p_value = combined_score(alone)
+    assert statistic == pytest.approx(stacked.statistic, rel=1e-9)
+    assert rank == 2 and p_value == pytest.approx(stacked.p_value, rel=1e-6)
+    assert statistic > max(a.statistic for a in alone)  # the same effect in both adds up
+    (other,) = score_effects(parts[0][0], parts[0][1], [0, 1, 2], {"e": [3]})
+    assert np.isnan(combined_score([alone[0], other])[0])
+    assert np.isnan(combined_score([])[0])
+
+
 def test_score_finds_the_effect_and_predicts_the_shift_of_a_linear_problem() -> None:
     from licalib_cli.consistency import score_effects
 
