@@ -19,6 +19,8 @@ Examples::
     .venv/bin/python benchmarks/bench_intrinsics.py --duration 15 --seeds 0   # the speed case
     .venv/bin/python benchmarks/bench_intrinsics.py --intrinsics-mode none --model none
     .venv/bin/python benchmarks/bench_intrinsics.py --scenario shake --lidar os1-64 --model lidar
+    .venv/bin/python benchmarks/bench_intrinsics.py --noise-free --seeds 1 2 4   # a quiet rig
+    .venv/bin/python benchmarks/bench_intrinsics.py --range-noise 0.002 --seeds 5 11 12
     .venv/bin/python benchmarks/bench_intrinsics.py --seeds 1 \
         --set surfels.final_points_per_scan=8000
 
@@ -75,6 +77,8 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
         seed=seed,
         intrinsics=args.intrinsics_mode,
         random_time_offset=True,
+        range_noise_m=args.range_noise,
+        noise_free=args.noise_free,
     )
     t0 = time.perf_counter()
     out = simulate(spec, workdir / f"seed{seed}", force=True)
@@ -194,6 +198,13 @@ def main() -> None:
     p.add_argument("--model", default="all", choices=["none", "imu", "lidar", "all"])
     p.add_argument("--intrinsics-mode", default="random", choices=["random", "none"])
     p.add_argument("--json", default=None)
+    p.add_argument(
+        "--range-noise",
+        type=float,
+        default=None,
+        help="range noise sigma, m (default: the LiDAR model's, 0.01 vlp16)",
+    )
+    p.add_argument("--noise-free", action="store_true", help="no IMU or range noise at all")
     p.add_argument(
         "--set",
         action="append",

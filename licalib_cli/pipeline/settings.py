@@ -37,6 +37,7 @@ from licalib_cli.surfels import SurfelConfig
 
 __all__ = [
     "LIDAR_COLUMNS",
+    "LOOSE_BLUR_SHARE",
     "MIN_THICKNESS_M",
     "THICKNESS_PER_RANGE_SIGMA",
     "NoiseLevels",
@@ -72,6 +73,14 @@ MIN_THICKNESS_M = 0.005
 """Floor of the default ``surfels.max_thickness_m``: the map's own blur (the estimate, each
 sweep's deskew) and real surfaces make any cell a few millimetres thick, so a nearly noise-free
 LiDAR (a measured 0.03 mm) would otherwise leave no surfel at all ("No planar surfaces")."""
+
+LOOSE_BLUR_SHARE = 0.5
+"""While the association is loose, the default thickness limit is at least this share of how
+far beyond ``surfels.max_distance_m`` it reaches: the points may still be that far off, so the
+map is that blurred whatever the range noise. A nearly noise-free LiDAR (5 mm limit, 15 mm in
+the first round) otherwise kept 2 % of the points of a first map blurred by the LiDAR
+intrinsics, and the rounds never recovered (benchmarks/RESULTS.md). With the default distances
+it binds only below about 7 mm of range noise."""
 
 
 @dataclass(frozen=True)
@@ -143,16 +152,19 @@ def surfel_config(cfg: CalibConfig, noise: NoiseLevels, max_distance_m: float) -
     """Surfel and association settings of a round.
 
     The thickness limit scales with the association distance: while the association is loose
-    (the map still blurred by the estimate) surfels may be thicker. A cell with a point beyond
+    (the map still blurred by the estimate) surfels may be thicker, and the default limit is at
+    least :data:`LOOSE_BLUR_SHARE` of the looseness. A cell with a point beyond
     :data:`SECOND_SURFACE_FACTOR` thickness limits from its plane is left to the finer cells.
     """
     s = cfg.surfels
-    thickness = (
-        s.max_thickness_m
-        if s.max_thickness_m is not None
-        else max(THICKNESS_PER_RANGE_SIGMA * noise.range_sigma_m, MIN_THICKNESS_M)
-    )
-    limit = thickness * max_distance_m / s.max_distance_m
+    if s.max_thickness_m is not None:
+        limit = s.max_thickness_m * max_distance_m / s.max_distance_m
+    else:
+        thickness = max(THICKNESS_PER_RANGE_SIGMA * noise.range_sigma_m, MIN_THICKNESS_M)
+        limit = max(
+            thickness * max_distance_m / s.max_distance_m,
+            LOOSE_BLUR_SHARE * (max_distance_m - s.max_distance_m),
+        )
     return SurfelConfig(
         cell_sizes=tuple(s.cell_sizes_m),
         min_points=s.min_points,

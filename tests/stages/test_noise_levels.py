@@ -50,6 +50,26 @@ def test_the_default_thickness_cut_has_a_floor_for_nearly_noise_free_ranges() ->
     assert surfel_config(set_cfg, quiet, base).max_thickness_m == 0.002
 
 
+def test_a_loose_association_allows_surfels_as_thick_as_half_its_looseness() -> None:
+    """The first rounds' map is blurred by how far the points may still be off, not by the range
+    noise: with a nearly noise-free LiDAR the default cut is at least half the association
+    distance beyond the configured one; a noisy LiDAR's and a configured cut scale as before."""
+    from licalib_cli.pipeline.settings import LOOSE_BLUR_SHARE, MIN_THICKNESS_M, surfel_config
+
+    cfg = CalibConfig()
+    base = cfg.surfels.max_distance_m
+    quiet = _levels(np.full(4, 1e-4), measured=1e-4, configured=1e-4)
+    assert surfel_config(cfg, quiet, 3 * base).max_thickness_m == pytest.approx(
+        LOOSE_BLUR_SHARE * 2 * base
+    )
+    assert surfel_config(cfg, quiet, 3 * base).max_thickness_m > 3 * MIN_THICKNESS_M
+    assert surfel_config(cfg, quiet, base).max_thickness_m == MIN_THICKNESS_M
+    noisy = _levels(np.full(4, 0.01), measured=0.01, configured=0.01)
+    assert surfel_config(cfg, noisy, 3 * base).max_thickness_m == pytest.approx(0.045)
+    set_cfg = CalibConfig.model_validate({"surfels": {"max_thickness_m": 0.002}})
+    assert surfel_config(set_cfg, quiet, 3 * base).max_thickness_m == pytest.approx(0.006)
+
+
 def test_the_second_surface_limit_follows_the_thickness_cut() -> None:
     """A cell is left to the finer cells once a point lies six thickness limits off its plane
     (9 range-noise sigmas by default), in every round: both limits widen with the association
