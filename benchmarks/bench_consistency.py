@@ -17,6 +17,8 @@ Examples::
     .venv/bin/python benchmarks/bench_consistency.py --jobs 2        # two runs at a time
     .venv/bin/python benchmarks/bench_consistency.py --first-seed 300  # the same cases, new bags
     .venv/bin/python benchmarks/bench_consistency.py --model lidar     # LiDAR intrinsics estimated
+    .venv/bin/python benchmarks/bench_consistency.py --only clean --imu-noise-scale 10  # poor IMU
+    .venv/bin/python benchmarks/bench_consistency.py --only clean --range-noise 0.002  # quiet LiDAR
 
 Each run happens in a fresh subprocess; rows print as they finish (JSON with ``--json``).
 """
@@ -123,6 +125,7 @@ def one_run(case: dict, workdir: Path) -> dict:
     from licalib_cli.config import INTRINSIC_PRESETS, load_config
     from licalib_cli.pipeline import calibrate
     from licalib_cli.simulation import SimulationSpec, simulate
+    from licalib_cli.simulation.spec import ACCEL_NOISE_DENSITY, GYRO_NOISE_DENSITY
 
     rng = np.random.default_rng(case["seed"])
     rpy = tuple(float(x) for x in rng.uniform([-180, -90, -180], [180, 90, 180]))
@@ -130,6 +133,14 @@ def one_run(case: dict, workdir: Path) -> dict:
     direction /= np.linalg.norm(direction)
     lever = tuple(float(x) for x in direction * rng.uniform(0.0, 2.0))
     kwargs = effect_spec_kwargs(case["effects"], case["lidar"], case["seed"], workdir)
+    scale = case.get("imu_noise_scale", 1.0)
+    if scale != 1.0:
+        kwargs.update(
+            gyro_noise_density=scale * GYRO_NOISE_DENSITY,
+            accel_noise_density=scale * ACCEL_NOISE_DENSITY,
+        )
+    if case.get("range_noise") is not None:
+        kwargs["range_noise_m"] = case["range_noise"]
     spec = SimulationSpec(
         scenario=case["scenario"],
         lidar=case["lidar"],
@@ -178,6 +189,8 @@ def one_run(case: dict, workdir: Path) -> dict:
         time_offset_ms=float(1e3 * abs(c_err)),
         max_error_over_sigma=float(np.nanmax(np.where(np.isfinite(ratio), ratio, 0.0))),
         error_over_sigma=[round(float(x), 2) for x in ratio],
+        # the reported sigmas: t_x t_y t_z (mm), rotation (deg), time offset (ms)
+        sigma=[round(float(x), 4) for x in (*1e3 * t_std, *np.degrees(r_std), 1e3 * c_std)],
         calibrate_s=wall,
         simulate_s=sim_s,
         # what enlarged the sigmas, and the fixed effects whose shifts they cover
@@ -240,6 +253,18 @@ def main() -> None:
         choices=["none", "imu", "lidar", "all"],
         help="intrinsics the calibration estimates (calibrate --intrinsics); default none",
     )
+    p.add_argument(
+        "--imu-noise-scale",
+        type=float,
+        default=1.0,
+        help="gyro and accelerometer noise densities times this (10: a poor consumer IMU)",
+    )
+    p.add_argument(
+        "--range-noise",
+        type=float,
+        default=None,
+        help="range noise sigma, m (default: the LiDAR model's; 0.002: a quiet LiDAR)",
+    )
     p.add_argument("--list", action="store_true", help="print the cases and exit")
     p.add_argument("--jobs", type=int, default=1, help="runs at a time")
     p.add_argument("--json", default=None, help="also write the rows to this JSON file")
@@ -253,7 +278,12 @@ def main() -> None:
         print(json.dumps(one_run(json.loads(args.one), Path(args.workdir))))
         return
     todo = [
-        {**c, "model": args.model}
+        {
+            **c,
+            "model": args.model,
+            "imu_noise_scale": args.imu_noise_scale,
+            "range_noise": args.range_noise,
+        }
         for c in cases(args.first_seed)
         if (args.only is None or args.only in c["name"])
         and (args.seeds is None or c["seed"] in args.seeds)

@@ -304,6 +304,19 @@ class ModelSection(_Section):
     sigmas)."""
 
 
+class ChecksSection(_Section):
+    """The largest 1-sigma of a PASS: a result whose reported sigma (after the checks'
+    enlargements) exceeds one of these gets the verdict ``warn`` ("... is uncertain"). The
+    defaults keep twice the sigma within 1 cm / 0.1 deg / 0.3 ms: what a PASS promises."""
+
+    max_translation_sigma_m: float = Field(default=0.005, gt=0.0, le=10.0)
+    """Translation, m (per IMU axis)."""
+    max_rotation_sigma_deg: float = Field(default=0.05, gt=0.0, le=180.0)
+    """Rotation, degrees (per LiDAR axis)."""
+    max_time_offset_sigma_s: float = Field(default=0.00015, gt=0.0, le=10.0)
+    """Time offset, s."""
+
+
 class CalibConfig(_Section):
     """The whole configuration."""
 
@@ -318,6 +331,7 @@ class CalibConfig(_Section):
     schedule: ScheduleConfig = ScheduleConfig()
     solver: SolverSection = SolverSection()
     model: ModelSection = ModelSection()
+    checks: ChecksSection = ChecksSection()
 
 
 def yaml_error_summary(err: yaml.YAMLError) -> str:

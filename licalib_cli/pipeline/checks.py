@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from licalib_cli.config import CalibConfig
+from licalib_cli.config import CalibConfig, ChecksSection
 from licalib_cli.parallel import forked
 from licalib_cli.pipeline.fitcheck import (
     EFFECT_P_VALUE,
@@ -71,6 +71,7 @@ __all__ = [
     "prior_variance",
     "raw_uncertainty",
     "run_checks",
+    "uncertainty_findings",
 ]
 
 F64 = npt.NDArray[np.float64]
@@ -255,12 +256,17 @@ def _observability(report: SolverReport) -> list[Finding]:
     return out
 
 
-def _uncertainty(sigma: F64, without_effects: F64, covered: Sequence[str] = ()) -> list[Finding]:
-    """Sigmas above 1 cm / 0.1 deg / 2 ms. ``without_effects`` are the sigmas without what the
-    ``covered`` effects (held fixed, shown by the data) add: when those alone are within the
-    limits, the finding names the effects instead of the motion as the cause."""
+def uncertainty_findings(
+    sigma: F64, without_effects: F64, limits: ChecksSection, covered: Sequence[str] = ()
+) -> list[Finding]:
+    """Sigmas above the ``checks`` limits (5 mm / 0.05 deg / 0.15 ms by default).
+    ``without_effects`` are the sigmas without what the ``covered`` effects (held fixed, shown
+    by the data) add: when those alone are within the limits, the finding names the effects
+    instead of the motion as the cause."""
     out = []
     t, r, c = sigma[:3], np.degrees(sigma[3:6]), float(sigma[6])
+    t_max, r_max = limits.max_translation_sigma_m, limits.max_rotation_sigma_deg
+    c_max = limits.max_time_offset_sigma_s
     causes = ", ".join(covered)
 
     def cause(over_without_effects: bool, advice: str) -> str:
@@ -272,34 +278,37 @@ def _uncertainty(sigma: F64, without_effects: F64, covered: Sequence[str] = ()) 
         return advice
 
     finite_t = t[np.isfinite(t)]
-    if finite_t.size and finite_t.max() > 0.01:
+    if finite_t.size and finite_t.max() > t_max:
         t0 = without_effects[:3]
         out.append(
             Finding(
                 "warn",
-                f"Translation is uncertain (1-sigma up to {100 * finite_t.max():.1f} cm)."
+                f"Translation is uncertain (1-sigma up to {1e3 * finite_t.max():.1f} mm, "
+                f"above checks.max_translation_sigma_m = {1e3 * t_max:g} mm)."
                 + cause(
-                    bool(np.any(t0[np.isfinite(t0)] > 0.01)),
-                    " Record with more rotation about all axes.",
+                    bool(np.any(t0[np.isfinite(t0)] > t_max)),
+                    " Record with more rotation about all axes (and a quieter IMU).",
                 ),
             )
         )
     finite_r = r[np.isfinite(r)]
-    if finite_r.size and finite_r.max() > 0.1:
+    if finite_r.size and finite_r.max() > r_max:
         r0 = np.degrees(without_effects[3:6])
         out.append(
             Finding(
                 "warn",
-                f"Rotation is uncertain (1-sigma up to {finite_r.max():.2f} deg)."
-                + cause(bool(np.any(r0[np.isfinite(r0)] > 0.1)), ""),
+                f"Rotation is uncertain (1-sigma up to {finite_r.max():.3f} deg, above "
+                f"checks.max_rotation_sigma_deg = {r_max:g} deg)."
+                + cause(bool(np.any(r0[np.isfinite(r0)] > r_max)), ""),
             )
         )
-    if np.isfinite(c) and c > 0.002:
+    if np.isfinite(c) and c > c_max:
         out.append(
             Finding(
                 "warn",
-                f"Time offset is uncertain (1-sigma {1e3 * c:.1f} ms)."
-                + cause(bool(without_effects[6] > 0.002), ""),
+                f"Time offset is uncertain (1-sigma {1e3 * c:.2f} ms, above "
+                f"checks.max_time_offset_sigma_s = {1e3 * c_max:g} ms)."
+                + cause(bool(without_effects[6] > c_max), ""),
             )
         )
     return out
@@ -634,7 +643,7 @@ def run_checks(
     findings += _observability(report)
     covered = [e.score.name for e in effects if effect_to_cover(e, raw)]
     without_effects, _ = inflate(raw, sensors, [], split, fit)
-    findings += _uncertainty(sigma, without_effects, covered)
+    findings += uncertainty_findings(sigma, without_effects, cfg.checks, covered)
     findings += _sensors(sensors)
     findings += _effects(effects, raw)
     findings += _split(split)

@@ -72,6 +72,7 @@ from licalib_cli.pipeline.checks import (
     effect_to_cover,
     intrinsics_uncertainty,
     prior_variance,
+    uncertainty_findings,
 )
 from licalib_cli.pipeline.joint_planes import refine_segments_with_planes
 from licalib_cli.pipeline.joint_problem import joint_problem, segment_values
@@ -600,6 +601,12 @@ def _joint_result(
         )
     if any(e.disagrees for e in entries) and worst == "pass":
         worst = "warn"
+    sigma = np.concatenate(
+        [unc.translation_std_m, np.radians(unc.rotation_std_deg), [unc.time_offset_std_s]]
+    )
+    for finding in uncertainty_findings(sigma, sigma, cfg.checks):
+        worst = "warn" if worst == "pass" else worst
+        reasons.append(f"Joint estimate: {finding.text}")
     truncated = tuple(d.text for d in report.truncated)
     if any(any(bk.startswith("ext.") for bk, _ in d.blocks) for d in report.truncated):
         worst = "warn" if worst == "pass" else worst

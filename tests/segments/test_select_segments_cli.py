@@ -151,3 +151,17 @@ def test_calibrate_two_segments_jointly(walk, tmp_path, capsys) -> None:
     for s in seg["segments"]:
         assert all(j < o for j, o in zip(joint_sigma, s["translation_std_m"], strict=True))
     assert (tmp_path / "joint.config.yaml").exists()
+
+
+def test_the_joint_sigmas_meet_the_checks_limits_of_a_pass(walk, tmp_path, capsys) -> None:
+    """The joint estimate is held to the same ``checks`` limits as one segment: with a limit
+    below its sigmas the verdict warns and says which."""
+    bag, config, _ = walk
+    strict = tmp_path / "strict.yaml"
+    strict.write_text(config.read_text() + "checks:\n  max_translation_sigma_m: 1.0e-6\n")
+    out = tmp_path / "joint.yaml"
+    main(["calibrate", str(bag), "-c", str(strict), "--segments", "6-9,9-12", "-o", str(out)])
+    capsys.readouterr()
+    verdict = yaml.safe_load(out.read_text())["verdict"]
+    assert verdict["status"] != "pass"
+    assert any(r.startswith("Joint estimate: Translation is uncertain") for r in verdict["reasons"])

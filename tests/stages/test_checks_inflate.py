@@ -137,18 +137,21 @@ def test_an_effect_the_data_do_not_show_adds_its_prior_spread() -> None:
 
 
 def test_an_uncertain_translation_names_the_effects_that_made_it_so() -> None:
-    from licalib_cli.pipeline.checks import _uncertainty
+    from licalib_cli.config import CalibConfig
+    from licalib_cli.pipeline.checks import uncertainty_findings
+
+    limits = CalibConfig().checks
 
     sigma = np.array([2e-3, 2e-3, 15e-3, 1e-4, 1e-4, 1e-4, 1e-5])
     # 15 mm only through the shift of a covered effect: the effect is the cause
-    by_effect = _uncertainty(sigma, RAW, ["lidar_range_offset"])
+    by_effect = uncertainty_findings(sigma, RAW, limits, ["lidar_range_offset"])
     assert len(by_effect) == 1
     assert "lidar_range_offset" in by_effect[0].text
     assert "more rotation" not in by_effect[0].text
     # 15 mm without any effect: the motion is
-    by_motion = _uncertainty(sigma, sigma, ["lidar_range_offset"])
+    by_motion = uncertainty_findings(sigma, sigma, limits, ["lidar_range_offset"])
     assert "more rotation" in by_motion[0].text
     assert "lidar_range_offset" not in by_motion[0].text
-    assert "more rotation" in _uncertainty(sigma, RAW, [])[0].text
+    assert "more rotation" in uncertainty_findings(sigma, RAW, limits, [])[0].text
     # within the limits: nothing
-    assert _uncertainty(RAW, RAW, ["lidar_range_offset"]) == []
+    assert uncertainty_findings(RAW, RAW, limits, ["lidar_range_offset"]) == []

@@ -1,0 +1,47 @@
+"""A PASS promises its accuracy: a sigma above the ``checks`` limits makes the verdict warn."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from licalib_cli.config import CalibConfig, ChecksSection, load_config
+from licalib_cli.errors import ConfigError
+from licalib_cli.pipeline.checks import uncertainty_findings
+
+
+def _sigma(t_mm: float, r_deg: float, dt_ms: float) -> np.ndarray:
+    return np.array([1e-3 * t_mm, 0.0, 0.0, np.radians(r_deg), 0.0, 0.0, 1e-3 * dt_ms])
+
+
+def _texts(sigma: np.ndarray, limits: ChecksSection) -> list[str]:
+    return [f.text for f in uncertainty_findings(sigma, sigma, limits)]
+
+
+def test_the_default_limits_keep_twice_the_sigma_within_1_cm_0_1_deg_and_0_3_ms() -> None:
+    limits = CalibConfig().checks
+    assert _texts(_sigma(4.9, 0.049, 0.149), limits) == []
+    texts = _texts(_sigma(7.6, 0.06, 0.21), limits)
+    assert len(texts) == 3
+    assert texts[0].startswith("Translation is uncertain (1-sigma up to 7.6 mm")
+    assert "checks.max_translation_sigma_m = 5 mm" in texts[0]
+    assert "checks.max_rotation_sigma_deg = 0.05 deg" in texts[1]
+    assert "Time offset is uncertain (1-sigma 0.21 ms" in texts[2]
+
+
+def test_an_unobservable_direction_is_not_an_uncertain_one() -> None:
+    """An infinite sigma is reported by the observability check, not as uncertain."""
+    sigma = _sigma(1.0, 0.01, 0.05)
+    sigma[2] = np.inf
+    assert _texts(sigma, CalibConfig().checks) == []
+
+
+def test_the_limits_come_from_the_config(tmp_path) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text("checks:\n  max_translation_sigma_m: 0.01\n  max_time_offset_sigma_s: 0.001\n")
+    limits = load_config(path).checks
+    assert _texts(_sigma(7.6, 0.01, 0.21), limits) == []
+    assert len(_texts(_sigma(12.0, 0.01, 0.21), limits)) == 1
+    path.write_text("checks:\n  max_translation_sigma_m: 0\n")
+    with pytest.raises(ConfigError, match="max_translation_sigma_m"):
+        load_config(path)
