@@ -259,7 +259,7 @@ def _observability(report: SolverReport) -> list[Finding]:
 def uncertainty_findings(
     sigma: F64, without_effects: F64, limits: ChecksSection, covered: Sequence[str] = ()
 ) -> list[Finding]:
-    """Sigmas above the ``checks`` limits (5 mm / 0.1 deg / 0.15 ms by default).
+    """Sigmas above the ``checks`` limits (5 mm / 0.1 deg / 0.2 ms by default).
     ``without_effects`` are the sigmas without what the ``covered`` effects (held fixed, shown
     by the data) add: when those alone are within the limits, the finding names the effects
     instead of the motion as the cause."""

@@ -18,15 +18,15 @@ def _texts(sigma: np.ndarray, limits: ChecksSection) -> list[str]:
     return [f.text for f in uncertainty_findings(sigma, sigma, limits)]
 
 
-def test_the_default_limits_are_5_mm_0_1_deg_and_0_15_ms() -> None:
+def test_the_default_limits_are_5_mm_0_1_deg_and_0_2_ms() -> None:
     limits = CalibConfig().checks
-    assert _texts(_sigma(4.9, 0.099, 0.149), limits) == []
-    texts = _texts(_sigma(7.6, 0.12, 0.21), limits)
+    assert _texts(_sigma(4.9, 0.099, 0.199), limits) == []
+    texts = _texts(_sigma(7.6, 0.12, 0.25), limits)
     assert len(texts) == 3
     assert texts[0].startswith("Translation is uncertain (1-sigma up to 7.6 mm")
     assert "checks.max_translation_sigma_m = 5 mm" in texts[0]
     assert "checks.max_rotation_sigma_deg = 0.1 deg" in texts[1]
-    assert "Time offset is uncertain (1-sigma 0.21 ms" in texts[2]
+    assert "Time offset is uncertain (1-sigma 0.25 ms" in texts[2]
 
 
 def test_an_unobservable_direction_is_not_an_uncertain_one() -> None:
