@@ -257,24 +257,38 @@ def _observability(report: SolverReport) -> list[Finding]:
 
 
 def uncertainty_findings(
-    sigma: F64, without_effects: F64, limits: ChecksSection, covered: Sequence[str] = ()
+    sigma: F64,
+    without_effects: F64,
+    limits: ChecksSection,
+    covered: Sequence[str] = (),
+    prior: str | None = None,
 ) -> list[Finding]:
     """Sigmas above the ``checks`` limits (5 mm / 0.1 deg / 0.2 ms by default).
+
     ``without_effects`` are the sigmas without what the ``covered`` effects (held fixed, shown
-    by the data) add: when those alone are within the limits, the finding names the effects
-    instead of the motion as the cause."""
+    by the data) and the IMU priors (``prior``: the block that adds most, None when none do)
+    add: when those alone are within the limits, the finding names them instead of the motion
+    as the cause."""
     out = []
     t, r, c = sigma[:3], np.degrees(sigma[3:6]), float(sigma[6])
     t_max, r_max = limits.max_translation_sigma_m, limits.max_rotation_sigma_deg
     c_max = limits.max_time_offset_sigma_s
-    causes = ", ".join(covered)
+    sources = []
+    if covered:
+        sources.append(
+            f"the effects the model holds fixed ({', '.join(covered)}); licalib diagnose (or "
+            "calibrate --model auto) adds those the data support"
+        )
+    if prior is not None:
+        sources.append(
+            f"the IMU intrinsics held fixed, known only to within model.imu_prior (most from "
+            f"{prior}); estimate them (--intrinsics imu) or set your IMU's calibration accuracy "
+            "there"
+        )
 
     def cause(over_without_effects: bool, advice: str) -> str:
-        if covered and not over_without_effects:
-            return (
-                f" It comes from the effects the model holds fixed ({causes}); licalib "
-                "diagnose (or calibrate --model auto) adds those the data support."
-            )
+        if sources and not over_without_effects:
+            return f" It comes from {'; and from '.join(sources)}."
         return advice
 
     finite_t = t[np.isfinite(t)]
@@ -369,6 +383,17 @@ def effect_to_cover(e: EffectEvidence, raw_sigma: F64) -> bool:
     """Hinted at (p below :data:`COVER_P_VALUE`, which every material effect is) and moving
     some extrinsic coordinate by more than its sigma: the sigmas cover its shift."""
     return e.score.p_value < COVER_P_VALUE and _moves_extrinsic(e, raw_sigma)
+
+
+def _largest_prior(effects: Sequence[EffectEvidence], raw_sigma: F64) -> str | None:
+    """The IMU block whose prior (``model.imu_prior``) adds most to the sigmas; None when no
+    prior adds anything."""
+    held = [e for e in effects if not effect_to_cover(e, raw_sigma)]
+    finite = np.isfinite(raw_sigma) & (raw_sigma > 0.0)
+    size = [float(np.max(np.where(finite, e.prior_std / raw_sigma, 0.0))) for e in held]
+    if not size or max(size) <= 0.0:
+        return None
+    return held[int(np.argmax(size))].score.name
 
 
 def prior_variance(effects: Sequence[EffectEvidence], raw_sigma: F64) -> F64:
@@ -528,11 +553,9 @@ def inflate(
         grown = np.sqrt(sigma**2 + prior_var)
         finite = np.isfinite(sigma) & (sigma > 0.0)
         factor = float(np.max(grown[finite] / sigma[finite])) if np.any(finite) else 1.0
-        fixed = [e for e in effects if not effect_to_cover(e, raw)]
-        strongest = max(fixed, key=lambda e: float(np.max(np.where(finite, e.prior_std, 0.0))))
         why.append(
             "by the IMU intrinsics held fixed, each known to within model.imu_prior "
-            f"(times up to {factor:.2f}; most from {strongest.score.name})"
+            f"(times up to {factor:.2f}; most from {_largest_prior(effects, raw)})"
         )
         sigma = grown
     if fit.jitter:
@@ -643,7 +666,9 @@ def run_checks(
     findings += _observability(report)
     covered = [e.score.name for e in effects if effect_to_cover(e, raw)]
     without_effects, _ = inflate(raw, sensors, [], split, fit)
-    findings += uncertainty_findings(sigma, without_effects, cfg.checks, covered)
+    findings += uncertainty_findings(
+        sigma, without_effects, cfg.checks, covered, _largest_prior(effects, raw)
+    )
     findings += _sensors(sensors)
     findings += _effects(effects, raw)
     findings += _split(split)
