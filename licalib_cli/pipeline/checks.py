@@ -297,7 +297,7 @@ def uncertainty_findings(
         out.append(
             Finding(
                 "warn",
-                f"Translation is uncertain (1-sigma up to {1e3 * finite_t.max():.1f} mm, "
+                f"Translation is uncertain (1-sigma up to {1e3 * finite_t.max():.3g} mm, "
                 f"above checks.max_translation_sigma_m = {1e3 * t_max:g} mm)."
                 + cause(
                     bool(np.any(t0[np.isfinite(t0)] > t_max)),
@@ -311,7 +311,7 @@ def uncertainty_findings(
         out.append(
             Finding(
                 "warn",
-                f"Rotation is uncertain (1-sigma up to {finite_r.max():.3f} deg, above "
+                f"Rotation is uncertain (1-sigma up to {finite_r.max():.3g} deg, above "
                 f"checks.max_rotation_sigma_deg = {r_max:g} deg)."
                 + cause(bool(np.any(r0[np.isfinite(r0)] > r_max)), ""),
             )
@@ -320,7 +320,7 @@ def uncertainty_findings(
         out.append(
             Finding(
                 "warn",
-                f"Time offset is uncertain (1-sigma {1e3 * c:.2f} ms, above "
+                f"Time offset is uncertain (1-sigma {1e3 * c:.3g} ms, above "
                 f"checks.max_time_offset_sigma_s = {1e3 * c_max:g} ms)."
                 + cause(bool(without_effects[6] > c_max), ""),
             )
