@@ -168,11 +168,6 @@ class ResidualTable:
         accel: (N, 3) accelerometer residuals, m/s^2.
         angular_rate: (N, 3) the fit's prediction of the gyro readings, rad/s.
         specific_force: (N, 3) the fit's prediction of the accelerometer readings, m/s^2.
-
-    The patterns are taken against the predictions, not the readings: a reading carries the
-    very noise of its residual, so a regression on it finds that noise as a "dependence" (9 %
-    of the gyro residuals' variance on a sinusoid with a gyro ten times noisier than the
-    MTi-100's, every clean run a warning).
         point_t_s: (P,) point times, s.
         distance: (P,) signed point-to-plane distances, m.
         beam: (P,) beam of each point.
@@ -181,6 +176,11 @@ class ResidualTable:
         elevation: (P,) nominal elevation of the beam, rad.
         cos_incidence: (P,) cosine of the angle between the ray and the plane's normal.
         time_in_sweep_s: (P,) time since the sweep's first point, s.
+
+    The patterns are taken against the predictions, not the readings: a reading carries the
+    very noise of its residual, so a regression on it finds that noise as a "dependence" (9 %
+    of the gyro residuals' variance on a sinusoid with a gyro ten times noisier than the
+    MTi-100's, every clean run a warning).
     """
 
     t_imu_s: F64
