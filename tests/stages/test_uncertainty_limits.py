@@ -48,8 +48,8 @@ def test_the_limits_come_from_the_config(tmp_path) -> None:
 
 
 def test_a_sigma_over_the_limit_by_the_imu_priors_names_them_not_the_motion() -> None:
-    """A clean sinusoid's translation sigma went from about 3 to 5.05 mm by the gyro-to-IMU
-    rotation's prior alone: the finding says so instead of asking for more rotation."""
+    """A clean sinusoid's translation sigma went from about 3 to 5.05 mm by the IMU priors
+    alone: the finding says so instead of asking for more rotation."""
     sigma = _sigma(5.05, 0.01, 0.05)
     without = _sigma(3.1, 0.01, 0.05)
     limits = CalibConfig().checks
