@@ -601,9 +601,7 @@ def _joint_result(
         )
     if any(e.disagrees for e in entries) and worst == "pass":
         worst = "warn"
-    sigma = np.concatenate(
-        [unc.translation_std_m, np.radians(unc.rotation_std_deg), [unc.time_offset_std_s]]
-    )
+    sigma = unc.vector()
     for finding in uncertainty_findings(sigma, sigma, cfg.checks):
         worst = "warn" if worst == "pass" else worst
         reasons.append(f"Joint estimate: {finding.text}")

@@ -153,7 +153,7 @@ class _Model:
 def _model(state: CalibrationState, inputs: RoundInputs, noise: NoiseLevels) -> _Model:
     """The fitted model's prediction of every measurement of ``inputs``."""
     fit_inputs, keep = _subset(inputs, MAX_TWIN_POINTS)
-    table = residual_table(state, fit_inputs)  # IMU predictions minus readings
+    table = residual_table(state, fit_inputs)
     # every ray in {G}: the recorded point and the change per metre of raw range (the LiDAR
     # model is linear in the range), so the hit on its plane is exact
     sample = inputs.points
@@ -173,8 +173,8 @@ def _model(state: CalibrationState, inputs: RoundInputs, noise: NoiseLevels) -> 
     return _Model(
         fit_inputs=fit_inputs,
         keep=keep,
-        gyro_pred=inputs.imu.gyro + table.gyro,
-        accel_pred=inputs.imu.accel + table.accel,
+        gyro_pred=table.angular_rate,
+        accel_pred=table.specific_force,
         rho=np.asarray(sample.rho, dtype=np.float64),
         step=step,
         p_g=p_g,
