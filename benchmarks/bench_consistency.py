@@ -110,6 +110,7 @@ def cases(first_seed: int = 100) -> list[dict]:
 
 
 from _effects import EFFECTS, effect_spec_kwargs  # noqa: E402
+from _noise import add_noise_options, noise_spec_kwargs  # noqa: E402
 
 
 def _rotation_error_lidar(r_est, r_true):
@@ -125,7 +126,6 @@ def one_run(case: dict, workdir: Path) -> dict:
     from licalib_cli.config import INTRINSIC_PRESETS, load_config
     from licalib_cli.pipeline import calibrate
     from licalib_cli.simulation import SimulationSpec, simulate
-    from licalib_cli.simulation.spec import ACCEL_NOISE_DENSITY, GYRO_NOISE_DENSITY
 
     rng = np.random.default_rng(case["seed"])
     rpy = tuple(float(x) for x in rng.uniform([-180, -90, -180], [180, 90, 180]))
@@ -133,14 +133,11 @@ def one_run(case: dict, workdir: Path) -> dict:
     direction /= np.linalg.norm(direction)
     lever = tuple(float(x) for x in direction * rng.uniform(0.0, 2.0))
     kwargs = effect_spec_kwargs(case["effects"], case["lidar"], case["seed"], workdir)
-    scale = case.get("imu_noise_scale", 1.0)
-    if scale != 1.0:
-        kwargs.update(
-            gyro_noise_density=scale * GYRO_NOISE_DENSITY,
-            accel_noise_density=scale * ACCEL_NOISE_DENSITY,
+    kwargs.update(
+        noise_spec_kwargs(
+            case.get("range_noise"), case.get("imu_noise_scale", 1.0), case.get("noise_free", False)
         )
-    if case.get("range_noise") is not None:
-        kwargs["range_noise_m"] = case["range_noise"]
+    )
     spec = SimulationSpec(
         scenario=case["scenario"],
         lidar=case["lidar"],
@@ -253,18 +250,7 @@ def main() -> None:
         choices=["none", "imu", "lidar", "all"],
         help="intrinsics the calibration estimates (calibrate --intrinsics); default none",
     )
-    p.add_argument(
-        "--imu-noise-scale",
-        type=float,
-        default=1.0,
-        help="gyro and accelerometer noise densities times this (10: a poor consumer IMU)",
-    )
-    p.add_argument(
-        "--range-noise",
-        type=float,
-        default=None,
-        help="range noise sigma, m (default: the LiDAR model's; 0.002: a quiet LiDAR)",
-    )
+    add_noise_options(p)
     p.add_argument("--list", action="store_true", help="print the cases and exit")
     p.add_argument("--jobs", type=int, default=1, help="runs at a time")
     p.add_argument("--json", default=None, help="also write the rows to this JSON file")
@@ -283,6 +269,7 @@ def main() -> None:
             "model": args.model,
             "imu_noise_scale": args.imu_noise_scale,
             "range_noise": args.range_noise,
+            "noise_free": args.noise_free,
         }
         for c in cases(args.first_seed)
         if (args.only is None or args.only in c["name"])

@@ -41,6 +41,9 @@ from pathlib import Path
 import yaml
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _noise import add_noise_options, noise_spec_kwargs
 
 PAPER_LIDAR_MAE = {
     "range_scale": 0.006e-2,  # 0.006 %
@@ -77,8 +80,7 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
         seed=seed,
         intrinsics=args.intrinsics_mode,
         random_time_offset=True,
-        range_noise_m=args.range_noise,
-        noise_free=args.noise_free,
+        **noise_spec_kwargs(args.range_noise, args.imu_noise_scale, args.noise_free),
     )
     t0 = time.perf_counter()
     out = simulate(spec, workdir / f"seed{seed}", force=True)
@@ -198,13 +200,7 @@ def main() -> None:
     p.add_argument("--model", default="all", choices=["none", "imu", "lidar", "all"])
     p.add_argument("--intrinsics-mode", default="random", choices=["random", "none"])
     p.add_argument("--json", default=None)
-    p.add_argument(
-        "--range-noise",
-        type=float,
-        default=None,
-        help="range noise sigma, m (default: the LiDAR model's, 0.01 vlp16)",
-    )
-    p.add_argument("--noise-free", action="store_true", help="no IMU or range noise at all")
+    add_noise_options(p)
     p.add_argument(
         "--set",
         action="append",
