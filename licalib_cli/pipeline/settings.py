@@ -69,13 +69,13 @@ same bias on shaking but split more cells than needed: with three the sinusoids'
 the LiDAR intrinsics moved by a tenth of a millimetre, with four diagnose lost two effects it
 had named (benchmarks/RESULTS.md)."""
 
-MIN_THICKNESS_M = 0.002
-"""Floor of the default ``surfels.max_thickness_m``: the settled map's own blur (the estimate,
-each sweep's deskew) and real surfaces make any cell a millimetre or two thick, so a nearly
-noise-free LiDAR (a measured 0.03 mm) would otherwise leave no surfel at all ("No planar
-surfaces"); the loose rounds' blur is :data:`LOOSE_BLUR_SHARE`'s. 5 mm, the floor before that,
-let a 2 mm LiDAR keep cells 2.5 noise sigmas thick, straddling surfaces: 2 of 16 clean runs
-warned, the split halves disagreeing (benchmarks/RESULTS.md)."""
+MIN_THICKNESS_M = 0.005
+"""Floor of the default ``surfels.max_thickness_m``: the map's own blur (the estimate, each
+sweep's deskew) and real surfaces make any cell a few millimetres thick, so a nearly noise-free
+LiDAR (a measured 0.03 mm) would otherwise leave no surfel at all ("No planar surfaces").
+Not lower: at 2 mm a LiDAR with 2 mm of noise and per-beam errors still being estimated lost
+its map in the rounds at the configured distance (three sinusoids of seven refused or failed,
+benchmarks/RESULTS.md)."""
 
 LOOSE_BLUR_SHARE = 0.5
 """While the association is loose, the default thickness limit is at least this share of how

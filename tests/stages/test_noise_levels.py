@@ -37,20 +37,17 @@ def test_range_noise_without_a_measurement_or_beyond_the_beams_is_the_weighting_
 
 def test_the_default_thickness_cut_has_a_floor_for_nearly_noise_free_ranges() -> None:
     """A measured 0.1 mm of range noise would cut every surfel thicker than 0.15 mm, which no
-    map blurred by its estimate has: the default cut is at least 2 mm; a configured one stays."""
+    map blurred by its estimate has: the default cut is at least 5 mm; a configured one stays."""
     from licalib_cli.pipeline.settings import MIN_THICKNESS_M, surfel_config
 
     cfg = CalibConfig()
     base = cfg.surfels.max_distance_m
     quiet = _levels(np.full(4, 1e-4), measured=1e-4, configured=1e-4)
-    assert surfel_config(cfg, quiet, base).max_thickness_m == MIN_THICKNESS_M == 0.002
+    assert surfel_config(cfg, quiet, base).max_thickness_m == MIN_THICKNESS_M == 0.005
     noisy = _levels(np.full(4, 0.01), measured=0.01, configured=0.01)
     assert surfel_config(cfg, noisy, base).max_thickness_m == 0.015
-    set_cfg = CalibConfig.model_validate({"surfels": {"max_thickness_m": 0.001}})
-    assert surfel_config(set_cfg, quiet, base).max_thickness_m == 0.001
-    # a 2 mm LiDAR: 1.5 of its sigmas, not the floor
-    quiet_2mm = _levels(np.full(4, 0.002), measured=0.002, configured=0.002)
-    assert surfel_config(cfg, quiet_2mm, base).max_thickness_m == pytest.approx(0.003)
+    set_cfg = CalibConfig.model_validate({"surfels": {"max_thickness_m": 0.002}})
+    assert surfel_config(set_cfg, quiet, base).max_thickness_m == 0.002
 
 
 def test_a_loose_association_allows_surfels_as_thick_as_half_its_looseness() -> None:
