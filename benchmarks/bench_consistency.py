@@ -45,7 +45,7 @@ CLEAN_ROTATION_DEG = 0.05
 CLEAN_TIME_S = 1e-4
 
 
-def cases(first_seed: int = 100) -> list[dict]:
+def cases(first_seed: int = 100, lidars: tuple[str, ...] = ("vlp16", "os1-64")) -> list[dict]:
     """The benchmark's cases: (scenario, LiDAR, seed) crossed with effects, in a fixed order.
 
     Seeds and mountings differ between cases; none of them was used to tune the pipeline
@@ -55,14 +55,9 @@ def cases(first_seed: int = 100) -> list[dict]:
     """
     out: list[dict] = []
     seed = first_seed
-    combos = [
-        ("shake", "vlp16"),
-        ("sinusoid", "vlp16"),
-        ("shake", "os1-64"),
-        ("sinusoid", "os1-64"),
-    ]
+    combos = [(scenario, lidar) for lidar in lidars for scenario in ("shake", "sinusoid")]
     fmts = ["ros1", "ros2-db3", "ros2-mcap"]
-    # Clean: no intrinsic errors, no effect (4 combos x 4 seeds).
+    # Clean: no intrinsic errors, no effect (every combo, four times).
     for _ in range(4):
         for scenario, lidar in combos:
             out.append(
@@ -251,6 +246,13 @@ def main() -> None:
         help="intrinsics the calibration estimates (calibrate --intrinsics); default none",
     )
     add_noise_options(p)
+    p.add_argument(
+        "--lidars",
+        nargs="+",
+        default=["vlp16", "os1-64"],
+        help="LiDAR models the cases cycle through (default: vlp16 os1-64; also hdl-32, os1-32, "
+        "os1-128)",
+    )
     p.add_argument("--list", action="store_true", help="print the cases and exit")
     p.add_argument("--jobs", type=int, default=1, help="runs at a time")
     p.add_argument("--json", default=None, help="also write the rows to this JSON file")
@@ -271,7 +273,7 @@ def main() -> None:
             "range_noise": args.range_noise,
             "noise_free": args.noise_free,
         }
-        for c in cases(args.first_seed)
+        for c in cases(args.first_seed, tuple(args.lidars))
         if (args.only is None or args.only in c["name"])
         and (args.seeds is None or c["seed"] in args.seeds)
     ]

@@ -116,7 +116,7 @@ def simulate_command(
         float | None,
         typer.Option(
             "--range-noise",
-            help="Range noise sigma, m (default: 0.01 vlp16, 0.015 os1-64).",
+            help="Range noise sigma, m (default: 0.01 Velodyne, 0.015 Ouster).",
             rich_help_panel=_SENSORS,
         ),
     ] = None,

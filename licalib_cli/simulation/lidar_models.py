@@ -1,6 +1,6 @@
 """Firing patterns and PointCloud2 layouts of the simulated LiDARs.
 
-Both sensors spin clockwise seen from above, so the azimuth ``theta = atan2(y, x)`` of the rays
+All sensors spin clockwise seen from above, so the azimuth ``theta = atan2(y, x)`` of the rays
 decreases with time: ``theta(t) = theta_start - 2 pi (t - t_sweep) / T_sweep``.
 
 VLP-16 (Velodyne VLP-16 manual): lasers 0..15 fire one after another every 2.304 us at
@@ -13,13 +13,19 @@ the beams by elevation (ring 0 = -15 deg). Points as the ROS ``velodyne_pointclo
 point_step 22,
 unorganised, no-returns dropped, in firing order.
 
+HDL-32E (Velodyne HDL-32E manual): lasers 0..31 fire one after another every 1.152 us at
+elevations -30.67, -9.33, -29.33, -8.00, ..., -10.67, 10.67 deg (interleaved, 1.33 deg apart); a
+firing cycle lasts 46.08 us (2170 cycles per 10 Hz sweep). Same ``ring`` numbering and cloud
+layout as the VLP-16.
+
 OS1-64-like (ouster-ros default ``ouster_ros::Point``): 64 beams evenly from +16.6 deg (ring 0)
-to -16.6 deg, 1024 columns per sweep; all beams of a column fire at the column's time (rounded
-to ns); the first column looks backwards (theta = pi); thinning keeps 1024 / 2^k columns.
-Organised 64 x 1024, ``x, y, z`` float32 at 0, 4, 8, ``intensity`` float32 at 16, ``t`` uint32
-ns relative to the sweep start at 20, ``reflectivity`` uint16 at 24, ``ring`` uint16 at 26,
-``ambient`` uint16 at 28, ``range`` uint32 (mm) at 32, point_step 48 (EIGEN_ALIGN16); no-returns
-are zero points with range 0.
+to -16.6 deg; OS1-32 and OS1-128 alike with 32 and 128 beams evenly over +-22.5 deg (the
+uniform beam spacing of the OS1's later revisions); 1024 columns per sweep; all beams of a
+column fire at the column's time (rounded to ns); the first column looks backwards (theta = pi);
+thinning keeps 1024 / 2^k columns. Organised B x 1024, ``x, y, z`` float32 at 0, 4, 8,
+``intensity`` float32 at 16, ``t`` uint32 ns relative to the sweep start at 20, ``reflectivity``
+uint16 at 24, ``ring`` uint16 at 26, ``ambient`` uint16 at 28, ``range`` uint32 (mm) at 32,
+point_step 48 (EIGEN_ALIGN16); no-returns are zero points with range 0.
 """
 
 from __future__ import annotations
@@ -57,6 +63,19 @@ VLP16_LASER_ELEVATION_DEG = np.array(
     [-15, 1, -13, 3, -11, 5, -9, 7, -7, 9, -5, 11, -3, 13, -1, 15], dtype=np.float64
 )
 
+HDL32_FIRING_NS = 1152
+HDL32_CYCLE_NS = 46080
+HDL32_LASER_ELEVATION_DEG = np.array(
+    [
+        -30.67, -9.33, -29.33, -8.00, -28.00, -6.67, -26.67, -5.33,
+        -25.33, -4.00, -24.00, -2.67, -22.67, -1.33, -21.33, 0.00,
+        -20.00, 1.33, -18.67, 2.67, -17.33, 4.00, -16.00, 5.33,
+        -14.67, 6.67, -13.33, 8.00, -12.00, 9.33, -10.67, 10.67,
+    ],
+    dtype=np.float64,
+)  # fmt: skip
+"""Elevation of laser 0, 1, 2, ... (the manual's firing order), deg."""
+
 
 @dataclass(frozen=True)
 class FiringPattern:
@@ -89,6 +108,7 @@ class LidarModel:
         max_range: farthest return, m.
         theta_start: azimuth of the first ray of a sweep, rad.
         native_columns: columns per sweep for column-based sensors (0 for cycle-based).
+        cycle_ns: duration of a firing cycle for cycle-based sensors, ns (0 for column-based).
     """
 
     kind: LidarKind
@@ -100,6 +120,7 @@ class LidarModel:
     max_range: float
     theta_start: float
     native_columns: int = 0
+    cycle_ns: int = 0
 
     @property
     def num_beams(self) -> int:
@@ -113,7 +134,7 @@ class LidarModel:
         """Azimuth between consecutive cycles/columns at ``rate_hz``, deg."""
         if self.native_columns:
             return 360.0 / self.native_columns
-        return 360.0 * VLP16_CYCLE_NS * 1e-9 * rate_hz
+        return 360.0 * self.cycle_ns * 1e-9 * rate_hz
 
     def pattern(self, rate_hz: float, azimuth_resolution_deg: float | None = None) -> FiringPattern:
         """Firing times and azimuths of one sweep, optionally thinned in azimuth."""
@@ -128,9 +149,9 @@ class LidarModel:
             cols = np.arange(0, self.native_columns, step)
             col_t = np.round(cols * (period_ns / self.native_columns)).astype(np.int64)
         else:
-            n_cycles = period_ns // VLP16_CYCLE_NS
+            n_cycles = period_ns // self.cycle_ns
             cols = np.arange(0, n_cycles, step)
-            col_t = cols.astype(np.int64) * VLP16_CYCLE_NS
+            col_t = cols.astype(np.int64) * self.cycle_ns
         t_ns = col_t[:, None] + self.firing_order[None, :].astype(np.int64) * self.firing_step_ns
         theta = self.theta_start - 2 * np.pi * t_ns.astype(np.float64) / period_ns
         theta = np.mod(theta + np.pi, 2 * np.pi) - np.pi
@@ -139,28 +160,29 @@ class LidarModel:
         return FiringPattern(t_ns, theta, ring, period_ns)
 
 
-def _vlp16() -> LidarModel:
-    ring_elev = np.sort(VLP16_LASER_ELEVATION_DEG)
-    laser_of_ring = np.array(
-        [int(np.flatnonzero(VLP16_LASER_ELEVATION_DEG == e)[0]) for e in ring_elev]
-    )
+def _velodyne(
+    kind: LidarKind, laser_elevation_deg: F64, firing_ns: int, cycle_ns: int, min_range: float
+) -> LidarModel:
+    ring_elev = np.sort(laser_elevation_deg)
+    laser_of_ring = np.array([int(np.flatnonzero(laser_elevation_deg == e)[0]) for e in ring_elev])
     return LidarModel(
-        kind=LidarKind.VLP16,
+        kind=kind,
         nominal_elevation=np.radians(ring_elev),
         firing_order=laser_of_ring.astype(np.int64),
-        firing_step_ns=VLP16_FIRING_NS,
+        firing_step_ns=firing_ns,
         organized=False,
-        min_range=0.4,
+        min_range=min_range,
         max_range=100.0,
         theta_start=0.0,
+        cycle_ns=cycle_ns,
     )
 
 
-def _os1_64() -> LidarModel:
+def _ouster(kind: LidarKind, beams: int, half_fov_deg: float) -> LidarModel:
     return LidarModel(
-        kind=LidarKind.OS1_64,
-        nominal_elevation=np.radians(np.linspace(16.6, -16.6, 64)),
-        firing_order=np.zeros(64, dtype=np.int64),
+        kind=kind,
+        nominal_elevation=np.radians(np.linspace(half_fov_deg, -half_fov_deg, beams)),
+        firing_order=np.zeros(beams, dtype=np.int64),
         firing_step_ns=0,
         organized=True,
         min_range=0.5,
@@ -173,4 +195,11 @@ def _os1_64() -> LidarModel:
 def lidar_model(kind: LidarKind | str) -> LidarModel:
     """The model of a LiDAR kind."""
     kind = LidarKind(kind)
-    return _vlp16() if kind is LidarKind.VLP16 else _os1_64()
+    if kind is LidarKind.VLP16:
+        return _velodyne(kind, VLP16_LASER_ELEVATION_DEG, VLP16_FIRING_NS, VLP16_CYCLE_NS, 0.4)
+    if kind is LidarKind.HDL32:
+        return _velodyne(kind, HDL32_LASER_ELEVATION_DEG, HDL32_FIRING_NS, HDL32_CYCLE_NS, 1.0)
+    if kind is LidarKind.OS1_64:
+        return _ouster(kind, 64, 16.6)
+    beams = {LidarKind.OS1_32: 32, LidarKind.OS1_128: 128}[kind]
+    return _ouster(kind, beams, 22.5)

@@ -57,10 +57,31 @@ class Scenario(str, Enum):
 
 
 class LidarKind(str, Enum):
-    """Simulated LiDAR."""
+    """Simulated LiDAR: two Velodyne (unorganised clouds, a ``time`` field relative to the
+    stamp) and three Ouster (organised clouds, a ``t`` field in ns from the sweep start)
+    beam counts."""
 
     VLP16 = "vlp16"
+    HDL32 = "hdl-32"
+    OS1_32 = "os1-32"
     OS1_64 = "os1-64"
+    OS1_128 = "os1-128"
+
+    @property
+    def is_velodyne(self) -> bool:
+        """A Velodyne (cycle-based firing, unorganised ``PointXYZIRT`` clouds)."""
+        return self in (LidarKind.VLP16, LidarKind.HDL32)
+
+    @property
+    def display_name(self) -> str:
+        """The sensor's name as its maker writes it."""
+        return {
+            LidarKind.VLP16: "VLP-16",
+            LidarKind.HDL32: "HDL-32E",
+            LidarKind.OS1_32: "OS1-32",
+            LidarKind.OS1_64: "OS1-64",
+            LidarKind.OS1_128: "OS1-128",
+        }[self]
 
 
 class Mounting(str, Enum):
@@ -280,18 +301,19 @@ class SimulationSpec:
             ),
             (self.gravity > 0, "gravity must be positive."),
         ]
-        if self.lidar is LidarKind.VLP16:
+        name = self.lidar.display_name
+        if self.lidar.is_velodyne:
             checks.append(
                 (
                     5.0 <= self.lidar_rate_hz <= 20.0,
-                    f"--lidar-rate {self.lidar_rate_hz} Hz: the VLP-16 spins at 5-20 Hz.",
+                    f"--lidar-rate {self.lidar_rate_hz} Hz: the {name} spins at 5-20 Hz.",
                 )
             )
         else:
             checks.append(
                 (
                     self.lidar_rate_hz in (10.0, 20.0),
-                    f"--lidar-rate {self.lidar_rate_hz} Hz: the OS1-64 runs at 10 or 20 Hz.",
+                    f"--lidar-rate {self.lidar_rate_hz} Hz: the {name} runs at 10 or 20 Hz.",
                 )
             )
         for ok, msg in checks:
@@ -308,13 +330,13 @@ class SimulationSpec:
     def resolved_lidar_topic(self) -> str:
         if self.lidar_topic:
             return self.lidar_topic
-        return "/points_raw" if self.lidar is LidarKind.VLP16 else "/ouster/points"
+        return "/points_raw" if self.lidar.is_velodyne else "/ouster/points"
 
     @property
     def resolved_lidar_frame(self) -> str:
         if self.lidar_frame:
             return self.lidar_frame
-        return "velodyne" if self.lidar is LidarKind.VLP16 else "os_sensor"
+        return "velodyne" if self.lidar.is_velodyne else "os_sensor"
 
     def _strength(self, effect: Effect) -> float:
         """The named effect's reference size times ``effect_scale``; 0 when not named."""
@@ -409,7 +431,7 @@ class SimulationSpec:
             return 0.0
         if self.range_noise_m is not None:
             return float(self.range_noise_m)
-        return 0.01 if self.lidar is LidarKind.VLP16 else 0.015
+        return 0.01 if self.lidar.is_velodyne else 0.015
 
     @property
     def gravity_w(self) -> np.ndarray:

@@ -12,8 +12,9 @@ from licalib_cli.io.writer import BagFormat
 from licalib_cli.simulation import LidarKind, SimulationSpec, simulate
 
 # (lidar, spec options, expected info --json lidar fields). The OS1-64 keeps its native
-# 1024 columns so that the organised 64 x 1024 layout is checked; 2.2 s is just above the 2 s
-# a calibration (and so ``info``) needs.
+# 1024 columns so that the organised 64 x 1024 layout is checked; the HDL-32E and the OS1-128
+# are thinned (128 columns: 1024 / 8); 2.2 s is just above the 2 s a calibration (and so
+# ``info``) needs.
 LIDARS = {
     LidarKind.VLP16: (
         {"duration_s": 2.2, "azimuth_resolution_deg": 2.0},
@@ -28,6 +29,31 @@ LIDARS = {
             "height": 1,
             "point_step": 22,
             "is_bigendian": False,
+        },
+    ),
+    LidarKind.HDL32: (
+        {"duration_s": 2.2, "azimuth_resolution_deg": 2.0},
+        {
+            "topic": "/points_raw",
+            "time_field": "time",
+            "time_unit": "s",
+            "beams": 32,
+            "ring_field": "ring",
+            "height": 1,
+            "point_step": 22,
+        },
+    ),
+    LidarKind.OS1_128: (
+        {"duration_s": 2.2, "azimuth_resolution_deg": 2.8},
+        {
+            "topic": "/ouster/points",
+            "time_field": "t",
+            "time_unit": "ns",
+            "beams": 128,
+            "ring_field": "ring",
+            "height": 128,
+            "width": 128,
+            "point_step": 48,
         },
     ),
     LidarKind.OS1_64: (

@@ -73,6 +73,36 @@ def test_vlp16_firing_pattern() -> None:
     assert thin.t_ns.shape == (362, 16)
 
 
+def test_hdl32_firing_pattern() -> None:
+    model = lidar_model(LidarKind.HDL32)
+    pat = model.pattern(10.0)
+    assert pat.t_ns.shape == (2170, 32) and model.dtype == VLP16_DTYPE
+    # Rings by elevation, 1.33 deg apart from -30.67 to +10.67 deg.
+    elev = np.degrees(model.nominal_elevation)
+    assert elev[[0, 31]] == pytest.approx([-30.67, 10.67]) and np.all(np.diff(elev) > 1.3)
+    # Within a cycle the lasers fire every 1.152 us, alternating between the lower and the
+    # upper block: -30.67, -9.33, -29.33, -8.00, ... deg.
+    order = np.argsort(pat.t_ns[0])
+    assert elev[order][:4] == pytest.approx([-30.67, -9.33, -29.33, -8.00])
+    assert np.array_equal(np.diff(pat.t_ns[0][order]), np.full(31, 1152))
+    assert np.array_equal(np.diff(pat.t_ns[:, 0]), np.full(2169, 46080))
+    step = np.degrees(np.angle(np.exp(1j * (pat.theta[1, 0] - pat.theta[0, 0]))))
+    assert step == pytest.approx(-360 * 46080e-9 * 10, rel=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("lidar", "beams", "top_deg"),
+    [(LidarKind.OS1_32, 32, 22.5), (LidarKind.OS1_64, 64, 16.6), (LidarKind.OS1_128, 128, 22.5)],
+)
+def test_ouster_beam_counts(lidar: LidarKind, beams: int, top_deg: float) -> None:
+    model = lidar_model(lidar)
+    pat = model.pattern(10.0)
+    assert model.organized and pat.t_ns.shape == (1024, beams)
+    elev = np.degrees(model.nominal_elevation)
+    assert elev[[0, -1]] == pytest.approx([top_deg, -top_deg])
+    assert np.allclose(np.diff(elev), -2 * top_deg / (beams - 1))
+
+
 @pytest.mark.parametrize("stamp", list(LidarStamp))
 def test_vlp16_cloud_layout_and_times(stamp: LidarStamp) -> None:
     spec = SimulationSpec(
