@@ -1,9 +1,9 @@
 """Are the verdicts and the sigmas of ``licalib calibrate`` honest? (issue: trust)
 
 Runs many simulated calibrations over random mountings (any rotation, lever arms up to 2 m),
-VLP-16 and OS1-64, shaking and sinusoid motion, with and without the simulator's intrinsic
-errors and named effects, and prints per run the error of every extrinsic coordinate over its
-reported 1-sigma, the verdict and its first reason.
+VLP-16 and OS1-64 (``--lidars``: any of the simulator's LiDARs), shaking and sinusoid motion,
+with and without the simulator's intrinsic errors and named effects, and prints per run the
+error of every extrinsic coordinate over its reported 1-sigma, the verdict and its first reason.
 
 Targets:
 * no run ends PASS with any coordinate beyond 3 sigma, or beyond 1 cm / 0.1 deg (/ 0.1 ms);
@@ -19,6 +19,7 @@ Examples::
     .venv/bin/python benchmarks/bench_consistency.py --model lidar     # LiDAR intrinsics estimated
     .venv/bin/python benchmarks/bench_consistency.py --only clean --imu-noise-scale 10  # poor IMU
     .venv/bin/python benchmarks/bench_consistency.py --only clean --range-noise 0.002  # quiet LiDAR
+    .venv/bin/python benchmarks/bench_consistency.py --only clean --lidars hdl-32 os1-32 os1-128
 
 Each run happens in a fresh subprocess; rows print as they finish (JSON with ``--json``).
 """
@@ -188,6 +189,8 @@ def one_run(case: dict, workdir: Path) -> dict:
         # what enlarged the sigmas, and the fixed effects whose shifts they cover
         inflation=list(res.consistency.inflation) if res.consistency else [],
         covered=[e.name for e in res.consistency.effects if e.covered] if res.consistency else [],
+        # how far the denser final round moved the extrinsic, in its sigmas
+        final_jump=round(float(getattr(run.fit, "final_jump", 0.0)), 2),
     )
     return row
 

@@ -16,6 +16,7 @@ Examples::
 
     .venv/bin/python benchmarks/bench_intrinsics.py --seeds 0 1 2 3 4 5 6 7 8 9
     .venv/bin/python benchmarks/bench_intrinsics.py --lidar os1-64 --seeds 0 1 2
+    .venv/bin/python benchmarks/bench_intrinsics.py --lidar hdl-32 --seeds 0 1   # os1-32, os1-128
     .venv/bin/python benchmarks/bench_intrinsics.py --duration 15 --seeds 0   # the speed case
     .venv/bin/python benchmarks/bench_intrinsics.py --intrinsics-mode none --model none
     .venv/bin/python benchmarks/bench_intrinsics.py --scenario shake --lidar os1-64 --model lidar

@@ -273,6 +273,7 @@ def planes_free_steps(
     step_at: Callable[[Problem, T], tuple[float, NuisanceStep, Callable[[float], Stepped[T]]]],
     what: str,
     cost_of: Callable[[Problem, T], float] | None = None,
+    max_steps: int = MAX_STEPS,
 ) -> tuple[T, Problem, int, float]:
     """Gauss-Newton steps with the planes free, each kept only when it lowers the cost.
 
@@ -280,7 +281,7 @@ def planes_free_steps(
     and its planes) and returns its cost there, the step over trajectory, calibration and planes,
     and a function of a step fraction that gives the stepped estimate and its problem. The
     fractions :data:`STEP_FRACTIONS` are tried in turn; the first whose cost is lower is kept.
-    At most :data:`MAX_STEPS` steps; the steps stop when one would gain, or gained, less than
+    At most ``max_steps`` steps; the steps stop when one would gain, or gained, less than
     :data:`RELATIVE_DECREASE` of the cost, or when the next is expected to (its gain taken as
     this step's times the ratio of this step's gain to the one before's).
 
@@ -291,6 +292,7 @@ def planes_free_steps(
         what: what the debug log calls a step.
         cost_of: the cost of a problem at an estimate, as ``step_at`` returns it; None: the
             problem's own cost.
+        max_steps: the most steps taken (:data:`MAX_STEPS` by default).
 
     Returns:
         The last kept estimate, its problem, the steps kept and the cost before them.
@@ -304,7 +306,7 @@ def planes_free_steps(
     cost_start: float | None = None
     steps = 0
     previous = 0.0  # what the step before gained
-    for _ in range(MAX_STEPS):
+    for _ in range(max_steps):
         cost, step, trial_at = step_at(problem, current)
         if cost_start is None:
             cost_start = cost  # step_at's cost is cost_at's: not evaluated twice
@@ -346,7 +348,7 @@ def planes_free_steps(
 
 
 def refine_with_planes(
-    state: CalibrationState, inputs: RoundInputs, lm: LMParams
+    state: CalibrationState, inputs: RoundInputs, lm: LMParams, max_steps: int = MAX_STEPS
 ) -> PlaneRefinement | None:
     """Gauss-Newton steps with the planes free, then the solver on the refined planes.
 
@@ -354,6 +356,8 @@ def refine_with_planes(
         state: the final round's estimate.
         inputs: what the final round's problem was built from.
         lm: the solver settings (its truncation rule applies to the joint steps too).
+        max_steps: the most Gauss-Newton steps (one does nearly all of it when no LiDAR
+            intrinsic trades off against the planes).
 
     Returns:
         The refinement, or None when the round had no LiDAR points.
@@ -424,7 +428,7 @@ def refine_with_planes(
         return cost, step, trial
 
     (state, planes), problem, steps, cost_start = planes_free_steps(
-        problem, (state, inputs.planes), step_at, "Planes-free step", corrected_cost
+        problem, (state, inputs.planes), step_at, "Planes-free step", corrected_cost, max_steps
     )
     report = solve(problem, lm)
     state = state_from_problem(state, problem)

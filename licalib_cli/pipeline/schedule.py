@@ -21,7 +21,7 @@ from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import CalibrationState, ImuData, intrinsic_coordinates
 from licalib_cli.measurements import Recording
 from licalib_cli.models.lidar import lidar_point
-from licalib_cli.pipeline.free_planes import refine_with_planes
+from licalib_cli.pipeline.free_planes import MAX_STEPS, refine_with_planes
 from licalib_cli.pipeline.initialise import InitialGuess
 from licalib_cli.pipeline.points import PointSample, points_per_scan, sample_points
 from licalib_cli.pipeline.round import (
@@ -39,6 +39,8 @@ from licalib_cli.solver.lm import SolverReport
 __all__ = [
     "COARSE_FACTOR",
     "CRAWL_RATIO",
+    "FINAL_REFINE_MIN_M",
+    "FINAL_REFINE_SIGMAS",
     "FINAL_SETTLE_SIGMAS",
     "MAX_CRAWL_STEPS",
     "MAX_FINAL_ROUNDS",
@@ -47,6 +49,7 @@ __all__ = [
     "crawls",
     "final_jump",
     "run_schedule",
+    "stopped_short",
     "within",
 ]
 
@@ -77,6 +80,23 @@ MAX_CRAWL_STEPS = 3
 FINAL_SETTLE_SIGMAS = 5.0
 """A denser final round that moves the extrinsic by more than this many of its own sigmas (and
 beyond the configured tolerances) has not settled: another dense round follows."""
+
+FINAL_REFINE_SIGMAS = 2.0
+"""A denser final round that moved the extrinsic by more than this many of its own sigmas (and
+the translation by more than :data:`FINAL_REFINE_MIN_M`) shows that the regular rounds stopped
+short of the optimum: each holds its map's planes fixed, and a map built at the estimate pulls
+the next round back towards it, so the rounds crawl (a clean
+OS1-32 sinusoid: 8.3, 6.6, 6.1 mm off in y over three rounds, 3.8 mm after the dense round, 2.1
+mm with the planes free). The planes-free refinement then follows whatever the model (with the
+LiDAR intrinsics it always does); it costs about as much as one or two dense rounds, so a final
+round that barely moved skips it. Without LiDAR intrinsics one Gauss-Newton step does it (on that
+sinusoid the first step gained 680.7 of the cost, the second 0.2) and the refinement takes one."""
+
+FINAL_REFINE_MIN_M = 1e-3
+"""A denser final round's move of the translation below this is no sign of a crawl, whatever
+its sigmas: the dense sample alone shifts a shake's estimate by a few tenths of a millimetre,
+many of its small sigmas, and the refinement did not make shakes more accurate (16 clean
+shakes: errors 0.23-1.2 mm before and after, benchmarks/RESULTS.md)."""
 
 MAX_FINAL_ROUNDS = 3
 """Dense final rounds at most; one still moving after them is a non-convergence."""
@@ -126,6 +146,8 @@ class Fit:
         final_unsettled: the denser final rounds still moved the estimate by more than
             :data:`FINAL_SETTLE_SIGMAS` of its sigmas after :data:`MAX_FINAL_ROUNDS` of them
             (``last_change`` is then the last dense round's change).
+        final_jump: how far the last denser final round moved the extrinsic, in its own
+            sigmas (:func:`final_jump`; 0 without one).
     """
 
     state: CalibrationState
@@ -138,6 +160,7 @@ class Fit:
     settle_threshold: Change
     solved: SolvedProblem | None = field(default=None, repr=False, compare=False)
     final_unsettled: bool = False
+    final_jump: float = 0.0
 
 
 def _change(before: CalibrationState, after: CalibrationState) -> Change:
@@ -193,6 +216,21 @@ def final_jump(change: Change, report: SolverReport, cfg: CalibConfig) -> float:
         if moved > tolerance and sigma > 0.0:
             worst = max(worst, moved / sigma)
     return worst
+
+
+def stopped_short(change: Change, jump: float) -> float:
+    """How far a denser final round moved the translation (m) when that shows the regular rounds
+    stopped short of the optimum: the round moved the extrinsic by more than
+    :data:`FINAL_REFINE_SIGMAS` of its sigmas (``jump``, :func:`final_jump`) and the translation
+    by more than :data:`FINAL_REFINE_MIN_M`; 0 otherwise.
+
+    The jump is taken over the translation, the rotation and the time offset: a crawl moves them
+    together (the clean OS1-32 sinusoid: 2.3 mm, 1.5 of the largest translation sigma, and the
+    time offset 3.2 of its sigma)."""
+    moved = change.translation_m
+    if moved > FINAL_REFINE_MIN_M and jump > FINAL_REFINE_SIGMAS:
+        return moved
+    return 0.0
 
 
 def map_movement(before: CalibrationState, after: CalibrationState, probe: PointSample) -> float:
@@ -401,6 +439,8 @@ def run_schedule(
             sch.max_rounds,
         )
     final_unsettled = False
+    last_jump = 0.0  # how far the last dense round moved the extrinsic, in its sigmas
+    short_by = 0.0  # how far it moved the translation, when that shows the rounds stopped short
     if dense_after:
         # One more round on a denser sample from the settled estimate: the uncertainty of the
         # time offset and the translation shrinks with the number of points. The denser data
@@ -425,7 +465,8 @@ def run_schedule(
             del done
             rounds.append(summary)
             dense_change = _change(before, state)
-            jump = final_jump(dense_change, report, cfg)
+            jump = last_jump = final_jump(dense_change, report, cfg)
+            short_by = stopped_short(dense_change, jump)
             logger.info(
                 "Final round%s: %d points on %d surfels, RMS %.2f cm, change %.2f mm / %.4f deg "
                 "/ %.3f ms (%.1f of its sigmas).",
@@ -453,10 +494,23 @@ def run_schedule(
                 MAX_FINAL_ROUNDS,
             )
         mapped = None  # the dense points' map is not needed further
-    if intrinsics_on and inputs.free.any_lidar_intrinsics:
+    lidar_intrinsics = intrinsics_on and inputs.free.any_lidar_intrinsics
+    if lidar_intrinsics or short_by > 0.0:
         # The rounds hold each map fixed and stall along the common mode of the range offsets
-        # and scales; a last refinement estimates the planes with everything else.
-        refined = refine_with_planes(state, inputs, round_settings(cfg, noise, base, True).solver)
+        # and scales, and along the extrinsic when a dense round shows they crawled; a last
+        # refinement estimates the planes with everything else.
+        if not lidar_intrinsics:
+            logger.info(
+                "The denser final round moved the translation %.2f mm: the rounds stopped "
+                "short; planes-free refinement.",
+                1e3 * short_by,
+            )
+        refined = refine_with_planes(
+            state,
+            inputs,
+            round_settings(cfg, noise, base, True).solver,
+            MAX_STEPS if lidar_intrinsics else 1,
+        )
         if refined is not None:
             logger.info(
                 "Planes-free refinement: %d steps, cost without the range noise %.1f -> %.1f, "
@@ -480,4 +534,5 @@ def run_schedule(
         settle_threshold=threshold,
         solved=solved,
         final_unsettled=final_unsettled,
+        final_jump=last_jump,
     )

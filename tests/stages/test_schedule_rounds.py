@@ -9,7 +9,9 @@ from the stepped estimate with nothing kept from the round before, and at most
 
 The denser final round may determine a direction the regular rounds held; when it moves the
 estimate by many of its sigmas, another dense round on a map rebuilt at the moved estimate
-checks it, and dense rounds that keep jumping are a non-convergence (a FAIL), not a PASS.
+checks it, and dense rounds that keep jumping are a non-convergence (a FAIL), not a PASS. A
+dense round that moved it by more than :data:`FINAL_REFINE_SIGMAS` shows that the regular
+rounds crawled whatever the model: the planes-free refinement follows it then, and only then.
 
 The rounds themselves are stand-ins whose changes are given.
 """
@@ -17,7 +19,7 @@ The rounds themselves are stand-ins whose changes are given.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from types import SimpleNamespace
 from typing import Any
 
@@ -25,9 +27,11 @@ import numpy as np
 import pytest
 
 from licalib_cli.config import CalibConfig
-from licalib_cli.pipeline import checks, schedule
+from licalib_cli.pipeline import checks, free_planes, schedule
 from licalib_cli.pipeline.schedule import (
     CRAWL_RATIO,
+    FINAL_REFINE_MIN_M,
+    FINAL_REFINE_SIGMAS,
     FINAL_SETTLE_SIGMAS,
     MAX_CRAWL_STEPS,
     MAX_FINAL_ROUNDS,
@@ -82,6 +86,7 @@ class _State:
 class _Run:
     rounds: list[tuple[str, str, bool, bool]]  # label, start, mapped kept, dense
     refined_from: list[str]
+    max_steps: list[int] = field(default_factory=list)
     fit: Any = None
 
 
@@ -96,6 +101,7 @@ def _schedule(
     lidar: bool = True,
     final_points: int | None = None,
     refine_mm: float = 5.0,
+    sigma_mm: float = SIGMA_MM,
 ) -> _Run:
     """Run :func:`run_schedule` with rounds that move the translation by ``step_mm(index,
     dense)`` mm (``dense``: a round on the final, denser sample), each reporting a translation
@@ -110,14 +116,15 @@ def _schedule(
         return SimpleNamespace(
             state=new,
             summary=SimpleNamespace(points=1, surfels=1, rms_m=0.01, map_entropy=0.0),
-            report=SimpleNamespace(calibration_names=names, std=(1e-3 * SIGMA_MM,) * 3),
+            report=SimpleNamespace(calibration_names=names, std=(1e-3 * sigma_mm,) * 3),
             inputs=SimpleNamespace(free=SimpleNamespace(any_lidar_intrinsics=lidar)),
             solved=object(),
             mapped=object(),
         )
 
-    def refine(state, inputs, lm):  # type: ignore[no-untyped-def]
+    def refine(state, inputs, lm, max_steps=free_planes.MAX_STEPS):  # type: ignore[no-untyped-def]
         run.refined_from.append(state.label)
+        run.max_steps.append(max_steps)
         return SimpleNamespace(
             state=_State(f"step after {state.label}", state.x_mm + refine_mm),
             report=None,
@@ -231,6 +238,34 @@ def test_a_final_round_within_its_sigmas_runs_once(monkeypatch: pytest.MonkeyPat
 
     run = _schedule(monkeypatch, step, lidar=False, final_points=400)
     assert sum(r[3] for r in run.rounds) == 1
+    assert run.fit.converged
+
+
+@pytest.mark.parametrize(
+    ("moved_mm", "sigma_mm", "refined"),
+    [
+        (1.5, 1.5 / (FINAL_REFINE_SIGMAS + 0.5), True),  # 1.5 mm, 2.5 sigmas
+        (1.5, 1.5 / (FINAL_REFINE_SIGMAS - 0.5), False),  # 1.5 mm but 1.5 sigmas
+        (0.9, 0.2, False),  # 4.5 sigmas but within FINAL_REFINE_MIN_M
+    ],
+)
+def test_without_lidar_intrinsics_a_dense_round_that_moved_far_is_refined_with_the_planes_free(
+    monkeypatch: pytest.MonkeyPatch, moved_mm: float, sigma_mm: float, refined: bool
+) -> None:
+    dense_steps = iter([moved_mm, 0.0])  # a second dense round (after a jump) settles
+
+    def step(index: int, dense: bool) -> float:
+        return next(dense_steps) if dense else _settling(index)
+
+    run = _schedule(monkeypatch, step, lidar=False, final_points=400, sigma_mm=sigma_mm)
+    last = [r for r in run.rounds if r[3]][-1]
+    if refined:
+        assert 1e-3 * moved_mm > FINAL_REFINE_MIN_M
+        assert run.refined_from == [last[0]]
+        assert run.max_steps == [1]  # without LiDAR intrinsics one step does it
+        assert run.fit.state.label == f"step after {last[0]}"
+    else:
+        assert run.refined_from == [] and run.fit.state.label == last[0]
     assert run.fit.converged
 
 
