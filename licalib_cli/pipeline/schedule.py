@@ -85,12 +85,12 @@ FINAL_REFINE_SIGMAS = 2.0
 """A denser final round that moved the extrinsic by more than this many of its own sigmas (and
 the translation by more than :data:`FINAL_REFINE_MIN_M`) shows that the regular rounds stopped
 short of the optimum: each holds its map's planes fixed, and a map built at the estimate pulls
-the next round back towards it, so the rounds crawl (a clean
-OS1-32 sinusoid: 8.3, 6.6, 6.1 mm off in y over three rounds, 3.8 mm after the dense round, 2.1
-mm with the planes free). The planes-free refinement then follows whatever the model (with the
-LiDAR intrinsics it always does); it costs about as much as one or two dense rounds, so a final
-round that barely moved skips it. Without LiDAR intrinsics one Gauss-Newton step does it (on that
-sinusoid the first step gained 680.7 of the cost, the second 0.2) and the refinement takes one."""
+the next round back towards it, so the rounds crawl (a clean OS1-32 sinusoid: 8.3, 6.6, 6.1 mm
+off in y over three rounds, 3.8 mm after the dense round, 2.1 mm with the planes free). The
+planes-free refinement then follows whatever the model (with the LiDAR intrinsics it always
+does); it costs about as much as one or two dense rounds, so a final round that barely moved
+skips it. Without LiDAR intrinsics one Gauss-Newton step does it (on that sinusoid the first
+step gained 680.7 of the cost, the second 0.2) and the refinement takes one."""
 
 FINAL_REFINE_MIN_M = 1e-3
 """A denser final round's move of the translation below this is no sign of a crawl, whatever

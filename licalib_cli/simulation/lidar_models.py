@@ -163,11 +163,10 @@ class LidarModel:
 def _velodyne(
     kind: LidarKind, laser_elevation_deg: F64, firing_ns: int, cycle_ns: int, min_range: float
 ) -> LidarModel:
-    ring_elev = np.sort(laser_elevation_deg)
-    laser_of_ring = np.array([int(np.flatnonzero(laser_elevation_deg == e)[0]) for e in ring_elev])
+    laser_of_ring = np.argsort(laser_elevation_deg)  # ring 0 = the lowest beam
     return LidarModel(
         kind=kind,
-        nominal_elevation=np.radians(ring_elev),
+        nominal_elevation=np.radians(laser_elevation_deg[laser_of_ring]),
         firing_order=laser_of_ring.astype(np.int64),
         firing_step_ns=firing_ns,
         organized=False,

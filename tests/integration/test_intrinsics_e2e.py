@@ -16,7 +16,7 @@ import yaml
 from licalib_cli.cli import main
 from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
 from licalib_cli.results import CalibrationResult
-from licalib_cli.simulation import SimulationSpec, simulate
+from licalib_cli.simulation import SimulationSpec, lidar_model, simulate
 
 CONFIG = Path(__file__).resolve().parents[2] / "configs" / "vlp16.yaml"
 VLP16_ELEVATION = np.radians(np.arange(-15.0, 16.0, 2.0))
@@ -25,13 +25,16 @@ pytestmark = pytest.mark.slow
 
 
 def _run(
-    tmp_path: Path, spec: SimulationSpec, intrinsics: str, config: Path | None = CONFIG
+    tmp_path: Path, spec: SimulationSpec, intrinsics: str | None, config: Path | None = CONFIG
 ) -> tuple[dict, CalibrationResult, CalibrationResult]:
+    """Simulate ``spec`` and calibrate it with ``--intrinsics`` (None: the config's model)."""
     sim = simulate(spec, tmp_path / "sim")
     out = tmp_path / "result.yaml"
     options = ["-c", str(config)] if config is not None else []
+    if intrinsics is not None:
+        options += ["--intrinsics", intrinsics]
     try:
-        main(["calibrate", str(sim.bag_path), *options, "-o", str(out), "--intrinsics", intrinsics])
+        main(["calibrate", str(sim.bag_path), *options, "-o", str(out)])
     except SystemExit as err:
         assert err.code in (0, None), f"exit {err.code}"
     return yaml.safe_load(out.read_text()), CalibrationResult.load(out), sim.truth
@@ -211,7 +214,7 @@ def test_a_128_beam_ouster_gets_its_beams_intrinsics(tmp_path: Path) -> None:
     0.1 deg-scale elevation errors; ``model.lidar: [range_offset, elevation]``. Every beam is
     estimated or named, and the estimates cover the truth."""
     rng = np.random.default_rng(43)
-    phi = np.radians(np.linspace(22.5, -22.5, 128))
+    phi = lidar_model("os1-128").nominal_elevation
     elevation = np.radians(rng.normal(0.0, 0.1, 128))
     elevation[0] = 0.0  # the gauge
     lidar = LidarIntrinsics.nominal(phi).with_(
@@ -230,16 +233,10 @@ def test_a_128_beam_ouster_gets_its_beams_intrinsics(tmp_path: Path) -> None:
         time_offset_s=0.004,
         azimuth_resolution_deg=2.8,
     )
-    sim = simulate(spec, tmp_path / "sim")
-    out = tmp_path / "result.yaml"
-    try:
-        main(["calibrate", str(sim.bag_path), "-c", str(cfg), "-o", str(out)])
-    except SystemExit as err:
-        assert err.code in (0, None), f"exit {err.code}"
-    raw, result = yaml.safe_load(out.read_text()), CalibrationResult.load(out)
+    raw, result, truth = _run(tmp_path, spec, None, config=cfg)
     assert raw["lidar_intrinsics"]["num_beams"] == 128
     assert sorted(raw["model"]["lidar"]) == ["elevation", "range_offset"]
-    errors = _beam_errors(raw, result, sim.truth)
+    errors = _beam_errors(raw, result, truth)
     assert set(errors) == {"elevation_deg", "range_offset_m"}
     held = " ".join(raw["observability"]["unobservable"])
     for err, sig, injected in errors.values():
@@ -250,4 +247,4 @@ def test_a_128_beam_ouster_gets_its_beams_intrinsics(tmp_path: Path) -> None:
     for beam in np.flatnonzero(~np.isfinite(errors["elevation_deg"][1]))[1:]:
         assert f"lidar.intrinsics[{beam}]" in held  # a beam held is named (beam 0: the gauge)
     assert raw["verdict"]["status"] == "pass"
-    assert result.extrinsic.error_to(sim.truth.extrinsic)["translation_m"] < 0.005
+    assert result.extrinsic.error_to(truth.extrinsic)["translation_m"] < 0.005
