@@ -85,6 +85,26 @@ def test_invalid_option_is_a_clear_error(tmp_path: Path) -> None:
     assert exc.value.code == ConfigError.exit_code
 
 
+@pytest.mark.parametrize(
+    ("lidar", "rate", "words"),
+    [
+        ("vlp16", "25", "the VLP-16 spins at 5-20 Hz"),
+        ("hdl-32", "4", "the HDL-32E spins at 5-20 Hz"),
+        ("os1-32", "15", "the OS1-32 runs at 10 or 20 Hz"),
+        ("os1-128", "5", "the OS1-128 runs at 10 or 20 Hz"),
+    ],
+)
+def test_a_rate_the_lidar_cannot_spin_at_is_a_clear_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], lidar: str, rate: str, words: str
+) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", str(tmp_path / "sim"), "--lidar", lidar, "--lidar-rate", rate])
+    assert exc.value.code == ConfigError.exit_code
+    err = capsys.readouterr().err
+    assert f"--lidar-rate {float(rate)} Hz: {words}." in err and "Traceback" not in err
+    assert not (tmp_path / "sim").exists()
+
+
 def test_registered_in_the_licalib_app(tmp_path: Path) -> None:
     try:
         from licalib_cli import cli
