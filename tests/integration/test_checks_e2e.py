@@ -282,11 +282,11 @@ def clean_fit(clean_sim: SimulationOutput):  # type: ignore[no-untyped-def]
     return cfg, prepared, fit
 
 
-def test_checks_in_a_forked_process_give_the_same_sigmas(
+def test_checks_on_two_threads_give_the_checks_of_one(
     clean_fit: tuple, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """The map planes' uncertainty computed in a second process while the other checks run
-    here gives the checks of one process, number for number."""
+    """The checks with the block loops on two threads give those of one thread, number for
+    number."""
     from licalib_cli.parallel import threads as thr
     from licalib_cli.pipeline.checks import check
 
