@@ -117,11 +117,14 @@ def walk(args: argparse.Namespace, workdir: Path) -> None:
     burst_vals = [w.min_singular_value for w in sel.windows if overlap(w, full)]
     calm_vals = [w.min_singular_value for w in sel.windows if not overlap(w, bursts)]
     sel_ok = all(overlap(w, full) for w in sel.selected)
+    selected_vals = [w.min_singular_value for w in sel.selected]
+    selected_above = min(selected_vals) > max(calm_vals)
     rank_ok = min(burst_vals) > max(calm_vals)
     print(
-        f"selected windows overlap the bursts' full-amplitude parts: {sel_ok}; every such window "
-        f"above every calm one: {rank_ok} (lowest burst {min(burst_vals):.3g}, highest calm "
-        f"{max(calm_vals):.3g})"
+        f"selected windows overlap the bursts' full-amplitude parts: {sel_ok}; each above every "
+        f"calm window: {selected_above} (lowest selected {min(selected_vals):.3g}, highest calm "
+        f"{max(calm_vals):.3g}); every window touching a full-amplitude part above every calm "
+        f"one: {rank_ok} (lowest {min(burst_vals):.3g})"
     )
 
     t = time.perf_counter()

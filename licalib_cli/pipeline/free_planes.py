@@ -41,10 +41,10 @@ from licalib_cli.estimation import (
     state_from_values,
 )
 from licalib_cli.pipeline.points import points_and_rays_in_global
-from licalib_cli.pipeline.round import RoundInputs
+from licalib_cli.pipeline.round import RoundInputs, SolvedProblem
 from licalib_cli.residuals import TRAJ_R3, TRAJ_SO3, PointToPlaneResidual
 from licalib_cli.solver import s2_basis
-from licalib_cli.solver.lm import LMParams, SolverReport, solve
+from licalib_cli.solver.lm import LMParams, SolverReport, solve_with_linearization
 from licalib_cli.solver.nuisance import (
     NuisanceStep,
     NuisanceTerms,
@@ -102,6 +102,8 @@ class PlaneRefinement:
             range noise's expected part (the cost the steps lower: module docstring).
         cost_end: the same with the refined planes after it.
         seconds: wall time.
+        solved: the problem on the refined planes at the refined estimate, with the solver's
+            evaluation and normal equations there (what the checks analyse).
     """
 
     state: CalibrationState
@@ -111,6 +113,7 @@ class PlaneRefinement:
     cost_start: float
     cost_end: float
     seconds: float
+    solved: SolvedProblem
 
 
 def plane_jacobian(p_g: F64, plane: npt.ArrayLike, normal: F64) -> tuple[F64, F64]:
@@ -348,7 +351,11 @@ def planes_free_steps(
 
 
 def refine_with_planes(
-    state: CalibrationState, inputs: RoundInputs, lm: LMParams, max_steps: int = MAX_STEPS
+    state: CalibrationState,
+    inputs: RoundInputs,
+    lm: LMParams,
+    max_steps: int = MAX_STEPS,
+    solved: SolvedProblem | None = None,
 ) -> PlaneRefinement | None:
     """Gauss-Newton steps with the planes free, then the solver on the refined planes.
 
@@ -358,6 +365,9 @@ def refine_with_planes(
         lm: the solver settings (its truncation rule applies to the joint steps too).
         max_steps: the most Gauss-Newton steps (one does nearly all of it when no LiDAR
             intrinsic trades off against the planes).
+        solved: the round's problem at ``state`` on ``inputs``' planes with the solver's
+            evaluation and normal equations there (the first step starts from them instead of
+            evaluating and linearising the same problem again); None: built here.
 
     Returns:
         The refinement, or None when the round had no LiDAR points.
@@ -367,7 +377,7 @@ def refine_with_planes(
     """
     start = time.perf_counter()
     plane = np.asarray(inputs.lidar.plane, dtype=np.intp)
-    problem = inputs.problem(state, inputs.planes)
+    problem = solved.problem if solved is not None else inputs.problem(state, inputs.planes)
     block = lidar_block(problem)
     if block is None:
         return None
@@ -392,9 +402,14 @@ def refine_with_planes(
         problem: Problem, current: tuple[CalibrationState, Planes]
     ) -> tuple[float, NuisanceStep, Callable[[float], Stepped[tuple[CalibrationState, Planes]]]]:
         state, planes = current
-        layout = problem.layout()
-        evaluation = problem.evaluate(jacobians=True)
-        lin = problem.linearize(evaluation, layout)
+        if solved is not None and problem is solved.problem and planes is inputs.planes:
+            # the round's own evaluation and normal equations at this estimate
+            evaluation, lin = solved.evaluation, solved.linearization
+            layout = lin.layout
+        else:
+            layout = problem.layout()
+            evaluation = problem.evaluate(jacobians=True)
+            lin = problem.linearize(evaluation, layout)
         residual = problem.residual_blocks[block]
         assert isinstance(residual, PointToPlaneResidual)
         p_g, rays = points_and_rays(state)
@@ -430,16 +445,18 @@ def refine_with_planes(
     (state, planes), problem, steps, cost_start = planes_free_steps(
         problem, (state, inputs.planes), step_at, "Planes-free step", corrected_cost, max_steps
     )
-    report = solve(problem, lm)
+    solution = solve_with_linearization(problem, lm)
     state = state_from_problem(state, problem)
     cost_end = corrected_cost(problem, (state, planes))
     refined = replace(inputs, planes=planes)
+    p_g = points_and_rays(state)[0]
     return PlaneRefinement(
         state=state,
         inputs=refined,
-        report=report,
+        report=solution.report,
         steps=steps,
         cost_start=cost_start,
         cost_end=cost_end,
         seconds=time.perf_counter() - start,
+        solved=SolvedProblem(problem, solution.evaluation, solution.linearization, p_g),
     )

@@ -413,7 +413,7 @@ def run_schedule(
             # at once with the planes free). A step with the planes free goes there; the next
             # rounds, on a map rebuilt from it, check that it has settled.
             refined = refine_with_planes(
-                state, inputs, round_settings(cfg, noise, base, True).solver
+                state, inputs, round_settings(cfg, noise, base, True).solver, solved=solved
             )
             if refined is not None:
                 assert previous is not None  # crawls() needs the round before
@@ -511,6 +511,7 @@ def run_schedule(
             inputs,
             round_settings(cfg, noise, base, True).solver,
             MAX_STEPS if lidar_intrinsics else 1,
+            solved,
         )
         if refined is not None:
             logger.info(
@@ -523,7 +524,7 @@ def run_schedule(
                 refined.seconds,
             )
             state, report, inputs = refined.state, refined.report, refined.inputs
-            solved = None
+            solved = refined.solved
     return Fit(
         state=state,
         rounds=tuple(rounds),

@@ -87,6 +87,7 @@ class _Run:
     rounds: list[tuple[str, str, bool, bool]]  # label, start, mapped kept, dense
     refined_from: list[str]
     max_steps: list[int] = field(default_factory=list)
+    solved_given: list[Any] = field(default_factory=list)  # what each refinement was handed
     fit: Any = None
 
 
@@ -118,14 +119,16 @@ def _schedule(
             summary=SimpleNamespace(points=1, surfels=1, rms_m=0.01, map_entropy=0.0),
             report=SimpleNamespace(calibration_names=names, std=(1e-3 * sigma_mm,) * 3),
             inputs=SimpleNamespace(free=SimpleNamespace(any_lidar_intrinsics=lidar)),
-            solved=object(),
+            solved=f"solved at round {index}",
             mapped=object(),
         )
 
-    def refine(state, inputs, lm, max_steps=free_planes.MAX_STEPS):  # type: ignore[no-untyped-def]
+    def refine(state, inputs, lm, max_steps=free_planes.MAX_STEPS, solved=None):  # type: ignore[no-untyped-def]
         run.refined_from.append(state.label)
         run.max_steps.append(max_steps)
+        run.solved_given.append(solved)
         return SimpleNamespace(
+            solved=f"solved after {state.label}",
             state=_State(f"step after {state.label}", state.x_mm + refine_mm),
             report=None,
             inputs=inputs,
@@ -264,8 +267,13 @@ def test_without_lidar_intrinsics_a_dense_round_that_moved_far_is_refined_with_t
         assert run.refined_from == [last[0]]
         assert run.max_steps == [1]  # without LiDAR intrinsics one step does it
         assert run.fit.state.label == f"step after {last[0]}"
+        # the refinement starts from the dense round's linearisation, and the checks get the
+        # refinement's own
+        assert run.solved_given == [f"solved at {last[0]}"]
+        assert run.fit.solved == f"solved after {last[0]}"
     else:
         assert run.refined_from == [] and run.fit.state.label == last[0]
+        assert run.fit.solved == f"solved at {last[0]}"
     assert run.fit.converged
 
 
