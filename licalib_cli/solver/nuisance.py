@@ -50,14 +50,17 @@ import numpy.typing as npt
 import scipy.linalg as sla
 import scipy.sparse as sp
 
+from licalib_cli.parallel.threads import map_blocks
 from licalib_cli.solver.observability import truncation_mask
 from licalib_cli.solver.problem import Evaluation, Layout, Linearization, Problem
 from licalib_cli.solver.schur import _BandedCholesky, _sparse_lu_solver, _trajectory_diagonal
 
 __all__ = [
+    "GRAM_SPLIT",
     "NuisanceSegment",
     "NuisanceStep",
     "NuisanceTerms",
+    "gram",
     "marginal_schur",
     "marginal_system",
     "nuisance_step",
@@ -174,7 +177,7 @@ def marginal_schur(lin: Linearization, terms: NuisanceTerms, hold: npt.ArrayLike
         if held.size:
             add[held] += _HOLD * float(max(np.max(lin.H_tt.diagonal()), 1.0))
         w = _whiten(lin, add, rhs)
-        s_full = -(w.T @ w)
+        s_full = -gram(w)
     else:
         s_full = np.zeros((nc + npar, nc + npar))
     s_full[:nc, :nc] += lin.H_cc
@@ -272,6 +275,38 @@ def _psd_solver(a: F64) -> Callable[[F64], F64]:
         return np.asarray(u @ (inv_vals.reshape((-1,) + (1,) * (r.ndim - 1)) * proj))
 
     return eigen_solve
+
+
+GRAM_SPLIT = 512
+"""Columns from which :func:`gram` computes ``w^T w`` in blocks on the block threads."""
+
+
+def gram(w: F64) -> F64:
+    """``w^T w``: with :data:`GRAM_SPLIT` columns or more, the two diagonal blocks of the
+    columns' halves on one block thread and the block between them on the other.
+
+    The whitened couplings of the trajectory with the planes are a few thousand columns wide,
+    and their Gram matrix is the largest product of a planes-free step (0.40 s for 4500 rows
+    by 2300 columns on one core, 0.22-0.25 s split so). The blocks are the same whatever the
+    threads, so the result is too.
+    """
+    k = w.shape[1]
+    if k < GRAM_SPLIT:
+        return np.asarray(w.T @ w)
+    h = k // 2
+    left, right = w[:, :h], w[:, h:]
+    out = np.empty((k, k))
+
+    def block(i: int) -> None:
+        if i == 0:
+            out[:h, :h] = left.T @ left
+            out[h:, h:] = right.T @ right
+        else:
+            out[:h, h:] = left.T @ right
+
+    map_blocks(block, 2)
+    out[h:, :h] = out[:h, h:].T
+    return out
 
 
 def _reduced_by(a: F64, b: F64) -> F64:
@@ -433,15 +468,15 @@ def _eliminate_segment(lin: Linearization, seg: NuisanceSegment, s_c: F64, b_c: 
         if factor is not None:
             w = factor.forward(rhs)
             del rhs
-            gram = w.T @ w
+            products = gram(w)
             del w
         else:
-            gram = rhs.T @ solve_tt(rhs)
+            products = rhs.T @ solve_tt(rhs)
             del rhs
-            gram = 0.5 * (gram + gram.T)
-        s_full -= gram[:ny, :ny]
-        b += gram[:ny, ny]
-        del gram
+            products = 0.5 * (products + products.T)
+        s_full -= products[:ny, :ny]
+        b += products[:ny, ny]
+        del products
     s_full[:ncs, ncs:] += h_cp
     s_full[ncs:, :ncs] += h_cp.T
     idx = ncs + np.arange(npar).reshape(g, k)

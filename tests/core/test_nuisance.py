@@ -14,11 +14,14 @@ import pytest
 import scipy.sparse as sp
 from test_assembly import RandomBlock, dense_reference, make_problem
 
+from licalib_cli.parallel import threads as thr
 from licalib_cli.solver import HuberLoss, ParameterBlock, ResidualEval
 from licalib_cli.solver.nuisance import (
+    GRAM_SPLIT,
     NuisanceSegment,
     NuisanceTerms,
     _reduced_by,
+    gram,
     marginal_schur,
     marginal_system,
     nuisance_step,
@@ -429,3 +432,17 @@ def test_the_coupling_refuses_more_than_one_residual_per_measurement() -> None:
         pr.coupling_matrix(
             evaluation, 0, pr.layout(), np.zeros((100, K)), np.zeros(100, int), NUM_GROUPS
         )
+
+
+@pytest.mark.parametrize("columns", [GRAM_SPLIT - 1, GRAM_SPLIT, GRAM_SPLIT + 301])
+def test_the_gram_matrix_in_blocks_is_w_transpose_w_on_one_thread_or_two(
+    columns: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    w = np.asfortranarray(np.random.default_rng(5).standard_normal((700, columns)))
+    found = {}
+    for threads in (1, 2):
+        monkeypatch.setattr(thr, "THREADS", threads)
+        found[threads] = gram(w)
+    np.testing.assert_array_equal(found[1], found[2])  # the same blocks either way
+    np.testing.assert_array_equal(found[2], found[2].T)
+    np.testing.assert_allclose(found[2], w.T @ w, rtol=0, atol=1e-10 * np.abs(w.T @ w).max())
