@@ -447,9 +447,14 @@ def refine_with_planes(
     )
     solution = solve_with_linearization(problem, lm)
     state = state_from_problem(state, problem)
-    cost_end = corrected_cost(problem, (state, planes))
+    p_g, rays = points_and_rays(state)
+    residual = problem.residual_blocks[block]
+    assert isinstance(residual, PointToPlaneResidual)
+    # the solver's last evaluation is at the estimate: the cost is not evaluated again
+    cost_end = solution.evaluation.cost - expected_noise_cost(
+        residual, inputs, state, planes, range_noise, rays
+    )
     refined = replace(inputs, planes=planes)
-    p_g = points_and_rays(state)[0]
     return PlaneRefinement(
         state=state,
         inputs=refined,
