@@ -390,13 +390,16 @@ def refine_with_planes(
             mapped[:] = [(state, *points_and_rays_in_global(state, inputs.points))]
         return mapped[0][1], mapped[0][2]
 
-    def corrected_cost(problem: Problem, current: tuple[CalibrationState, Planes]) -> float:
-        state, planes = current
+    def noise_part(problem: Problem, state: CalibrationState, planes: Planes) -> float:
+        # the range noise's expected part of the problem's cost at ``state`` on ``planes``
         residual = problem.residual_blocks[block]
         assert isinstance(residual, PointToPlaneResidual)
         rays = points_and_rays(state)[1]
-        expected = expected_noise_cost(residual, inputs, state, planes, range_noise, rays)
-        return problem.evaluate(jacobians=False).cost - expected
+        return expected_noise_cost(residual, inputs, state, planes, range_noise, rays)
+
+    def corrected_cost(problem: Problem, current: tuple[CalibrationState, Planes]) -> float:
+        state, planes = current
+        return problem.evaluate(jacobians=False).cost - noise_part(problem, state, planes)
 
     def step_at(
         problem: Problem, current: tuple[CalibrationState, Planes]
@@ -447,13 +450,8 @@ def refine_with_planes(
     )
     solution = solve_with_linearization(problem, lm)
     state = state_from_problem(state, problem)
-    p_g, rays = points_and_rays(state)
-    residual = problem.residual_blocks[block]
-    assert isinstance(residual, PointToPlaneResidual)
     # the solver's last evaluation is at the estimate: the cost is not evaluated again
-    cost_end = solution.evaluation.cost - expected_noise_cost(
-        residual, inputs, state, planes, range_noise, rays
-    )
+    cost_end = solution.evaluation.cost - noise_part(problem, state, planes)
     refined = replace(inputs, planes=planes)
     return PlaneRefinement(
         state=state,
@@ -463,5 +461,7 @@ def refine_with_planes(
         cost_start=cost_start,
         cost_end=cost_end,
         seconds=time.perf_counter() - start,
-        solved=SolvedProblem(problem, solution.evaluation, solution.linearization, p_g),
+        solved=SolvedProblem(
+            problem, solution.evaluation, solution.linearization, points_and_rays(state)[0]
+        ),
     )
