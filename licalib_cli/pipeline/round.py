@@ -161,11 +161,13 @@ class RoundSummary:
         rms_m: RMS point-to-plane distance after the round, m.
         cost_start: cost before the round.
         cost_end: cost after the round.
-        iterations: LM iterations.
+        iterations: LM iterations (after a planes-free refinement, also its steps and the
+            solver's iterations on the refined planes).
         extrinsic: estimate after the round.
         seconds: wall time of the round.
         distances_before_m: (P,) signed point-to-plane distances at the start of the round.
-        distances_after_m: (P,) the same after the round (same map), m.
+        distances_after_m: (P,) the same after the round (same map; after a planes-free
+            refinement, on its refined planes), m.
         map_entropy: mean map entropy (method.md section 9) of the round's sampled points mapped
             with its estimate, nats; lower is sharper.
         stage_times: wall and CPU seconds of the round's steps, in order: ``map`` (the sampled

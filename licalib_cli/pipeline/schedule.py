@@ -6,14 +6,16 @@ surfels as much thicker); each later round tightens the distance to three times 
 previous round moved the points (at most halving it per round, never below the configured
 distance). Rounds run until one moves the estimate by less than the tolerances (or by less than
 half its own 1-sigma, whichever is larger) at the configured distance; a last, denser round
-then refines the settled estimate. Reaching ``schedule.max_rounds`` while the estimate still
+then refines the settled estimate (without LiDAR intrinsics, one Gauss-Newton step with the
+map's planes estimated too; with them, the solver on fixed planes and then the planes-free
+refinement). Reaching ``schedule.max_rounds`` while the estimate still
 moves is a non-convergence, reported as such by the checks.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -21,7 +23,7 @@ from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import CalibrationState, ImuData, intrinsic_coordinates
 from licalib_cli.measurements import Recording
 from licalib_cli.models.lidar import lidar_point
-from licalib_cli.pipeline.free_planes import MAX_STEPS, refine_with_planes
+from licalib_cli.pipeline.free_planes import MAX_STEPS, PlaneRefinement, refine_with_planes
 from licalib_cli.pipeline.initialise import InitialGuess
 from licalib_cli.pipeline.points import PointSample, points_per_scan, sample_points
 from licalib_cli.pipeline.round import (
@@ -39,8 +41,6 @@ from licalib_cli.solver.lm import SolverReport
 __all__ = [
     "COARSE_FACTOR",
     "CRAWL_RATIO",
-    "FINAL_REFINE_MIN_M",
-    "FINAL_REFINE_SIGMAS",
     "FINAL_SETTLE_SIGMAS",
     "MAX_CRAWL_STEPS",
     "MAX_FINAL_ROUNDS",
@@ -48,8 +48,8 @@ __all__ = [
     "Fit",
     "crawls",
     "final_jump",
+    "refined_summary",
     "run_schedule",
-    "stopped_short",
     "within",
 ]
 
@@ -80,24 +80,6 @@ MAX_CRAWL_STEPS = 3
 FINAL_SETTLE_SIGMAS = 5.0
 """A denser final round that moves the extrinsic by more than this many of its own sigmas (and
 beyond the configured tolerances) has not settled: another dense round follows."""
-
-FINAL_REFINE_SIGMAS = 2.0
-"""A denser final round that moved the extrinsic by more than this many of its own sigmas (and
-the translation by more than :data:`FINAL_REFINE_MIN_M`) shows that the regular rounds stopped
-short of the optimum: each holds its map's planes fixed, and a map built at the estimate pulls
-the next round back towards it, so the rounds crawl (a clean OS1-32 sinusoid: 8.3, 6.6, 6.1 mm
-off in y over three rounds, 3.8 mm after the dense round, 2.1 mm with the planes free). The
-planes-free refinement then follows whatever the model (with the LiDAR intrinsics it always
-does); it costs about as much as one or two dense rounds, so a final round that barely moved
-skips it. Without LiDAR intrinsics one Gauss-Newton step does it (on that sinusoid the first
-step gained 680.7 of the cost, the second 0.2) and the refinement takes one."""
-
-FINAL_REFINE_MIN_M = 1e-3
-"""A denser final round's move of the translation below this is no sign of a crawl, whatever
-its sigmas: the dense sample alone shifts a shake's estimate by a few tenths of a millimetre,
-many of its small sigmas, and refining on the sigmas alone did not make shakes more accurate
-(20 clean shakes, 15 of them refined: mean error 0.61 mm before, 0.62 after;
-benchmarks/RESULTS.md)."""
 
 MAX_FINAL_ROUNDS = 3
 """Dense final rounds at most; one still moving after them is a non-convergence."""
@@ -219,19 +201,23 @@ def final_jump(change: Change, report: SolverReport, cfg: CalibConfig) -> float:
     return worst
 
 
-def stopped_short(change: Change, jump: float) -> float:
-    """How far a denser final round moved the translation (m) when that shows the regular rounds
-    stopped short of the optimum: the round moved the extrinsic by more than
-    :data:`FINAL_REFINE_SIGMAS` of its sigmas (``jump``, :func:`final_jump`) and the translation
-    by more than :data:`FINAL_REFINE_MIN_M`; 0 otherwise.
-
-    The jump is taken over the translation, the rotation and the time offset: a crawl moves them
-    together (the clean OS1-32 sinusoid: 2.3 mm, 1.5 of the largest translation sigma, and the
-    time offset 3.2 of its sigma)."""
-    moved = change.translation_m
-    if moved > FINAL_REFINE_MIN_M and jump > FINAL_REFINE_SIGMAS:
-        return moved
-    return 0.0
+def refined_summary(summary: RoundSummary, refined: PlaneRefinement) -> RoundSummary:
+    """A round's summary after the planes-free refinement that followed it: the extrinsic, the
+    point-to-plane distances and their RMS (on the refined planes), the final cost and the time
+    are the refinement's; the iterations add its steps and the solver's iterations after them."""
+    inputs = refined.inputs
+    plane = np.asarray(inputs.lidar.plane, dtype=np.intp)
+    p_g = refined.solved.points_global
+    dist = np.einsum("ij,ij->i", inputs.planes.normal[plane], p_g) + inputs.planes.d[plane]
+    return replace(
+        summary,
+        rms_m=float(np.sqrt(np.mean(dist**2))),
+        cost_end=float(refined.report.final_cost),
+        iterations=summary.iterations + refined.steps + int(refined.report.iterations),
+        extrinsic=extrinsic_of(refined.state),
+        seconds=summary.seconds + refined.seconds,
+        distances_after_m=dist.astype(np.float32),
+    )
 
 
 def map_movement(before: CalibrationState, after: CalibrationState, probe: PointSample) -> float:
@@ -441,15 +427,22 @@ def run_schedule(
         )
     final_unsettled = False
     last_jump = 0.0  # how far the last dense round moved the extrinsic, in its sigmas
-    short_by = 0.0  # how far it moved the translation, when that shows the rounds stopped short
     if dense_after:
         # One more round on a denser sample from the settled estimate: the uncertainty of the
         # time offset and the translation shrinks with the number of points. The denser data
         # may also determine a direction the regular rounds held (below the truncation
-        # threshold there): a move of many of its own sigmas is then checked by another dense
-        # round on a map rebuilt at the moved estimate, as the regular rounds are.
+        # threshold there). Without LiDAR intrinsics the round is one Gauss-Newton step with the
+        # planes estimated too (the regular rounds hold each map's planes fixed, and a map built
+        # at the estimate pulls the next round back towards it, so they stop short of the
+        # optimum: a clean OS1-32 sinusoid 8.3, 6.6, 6.1 mm off in y over three rounds, 3.8 mm
+        # after a dense round with fixed planes, 2.1 mm with them free); one step does it (the
+        # first gained 680.7 of the cost there, the second 0.2). With LiDAR intrinsics the dense
+        # round holds its planes, and the refinement after it takes up to MAX_STEPS steps. A
+        # move of many of its own sigmas is checked by another dense round on a map rebuilt at
+        # the moved estimate, as the regular rounds are.
         assert final is not None
         dense = sample_points(rec.scans, phi, final, cfg, seed=1)
+        planes_free = not (intrinsics_on and inputs.free.any_lidar_intrinsics)
         solved = mapped = None
         for attempt in range(1, MAX_FINAL_ROUNDS + 1):
             before = state
@@ -457,21 +450,29 @@ def run_schedule(
                 state,
                 dense,
                 imu,
-                round_settings(cfg, noise, base, intrinsics_on),
+                round_settings(cfg, noise, base, intrinsics_on, evaluate_only=planes_free),
                 len(rounds) + 1,
                 mapped,
             )
             state, summary, report, inputs = done.state, done.summary, done.report, done.inputs
             solved, mapped = done.solved, done.mapped
             del done
+            if planes_free:
+                refined = refine_with_planes(
+                    state, inputs, round_settings(cfg, noise, base, True).solver, 1, solved
+                )
+                if refined is not None:
+                    summary = refined_summary(summary, refined)
+                    state, report, inputs = refined.state, refined.report, refined.inputs
+                    solved, mapped = refined.solved, None  # the map is at the round's start
             rounds.append(summary)
             dense_change = _change(before, state)
             jump = last_jump = final_jump(dense_change, report, cfg)
-            short_by = stopped_short(dense_change, jump)
             logger.info(
-                "Final round%s: %d points on %d surfels, RMS %.2f cm, change %.2f mm / %.4f deg "
-                "/ %.3f ms (%.1f of its sigmas).",
+                "Final round%s%s: %d points on %d surfels, RMS %.2f cm, change %.2f mm / %.4f "
+                "deg / %.3f ms (%.1f of its sigmas).",
                 f" {attempt}" if attempt > 1 else "",
+                " (planes free)" if planes_free else "",
                 summary.points,
                 summary.surfels,
                 100 * summary.rms_m,
@@ -495,23 +496,11 @@ def run_schedule(
                 MAX_FINAL_ROUNDS,
             )
         mapped = None  # the dense points' map is not needed further
-    lidar_intrinsics = intrinsics_on and inputs.free.any_lidar_intrinsics
-    if lidar_intrinsics or short_by > 0.0:
+    if intrinsics_on and inputs.free.any_lidar_intrinsics:
         # The rounds hold each map fixed and stall along the common mode of the range offsets
-        # and scales, and along the extrinsic when a dense round shows they crawled; a last
-        # refinement estimates the planes with everything else.
-        if not lidar_intrinsics:
-            logger.info(
-                "The denser final round moved the translation %.2f mm: the rounds stopped "
-                "short; planes-free refinement.",
-                1e3 * short_by,
-            )
+        # and scales; a last refinement estimates the planes with everything else.
         refined = refine_with_planes(
-            state,
-            inputs,
-            round_settings(cfg, noise, base, True).solver,
-            MAX_STEPS if lidar_intrinsics else 1,
-            solved,
+            state, inputs, round_settings(cfg, noise, base, True).solver, MAX_STEPS, solved
         )
         if refined is not None:
             logger.info(
@@ -523,6 +512,7 @@ def run_schedule(
                 _describe(_change(state, refined.state)),
                 refined.seconds,
             )
+            rounds[-1] = refined_summary(rounds[-1], refined)
             state, report, inputs = refined.state, refined.report, refined.inputs
             solved = refined.solved
     return Fit(

@@ -356,6 +356,7 @@ def round_settings(
     intrinsics: bool,
     *,
     provisional: bool = False,
+    evaluate_only: bool = False,
 ) -> RoundSettings:
     """The settings of a round associating within ``max_distance_m``, with the intrinsics of
     the ``model:`` section free when ``intrinsics``.
@@ -367,12 +368,18 @@ def round_settings(
     to its optimum: the rounds settle when an intrinsic moves by less than
     ``schedule.intrinsic_tolerance_sigmas``, and rounds stopped early move the slow directions
     (the range scales) by less, so they settled before those had (range-scale error 3e-4
-    instead of 5e-5 on a 10 s sinusoid)."""
+    instead of 5e-5 on a 10 s sinusoid).
+
+    An ``evaluate_only`` round builds its map, associations and problem and linearises them at
+    its starting estimate without a solver step: the planes-free refinement then takes over from
+    that linearisation (the denser final round without LiDAR intrinsics, :mod:`schedule`)."""
     tolerance = PROVISIONAL_COST_TOLERANCE if provisional and not intrinsics else 0.0
     return RoundSettings(
         surfels=surfel_config(cfg, noise, max_distance_m),
         weights=noise_model(cfg, noise),
-        solver=lm_params(cfg, cost_tolerance=tolerance),
+        solver=lm_params(
+            cfg, max_iterations=0 if evaluate_only else None, cost_tolerance=tolerance
+        ),
         free=free_parameters(cfg, intrinsics),
         margin_s=spline_margin_s(cfg),
     )

@@ -9,9 +9,11 @@ from the stepped estimate with nothing kept from the round before, and at most
 
 The denser final round may determine a direction the regular rounds held; when it moves the
 estimate by many of its sigmas, another dense round on a map rebuilt at the moved estimate
-checks it, and dense rounds that keep jumping are a non-convergence (a FAIL), not a PASS. A
-dense round that moved it by more than :data:`FINAL_REFINE_SIGMAS` shows that the regular
-rounds crawled whatever the model: the planes-free refinement follows it then, and only then.
+checks it, and dense rounds that keep jumping are a non-convergence (a FAIL), not a PASS.
+Without LiDAR intrinsics a dense round only builds and linearises its problem, and one
+planes-free step from that linearisation moves the estimate (the regular rounds, holding their
+planes fixed, stop short of the optimum whatever the model); with them, the dense round solves
+on fixed planes and the planes-free refinement follows the last one.
 
 The rounds themselves are stand-ins whose changes are given.
 """
@@ -30,8 +32,6 @@ from licalib_cli.config import CalibConfig
 from licalib_cli.pipeline import checks, free_planes, schedule
 from licalib_cli.pipeline.schedule import (
     CRAWL_RATIO,
-    FINAL_REFINE_MIN_M,
-    FINAL_REFINE_SIGMAS,
     FINAL_SETTLE_SIGMAS,
     MAX_CRAWL_STEPS,
     MAX_FINAL_ROUNDS,
@@ -86,6 +86,7 @@ class _State:
 class _Run:
     rounds: list[tuple[str, str, bool, bool]]  # label, start, mapped kept, dense
     refined_from: list[str]
+    evaluate_only: list[bool] = field(default_factory=list)  # per round: no solver step
     max_steps: list[int] = field(default_factory=list)
     solved_given: list[Any] = field(default_factory=list)  # what each refinement was handed
     fit: Any = None
@@ -106,18 +107,25 @@ def _schedule(
 ) -> _Run:
     """Run :func:`run_schedule` with rounds that move the translation by ``step_mm(index,
     dense)`` mm (``dense``: a round on the final, denser sample), each reporting a translation
-    sigma of :data:`SIGMA_MM`, with LiDAR intrinsics free or none."""
+    sigma of :data:`SIGMA_MM`, with LiDAR intrinsics free or none. A round that only evaluates
+    moves nothing; the planes-free step after it moves the translation by what the round would
+    have, and any other planes-free step by ``refine_mm``."""
     run = _Run([], [])
+    names = ("ext.translation.x", "ext.translation.y", "ext.translation.z")
+    report = SimpleNamespace(calibration_names=names, std=(1e-3 * sigma_mm,) * 3)
+    held: dict[str, float] = {}  # an evaluate-only round's label: the step it left
 
     def run_round(state, sample, imu, settings, index, mapped=None):  # type: ignore[no-untyped-def]
         dense = sample.dense
         run.rounds.append((f"round {index}", state.label, mapped is not None, dense))
-        new = _State(f"round {index}", state.x_mm + step_mm(index, dense))
-        names = ("ext.translation.x", "ext.translation.y", "ext.translation.z")
+        run.evaluate_only.append(settings.evaluate_only)
+        step = step_mm(index, dense)
+        if settings.evaluate_only:
+            held[f"round {index}"], step = step, 0.0
         return SimpleNamespace(
-            state=new,
+            state=_State(f"round {index}", state.x_mm + step),
             summary=SimpleNamespace(points=1, surfels=1, rms_m=0.01, map_entropy=0.0),
-            report=SimpleNamespace(calibration_names=names, std=(1e-3 * sigma_mm,) * 3),
+            report=report,
             inputs=SimpleNamespace(free=SimpleNamespace(any_lidar_intrinsics=lidar)),
             solved=f"solved at round {index}",
             mapped=object(),
@@ -129,8 +137,10 @@ def _schedule(
         run.solved_given.append(solved)
         return SimpleNamespace(
             solved=f"solved after {state.label}",
-            state=_State(f"step after {state.label}", state.x_mm + refine_mm),
-            report=None,
+            state=_State(
+                f"step after {state.label}", state.x_mm + held.get(state.label, refine_mm)
+            ),
+            report=report,
             inputs=inputs,
             steps=1,
             cost_start=1.0,
@@ -159,7 +169,14 @@ def _schedule(
     monkeypatch.setattr(schedule, "intrinsic_change", lambda before, after, report: 0.0)
     monkeypatch.setattr(schedule, "sample_points", sample_points)
     monkeypatch.setattr(schedule, "points_per_scan", lambda cfg, n, per_scan=None: per_scan or 100)
-    monkeypatch.setattr(schedule, "round_settings", lambda *a, **k: SimpleNamespace(solver=None))
+    monkeypatch.setattr(
+        schedule,
+        "round_settings",
+        lambda *a, evaluate_only=False, **k: SimpleNamespace(
+            solver=None, evaluate_only=evaluate_only
+        ),
+    )
+    monkeypatch.setattr(schedule, "refined_summary", lambda summary, refined: summary)
     monkeypatch.setattr(schedule, "ImuData", SimpleNamespace(from_samples=lambda *a: None))
     cfg = CalibConfig.model_validate(
         {
@@ -230,8 +247,8 @@ def test_a_final_round_that_jumps_is_checked_by_another_dense_round(
     run = _schedule(monkeypatch, step, lidar=False, final_points=400)
     dense = [r for r in run.rounds if r[3]]
     assert len(dense) == 2
-    # the second dense round starts from the first's estimate, on its mapped sample
-    assert dense[1][1] == dense[0][0] and dense[1][2]
+    # the second dense round starts from the first's planes-free step, on a map rebuilt there
+    assert dense[1][1] == f"step after {dense[0][0]}" and not dense[1][2]
     assert run.fit.converged and not run.fit.final_unsettled
 
 
@@ -244,37 +261,43 @@ def test_a_final_round_within_its_sigmas_runs_once(monkeypatch: pytest.MonkeyPat
     assert run.fit.converged
 
 
-@pytest.mark.parametrize(
-    ("moved_mm", "sigma_mm", "refined"),
-    [
-        (1.5, 1.5 / (FINAL_REFINE_SIGMAS + 0.5), True),  # 1.5 mm, 2.5 sigmas
-        (1.5, 1.5 / (FINAL_REFINE_SIGMAS - 0.5), False),  # 1.5 mm but 1.5 sigmas
-        (0.9, 0.2, False),  # 4.5 sigmas but within FINAL_REFINE_MIN_M
-    ],
-)
-def test_without_lidar_intrinsics_a_dense_round_that_moved_far_is_refined_with_the_planes_free(
-    monkeypatch: pytest.MonkeyPatch, moved_mm: float, sigma_mm: float, refined: bool
+@pytest.mark.parametrize("moved_mm", [0.0, 0.3, 1.5])
+def test_without_lidar_intrinsics_the_dense_round_is_one_planes_free_step(
+    monkeypatch: pytest.MonkeyPatch, moved_mm: float
 ) -> None:
-    dense_steps = iter([moved_mm, 0.0])  # a second dense round (after a jump) settles
-
     def step(index: int, dense: bool) -> float:
-        return next(dense_steps) if dense else _settling(index)
+        return moved_mm if dense else _settling(index)
 
-    run = _schedule(monkeypatch, step, lidar=False, final_points=400, sigma_mm=sigma_mm)
-    last = [r for r in run.rounds if r[3]][-1]
-    if refined:
-        assert 1e-3 * moved_mm > FINAL_REFINE_MIN_M
-        assert run.refined_from == [last[0]]
-        assert run.max_steps == [1]  # without LiDAR intrinsics one step does it
-        assert run.fit.state.label == f"step after {last[0]}"
-        # the refinement starts from the dense round's linearisation, and the checks get the
-        # refinement's own
-        assert run.solved_given == [f"solved at {last[0]}"]
-        assert run.fit.solved == f"solved after {last[0]}"
-    else:
-        assert run.refined_from == [] and run.fit.state.label == last[0]
-        assert run.fit.solved == f"solved at {last[0]}"
+    run = _schedule(monkeypatch, step, lidar=False, final_points=400, sigma_mm=1.0)
+    (last,) = [r for r in run.rounds if r[3]]
+    # the regular rounds solve; the dense round only builds and linearises its problem
+    assert run.evaluate_only == [r[3] for r in run.rounds]
+    # one planes-free step from the dense round's linearisation, whatever it then moves, and no
+    # refinement after it
+    assert run.refined_from == [last[0]]
+    assert run.max_steps == [1]
+    assert run.solved_given == [f"solved at {last[0]}"]
+    assert run.fit.state.label == f"step after {last[0]}"
+    regular = len(run.rounds) - 1
+    expected = sum(_settling(i) for i in range(1, regular + 1)) + moved_mm
+    assert run.fit.state.x_mm == pytest.approx(expected)
+    # the checks get the step's own linearisation
+    assert run.fit.solved == f"solved after {last[0]}"
     assert run.fit.converged
+
+
+def test_with_lidar_intrinsics_the_dense_round_solves_and_the_refinement_follows(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    def step(index: int, dense: bool) -> float:
+        return 0.05 if dense else _settling(index)
+
+    run = _schedule(monkeypatch, step, lidar=True, final_points=400)
+    assert not any(run.evaluate_only)
+    # (the refinement after the last round is checked and removed by _schedule)
+    assert run.max_steps[-1] == free_planes.MAX_STEPS
+    assert run.solved_given[-1] == f"solved at {run.rounds[-1][0]}"
+    assert run.fit.solved == f"solved after {run.rounds[-1][0]}"
 
 
 def test_dense_rounds_that_keep_jumping_are_a_non_convergence(
@@ -337,3 +360,46 @@ def test_provisional_rounds_stop_early_only_without_intrinsics() -> None:
     assert tolerance(False, True) == PROVISIONAL_COST_TOLERANCE > 0.0
     assert tolerance(True, True) == 0.0
     assert tolerance(False, False) == tolerance(True, False) == 0.0
+
+
+def test_a_rounds_summary_after_the_planes_free_step_reports_the_refined_fit() -> None:
+    """The result's point RMS, the residual histogram and the rounds table read the last round's
+    summary: after a planes-free step it holds the distances on the refined planes at the
+    refined estimate, not those the round left."""
+    from licalib_cli.estimation import Planes
+    from licalib_cli.pipeline.round import RoundSummary
+
+    extrinsic = SimpleNamespace(label="round 5")
+    summary = RoundSummary(
+        index=5,
+        free=("extrinsic",),
+        max_distance_m=0.05,
+        points=3,
+        surfels=2,
+        associated_fraction=0.9,
+        rms_m=0.02,
+        cost_start=10.0,
+        cost_end=10.0,
+        iterations=0,
+        extrinsic=extrinsic,  # type: ignore[arg-type]
+        seconds=1.0,
+        distances_after_m=np.full(3, 0.02, np.float32),
+    )
+    # two planes z = 0.01 and x = -0.02; the refined points lie 0.01, -0.03 and 0.02 m off them
+    planes = Planes(normal=np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]), d=np.array([-0.01, 0.02]))
+    points = np.array([[5.0, 1.0, 0.02], [7.0, 2.0, -0.02], [0.0, 3.0, 9.0]])
+    refined = SimpleNamespace(
+        inputs=SimpleNamespace(lidar=SimpleNamespace(plane=np.array([0, 0, 1])), planes=planes),
+        solved=SimpleNamespace(points_global=points),
+        report=SimpleNamespace(final_cost=4.5, iterations=2),
+        state=SimpleNamespace(R_imu_lidar=np.eye(3), t_imu_lidar=np.ones(3), time_offset_s=0.0),
+        steps=1,
+        seconds=0.5,
+    )
+    after = schedule.refined_summary(summary, refined)  # type: ignore[arg-type]
+    np.testing.assert_allclose(after.distances_after_m, [0.01, -0.03, 0.02], atol=1e-7)
+    assert after.rms_m == pytest.approx(np.sqrt((0.01**2 + 0.03**2 + 0.02**2) / 3))
+    assert after.cost_end == 4.5 and after.cost_start == 10.0
+    assert after.iterations == 3 and after.seconds == pytest.approx(1.5)
+    np.testing.assert_array_equal(after.extrinsic.translation, np.ones(3))
+    assert after.index == 5 and after.points == 3
