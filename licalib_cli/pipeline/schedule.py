@@ -6,9 +6,9 @@ surfels as much thicker); each later round tightens the distance to three times 
 previous round moved the points (at most halving it per round, never below the configured
 distance). Rounds run until one moves the estimate by less than the tolerances (or by less than
 half its own 1-sigma, whichever is larger) at the configured distance; a last, denser round
-then refines the settled estimate (without LiDAR intrinsics, one Gauss-Newton step with the
-map's planes estimated too; with them, the solver on fixed planes and then the planes-free
-refinement). Reaching ``schedule.max_rounds`` while the estimate still
+then refines the settled estimate with Gauss-Newton steps that estimate the map's planes too
+(one without LiDAR intrinsics, up to :data:`~licalib_cli.pipeline.free_planes.MAX_STEPS` with
+them). Reaching ``schedule.max_rounds`` while the estimate still
 moves is a non-convergence, reported as such by the checks.
 """
 
@@ -431,48 +431,53 @@ def run_schedule(
         # One more round on a denser sample from the settled estimate: the uncertainty of the
         # time offset and the translation shrinks with the number of points. The denser data
         # may also determine a direction the regular rounds held (below the truncation
-        # threshold there). Without LiDAR intrinsics the round is one Gauss-Newton step with the
-        # planes estimated too (the regular rounds hold each map's planes fixed, and a map built
-        # at the estimate pulls the next round back towards it, so they stop short of the
-        # optimum: a clean OS1-32 sinusoid 8.3, 6.6, 6.1 mm off in y over three rounds, 3.8 mm
-        # after a dense round with fixed planes, 2.1 mm with them free); one step does it (the
-        # first gained 680.7 of the cost there, the second 0.2). With LiDAR intrinsics the dense
-        # round holds its planes, and the refinement after it takes up to MAX_STEPS steps. A
-        # move of many of its own sigmas is checked by another dense round on a map rebuilt at
-        # the moved estimate, as the regular rounds are.
+        # threshold there). The round maps and associates, then takes Gauss-Newton steps with
+        # the map's planes estimated too instead of solving on fixed planes: the regular rounds
+        # hold each map's planes fixed, and a map built at the estimate pulls the next round
+        # back towards it, so they stop short of the optimum whatever the model (a clean OS1-32
+        # sinusoid 8.3, 6.6, 6.1 mm off in y over three rounds, 3.8 mm after a dense round on
+        # fixed planes, 2.1 mm with them free). Without LiDAR intrinsics one step does it (the
+        # first gained 680.7 of the cost there, the second 0.2); with them, up to MAX_STEPS (the
+        # common mode of the range offsets and scales trades off against the planes). A move of
+        # many of its own sigmas is checked by another dense round on a map rebuilt at the
+        # moved estimate, as the regular rounds are.
         assert final is not None
         dense = sample_points(rec.scans, phi, final, cfg, seed=1)
-        planes_free = not (intrinsics_on and inputs.free.any_lidar_intrinsics)
-        solved = mapped = None
+        steps = MAX_STEPS if intrinsics_on and inputs.free.any_lidar_intrinsics else 1
+        solved = None
         for attempt in range(1, MAX_FINAL_ROUNDS + 1):
             before = state
             done = run_round(
                 state,
                 dense,
                 imu,
-                round_settings(cfg, noise, base, intrinsics_on, evaluate_only=planes_free),
+                round_settings(cfg, noise, base, intrinsics_on, evaluate_only=True),
                 len(rounds) + 1,
-                mapped,
             )
             state, summary, report, inputs = done.state, done.summary, done.report, done.inputs
-            solved, mapped = done.solved, done.mapped
+            solved = done.solved
             del done
-            if planes_free:
-                refined = refine_with_planes(
-                    state, inputs, round_settings(cfg, noise, base, True).solver, 1, solved
+            refined = refine_with_planes(
+                state, inputs, round_settings(cfg, noise, base, True).solver, steps, solved
+            )
+            if refined is not None:
+                logger.info(
+                    "Planes-free steps: %d, cost without the range noise %.1f -> %.1f (%.1f s).",
+                    refined.steps,
+                    refined.cost_start,
+                    refined.cost_end,
+                    refined.seconds,
                 )
-                if refined is not None:
-                    summary = refined_summary(summary, refined)
-                    state, report, inputs = refined.state, refined.report, refined.inputs
-                    solved, mapped = refined.solved, None  # the map is at the round's start
+                summary = refined_summary(summary, refined)
+                state, report, inputs = refined.state, refined.report, refined.inputs
+                solved = refined.solved
             rounds.append(summary)
             dense_change = _change(before, state)
             jump = last_jump = final_jump(dense_change, report, cfg)
             logger.info(
-                "Final round%s%s: %d points on %d surfels, RMS %.2f cm, change %.2f mm / %.4f "
-                "deg / %.3f ms (%.1f of its sigmas).",
+                "Final round%s (planes free): %d points on %d surfels, RMS %.2f cm, change %.2f "
+                "mm / %.4f deg / %.3f ms (%.1f of its sigmas).",
                 f" {attempt}" if attempt > 1 else "",
-                " (planes free)" if planes_free else "",
                 summary.points,
                 summary.surfels,
                 100 * summary.rms_m,
@@ -495,10 +500,10 @@ def run_schedule(
                 jump,
                 MAX_FINAL_ROUNDS,
             )
-        mapped = None  # the dense points' map is not needed further
-    if intrinsics_on and inputs.free.any_lidar_intrinsics:
-        # The rounds hold each map fixed and stall along the common mode of the range offsets
-        # and scales; a last refinement estimates the planes with everything else.
+    elif intrinsics_on and inputs.free.any_lidar_intrinsics:
+        # No denser round: the rounds hold each map fixed and stall along the common mode of
+        # the range offsets and scales; a last refinement estimates the planes with everything
+        # else.
         refined = refine_with_planes(
             state, inputs, round_settings(cfg, noise, base, True).solver, MAX_STEPS, solved
         )

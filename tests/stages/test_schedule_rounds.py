@@ -10,10 +10,9 @@ from the stepped estimate with nothing kept from the round before, and at most
 The denser final round may determine a direction the regular rounds held; when it moves the
 estimate by many of its sigmas, another dense round on a map rebuilt at the moved estimate
 checks it, and dense rounds that keep jumping are a non-convergence (a FAIL), not a PASS.
-Without LiDAR intrinsics a dense round only builds and linearises its problem, and one
-planes-free step from that linearisation moves the estimate (the regular rounds, holding their
-planes fixed, stop short of the optimum whatever the model); with them, the dense round solves
-on fixed planes and the planes-free refinement follows the last one.
+A dense round only builds and linearises its problem, and planes-free steps from that
+linearisation move the estimate (the regular rounds, holding their planes fixed, stop short of
+the optimum whatever the model): one without LiDAR intrinsics, up to ``MAX_STEPS`` with them.
 
 The rounds themselves are stand-ins whose changes are given.
 """
@@ -286,18 +285,23 @@ def test_without_lidar_intrinsics_the_dense_round_is_one_planes_free_step(
     assert run.fit.converged
 
 
-def test_with_lidar_intrinsics_the_dense_round_solves_and_the_refinement_follows(
-    monkeypatch: pytest.MonkeyPatch,
+@pytest.mark.parametrize("final_points", [400, None])
+def test_with_lidar_intrinsics_the_last_round_takes_up_to_max_steps_planes_free_steps(
+    monkeypatch: pytest.MonkeyPatch, final_points: int | None
 ) -> None:
     def step(index: int, dense: bool) -> float:
         return 0.05 if dense else _settling(index)
 
-    run = _schedule(monkeypatch, step, lidar=True, final_points=400)
-    assert not any(run.evaluate_only)
+    run = _schedule(monkeypatch, step, lidar=True, final_points=final_points)
+    last = run.rounds[-1]
+    assert last[3] == (final_points is not None)
+    # a dense round only builds and linearises its problem; without one the last regular round
+    # solves as the others did
+    assert run.evaluate_only == [r[3] for r in run.rounds]
     # (the refinement after the last round is checked and removed by _schedule)
     assert run.max_steps[-1] == free_planes.MAX_STEPS
-    assert run.solved_given[-1] == f"solved at {run.rounds[-1][0]}"
-    assert run.fit.solved == f"solved after {run.rounds[-1][0]}"
+    assert run.solved_given[-1] == f"solved at {last[0]}"
+    assert run.fit.solved == f"solved after {last[0]}"
 
 
 def test_dense_rounds_that_keep_jumping_are_a_non_convergence(
