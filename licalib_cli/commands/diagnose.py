@@ -55,6 +55,8 @@ def diagnosis_dict(diag: Any) -> dict[str, Any]:
                 "p_value": _num(s.p_value, 3),
                 "delta_bic": _num(s.delta_bic),
                 "kept": s.kept,
+                "dropped_for": list(s.dropped_for),
+                "drop_delta_bic": _num(s.drop_delta_bic),
                 "not_told_apart": list(s.not_told_apart),
                 "rival_delta_bic": _num(s.rival_delta_bic),
                 "estimate": {k: _num(v[0]) for k, v in s.estimate.items()},
@@ -219,7 +221,7 @@ def render_diagnosis(diag: Any) -> None:
             f"{s.gap_before.sensor}: {s.gap_before.excess:+.3f} -> {s.gap_after.excess:+.3f}",
             f"{1e3 * s.moved_translation_m:.2f} mm / {s.moved_rotation_deg:.4f} deg / "
             f"{1e3 * s.moved_time_offset_s:.3f} ms",
-            "yes" if s.kept else "no",
+            "yes" if s.kept else ("dropped" if s.dropped_for else "no"),
         )
     if diag.steps:
         out.print(table)
@@ -233,6 +235,15 @@ def render_diagnosis(diag: Any) -> None:
         )
     found = ", ".join(diag.effects_found) or "none"
     out.print(f"Effects added to the model: {found}")
+    for s in diag.steps:
+        if s.dropped_for:
+            they = " and ".join(s.dropped_for)
+            verb = "does" if len(s.dropped_for) == 1 else "do"
+            out.print(
+                f"{s.effect} was dropped again: once {they} joined the model it explained "
+                f"nothing {they} {verb} not (on the final fit's data the BIC is "
+                f"{s.drop_delta_bic:.1f} higher with it than without)."
+            )
     for s in diag.steps:
         if s.kept and s.not_told_apart:
             out.print(

@@ -15,7 +15,13 @@
    data (:func:`_rival_delta_bic`); a pair that neither score test separates is reported as
    not told apart (:func:`not_told_apart`).
 4. Repeat until no candidate is significant, or ``max_effects`` were added.
-5. For every candidate not added, say how large it would have to be for this bag to show it
+5. Check backwards: an effect added early may explain nothing that the effects added after it
+   do not (an accelerometer misalignment picked first on a bag whose gyro is rotated: once the
+   gyro rotation is in, the misalignment gains a sum of squares of 0.9 for its three
+   parameters). Each kept effect but the last is taken out on the final fit's data (reset to
+   its starting value, the rest re-solved); when the BIC is lower without it, it is dropped,
+   the model refitted without it, and the check repeated (:func:`drop_redundant`).
+6. For every candidate not added, say how large it would have to be for this bag to show it
    (:class:`NotShown`): "not found" is then a statement about the data, not about the sensor.
 
 Each step records the effect, its test, its estimate with 1-sigma, the gap of its sensor before
@@ -34,7 +40,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -43,7 +49,7 @@ from scipy import optimize
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.consistency.distributions import chi2_isf, chi2_sf, ncx2_sf
-from licalib_cli.estimation import intrinsic_coordinates
+from licalib_cli.estimation import CalibrationState, intrinsic_coordinates
 from licalib_cli.pipeline import (
     CalibrationRun,
     Prepared,
@@ -69,7 +75,9 @@ __all__ = [
     "NotShown",
     "detectable_rms",
     "diagnose",
+    "drop_redundant",
     "twin_of",
+    "without_effect",
 ]
 
 logger = logging.getLogger(__name__)
@@ -228,6 +236,10 @@ class DiagnosisStep:
         before: the fit the effect was tested on.
         after: the refit with the effect.
         after_twin: the twin recordings of the refit.
+        dropped_for: the effects added after it that made it redundant (the backward check
+            dropped it: :func:`drop_redundant`); ``kept`` is then False.
+        drop_delta_bic: the BIC with it minus without it on the final fit's data when it was
+            dropped (positive), NaN otherwise.
     """
 
     effect: str
@@ -248,6 +260,8 @@ class DiagnosisStep:
     before: CalibrationRun | None = field(default=None, repr=False, compare=False)
     after: CalibrationRun | None = field(default=None, repr=False, compare=False)
     after_twin: Twin | None = field(default=None, repr=False, compare=False)
+    dropped_for: tuple[str, ...] = ()
+    drop_delta_bic: float = float("nan")
 
     @property
     def shrink(self) -> float:
@@ -531,6 +545,111 @@ def _rival_delta_bic(
     return 0.5 * ((ss_b_on_a - ss_a) + (ss_b - ss_a_on_b)) + (k_b - k_a) * math.log(max(samples, 2))
 
 
+_IMU_FIELDS = {
+    "gyro_scale": "gyro_scale",
+    "gyro_misalignment": "gyro_misalignment",
+    "gyro_rotation": "gyro_rotation",
+    "accel_scale": "accel_scale",
+    "accel_misalignment": "accel_misalignment",
+    "g_sensitivity": "gyro_g_sensitivity",
+}
+_STATE_FIELDS = {
+    "gyro_bias_walk": "gyro_bias_drift",
+    "accel_bias_walk": "accel_bias_drift",
+    "imu_clock_drift": "time_drift",
+    "lidar_point_time": "point_time_scale",
+}
+_LIDAR_FIELDS = {
+    "lidar_range_offset": "range_offset",
+    "lidar_range_scale": "range_scale",
+    "lidar_elevation": "elevation_correction",
+    "lidar_azimuth": "azimuth_correction",
+    "lidar_vertical_offset": "vertical_offset",
+    "lidar_horizontal_offset": "horizontal_offset",
+}
+
+
+def without_effect(
+    state: CalibrationState, effect: str, start: CalibrationState
+) -> CalibrationState:
+    """``state`` with ``effect``'s parameters back at their values in ``start`` (the base fit,
+    which does not estimate them); everything else as in ``state``."""
+    if effect in _IMU_FIELDS:
+        name = _IMU_FIELDS[effect]
+        return replace(
+            state,
+            imu_intrinsics=state.imu_intrinsics.with_(
+                **{name: getattr(start.imu_intrinsics, name)}
+            ),
+        )
+    if effect in _STATE_FIELDS:
+        name = _STATE_FIELDS[effect]
+        return replace(state, **{name: getattr(start, name)})
+    name = _LIDAR_FIELDS[effect]
+    return replace(
+        state,
+        lidar_intrinsics=state.lidar_intrinsics.with_(
+            **{name: getattr(start.lidar_intrinsics, name)}
+        ),
+    )
+
+
+def _delta_bic_without(
+    run: CalibrationRun,
+    kept: tuple[str, ...],
+    effect: str,
+    start: CalibrationState,
+    cfg: CalibConfig,
+) -> float:
+    """BIC of ``run``'s model (the effects ``kept``) minus that of the model without ``effect``,
+    both on ``run``'s final data: the latter re-solved (a few iterations) from ``run``'s estimate
+    with ``effect`` back at its starting value. Positive: the others explain what it did."""
+    rest = tuple(e for e in kept if e != effect)
+    ss_with, _, k_with = _sum_of_squares(run, _with_effects(cfg, kept), refit=False)
+    without = replace(run, state=without_effect(run.state, effect, start))
+    ss_without, _, k_without = _sum_of_squares(without, _with_effects(cfg, rest), refit=True)
+    samples = _sensor_samples(run, CANDIDATES[effect][2])
+    delta = (ss_with - ss_without) + (k_with - k_without) * math.log(max(samples, 2))
+    logger.info(
+        "Diagnose: %s with %s: sum of squares %+.1f for %d parameters (BIC %+.1f).",
+        effect,
+        ", ".join(rest),
+        ss_with - ss_without,
+        k_with - k_without,
+        delta,
+    )
+    return delta
+
+
+def drop_redundant(
+    kept: tuple[str, ...],
+    delta_bic_without: Callable[[tuple[str, ...], str], float],
+    refit_without: Callable[[tuple[str, ...], str], None],
+) -> list[tuple[str, tuple[str, ...], float]]:
+    """The backward check of the forward selection (module docstring, step 5).
+
+    Every kept effect but the last added (which paid with all the others in) is taken out in
+    turn: ``delta_bic_without(kept, effect)`` is the BIC with it minus without it. The one whose
+    removal lowers the BIC most is dropped (``refit_without(kept, effect)`` refits the model
+    without it) and the check repeats on the effects left, until no removal pays.
+
+    Returns:
+        Per effect dropped, in order: its name, the effects added after it that remain (what
+        explains it), and its BIC change.
+    """
+    dropped: list[tuple[str, tuple[str, ...], float]] = []
+    while len(kept) >= 2:
+        deltas = {e: delta_bic_without(kept, e) for e in kept[:-1]}
+        effect = max(deltas, key=lambda e: deltas[e])
+        if not deltas[effect] > 0.0:
+            break
+        refit_without(kept, effect)
+        later = kept[kept.index(effect) + 1 :]
+        kept = tuple(e for e in kept if e != effect)
+        dropped.append((effect, later, deltas[effect]))
+    return dropped
+
+
 def not_told_apart(a: DiagnosisStep, b: DiagnosisStep) -> bool:
     """Whether the data show nothing that one of two refitted rivals explains and the other
     does not: the score test of each on the refit with the other is not significant.
@@ -740,6 +859,26 @@ def diagnose(
             kept = (*kept, step.effect)
             assert step.after is not None
             run, run_twin = step.after, step.after_twin
+
+    def refit_without(effects: tuple[str, ...], effect: str) -> None:
+        nonlocal run, run_twin
+        rest = tuple(e for e in effects if e != effect)
+        logger.info(
+            "Diagnose: %s explains nothing %s does not; refit without it.", effect, ", ".join(rest)
+        )
+        start = replace(prepared.guess, state=without_effect(run.state, effect, base.state))
+        run = fit_and_check(prepared, start, _with_effects(cfg, rest), progress, timer, warm=True)
+        run_twin = twin_of(run, cfg)
+
+    dropped = drop_redundant(
+        kept,
+        lambda effects, effect: _delta_bic_without(run, effects, effect, base.state, cfg),
+        refit_without,
+    )
+    for effect, later, delta in dropped:
+        i = next(i for i, t in enumerate(steps) if t.effect == effect and t.kept)
+        steps[i] = replace(steps[i], kept=False, dropped_for=later, drop_delta_bic=delta)
+        kept = tuple(e for e in kept if e != effect)
     progress.close()
     return Diagnosis(
         base=base,

@@ -331,3 +331,95 @@ def test_rivals_are_compared_on_the_same_data_and_an_indistinguishable_pair_is_n
     scale_of_offset_bag = _trial("lidar_range_scale", -900.0, {"lidar_range_offset": 1e-40})
     offset_of_offset_bag = _trial("lidar_range_offset", -5000.0, {"lidar_range_scale": 0.5})
     assert not not_told_apart(offset_of_offset_bag, scale_of_offset_bag)
+
+
+def test_an_effect_the_later_ones_explain_is_dropped_again() -> None:
+    """The backward check: on a VLP-16 sinusoid with a rotated gyro the forward selection added
+    an accelerometer misalignment and scale before the gyro rotation; with the rotation in, the
+    two gained sums of squares of 0.9 and 0 for three parameters each (BIC +27 and +246)."""
+    from licalib_cli.pipeline.diagnose import drop_redundant
+
+    bic = {
+        ("accel_misalignment", "accel_scale", "gyro_rotation"): {
+            "accel_misalignment": 20.0,
+            "accel_scale": 246.0,
+        },
+        ("accel_misalignment", "gyro_rotation"): {"accel_misalignment": 27.4},
+    }
+    refits: list[tuple[tuple[str, ...], str]] = []
+    dropped = drop_redundant(
+        ("accel_misalignment", "accel_scale", "gyro_rotation"),
+        lambda kept, effect: bic[kept][effect],
+        lambda kept, effect: refits.append((kept, effect)),
+    )
+    # the removal that pays most first, then the check again on what is left; the last effect
+    # added is never taken out (it paid with all the others in)
+    assert refits == [
+        (("accel_misalignment", "accel_scale", "gyro_rotation"), "accel_scale"),
+        (("accel_misalignment", "gyro_rotation"), "accel_misalignment"),
+    ]
+    assert dropped == [
+        ("accel_scale", ("gyro_rotation",), 246.0),
+        ("accel_misalignment", ("gyro_rotation",), 27.4),
+    ]
+    # a pair where each explains its own part (gyro rotation and elevations): nothing dropped
+    assert drop_redundant(("lidar_elevation", "gyro_rotation"), lambda k, e: -5000.0, None) == []  # type: ignore[arg-type]
+    # a single effect is not checked
+    assert drop_redundant(("gyro_scale",), None, None) == []  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("effect", sorted(CANDIDATES))
+def test_an_effect_taken_out_is_back_at_its_starting_value_and_nothing_else_moves(
+    effect: str,
+) -> None:
+    from licalib_cli.estimation import intrinsic_coordinates
+    from licalib_cli.pipeline.diagnose import _of_effect, without_effect
+    from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
+
+    knots = UniformKnots(0.0, 0.1, 8)
+    rng = np.random.default_rng(3)
+
+    def state(offset: float) -> Any:
+        from licalib_cli.estimation import CalibrationState
+
+        n = 4
+        imu = ImuIntrinsics(
+            gyro_scale=np.full(3, 1.0 + offset),
+            gyro_misalignment=np.full(3, offset),
+            gyro_rotation=np.array([offset, 0.0, 0.0, 1.0]) / np.hypot(offset, 1.0),
+            accel_scale=np.full(3, 1.0 + 2 * offset),
+            accel_misalignment=np.full(3, 3 * offset),
+            gyro_g_sensitivity=np.full((3, 3), offset),
+        )
+        lidar = LidarIntrinsics(
+            np.linspace(-0.2, 0.2, n),
+            *(np.full(n, offset * (k + 1)) for k in range(4)),
+            np.full(n, 1.0 + offset),
+            np.full(n, 5 * offset),
+        )
+        return CalibrationState(
+            SO3Spline(knots, np.tile([0.0, 0.0, 0.0, 1.0], (knots.num_control_points, 1))),
+            R3Spline(knots, rng.normal(size=(knots.num_control_points, 3))),
+            np.zeros(3),
+            np.zeros(3),
+            np.array([0.0, 0.0, -9.81]),
+            np.eye(3),
+            np.zeros(3),
+            0.0,
+            imu,
+            lidar,
+            gyro_bias_drift=np.full(3, offset),
+            accel_bias_drift=np.full(3, 2 * offset),
+            time_drift=offset,
+            point_time_scale=2 * offset,
+        )
+
+    start, fitted = state(0.0), state(0.01)
+    out = without_effect(fitted, effect, start)
+    before, after, nominal = (intrinsic_coordinates(s) for s in (fitted, out, start))
+    for name, value in after.items():
+        expected = nominal[name] if _of_effect(name, effect) else before[name]
+        assert value == pytest.approx(expected), name
+    # the effect had moved (the test would pass on a no-op otherwise)
+    assert any(before[n] != nominal[n] for n in before if _of_effect(n, effect))
+    assert out.so3_spline is fitted.so3_spline
