@@ -65,6 +65,8 @@ def test_a_hidden_gyro_scale_is_named_added_and_its_gap_shrinks(
     assert data["effects_found"][0] == "gyro_scale"
     step = next(s for s in data["steps"] if s["effect"] == "gyro_scale")
     assert step["kept"] and step["delta_bic"] < 0 and step["p_value"] < 1e-6
+    # the only effect kept is the last added: the backward check has nothing to take out
+    assert step["dropped_for"] == [] and step["drop_delta_bic"] is None
     assert step["gap_shrink"] >= 0.5
     determined = 0
     for a, true in zip("xyz", (1.004, 0.996, 1.003), strict=True):
