@@ -467,6 +467,24 @@ def _sum_of_squares(run: CalibrationRun, cfg: CalibConfig, refit: bool) -> tuple
     return 2.0 * cost, n_res, n_free
 
 
+def _bic_against(
+    fit: CalibrationRun,
+    fit_cfg: CalibConfig,
+    others: Sequence[tuple[CalibrationState, CalibConfig, int]],
+) -> list[float]:
+    """BIC of ``fit``'s model (``fit_cfg``) minus that of each other model, all on ``fit``'s final
+    data. Each other model is given as its starting estimate, its configuration and the ``n`` of
+    its penalty (the residuals of the sensor the difference belongs to), and is re-solved from
+    that estimate (a few iterations, :func:`_sum_of_squares`). Negative: ``fit``'s model is
+    worth its parameters."""
+    ss, _, k = _sum_of_squares(fit, fit_cfg, refit=False)
+    out = []
+    for state, other_cfg, samples in others:
+        ss_other, _, k_other = _sum_of_squares(replace(fit, state=state), other_cfg, refit=True)
+        out.append((ss - ss_other) + (k - k_other) * math.log(max(samples, 2)))
+    return out
+
+
 def _sensor_samples(run: CalibrationRun, sensor: str) -> int:
     """Residuals of ``sensor`` in ``run``'s final round (the ``n`` of an effect's BIC penalty)."""
     consistency = run.result.consistency
@@ -594,42 +612,41 @@ def without_effect(
     )
 
 
-def _delta_bic_without(
+def _deltas_without(
     run: CalibrationRun,
     kept: tuple[str, ...],
-    effect: str,
+    effects: tuple[str, ...],
     start: CalibrationState,
     cfg: CalibConfig,
-) -> float:
-    """BIC of ``run``'s model (the effects ``kept``) minus that of the model without ``effect``,
-    both on ``run``'s final data: the latter re-solved (a few iterations) from ``run``'s estimate
-    with ``effect`` back at its starting value. Positive: the others explain what it did."""
-    rest = tuple(e for e in kept if e != effect)
-    ss_with, _, k_with = _sum_of_squares(run, _with_effects(cfg, kept), refit=False)
-    without = replace(run, state=without_effect(run.state, effect, start))
-    ss_without, _, k_without = _sum_of_squares(without, _with_effects(cfg, rest), refit=True)
-    samples = _sensor_samples(run, CANDIDATES[effect][2])
-    delta = (ss_with - ss_without) + (k_with - k_without) * math.log(max(samples, 2))
-    logger.info(
-        "Diagnose: %s with %s: sum of squares %+.1f for %d parameters (BIC %+.1f).",
-        effect,
-        ", ".join(rest),
-        ss_with - ss_without,
-        k_with - k_without,
-        delta,
-    )
-    return delta
+) -> dict[str, float]:
+    """Per effect of ``effects``: the BIC of ``run``'s model (the effects ``kept``) minus that of
+    the model without it, both on ``run``'s final data; the latter re-solved from ``run``'s
+    estimate with the effect back at its value in ``start``. Positive: the others explain what
+    it did."""
+    others = [
+        (
+            without_effect(run.state, e, start),
+            _with_effects(cfg, tuple(x for x in kept if x != e)),
+            _sensor_samples(run, CANDIDATES[e][2]),
+        )
+        for e in effects
+    ]
+    deltas = dict(zip(effects, _bic_against(run, _with_effects(cfg, kept), others), strict=True))
+    for effect, delta in deltas.items():
+        logger.info("Diagnose: %s with the others in: BIC %+.1f against without it.", effect, delta)
+    return deltas
 
 
 def drop_redundant(
     kept: tuple[str, ...],
-    delta_bic_without: Callable[[tuple[str, ...], str], float],
+    deltas_without: Callable[[tuple[str, ...], tuple[str, ...]], dict[str, float]],
     refit_without: Callable[[tuple[str, ...], str], None],
 ) -> list[tuple[str, tuple[str, ...], float]]:
     """The backward check of the forward selection (module docstring, step 5).
 
     Every kept effect but the last added (which paid with all the others in) is taken out in
-    turn: ``delta_bic_without(kept, effect)`` is the BIC with it minus without it. The one whose
+    turn: ``deltas_without(kept, effects)`` gives, per effect of ``effects``, the BIC with it
+    minus without it. The one whose
     removal lowers the BIC most is dropped (``refit_without(kept, effect)`` refits the model
     without it) and the check repeats on the effects left, until no removal pays.
 
@@ -639,7 +656,7 @@ def drop_redundant(
     """
     dropped: list[tuple[str, tuple[str, ...], float]] = []
     while len(kept) >= 2:
-        deltas = {e: delta_bic_without(kept, e) for e in kept[:-1]}
+        deltas = deltas_without(kept, kept[:-1])
         effect = max(deltas, key=lambda e: deltas[e])
         if not deltas[effect] > 0.0:
             break
@@ -736,10 +753,9 @@ def _try_effect(
     )
     start = replace(prepared.guess, state=run.state)
     new = fit_and_check(prepared, start, new_cfg, progress, timer, warm=True)
-    ss_new, _, k_new = _sum_of_squares(new, new_cfg, refit=False)
-    base_on_new = replace(new, state=run.state)
-    ss_old, _, k_old = _sum_of_squares(base_on_new, _with_effects(cfg, kept), refit=True)
-    delta_bic = (ss_new - ss_old) + (k_new - k_old) * math.log(max(_sensor_samples(run, sensor), 2))
+    (delta_bic,) = _bic_against(
+        new, new_cfg, [(run.state, _with_effects(cfg, kept), _sensor_samples(run, sensor))]
+    )
     moved = extrinsic_of(new.state).error_to(extrinsic_of(run.state))
     new_twin = twin_of(new, cfg)
     alone = float(getattr(evidence, "statistic_alone", score.statistic))
@@ -872,7 +888,7 @@ def diagnose(
 
     dropped = drop_redundant(
         kept,
-        lambda effects, effect: _delta_bic_without(run, effects, effect, base.state, cfg),
+        lambda effects, tested: _deltas_without(run, effects, tested, base.state, cfg),
         refit_without,
     )
     for effect, later, delta in dropped:

@@ -46,6 +46,7 @@ __all__ = [
     "SolvedProblem",
     "extrinsic_of",
     "free_names",
+    "plane_distances",
     "run_round",
 ]
 
@@ -194,6 +195,12 @@ class RoundSummary:
     stage_times: dict[str, StageTime] = field(default_factory=dict)
 
 
+def plane_distances(normal: F64, d: F64, plane: npt.NDArray[np.intp], p_g: F64) -> F64:
+    """(P,) signed distances of the points ``p_g`` (P, 3) from their planes ``n^T x + d = 0``,
+    ``plane`` (P,) the index of each point's plane in ``normal`` and ``d``, m."""
+    return np.asarray(np.einsum("ij,ij->i", normal[plane], p_g) + d[plane])
+
+
 def extrinsic_of(state: CalibrationState) -> Extrinsic:
     """The state's extrinsic and time offset."""
     return Extrinsic(state.R_imu_lidar.copy(), state.t_imu_lidar.copy(), state.time_offset_s)
@@ -305,9 +312,9 @@ def run_round(
     except DataError:
         entropy = float("nan")
     p_after = p_new[assoc.point_index[order]]
-    dist = np.einsum("ij,ij->i", surfels.normal[plane_of], p_after) + surfels.d[plane_of]
+    dist = plane_distances(surfels.normal, surfels.d, plane_of, p_after)
     p_before = p_g[assoc.point_index[order]]
-    dist0 = np.einsum("ij,ij->i", surfels.normal[plane_of], p_before) + surfels.d[plane_of]
+    dist0 = plane_distances(surfels.normal, surfels.d, plane_of, p_before)
     times["summary"] = watch.lap()
     summary = RoundSummary(
         index=index,

@@ -32,6 +32,7 @@ from licalib_cli.pipeline.round import (
     RoundSummary,
     SolvedProblem,
     extrinsic_of,
+    plane_distances,
     run_round,
 )
 from licalib_cli.pipeline.settings import NoiseLevels, estimates_intrinsics, round_settings
@@ -124,8 +125,8 @@ class Fit:
         jitter: the estimate moved within the jitter band at the cap (sigmas must cover it).
         last_change: how far the last regular round moved the extrinsic.
         settle_threshold: the tolerances that applied to that change.
-        solved: the final round's problem, evaluated and linearised at ``state`` (for the
-            checks; None when a later refinement moved the estimate).
+        solved: the final round's problem (after its planes-free steps, on their planes),
+            evaluated and linearised at ``state`` for the checks; None when none was kept.
         final_unsettled: the denser final rounds still moved the estimate by more than
             :data:`FINAL_SETTLE_SIGMAS` of its sigmas after :data:`MAX_FINAL_ROUNDS` of them
             (``last_change`` is then the last dense round's change).
@@ -205,10 +206,9 @@ def refined_summary(summary: RoundSummary, refined: PlaneRefinement) -> RoundSum
     """A round's summary after the planes-free refinement that followed it: the extrinsic, the
     point-to-plane distances and their RMS (on the refined planes), the final cost and the time
     are the refinement's; the iterations add its steps and the solver's iterations after them."""
-    inputs = refined.inputs
-    plane = np.asarray(inputs.lidar.plane, dtype=np.intp)
-    p_g = refined.solved.points_global
-    dist = np.einsum("ij,ij->i", inputs.planes.normal[plane], p_g) + inputs.planes.d[plane]
+    planes = refined.inputs.planes
+    plane = np.asarray(refined.inputs.lidar.plane, dtype=np.intp)
+    dist = plane_distances(planes.normal, planes.d, plane, refined.solved.points_global)
     return replace(
         summary,
         rms_m=float(np.sqrt(np.mean(dist**2))),

@@ -371,8 +371,8 @@ def round_settings(
     instead of 5e-5 on a 10 s sinusoid).
 
     An ``evaluate_only`` round builds its map, associations and problem and linearises them at
-    its starting estimate without a solver step: the planes-free refinement then takes over from
-    that linearisation (the denser final round without LiDAR intrinsics, :mod:`schedule`)."""
+    its starting estimate without a solver step: the planes-free steps then take over from that
+    linearisation (the denser final round, :mod:`schedule`)."""
     tolerance = PROVISIONAL_COST_TOLERANCE if provisional and not intrinsics else 0.0
     return RoundSettings(
         surfels=surfel_config(cfg, noise, max_distance_m),
