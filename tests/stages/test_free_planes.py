@@ -92,6 +92,46 @@ def test_planes_free_steps_stop_when_the_next_step_is_expected_to_gain_too_littl
     assert problem.cost == cost(2)
 
 
+def test_planes_free_steps_stop_once_a_step_is_worth_under_a_third_of_a_sigma() -> None:
+    """Gains 30, 0.9, 0.027, ... of a cost of 1000: after the second step the third is expected
+    to gain 0.027, above the relative tolerance (1e-3) but below MIN_GAIN (a move of under a
+    third of a sigma), so it is not linearised."""
+    from types import SimpleNamespace
+
+    from licalib_cli.pipeline.free_planes import MIN_GAIN, RELATIVE_DECREASE, planes_free_steps
+
+    def cost(k: int) -> float:
+        return 1000.0 + 1000.0 * 0.03 ** (k + 1) / 0.97
+
+    third = (cost(2) - cost(3)) * 1.0001
+    assert RELATIVE_DECREASE * cost(2) < third < MIN_GAIN
+    calls: list[int] = []
+
+    def step_at(problem: _Cost, k: int):  # type: ignore[no-untyped-def]
+        calls.append(k)
+        step = SimpleNamespace(predicted_reduction=cost(k) - cost(k + 1), num_truncated=0)
+        return cost(k), step, lambda fraction: (k + 1, _Cost(cost(k + 1)))
+
+    final, _, steps, _ = planes_free_steps(_Cost(cost(0)), 0, step_at, "step")
+    assert calls == [0, 1]
+    assert (final, steps) == (2, 2)
+
+
+def test_planes_free_steps_take_none_worth_under_a_third_of_a_sigma() -> None:
+    """A first step predicted to gain 0.04 of a cost of 10: above the relative tolerance, below
+    MIN_GAIN: not taken."""
+    from types import SimpleNamespace
+
+    from licalib_cli.pipeline.free_planes import planes_free_steps
+
+    def step_at(problem: _Cost, k: int):  # type: ignore[no-untyped-def]
+        step = SimpleNamespace(predicted_reduction=0.04, num_truncated=0)
+        return 10.0, step, lambda fraction: (k + 1, _Cost(9.96))
+
+    final, _, steps, start = planes_free_steps(_Cost(10.0), 0, step_at, "step")
+    assert (final, steps, start) == (0, 0, 10.0)
+
+
 def test_noise_corrected_plane_steps_remove_the_range_noise_tilt() -> None:
     """A patch seen obliquely from one point, its range noise along the rays: a Gauss-Newton
     step of the plane from its true normal tilts the normal away from the rays on average; with
