@@ -38,12 +38,13 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
+from licalib_cli.parallel.threads import map_blocks
 from licalib_cli.solver.assembly import (
     Accumulator,
     DensePart,
     GroupCache,
     TrajectoryPattern,
-    add_dense,
+    add_dense_split,
     add_sparse,
 )
 from licalib_cli.solver.parameters import ParameterBlock
@@ -519,7 +520,7 @@ class Problem:
                 r_w = r if sqrt_w is None else r * sqrt_w[:, None]
                 add_sparse(self._sparse_pieces(ev, layout), r_w, sqrt_w, g, acc)
             else:
-                add_dense(
+                add_dense_split(
                     self._dense_parts(ev, layout), r, sqrt_w, layout, g, acc, self._group_cache
                 )
         self._group_cache.done()
@@ -599,11 +600,38 @@ class Problem:
                 shape=(n, shape[1]),
             )
             return sp.csr_matrix(j_x.T @ j_p)
-        rows_all: list[IntArray] = []
-        cols_all: list[IntArray] = []
-        vals_all: list[F64] = []
-        for part in self._dense_parts(ev, layout):
-            first, run = _runs(grp, part.elements.reshape(n, -1), num_groups, part.table.shape[0])
+        parts = self._dense_parts(ev, layout)
+        # pieces touching the same elements (a spline's rotation and position control points)
+        # share their runs: found once for each distinct element array
+        distinct: list[int] = []  # the first part of each distinct element array
+        which: list[int] = []  # each part's entry in ``distinct``
+        for part in parts:
+            same = (
+                d
+                for d, first_part in enumerate(distinct)
+                if parts[first_part].table.shape[0] == part.table.shape[0]
+                and (
+                    parts[first_part].elements is part.elements
+                    or np.array_equal(parts[first_part].elements, part.elements)
+                )
+            )
+            d = next(same, len(distinct))
+            if d == len(distinct):
+                distinct.append(len(which))
+            which.append(d)
+        runs_of = map_blocks(
+            lambda d: _runs(
+                grp,
+                parts[distinct[d]].elements.reshape(n, -1),
+                num_groups,
+                parts[distinct[d]].table.shape[0],
+            ),
+            len(distinct),
+        )
+
+        def coupling(i: int) -> tuple[IntArray, IntArray, F64]:
+            part = parts[i]
+            first, run = runs_of[which[i]]
             runs = first.shape[0]
             # (n, runs k): measurement i's jac_p[i, j] in column run(i) k + j; its transpose
             # sums them over each run
@@ -621,9 +649,12 @@ class Problem:
             rows = np.broadcast_to(cols_x[:, None, :], sums.shape)
             cols = np.broadcast_to(cols_p[:, :, None], sums.shape)
             keep = rows >= 0
-            rows_all.append(rows[keep])
-            cols_all.append(cols[keep])
-            vals_all.append(sums[keep])
+            return rows[keep], cols[keep], sums[keep]
+
+        triplets = map_blocks(coupling, len(parts))
+        rows_all = [t[0] for t in triplets]
+        cols_all = [t[1] for t in triplets]
+        vals_all = [t[2] for t in triplets]
         if not rows_all:
             return sp.csr_matrix(shape)
         return sp.csr_matrix(

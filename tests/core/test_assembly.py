@@ -134,6 +134,44 @@ def test_dense_assembly_matches_reference(
     assert lin.H_tt.has_canonical_format
 
 
+@pytest.mark.parametrize("pieces", [2, 3])
+@pytest.mark.parametrize("shuffled", [False, True])
+def test_a_large_block_assembled_in_parts_matches_the_reference(
+    monkeypatch: pytest.MonkeyPatch, pieces: int, shuffled: bool
+) -> None:
+    """A block of at least SPLIT_ROWS measurements is assembled in consecutive parts, one per
+    block thread, and summed: the same normal equations, again when the groupings and the
+    trajectory pattern of the first assembly are reused."""
+    from licalib_cli.solver import assembly
+
+    calls: list[int] = []
+    whole = assembly.add_dense
+
+    def counted(parts, r, *args):  # type: ignore[no-untyped-def]
+        calls.append(r.shape[0])
+        return whole(parts, r, *args)
+
+    monkeypatch.setattr(assembly, "SPLIT_ROWS", 500)
+    monkeypatch.setattr(assembly, "threads", lambda: pieces)
+    monkeypatch.setattr(assembly, "add_dense", counted)
+    loss = HuberLoss(1.5)
+    pr, block = make_problem(11 + shuffled, 701, 3, shuffled, loss)
+    pr["ctrl"].fix([0, 1, 2])
+    pr["beam"].fix([0, 1])
+    for _ in range(2):
+        calls.clear()
+        lin = pr.linearize(pr.evaluate())
+        assert len(calls) == pieces and sum(calls) == 701
+        h, g = dense_reference(pr, block, loss)
+        np.testing.assert_allclose(lin.dense(), h, rtol=0.0, atol=1e-12 * np.abs(h).max())
+        np.testing.assert_allclose(lin.g, g, rtol=0.0, atol=1e-12 * np.abs(g).max())
+        assert lin.H_tt.has_canonical_format
+    calls.clear()
+    small, _ = make_problem(3, 499, 1, shuffled, None)
+    small.linearize(small.evaluate())
+    assert calls == [499]  # below SPLIT_ROWS: one part
+
+
 def test_assembly_reuses_and_refreshes_the_trajectory_pattern() -> None:
     pr, block = make_problem(3, 400, 1, False, None)
     first = pr.linearize(pr.evaluate())
