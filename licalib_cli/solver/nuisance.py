@@ -450,10 +450,11 @@ def _eliminate_segment(lin: Linearization, seg: NuisanceSegment, s_c: F64, b_c: 
     ny = ncs + npar
     h_xp = sp.csr_matrix(terms.H_xp)
     h_cp = h_xp[nt + c].toarray()
-    s_full = np.zeros((ny, ny))
     b = np.concatenate([np.zeros(ncs), -terms.g_p.reshape(-1)])
     solve_tt: Callable[[F64], F64] | None = None
-    if t.size:
+    if not t.size:
+        s_full = np.zeros((ny, ny))
+    else:
         h_tt = lin.H_tt if t.size == nt else sp.csc_matrix(lin.H_tt[t][:, t])
         add = _trajectory_diagonal(h_tt, 0.0)
         held = np.searchsorted(t, np.asarray(seg.hold, dtype=np.intp).reshape(-1))
@@ -474,7 +475,7 @@ def _eliminate_segment(lin: Linearization, seg: NuisanceSegment, s_c: F64, b_c: 
             products = rhs.T @ solve_tt(rhs)
             del rhs
             products = 0.5 * (products + products.T)
-        s_full -= products[:ny, :ny]
+        s_full = np.negative(products[:ny, :ny])
         b += products[:ny, ny]
         del products
     s_full[:ncs, ncs:] += h_cp
