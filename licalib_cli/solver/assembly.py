@@ -31,12 +31,13 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
-from licalib_cli.parallel.threads import map_blocks, threads
+from licalib_cli.parallel.threads import map_blocks
 
 if TYPE_CHECKING:
     from licalib_cli.solver.problem import Layout
 
 __all__ = [
+    "SPLIT_PARTS",
     "SPLIT_ROWS",
     "Accumulator",
     "DensePart",
@@ -811,10 +812,14 @@ def add_dense(
             acc.add_block(p.cols_at(plan.rep), q.cols_at(plan.rep), blocks, p.traj, q.traj, False)
 
 
-SPLIT_ROWS = 100_000
-"""A dense residual block with at least this many measurements is assembled in parts on the block
-threads (:func:`add_dense_split`). Most of its assembly moves values into the padded buffers of
-the Gram products; a block of 450 000 points took 0.43 s on one core."""
+SPLIT_ROWS = 40_000
+"""A dense residual block with at least this many measurements is assembled in
+:data:`SPLIT_PARTS` parts on the block threads (:func:`add_dense_split`). Most of its assembly
+moves values into the padded buffers of the Gram products; a block of 450 000 points took 0.43 s
+on one core, 0.22 s in two parts on two."""
+
+SPLIT_PARTS = 2
+"""Parts of a large dense block, whatever the number of threads (the sums are then the same)."""
 
 
 def add_dense_split(
@@ -826,15 +831,15 @@ def add_dense_split(
     acc: Accumulator,
     cache: GroupCache | None = None,
 ) -> None:
-    """:func:`add_dense` of consecutive parts of the measurements, one per block thread, each into
-    its own accumulator, then summed into ``acc`` and ``g``.
+    """:func:`add_dense` of :data:`SPLIT_PARTS` consecutive parts of the measurements, shared by
+    the block threads, each into its own accumulator, then summed into ``acc`` and ``g``.
 
-    ``H`` and ``g`` are sums over the measurements, so the parts' sums add up to the whole; the
-    parts are the same whatever the timing of the threads, and so is the result. With one thread
-    or fewer than :data:`SPLIT_ROWS` measurements it is :func:`add_dense`.
+    ``H`` and ``g`` are sums over the measurements, so the parts' sums add up to the whole. The
+    parts are the same whatever the number of threads and their timing, and so is the result,
+    bit for bit. Below :data:`SPLIT_ROWS` measurements it is :func:`add_dense`.
     """
     n = r.shape[0]
-    pieces = threads() if n >= SPLIT_ROWS else 1
+    pieces = SPLIT_PARTS if n >= SPLIT_ROWS else 1
     if pieces < 2:
         add_dense(parts, r, sqrt_w, layout, g, acc, cache)
         return

@@ -139,9 +139,10 @@ def test_dense_assembly_matches_reference(
 def test_a_large_block_assembled_in_parts_matches_the_reference(
     monkeypatch: pytest.MonkeyPatch, pieces: int, shuffled: bool
 ) -> None:
-    """A block of at least SPLIT_ROWS measurements is assembled in consecutive parts, one per
-    block thread, and summed: the same normal equations, again when the groupings and the
-    trajectory pattern of the first assembly are reused."""
+    """A block of at least SPLIT_ROWS measurements is assembled in SPLIT_PARTS consecutive parts
+    on the block threads and summed: the same normal equations, again when the groupings and the
+    trajectory pattern of the first assembly are reused, and the same bits with one thread."""
+    from licalib_cli.parallel.threads import serial
     from licalib_cli.solver import assembly
 
     calls: list[int] = []
@@ -152,7 +153,7 @@ def test_a_large_block_assembled_in_parts_matches_the_reference(
         return whole(parts, r, *args)
 
     monkeypatch.setattr(assembly, "SPLIT_ROWS", 500)
-    monkeypatch.setattr(assembly, "threads", lambda: pieces)
+    monkeypatch.setattr(assembly, "SPLIT_PARTS", pieces)
     monkeypatch.setattr(assembly, "add_dense", counted)
     loss = HuberLoss(1.5)
     pr, block = make_problem(11 + shuffled, 701, 3, shuffled, loss)
@@ -166,6 +167,9 @@ def test_a_large_block_assembled_in_parts_matches_the_reference(
         np.testing.assert_allclose(lin.dense(), h, rtol=0.0, atol=1e-12 * np.abs(h).max())
         np.testing.assert_allclose(lin.g, g, rtol=0.0, atol=1e-12 * np.abs(g).max())
         assert lin.H_tt.has_canonical_format
+    with serial():
+        alone = pr.linearize(pr.evaluate())
+    assert np.array_equal(alone.dense(), lin.dense()) and np.array_equal(alone.g, lin.g)
     calls.clear()
     small, _ = make_problem(3, 499, 1, shuffled, None)
     small.linearize(small.evaluate())
