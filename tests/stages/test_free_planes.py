@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 
@@ -68,16 +70,10 @@ class _Cost:
         return self
 
 
-def test_planes_free_steps_stop_when_the_next_step_is_expected_to_gain_too_little() -> None:
-    """Linear convergence (each step gains a thousandth of the one before): after the second
-    step the third is expected to gain 1e-4 of a cost of 1000, below the 1e-6 relative
-    tolerance, so it is not linearised; the first step's own gain keeps the steps going."""
+def _exact_steps(cost: Callable[[int], float]):  # type: ignore[no-untyped-def]
+    """A ``step_at`` for planes_free_steps whose estimate ``k`` costs ``cost(k)`` and whose step
+    predicts its gain exactly, and the list of the estimates it linearised at."""
     from types import SimpleNamespace
-
-    from licalib_cli.pipeline.free_planes import planes_free_steps
-
-    def cost(k: int) -> float:
-        return 1000.0 + 100.0 * 0.001**k
 
     calls: list[int] = []
 
@@ -86,6 +82,19 @@ def test_planes_free_steps_stop_when_the_next_step_is_expected_to_gain_too_littl
         step = SimpleNamespace(predicted_reduction=cost(k) - cost(k + 1), num_truncated=0)
         return cost(k), step, lambda fraction: (k + 1, _Cost(cost(k + 1)))
 
+    return step_at, calls
+
+
+def test_planes_free_steps_stop_when_the_next_step_is_expected_to_gain_too_little() -> None:
+    """Linear convergence (each step gains a thousandth of the one before): after the second
+    step the third is expected to gain 1e-4 of a cost of 1000, below the 1e-6 relative
+    tolerance, so it is not linearised; the first step's own gain keeps the steps going."""
+    from licalib_cli.pipeline.free_planes import planes_free_steps
+
+    def cost(k: int) -> float:
+        return 1000.0 + 100.0 * 0.001**k
+
+    step_at, calls = _exact_steps(cost)
     final, problem, steps, start = planes_free_steps(_Cost(cost(0)), 0, step_at, "step")
     assert calls == [0, 1]
     assert (final, steps, start) == (2, 2, cost(0))
@@ -96,8 +105,6 @@ def test_planes_free_steps_stop_once_a_step_is_worth_under_a_third_of_a_sigma() 
     """Gains 30, 0.9, 0.027, ... of a cost of 1000: after the second step the third is expected
     to gain 0.027, above the relative tolerance (1e-3) but below MIN_GAIN (a move of under a
     third of a sigma), so it is not linearised."""
-    from types import SimpleNamespace
-
     from licalib_cli.pipeline.free_planes import MIN_GAIN, RELATIVE_DECREASE, planes_free_steps
 
     def cost(k: int) -> float:
@@ -105,13 +112,7 @@ def test_planes_free_steps_stop_once_a_step_is_worth_under_a_third_of_a_sigma() 
 
     third = (cost(2) - cost(3)) * 1.0001
     assert RELATIVE_DECREASE * cost(2) < third < MIN_GAIN
-    calls: list[int] = []
-
-    def step_at(problem: _Cost, k: int):  # type: ignore[no-untyped-def]
-        calls.append(k)
-        step = SimpleNamespace(predicted_reduction=cost(k) - cost(k + 1), num_truncated=0)
-        return cost(k), step, lambda fraction: (k + 1, _Cost(cost(k + 1)))
-
+    step_at, calls = _exact_steps(cost)
     final, _, steps, _ = planes_free_steps(_Cost(cost(0)), 0, step_at, "step")
     assert calls == [0, 1]
     assert (final, steps) == (2, 2)
