@@ -46,6 +46,8 @@ __all__ = [
     "add_dense",
     "add_dense_split",
     "add_sparse",
+    "first_with_same_elements",
+    "same_elements",
 ]
 
 F64 = npt.NDArray[np.float64]
@@ -135,6 +137,24 @@ def _joint_key(p: _GroupKey, q: _GroupKey) -> _GroupKey:
     return _compress_key(p.key.astype(np.int64) * q.num_groups + q.key)
 
 
+def same_elements(a: npt.NDArray[np.intp], b: npt.NDArray[np.intp]) -> bool:
+    """Whether two Jacobian pieces touch the same elements for every measurement (the same
+    array, or equal ones)."""
+    return a is b or (a.shape == b.shape and np.array_equal(a, b))
+
+
+def first_with_same_elements(parts: list[DensePart]) -> list[int]:
+    """For each part, the index of the first part touching the same elements (its own index when
+    no part before it does): the parts that can share their groupings."""
+    firsts: list[int] = []
+    for i, part in enumerate(parts):
+        earlier = (
+            j for j in dict.fromkeys(firsts) if same_elements(parts[j].elements, part.elements)
+        )
+        firsts.append(next(earlier, i))
+    return firsts
+
+
 class GroupCache:
     """Groupings and Gram plans of the dense residual blocks, kept from one assembly to the next.
 
@@ -153,12 +173,7 @@ class GroupCache:
     def key(self, elements: npt.NDArray[np.intp]) -> _GroupKey:
         """:func:`_element_key` of ``elements``."""
         entry = next(
-            (
-                e
-                for e in (*self._used_keys, *self._keys)
-                if e[0] is elements
-                or (e[0].shape == elements.shape and np.array_equal(e[0], elements))
-            ),
+            (e for e in (*self._used_keys, *self._keys) if same_elements(e[0], elements)),
             None,
         )
         if entry is None:
@@ -721,16 +736,10 @@ def add_dense(
     n, m = r.shape
     element_key = _element_key if cache is None else cache.key
     group_plan = _GroupPlan if cache is None else cache.plan
-    patterns: list[tuple[npt.NDArray[np.intp], list[DensePart]]] = []
-    for part in parts:
-        for elements, members in patterns:
-            if elements is part.elements or (
-                elements.shape == part.elements.shape and np.array_equal(elements, part.elements)
-            ):
-                members.append(part)
-                break
-        else:
-            patterns.append((part.elements, [part]))
+    sharing: dict[int, list[DensePart]] = {}
+    for part, first in zip(parts, first_with_same_elements(parts), strict=True):
+        sharing.setdefault(first, []).append(part)
+    patterns = [(parts[first].elements, members) for first, members in sharing.items()]
     if not patterns:
         return
     keyed: list[_PartGroup] = []
@@ -839,8 +848,8 @@ def add_dense_split(
     bit for bit. Below :data:`SPLIT_ROWS` measurements it is :func:`add_dense`.
     """
     n = r.shape[0]
-    pieces = SPLIT_PARTS if n >= SPLIT_ROWS else 1
-    if pieces < 2:
+    pieces = SPLIT_PARTS
+    if n < SPLIT_ROWS or pieces < 2:
         add_dense(parts, r, sqrt_w, layout, g, acc, cache)
         return
     bounds = np.linspace(0, n, pieces + 1).astype(np.intp)

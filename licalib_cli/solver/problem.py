@@ -46,6 +46,7 @@ from licalib_cli.solver.assembly import (
     TrajectoryPattern,
     add_dense_split,
     add_sparse,
+    first_with_same_elements,
 )
 from licalib_cli.solver.parameters import ParameterBlock
 
@@ -602,36 +603,28 @@ class Problem:
             return sp.csr_matrix(j_x.T @ j_p)
         parts = self._dense_parts(ev, layout)
         # pieces touching the same elements (a spline's rotation and position control points)
-        # share their runs: found once for each distinct element array
-        distinct: list[int] = []  # the first part of each distinct element array
-        which: list[int] = []  # each part's entry in ``distinct``
-        for part in parts:
-            same = (
-                d
-                for d, first_part in enumerate(distinct)
-                if parts[first_part].table.shape[0] == part.table.shape[0]
-                and (
-                    parts[first_part].elements is part.elements
-                    or np.array_equal(parts[first_part].elements, part.elements)
-                )
+        # share their runs: found once for each
+        firsts = first_with_same_elements(parts)
+        distinct = list(dict.fromkeys(firsts))
+        runs_of = dict(
+            zip(
+                distinct,
+                map_blocks(
+                    lambda d: _runs(
+                        grp,
+                        parts[distinct[d]].elements.reshape(n, -1),
+                        num_groups,
+                        parts[distinct[d]].table.shape[0],
+                    ),
+                    len(distinct),
+                ),
+                strict=True,
             )
-            d = next(same, len(distinct))
-            if d == len(distinct):
-                distinct.append(len(which))
-            which.append(d)
-        runs_of = map_blocks(
-            lambda d: _runs(
-                grp,
-                parts[distinct[d]].elements.reshape(n, -1),
-                num_groups,
-                parts[distinct[d]].table.shape[0],
-            ),
-            len(distinct),
         )
 
         def coupling(i: int) -> tuple[IntArray, IntArray, F64]:
             part = parts[i]
-            first, run = runs_of[which[i]]
+            first, run = runs_of[firsts[i]]
             runs = first.shape[0]
             # (n, runs k): measurement i's jac_p[i, j] in column run(i) k + j; its transpose
             # sums them over each run
