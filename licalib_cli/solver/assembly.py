@@ -18,8 +18,9 @@ one LM iteration to the next). Residual blocks with a sparse Jacobian piece go t
 ``scipy.sparse`` instead.
 
 :class:`~licalib_cli.solver.problem.Problem` resolves each Jacobian piece to reduced columns
-(:class:`DensePart`, or COO triplets) and calls :func:`add_dense` / :func:`add_sparse` per
-residual block; an :class:`Accumulator` collects the result.
+(:class:`DensePart`, or COO triplets) and calls :func:`add_dense_split` (:func:`add_dense` on
+two halves of a large block, on the block threads) / :func:`add_sparse` per residual block; an
+:class:`Accumulator` collects the result.
 """
 
 from __future__ import annotations
