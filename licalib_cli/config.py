@@ -123,8 +123,10 @@ class NoiseConfig(_Section):
 class OdometrySection(_Section):
     """kiss-icp LiDAR odometry used for initialisation."""
 
-    voxel_size_m: float | None = Field(default=None, gt=0.0)
-    """kiss-icp voxel size; max_range/100 when unset."""
+    voxel_size_m: float | None = Field(default=1.0, gt=0.0)
+    """kiss-icp voxel size, m; null: max_range/100. The default is kiss-icp's own for its
+    100 m range: the refinement after kiss-icp registers every scan finely, so kiss-icp only
+    has to be roughly right (a 15 s VLP-16 sinusoid: 2.1 s with 0.6 m, 0.7 s with 1 m)."""
     min_range_m: float = Field(default=0.5, ge=0.0)
     max_range_m: float = Field(default=60.0, gt=0.0)
     max_points_per_voxel: int = Field(default=20, ge=1)
