@@ -28,7 +28,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import TypeVar
 
 import numpy as np
@@ -59,6 +59,7 @@ __all__ = [
     "RELATIVE_DECREASE",
     "STEP_FRACTIONS",
     "PlaneRefinement",
+    "PlanesFreeSteps",
     "corrected_plane_terms",
     "expected_noise_cost",
     "gauge_hold",
@@ -67,6 +68,7 @@ __all__ = [
     "noise_cost",
     "plane_jacobian",
     "planes_free_steps",
+    "planes_free_steps_from",
     "refine_with_planes",
     "stepped_planes",
 ]
@@ -359,6 +361,34 @@ def planes_free_steps(
     return current, problem, steps, cost_start
 
 
+@dataclass(frozen=True)
+class PlanesFreeSteps:
+    """Where the Gauss-Newton steps with the planes free arrive (before any solve on the
+    refined planes).
+
+    Attributes:
+        state: the estimate after the steps.
+        planes: the planes after them.
+        problem: the problem at ``state`` on ``planes``.
+        steps: steps kept.
+        cost_start: cost before the steps, without the range noise's expected part.
+        noise_part: the range noise's expected part of a problem's cost at an estimate on
+            planes, ``noise_part(problem, state, planes)``.
+        points_and_rays: the round's points and their unit rays in the planes' frame under an
+            estimate, ``points_and_rays(state)`` (the last estimate's are kept).
+        evaluation: ``problem``'s evaluation with Jacobians at ``state``.
+    """
+
+    state: CalibrationState
+    planes: Planes
+    problem: Problem
+    steps: int
+    cost_start: float
+    noise_part: Callable[[Problem, CalibrationState, Planes], float] = field(repr=False)
+    points_and_rays: Callable[[CalibrationState], tuple[F64, F64]] = field(repr=False)
+    evaluation: Evaluation = field(repr=False)
+
+
 def refine_with_planes(
     state: CalibrationState,
     inputs: RoundInputs,
@@ -366,7 +396,8 @@ def refine_with_planes(
     max_steps: int = MAX_STEPS,
     solved: SolvedProblem | None = None,
 ) -> PlaneRefinement | None:
-    """Gauss-Newton steps with the planes free, then the solver on the refined planes.
+    """Gauss-Newton steps with the planes free (:func:`planes_free_steps_from`), then the
+    solver on the refined planes.
 
     Args:
         state: the final round's estimate.
@@ -385,6 +416,41 @@ def refine_with_planes(
         SolverError: the solver failed on the refined planes.
     """
     start = time.perf_counter()
+    stepped = planes_free_steps_from(state, inputs, lm, max_steps, solved)
+    if stepped is None:
+        return None
+    problem, planes = stepped.problem, stepped.planes
+    solution = solve_with_linearization(problem, lm, evaluation=stepped.evaluation)
+    state = state_from_problem(stepped.state, problem)
+    # the solver's last evaluation is at the estimate: the cost is not evaluated again
+    cost_end = solution.evaluation.cost - stepped.noise_part(problem, state, planes)
+    refined = replace(inputs, planes=planes)
+    return PlaneRefinement(
+        state=state,
+        inputs=refined,
+        report=solution.report,
+        steps=stepped.steps,
+        cost_start=stepped.cost_start,
+        cost_end=cost_end,
+        seconds=time.perf_counter() - start,
+        solved=SolvedProblem(
+            problem, solution.evaluation, solution.linearization, stepped.points_and_rays(state)[0]
+        ),
+    )
+
+
+def planes_free_steps_from(
+    state: CalibrationState,
+    inputs: RoundInputs,
+    lm: LMParams,
+    max_steps: int = MAX_STEPS,
+    solved: SolvedProblem | None = None,
+) -> PlanesFreeSteps | None:
+    """Gauss-Newton steps with the planes free from a round's estimate (:func:`planes_free_steps`
+    on the round's problem), without a solve on the refined planes after them.
+
+    Arguments as :func:`refine_with_planes`'s. Returns None when the round had no LiDAR points.
+    """
     plane = np.asarray(inputs.lidar.plane, dtype=np.intp)
     problem = solved.problem if solved is not None else inputs.problem(state, inputs.planes)
     block = lidar_block(problem)
@@ -406,9 +472,20 @@ def refine_with_planes(
         rays = points_and_rays(state)[1]
         return expected_noise_cost(residual, inputs, state, planes, range_noise, rays)
 
+    # the last trial's evaluation: with Jacobians, since a kept trial is linearised next (by
+    # the next step, or by the solve after the steps) at the same estimate
+    evaluated: list[tuple[Problem, Evaluation]] = []
+    if solved is not None:
+        evaluated.append((solved.problem, solved.evaluation))
+
+    def evaluation_of(problem: Problem) -> Evaluation:
+        if not evaluated or evaluated[0][0] is not problem:
+            evaluated[:] = [(problem, problem.evaluate(jacobians=True))]
+        return evaluated[0][1]
+
     def corrected_cost(problem: Problem, current: tuple[CalibrationState, Planes]) -> float:
         state, planes = current
-        return problem.evaluate(jacobians=False).cost - noise_part(problem, state, planes)
+        return evaluation_of(problem).cost - noise_part(problem, state, planes)
 
     def step_at(
         problem: Problem, current: tuple[CalibrationState, Planes]
@@ -420,7 +497,7 @@ def refine_with_planes(
             layout = lin.layout
         else:
             layout = problem.layout()
-            evaluation = problem.evaluate(jacobians=True)
+            evaluation = evaluation_of(problem)
             lin = problem.linearize(evaluation, layout)
         residual = problem.residual_blocks[block]
         assert isinstance(residual, PointToPlaneResidual)
@@ -457,20 +534,13 @@ def refine_with_planes(
     (state, planes), problem, steps, cost_start = planes_free_steps(
         problem, (state, inputs.planes), step_at, "Planes-free step", corrected_cost, max_steps
     )
-    solution = solve_with_linearization(problem, lm)
-    state = state_from_problem(state, problem)
-    # the solver's last evaluation is at the estimate: the cost is not evaluated again
-    cost_end = solution.evaluation.cost - noise_part(problem, state, planes)
-    refined = replace(inputs, planes=planes)
-    return PlaneRefinement(
-        state=state,
-        inputs=refined,
-        report=solution.report,
-        steps=steps,
-        cost_start=cost_start,
-        cost_end=cost_end,
-        seconds=time.perf_counter() - start,
-        solved=SolvedProblem(
-            problem, solution.evaluation, solution.linearization, points_and_rays(state)[0]
-        ),
+    return PlanesFreeSteps(
+        state,
+        planes,
+        problem,
+        steps,
+        cost_start,
+        noise_part,
+        points_and_rays,
+        evaluation_of(problem),
     )

@@ -303,7 +303,8 @@ def run_round(
     new_state = state_from_problem(state, problem)
     # The usable points are mapped once with the new estimate: the entropy's map, the distances
     # after the round and the next round's map (from the same estimate) are subsets of them.
-    p_new = points_in_global(new_state, pts)
+    # A round that ran no iteration (evaluate-only) left the estimate where it mapped them.
+    p_new = p_g if report.iterations == 0 else points_in_global(new_state, pts)
     p_new.flags.writeable = False
     try:
         stride = -(-len(pts) // _ENTROPY_MAP_POINTS)

@@ -23,7 +23,12 @@ from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import CalibrationState, ImuData, intrinsic_coordinates
 from licalib_cli.measurements import Recording
 from licalib_cli.models.lidar import lidar_point
-from licalib_cli.pipeline.free_planes import MAX_STEPS, PlaneRefinement, refine_with_planes
+from licalib_cli.pipeline.free_planes import (
+    MAX_STEPS,
+    PlaneRefinement,
+    planes_free_steps_from,
+    refine_with_planes,
+)
 from licalib_cli.pipeline.initialise import InitialGuess
 from licalib_cli.pipeline.points import PointSample, points_per_scan, sample_points
 from licalib_cli.pipeline.round import (
@@ -397,19 +402,20 @@ def run_schedule(
             # moves by a nearly constant fraction of what is left per round (on a 10 s shake
             # with 2-7 cm range offsets: 2.3, 2.1, 2.0, ... 1.2 mm over eight rounds, then 12 mm
             # at once with the planes free). A step with the planes free goes there; the next
-            # rounds, on a map rebuilt from it, check that it has settled.
-            refined = refine_with_planes(
+            # rounds, on a map rebuilt from it, check that it has settled (so no solve on the
+            # stepped planes follows it: the next round solves on its own map).
+            stepped = planes_free_steps_from(
                 state, inputs, round_settings(cfg, noise, base, True).solver, solved=solved
             )
-            if refined is not None:
+            if stepped is not None:
                 assert previous is not None  # crawls() needs the round before
                 logger.info(
                     "The rounds crawl (change %.2f mm after %.2f mm): planes-free step, change %s.",
                     1e3 * change.translation_m,
                     1e3 * previous.translation_m,
-                    _describe(_change(state, refined.state)),
+                    _describe(_change(state, stepped.state)),
                 )
-                state, crawl_steps = refined.state, crawl_steps + 1
+                state, crawl_steps = stepped.state, crawl_steps + 1
                 mapped = solved = None  # both were at the round's estimate
         previous = change
         max_dist = max(base, min(max_dist, 3.0 * moved))

@@ -216,7 +216,10 @@ does not reduce the cost raises the damping as before (Nielsen)."""
 
 
 def lm_params(
-    cfg: CalibConfig, max_iterations: int | None = None, cost_tolerance: float = 0.0
+    cfg: CalibConfig,
+    max_iterations: int | None = None,
+    cost_tolerance: float = 0.0,
+    function_tolerance: float = LMParams.function_tolerance,
 ) -> LMParams:
     """Levenberg-Marquardt settings of a round."""
     return LMParams(
@@ -226,6 +229,7 @@ def lm_params(
         initial_lambda=INITIAL_LAMBDA,
         min_decrease=0.1,
         cost_tolerance=cost_tolerance,
+        function_tolerance=function_tolerance,
         use_tsvd=cfg.solver.use_tsvd,
         tsvd_threshold=cfg.solver.tsvd_threshold,
     )
@@ -349,6 +353,14 @@ stopping there leaves the estimate within about ``sqrt(2 * 0.1)``, 0.45, of a si
 round's optimum along the direction the step would take."""
 
 
+COARSE_FUNCTION_TOLERANCE = 1e-3
+"""Fraction of the cost a coarse round's next step must still remove (a round associating
+farther than ``surfels.max_distance_m``). Its map is rebuilt and its associations tightened in
+the rounds after it, which change the cost by far more (a 15 s sinusoid: 5.5e4 after the first
+round, 1.6e5 at the start of the second), so its last steps of a few hundredths of a per cent
+are left to them."""
+
+
 def round_settings(
     cfg: CalibConfig,
     noise: NoiseLevels,
@@ -370,15 +382,22 @@ def round_settings(
     mean absolute error 3.0e-5 either way, 3e-4 before the dense round estimated its planes;
     the rounds 5 % faster).
 
+    A coarse round (associating farther than ``surfels.max_distance_m``) stops once a step
+    would lower the cost by less than :data:`COARSE_FUNCTION_TOLERANCE` of it.
+
     An ``evaluate_only`` round builds its map, associations and problem and linearises them at
     its starting estimate without a solver step: the planes-free steps then take over from that
     linearisation (the denser final round, :mod:`schedule`)."""
     tolerance = PROVISIONAL_COST_TOLERANCE if provisional else 0.0
+    coarse = max_distance_m > cfg.surfels.max_distance_m
     return RoundSettings(
         surfels=surfel_config(cfg, noise, max_distance_m),
         weights=noise_model(cfg, noise),
         solver=lm_params(
-            cfg, max_iterations=0 if evaluate_only else None, cost_tolerance=tolerance
+            cfg,
+            max_iterations=0 if evaluate_only else None,
+            cost_tolerance=tolerance,
+            function_tolerance=COARSE_FUNCTION_TOLERANCE if coarse else LMParams.function_tolerance,
         ),
         free=free_parameters(cfg, intrinsics),
         margin_s=spline_margin_s(cfg),

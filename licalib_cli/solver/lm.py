@@ -369,10 +369,15 @@ def solve_with_linearization(
     problem: Problem,
     params: LMParams | None = None,
     callback: Callable[[IterationSummary], None] | None = None,
+    *,
+    evaluation: Evaluation | None = None,
 ) -> Solution:
     """:func:`solve`, also returning the evaluation and the normal equations at the estimate
     (for later analyses of the same problem at the same state, which then need not evaluate
     and linearise it again).
+
+    ``evaluation``: the problem's evaluation with Jacobians at its current values, when the
+    caller has it (it is not evaluated again); None: evaluated here.
 
     Raises:
         SolverError: When the initial cost is not finite.
@@ -381,7 +386,8 @@ def solve_with_linearization(
     start = time.perf_counter()
     log = logger.info if params.verbose else logger.debug
     layout = problem.layout()
-    evaluation = problem.evaluate(jacobians=True)
+    if evaluation is None:
+        evaluation = problem.evaluate(jacobians=True)
     if not math.isfinite(evaluation.cost):
         msg = (
             "The residuals are not finite at the initial estimate; check the initial values "

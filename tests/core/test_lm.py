@@ -208,6 +208,36 @@ def test_lm_converges_to_truth_noise_free() -> None:
     assert np.all(report.observable) and np.all(np.isfinite(report.std))
 
 
+def test_a_given_starting_evaluation_is_used_instead_of_evaluating_again() -> None:
+    """``solve_with_linearization`` started from the caller's evaluation at the current values
+    takes the same steps to the same estimate, with one evaluation fewer."""
+    from licalib_cli.solver.lm import solve_with_linearization
+
+    params = LMParams(max_iterations=30, step_tolerance=1e-10)
+    plain, _ = make_problem(np.random.default_rng(11))
+    given, _ = make_problem(np.random.default_rng(11))
+    calls = {"plain": 0, "given": 0}
+
+    def counted(problem: Problem, key: str) -> None:
+        evaluate = problem.evaluate
+
+        def counting(*args, **kwargs):  # type: ignore[no-untyped-def]
+            calls[key] += 1
+            return evaluate(*args, **kwargs)
+
+        problem.evaluate = counting  # type: ignore[method-assign]
+
+    start = given.evaluate(jacobians=True)
+    counted(plain, "plain")
+    counted(given, "given")
+    first = solve_with_linearization(plain, params)
+    second = solve_with_linearization(given, params, evaluation=start)
+    assert calls["given"] == calls["plain"] - 1
+    assert second.report.cost_history == first.report.cost_history
+    for name in ("ctrl", "rot", "trans", "scale"):
+        np.testing.assert_array_equal(given[name].value, plain[name].value)
+
+
 def test_assembly_matches_dense_reference_with_fixed_coords_and_huber() -> None:
     rng = np.random.default_rng(11)
     pr, _ = make_problem(rng, outliers=0.2, loss=HuberLoss(2.0))

@@ -88,6 +88,7 @@ class _Run:
     evaluate_only: list[bool] = field(default_factory=list)  # per round: no solver step
     max_steps: list[int] = field(default_factory=list)
     solved_given: list[Any] = field(default_factory=list)  # what each refinement was handed
+    unsettled: list[str] = field(default_factory=list)  # steps with no solve after them
     fit: Any = None
 
 
@@ -162,7 +163,13 @@ def _schedule(
         return _Sample(per_scan != 100)
 
     monkeypatch.setattr(schedule, "run_round", run_round)
+
+    def steps_only(state, inputs, lm, max_steps=free_planes.MAX_STEPS, solved=None):  # type: ignore[no-untyped-def]
+        run.unsettled.append(state.label)
+        return refine(state, inputs, lm, max_steps, solved)
+
     monkeypatch.setattr(schedule, "refine_with_planes", refine)
+    monkeypatch.setattr(schedule, "planes_free_steps_from", steps_only)
     monkeypatch.setattr(schedule, "_change", change)
     monkeypatch.setattr(schedule, "map_movement", lambda before, after, probe: 0.0)
     monkeypatch.setattr(schedule, "intrinsic_change", lambda before, after, report: 0.0)
@@ -196,13 +203,14 @@ def _schedule(
 
 def _wired_schedule(
     monkeypatch: pytest.MonkeyPatch, steps_mm: list[float], refine_mm: float
-) -> tuple[list[tuple[str, str, bool]], list[str]]:
-    """The rounds (label, start, mapped kept) and the planes-free steps' starting states of
-    regular rounds that move the translation by ``steps_mm``."""
+) -> tuple[list[tuple[str, str, bool]], list[str], list[str]]:
+    """The rounds (label, start, mapped kept), the planes-free steps' starting states and those
+    of the steps not followed by a solve, of regular rounds that move the translation by
+    ``steps_mm``."""
     run = _schedule(
         monkeypatch, lambda i, dense: steps_mm[min(i - 1, len(steps_mm) - 1)], refine_mm=refine_mm
     )
-    return [r[:3] for r in run.rounds], run.refined_from
+    return [r[:3] for r in run.rounds], run.refined_from, run.unsettled
 
 
 def test_a_crawl_takes_a_planes_free_step_before_the_next_round(
@@ -210,9 +218,11 @@ def test_a_crawl_takes_a_planes_free_step_before_the_next_round(
 ) -> None:
     # 3.0, 2.4, 1.9, ... mm: each round covers 80 % of the one before (crawling)
     steps = [3.0 * 0.8**k for k in range(12)]
-    rounds, refined_from = _wired_schedule(monkeypatch, steps, refine_mm=5.0)
+    rounds, refined_from, unsettled = _wired_schedule(monkeypatch, steps, refine_mm=5.0)
     # the first round has nothing to compare with; from the second on each crawls
     assert refined_from == ["round 2", "round 3", "round 4"]
+    # the crawl's steps are not followed by a solve on their planes: the next round solves
+    assert unsettled == refined_from
     assert len(refined_from) == MAX_CRAWL_STEPS
     starts = {label: (start, kept) for label, start, kept in rounds}
     # the round after a step starts from the stepped estimate, with no mapped sample kept
@@ -225,7 +235,7 @@ def test_a_crawl_takes_a_planes_free_step_before_the_next_round(
 def test_no_planes_free_step_while_the_rounds_settle(monkeypatch: pytest.MonkeyPatch) -> None:
     # each round moves a third of the one before: converging, not crawling
     steps = [3.0 / 3.0**k for k in range(12)]
-    rounds, refined_from = _wired_schedule(monkeypatch, steps, refine_mm=5.0)
+    rounds, refined_from, _ = _wired_schedule(monkeypatch, steps, refine_mm=5.0)
     assert refined_from == []
     assert all(kept for label, _, kept in rounds if label != "round 1")
 
@@ -364,6 +374,35 @@ def test_provisional_rounds_stop_early_with_or_without_intrinsics() -> None:
 
     assert tolerance(False, True) == tolerance(True, True) == PROVISIONAL_COST_TOLERANCE > 0.0
     assert tolerance(False, False) == tolerance(True, False) == 0.0
+
+
+def test_coarse_rounds_stop_at_a_fraction_of_the_cost() -> None:
+    """A round associating farther than the configured distance is followed by rounds on a
+    rebuilt, tighter map: its solve stops once a step would gain less than
+    COARSE_FUNCTION_TOLERANCE of the cost. At the configured distance (the rounds that decide
+    convergence, the final round, the planes-free refinements) the solver's own tolerance
+    holds."""
+    from licalib_cli.pipeline.settings import (
+        COARSE_FUNCTION_TOLERANCE,
+        NoiseLevels,
+        round_settings,
+    )
+    from licalib_cli.solver.lm import LMParams
+
+    cfg = CalibConfig.model_validate({"surfels": {"max_distance_m": 0.03}})
+    gyro, accel = np.full(3, 0.0035), np.full(3, 0.0118)
+    noise = NoiseLevels(
+        gyro, accel, 0.01, "config", "config", "config", np.full(16, np.nan), gyro, accel, 0.01
+    )
+
+    def tolerance(max_distance_m: float, **kwargs: bool) -> float:
+        settings = round_settings(cfg, noise, max_distance_m, False, **kwargs)
+        return settings.solver.function_tolerance
+
+    assert COARSE_FUNCTION_TOLERANCE > 1e3 * LMParams.function_tolerance
+    assert tolerance(0.09) == tolerance(0.031, provisional=True) == COARSE_FUNCTION_TOLERANCE
+    assert tolerance(0.03) == tolerance(0.03, provisional=True) == LMParams.function_tolerance
+    assert tolerance(0.03, evaluate_only=True) == LMParams.function_tolerance
 
 
 def test_a_rounds_summary_after_the_planes_free_step_reports_the_refined_fit() -> None:
