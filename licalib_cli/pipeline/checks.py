@@ -35,7 +35,6 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig, ChecksSection
-from licalib_cli.parallel.threads import map_blocks
 from licalib_cli.pipeline.fitcheck import (
     EFFECT_P_VALUE,
     EffectEvidence,
@@ -598,36 +597,18 @@ def check(fit: Fit, guess: InitialGuess, noise: NoiseLevels, cfg: CalibConfig) -
     # All in this process: a forked second process for the map planes' uncertainty was slower
     # (both processes then pay a page copy for every page of the freed heap they write,
     # which ``parallel.memory`` keeps for reuse; on a 10 s OS1-64 bag the checks took 2.2 s
-    # forked and 1.3 s here). Two block threads instead: the analyses of the final problem
-    # (its map planes' uncertainty, the residuals per sensor) on one, those that build problems
-    # of their own (the score tests, the halves) on the other. Each computes what it computes
-    # alone (block functions evaluate serially), so the outcome does not depend on the threads.
-
-    def on_final_problem() -> tuple[MapUncertainty, tuple[SensorCheck, ...]]:
-        planes = map_uncertainty(fit.state, fit.inputs, fit.report, fit.solved)
-        return planes, sensor_checks(fit.state, fit.inputs, noise, fit.solved)
-
-    def on_own_problems() -> tuple[list[EffectEvidence], SplitResult]:
-        effects = effect_evidence(
-            fit.state,
-            fit.inputs,
-            fit.report.variance_factor,
-            cfg.model.imu_prior,
-            planes_free_p=COVER_P_VALUE,
-        )
-        return effects, split_half(fit.state, fit.inputs, cfg)
-
-    final_part: list[tuple[MapUncertainty, tuple[SensorCheck, ...]]] = []
-    own_part: list[tuple[list[EffectEvidence], SplitResult]] = []
-
-    def part(i: int) -> None:
-        if i == 0:
-            final_part.append(on_final_problem())
-        else:
-            own_part.append(on_own_problems())
-
-    map_blocks(part, 2)
-    (planes, sensors), (effects, split) = final_part[0], own_part[0]
+    # forked and 1.3 s here). That uncertainty comes from the last planes-free step when the
+    # final round took them; the two halves are estimated one per block thread.
+    planes = map_uncertainty(fit.state, fit.inputs, fit.report, fit.solved)
+    sensors = sensor_checks(fit.state, fit.inputs, noise, fit.solved)
+    effects = effect_evidence(
+        fit.state,
+        fit.inputs,
+        fit.report.variance_factor,
+        cfg.model.imu_prior,
+        planes_free_p=COVER_P_VALUE,
+    )
+    split = split_half(fit.state, fit.inputs, cfg)
     notes: tuple[str, ...] = ()
     if guess.rotation_source == SINGLE_AXIS:
         notes = (

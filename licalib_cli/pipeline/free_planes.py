@@ -41,7 +41,7 @@ from licalib_cli.estimation import (
     state_from_values,
 )
 from licalib_cli.pipeline.points import points_and_rays_in_global
-from licalib_cli.pipeline.round import RoundInputs, SolvedProblem
+from licalib_cli.pipeline.round import FreePlanesInformation, RoundInputs, SolvedProblem
 from licalib_cli.residuals import TRAJ_R3, TRAJ_SO3, PointToPlaneResidual
 from licalib_cli.solver import s2_basis
 from licalib_cli.solver.lm import LMParams, SolverReport, solve_with_linearization
@@ -51,7 +51,8 @@ from licalib_cli.solver.nuisance import (
     nuisance_step,
     nuisance_terms,
 )
-from licalib_cli.solver.problem import Evaluation, Layout, Problem
+from licalib_cli.solver.observability import undamped_schur
+from licalib_cli.solver.problem import Evaluation, Layout, Linearization, Problem
 
 __all__ = [
     "MAX_STEPS",
@@ -62,6 +63,7 @@ __all__ = [
     "PlanesFreeSteps",
     "corrected_plane_terms",
     "expected_noise_cost",
+    "free_planes_information",
     "gauge_hold",
     "lidar_block",
     "noise_corrected",
@@ -377,6 +379,8 @@ class PlanesFreeSteps:
         points_and_rays: the round's points and their unit rays in the planes' frame under an
             estimate, ``points_and_rays(state)`` (the last estimate's are kept).
         evaluation: ``problem``'s evaluation with Jacobians at ``state``.
+        last_step: the last step computed (taken or not) and the linearisation it was
+            computed from.
     """
 
     state: CalibrationState
@@ -387,6 +391,7 @@ class PlanesFreeSteps:
     noise_part: Callable[[Problem, CalibrationState, Planes], float] = field(repr=False)
     points_and_rays: Callable[[CalibrationState], tuple[F64, F64]] = field(repr=False)
     evaluation: Evaluation = field(repr=False)
+    last_step: tuple[Linearization, NuisanceStep] = field(repr=False)
 
 
 def refine_with_planes(
@@ -434,8 +439,20 @@ def refine_with_planes(
         cost_end=cost_end,
         seconds=time.perf_counter() - start,
         solved=SolvedProblem(
-            problem, solution.evaluation, solution.linearization, stepped.points_and_rays(state)[0]
+            problem,
+            solution.evaluation,
+            solution.linearization,
+            stepped.points_and_rays(state)[0],
+            free_planes_information(*stepped.last_step),
         ),
+    )
+
+
+def free_planes_information(lin: Linearization, step: NuisanceStep) -> FreePlanesInformation:
+    """The calibration information of a planes-free step's linearisation with the planes held
+    and with them estimated (the step's own elimination)."""
+    return FreePlanesInformation(
+        tuple(lin.layout.calibration_names), undamped_schur(lin), step.information
     )
 
 
@@ -475,6 +492,7 @@ def planes_free_steps_from(
     # the last trial's evaluation: with Jacobians, since a kept trial is linearised next (by
     # the next step, or by the solve after the steps) at the same estimate
     evaluated: list[tuple[Problem, Evaluation]] = []
+    last_step: list[tuple[Linearization, NuisanceStep]] = []
     if solved is not None:
         evaluated.append((solved.problem, solved.evaluation))
 
@@ -523,6 +541,7 @@ def planes_free_steps_from(
             tsvd_threshold=lm.tsvd_threshold if lm.use_tsvd else 0.0,
             tsvd_relative=lm.tsvd_relative,
         )
+        last_step[:] = [(lin, step)]
 
         def trial(fraction: float) -> Stepped[tuple[CalibrationState, Planes]]:
             moved = state_from_values(state, problem.retracted_values(fraction * step.dx, layout))
@@ -543,4 +562,5 @@ def planes_free_steps_from(
         noise_part,
         points_and_rays,
         evaluation_of(problem),
+        last_step[0],
     )

@@ -81,6 +81,15 @@ def map_uncertainty(
     """
     start = time.perf_counter()
     names = tuple(report.calibration_names)
+    num_planes = int(np.asarray(inputs.planes.d).shape[0])
+    reused = solved.free_planes if solved is not None else None
+    if solved is not None and reused is not None and reused.names == names:
+        # the planes-free step nearest the estimate eliminated the same planes: its information
+        # with them held and estimated (a step of a fraction of a sigma away changes the
+        # geometry, and so the ratio, by nothing that shows)
+        scale = solved.linearization.layout.calibration_scale
+        factor = _sigma_ratio(reused.plain, reused.marginal, scale, report)
+        return MapUncertainty(names, factor, num_planes, time.perf_counter() - start)
     if solved is not None:
         problem = solved.problem
         layout = solved.linearization.layout
@@ -99,7 +108,6 @@ def map_uncertainty(
     residual = problem.residual_blocks[block]
     assert isinstance(residual, PointToPlaneResidual)
     plane = np.asarray(inputs.lidar.plane, dtype=np.intp)
-    num_planes = int(np.asarray(inputs.planes.d).shape[0])
     # the points the residuals measure
     p_g = solved.points_global if solved is not None else points_in_global(state, inputs.points)
     jac_p, _ = plane_jacobian(p_g, plane, np.asarray(inputs.planes.normal, dtype=np.float64))

@@ -109,6 +109,22 @@ class RoundInputs:
 
 
 @dataclass(frozen=True)
+class FreePlanesInformation:
+    """The calibration information of one linearisation with the map planes held fixed and with
+    them estimated too (the trajectory eliminated in both), from a planes-free step.
+
+    Attributes:
+        names: (Nc,) the calibration coordinates.
+        plain: (Nc, Nc) the information with the planes held.
+        marginal: (Nc, Nc) the information with the planes estimated.
+    """
+
+    names: tuple[str, ...]
+    plain: F64
+    marginal: F64
+
+
+@dataclass(frozen=True)
 class SolvedProblem:
     """A round's problem at its estimate, with the solver's evaluation and normal equations there
     (the checks analyse the final round's problem at the same state without evaluating and
@@ -120,12 +136,15 @@ class SolvedProblem:
         linearization: the normal equations at the estimate (the report's spectrum and sigmas).
         points_global: (P, 3) the problem's points (``RoundInputs.points``) mapped into ``{G}``
             with the estimate, m.
+        free_planes: the information of the planes-free step nearest the estimate when planes-
+            free steps led to it (the checks' map uncertainty reads it), else None.
     """
 
     problem: Problem
     evaluation: Evaluation
     linearization: Linearization
     points_global: F64
+    free_planes: FreePlanesInformation | None = None
 
 
 @dataclass(frozen=True)

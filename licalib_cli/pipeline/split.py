@@ -26,6 +26,7 @@ from licalib_cli.estimation import (
     state_from_problem,
 )
 from licalib_cli.geometry import so3
+from licalib_cli.parallel.threads import map_blocks
 from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.pipeline.settings import lm_params, spline_margin_s
 from licalib_cli.solver.lm import SolverReport, solve
@@ -196,12 +197,17 @@ def split_half(state: CalibrationState, inputs: RoundInputs, cfg: CalibConfig) -
             half,
         )
     mid = start + half
-    results = []
-    for lo, hi in ((start, mid), (mid, end)):
+    bounds = ((start, mid), (mid, end))
+
+    def estimate(i: int) -> tuple[CalibrationState, SolverReport] | str:
         try:
-            res = _estimate_half(state, inputs, lo, hi, cfg)
+            return _estimate_half(state, inputs, *bounds[i], cfg)
         except (LicalibError, ValueError, np.linalg.LinAlgError) as err:
-            res = f"a half could not be estimated ({err})"
+            return f"a half could not be estimated ({err})"
+
+    # one half per block thread: each is estimated as it would be alone
+    results = []
+    for res in map_blocks(estimate, len(bounds)):
         if isinstance(res, str):
             return SplitResult(False, res, half)
         results.append(res)

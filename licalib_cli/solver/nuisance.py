@@ -338,12 +338,15 @@ class NuisanceStep:
             in turn).
         predicted_reduction: cost reduction the quadratic model predicts for the step.
         num_truncated: calibration directions the joint information does not determine (held).
+        information: (Nc, Nc) the calibration information with the trajectory and the nuisance
+            eliminated (:func:`marginal_schur`'s ``S`` for the same terms), before truncation.
     """
 
     dx: F64
     dp: F64
     predicted_reduction: float
     num_truncated: int
+    information: F64
 
 
 @dataclass(frozen=True)
@@ -567,7 +570,7 @@ def segmented_nuisance_step(
     quad = lin.quadratic(dx) + 2.0 * cross + quad_p
     predicted = -(float(lin.g @ dx) + grad_p + 0.5 * quad)
     dp_all = np.concatenate(dps) if dps else np.zeros((0, 0))
-    return NuisanceStep(dx, dp_all, predicted, num_truncated)
+    return NuisanceStep(dx, dp_all, predicted, num_truncated, 0.5 * (s_c + s_c.T))
 
 
 def nuisance_step(

@@ -213,6 +213,11 @@ def test_nuisance_step_matches_the_dense_gauss_newton_step(huber: bool) -> None:
     assert step.num_truncated == 0
     predicted = -(grad @ expected + 0.5 * expected @ full @ expected)
     assert step.predicted_reduction == pytest.approx(predicted, rel=1e-8)
+    # the step's calibration information is the marginal one (the checks reuse it)
+    marginal = marginal_schur(lin, terms, hold)
+    np.testing.assert_allclose(
+        step.information, marginal, rtol=1e-9, atol=1e-9 * np.abs(marginal).max()
+    )
 
 
 @pytest.mark.parametrize("huber", [False, True])
