@@ -128,3 +128,24 @@ def test_the_map_on_block_threads_is_the_map_of_one_evaluation(
     assert np.array_equal(points_in_global(state, sample), expected)
     with thr.serial():
         assert np.array_equal(points_in_global(state, sample), expected)
+
+
+def test_a_point_past_the_spline_is_mapped_at_its_end_as_the_residual_evaluates_it() -> None:
+    """A round may move the time offset past the margin its points were chosen with: the points
+    whose trajectory time then leaves the spline are mapped at its end (the point-to-plane
+    residual clips their times the same way), not refused with an error."""
+    rng = np.random.default_rng(6)
+    state = replace(_state(rng), time_offset_s=0.5)  # the last sweeps' points are past the end
+    sample = sample_points(_scans(rng, TABLE), TABLE, 400, CalibConfig())
+    t = query_times(state, sample)
+    past = t > state.knots.t_end_s
+    assert past.any() and not past.all()
+    with pytest.raises(ValueError, match="outside the spline range"):
+        state.so3_spline.rotation(t)
+    clipped = np.minimum(t, state.knots.t_end_s)
+    p_l = lidar_point(state.lidar_intrinsics, sample.beam, sample.rho, sample.theta)
+    p_i = (p_l + sample.model_gap) @ state.R_imu_lidar.T + state.t_imu_lidar
+    expected = np.einsum(
+        "nij,nj->ni", state.so3_spline.rotation(clipped), p_i
+    ) + state.r3_spline.position(clipped)
+    np.testing.assert_allclose(points_in_global(state, sample), expected, rtol=0, atol=1e-12)
