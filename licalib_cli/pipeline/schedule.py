@@ -20,6 +20,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from licalib_cli.config import CalibConfig
+from licalib_cli.errors import ExcitationError
 from licalib_cli.estimation import CalibrationState, ImuData, intrinsic_coordinates
 from licalib_cli.measurements import Recording
 from licalib_cli.models.lidar import lidar_point
@@ -155,6 +156,20 @@ class Fit:
 def _change(before: CalibrationState, after: CalibrationState) -> Change:
     err = extrinsic_of(before).error_to(extrinsic_of(after))
     return Change(err["translation_m"], err["rotation_deg"], err["time_offset_s"])
+
+
+def _diverged(
+    err: ExcitationError, index: int, first_points: int, moved: Change
+) -> ExcitationError:
+    """The error of a map that lost its planes after the first round: the rounds diverged from
+    the initial guess, which the scene's sentence would not say."""
+    msg = (
+        f"{str(err).split(';')[0].rstrip('.')} in round {index}, although round 1 had "
+        f"{first_points} points on them: the estimate diverged from the initial guess (it moved "
+        f"{_describe(moved)}); give initialization.rotation_rpy_deg and "
+        "initialization.translation_m (a tape measure or CAD is enough) to start closer."
+    )
+    return ExcitationError(msg)
 
 
 def _describe(c: Change) -> str:
@@ -339,14 +354,19 @@ def run_schedule(
     for index in range(1, sch.max_rounds + 1):
         before = state
         solved = None  # the previous round's evaluation is not kept while this one runs
-        done = run_round(
-            state,
-            sample,
-            imu,
-            round_settings(cfg, noise, max_dist, intrinsics_on, provisional=dense_after),
-            index,
-            mapped,
-        )
+        try:
+            done = run_round(
+                state,
+                sample,
+                imu,
+                round_settings(cfg, noise, max_dist, intrinsics_on, provisional=dense_after),
+                index,
+                mapped,
+            )
+        except ExcitationError as err:
+            if not rounds:
+                raise
+            raise _diverged(err, index, rounds[0].points, _change(guess.state, state)) from err
         state, summary, report, inputs = done.state, done.summary, done.report, done.inputs
         solved, mapped = done.solved, done.mapped
         del done

@@ -446,3 +446,36 @@ def test_a_rounds_summary_after_the_planes_free_step_reports_the_refined_fit() -
     assert after.iterations == 3 and after.seconds == pytest.approx(1.5)
     np.testing.assert_array_equal(after.extrinsic.translation, np.ones(3))
     assert after.index == 5 and after.points == 3
+
+
+def test_a_map_lost_after_the_first_round_is_told_as_a_divergence(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A map without planes in a later round means the rounds ran away from the initial guess
+    (the first round's map had them): the error says so and how to start closer; in the first
+    round it is the scene's own sentence."""
+    from licalib_cli.errors import ExcitationError
+
+    scene = (
+        "No planar surfaces were found in the LiDAR map; calibrate in a structured scene "
+        "(walls, floor) or raise surfels.cell_sizes_m."
+    )
+
+    def lost_in(round_index: int) -> Callable[[int, bool], float]:
+        def step_mm(index: int, dense: bool) -> float:
+            if index == round_index:
+                raise ExcitationError(scene)
+            return 700.0
+
+        return step_mm
+
+    with pytest.raises(ExcitationError) as first:
+        _schedule(monkeypatch, lost_in(1), lidar=False)
+    assert str(first.value) == scene
+    with pytest.raises(ExcitationError) as later:
+        _schedule(monkeypatch, lost_in(3), lidar=False)
+    text = str(later.value)
+    assert text.startswith("No planar surfaces were found in the LiDAR map in round 3")
+    assert "round 1 had 1 points" in text and "diverged" in text
+    assert "1400.00 mm" in text  # how far the two rounds before it moved the estimate
+    assert "initialization.rotation_rpy_deg" in text
