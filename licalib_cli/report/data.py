@@ -55,6 +55,7 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.errors import ConfigError, DataError
+from licalib_cli.parallel.threads import map_blocks
 from licalib_cli.results import Extrinsic
 
 if TYPE_CHECKING:
@@ -437,12 +438,18 @@ def build_report_data(
     if with_map:
         every = thinning_for(rec, _MAP_POINTS)
         level = level_frame(run.state.gravity_G)
-        after = map_points(rec, run.state, cfg, every).xyz @ level.T
-        before = map_points(rec, ini.state, cfg, every).xyz @ level.T
+        states = (run.state, ini.state)
+
+        def leveled_map(i: int) -> tuple[F64, float]:
+            xyz = map_points(rec, states[i], cfg, every).xyz @ level.T
+            return xyz, _entropy(xyz)
+
+        # the final and the initial map, one per block thread
+        (after, entropy_after), (before, entropy_before) = map_blocks(leveled_map, 2)
         region = _region(after)
         zoom = _zoom(after)
-        s_after = _slices(after, region, zoom, _entropy(after))
-        s_before = _slices(before, region, zoom, _entropy(before))
+        s_after = _slices(after, region, zoom, entropy_after)
+        s_before = _slices(before, region, zoom, entropy_before)
         data.update(
             map_before_top_xy=s_before.top_xy,
             map_before_side_xz=s_before.side_xz,
