@@ -164,13 +164,14 @@ def marginal_schur(lin: Linearization, terms: NuisanceTerms, hold: npt.ArrayLike
     nt = lin.layout.num_trajectory
     nc = lin.layout.num_calibration
     h_xp = sp.csr_matrix(terms.H_xp)
-    h_tp = h_xp[:nt].toarray()
     h_cp = h_xp[nt:].toarray()
     g, k, _ = terms.H_pp.shape
     npar = g * k
     rhs = np.empty((nt, nc + npar), order="F")
     rhs[:, :nc] = lin.H_tc
-    rhs[:, nc:] = h_tp
+    # the coupling's dense columns written in place (a column slice of an F-ordered array is
+    # contiguous): no C-ordered copy to transpose into it
+    h_xp[:nt].toarray(out=rhs[:, nc:])
     if nt:
         add = _trajectory_diagonal(lin.H_tt, 0.0)
         held = np.asarray(hold, dtype=np.intp).reshape(-1)
@@ -467,7 +468,7 @@ def _eliminate_segment(lin: Linearization, seg: NuisanceSegment, s_c: F64, b_c: 
         solve_tt = factor.solve if factor is not None else _sparse_lu_solver(h_tt, add)
         rhs = np.empty((t.size, ny + 1), order="F")
         rhs[:, :ncs] = lin.H_tc[np.ix_(t, c)]
-        rhs[:, ncs:ny] = h_xp[t].toarray()
+        h_xp[t].toarray(out=rhs[:, ncs:ny])  # in place, as in marginal_schur
         rhs[:, ny] = lin.g_t[t]
         if factor is not None:
             w = factor.forward(rhs)
