@@ -74,7 +74,9 @@ def map_uncertainty(
         report: the final round's solver report (its kept directions and sigmas).
         solved: that problem at ``state`` with the solver's evaluation and normal equations
             there (reused instead of building, evaluating and linearising it again); None:
-            they are computed here.
+            they are computed here. When it carries the information of the planes-free step
+            that led to it (``free_planes``), that is used instead of eliminating the planes
+            again.
 
     Returns:
         The factors (all 1 when the round had no LiDAR points).
