@@ -546,7 +546,10 @@ def planes_free_steps_from(
         def trial(fraction: float) -> Stepped[tuple[CalibrationState, Planes]]:
             moved = state_from_values(state, problem.retracted_values(fraction * step.dx, layout))
             stepped = stepped_planes(planes, centroid, fraction * step.dp)
-            return (moved, stepped), inputs.problem(moved, stepped)
+            moved_problem = inputs.problem(moved, stepped)
+            # the same points and residuals: the assembly's pattern and groupings carry over
+            moved_problem.share_assembly_caches(problem)
+            return (moved, stepped), moved_problem
 
         return cost, step, trial
 

@@ -339,6 +339,17 @@ class Problem:
         # groupings of the measurements of the dense residual blocks, reused while unchanged
         self._group_cache = GroupCache()
 
+    def share_assembly_caches(self, other: Problem) -> None:
+        """Assemble with ``other``'s sparsity pattern and measurement groupings from now on.
+
+        For a problem built like ``other`` (the same residual blocks on the same data, the
+        parameters moved by a step): its first linearisation then reuses what ``other``'s last
+        one computed wherever the elements each measurement touches are the same. Both caches
+        compare the elements before reusing anything, so the result is what a fresh cache gives.
+        """
+        self._tt_pattern = other._tt_pattern
+        self._group_cache = other._group_cache
+
     # ------------------------------------------------------------------------------ building
     def add_parameter_block(self, block: ParameterBlock) -> ParameterBlock:
         """Add a parameter block.

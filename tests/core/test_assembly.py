@@ -199,6 +199,31 @@ def test_assembly_reuses_and_refreshes_the_trajectory_pattern() -> None:
     np.testing.assert_allclose(fourth.dense(), h, rtol=0.0, atol=1e-12 * np.abs(h).max())
 
 
+def test_a_problem_sharing_anothers_caches_assembles_what_a_fresh_one_does() -> None:
+    """A stepped copy of a problem (the planes-free trials) takes over its assembly caches: with
+    the same elements it assembles bit for bit what its own fresh caches give, and with a
+    measurement moved to another segment it does not reuse the stale pattern."""
+    pr, _ = make_problem(3, 400, 1, False, None)
+    pr.linearize(pr.evaluate())
+    fresh, fresh_block = make_problem(3, 400, 1, False, None)
+    shared, shared_block = make_problem(3, 400, 1, False, None)
+    shared.share_assembly_caches(pr)
+    for b in (fresh_block, shared_block):
+        b.jacobians = tuple(DenseJacobian(j.block, j.elements, 2.0 * j.values) for j in b.jacobians)
+    a = fresh.linearize(fresh.evaluate())
+    b = shared.linearize(shared.evaluate())
+    assert shared._tt_pattern is pr._tt_pattern  # reused, not rebuilt
+    assert np.array_equal(b.dense(), a.dense()) and np.array_equal(b.g, a.g)
+    ctrl = shared_block.jacobians[0]
+    seg = np.minimum(ctrl.elements[:, 0], NUM_CTRL - 6)
+    seg[0] = NUM_CTRL - 4
+    moved = (DenseJacobian("ctrl", seg[:, None] + np.arange(4), ctrl.values),)
+    shared_block.jacobians = (*moved, *shared_block.jacobians[1:])
+    again = shared.linearize(shared.evaluate())
+    h, _ = dense_reference(shared, shared_block, None)
+    np.testing.assert_allclose(again.dense(), h, rtol=0.0, atol=1e-12 * np.abs(h).max())
+
+
 def test_constant_only_block_and_empty_block() -> None:
     rng = np.random.default_rng(5)
     pr, block = make_problem(5, 300, 3, False, None)
