@@ -29,10 +29,13 @@ Conventions:
 
 from __future__ import annotations
 
+import importlib
 import logging
+import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -42,9 +45,11 @@ from scipy.spatial.transform import Rotation
 from licalib_cli.errors import ConfigError, DataError
 from licalib_cli.geometry.vectors import norms
 from licalib_cli.measurements import LidarScan
+from licalib_cli.parallel import forked
 from licalib_cli.parallel.threads import threads
 
 if TYPE_CHECKING:
+    import open3d
     from kiss_icp.config import KISSConfig
 
 __all__ = [
@@ -123,6 +128,40 @@ class PoseSeries:
     def positions(self) -> npt.NDArray[np.float64]:
         """(K, 3) LiDAR origin in the map frame, metres."""
         return self.T_map_lidar[:, :3, 3]
+
+
+_PLOTLY_VIEWER = "open3d.visualization.draw_plotly"
+
+
+class _DeferredViewer(ModuleType):
+    """Stands in for open3d's plotly viewer module: its functions import the real one (and
+    dash and plotly with it) when first called."""
+
+    def __getattr__(self, name: str) -> Callable[..., Any]:
+        if name.startswith("__"):
+            raise AttributeError(name)
+
+        def call(*args: Any, **kwargs: Any) -> Any:
+            if sys.modules.get(_PLOTLY_VIEWER) is self:
+                del sys.modules[_PLOTLY_VIEWER]
+            return getattr(importlib.import_module(_PLOTLY_VIEWER), name)(*args, **kwargs)
+
+        call.__name__ = call.__qualname__ = name
+        return call
+
+
+def _open3d() -> ModuleType:
+    """open3d, imported without loading its plotly viewer.
+
+    ``import open3d`` imports its plotly viewer, and dash and plotly with it: half of its
+    0.5 s import, none of it used here. The viewer's functions stay callable and import it on
+    their first call (:class:`_DeferredViewer`).
+    """
+    if "open3d" not in sys.modules:
+        sys.modules.setdefault(_PLOTLY_VIEWER, _DeferredViewer(_PLOTLY_VIEWER))
+    import open3d
+
+    return open3d
 
 
 def kiss_icp_config(cfg: OdometryConfig) -> KISSConfig:
@@ -566,8 +605,7 @@ def _registration_pass(
     Returns:
         (K, 4, 4) poses (the first is the identity) and the number of rejected registrations.
     """
-    import open3d as o3d
-
+    o3d = _open3d()
     reg = o3d.pipelines.registration
     estimation = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=refine.robust_scale))
     criteria = reg.ICPConvergenceCriteria(
@@ -587,7 +625,7 @@ def _registration_pass(
         if len(window) > refine.map_scans:
             del window[0]
 
-    def target() -> o3d.geometry.PointCloud:
+    def target() -> open3d.geometry.PointCloud:
         cloud = o3d.geometry.PointCloud(
             o3d.utility.Vector3dVector(np.concatenate([w[0] for w in window]))
         )
@@ -683,6 +721,102 @@ def _registration_pass(
     return out, n_rejected
 
 
+SPLIT_MIN_SCANS = 40
+"""Scans from which :func:`refine_odometry` registers the two halves of a seeded sequence
+separately (:func:`_split_passes`); shorter sequences do not repay a second process."""
+
+
+def _passes(
+    sweeps: Sequence[_Sweep],
+    t_ns: npt.NDArray[np.int64],
+    seed_rel: npt.NDArray[np.float64],
+    refine: RefineConfig,
+    n_passes: int,
+    seed_translation: bool,
+    progress: ProgressFn | None = None,
+) -> tuple[npt.NDArray[np.float64], int]:
+    """``n_passes`` registration passes over the K scans, each deskewed through the one before.
+
+    Returns:
+        (K, 4, 4) poses in the frame of the first scan and the registrations the last pass
+        rejected.
+    """
+    k_total = len(sweeps)
+    out = np.eye(4)[None].repeat(k_total, axis=0)
+    previous: npt.NDArray[np.float64] | None = None
+    n_rejected = 0
+    for p in range(n_passes if k_total > 1 else 0):
+
+        def tick(done: int, p: int = p) -> None:
+            if progress is not None:
+                progress(p * k_total + done, n_passes * k_total)
+
+        out, n_rejected = _registration_pass(
+            list(sweeps), t_ns, seed_rel, previous, refine, tick, seed_translation
+        )
+        previous = out
+    return out, n_rejected
+
+
+def _split_passes(
+    sweeps: Sequence[_Sweep],
+    t_ns: npt.NDArray[np.int64],
+    seed_rel: npt.NDArray[np.float64],
+    refine: RefineConfig,
+    n_passes: int,
+    seed_translation: bool,
+    progress: ProgressFn | None = None,
+) -> tuple[npt.NDArray[np.float64], int]:
+    """:func:`_passes` on the two halves of the scans, the second in a forked process.
+
+    A scan's registration depends on the scans before it only through its starting pose and its
+    local map (the last ``refine.map_scans``), and in a later pass on the previous pass's poses
+    of the two scans before and the one after it (its deskew). So the first half registers the
+    scans up to the chain scan ``c`` and one more, which makes its poses up to ``c`` those of
+    the whole sequence; the second half starts ``2 * map_scans`` scans before ``c`` from the
+    seed's relative poses (its local map is full again when it reaches ``c``) and is chained to
+    the first at ``c``. ``c`` gives both halves the same number of registrations; it does not
+    depend on the cores (without a second process the halves run one after the other), so the
+    poses do not either.
+
+    Returns:
+        As :func:`_passes`; the rejected registrations of both halves' last passes.
+    """
+    k_total = len(sweeps)
+    lead = 2 * int(refine.map_scans)
+    chain = (k_total + lead - 2) // 2
+    head_end = chain + 2  # the first half registers scans 0 .. chain + 1
+    start = chain - lead  # the second half registers start .. K - 1
+
+    def head_tick(done: int, total: int) -> None:
+        if progress is not None:
+            progress(done * k_total // head_end, total * k_total // head_end)
+
+    with forked.start(
+        _passes,
+        sweeps[start:],
+        t_ns[start:],
+        seed_rel[start:],
+        refine,
+        n_passes,
+        seed_translation,
+    ) as pending:
+        head, rejected_head = _passes(
+            sweeps[:head_end],
+            t_ns[:head_end],
+            seed_rel[: head_end - 1],
+            refine,
+            n_passes,
+            seed_translation,
+            head_tick,
+        )
+        tail, rejected_tail = pending.result()
+    # the second half's frame is its first scan's: chain it at scan ``chain``
+    to_head = head[chain] @ np.linalg.inv(tail[lead])
+    out = np.concatenate([head[: chain + 1], to_head[None] @ tail[lead + 1 :]])
+    return out, rejected_head + rejected_tail
+
+
 @dataclass(frozen=True)
 class PreparedSweeps:
     """The scans' points prepared for :func:`refine_odometry`, independent of any rotation prior.
@@ -746,8 +880,7 @@ def prepare_sweeps(
         DataError: no scans, a scan without points in range, or scans out of time order.
         ConfigError: inconsistent range limits.
     """
-    import open3d as o3d
-
+    o3d = _open3d()
     refine = refine or RefineConfig()
     if len(scans) == 0:
         msg = "No LiDAR scans to run odometry on; check the LiDAR topic and the time window."
@@ -923,19 +1056,14 @@ def refine_odometry(
         warm, _ = _registration_pass(*head, None, refine, None, seed_translation)
         warm, _ = _registration_pass(*head, warm, refine, None)
         seed_rel[: n_warm - 1] = np.linalg.inv(warm[:-1]) @ warm[1:]
-    out = np.eye(4)[None].repeat(k_total, axis=0)
-    previous: npt.NDArray[np.float64] | None = None
-    n_rejected = 0
-    for p in range(n_passes if k_total > 1 else 0):
-
-        def tick(done: int, p: int = p) -> None:
-            if progress is not None:
-                progress(p * k_total + done, n_passes * k_total)
-
-        out, n_rejected = _registration_pass(
-            sweeps, t_out, seed_rel, previous, refine, tick, seed_translation
+    if poses is not None and k_total >= SPLIT_MIN_SCANS:
+        out, n_rejected = _split_passes(
+            sweeps, t_out, seed_rel, refine, n_passes, seed_translation, progress
         )
-        previous = out
+    else:
+        out, n_rejected = _passes(
+            sweeps, t_out, seed_rel, refine, n_passes, seed_translation, progress
+        )
     if progress is not None:
         progress(n_passes * k_total, n_passes * k_total)
     if n_rejected:
