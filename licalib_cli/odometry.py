@@ -759,12 +759,9 @@ def _passes(
 
 
 def _split_passes(
-    sweeps: Sequence[_Sweep],
-    t_ns: npt.NDArray[np.int64],
-    seed_rel: npt.NDArray[np.float64],
-    refine: RefineConfig,
-    n_passes: int,
-    seed_translation: bool,
+    passes: Callable[[int, int, ProgressFn | None], tuple[npt.NDArray[np.float64], int]],
+    k_total: int,
+    map_scans: int,
     progress: ProgressFn | None = None,
 ) -> tuple[npt.NDArray[np.float64], int]:
     """:func:`_passes` on the two halves of the scans, the second in a forked process.
@@ -779,11 +776,17 @@ def _split_passes(
     depend on the cores (without a second process the halves run one after the other), so the
     poses do not either.
 
+    Args:
+        passes: ``passes(start, stop, progress)`` runs :func:`_passes` on scans ``start ..
+            stop - 1``.
+        k_total: the number of scans K.
+        map_scans: the scans of a local map.
+        progress: as :func:`_passes`'s, over all K scans.
+
     Returns:
         As :func:`_passes`; the rejected registrations of both halves' last passes.
     """
-    k_total = len(sweeps)
-    lead = 2 * int(refine.map_scans)
+    lead = 2 * map_scans
     chain = (k_total + lead - 2) // 2
     head_end = chain + 2  # the first half registers scans 0 .. chain + 1
     start = chain - lead  # the second half registers start .. K - 1
@@ -792,24 +795,8 @@ def _split_passes(
         if progress is not None:
             progress(done * k_total // head_end, total * k_total // head_end)
 
-    with forked.start(
-        _passes,
-        sweeps[start:],
-        t_ns[start:],
-        seed_rel[start:],
-        refine,
-        n_passes,
-        seed_translation,
-    ) as pending:
-        head, rejected_head = _passes(
-            sweeps[:head_end],
-            t_ns[:head_end],
-            seed_rel[: head_end - 1],
-            refine,
-            n_passes,
-            seed_translation,
-            head_tick,
-        )
+    with forked.start(passes, start, k_total, None) as pending:
+        head, rejected_head = passes(0, head_end, head_tick)
         tail, rejected_tail = pending.result()
     # the second half's frame is its first scan's: chain it at scan ``chain``
     to_head = head[chain] @ np.linalg.inv(tail[lead])
@@ -1056,14 +1043,19 @@ def refine_odometry(
         warm, _ = _registration_pass(*head, None, refine, None, seed_translation)
         warm, _ = _registration_pass(*head, warm, refine, None)
         seed_rel[: n_warm - 1] = np.linalg.inv(warm[:-1]) @ warm[1:]
+
+    def passes(
+        start: int, stop: int, tick: ProgressFn | None
+    ) -> tuple[npt.NDArray[np.float64], int]:
+        rows = slice(start, stop)
+        return _passes(
+            sweeps[rows], t_out[rows], seed_rel[start:], refine, n_passes, seed_translation, tick
+        )
+
     if poses is not None and k_total >= SPLIT_MIN_SCANS:
-        out, n_rejected = _split_passes(
-            sweeps, t_out, seed_rel, refine, n_passes, seed_translation, progress
-        )
+        out, n_rejected = _split_passes(passes, k_total, int(refine.map_scans), progress)
     else:
-        out, n_rejected = _passes(
-            sweeps, t_out, seed_rel, refine, n_passes, seed_translation, progress
-        )
+        out, n_rejected = passes(0, k_total, progress)
     if progress is not None:
         progress(n_passes * k_total, n_passes * k_total)
     if n_rejected:
