@@ -45,7 +45,6 @@ from scipy.spatial.transform import Rotation
 from licalib_cli.errors import ConfigError, DataError
 from licalib_cli.geometry.vectors import norms
 from licalib_cli.measurements import LidarScan
-from licalib_cli.parallel import forked
 from licalib_cli.parallel.threads import threads
 
 if TYPE_CHECKING:
@@ -721,89 +720,6 @@ def _registration_pass(
     return out, n_rejected
 
 
-SPLIT_MIN_SCANS = 40
-"""Scans from which :func:`refine_odometry` registers the two halves of a seeded sequence
-separately (:func:`_split_passes`); shorter sequences do not repay a second process."""
-
-
-def _passes(
-    sweeps: Sequence[_Sweep],
-    t_ns: npt.NDArray[np.int64],
-    seed_rel: npt.NDArray[np.float64],
-    refine: RefineConfig,
-    n_passes: int,
-    seed_translation: bool,
-    progress: ProgressFn | None = None,
-) -> tuple[npt.NDArray[np.float64], int]:
-    """``n_passes`` registration passes over the K scans, each deskewed through the one before.
-
-    Returns:
-        (K, 4, 4) poses in the frame of the first scan and the registrations the last pass
-        rejected.
-    """
-    k_total = len(sweeps)
-    out = np.eye(4)[None].repeat(k_total, axis=0)
-    previous: npt.NDArray[np.float64] | None = None
-    n_rejected = 0
-    for p in range(n_passes if k_total > 1 else 0):
-
-        def tick(done: int, p: int = p) -> None:
-            if progress is not None:
-                progress(p * k_total + done, n_passes * k_total)
-
-        out, n_rejected = _registration_pass(
-            list(sweeps), t_ns, seed_rel, previous, refine, tick, seed_translation
-        )
-        previous = out
-    return out, n_rejected
-
-
-def _split_passes(
-    passes: Callable[[int, int, ProgressFn | None], tuple[npt.NDArray[np.float64], int]],
-    k_total: int,
-    map_scans: int,
-    progress: ProgressFn | None = None,
-) -> tuple[npt.NDArray[np.float64], int]:
-    """:func:`_passes` on the two halves of the scans, the second in a forked process.
-
-    A scan's registration depends on the scans before it only through its starting pose and its
-    local map (the last ``refine.map_scans``), and in a later pass on the previous pass's poses
-    of the two scans before and the one after it (its deskew). So the first half registers the
-    scans up to the chain scan ``c`` and one more, which makes its poses up to ``c`` those of
-    the whole sequence; the second half starts ``2 * map_scans`` scans before ``c`` from the
-    seed's relative poses (its local map is full again when it reaches ``c``) and is chained to
-    the first at ``c``. ``c`` gives both halves the same number of registrations; it does not
-    depend on the cores (without a second process the halves run one after the other), so the
-    poses do not either.
-
-    Args:
-        passes: ``passes(start, stop, progress)`` runs :func:`_passes` on scans ``start ..
-            stop - 1``.
-        k_total: the number of scans K.
-        map_scans: the scans of a local map.
-        progress: as :func:`_passes`'s, over all K scans.
-
-    Returns:
-        As :func:`_passes`; the rejected registrations of both halves' last passes.
-    """
-    lead = 2 * map_scans
-    chain = (k_total + lead - 2) // 2
-    head_end = chain + 2  # the first half registers scans 0 .. chain + 1
-    start = chain - lead  # the second half registers start .. K - 1
-
-    def head_tick(done: int, total: int) -> None:
-        if progress is not None:
-            progress(done * k_total // head_end, total * k_total // head_end)
-
-    with forked.start(passes, start, k_total, None) as pending:
-        head, rejected_head = passes(0, head_end, head_tick)
-        tail, rejected_tail = pending.result()
-    # the second half's frame is its first scan's: chain it at scan ``chain``
-    to_head = head[chain] @ np.linalg.inv(tail[lead])
-    out = np.concatenate([head[: chain + 1], to_head[None] @ tail[lead + 1 :]])
-    return out, rejected_head + rejected_tail
-
-
 @dataclass(frozen=True)
 class PreparedSweeps:
     """The scans' points prepared for :func:`refine_odometry`, independent of any rotation prior.
@@ -1043,19 +959,19 @@ def refine_odometry(
         warm, _ = _registration_pass(*head, None, refine, None, seed_translation)
         warm, _ = _registration_pass(*head, warm, refine, None)
         seed_rel[: n_warm - 1] = np.linalg.inv(warm[:-1]) @ warm[1:]
+    out = np.eye(4)[None].repeat(k_total, axis=0)
+    previous: npt.NDArray[np.float64] | None = None
+    n_rejected = 0
+    for p in range(n_passes if k_total > 1 else 0):
 
-    def passes(
-        start: int, stop: int, tick: ProgressFn | None
-    ) -> tuple[npt.NDArray[np.float64], int]:
-        rows = slice(start, stop)
-        return _passes(
-            sweeps[rows], t_out[rows], seed_rel[start:], refine, n_passes, seed_translation, tick
+        def tick(done: int, p: int = p) -> None:
+            if progress is not None:
+                progress(p * k_total + done, n_passes * k_total)
+
+        out, n_rejected = _registration_pass(
+            sweeps, t_out, seed_rel, previous, refine, tick, seed_translation
         )
-
-    if poses is not None and k_total >= SPLIT_MIN_SCANS:
-        out, n_rejected = _split_passes(passes, k_total, int(refine.map_scans), progress)
-    else:
-        out, n_rejected = passes(0, k_total, progress)
+        previous = out
     if progress is not None:
         progress(n_passes * k_total, n_passes * k_total)
     if n_rejected:

@@ -9,9 +9,14 @@ pipe; the caller does other work and collects the value with :meth:`Pending.resu
         sweeps = prepare_sweeps(scans, cfg)  # meanwhile, in this process
         poses = pending.result()
 
-The inputs are not copied: the child sees the caller's memory as it was at the fork. What the
-child logs is emitted again, in order, by the caller when it collects the result (the child
-never writes to the terminal, so progress displays stay intact). An exception of ``fn`` is
+The inputs are not copied: the child sees the caller's memory as it was at the fork. Only the
+calling thread is: a child must not use a library whose worker threads the caller has started.
+open3d's oneTBB is one: a child registering scans after the caller had estimated normals waited
+for TBB workers that do not exist in it, forever (kiss-icp links its own TBB, which the caller
+never starts).
+
+What the child logs is emitted again, in order, by the caller when it collects the result (the
+child never writes to the terminal, so progress displays stay intact). An exception of ``fn`` is
 raised again by :meth:`Pending.result`. A child that ends without a result (killed, out of
 memory, a value or exception that cannot be pickled) costs the time it ran: ``fn`` then runs in
 the caller, so the outcome is the same.

@@ -12,7 +12,6 @@ import pytest
 from scipy.spatial.transform import Rotation
 from stages_motion import body_rate_from_rotvec
 
-from licalib_cli import odometry as odo
 from licalib_cli.config import load_config
 from licalib_cli.errors import ConfigError, DataError
 from licalib_cli.initialization import (
@@ -275,43 +274,6 @@ def test_refinement_without_rotation_prior(scans: list[LidarScan]) -> None:
         refine_odometry(scans[:5], kiss, _CFG)
     with pytest.raises(DataError, match="sort the scans"):
         refine_odometry([scans[1], scans[0]], run_odometry(scans[:2], _CFG), _CFG)
-
-
-def test_refinement_in_two_halves_is_chained_at_the_join(
-    scans: list[LidarScan], monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """A long seeded sequence is refined in two halves (the second in a forked process), the
-    second starting a full local map before the join: the chained poses keep the whole
-    sequence's accuracy, and the halves give the same poses on one core as on two."""
-    kiss = run_odometry(scans, _CFG)
-    whole = refine_odometry(scans, kiss, _CFG)
-    monkeypatch.setattr(odo, "SPLIT_MIN_SCANS", 10)  # the 20 scans: chained at scan 12
-    calls: list[tuple[int, int]] = []
-    with monkeypatch.context() as m:
-        m.setattr(thr, "THREADS", 2)  # forks also when the suite runs with LICALIB_THREADS=1
-        forked_halves = refine_odometry(
-            scans, kiss, _CFG, progress=lambda d, n: calls.append((d, n))
-        )
-    assert calls[-1] == (40, 40)
-    assert all(d <= n for d, n in calls)
-    with thr.serial(), monkeypatch.context() as m:
-        m.setattr(thr, "THREADS", 1)
-        one_core = refine_odometry(scans, kiss, _CFG)
-    np.testing.assert_allclose(one_core.T_map_lidar, forked_halves.T_map_lidar, atol=1e-9)
-
-    r_true, p_true = _relative_truth(forked_halves.t_ns)
-    step = _step_errors_deg(forked_halves, r_true)
-    # The same bounds as the whole sequence's (measured: median 0.04 deg, max 0.14 deg).
-    assert np.median(step) < 0.08, step
-    assert step.max() < 0.3, step
-    assert np.linalg.norm(forked_halves.positions - p_true, axis=1).max() < 0.02
-    # The scans before the join are the whole sequence's own; after it within a few mm.
-    first = slice(0, 13)  # scans 0 .. 12
-    np.testing.assert_allclose(
-        forked_halves.T_map_lidar[first], whole.T_map_lidar[first], atol=1e-9
-    )
-    jump = np.linalg.norm(forked_halves.positions - whole.positions, axis=1)
-    assert jump.max() < 0.005, jump
 
 
 @pytest.fixture(scope="module")
