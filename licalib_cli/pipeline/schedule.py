@@ -3,9 +3,11 @@
 Coarse to fine: the first map is blurred by the initial guess, so the first round associates
 points up to :data:`COARSE_FACTOR` times ``surfels.max_distance_m`` from a surfel (and accepts
 surfels as much thicker); each later round tightens the distance to three times how far the
-previous round moved the points (at most halving it per round, never below the configured
-distance). Rounds run until one moves the estimate by less than the tolerances (or by less than
-half its own 1-sigma, whichever is larger) at the configured distance; a last, denser round
+previous round moved the points, and to :data:`WANDER_SHRINK` of it at least when the rounds
+crawl (never below the configured distance). Rounds that crawl at the configured distance take
+a Gauss-Newton step with the map's planes estimated too before the next round. Rounds run until
+one moves the estimate by less than the tolerances (or by less than half its own 1-sigma,
+whichever is larger) at the configured distance; a last, denser round
 then refines the settled estimate with Gauss-Newton steps that estimate the map's planes too
 (one without LiDAR intrinsics, up to :data:`~licalib_cli.pipeline.free_planes.MAX_STEPS` with
 them). Reaching ``schedule.max_rounds`` while the estimate still
@@ -51,6 +53,7 @@ __all__ = [
     "FINAL_SETTLE_SIGMAS",
     "MAX_CRAWL_STEPS",
     "MAX_FINAL_ROUNDS",
+    "WANDER_SHRINK",
     "Change",
     "Fit",
     "crawls",
@@ -77,9 +80,17 @@ JOIN_BY = 3
 latest."""
 
 CRAWL_RATIO = 0.5
-"""Rounds with LiDAR intrinsics crawl when one moves the translation by more than this fraction
-of what the round before moved it (a settling estimate shrinks its steps faster): the
-planes-free refinement then takes a step before the next round."""
+"""Rounds crawl when one moves the translation by more than this fraction of what the round
+before moved it (a settling estimate shrinks its steps faster): at the configured association
+distance the planes-free refinement then takes a step before the next round; above it the
+distance tightens (:data:`WANDER_SHRINK`)."""
+
+WANDER_SHRINK = 0.8
+"""From the third round on, a round above the configured association distance that crawls (moved
+the translation by more than :data:`CRAWL_RATIO` of what the round before moved it) makes the
+next round associate within this fraction of its distance (or closer, as the map's movement
+says). Three times a map movement of 20-30 mm a round held a crawling schedule at 6.5 cm, where
+no planes-free step is taken, for ten rounds."""
 
 MAX_CRAWL_STEPS = 3
 """Planes-free steps between the rounds at most (each costs about a round)."""
@@ -279,27 +290,24 @@ def crawls(
     change: Change,
     previous: Change | None,
     *,
-    lidar_intrinsics_free: bool,
     at_base_distance: bool,
     steps_taken: int,
 ) -> bool:
     """Whether the rounds crawl and a planes-free step should be taken before the next one.
 
-    Only with LiDAR intrinsics free, once the association is at its configured distance (the
-    coarse rounds shrink their steps for another reason), while fewer than
+    Once the association is at its configured distance (the coarse rounds shrink their steps
+    for another reason, and :data:`WANDER_SHRINK` brings them there), while fewer than
     :data:`MAX_CRAWL_STEPS` steps were taken, and when this round moved the translation by more
     than :data:`CRAWL_RATIO` of what the round before moved it.
 
     Args:
         change: how far this (unsettled) round moved the extrinsic.
         previous: how far the round before moved it (None for the first round).
-        lidar_intrinsics_free: the round estimated LiDAR intrinsics.
         at_base_distance: the round associated at the configured distance.
         steps_taken: planes-free steps already taken between rounds.
     """
     return (
-        lidar_intrinsics_free
-        and at_base_distance
+        at_base_distance
         and steps_taken < MAX_CRAWL_STEPS
         and previous is not None
         and change.translation_m > CRAWL_RATIO * previous.translation_m
@@ -405,23 +413,23 @@ def run_schedule(
                 intrinsics_on, joined = True, index + 1
                 settled = False
                 max_dist = max(max_dist, base * INTRINSICS_FACTOR)
+                previous = None  # the next round's change is the intrinsics', not a crawl
                 logger.info("The intrinsics of the model join from round %d.", joined)
                 continue
         enough_rounds = index >= 2 and (not want_intrinsics or index >= joined + 1)
         if settled and enough_rounds and max_dist <= base:
             break
         if not settled and crawls(
-            change,
-            previous,
-            lidar_intrinsics_free=intrinsics_on and inputs.free.any_lidar_intrinsics,
-            at_base_distance=max_dist <= base,
-            steps_taken=crawl_steps,
+            change, previous, at_base_distance=max_dist <= base, steps_taken=crawl_steps
         ):
-            # The rounds crawl: each holds its map's planes fixed, which pull the common mode of
-            # the range offsets and scales back towards the map's own values, so the estimate
-            # moves by a nearly constant fraction of what is left per round (on a 10 s shake
-            # with 2-7 cm range offsets: 2.3, 2.1, 2.0, ... 1.2 mm over eight rounds, then 12 mm
-            # at once with the planes free). A step with the planes free goes there; the next
+            # The rounds crawl: each holds its map's planes fixed, and a map built at the
+            # estimate pulls the round back towards it, so the estimate moves by a nearly
+            # constant fraction of what is left per round. With LiDAR intrinsics the common
+            # mode of the range offsets and scales crawls so (on a 10 s shake with 2-7 cm range
+            # offsets: 2.3, 2.1, 2.0, ... 1.2 mm over eight rounds, then 12 mm at once with the
+            # planes free); without them a translation the initial guess had 13 cm off (a clean
+            # sinusoid with the LiDAR's spin axis horizontal) came 20-48 mm a round and was
+            # still 57 mm away after twelve. A step with the planes free goes there; the next
             # rounds, on a map rebuilt from it, check that it has settled (so no solve on the
             # stepped planes follows it: the next round solves on its own map).
             stepped = planes_free_steps_from(
@@ -437,8 +445,13 @@ def run_schedule(
                 )
                 state, crawl_steps = stepped.state, crawl_steps + 1
                 mapped = solved = None  # both were at the round's estimate
+        wanders = (
+            index >= 3
+            and previous is not None
+            and change.translation_m > CRAWL_RATIO * previous.translation_m
+        )
         previous = change
-        max_dist = max(base, min(max_dist, 3.0 * moved))
+        max_dist = max(base, min(max_dist * (WANDER_SHRINK if wanders else 1.0), 3.0 * moved))
     assert report is not None and inputs is not None
     jitter = not settled and within(change, threshold, JITTER_FACTOR)
     converged = settled or jitter

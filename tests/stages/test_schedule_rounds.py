@@ -34,6 +34,7 @@ from licalib_cli.pipeline.schedule import (
     FINAL_SETTLE_SIGMAS,
     MAX_CRAWL_STEPS,
     MAX_FINAL_ROUNDS,
+    WANDER_SHRINK,
     Change,
     crawls,
     final_jump,
@@ -46,7 +47,7 @@ def _mm(x: float) -> Change:
 
 
 def test_crawls_on_a_slowly_shrinking_step_only() -> None:
-    on = {"lidar_intrinsics_free": True, "at_base_distance": True, "steps_taken": 0}
+    on = {"at_base_distance": True, "steps_taken": 0}
     assert crawls(_mm(2.1), _mm(2.3), **on)
     # a settling estimate shrinks its steps faster than the ratio
     assert not crawls(_mm(1.0), _mm(2.3), **on)
@@ -56,20 +57,9 @@ def test_crawls_on_a_slowly_shrinking_step_only() -> None:
     assert not crawls(_mm(5.0), None, **on)
 
 
-@pytest.mark.parametrize(
-    ("free", "at_base", "steps"),
-    [(False, True, 0), (True, False, 0), (True, True, MAX_CRAWL_STEPS)],
-)
-def test_no_step_without_lidar_intrinsics_before_the_base_distance_or_past_the_cap(
-    free: bool, at_base: bool, steps: int
-) -> None:
-    assert not crawls(
-        _mm(2.1),
-        _mm(2.3),
-        lidar_intrinsics_free=free,
-        at_base_distance=at_base,
-        steps_taken=steps,
-    )
+@pytest.mark.parametrize(("at_base", "steps"), [(False, 0), (True, MAX_CRAWL_STEPS)])
+def test_no_step_before_the_base_distance_or_past_the_cap(at_base: bool, steps: int) -> None:
+    assert not crawls(_mm(2.1), _mm(2.3), at_base_distance=at_base, steps_taken=steps)
 
 
 @dataclass(frozen=True)
@@ -88,6 +78,7 @@ class _Run:
     evaluate_only: list[bool] = field(default_factory=list)  # per round: no solver step
     max_steps: list[int] = field(default_factory=list)
     solved_given: list[Any] = field(default_factory=list)  # what each refinement was handed
+    distances_m: list[float] = field(default_factory=list)  # per round: association distance
     unsettled: list[str] = field(default_factory=list)  # steps with no solve after them
     fit: Any = None
 
@@ -104,12 +95,15 @@ def _schedule(
     final_points: int | None = None,
     refine_mm: float = 5.0,
     sigma_mm: float = SIGMA_MM,
+    moved_mm: float = 0.0,
+    warm: bool | None = None,
 ) -> _Run:
     """Run :func:`run_schedule` with rounds that move the translation by ``step_mm(index,
     dense)`` mm (``dense``: a round on the final, denser sample), each reporting a translation
     sigma of :data:`SIGMA_MM`, with LiDAR intrinsics free or none. A round that only evaluates
     moves nothing; the planes-free step after it moves the translation by what the round would
-    have, and any other planes-free step by ``refine_mm``."""
+    have, and any other planes-free step by ``refine_mm``. Every round moves the map by
+    ``moved_mm``."""
     run = _Run([], [])
     names = ("ext.translation.x", "ext.translation.y", "ext.translation.z")
     report = SimpleNamespace(calibration_names=names, std=(1e-3 * sigma_mm,) * 3)
@@ -119,6 +113,7 @@ def _schedule(
         dense = sample.dense
         run.rounds.append((f"round {index}", state.label, mapped is not None, dense))
         run.evaluate_only.append(settings.evaluate_only)
+        run.distances_m.append(settings.max_dist)
         step = step_mm(index, dense)
         if settings.evaluate_only:
             held[f"round {index}"], step = step, 0.0
@@ -171,15 +166,15 @@ def _schedule(
     monkeypatch.setattr(schedule, "refine_with_planes", refine)
     monkeypatch.setattr(schedule, "planes_free_steps_from", steps_only)
     monkeypatch.setattr(schedule, "_change", change)
-    monkeypatch.setattr(schedule, "map_movement", lambda before, after, probe: 0.0)
+    monkeypatch.setattr(schedule, "map_movement", lambda before, after, probe: 1e-3 * moved_mm)
     monkeypatch.setattr(schedule, "intrinsic_change", lambda before, after, report: 0.0)
     monkeypatch.setattr(schedule, "sample_points", sample_points)
     monkeypatch.setattr(schedule, "points_per_scan", lambda cfg, n, per_scan=None: per_scan or 100)
     monkeypatch.setattr(
         schedule,
         "round_settings",
-        lambda *a, evaluate_only=False, **k: SimpleNamespace(
-            solver=None, evaluate_only=evaluate_only
+        lambda cfg, noise, max_dist, *a, evaluate_only=False, **k: SimpleNamespace(
+            solver=None, evaluate_only=evaluate_only, max_dist=max_dist
         ),
     )
     monkeypatch.setattr(schedule, "refined_summary", lambda summary, refined: summary)
@@ -193,8 +188,9 @@ def _schedule(
     )
     rec = SimpleNamespace(scans=(), imu=None)
     guess = SimpleNamespace(state=_State("guess", 0.0), nominal_elevation=None)
-    run.fit = schedule.run_schedule(rec, guess, None, cfg, NullProgress(), warm=lidar)  # type: ignore[arg-type]
-    if lidar:
+    warm = lidar if warm is None else warm
+    run.fit = schedule.run_schedule(rec, guess, None, cfg, NullProgress(), warm=warm)  # type: ignore[arg-type]
+    if lidar and warm:
         # the refinement after the last round always runs with LiDAR intrinsics free
         assert run.refined_from.pop() == run.rounds[-1][0]
         assert run.fit.state.label == f"step after {run.rounds[-1][0]}"
@@ -230,6 +226,45 @@ def test_a_crawl_takes_a_planes_free_step_before_the_next_round(
         assert starts[f"round {k}"] == (f"step after round {k - 1}", False)
     # past the cap the rounds go on as before: each from the one before, its map kept
     assert starts["round 6"] == ("round 5", True)
+
+
+def test_crawling_rounds_above_the_base_distance_tighten_it_then_step(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # each round covers 80 % of the one before while the map moves 30 mm a round: three times
+    # that never tightens the coarse 9 cm, so the crawl tightens it from the third round on
+    steps = [3.0 * 0.8**k for k in range(12)]
+    run = _schedule(monkeypatch, lambda i, dense: steps[i - 1], lidar=False, moved_mm=30.0)
+    base = 0.03
+    expected = [3 * base] * 3 + [max(base, 3 * base * WANDER_SHRINK**k) for k in range(1, 9)]
+    assert run.distances_m[: len(expected)] == pytest.approx(expected)
+    # at the base distance (round 8) the crawl takes planes-free steps, without LiDAR
+    # intrinsics too; the round after starts from the step
+    assert run.refined_from[:MAX_CRAWL_STEPS] == ["round 8", "round 9", "round 10"]
+    starts = {label: start for label, start, _, _ in run.rounds}
+    assert starts["round 9"] == "step after round 8"
+
+
+def test_the_round_after_the_intrinsics_join_is_not_judged_a_crawl(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # the intrinsics join after round 3 (the rounds do not settle): round 4's change is theirs,
+    # so only round 5, compared with round 4, can tighten the distance for round 6
+    steps = [3.0 * 0.8**k for k in range(12)]
+    run = _schedule(
+        monkeypatch, lambda i, dense: steps[i - 1], lidar=True, moved_mm=30.0, warm=False
+    )
+    assert run.distances_m[:6] == pytest.approx([0.09] * 5 + [0.09 * WANDER_SHRINK])
+
+
+def test_settling_rounds_keep_the_distance_the_map_movement_gives(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # each round moves a third of the one before: not crawling, so 3 x 30 mm holds 9 cm
+    steps = [3.0 / 3.0**k for k in range(12)]
+    run = _schedule(monkeypatch, lambda i, dense: steps[i - 1], lidar=False, moved_mm=30.0)
+    assert run.distances_m == pytest.approx([0.09] * len(run.distances_m))
+    assert run.refined_from == []
 
 
 def test_no_planes_free_step_while_the_rounds_settle(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -477,5 +512,7 @@ def test_a_map_lost_after_the_first_round_is_told_as_a_divergence(
     text = str(later.value)
     assert text.startswith("No planar surfaces were found in the LiDAR map in round 3")
     assert "round 1 had 1 points" in text and "diverged" in text
-    assert "1400.00 mm" in text  # how far the two rounds before it moved the estimate
+    # how far the two rounds before it moved the estimate, and the planes-free step after the
+    # second (which crawled: 700 mm after 700 mm)
+    assert "1405.00 mm" in text
     assert "initialization.rotation_rpy_deg" in text
