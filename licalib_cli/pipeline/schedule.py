@@ -302,7 +302,9 @@ def crawls(
 
     Args:
         change: how far this (unsettled) round moved the extrinsic.
-        previous: how far the round before moved it (None for the first round).
+        previous: how far the round before moved it (None for the first round, and when that
+            round associated at more than ``1 / WANDER_SHRINK`` times this one's distance:
+            this round then moved for the tighter association).
         at_base_distance: the round associated at the configured distance.
         steps_taken: planes-free steps already taken between rounds.
     """
@@ -354,6 +356,7 @@ def run_schedule(
     intrinsic_sigmas = 0.0
     mapped: MappedSample | None = None  # the last round's points mapped with its estimate
     previous: Change | None = None  # the change of the round before
+    previous_at = np.inf  # the association distance of the round before
     crawl_steps = 0
     final = cfg.surfels.final_points_per_scan
     if final is not None:
@@ -419,8 +422,11 @@ def run_schedule(
         enough_rounds = index >= 2 and (not want_intrinsics or index >= joined + 1)
         if settled and enough_rounds and max_dist <= base:
             break
+        # a step compares two rounds at about the configured distance: a round after a much
+        # tighter association (or after a coarse round that stopped at once) moves for that
+        comparable = previous if previous_at * WANDER_SHRINK <= max_dist * (1 + 1e-9) else None
         if not settled and crawls(
-            change, previous, at_base_distance=max_dist <= base, steps_taken=crawl_steps
+            change, comparable, at_base_distance=max_dist <= base, steps_taken=crawl_steps
         ):
             # The rounds crawl: each holds its map's planes fixed, and a map built at the
             # estimate pulls the round back towards it, so the estimate moves by a nearly
@@ -436,11 +442,11 @@ def run_schedule(
                 state, inputs, round_settings(cfg, noise, base, True).solver, solved=solved
             )
             if stepped is not None:
-                assert previous is not None  # crawls() needs the round before
+                assert comparable is not None  # crawls() needs the round before
                 logger.info(
                     "The rounds crawl (change %.2f mm after %.2f mm): planes-free step, change %s.",
                     1e3 * change.translation_m,
-                    1e3 * previous.translation_m,
+                    1e3 * comparable.translation_m,
                     _describe(_change(state, stepped.state)),
                 )
                 state, crawl_steps = stepped.state, crawl_steps + 1
@@ -450,7 +456,7 @@ def run_schedule(
             and previous is not None
             and change.translation_m > CRAWL_RATIO * previous.translation_m
         )
-        previous = change
+        previous, previous_at = change, max_dist
         max_dist = max(base, min(max_dist * (WANDER_SHRINK if wanders else 1.0), 3.0 * moved))
     assert report is not None and inputs is not None
     jitter = not settled and within(change, threshold, JITTER_FACTOR)

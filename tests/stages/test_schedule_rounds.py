@@ -215,17 +215,18 @@ def test_a_crawl_takes_a_planes_free_step_before_the_next_round(
     # 3.0, 2.4, 1.9, ... mm: each round covers 80 % of the one before (crawling)
     steps = [3.0 * 0.8**k for k in range(12)]
     rounds, refined_from, unsettled = _wired_schedule(monkeypatch, steps, refine_mm=5.0)
-    # the first round has nothing to compare with; from the second on each crawls
-    assert refined_from == ["round 2", "round 3", "round 4"]
+    # the first round associates at three times the configured distance, the second at it:
+    # from the third on each is compared with a round at the same distance, and crawls
+    assert refined_from == ["round 3", "round 4", "round 5"]
     # the crawl's steps are not followed by a solve on their planes: the next round solves
     assert unsettled == refined_from
     assert len(refined_from) == MAX_CRAWL_STEPS
     starts = {label: (start, kept) for label, start, kept in rounds}
     # the round after a step starts from the stepped estimate, with no mapped sample kept
-    for k in (3, 4, 5):
+    for k in (4, 5, 6):
         assert starts[f"round {k}"] == (f"step after round {k - 1}", False)
     # past the cap the rounds go on as before: each from the one before, its map kept
-    assert starts["round 6"] == ("round 5", True)
+    assert starts["round 7"] == ("round 6", True)
 
 
 def test_crawling_rounds_above_the_base_distance_tighten_it_then_step(
@@ -238,8 +239,8 @@ def test_crawling_rounds_above_the_base_distance_tighten_it_then_step(
     base = 0.03
     expected = [3 * base] * 3 + [max(base, 3 * base * WANDER_SHRINK**k) for k in range(1, 9)]
     assert run.distances_m[: len(expected)] == pytest.approx(expected)
-    # at the base distance (round 8) the crawl takes planes-free steps, without LiDAR
-    # intrinsics too; the round after starts from the step
+    # at the base distance (round 8, after round 7 at 1.23 times it) the crawl takes
+    # planes-free steps, without LiDAR intrinsics too; the round after starts from the step
     assert run.refined_from[:MAX_CRAWL_STEPS] == ["round 8", "round 9", "round 10"]
     starts = {label: start for label, start, _, _ in run.rounds}
     assert starts["round 9"] == "step after round 8"
@@ -255,6 +256,16 @@ def test_the_round_after_the_intrinsics_join_is_not_judged_a_crawl(
         monkeypatch, lambda i, dense: steps[i - 1], lidar=True, moved_mm=30.0, warm=False
     )
     assert run.distances_m[:6] == pytest.approx([0.09] * 5 + [0.09 * WANDER_SHRINK])
+
+
+def test_no_step_after_a_round_at_a_wider_distance(monkeypatch: pytest.MonkeyPatch) -> None:
+    # round 2, the first at the base distance, moves 1.1 mm after round 1's 1.5 mm at three
+    # times it (more than 1 / WANDER_SHRINK): not a crawl, its move comes from the tighter
+    # association; the rounds at the base distance then settle
+    steps = [1.5, 1.1, 0.45, 0.1, 0.03, 0.01, 0.003, 0.001]
+    run = _schedule(monkeypatch, lambda i, dense: steps[min(i, 8) - 1], lidar=False)
+    assert run.distances_m[:2] == pytest.approx([0.09, 0.03])
+    assert run.refined_from == []
 
 
 def test_settling_rounds_keep_the_distance_the_map_movement_gives(
@@ -512,7 +523,5 @@ def test_a_map_lost_after_the_first_round_is_told_as_a_divergence(
     text = str(later.value)
     assert text.startswith("No planar surfaces were found in the LiDAR map in round 3")
     assert "round 1 had 1 points" in text and "diverged" in text
-    # how far the two rounds before it moved the estimate, and the planes-free step after the
-    # second (which crawled: 700 mm after 700 mm)
-    assert "1405.00 mm" in text
+    assert "1400.00 mm" in text  # how far the two rounds before it moved the estimate
     assert "initialization.rotation_rpy_deg" in text
