@@ -197,10 +197,19 @@ def test_a_32_beam_velodyne_gets_all_six_intrinsics_per_beam(tmp_path: Path) -> 
     assert raw["lidar_intrinsics"]["num_beams"] == 32 and raw["model"]["gauge_beam"] == 0
     errors = _beam_errors(raw, result, truth)
     assert len(errors) == 6
+    z = []
     for err, sig, _ in errors.values():
         det = np.isfinite(sig)
         assert det.sum() >= 31  # at most the gauge beam held
-        assert np.all(np.abs(err[det]) < 3 * sig[det])
+        z.append(np.abs(err[det]) / sig[det])
+    # The sigmas cover the errors: of 186 numbers with honest sigmas 0.5 lie beyond 3 sigma on
+    # average (more than two 1.4 % of the time) and none beyond 4 (1.2 %). Sigmas a third too
+    # small would put about nine beyond 3. Measured: 3.16 and 3.13 sigma (a range scale and the
+    # next beam's range offset), the rest within 1.8.
+    z_all = np.concatenate(z)
+    assert z_all.size >= 186
+    assert np.count_nonzero(z_all > 3.0) <= 2, np.sort(z_all)[-5:]
+    assert z_all.max() < 4.0
     for key in ("elevation_deg", "azimuth_deg", "range_offset_m"):
         err, sig, injected = errors[key]
         assert np.mean(np.abs(err)) < np.mean(np.abs(injected)) / 3
