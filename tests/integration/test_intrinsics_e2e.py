@@ -161,6 +161,19 @@ _PER_BEAM = (  # (intrinsics_uncertainty key, LidarIntrinsics field, stored in r
 )
 
 
+def _assert_sigmas_cover(z: np.ndarray) -> None:
+    """``z``: many errors over their sigmas. With honest sigmas each lies beyond 3 with
+    probability 0.27 %: allow as many beyond 3 as a Poisson count exceeds only 2 % of the time
+    (two of 186, three of 250), and none beyond 4 (1-2 % for these counts). Sigmas a third too
+    small put 4.6 % beyond 3 (about nine of 186)."""
+    from scipy import stats
+
+    expected = z.size * 2.0 * stats.norm.sf(3.0)
+    allowed = int(stats.poisson.ppf(0.98, expected))
+    assert np.count_nonzero(z > 3.0) <= allowed, (allowed, np.sort(z)[-5:])
+    assert z.max() < 4.0, np.sort(z)[-5:]
+
+
 def _beam_errors(
     raw: dict, result: CalibrationResult, truth: CalibrationResult
 ) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -202,14 +215,9 @@ def test_a_32_beam_velodyne_gets_all_six_intrinsics_per_beam(tmp_path: Path) -> 
         det = np.isfinite(sig)
         assert det.sum() >= 31  # at most the gauge beam held
         z.append(np.abs(err[det]) / sig[det])
-    # The sigmas cover the errors: of 186 numbers with honest sigmas 0.5 lie beyond 3 sigma on
-    # average (more than two 1.4 % of the time) and none beyond 4 (1.2 %). Sigmas a third too
-    # small would put about nine beyond 3. Measured: 3.16 and 3.13 sigma (a range scale and the
-    # next beam's range offset), the rest within 1.8.
-    z_all = np.concatenate(z)
-    assert z_all.size >= 186
-    assert np.count_nonzero(z_all > 3.0) <= 2, np.sort(z_all)[-5:]
-    assert z_all.max() < 4.0
+    # Measured: 3.16 and 3.13 sigma (a range scale and the next beam's range offset), the rest
+    # within 1.8; all 186 within 3, as asserted before, held on about 60 % of paths.
+    _assert_sigmas_cover(np.concatenate(z))
     for key in ("elevation_deg", "azimuth_deg", "range_offset_m"):
         err, sig, injected = errors[key]
         assert np.mean(np.abs(err)) < np.mean(np.abs(injected)) / 3
@@ -248,11 +256,13 @@ def test_a_128_beam_ouster_gets_its_beams_intrinsics(tmp_path: Path) -> None:
     errors = _beam_errors(raw, result, truth)
     assert set(errors) == {"elevation_deg", "range_offset_m"}
     held = " ".join(raw["observability"]["unobservable"])
+    z = []
     for err, sig, injected in errors.values():
         det = np.isfinite(sig)
         assert det.sum() >= 120
-        assert np.all(np.abs(err[det]) < 3 * sig[det])
+        z.append(np.abs(err[det]) / sig[det])
         assert np.mean(np.abs(err[det])) < np.mean(np.abs(injected)) / 4
+    _assert_sigmas_cover(np.concatenate(z))
     for beam in np.flatnonzero(~np.isfinite(errors["elevation_deg"][1]))[1:]:
         assert f"lidar.intrinsics[{beam}]" in held  # a beam held is named (beam 0: the gauge)
     assert raw["verdict"]["status"] == "pass"
