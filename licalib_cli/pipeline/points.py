@@ -173,7 +173,7 @@ def _mapped(state: CalibrationState, sample: PointSample, rays: bool) -> tuple[F
     # A point whose trajectory time has left the spline (a round moved the time offset past the
     # margin its points were chosen with) is mapped at the spline's end, as the point-to-plane
     # residuals evaluate it; the next round's usable points leave it out.
-    t = np.clip(query_times(state, sample), state.knots.t0_s, state.knots.t_end_s)
+    t = state.knots.clamp(query_times(state, sample))
     p_l = lidar_point(state.lidar_intrinsics, sample.beam, sample.rho, sample.theta)
     u_i = None
     if rays:

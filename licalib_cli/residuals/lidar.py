@@ -254,7 +254,7 @@ class PointToPlaneResidual:
         all_inside = bool(np.all(inside))
         if not all_inside:
             logger.debug("%d point times outside the spline range", n - int(inside.sum()))
-            t = np.clip(t, self.knots.t0_s, self.knots.t_end_s)
+            t = self.knots.clamp(t)
         intr = params.get(LIDAR_INTRINSICS)
         if intr is None:
             intr = nominal_intrinsics_array(self.nominal_elevation.shape[0])

@@ -192,6 +192,18 @@ class UniformKnots:
         """(N,) times at which each control point's basis function peaks, ``t0 + (k - 1) dt``."""
         return self.t0_s + (np.arange(self.num_control_points, dtype=np.float64) - 1.0) * self.dt_s
 
+    def clamp(self, t_s: npt.ArrayLike) -> FloatArray:
+        """Query times moved into the valid range: a time before ``t0`` (after ``t_end``) is
+        evaluated at ``t0`` (``t_end``).
+
+        Args:
+            t_s: (M,) times, seconds.
+
+        Returns:
+            (M,) float64 times within ``[t0, t_end]``.
+        """
+        return np.clip(np.asarray(t_s, dtype=np.float64), self.t0_s, self.t_end_s)
+
     def contains(self, t_s: npt.ArrayLike) -> npt.NDArray[np.bool_]:
         """Mask of query times inside the valid range (with round-off slack).
 

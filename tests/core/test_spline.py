@@ -70,6 +70,7 @@ def test_knots_locate_and_range() -> None:
         with pytest.raises(ValueError, match="outside the spline range"):
             kn.locate(np.array([1.2, bad]))
     np.testing.assert_array_equal(kn.contains([0.9, 1.2, 1.5]), [False, True, False])
+    np.testing.assert_allclose(kn.clamp([0.9, 1.2, 1.5]), [1.0, 1.2, 1.4])
     np.testing.assert_allclose(kn.control_point_times_s(), 1.0 + 0.1 * (np.arange(7) - 1))
     with pytest.raises(ValueError):
         UniformKnots(0.0, 0.0, 5)
