@@ -308,12 +308,13 @@ def crawls(
         at_base_distance: the round associated at the configured distance.
         steps_taken: planes-free steps already taken between rounds.
     """
-    return (
-        at_base_distance
-        and steps_taken < MAX_CRAWL_STEPS
-        and previous is not None
-        and change.translation_m > CRAWL_RATIO * previous.translation_m
-    )
+    return at_base_distance and steps_taken < MAX_CRAWL_STEPS and _crawled(change, previous)
+
+
+def _crawled(change: Change, previous: Change | None) -> bool:
+    """This round moved the translation by more than :data:`CRAWL_RATIO` of what the round
+    before moved it (False without a round before)."""
+    return previous is not None and change.translation_m > CRAWL_RATIO * previous.translation_m
 
 
 def run_schedule(
@@ -451,11 +452,7 @@ def run_schedule(
                 )
                 state, crawl_steps = stepped.state, crawl_steps + 1
                 mapped = solved = None  # both were at the round's estimate
-        wanders = (
-            index >= 3
-            and previous is not None
-            and change.translation_m > CRAWL_RATIO * previous.translation_m
-        )
+        wanders = index >= 3 and _crawled(change, previous)
         previous, previous_at = change, max_dist
         max_dist = max(base, min(max_dist * (WANDER_SHRINK if wanders else 1.0), 3.0 * moved))
     assert report is not None and inputs is not None
