@@ -334,7 +334,12 @@ class NoiseModel:
         gyro_sigma: discrete gyro noise std, rad/s (scalar or (3,)).
         accel_sigma: discrete accelerometer noise std, m/s^2 (scalar or (3,)).
         range_sigma: LiDAR range noise std, m (point-to-plane sigma before inflation).
-        thickness_weight: the point sigma is ``sqrt(range_sigma^2 + (w * thickness)^2)``.
+        thickness_weight: the point sigma is ``sqrt((c * range_sigma)^2 + (w * thickness)^2)``.
+        min_incidence_cos: ``c`` above is the cosine of the angle between the point's ray and its
+            plane's normal (at the state the problem is built from), but at least this: the range
+            noise moves a point along its ray, so its distance to the plane varies by the range
+            noise times that cosine; the floor stands for grazing rays and plane-fit errors. 1
+            weights every point with the full range noise.
         huber_threshold: Huber threshold on the whitened point residual (None: plain squares).
         range_noise_per_beam: (B,) the range noise each beam's returns carry, m, as measured
             from the data; None: ``range_sigma`` for every beam. ``range_sigma`` weights the
@@ -346,6 +351,7 @@ class NoiseModel:
     accel_sigma: float | F64 = 1e-2
     range_sigma: float = 0.02
     thickness_weight: float = 0.0
+    min_incidence_cos: float = 1.0
     huber_threshold: float | None = 3.0
     range_noise_per_beam: F64 | None = field(default=None, compare=False)
 
@@ -793,6 +799,30 @@ def _check_coverage(knots: UniformKnots, t_s: F64, what: str) -> None:
         raise ValueError(msg)
 
 
+def incidence_cosine(
+    state: CalibrationState,
+    t_query_s: npt.ArrayLike,
+    beam: npt.ArrayLike,
+    theta: npt.ArrayLike,
+    normal: npt.ArrayLike,
+) -> F64:
+    """(N,) |cosine| of the angle between each point's nominal ray and its plane's normal.
+
+    Args:
+        state: trajectory, extrinsic rotation and nominal elevations.
+        t_query_s: (N,) IMU-clock times of the points on the trajectory, s.
+        beam: (N,) beam indices.
+        theta: (N,) raw azimuths, rad.
+        normal: (N, 3) unit normals of the points' planes, ``{G}``.
+    """
+    rot = state.so3_spline.rotation(np.asarray(t_query_s, dtype=np.float64))
+    phi = state.lidar_intrinsics.nominal_elevation[np.asarray(beam, dtype=np.intp)]
+    az = np.asarray(theta, dtype=np.float64)
+    ray_l = np.stack([np.cos(phi) * np.cos(az), np.cos(phi) * np.sin(az), np.sin(phi)], axis=-1)
+    ray_g = np.einsum("nij,nj->ni", rot, ray_l @ state.R_imu_lidar.T)
+    return np.abs(np.einsum("ij,ij->i", ray_g, np.asarray(normal, dtype=np.float64)))
+
+
 def build_problem(
     state: CalibrationState,
     imu: ImuData | None,
@@ -875,6 +905,9 @@ def build_problem(
             msg = f"plane indices must lie in [0, {normal.shape[0]})"
             raise ValueError(msg)
         sigma2 = np.full(plane.shape[0], noise.range_sigma**2)
+        if noise.min_incidence_cos < 1.0:
+            cos_inc = incidence_cosine(state, t_query, lidar.beam, lidar.theta, normal[plane])
+            sigma2 *= np.maximum(cos_inc, noise.min_incidence_cos) ** 2
         if planes.thickness is not None and noise.thickness_weight > 0.0:
             sigma2 += (noise.thickness_weight * np.asarray(planes.thickness)[plane]) ** 2
         residual = PointToPlaneResidual(

@@ -31,7 +31,7 @@ from licalib_cli.consistency import (
     regression_pattern,
     select_effects,
 )
-from licalib_cli.estimation import CalibrationState, LidarPoints, build_problem
+from licalib_cli.estimation import CalibrationState, build_problem, incidence_cosine
 from licalib_cli.pipeline.effect_shift import planes_free_shifts
 from licalib_cli.pipeline.round import RoundInputs, SolvedProblem
 from licalib_cli.pipeline.settings import NoiseLevels
@@ -68,10 +68,6 @@ PATTERN_P_VALUE = 1e-9
 
 EFFECT_P_VALUE = 1e-5
 """A fixed effect is significant below this p-value (about 1e-4 over all effects tested)."""
-
-MIN_INCIDENCE_COS = 0.3
-"""The point-to-plane noise is the range noise times the cosine of the incidence angle, but at
-least this fraction of it (grazing rays, plane-fit errors)."""
 
 MAX_EFFECT_POINTS = 80_000
 """Points used for the score tests (a regular subset of the final round's): the tests have power
@@ -233,14 +229,8 @@ def residual_table(
     r_a = whitened(accel) / accel.inv_sigma
     d = whitened(points)[:, 0] / points.whitening()  # as PointToPlaneResidual.distances
     tc = float(np.asarray(params[TIME_OFFSET]).reshape(-1)[0])
-    rot = state.so3_spline.rotation(points.t_s + tc)
     phi = state.lidar_intrinsics.nominal_elevation[points.beam]
-    ray_l = np.stack(
-        [np.cos(phi) * np.cos(points.theta), np.cos(phi) * np.sin(points.theta), np.sin(phi)],
-        axis=-1,
-    )
-    ray_g = np.einsum("nij,nj->ni", rot, ray_l @ state.R_imu_lidar.T)
-    cos_inc = np.abs(np.einsum("ij,ij->i", ray_g, points.normal))
+    cos_inc = incidence_cosine(state, points.t_s + tc, points.beam, points.theta, points.normal)
     return ResidualTable(
         t_imu_s=gyro.t_s,
         gyro=r_g,
@@ -324,8 +314,10 @@ def sensor_checks(
             ),
         ),
     ]
+    # the point-to-plane noise: the range noise times the cosine of the incidence angle, with
+    # the fit's floor (config noise.min_incidence_cos)
     sigma = beam_sigma(noise, state.lidar_intrinsics.num_beams)[r.beam] * np.maximum(
-        r.cos_incidence, MIN_INCIDENCE_COS
+        r.cos_incidence, inputs.noise.min_incidence_cos
     )
     out.append(
         _sensor(
@@ -350,19 +342,6 @@ def sensor_checks(
         )
     )
     return tuple(out)
-
-
-def _incidence_cos(state: CalibrationState, lidar: LidarPoints, planes: object) -> F64:
-    """(N,) cosine of the angle between each point's nominal ray and its plane's normal."""
-    rot = state.so3_spline.rotation(np.asarray(lidar.t_s) + state.time_offset_s)
-    phi = state.lidar_intrinsics.nominal_elevation[np.asarray(lidar.beam)]
-    theta = np.asarray(lidar.theta)
-    ray_l = np.stack(
-        [np.cos(phi) * np.cos(theta), np.cos(phi) * np.sin(theta), np.sin(phi)], axis=-1
-    )
-    ray_g = np.einsum("nij,nj->ni", rot, ray_l @ state.R_imu_lidar.T)
-    normal = np.asarray(planes.normal)[np.asarray(lidar.plane)]  # type: ignore[attr-defined]
-    return np.abs(np.einsum("ij,ij->i", ray_g, normal))
 
 
 @dataclass(frozen=True)
@@ -454,15 +433,12 @@ def effect_evidence(
     )
     subset = _every_kth(len(inputs.lidar), MAX_EFFECT_POINTS)
     lidar = inputs.lidar.subset(subset)
-    problem = build_problem(state, inputs.imu, lidar, inputs.planes, inputs.noise, all_free)
     # The score statistic is chi-square only when every whitened residual has unit variance: the
-    # fit weights a point-to-plane distance with the range noise, but the distance varies by
-    # the range noise times the cosine of the incidence angle (MIN_INCIDENCE_COS at least, as
-    # the sensor check). Weighted with the range noise, the statistics came out about half their
-    # chi-square size on clean simulated data (twin recordings), so the test lost power.
-    points = next(b for b in problem.residual_blocks if isinstance(b, PointToPlaneResidual))
-    cos_inc = _incidence_cos(state, lidar, inputs.planes)
-    points.inv_sigma = points.inv_sigma / np.maximum(cos_inc, MIN_INCIDENCE_COS)
+    # fit weights each point-to-plane distance with the range noise times the cosine of its
+    # incidence angle (noise.min_incidence_cos). Weighted with the range noise alone, the
+    # statistics came out about half their chi-square size on clean simulated data (twin
+    # recordings), so the test lost power.
+    problem = build_problem(state, inputs.imu, lidar, inputs.planes, inputs.noise, all_free)
     evaluation = problem.evaluate(jacobians=True)
     n_free = problem.layout().num_free
     variance_factor = max(

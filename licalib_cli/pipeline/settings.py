@@ -192,6 +192,7 @@ def noise_model(cfg: CalibConfig, noise: NoiseLevels) -> NoiseModel:
         accel_sigma=np.asarray(noise.accel_sigma, dtype=np.float64),
         range_sigma=noise.range_sigma_m,
         huber_threshold=cfg.noise.huber_sigmas,
+        min_incidence_cos=cfg.noise.min_incidence_cos,
         range_noise_per_beam=measured_range_noise(noise),
     )
 

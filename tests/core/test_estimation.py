@@ -18,6 +18,7 @@ from licalib_cli.estimation import (
     NoiseModel,
     Planes,
     build_problem,
+    incidence_cosine,
     parameter_blocks,
     state_from_problem,
     state_from_values,
@@ -38,6 +39,7 @@ from licalib_cli.residuals import (
     TRAJ_R3,
     TRAJ_SO3,
     GaussianPrior,
+    PointToPlaneResidual,
 )
 from licalib_cli.solver import LMParams, solve
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
@@ -424,3 +426,87 @@ def test_lidar_imu_reported_std_matches_monte_carlo_spread() -> None:
     assert abs(pooled[0] - 1.0) < 0.2, ("rotation", pooled[0], ratio)
     assert abs(pooled[1] - 1.0) < 0.2, ("translation", pooled[1], ratio)
     assert abs(ratio[6] - 1.0) < 0.25, ("time offset", ratio)
+
+
+def test_point_weights_follow_the_incidence_angle_with_its_floor() -> None:
+    """Each point-to-plane distance is weighted with the range noise times the cosine of its
+    ray's incidence angle, at least ``min_incidence_cos`` of the range noise; 1 weights every
+    point with the range noise alone."""
+    rng = np.random.default_rng(3)
+    so3, r3 = _true_splines(2.0, 0.1)
+    room = _scan_room(so3, r3, np.eye(3), np.zeros(3), 0.0, 500, 0.0, rng)
+    state = _state(so3, r3)
+    pts = room.points
+    phi = BEAMS[pts.beam]
+    ray = np.column_stack(
+        [np.cos(phi) * np.cos(pts.theta), np.cos(phi) * np.sin(pts.theta), np.sin(phi)]
+    )
+    ray_g = np.einsum("nij,nj->ni", so3.rotation(pts.t_s), ray)
+    cos_expected = np.abs(np.einsum("ni,ni->n", ray_g, room.planes.normal[pts.plane]))
+    cos = incidence_cosine(state, pts.t_s, pts.beam, pts.theta, room.planes.normal[pts.plane])
+    np.testing.assert_allclose(cos, cos_expected, atol=1e-12)
+    assert cos.min() < 0.3 < cos.max()  # both sides of the floor are exercised
+
+    def inv_sigma(floor: float) -> np.ndarray:
+        noise = NoiseModel(range_sigma=0.01, min_incidence_cos=floor)
+        problem = build_problem(state, None, pts, room.planes, noise)
+        block = next(b for b in problem.residual_blocks if isinstance(b, PointToPlaneResidual))
+        return np.asarray(block.inv_sigma).reshape(-1)
+
+    np.testing.assert_allclose(inv_sigma(0.3), 1.0 / (0.01 * np.maximum(cos, 0.3)), rtol=1e-12)
+    np.testing.assert_allclose(inv_sigma(1.0), np.full(len(pts), 100.0), rtol=1e-12)
+
+
+def test_incidence_weights_are_honest_and_sharper_under_range_noise_along_the_ray() -> None:
+    """Range noise moves a point along its ray (as a LiDAR's does): 60 draws of the synthetic
+    room problem, solved with the incidence weighting (floor 0.05) and with the plain
+    range-noise weighting. The weighted fit's reported stds match its spread (pooled over the
+    seven extrinsic coordinates within 20 %; 3.4 % standard error; measured 0.95-0.99 over three
+    seeds), and it scatters less than the plain fit: the spread ratio pooled over the seven
+    below 0.95 (measured 0.85-0.89, per coordinate 0.76-0.95). Were the weights not applied,
+    both fits would be the same and the ratio 1."""
+    rng = np.random.default_rng(11)
+    so3, r3 = _true_splines(3.0, 0.1)
+    R_true = so3_exp(np.deg2rad([30.0, -20.0, 95.0]))
+    t_true = np.array([0.12, -0.05, 0.2])
+    tc_true = 0.005
+    sig_g, sig_a, sig_r = 2e-4, 2e-3, 0.002
+    clean_imu = _imu(so3, r3, ImuIntrinsics(), 100.0, (0.0, 0.0), rng)
+    room = _scan_room(so3, r3, R_true, t_true, tc_true, 3000, 0.0, rng)
+    pts = room.points
+    truth = _state(so3, r3, R_imu_lidar=R_true, t_imu_lidar=t_true, time_offset_s=tc_true)
+    params = LMParams(max_iterations=20, initial_lambda=1e-10)
+    names = [f"ext.rotation.r{a}" for a in "xyz"] + [f"ext.translation.{a}" for a in "xyz"]
+    names.append("ext.time_offset")
+    z, err_w, err_p = [], [], []
+    for _ in range(60):
+        imu = ImuData(
+            clean_imu.t_s,
+            clean_imu.gyro + sig_g * rng.standard_normal(clean_imu.gyro.shape),
+            clean_imu.accel + sig_a * rng.standard_normal(clean_imu.accel.shape),
+        )
+        rho = pts.rho + sig_r * rng.standard_normal(pts.rho.shape)
+        points = LidarPoints(pts.t_s, pts.beam, rho, pts.theta, pts.plane)
+        for floor, errors in ((0.05, err_w), (1.0, err_p)):
+            noise = NoiseModel(
+                sig_g, sig_a, range_sigma=sig_r, huber_threshold=None, min_incidence_cos=floor
+            )
+            problem = build_problem(truth, imu, points, room.planes, noise)
+            report = solve(problem, params)
+            assert report.converged and report.truncated == (), report.reason
+            est = state_from_problem(truth, problem)
+            err = np.concatenate(
+                [
+                    so3_log(R_true.T @ est.R_imu_lidar),
+                    est.t_imu_lidar - t_true,
+                    [est.time_offset_s - tc_true],
+                ]
+            )
+            errors.append(err)
+            if floor < 1.0:
+                z.append(err / np.array([report.std_of(n) for n in names]))
+    honest = float(np.sqrt(np.mean(np.square(z))))  # spread / reported std, pooled
+    assert abs(honest - 1.0) < 0.2, honest
+    ratio = np.mean(np.square(err_w), axis=0) / np.mean(np.square(err_p), axis=0)
+    sharper = float(np.sqrt(np.mean(ratio)))  # spread weighted / plain, pooled
+    assert sharper < 0.95, (sharper, np.sqrt(ratio))
