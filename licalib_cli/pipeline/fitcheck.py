@@ -69,6 +69,11 @@ PATTERN_P_VALUE = 1e-9
 EFFECT_P_VALUE = 1e-5
 """A fixed effect is significant below this p-value (about 1e-4 over all effects tested)."""
 
+MIN_INCIDENCE_COS = 0.3
+"""The point-to-plane noise is the range noise times the cosine of the incidence angle, but at
+least this fraction of it (grazing rays, plane-fit errors): how the checks weigh the distances,
+whatever the fit's weighting (``noise.min_incidence_cos``)."""
+
 MAX_EFFECT_POINTS = 80_000
 """Points used for the score tests (a regular subset of the final round's): the tests have power
 to spare, and the linearisation with every intrinsic free costs in proportion."""
@@ -314,10 +319,8 @@ def sensor_checks(
             ),
         ),
     ]
-    # the point-to-plane noise: the range noise times the cosine of the incidence angle, with
-    # the fit's floor (config noise.min_incidence_cos)
     sigma = beam_sigma(noise, state.lidar_intrinsics.num_beams)[r.beam] * np.maximum(
-        r.cos_incidence, inputs.noise.min_incidence_cos
+        r.cos_incidence, MIN_INCIDENCE_COS
     )
     out.append(
         _sensor(
@@ -433,12 +436,22 @@ def effect_evidence(
     )
     subset = _every_kth(len(inputs.lidar), MAX_EFFECT_POINTS)
     lidar = inputs.lidar.subset(subset)
-    # The score statistic is chi-square only when every whitened residual has unit variance: the
-    # fit weights each point-to-plane distance with the range noise times the cosine of its
-    # incidence angle (noise.min_incidence_cos). Weighted with the range noise alone, the
+    problem = build_problem(state, inputs.imu, lidar, inputs.planes, inputs.noise, all_free)
+    # The score statistic is chi-square only when every whitened residual has unit variance: a
+    # point-to-plane distance varies by the range noise times the cosine of the incidence angle
+    # (MIN_INCIDENCE_COS at least, as the sensor check), whatever floor the fit weighted it with
+    # (noise.min_incidence_cos; 1 by default). Weighted with the range noise alone, the
     # statistics came out about half their chi-square size on clean simulated data (twin
     # recordings), so the test lost power.
-    problem = build_problem(state, inputs.imu, lidar, inputs.planes, inputs.noise, all_free)
+    points = next(b for b in problem.residual_blocks if isinstance(b, PointToPlaneResidual))
+    normal = np.asarray(inputs.planes.normal)[np.asarray(lidar.plane)]
+    t_query = np.asarray(lidar.t_s) + state.time_offset_s
+    cos_inc = incidence_cosine(state, t_query, lidar.beam, lidar.theta, normal)
+    points.inv_sigma = (
+        points.inv_sigma
+        * np.maximum(cos_inc, inputs.noise.min_incidence_cos)
+        / np.maximum(cos_inc, MIN_INCIDENCE_COS)
+    )
     evaluation = problem.evaluate(jacobians=True)
     n_free = problem.layout().num_free
     variance_factor = max(
