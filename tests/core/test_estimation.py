@@ -430,8 +430,8 @@ def test_lidar_imu_reported_std_matches_monte_carlo_spread() -> None:
 
 def test_point_weights_follow_the_incidence_angle_with_its_floor() -> None:
     """Each point-to-plane distance is weighted with the range noise times the cosine of its
-    ray's incidence angle, at least ``min_incidence_cos`` of the range noise; 1 weights every
-    point with the range noise alone."""
+    ray's incidence angle where that is at least ``min_incidence_cos``, with the range noise
+    alone below (rays that graze their plane); 1 weights every point with the range noise."""
     rng = np.random.default_rng(3)
     so3, r3 = _true_splines(2.0, 0.1)
     room = _scan_room(so3, r3, np.eye(3), np.zeros(3), 0.0, 500, 0.0, rng)
@@ -453,7 +453,8 @@ def test_point_weights_follow_the_incidence_angle_with_its_floor() -> None:
         block = next(b for b in problem.residual_blocks if isinstance(b, PointToPlaneResidual))
         return np.asarray(block.inv_sigma).reshape(-1)
 
-    np.testing.assert_allclose(inv_sigma(0.3), 1.0 / (0.01 * np.maximum(cos, 0.3)), rtol=1e-12)
+    expected = 1.0 / (0.01 * np.where(cos >= 0.3, cos, 1.0))
+    np.testing.assert_allclose(inv_sigma(0.3), expected, rtol=1e-12)
     np.testing.assert_allclose(inv_sigma(1.0), np.full(len(pts), 100.0), rtol=1e-12)
 
 
