@@ -825,14 +825,6 @@ def incidence_cosine(
     return np.abs(np.einsum("ij,ij->i", ray_g, np.asarray(normal, dtype=np.float64)))
 
 
-def incidence_factor(cos_incidence: npt.ArrayLike, min_cos: float) -> F64:
-    """(N,) what the range noise is multiplied by for a point-to-plane distance: the cosine of
-    the ray's incidence angle where it is at least ``min_cos``, else 1 (see
-    :attr:`NoiseModel.min_incidence_cos`)."""
-    c = np.asarray(cos_incidence, dtype=np.float64)
-    return np.where(c >= min_cos, c, 1.0)
-
-
 def build_problem(
     state: CalibrationState,
     imu: ImuData | None,
@@ -917,7 +909,7 @@ def build_problem(
         sigma2 = np.full(plane.shape[0], noise.range_sigma**2)
         if noise.min_incidence_cos < 1.0:
             cos_inc = incidence_cosine(state, t_query, lidar.beam, lidar.theta, normal[plane])
-            sigma2 *= incidence_factor(cos_inc, noise.min_incidence_cos) ** 2
+            sigma2 *= np.where(cos_inc >= noise.min_incidence_cos, cos_inc, 1.0) ** 2
         if planes.thickness is not None and noise.thickness_weight > 0.0:
             sigma2 += (noise.thickness_weight * np.asarray(planes.thickness)[plane]) ** 2
         residual = PointToPlaneResidual(

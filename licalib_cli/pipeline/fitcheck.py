@@ -31,12 +31,7 @@ from licalib_cli.consistency import (
     regression_pattern,
     select_effects,
 )
-from licalib_cli.estimation import (
-    CalibrationState,
-    build_problem,
-    incidence_cosine,
-    incidence_factor,
-)
+from licalib_cli.estimation import CalibrationState, build_problem, incidence_cosine
 from licalib_cli.pipeline.effect_shift import planes_free_shifts
 from licalib_cli.pipeline.round import RoundInputs, SolvedProblem
 from licalib_cli.pipeline.settings import NoiseLevels
@@ -441,22 +436,19 @@ def effect_evidence(
     )
     subset = _every_kth(len(inputs.lidar), MAX_EFFECT_POINTS)
     lidar = inputs.lidar.subset(subset)
-    problem = build_problem(state, inputs.imu, lidar, inputs.planes, inputs.noise, all_free)
     # The score statistic is chi-square only when every whitened residual has unit variance: a
     # point-to-plane distance varies by the range noise times the cosine of the incidence angle
     # (MIN_INCIDENCE_COS at least, as the sensor check), whatever the fit weighted it with
-    # (noise.min_incidence_cos; 1 by default). Weighted with the range noise alone, the
-    # statistics came out about half their chi-square size on clean simulated data (twin
-    # recordings), so the test lost power.
+    # (noise.min_incidence_cos), so the problem is built with the range noise alone and then
+    # weighted so. Weighted with the range noise alone, the statistics came out about half
+    # their chi-square size on clean simulated data (twin recordings), so the test lost power.
+    plain = replace(inputs.noise, min_incidence_cos=1.0)
+    problem = build_problem(state, inputs.imu, lidar, inputs.planes, plain, all_free)
     points = next(b for b in problem.residual_blocks if isinstance(b, PointToPlaneResidual))
     normal = np.asarray(inputs.planes.normal)[np.asarray(lidar.plane)]
     t_query = np.asarray(lidar.t_s) + state.time_offset_s
     cos_inc = incidence_cosine(state, t_query, lidar.beam, lidar.theta, normal)
-    points.inv_sigma = (
-        points.inv_sigma
-        * incidence_factor(cos_inc, inputs.noise.min_incidence_cos)
-        / np.maximum(cos_inc, MIN_INCIDENCE_COS)
-    )
+    points.inv_sigma = points.inv_sigma / np.maximum(cos_inc, MIN_INCIDENCE_COS)
     evaluation = problem.evaluate(jacobians=True)
     n_free = problem.layout().num_free
     variance_factor = max(

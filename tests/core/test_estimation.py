@@ -413,14 +413,10 @@ def test_lidar_imu_reported_std_matches_monte_carlo_spread() -> None:
     rng = np.random.default_rng(5)
     sig_g, sig_a, sig_d = 2e-4, 2e-3, 0.002
     so3, r3, clean_imu, room = _noise_free_room(rng)
-    R_true, t_true, tc_true = _R_TRUE, _T_TRUE, _TC_TRUE
     pts = room.points
-    phi = BEAMS[pts.beam]
-    ray = np.column_stack([np.cos(phi) * np.cos(pts.theta), np.cos(phi) * np.sin(pts.theta)])
-    ray = np.column_stack([ray, np.sin(phi)])
-    ray_g = np.einsum("nij,nj->ni", so3.rotation(pts.t_s + tc_true) @ R_true, ray)
-    cos_incidence = np.abs(np.einsum("ni,ni->n", ray_g, room.planes.normal[pts.plane]))
-    truth = _state(so3, r3, R_imu_lidar=R_true, t_imu_lidar=t_true, time_offset_s=tc_true)
+    truth = _state(so3, r3, R_imu_lidar=_R_TRUE, t_imu_lidar=_T_TRUE, time_offset_s=_TC_TRUE)
+    normal = room.planes.normal[pts.plane]
+    cos_incidence = incidence_cosine(truth, pts.t_s + _TC_TRUE, pts.beam, pts.theta, normal)
     noise = NoiseModel(sig_g, sig_a, range_sigma=sig_d, huber_threshold=None)
     params = LMParams(max_iterations=20, initial_lambda=1e-10)
     z = []  # errors in units of the reported standard deviation
