@@ -333,6 +333,8 @@ def test_undecodable_imu_message_is_counted_in_the_result(tmp_path: Path) -> Non
         (["-c", "{tmp}"], "is a folder; pass a YAML file"),
         (["-c", "{tmp}/dup.yaml"], "gives the key 'start_s' twice (line 3); keep one of them"),
         (["-c", "{tmp}/empty_table.yaml"], "'lidar.nominal_elevation_deg'"),
+        (["-c", "{tmp}/cos0.yaml"], "Invalid setting 'noise.min_incidence_cos'"),
+        (["-c", "{tmp}/cos2.yaml"], "Invalid setting 'noise.min_incidence_cos'"),
     ],
 )
 def test_bad_options_and_configs_exit_6(
@@ -343,6 +345,8 @@ def test_bad_options_and_configs_exit_6(
     (tmp_path / "random.yaml").write_bytes(np.random.default_rng(0).bytes(300))
     (tmp_path / "dup.yaml").write_text("bag:\n  start_s: 0\n  start_s: 1\n")
     (tmp_path / "empty_table.yaml").write_text("lidar:\n  nominal_elevation_deg: []\n")
+    (tmp_path / "cos0.yaml").write_text("noise:\n  min_incidence_cos: 0\n")
+    (tmp_path / "cos2.yaml").write_text("noise:\n  min_incidence_cos: 1.5\n")
     options = [o.format(tmp=tmp_path) for o in options]
     code, out, err = run(["info", str(bag), "--json", *options], capsys)
     data = json.loads(out)
