@@ -10,6 +10,9 @@ initial guess with every intrinsic estimated (``--intrinsics all``) and print:
 * LiDAR intrinsic mean absolute errors per kind (range scale, range offset, elevation, vertical
   offset, azimuth, horizontal offset) over the estimated beams;
 * how many estimated numbers lie within 3 of their reported sigmas;
+* what the fit's own information allows: the translation error an unbiased estimator with the
+  final solve's covariance makes on average and its chance of exceeding 3 mm, and the
+  coordinates most correlated with the least determined axis (``_information.py``);
 * wall time per stage and the rounds.
 
 Examples::
@@ -44,6 +47,7 @@ import yaml
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from _information import information_bound
 from _noise import add_noise_options, noise_spec_kwargs
 
 PAPER_LIDAR_MAE = {
@@ -125,6 +129,14 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
     # t_x t_y t_z (IMU frame), rotation about the LiDAR axes, time offset
     row["extrinsic_error_over_sigma"] = [round(float(x), 2) for x in ratio]
     row["reasons"] = list(run.verdict.reasons)
+    report = run.fit.report
+    row["information"] = information_bound(list(report.calibration_names), report.covariance, seed)
+    row["information"]["error_over_solver_sd"] = [
+        round(float(e / s), 2)
+        for e, s in zip(
+            row["translation_error_mm"], row["information"]["solver_translation_sd_mm"], strict=True
+        )
+    ]
     unc = res.intrinsics_uncertainty.values if res.intrinsics_uncertainty else {}
     within, total = 0, 0
     per_kind: dict[str, list[int]] = {}
@@ -240,7 +252,13 @@ def main() -> None:
                 f"{row['calibrate_s']:.1f} s {row['stages']} rounds {row['rounds']}\n"
                 f"    IMU max error: {imu}\n    LiDAR MAE: {lid}\n"
                 f"    LiDAR mean error over the beams: {common}\n"
-                f"    within 3 sigma: {row['within_3_sigma'][0]}/{row['within_3_sigma'][1]}"
+                f"    within 3 sigma: {row['within_3_sigma'][0]}/{row['within_3_sigma'][1]}\n"
+                f"    the fit's information: expected |t| "
+                f"{row['information']['expected_translation_mm']:.2f} mm, "
+                f"P(|t| > 3 mm) {row['information']['p_translation_over']:.2f}, solver "
+                f"sigmas {row['information']['solver_translation_sd_mm']} mm; "
+                f"{row['information']['weakest_axis']} correlated with "
+                f"{row['information']['weakest_axis_correlations']}"
                 + "".join(f"\n    {row['verdict']}: {r}" for r in row.get("reasons", [])),
                 flush=True,
             )
@@ -257,6 +275,16 @@ def main() -> None:
             f"(scatter {signed_dt.std():.4f}), translation "
             f"{np.array2string(signed_t.mean(axis=0), precision=2, sign='+')} mm "
             f"(scatter {np.array2string(signed_t.std(axis=0), precision=2)})"
+        )
+        expected = np.array([r["information"]["expected_translation_mm"] for r in rows])
+        p_over = np.array([r["information"]["p_translation_over"] for r in rows])
+        z = np.array([r["information"]["error_over_solver_sd"] for r in rows])
+        observed = np.array([r["translation_mm"] for r in rows])
+        print(
+            f"the fit's information (solver covariance, planes held fixed): expected mean |t| "
+            f"{expected.mean():.3f} mm (observed {observed.mean():.3f}); expected seeds over "
+            f"3 mm {p_over.sum():.1f} of {len(rows)} (observed {int(np.sum(observed > 3.0))}); "
+            f"RMS of translation error / solver sigma {np.sqrt(np.mean(z**2)):.2f}"
         )
         w = sum(r["within_3_sigma"][0] for r in rows)
         n = sum(r["within_3_sigma"][1] for r in rows)

@@ -123,8 +123,9 @@ class NoiseConfig(_Section):
     range noise times the cosine of the ray's incidence angle. Below 1, each point-to-plane
     residual whose ray meets its plane with at least this cosine is weighted so; flatter rays
     keep the full range noise (their distances carry errors the cosine does not). 1 (the
-    default): every point weighted with the full range noise. 0.2 made the paper's sinusoids
-    6 % more accurate over twenty seeds (README, "Checks of the fit")."""
+    default): every point weighted with the full range noise. 0.2 made the paper's sinusoids'
+    translation 6 % more accurate over twenty seeds but their gyro scales less so (README,
+    "Checks of the fit")."""
 
 
 class OdometrySection(_Section):

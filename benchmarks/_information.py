@@ -1,0 +1,66 @@
+"""What a fit's own information allows: the extrinsic errors an unbiased estimator with the
+final solve's covariance makes (planes held fixed, none of the checks' enlargements).
+
+A benchmark target below these is beyond the data, not beyond the solver: when the observed
+errors over many seeds match the expected ones (their ratio to the solver's sigmas has an RMS
+near 1), the estimator already uses the information the problem holds, and a lower target needs
+more of it (motion, points, priors).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+DRAWS = 100_000
+"""Monte Carlo draws per run (the chances below to about 0.002)."""
+
+
+def _block(names: Sequence[str], prefix: str, axes: str) -> list[int]:
+    return [list(names).index(f"{prefix}.{a}") for a in axes]
+
+
+def information_bound(
+    names: Sequence[str],
+    covariance: object,
+    seed: int,
+    limits: tuple[float, float, float] = (3.0, 0.05, 0.1),
+) -> dict:
+    """Expected errors and the chance of missing ``limits`` (translation mm, rotation deg,
+    time offset ms; a run misses when any of the three is beyond its limit) for an unbiased
+    estimator with ``covariance`` over the calibration coordinates ``names`` (the solver
+    report's ``calibration_names``: ``ext.translation.x`` in m, ``ext.rotation.rx`` in rad,
+    ``ext.time_offset`` in s). Also the per-axis translation sigmas and the three coordinates
+    most correlated with the least determined translation axis."""
+    cov = np.asarray(covariance, dtype=float)
+    it = _block(names, "ext.translation", "xyz")
+    ir = _block(names, "ext.rotation", ["rx", "ry", "rz"])  # type: ignore[arg-type]
+    idt = list(names).index("ext.time_offset")
+    ix = [*it, *ir, idt]
+    units = np.array([1e3] * 3 + [np.degrees(1.0)] * 3 + [1e3])  # mm, deg, ms
+    c = cov[np.ix_(ix, ix)] * np.outer(units, units)
+    c = 0.5 * (c + c.T)
+    draws = np.random.default_rng(seed).multivariate_normal(
+        np.zeros(7), c, size=DRAWS, check_valid="ignore"
+    )
+    t = np.linalg.norm(draws[:, :3], axis=1)
+    r = np.linalg.norm(draws[:, 3:6], axis=1)
+    dt = np.abs(draws[:, 6])
+    outside = (t > limits[0]) | (r > limits[1]) | (dt > limits[2])
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    weak = it[int(np.argmax(np.diag(cov)[it]))]
+    corr = cov[weak] / np.where(sd > 0, sd[weak] * sd, np.inf)
+    order = [int(j) for j in np.argsort(-np.abs(corr)) if j != weak][:3]
+    return {
+        "expected_translation_mm": float(t.mean()),
+        "expected_rotation_deg": float(r.mean()),
+        "expected_time_offset_ms": float(dt.mean()),
+        "p_translation_over": float(np.mean(t > limits[0])),
+        "p_time_offset_over": float(np.mean(dt > limits[2])),
+        "p_outside": float(np.mean(outside)),
+        "solver_translation_sd_mm": [round(float(x), 3) for x in np.sqrt(np.diag(c)[:3])],
+        "solver_time_offset_sd_ms": round(float(np.sqrt(c[6, 6])), 4),
+        "weakest_axis": names[weak],
+        "weakest_axis_correlations": {names[j]: round(float(corr[j]), 2) for j in order},
+    }
