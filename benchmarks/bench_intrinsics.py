@@ -137,6 +137,9 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
             row["translation_error_mm"], row["information"]["solver_translation_sd_mm"], strict=True
         )
     ]
+    row["information"]["time_offset_error_over_solver_sd"] = round(
+        row["time_offset_error_ms"] / row["information"]["solver_time_offset_sd_ms"], 2
+    )
     unc = res.intrinsics_uncertainty.values if res.intrinsics_uncertainty else {}
     within, total = 0, 0
     per_kind: dict[str, list[int]] = {}
@@ -280,11 +283,13 @@ def main() -> None:
         p_over = np.array([r["information"]["p_translation_over"] for r in rows])
         z = np.array([r["information"]["error_over_solver_sd"] for r in rows])
         observed = np.array([r["translation_mm"] for r in rows])
+        z_dt = np.array([r["information"]["time_offset_error_over_solver_sd"] for r in rows])
         print(
             f"the fit's information (solver covariance, planes held fixed): expected mean |t| "
             f"{expected.mean():.3f} mm (observed {observed.mean():.3f}); expected seeds over "
             f"3 mm {p_over.sum():.1f} of {len(rows)} (observed {int(np.sum(observed > 3.0))}); "
-            f"RMS of translation error / solver sigma {np.sqrt(np.mean(z**2)):.2f}"
+            f"RMS of translation error / solver sigma {np.sqrt(np.mean(z**2)):.2f}, of time "
+            f"offset error / solver sigma {np.sqrt(np.mean(z_dt**2)):.2f}"
         )
         w = sum(r["within_3_sigma"][0] for r in rows)
         n = sum(r["within_3_sigma"][1] for r in rows)
