@@ -60,10 +60,13 @@ from licalib_cli.sections import (
 from licalib_cli.solver.lm import SolverReport
 
 __all__ = [
+    "ENTANGLED_CORRELATION",
     "SPLIT_HALF_P",
     "Checks",
+    "Entangled",
     "Finding",
     "check",
+    "entangled_intrinsics",
     "intrinsics_uncertainty",
     "judge",
     "observability_of",
@@ -255,19 +258,85 @@ def _observability(report: SolverReport) -> list[Finding]:
     return out
 
 
+ENTANGLED_CORRELATION = 0.7
+"""An estimated intrinsic correlated at least this much with the least determined translation
+axis is named when the translation is uncertain. On the paper's sinusoid with every intrinsic
+free, x is correlated -0.79 with the accelerometer's x-z misalignment and -0.71 with the gyro's
+rotation about y, z 0.9 with the accelerometer's x and y scales (benchmarks/RESULTS.md,
+2026-12-01, seventeenth stop)."""
+
+
+@dataclass(frozen=True)
+class Entangled:
+    """The least determined translation axis and the estimated intrinsics that move with it.
+
+    Attributes:
+        axis: ``x``, ``y`` or ``z`` (IMU frame).
+        partners: ``(calibration coordinate, correlation)``, strongest first (at most three).
+    """
+
+    axis: str
+    partners: tuple[tuple[str, float], ...]
+
+
+def entangled_intrinsics(report: SolverReport, sigma_t: F64) -> Entangled | None:
+    """The estimated intrinsics (``imu.*``, ``lidar.*`` coordinates) correlated by at least
+    :data:`ENTANGLED_CORRELATION` with the translation axis of the largest finite sigma in
+    ``sigma_t``, from the final solve's covariance; None when there are none."""
+    names = list(report.calibration_names)
+    cov = np.asarray(report.covariance, dtype=float)
+    finite = np.isfinite(sigma_t)
+    if not np.any(finite) or cov.shape != (len(names), len(names)):
+        return None
+    axis = "xyz"[int(np.argmax(np.where(finite, sigma_t, -np.inf)))]
+    name = f"ext.translation.{axis}"
+    if name not in names:
+        return None
+    i = names.index(name)
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    if not np.isfinite(sd[i]) or sd[i] <= 0:
+        return None
+    with np.errstate(divide="ignore", invalid="ignore"):
+        corr = np.where(sd > 0, cov[i] / (sd[i] * sd), 0.0)
+    partners = tuple(
+        (names[j], float(corr[j]))
+        for j in np.argsort(-np.abs(corr), kind="stable")
+        if names[j].startswith(("imu.", "lidar.")) and abs(corr[j]) >= ENTANGLED_CORRELATION
+    )[:3]
+    return Entangled(axis, partners) if partners else None
+
+
+def _entangled_advice(entangled: Entangled | None) -> str:
+    if entangled is None:
+        return ""
+    listed = ", ".join(f"{n} ({c:+.2f})" for n, c in entangled.partners)
+    sections = " and ".join(
+        f"model.{k}"
+        for k in ("imu", "lidar")
+        if any(n.startswith(k) for n, _ in entangled.partners)
+    )
+    return (
+        f" The translation along {entangled.axis} moves with {listed}, which this run "
+        f"estimates: leave out of the model (--intrinsics, {sections}) what your sensors' "
+        "factory calibration already gives, or record motion that tells them apart."
+    )
+
+
 def uncertainty_findings(
     sigma: F64,
     without_effects: F64,
     limits: ChecksSection,
     covered: Sequence[str] = (),
     prior: str | None = None,
+    entangled: Entangled | None = None,
 ) -> list[Finding]:
     """Sigmas above the ``checks`` limits (5 mm / 0.1 deg / 0.2 ms by default).
 
     ``without_effects`` are the sigmas without what the ``covered`` effects (held fixed, shown
     by the data) and the IMU priors (``prior``: the block that adds most, None when none do)
     add: when those alone are within the limits, the finding names them instead of the motion
-    as the cause."""
+    as the cause. ``entangled`` (:func:`entangled_intrinsics`): the estimated intrinsics that
+    move with the least determined translation axis, named in the translation's finding."""
     out = []
     t, r, c = sigma[:3], np.degrees(sigma[3:6]), float(sigma[6])
     t_max, r_max = limits.max_translation_sigma_m, limits.max_rotation_sigma_deg
@@ -301,7 +370,8 @@ def uncertainty_findings(
                 + cause(
                     bool(np.any(t0[np.isfinite(t0)] > t_max)),
                     " Record with more rotation about all axes (and a quieter IMU).",
-                ),
+                )
+                + _entangled_advice(entangled),
             )
         )
     finite_r = r[np.isfinite(r)]
@@ -668,7 +738,12 @@ def run_checks(
     covered = [e.score.name for e in effects if effect_to_cover(e, raw)]
     without_effects, _ = inflate(raw, sensors, [], split, fit)
     findings += uncertainty_findings(
-        sigma, without_effects, cfg.checks, covered, _largest_prior(effects, raw)
+        sigma,
+        without_effects,
+        cfg.checks,
+        covered,
+        _largest_prior(effects, raw),
+        entangled_intrinsics(report, sigma[:3]),
     )
     findings += _sensors(sensors)
     findings += _effects(effects, raw)

@@ -60,3 +60,55 @@ def test_a_sigma_over_the_limit_by_the_imu_priors_names_them_not_the_motion() ->
     assert "(accel_scale)" in both.text and "(most from gyro_rotation)" in both.text
     (motion,) = uncertainty_findings(sigma, sigma, limits, prior="gyro_rotation")
     assert "more rotation" in motion.text
+
+
+def _report(corr_with_scale: float):
+    """A solver report whose x translation (5.5 mm) is correlated ``corr_with_scale`` with the
+    accelerometer's x scale and 0.95 with the extrinsic pitch (not an intrinsic)."""
+    from licalib_cli.solver.lm import SolverReport
+
+    names = (
+        "ext.rotation.ry",
+        "ext.translation.x",
+        "ext.translation.y",
+        "ext.translation.z",
+        "imu.accel_scale.x",
+        "lidar.intrinsics[3].range_offset",
+    )
+    sd = np.array([1e-4, 5.5e-3, 1e-3, 1e-3, 1e-4, 1e-3])
+    corr = np.eye(6)
+    corr[0, 1] = corr[1, 0] = 0.95
+    corr[1, 4] = corr[4, 1] = corr_with_scale
+    corr[1, 5] = corr[5, 1] = -0.72
+    corr[0, 4] = corr[4, 0] = corr_with_scale * 0.95
+    fields = {f: None for f in SolverReport.__dataclass_fields__}
+    fields.update(calibration_names=names, covariance=corr * np.outer(sd, sd))
+    return SolverReport(**fields)  # type: ignore[arg-type]
+
+
+def test_an_uncertain_translation_names_the_estimated_intrinsics_it_moves_with() -> None:
+    from licalib_cli.pipeline.checks import entangled_intrinsics
+
+    sigma = _sigma(5.5, 0.01, 0.05)
+    sigma[1:3] = 1e-3
+    limits = CalibConfig().checks
+    found = entangled_intrinsics(_report(-0.8), sigma[:3])
+    assert found is not None and found.axis == "x"
+    # strongest first; the extrinsic pitch (0.95) is not an intrinsic the user can leave out
+    assert [n for n, _ in found.partners] == [
+        "imu.accel_scale.x",
+        "lidar.intrinsics[3].range_offset",
+    ]
+    (finding,) = uncertainty_findings(sigma, sigma, limits, entangled=found)
+    assert "along x moves with imu.accel_scale.x (-0.80), lidar.intrinsics[3].range_offset " in (
+        finding.text
+    )
+    assert "model.imu and model.lidar" in finding.text and "more rotation" in finding.text
+    # below 0.7 an intrinsic is not named
+    weak = entangled_intrinsics(_report(-0.5), sigma[:3])
+    assert weak is not None and [n for n, _ in weak.partners] == [
+        "lidar.intrinsics[3].range_offset"
+    ]
+    # the y axis, the largest sigma now, moves with nothing
+    sigma[1] = 9e-3
+    assert entangled_intrinsics(_report(-0.8), sigma[:3]) is None
