@@ -70,6 +70,7 @@ from licalib_cli.pipeline.assemble import extra_terms
 from licalib_cli.pipeline.checks import (
     COVER_P_VALUE,
     effect_to_cover,
+    entangled_intrinsics,
     intrinsics_uncertainty,
     prior_variance,
     uncertainty_findings,
@@ -602,7 +603,8 @@ def _joint_result(
     if any(e.disagrees for e in entries) and worst == "pass":
         worst = "warn"
     sigma = unc.vector()
-    for finding in uncertainty_findings(sigma, sigma, cfg.checks):
+    entangled = entangled_intrinsics(report, sigma[:3])
+    for finding in uncertainty_findings(sigma, sigma, cfg.checks, entangled=entangled):
         worst = "warn" if worst == "pass" else worst
         reasons.append(f"Joint estimate: {finding.text}")
     truncated = tuple(d.text for d in report.truncated)
