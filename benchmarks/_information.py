@@ -21,24 +21,44 @@ def _block(names: Sequence[str], prefix: str, axes: str) -> list[int]:
     return [list(names).index(f"{prefix}.{a}") for a in axes]
 
 
+def plane_factors(report: object, raw_sigma: object) -> np.ndarray:
+    """(7,) what the checks multiply the solver's extrinsic sigmas by for the map planes' own
+    uncertainty (``run.checks.raw_sigma`` over the solver's sigmas; the solver holds the planes
+    fixed although they were fitted to the same points). 1 where a sigma is not finite."""
+    names = list(report.calibration_names)  # type: ignore[attr-defined]
+    std = np.asarray(report.std, dtype=float)  # type: ignore[attr-defined]
+    ix = [
+        *_block(names, "ext.translation", "xyz"),
+        *_block(names, "ext.rotation", ["rx", "ry", "rz"]),  # type: ignore[arg-type]
+        names.index("ext.time_offset"),
+    ]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = np.asarray(raw_sigma, dtype=float) / std[ix]
+    return np.where(np.isfinite(f) & (f > 0), f, 1.0)
+
+
 def information_bound(
     names: Sequence[str],
     covariance: object,
     seed: int,
     limits: tuple[float, float, float] = (3.0, 0.05, 0.1),
+    factors: object = None,
 ) -> dict:
     """Expected errors and the chance of missing ``limits`` (translation mm, rotation deg,
     time offset ms; a run misses when any of the three is beyond its limit) for an unbiased
     estimator with ``covariance`` over the calibration coordinates ``names`` (the solver
     report's ``calibration_names``: ``ext.translation.x`` in m, ``ext.rotation.rx`` in rad,
     ``ext.time_offset`` in s). Also the per-axis translation sigmas and the three coordinates
-    most correlated with the least determined translation axis."""
+    most correlated with the least determined translation axis. ``factors`` (7,): each
+    extrinsic sigma times this (:func:`plane_factors`), the correlations kept."""
     cov = np.asarray(covariance, dtype=float)
     it = _block(names, "ext.translation", "xyz")
     ir = _block(names, "ext.rotation", ["rx", "ry", "rz"])  # type: ignore[arg-type]
     idt = list(names).index("ext.time_offset")
     ix = [*it, *ir, idt]
     units = np.array([1e3] * 3 + [np.degrees(1.0)] * 3 + [1e3])  # mm, deg, ms
+    if factors is not None:
+        units = units * np.asarray(factors, dtype=float)
     c = cov[np.ix_(ix, ix)] * np.outer(units, units)
     c = 0.5 * (c + c.T)
     draws = np.random.default_rng(seed).multivariate_normal(

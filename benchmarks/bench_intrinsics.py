@@ -47,7 +47,7 @@ import yaml
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _information import information_bound
+from _information import information_bound, plane_factors
 from _noise import add_noise_options, noise_spec_kwargs
 
 PAPER_LIDAR_MAE = {
@@ -131,6 +131,17 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
     row["reasons"] = list(run.verdict.reasons)
     report = run.fit.report
     row["information"] = information_bound(list(report.calibration_names), report.covariance, seed)
+    # the same with the map planes' own uncertainty (the checks' first enlargement)
+    factors = plane_factors(report, run.checks.raw_sigma)
+    with_planes = information_bound(
+        list(report.calibration_names), report.covariance, seed, factors=factors
+    )
+    row["information"]["with_planes"] = {
+        "expected_translation_mm": with_planes["expected_translation_mm"],
+        "p_translation_over": with_planes["p_translation_over"],
+        "translation_sd_mm": with_planes["solver_translation_sd_mm"],
+        "factors": [round(float(f), 3) for f in factors],
+    }
     row["information"]["error_over_solver_sd"] = [
         round(float(e / s), 2)
         for e, s in zip(
@@ -282,6 +293,14 @@ def main() -> None:
         expected = np.array([r["information"]["expected_translation_mm"] for r in rows])
         p_over = np.array([r["information"]["p_translation_over"] for r in rows])
         z = np.array([r["information"]["error_over_solver_sd"] for r in rows])
+        planes = [r["information"].get("with_planes") for r in rows]
+        z_planes = np.array(
+            [
+                np.array(r["translation_error_mm"]) / np.array(p["translation_sd_mm"])
+                for r, p in zip(rows, planes, strict=True)
+                if p is not None
+            ]
+        )
         observed = np.array([r["translation_mm"] for r in rows])
         z_dt = np.array([r["information"]["time_offset_error_over_solver_sd"] for r in rows])
         print(
@@ -291,6 +310,12 @@ def main() -> None:
             f"RMS of translation error / solver sigma {np.sqrt(np.mean(z**2)):.2f}, of time "
             f"offset error / solver sigma {np.sqrt(np.mean(z_dt**2)):.2f}"
         )
+        if z_planes.size:
+            exp_p = np.mean([p["expected_translation_mm"] for p in planes if p is not None])
+            print(
+                f"with the map planes' own uncertainty: expected mean |t| {exp_p:.3f} mm; "
+                f"RMS of translation error / sigma {np.sqrt(np.mean(z_planes**2)):.2f}"
+            )
         w = sum(r["within_3_sigma"][0] for r in rows)
         n = sum(r["within_3_sigma"][1] for r in rows)
         print(f"within 3 sigma: {w}/{n} ({100 * w / max(n, 1):.1f} %)")

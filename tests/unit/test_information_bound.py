@@ -58,3 +58,19 @@ def test_names_the_coordinates_correlated_with_the_weakest_axis() -> None:
     assert out["weakest_axis"] == "ext.translation.y"
     assert next(iter(out["weakest_axis_correlations"])) == "imu.accel_scale.x"
     assert out["weakest_axis_correlations"]["imu.accel_scale.x"] == pytest.approx(0.9)
+
+
+def test_plane_factors_scale_the_sigmas_and_keep_the_correlations() -> None:
+    from types import SimpleNamespace
+
+    from _information import plane_factors
+
+    cov = _covariance(2e-3, 1e-5, 5e-5)
+    report = SimpleNamespace(calibration_names=NAMES, std=np.sqrt(np.diag(cov)))
+    raw = np.array([3e-3, 2e-3, 2e-3, 1e-5, 1e-5, np.inf, 5e-5])  # x 1.5 times; rz not finite
+    factors = plane_factors(report, raw)
+    np.testing.assert_allclose(factors, [1.5, 1, 1, 1, 1, 1, 1])
+    plain = information_bound(NAMES, cov, seed=4)
+    wider = information_bound(NAMES, cov, seed=4, factors=factors)
+    assert wider["solver_translation_sd_mm"] == pytest.approx([3.0, 2.0, 2.0])
+    assert wider["expected_translation_mm"] > plain["expected_translation_mm"]
