@@ -13,6 +13,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from licalib_cli.pipeline.checks import correlated_with
+
 DRAWS = 100_000
 """Monte Carlo draws per run (the chances below to about 0.002)."""
 
@@ -68,10 +70,7 @@ def information_bound(
     r = np.linalg.norm(draws[:, 3:6], axis=1)
     dt = np.abs(draws[:, 6])
     outside = (t > limits[0]) | (r > limits[1]) | (dt > limits[2])
-    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    weak = it[int(np.argmax(np.diag(cov)[it]))]
-    corr = cov[weak] / np.where(sd > 0, sd[weak] * sd, np.inf)
-    order = [int(j) for j in np.argsort(-np.abs(corr)) if j != weak][:3]
+    weak = names[it[int(np.argmax(np.diag(cov)[it]))]]
     return {
         "expected_translation_mm": float(t.mean()),
         "expected_rotation_deg": float(r.mean()),
@@ -81,6 +80,8 @@ def information_bound(
         "p_outside": float(np.mean(outside)),
         "solver_translation_sd_mm": [round(float(x), 3) for x in np.sqrt(np.diag(c)[:3])],
         "solver_time_offset_sd_ms": round(float(np.sqrt(c[6, 6])), 4),
-        "weakest_axis": names[weak],
-        "weakest_axis_correlations": {names[j]: round(float(corr[j]), 2) for j in order},
+        "weakest_axis": weak,
+        "weakest_axis_correlations": {
+            n: round(c, 2) for n, c in correlated_with(names, cov, weak)[:3]
+        },
     }

@@ -342,6 +342,9 @@ class NoiseModel:
             their plane carry errors the cosine does not (on a simulated figure-8: RMS 9 mm at
             cosines 0.1-0.2 with 10 mm range noise, 1.5 mm expected). 1 weights every point with
             the full range noise.
+        incidence_floor: ``c`` is the cosine, but at least ``min_incidence_cos``, for every ray
+            (grazing ones included): how the fit checks weigh the distances
+            (``pipeline/fitcheck.py``), not how the fit does.
         huber_threshold: Huber threshold on the whitened point residual (None: plain squares).
         range_noise_per_beam: (B,) the range noise each beam's returns carry, m, as measured
             from the data; None: ``range_sigma`` for every beam. ``range_sigma`` weights the
@@ -354,6 +357,7 @@ class NoiseModel:
     range_sigma: float = 0.02
     thickness_weight: float = 0.0
     min_incidence_cos: float = 1.0
+    incidence_floor: bool = False
     huber_threshold: float | None = 3.0
     range_noise_per_beam: F64 | None = field(default=None, compare=False)
 
@@ -909,7 +913,13 @@ def build_problem(
         sigma2 = np.full(plane.shape[0], noise.range_sigma**2)
         if noise.min_incidence_cos < 1.0:
             cos_inc = incidence_cosine(state, t_query, lidar.beam, lidar.theta, normal[plane])
-            sigma2 *= np.where(cos_inc >= noise.min_incidence_cos, cos_inc, 1.0) ** 2
+            c = noise.min_incidence_cos
+            factor = (
+                np.maximum(cos_inc, c)
+                if noise.incidence_floor
+                else np.where(cos_inc >= c, cos_inc, 1.0)
+            )
+            sigma2 *= factor**2
         if planes.thickness is not None and noise.thickness_weight > 0.0:
             sigma2 += (noise.thickness_weight * np.asarray(planes.thickness)[plane]) ** 2
         residual = PointToPlaneResidual(

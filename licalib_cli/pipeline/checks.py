@@ -66,6 +66,7 @@ __all__ = [
     "Entangled",
     "Finding",
     "check",
+    "correlated_with",
     "entangled_intrinsics",
     "intrinsics_uncertainty",
     "judge",
@@ -279,29 +280,39 @@ class Entangled:
     partners: tuple[tuple[str, float], ...]
 
 
+def correlated_with(
+    names: Sequence[str], covariance: npt.ArrayLike, name: str
+) -> list[tuple[str, float]]:
+    """Every other coordinate of ``names`` with its correlation to ``name`` in ``covariance``
+    (a solver report's ``calibration_names`` and ``covariance``), strongest first; empty when
+    ``name`` is not there or its variance is not finite and positive."""
+    names = list(names)
+    cov = np.asarray(covariance, dtype=float)
+    if name not in names or cov.shape != (len(names), len(names)):
+        return []
+    i = names.index(name)
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    if not np.isfinite(sd[i]) or sd[i] <= 0:
+        return []
+    with np.errstate(divide="ignore", invalid="ignore"):
+        corr = np.where(sd > 0, cov[i] / (sd[i] * sd), 0.0)
+    return [(names[j], float(corr[j])) for j in np.argsort(-np.abs(corr), kind="stable") if j != i]
+
+
 def entangled_intrinsics(report: SolverReport, sigma_t: F64) -> Entangled | None:
     """The estimated intrinsics (``imu.*``, ``lidar.*`` coordinates) correlated by at least
     :data:`ENTANGLED_CORRELATION` with the translation axis of the largest finite sigma in
     ``sigma_t``, from the final solve's covariance; None when there are none."""
-    names = list(report.calibration_names)
-    cov = np.asarray(report.covariance, dtype=float)
     finite = np.isfinite(sigma_t)
-    if not np.any(finite) or cov.shape != (len(names), len(names)):
+    if not np.any(finite):
         return None
     axis = "xyz"[int(np.argmax(np.where(finite, sigma_t, -np.inf)))]
-    name = f"ext.translation.{axis}"
-    if name not in names:
-        return None
-    i = names.index(name)
-    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    if not np.isfinite(sd[i]) or sd[i] <= 0:
-        return None
-    with np.errstate(divide="ignore", invalid="ignore"):
-        corr = np.where(sd > 0, cov[i] / (sd[i] * sd), 0.0)
     partners = tuple(
-        (names[j], float(corr[j]))
-        for j in np.argsort(-np.abs(corr), kind="stable")
-        if names[j].startswith(("imu.", "lidar.")) and abs(corr[j]) >= ENTANGLED_CORRELATION
+        (n, c)
+        for n, c in correlated_with(
+            report.calibration_names, report.covariance, f"ext.translation.{axis}"
+        )
+        if n.startswith(("imu.", "lidar.")) and abs(c) >= ENTANGLED_CORRELATION
     )[:3]
     return Entangled(axis, partners) if partners else None
 

@@ -439,16 +439,11 @@ def effect_evidence(
     # The score statistic is chi-square only when every whitened residual has unit variance: a
     # point-to-plane distance varies by the range noise times the cosine of the incidence angle
     # (MIN_INCIDENCE_COS at least, as the sensor check), whatever the fit weighted it with
-    # (noise.min_incidence_cos), so the problem is built with the range noise alone and then
-    # weighted so. Weighted with the range noise alone, the statistics came out about half
-    # their chi-square size on clean simulated data (twin recordings), so the test lost power.
-    plain = replace(inputs.noise, min_incidence_cos=1.0)
-    problem = build_problem(state, inputs.imu, lidar, inputs.planes, plain, all_free)
-    points = next(b for b in problem.residual_blocks if isinstance(b, PointToPlaneResidual))
-    normal = np.asarray(inputs.planes.normal)[np.asarray(lidar.plane)]
-    t_query = np.asarray(lidar.t_s) + state.time_offset_s
-    cos_inc = incidence_cosine(state, t_query, lidar.beam, lidar.theta, normal)
-    points.inv_sigma = points.inv_sigma / np.maximum(cos_inc, MIN_INCIDENCE_COS)
+    # (noise.min_incidence_cos). Weighted with the range noise alone, the statistics came out
+    # about half their chi-square size on clean simulated data (twin recordings), so the test
+    # lost power.
+    weighted = replace(inputs.noise, min_incidence_cos=MIN_INCIDENCE_COS, incidence_floor=True)
+    problem = build_problem(state, inputs.imu, lidar, inputs.planes, weighted, all_free)
     evaluation = problem.evaluate(jacobians=True)
     n_free = problem.layout().num_free
     variance_factor = max(

@@ -459,8 +459,10 @@ def test_point_weights_follow_the_incidence_angle_with_its_floor() -> None:
     np.testing.assert_allclose(cos, cos_expected, atol=1e-12)
     assert cos.min() < 0.3 < cos.max()  # both sides of the floor are exercised
 
-    def inv_sigma(floor: float) -> np.ndarray:
-        noise = NoiseModel(range_sigma=0.01, min_incidence_cos=floor)
+    def inv_sigma(floor: float, incidence_floor: bool = False) -> np.ndarray:
+        noise = NoiseModel(
+            range_sigma=0.01, min_incidence_cos=floor, incidence_floor=incidence_floor
+        )
         problem = build_problem(state, None, pts, room.planes, noise)
         block = next(b for b in problem.residual_blocks if isinstance(b, PointToPlaneResidual))
         return np.asarray(block.inv_sigma).reshape(-1)
@@ -468,6 +470,9 @@ def test_point_weights_follow_the_incidence_angle_with_its_floor() -> None:
     expected = 1.0 / (0.01 * np.where(cos >= 0.3, cos, 1.0))
     np.testing.assert_allclose(inv_sigma(0.3), expected, rtol=1e-12)
     np.testing.assert_allclose(inv_sigma(1.0), np.full(len(pts), 100.0), rtol=1e-12)
+    # the checks' form: the cosine, but at least the floor, for grazing rays too
+    floored = 1.0 / (0.01 * np.maximum(cos, 0.3))
+    np.testing.assert_allclose(inv_sigma(0.3, incidence_floor=True), floored, rtol=1e-12)
 
 
 def test_incidence_weights_are_honest_and_sharper_under_range_noise_along_the_ray() -> None:
