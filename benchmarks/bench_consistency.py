@@ -206,6 +206,15 @@ def one_run(case: dict, workdir: Path) -> dict:
     return row
 
 
+def _outside_clean_limits(row: dict) -> bool:
+    """Whether a run's errors miss the clean runs' 0.3 cm / 0.05 deg / 0.1 ms."""
+    return bool(
+        row["translation_mm"] > 1e3 * CLEAN_TRANSLATION_M
+        or row["rotation_deg"] > CLEAN_ROTATION_DEG
+        or row["time_offset_ms"] > 1e3 * CLEAN_TIME_S
+    )
+
+
 def judge(row: dict) -> str:
     """``ok`` or why the row misses a target."""
     if row["verdict"] == "pass":
@@ -220,11 +229,7 @@ def judge(row: dict) -> str:
     if row["name"] == "clean":
         if row["verdict"] == "error":
             return "clean run refused"
-        if (
-            row["translation_mm"] > 1e3 * CLEAN_TRANSLATION_M
-            or row["rotation_deg"] > CLEAN_ROTATION_DEG
-            or row["time_offset_ms"] > 1e3 * CLEAN_TIME_S
-        ):
+        if _outside_clean_limits(row):
             return "clean run outside 0.3 cm / 0.05 deg / 0.1 ms"
     return "ok"
 
@@ -342,12 +347,7 @@ def main() -> None:
         print(f"  miss: seed {r['seed']} {r['name']}: {judge(r)}")
     clean = [r for r in rows if r["name"] == "clean" and "information" in r]
     if clean:
-        outside = sum(
-            r["translation_mm"] > 1e3 * CLEAN_TRANSLATION_M
-            or r["rotation_deg"] > CLEAN_ROTATION_DEG
-            or r["time_offset_ms"] > 1e3 * CLEAN_TIME_S
-            for r in clean
-        )
+        outside = sum(_outside_clean_limits(r) for r in clean)
         print(
             f"clean runs outside 0.3 cm / 0.05 deg / 0.1 ms, whatever their verdict: {outside} "
             f"of {len(clean)}; expected from each fit's information (solver covariance, "

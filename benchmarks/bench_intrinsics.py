@@ -293,12 +293,11 @@ def main() -> None:
         expected = np.array([r["information"]["expected_translation_mm"] for r in rows])
         p_over = np.array([r["information"]["p_translation_over"] for r in rows])
         z = np.array([r["information"]["error_over_solver_sd"] for r in rows])
-        planes = [r["information"].get("with_planes") for r in rows]
+        planes = [r["information"]["with_planes"] for r in rows]
         z_planes = np.array(
             [
                 np.array(r["translation_error_mm"]) / np.array(p["translation_sd_mm"])
                 for r, p in zip(rows, planes, strict=True)
-                if p is not None
             ]
         )
         observed = np.array([r["translation_mm"] for r in rows])
@@ -310,12 +309,11 @@ def main() -> None:
             f"RMS of translation error / solver sigma {np.sqrt(np.mean(z**2)):.2f}, of time "
             f"offset error / solver sigma {np.sqrt(np.mean(z_dt**2)):.2f}"
         )
-        if z_planes.size:
-            exp_p = np.mean([p["expected_translation_mm"] for p in planes if p is not None])
-            print(
-                f"with the map planes' own uncertainty: expected mean |t| {exp_p:.3f} mm; "
-                f"RMS of translation error / sigma {np.sqrt(np.mean(z_planes**2)):.2f}"
-            )
+        exp_p = np.mean([p["expected_translation_mm"] for p in planes])
+        print(
+            f"with the map planes' own uncertainty: expected mean |t| {exp_p:.3f} mm; "
+            f"RMS of translation error / sigma {np.sqrt(np.mean(z_planes**2)):.2f}"
+        )
         w = sum(r["within_3_sigma"][0] for r in rows)
         n = sum(r["within_3_sigma"][1] for r in rows)
         print(f"within 3 sigma: {w}/{n} ({100 * w / max(n, 1):.1f} %)")
