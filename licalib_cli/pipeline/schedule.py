@@ -5,7 +5,9 @@ points up to :data:`COARSE_FACTOR` times ``surfels.max_distance_m`` from a surfe
 surfels as much thicker); each later round tightens the distance to three times how far the
 previous round moved the points, and to :data:`WANDER_SHRINK` of it at least when the rounds
 crawl (never below the configured distance). Rounds that crawl at the configured distance take
-a Gauss-Newton step with the map's planes estimated too before the next round. Rounds run until
+a Gauss-Newton step with the map's planes estimated too before the next round; so do rounds whose
+map stalls at any distance (:func:`stalls`: it gets blurrier, or stays blurred with few points
+on its planes). Rounds run until
 one moves the estimate by less than the tolerances (or by less than half its own 1-sigma,
 whichever is larger) at the configured distance; a last, denser round
 then refines the settled estimate with Gauss-Newton steps that estimate the map's planes too
@@ -17,6 +19,7 @@ moves is a non-convergence, reported as such by the checks.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -53,6 +56,8 @@ __all__ = [
     "FINAL_SETTLE_SIGMAS",
     "MAX_CRAWL_STEPS",
     "MAX_FINAL_ROUNDS",
+    "STALL_ENTROPY",
+    "STALL_FRACTION",
     "WANDER_SHRINK",
     "Change",
     "Fit",
@@ -60,6 +65,7 @@ __all__ = [
     "final_jump",
     "refined_summary",
     "run_schedule",
+    "stalls",
     "within",
 ]
 
@@ -93,7 +99,19 @@ says). Three times a map movement of 20-30 mm a round held a crawling schedule a
 no planes-free step is taken, for ten rounds."""
 
 MAX_CRAWL_STEPS = 3
-"""Planes-free steps between the rounds at most (each costs about a round)."""
+"""Planes-free steps between the rounds at most, for crawls and stalls together (each costs
+about a round)."""
+
+STALL_ENTROPY = 0.05
+"""Mean map entropy (nats) by which a map must sharpen over two rounds: one that gets blurrier by
+more has stalled, and so has one that sharpens by less while at most :data:`STALL_FRACTION` of
+the sample lies on its planes (:func:`stalls`). In a schedule that settles the entropy falls by
+0.2-0.9 a round while the estimate moves by centimetres."""
+
+STALL_FRACTION = 0.1
+"""Share of the sample associated with the map's planes below which a map that does not sharpen
+has stalled (a settled map holds about 60 % of a simulated room's sample; the stalled 20 s
+sinusoid of :func:`stalls` held 3 %)."""
 
 FINAL_SETTLE_SIGMAS = 5.0
 """A denser final round that moves the extrinsic by more than this many of its own sigmas (and
@@ -317,6 +335,40 @@ def _crawled(change: Change, previous: Change | None) -> bool:
     return previous is not None and change.translation_m > CRAWL_RATIO * previous.translation_m
 
 
+def stalls(rounds: Sequence[RoundSummary], *, settled: bool, steps_taken: int) -> bool:
+    """Whether the rounds' map has stalled and a planes-free step should be taken before the
+    next round, at whatever association distance.
+
+    Each round builds its map at the estimate it starts from and holds those planes fixed, so a
+    map blurred by the estimate's errors holds the estimate where it is: on a 20 s sinusoid
+    (VLP-16, the paper's intrinsic errors, seed 8) twelve rounds kept 3 % of the sample on
+    their planes at a mean map entropy of -2.5 (a settled map: -4.2), the estimate 12-19 cm and
+    0.3-0.5 deg off; on a 20 s OS1-64 shake (lever arm 1.8 m) the map got blurrier round
+    after round (entropy -3.04 to -2.65, associated points 96 000 to 25 000). One planes-free
+    step, its planes estimated with the estimate, took either to a sharp map in the next round.
+
+    True from the third round on, while the rounds have not settled and fewer than
+    :data:`MAX_CRAWL_STEPS` steps were taken, when the last round's map is blurrier than the
+    one two rounds before by more than :data:`STALL_ENTROPY`, or sharper by less than that
+    with at most :data:`STALL_FRACTION` of the sample associated.
+
+    Args:
+        rounds: the summaries of the rounds so far, the last one just run.
+        settled: the last round moved the estimate by less than the tolerances.
+        steps_taken: planes-free steps already taken between rounds.
+    """
+    if settled or steps_taken >= MAX_CRAWL_STEPS or len(rounds) < 3:
+        return False
+    last, earlier = rounds[-1], rounds[-3]
+    sharpened = earlier.map_entropy - last.map_entropy
+    if not np.isfinite(sharpened):
+        return False
+    return bool(
+        sharpened < -STALL_ENTROPY
+        or (sharpened < STALL_ENTROPY and last.associated_fraction <= STALL_FRACTION)
+    )
+
+
 def run_schedule(
     rec: Recording,
     guess: InitialGuess,
@@ -426,30 +478,45 @@ def run_schedule(
         # a step compares two rounds at about the configured distance: a round after a much
         # tighter association (or after a coarse round that stopped at once) moves for that
         comparable = previous if previous_at * WANDER_SHRINK <= max_dist * (1 + 1e-9) else None
-        if not settled and crawls(
-            change, comparable, at_base_distance=max_dist <= base, steps_taken=crawl_steps
+        stalled = stalls(rounds, settled=settled, steps_taken=crawl_steps)
+        if stalled or (
+            not settled
+            and crawls(
+                change, comparable, at_base_distance=max_dist <= base, steps_taken=crawl_steps
+            )
         ):
-            # The rounds crawl: each holds its map's planes fixed, and a map built at the
-            # estimate pulls the round back towards it, so the estimate moves by a nearly
-            # constant fraction of what is left per round. With LiDAR intrinsics the common
-            # mode of the range offsets and scales crawls so (on a 10 s shake with 2-7 cm range
-            # offsets: 2.3, 2.1, 2.0, ... 1.2 mm over eight rounds, then 12 mm at once with the
-            # planes free); without them a translation the initial guess had 13 cm off (a clean
-            # sinusoid with the LiDAR's spin axis horizontal) came 20-48 mm a round and was
-            # still 57 mm away after twelve. A step with the planes free goes there; the next
-            # rounds, on a map rebuilt from it, check that it has settled (so no solve on the
-            # stepped planes follows it: the next round solves on its own map).
+            # The rounds crawl (or the map stalls, see stalls()): each holds its map's planes
+            # fixed, and a map built at the estimate pulls the round back towards it, so the
+            # estimate moves by a nearly constant fraction of what is left per round. With LiDAR
+            # intrinsics the common mode of the range offsets and scales crawls so (on a 10 s
+            # shake with 2-7 cm range offsets: 2.3, 2.1, 2.0, ... 1.2 mm over eight rounds, then
+            # 12 mm at once with the planes free); without them a translation the initial guess
+            # had 13 cm off (a clean sinusoid with the LiDAR's spin axis horizontal) came 20-48
+            # mm a round and was still 57 mm away after twelve. A step with the planes free goes
+            # there; the next rounds, on a map rebuilt from it, check that it has settled (so no
+            # solve on the stepped planes follows it: the next round solves on its own map).
             stepped = planes_free_steps_from(
                 state, inputs, round_settings(cfg, noise, base, True).solver, solved=solved
             )
             if stepped is not None:
-                assert comparable is not None  # crawls() needs the round before
-                logger.info(
-                    "The rounds crawl (change %.2f mm after %.2f mm): planes-free step, change %s.",
-                    1e3 * change.translation_m,
-                    1e3 * comparable.translation_m,
-                    _describe(_change(state, stepped.state)),
-                )
+                if stalled:
+                    logger.info(
+                        "The map stalls (entropy %.3f two rounds ago, %.3f now; %.0f %% of the "
+                        "points on its planes): planes-free step, change %s.",
+                        rounds[-3].map_entropy,
+                        summary.map_entropy,
+                        100 * summary.associated_fraction,
+                        _describe(_change(state, stepped.state)),
+                    )
+                else:
+                    assert comparable is not None  # crawls() needs the round before
+                    logger.info(
+                        "The rounds crawl (change %.2f mm after %.2f mm): planes-free step, "
+                        "change %s.",
+                        1e3 * change.translation_m,
+                        1e3 * comparable.translation_m,
+                        _describe(_change(state, stepped.state)),
+                    )
                 state, crawl_steps = stepped.state, crawl_steps + 1
                 mapped = solved = None  # both were at the round's estimate
         wanders = index >= 3 and _crawled(change, previous)

@@ -5,7 +5,8 @@ range offsets and scales moves by a nearly constant fraction per round. The sche
 a planes-free step between two rounds. These tests pin the rule (:func:`crawls`) and its wiring
 in :func:`run_schedule`: the step happens after a crawling round only, the next round starts
 from the stepped estimate with nothing kept from the round before, and at most
-:data:`MAX_CRAWL_STEPS` times.
+:data:`MAX_CRAWL_STEPS` times. A map that stalls (:func:`stalls`: it blurs, or stays blurred with
+few points on its planes) takes the same step at any association distance.
 
 The denser final round may determine a direction the regular rounds held; when it moves the
 estimate by many of its sigmas, another dense round on a map rebuilt at the moved estimate
@@ -34,10 +35,13 @@ from licalib_cli.pipeline.schedule import (
     FINAL_SETTLE_SIGMAS,
     MAX_CRAWL_STEPS,
     MAX_FINAL_ROUNDS,
+    STALL_ENTROPY,
+    STALL_FRACTION,
     WANDER_SHRINK,
     Change,
     crawls,
     final_jump,
+    stalls,
 )
 from licalib_cli.progress import NullProgress
 
@@ -97,13 +101,16 @@ def _schedule(
     sigma_mm: float = SIGMA_MM,
     moved_mm: float = 0.0,
     warm: bool | None = None,
+    entropy: Callable[[int], float] = lambda index: -4.0 - 0.3 * index,
+    fraction: float = 0.6,
 ) -> _Run:
     """Run :func:`run_schedule` with rounds that move the translation by ``step_mm(index,
     dense)`` mm (``dense``: a round on the final, denser sample), each reporting a translation
     sigma of :data:`SIGMA_MM`, with LiDAR intrinsics free or none. A round that only evaluates
     moves nothing; the planes-free step after it moves the translation by what the round would
     have, and any other planes-free step by ``refine_mm``. Every round moves the map by
-    ``moved_mm``."""
+    ``moved_mm``; round ``index`` ends with mean map entropy ``entropy(index)`` (by default
+    sharpening by 0.3 a round) and ``fraction`` of the sample on its planes."""
     run = _Run([], [])
     names = ("ext.translation.x", "ext.translation.y", "ext.translation.z")
     report = SimpleNamespace(calibration_names=names, std=(1e-3 * sigma_mm,) * 3)
@@ -119,7 +126,13 @@ def _schedule(
             held[f"round {index}"], step = step, 0.0
         return SimpleNamespace(
             state=_State(f"round {index}", state.x_mm + step),
-            summary=SimpleNamespace(points=1, surfels=1, rms_m=0.01, map_entropy=0.0),
+            summary=SimpleNamespace(
+                points=1,
+                surfels=1,
+                rms_m=0.01,
+                map_entropy=entropy(index),
+                associated_fraction=fraction,
+            ),
             report=report,
             inputs=SimpleNamespace(free=SimpleNamespace(any_lidar_intrinsics=lidar)),
             solved=f"solved at round {index}",
@@ -284,6 +297,57 @@ def test_no_planes_free_step_while_the_rounds_settle(monkeypatch: pytest.MonkeyP
     rounds, refined_from, _ = _wired_schedule(monkeypatch, steps, refine_mm=5.0)
     assert refined_from == []
     assert all(kept for label, _, kept in rounds if label != "round 1")
+
+
+def _summary(entropy: float, fraction: float) -> Any:
+    return SimpleNamespace(map_entropy=entropy, associated_fraction=fraction)
+
+
+def test_a_map_stalls_when_it_blurs_or_stays_blurred_with_few_points_on_its_planes() -> None:
+    def stalled(entropies: list[float], fraction: float, **kw: Any) -> bool:
+        rounds = [_summary(h, fraction) for h in entropies]
+        return stalls(rounds, settled=kw.get("settled", False), steps_taken=kw.get("steps", 0))
+
+    # blurrier by more than STALL_ENTROPY over two rounds: stalled whatever the association
+    assert stalled([-3.04, -2.94, -3.04 + 1.5 * STALL_ENTROPY], 0.5)
+    # sharper by less than STALL_ENTROPY with few points on the planes (the 20 s sinusoid)
+    assert stalled([-2.51, -2.54, -2.51 - 0.5 * STALL_ENTROPY], STALL_FRACTION)
+    # the same with most points on the planes: a settled map whose estimate still moves
+    assert not stalled([-4.27, -4.27, -4.28], 0.6)
+    # sharpening: not stalled, however few points associate
+    assert not stalled([-3.0, -3.4, -3.0 - 2 * STALL_ENTROPY], 0.03)
+    # a map blurrier by less than STALL_ENTROPY with enough points on it is noise
+    assert not stalled([-4.0, -4.0, -4.0 + 0.5 * STALL_ENTROPY], 0.6)
+    # not before the third round, not once settled, not past the cap, not without an entropy
+    assert not stalled([-2.0, -1.0], 0.01)
+    assert not stalled([-3.0, -2.0, -1.0], 0.01, settled=True)
+    assert not stalled([-3.0, -2.0, -1.0], 0.01, steps=MAX_CRAWL_STEPS)
+    assert not stalled([float("nan"), -2.0, -1.0], 0.01)
+
+
+def test_a_stalled_map_takes_a_planes_free_step_above_the_base_distance(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # rounds that shrink their steps (by 0.45 a round: no crawl) while the map moves 30 mm a
+    # round, so the association stays at three times the base distance; the map stays blurred
+    # (entropy -2.5, 3 % of the sample on its planes): from the third round on a planes-free
+    # step follows each round, up to the cap
+    steps = [3.0 * 0.45**k for k in range(12)]
+    run = _schedule(
+        monkeypatch,
+        lambda i, dense: steps[i - 1],
+        lidar=False,
+        moved_mm=30.0,
+        entropy=lambda index: -2.5,
+        fraction=0.03,
+    )
+    assert run.refined_from[:MAX_CRAWL_STEPS] == ["round 3", "round 4", "round 5"]
+    assert run.distances_m[2] == pytest.approx(0.09)
+    starts = {label: (start, kept) for label, start, kept, _ in run.rounds}
+    assert starts["round 4"] == ("step after round 3", False)
+    # the same rounds on a map that sharpens take no step
+    sharp = _schedule(monkeypatch, lambda i, dense: steps[i - 1], lidar=False, moved_mm=30.0)
+    assert sharp.refined_from == []
 
 
 def _settling(index: int) -> float:
