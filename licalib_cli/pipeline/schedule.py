@@ -500,23 +500,22 @@ def run_schedule(
             )
             if stepped is not None:
                 if stalled:
-                    logger.info(
-                        "The map stalls (entropy %.3f two rounds ago, %.3f now; %.0f %% of the "
-                        "points on its planes): planes-free step, change %s.",
-                        rounds[-3].map_entropy,
-                        summary.map_entropy,
-                        100 * summary.associated_fraction,
-                        _describe(_change(state, stepped.state)),
+                    why = (
+                        f"The map stalls (entropy {rounds[-3].map_entropy:.3f} two rounds ago, "
+                        f"{summary.map_entropy:.3f} now; "
+                        f"{100 * summary.associated_fraction:.0f} % of the points on its planes)"
                     )
                 else:
                     assert comparable is not None  # crawls() needs the round before
-                    logger.info(
-                        "The rounds crawl (change %.2f mm after %.2f mm): planes-free step, "
-                        "change %s.",
-                        1e3 * change.translation_m,
-                        1e3 * comparable.translation_m,
-                        _describe(_change(state, stepped.state)),
+                    why = (
+                        f"The rounds crawl (change {1e3 * change.translation_m:.2f} mm after "
+                        f"{1e3 * comparable.translation_m:.2f} mm)"
                     )
+                logger.info(
+                    "%s: planes-free step, change %s.",
+                    why,
+                    _describe(_change(state, stepped.state)),
+                )
                 state, crawl_steps = stepped.state, crawl_steps + 1
                 mapped = solved = None  # both were at the round's estimate
         wanders = index >= 3 and _crawled(change, previous)
