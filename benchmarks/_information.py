@@ -18,6 +18,19 @@ from licalib_cli.pipeline.checks import correlated_with
 DRAWS = 100_000
 """Monte Carlo draws per run (the chances below to about 0.002)."""
 
+LIMITS = (3.0, 0.05, 0.1)
+"""The clean runs' extrinsic limits: translation mm, rotation deg, time offset ms."""
+
+
+def outside_limits(errors: dict, limits: tuple[float, float, float] = LIMITS) -> bool:
+    """Whether an extrinsic's errors (``translation_mm``, ``rotation_deg``, ``time_offset_ms``)
+    miss ``limits``: any of the three beyond its limit (as :func:`information_bound` counts)."""
+    return bool(
+        errors["translation_mm"] > limits[0]
+        or errors["rotation_deg"] > limits[1]
+        or errors["time_offset_ms"] > limits[2]
+    )
+
 
 def _block(names: Sequence[str], prefix: str, axes: str) -> list[int]:
     return [list(names).index(f"{prefix}.{a}") for a in axes]
@@ -43,7 +56,7 @@ def information_bound(
     names: Sequence[str],
     covariance: object,
     seed: int,
-    limits: tuple[float, float, float] = (3.0, 0.05, 0.1),
+    limits: tuple[float, float, float] = LIMITS,
     factors: object = None,
 ) -> dict:
     """Expected errors and the chance of missing ``limits`` (translation mm, rotation deg,

@@ -44,9 +44,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 ROTATION_LIMIT_DEG = 0.1
 TRANSLATION_LIMIT_M = 0.01
 TIME_LIMIT_S = 1e-4
-CLEAN_TRANSLATION_M = 0.003
-CLEAN_ROTATION_DEG = 0.05
-CLEAN_TIME_S = 1e-4
 
 
 def cases(first_seed: int = 100, lidars: tuple[str, ...] = ("vlp16", "os1-64")) -> list[dict]:
@@ -109,7 +106,7 @@ def cases(first_seed: int = 100, lidars: tuple[str, ...] = ("vlp16", "os1-64")) 
 
 
 from _effects import EFFECTS, effect_spec_kwargs  # noqa: E402
-from _information import information_bound  # noqa: E402
+from _information import information_bound, outside_limits  # noqa: E402
 from _noise import add_noise_options, noise_spec_kwargs  # noqa: E402
 
 
@@ -201,19 +198,9 @@ def one_run(case: dict, workdir: Path) -> dict:
             list(run.fit.report.calibration_names),
             run.fit.report.covariance,
             case["seed"],
-            (1e3 * CLEAN_TRANSLATION_M, CLEAN_ROTATION_DEG, 1e3 * CLEAN_TIME_S),
         ),
     )
     return row
-
-
-def _outside_clean_limits(row: dict) -> bool:
-    """Whether a run's errors miss the clean runs' 0.3 cm / 0.05 deg / 0.1 ms."""
-    return bool(
-        row["translation_mm"] > 1e3 * CLEAN_TRANSLATION_M
-        or row["rotation_deg"] > CLEAN_ROTATION_DEG
-        or row["time_offset_ms"] > 1e3 * CLEAN_TIME_S
-    )
 
 
 def judge(row: dict) -> str:
@@ -230,7 +217,7 @@ def judge(row: dict) -> str:
     if row["name"] == "clean":
         if row["verdict"] == "error":
             return "clean run refused"
-        if _outside_clean_limits(row):
+        if outside_limits(row):
             return "clean run outside 0.3 cm / 0.05 deg / 0.1 ms"
     return "ok"
 
@@ -355,7 +342,7 @@ def main() -> None:
         print(f"  miss: seed {r['seed']} {r['name']}: {judge(r)}")
     clean = [r for r in rows if r["name"] == "clean" and "information" in r]
     if clean:
-        outside = sum(_outside_clean_limits(r) for r in clean)
+        outside = sum(outside_limits(r) for r in clean)
         print(
             f"clean runs outside 0.3 cm / 0.05 deg / 0.1 ms, whatever their verdict: {outside} "
             f"of {len(clean)}; expected from each fit's information (solver covariance, "

@@ -42,7 +42,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _effects import INTRINSIC_EFFECTS, SIMULATOR_EFFECTS
-from _information import information_bound
+from _information import information_bound, outside_limits
 
 SINGLE = [*INTRINSIC_EFFECTS, *SIMULATOR_EFFECTS]
 PAIRS = [
@@ -175,7 +175,7 @@ def report(rows: list[dict]) -> None:
     with_info = [r for r in rows if "information" in r["after"]]  # older --jsonl rows lack it
     if with_info:
         info = [r["after"]["information"] for r in with_info]
-        outside = sum(_outside_limits(r["after"]) for r in with_info)
+        outside = sum(outside_limits(r["after"]) for r in with_info)
         print(
             f"outside 0.3 cm / 0.05 deg / 0.1 ms after diagnosis: {outside} of {len(info)} runs; "
             f"expected from each final fit's information (solver covariance, unbiased): "
@@ -293,15 +293,6 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
     }
 
 
-def _outside_limits(errors: dict) -> bool:
-    """Whether an extrinsic's errors (mm, deg, ms) miss 0.3 cm / 0.05 deg / 0.1 ms."""
-    return bool(
-        errors["translation_mm"] > 3.0
-        or errors["rotation_deg"] > 0.05
-        or errors["time_offset_ms"] > 0.1
-    )
-
-
 def judge(row: dict) -> list[str]:
     misses = []
     injected = set(row["effects"])
@@ -323,7 +314,7 @@ def judge(row: dict) -> list[str]:
         if effect in injected and shrink == shrink and not shrink >= 0.5:
             misses.append(f"{effect} gap shrank {shrink:.0%}")
     a = row["after"]
-    if _outside_limits(a):
+    if outside_limits(a):
         misses.append("extrinsic after diagnosis outside 0.3 cm / 0.05 deg / 0.1 ms")
     z = a.get("max_error_over_sigma", float("nan"))
     if row.get("verdict_after") == "pass" and z > 3.0:

@@ -11,7 +11,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 
-from _information import information_bound
+from _information import LIMITS, information_bound, outside_limits
 
 NAMES = [
     "ext.rotation.rx",
@@ -74,3 +74,15 @@ def test_plane_factors_scale_the_sigmas_and_keep_the_correlations() -> None:
     wider = information_bound(NAMES, cov, seed=4, factors=factors)
     assert wider["solver_translation_sd_mm"] == pytest.approx([3.0, 2.0, 2.0])
     assert wider["expected_translation_mm"] > plain["expected_translation_mm"]
+
+
+def test_a_run_is_outside_the_limits_when_any_of_its_three_errors_is_beyond_its_own() -> None:
+    assert LIMITS == (3.0, 0.05, 0.1)  # the clean runs' 0.3 cm / 0.05 deg / 0.1 ms
+    at = {"translation_mm": 3.0, "rotation_deg": 0.05, "time_offset_ms": 0.1}
+    assert not outside_limits(at)  # on the limits is within them
+    for key in at:
+        assert outside_limits({**at, key: 1.01 * at[key]})
+    assert not outside_limits({**at, "translation_mm": 9.0}, limits=(10.0, 0.05, 0.1))
+    # the bound counts a draw by the same rule: all within the limits, never outside
+    out = information_bound(NAMES, _covariance(1e-6, 1e-9, 1e-9), seed=5)
+    assert out["p_outside"] == 0.0
