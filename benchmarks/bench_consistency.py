@@ -275,6 +275,8 @@ def main() -> None:
     p.add_argument("--one", default=None, help=argparse.SUPPRESS)
     p.add_argument("--workdir", default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
+    if not args.duration > 0:
+        p.error(f"--duration must be a positive number of seconds, not {args.duration}")
     if args.one is not None:
         print(json.dumps(one_run(json.loads(args.one), Path(args.workdir))))
         return

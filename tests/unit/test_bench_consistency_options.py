@@ -1,0 +1,37 @@
+"""The trust benchmark's ``--duration``: every case carries it, and a bad one is refused."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_consistency.py"
+
+
+def _run(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, str(BENCH), *args, "--list"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+
+
+def test_every_listed_case_carries_the_duration() -> None:
+    out = _run("--duration", "15", "--only", "clean")
+    assert out.returncode == 0, out.stderr
+    cases = [ast.literal_eval(line) for line in out.stdout.splitlines() if line.startswith("{")]
+    assert cases and all(c["duration"] == 15.0 for c in cases)
+
+
+@pytest.mark.parametrize("value", ["0", "-3", "nan"])
+def test_a_duration_that_is_not_a_positive_number_of_seconds_is_refused(value: str) -> None:
+    out = _run("--duration", value)
+    assert out.returncode == 2
+    assert "--duration must be a positive number of seconds" in out.stderr
+    assert "Traceback" not in out.stderr
