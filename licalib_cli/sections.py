@@ -252,6 +252,8 @@ class EffectCheck(Section):
         material: selected and moving the extrinsic by more than its sigma.
         covered: the reported sigmas include its shift (material, or hinted at: p below
             ``checks.COVER_P_VALUE``) and the spread its estimate would add.
+        refitted: the shift was measured by refitting with the effect estimated (an effect
+            the data show beyond doubt), not only predicted from one linear step.
     """
 
     _digits = 6
@@ -267,6 +269,7 @@ class EffectCheck(Section):
     selected: bool = False
     material: bool = False
     covered: bool = False
+    refitted: bool = False
 
 
 @dataclass(frozen=True)

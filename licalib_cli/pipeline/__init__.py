@@ -8,6 +8,7 @@ Data flow (method.md sections 5-8), one module per stage::
                             complement, truncated SVD), coarse to fine, until it settles
         --fitcheck/split--> residuals per sensor, score tests of fixed effects, split halves
         --checks----------> verdict, inflated sigmas, observability
+        --effect_refit----> an effect the data show beyond doubt refitted; checks judge again
         --assemble--------> CalibrationResult (schema v1 with typed sections)
 
 Frames and time: ``{G}`` is the IMU frame at the first IMU sample of the segment (``t0_ns``),
@@ -22,10 +23,12 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from licalib_cli.config import CalibConfig
+from licalib_cli.errors import LicalibError
 from licalib_cli.estimation import CalibrationState
 from licalib_cli.measurements import Recording
 from licalib_cli.pipeline.assemble import assemble
-from licalib_cli.pipeline.checks import Checks, check
+from licalib_cli.pipeline.checks import Checks, check, rejudge
+from licalib_cli.pipeline.effect_refit import refit_shifts
 from licalib_cli.pipeline.fitcheck import EffectEvidence
 from licalib_cli.pipeline.initialise import InitialGuess, initialise, lidar_odometry
 from licalib_cli.pipeline.read import read
@@ -127,8 +130,49 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
     timer = Timer()
     prepared = prepare(Path(bag), cfg, progress, timer)
     run = fit_and_check(prepared, prepared.guess, cfg, progress, timer)
+    run = _refit_unmistakable(prepared, run, cfg, progress, timer)
     progress.close()
     return run
+
+
+def _refit_unmistakable(
+    prepared: Prepared, run: CalibrationRun, cfg: CalibConfig, progress: Progress, timer: Timer
+) -> CalibrationRun:
+    """``run`` judged again with the shift of an effect the data show beyond doubt measured by
+    a refit with it estimated (:mod:`licalib_cli.pipeline.effect_refit`); ``run`` itself when
+    there is none."""
+    from licalib_cli.pipeline.diagnose import with_effect  # diagnose builds on this module
+
+    def refit(effect: str) -> CalibrationState | None:
+        start = replace(prepared.guess, state=run.state)
+        try:
+            with timer.stage("refit", progress, total=cfg.schedule.max_rounds):
+                fit = run_schedule(
+                    prepared.rec,
+                    start,
+                    prepared.noise,
+                    with_effect(cfg, effect),
+                    progress,
+                    warm=True,
+                )
+        except LicalibError as exc:
+            logger.warning("The refit with %s failed (%s); its shift stays predicted.", effect, exc)
+            return None
+        return fit.state
+
+    effects = refit_shifts(run.checks.effects, run.state, refit)
+    if effects is None:
+        return run
+    checks = rejudge(run.fit, run.checks, effects, cfg)
+    result = assemble(prepared.bag, prepared.rec, prepared.guess, run.fit, checks, cfg)
+    return replace(
+        run,
+        result=result,
+        checks=checks,
+        effects=checks.effects,
+        timings=timer.timings,
+        stage_times=dict(timer.stages),
+    )
 
 
 @dataclass(frozen=True)

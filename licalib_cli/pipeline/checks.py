@@ -73,6 +73,7 @@ __all__ = [
     "observability_of",
     "prior_variance",
     "raw_uncertainty",
+    "rejudge",
     "run_checks",
     "uncertainty_findings",
 ]
@@ -116,6 +117,9 @@ class Checks:
         intrinsics_uncertainty: 1-sigma of the estimated intrinsics (None when none were).
         effects: the score tests of the effects the fit held fixed (selected ones first).
         planes: the sigma factors for the map planes' own uncertainty (None: not computed).
+        sensors: the residual checks per sensor.
+        split: the split-half comparison (None: not kept).
+        notes: warnings of earlier stages the verdict took.
     """
 
     verdict: VerdictSection
@@ -128,6 +132,9 @@ class Checks:
     intrinsics_uncertainty: IntrinsicsUncertainty | None = None
     effects: tuple[EffectEvidence, ...] = ()
     planes: MapUncertainty | None = None
+    sensors: tuple[SensorCheck, ...] = ()
+    split: SplitResult | None = None
+    notes: tuple[str, ...] = ()
 
 
 def _std(report: SolverReport, names: list[str]) -> F64:
@@ -509,6 +516,11 @@ def _effects(effects: list[EffectEvidence], raw_sigma: F64) -> list[Finding]:
             f"{float(np.degrees(np.linalg.norm(top.shift_rotation_rad))):.3f} deg / "
             f"{1e3 * abs(top.shift_time_offset_s):.2f} ms"
         )
+        moves = (
+            "a refit with it estimated moved the extrinsic by"
+            if top.refitted
+            else "estimating it would move the extrinsic by about"
+        )
         others = ", ".join(e.score.name for e in material[1:])
         also = f" (and beyond it: {others})" if others else ""
         out.append(
@@ -516,9 +528,8 @@ def _effects(effects: list[EffectEvidence], raw_sigma: F64) -> list[Finding]:
                 "warn",
                 f"The {label} data show an effect the model holds fixed, {top.score.name} "
                 f"(score test {top.score.statistic:.0f} on {top.score.rank} degrees of "
-                f"freedom){also}; estimating it would move the extrinsic by about {shift}, "
-                f"beyond its sigma. Calibrate the {label} intrinsics too, or treat the extrinsic "
-                "as off by at least that.",
+                f"freedom){also}; {moves} {shift}, beyond its sigma. Calibrate the {label} "
+                "intrinsics too, or treat the extrinsic as off by at least that.",
             )
         )
     return out
@@ -627,7 +638,10 @@ def inflate(
                 if effect_is_material(e, raw)
                 else f", which the data hint at (p = {e.score.p_value:.1g})"
             )
-            why.append(f"by the shift estimating {e.score.name} would cause{hint}")
+            if e.refitted:
+                why.append(f"by the move of a refit with {e.score.name} estimated")
+            else:
+                why.append(f"by the shift estimating {e.score.name} would cause{hint}")
     prior_var = prior_variance(effects, raw)
     if np.any(prior_var > 0.0):
         grown = np.sqrt(sigma**2 + prior_var)
@@ -786,6 +800,22 @@ def run_checks(
         intrinsics_uncertainty=intrinsics,
         effects=tuple(effects),
         planes=planes,
+        sensors=sensors,
+        split=split,
+        notes=notes,
+    )
+
+
+def rejudge(
+    fit: Fit, checks: Checks, effects: Sequence[EffectEvidence], cfg: CalibConfig
+) -> Checks:
+    """The checks again on the same evidence, with the effects' tests replaced by ``effects``
+    (their shifts measured another way, :mod:`licalib_cli.pipeline.effect_refit`)."""
+    if checks.split is None:
+        msg = "the checks kept no split-half comparison to judge again"
+        raise ValueError(msg)
+    return run_checks(
+        fit, checks.sensors, list(effects), checks.split, cfg, checks.notes, checks.planes
     )
 
 
@@ -868,6 +898,7 @@ def _effect_section(e: EffectEvidence, raw: F64) -> EffectCheck:
         selected=e.selected,
         material=effect_is_material(e, raw),
         covered=effect_to_cover(e, raw),
+        refitted=e.refitted,
     )
 
 

@@ -77,6 +77,7 @@ __all__ = [
     "diagnose",
     "drop_redundant",
     "twin_of",
+    "with_effect",
     "without_effect",
 ]
 
@@ -447,6 +448,16 @@ def _with_effects(cfg: CalibConfig, effects: tuple[str, ...]) -> CalibConfig:
     return cfg.model_copy(
         update={"model": cfg.model.model_copy(update={"imu": imu, "lidar": lidar})}
     )
+
+
+def with_effect(cfg: CalibConfig, effect: str) -> CalibConfig:
+    """``cfg`` whose ``model:`` section estimates ``effect`` too."""
+    sensor, block = CANDIDATES[effect][:2]
+    current = list(getattr(cfg.model, sensor))
+    if block in current:
+        return cfg
+    update = {sensor: [*current, block]}
+    return cfg.model_copy(update={"model": cfg.model.model_copy(update=update)})
 
 
 def _sum_of_squares(run: CalibrationRun, cfg: CalibConfig, refit: bool) -> tuple[float, int, int]:

@@ -365,6 +365,8 @@ class EffectEvidence:
             order of :attr:`shift`).
         prior_std: (7,) what the effect, known only to within its prior (``model.imu_prior``),
             adds to the sigmas of the extrinsic and time offset (zeros without a prior).
+        refitted: the shift is (per coordinate, the larger of) the step's and a refit's with
+            the effect estimated (:mod:`licalib_cli.pipeline.effect_refit`).
     """
 
     score: EffectScore
@@ -376,6 +378,7 @@ class EffectEvidence:
     statistic_alone: float = float("nan")
     shift_std: F64 = field(default_factory=lambda: np.zeros(7))
     prior_std: F64 = field(default_factory=lambda: np.zeros(7))
+    refitted: bool = False
 
     @property
     def shift(self) -> F64:
