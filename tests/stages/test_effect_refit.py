@@ -15,9 +15,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from licalib_cli.config import CalibConfig
 from licalib_cli.consistency.score import EffectScore
 from licalib_cli.geometry import so3
 from licalib_cli.pipeline.checks import _effects, inflate
+from licalib_cli.pipeline.diagnose import with_effect
 from licalib_cli.pipeline.effect_refit import (
     REFIT_STATISTIC_PER_DOF,
     move_between,
@@ -133,3 +135,15 @@ def test_a_refitted_shift_widens_the_sigmas_and_is_named_in_the_verdict() -> Non
     assert "a refit with it estimated moved the extrinsic by 40.0 mm" in finding.text
     (step_finding,) = _effects([e], RAW)
     assert "would move the extrinsic by about 7.5 mm" in step_finding.text
+
+
+def test_the_refit_estimates_the_effect_on_top_of_the_configured_model() -> None:
+    cfg = CalibConfig.model_validate({"model": {"imu": ["gyro_scale"], "lidar": ["range_offset"]}})
+    out = with_effect(cfg, "lidar_horizontal_offset")
+    assert out.model.lidar == ["range_offset", "horizontal_offset"]
+    assert out.model.imu == ["gyro_scale"]
+    assert cfg.model.lidar == ["range_offset"]  # the configuration itself is untouched
+    assert with_effect(out, "lidar_horizontal_offset").model.lidar == out.model.lidar
+    drift = with_effect(cfg, "imu_clock_drift")
+    assert drift.model.imu == ["gyro_scale", "clock_drift"]
+    assert drift.model.lidar == ["range_offset"]
