@@ -140,8 +140,12 @@ def _refit_unmistakable(
 ) -> CalibrationRun:
     """``run`` judged again with the shift of an effect the data show beyond doubt measured by
     a refit with it estimated (:mod:`licalib_cli.pipeline.effect_refit`); ``run`` itself when
-    there is none."""
+    there is none, or when the rounds did not converge (a refit would go on where they stopped,
+    and its move would be theirs as much as the effect's)."""
     from licalib_cli.pipeline.diagnose import with_effect  # diagnose builds on this module
+
+    if run.checks.exit_status == "not converged":
+        return run
 
     def refit(effect: str) -> CalibrationState | None:
         start = replace(prepared.guess, state=run.state)

@@ -35,6 +35,7 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig, ChecksSection
+from licalib_cli.pipeline.crawl import Crawl, crawl_at_cap
 from licalib_cli.pipeline.fitcheck import (
     EFFECT_P_VALUE,
     EffectEvidence,
@@ -188,7 +189,9 @@ def within_sigmas(change: Change, sigma: F64) -> bool:
     return bool(within(change, half, JITTER_FACTOR))
 
 
-def _convergence(fit: Fit, cfg: CalibConfig, settled_in_sigmas: bool = False) -> list[Finding]:
+def _convergence(
+    fit: Fit, cfg: CalibConfig, settled_in_sigmas: bool = False, crawl: Crawl | None = None
+) -> list[Finding]:
     c = fit.last_change
     if fit.final_unsettled:
         return [
@@ -221,8 +224,14 @@ def _convergence(fit: Fit, cfg: CalibConfig, settled_in_sigmas: bool = False) ->
                 f"The calibration did not converge: after schedule.max_rounds = "
                 f"{cfg.schedule.max_rounds} rounds the estimate still moved "
                 f"{1e3 * c.translation_m:.1f} mm / {c.rotation_deg:.3f} deg / "
-                f"{1e3 * c.time_offset_s:.2f} ms per round, so the result is not trustworthy; "
-                "record more varied motion in a structured scene, or raise schedule.max_rounds.",
+                f"{1e3 * c.time_offset_s:.2f} ms per round"
+                + (
+                    f", and its last {crawl.rounds} rounds moved {crawl.describe()} the same way"
+                    if crawl is not None
+                    else ""
+                )
+                + ", so the result is not trustworthy; record more varied motion in a "
+                "structured scene, or raise schedule.max_rounds.",
             )
         ]
     if fit.jitter:
@@ -743,10 +752,12 @@ def run_checks(
     sigma, why = inflate(raw, sensors, effects, split, fit)
     # Rounds still moving at the cap, by less than the sigmas the checks arrived at (their
     # solver sigmas are smaller than what the fixed effects and the halves add): the change is
-    # a jitter of the rounds within the result's uncertainty, covered like the schedule's.
-    settled_in_sigmas = (
-        not fit.converged and not fit.final_unsettled and within_sigmas(fit.last_change, sigma)
-    )
+    # a jitter of the rounds within the result's uncertainty, covered like the schedule's;
+    # unless their last changes crawl one way beyond the sigmas (pipeline/crawl.py): then they
+    # are still on their way, and have not converged.
+    at_cap = not fit.converged and not fit.final_unsettled
+    crawl = crawl_at_cap([r.extrinsic for r in fit.rounds], sigma) if at_cap else None
+    settled_in_sigmas = at_cap and crawl is None and within_sigmas(fit.last_change, sigma)
     if settled_in_sigmas:
         sigma = _with_change(sigma, fit.last_change)
         why = (*why, "by the last round's change (the rounds settled only to within it)")
@@ -758,7 +769,7 @@ def run_checks(
             *why,
         )
     findings = [Finding("warn", n) for n in notes]
-    findings += _convergence(fit, cfg, settled_in_sigmas)
+    findings += _convergence(fit, cfg, settled_in_sigmas, crawl)
     findings += _observability(report)
     covered = [e.score.name for e in effects if effect_to_cover(e, raw)]
     without_effects, _ = inflate(raw, sensors, [], split, fit)

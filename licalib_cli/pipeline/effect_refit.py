@@ -15,7 +15,9 @@ estimated, from the final estimate (as ``diagnose`` tries an effect), and measur
 extrinsic moves. The effect's shift becomes, per coordinate, the larger of the step's and the
 refit's, and the checks judge again with it: the sigmas cover the move, and the verdict says that
 a refit moved the extrinsic by that much. The estimate stays the configured model's; adding the
-effect to ``model:`` (or ``calibrate --model auto``) estimates it.
+effect to ``model:`` (or ``calibrate --model auto``) estimates it. A fit whose rounds did not
+converge is not refitted: the refit would go on where its rounds stopped, and its move would be
+theirs as much as the effect's (the verdict is a failure to converge anyway).
 """
 
 from __future__ import annotations

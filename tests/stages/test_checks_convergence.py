@@ -1,4 +1,5 @@
-"""Rounds still moving at the cap: a failure unless the move is within the reported sigmas."""
+"""Rounds still moving at the cap: a failure unless the move is within the reported sigmas (and
+the rounds do not crawl one way beyond them)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import numpy as np
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.pipeline.checks import _convergence, within_sigmas
+from licalib_cli.pipeline.crawl import Crawl
 from licalib_cli.pipeline.schedule import Change
 
 # 1 mm, 0.5 deg and 0.2 ms of reported 1-sigma (translation, rotation, time offset)
@@ -35,3 +37,13 @@ def test_rounds_moving_at_the_cap_fail_unless_within_the_sigmas() -> None:
     fit.final_unsettled = True
     (jumped,) = _convergence(fit, cfg, settled_in_sigmas=True)  # type: ignore[arg-type]
     assert jumped.severity == "fail"
+
+
+def test_rounds_that_crawl_at_the_cap_fail_and_say_which_coordinate() -> None:
+    fit = SimpleNamespace(
+        converged=False, final_unsettled=False, jitter=False, last_change=Change(5.1e-3, 0.03, 1e-5)
+    )
+    crawl = Crawl(coordinate=0, net=12.7e-3, sigma=7.15e-3, rounds=4)
+    (failed,) = _convergence(fit, CalibConfig(), crawl=crawl)  # type: ignore[arg-type]
+    assert failed.severity == "fail" and "did not converge" in failed.text
+    assert "its last 4 rounds moved t_x by +12.7 mm (its sigma 7.15 mm) the same way" in failed.text
