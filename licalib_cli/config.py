@@ -327,6 +327,11 @@ class ChecksSection(_Section):
     """Rotation, degrees (per LiDAR axis)."""
     max_time_offset_sigma_s: float = Field(default=0.0002, gt=0.0, le=10.0)
     """Time offset, s."""
+    refit_effects: bool = True
+    """Refit once with the strongest effect the data show beyond doubt (a score of 100 per
+    degree of freedom) to measure how far it moves the extrinsic, instead of trusting the
+    linear prediction alone (``pipeline/effect_refit.py``; it costs one more optimisation on
+    such bags). Off: faster, and the sigmas may not cover such an effect."""
 
 
 class CalibConfig(_Section):

@@ -144,7 +144,7 @@ def _refit_unmistakable(
     and its move would be theirs as much as the effect's)."""
     from licalib_cli.pipeline.diagnose import with_effect  # diagnose builds on this module
 
-    if run.checks.exit_status == "not converged":
+    if not cfg.checks.refit_effects or run.checks.exit_status == "not converged":
         return run
 
     def refit(effect: str) -> CalibrationState | None:
