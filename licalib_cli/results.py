@@ -144,13 +144,25 @@ class Extrinsic:
             difference_rotation_vector_deg=vec3(_list(np.degrees(d_rot))),
         )
 
+    def moved_to(self, other: Extrinsic) -> F64:
+        """(7,) how ``other`` differs from this one: translation (m, IMU frame), rotation (rad,
+        about the LiDAR axes: ``log(R_self^T R_other)``), time offset (s)."""
+        return np.concatenate(
+            [
+                np.asarray(other.translation, dtype=np.float64)
+                - np.asarray(self.translation, dtype=np.float64),
+                so3.log(np.asarray(self.rotation).T @ np.asarray(other.rotation)),
+                [other.time_offset_s - self.time_offset_s],
+            ]
+        )
+
     def error_to(self, other: Extrinsic) -> dict[str, float]:
         """Errors against a reference: translation (m), rotation angle (deg), time offset (s)."""
-        d_rot = np.linalg.norm(so3.log(self.rotation.T @ other.rotation))
+        d = self.moved_to(other)
         return {
-            "translation_m": float(np.linalg.norm(self.translation - other.translation)),
-            "rotation_deg": float(np.degrees(d_rot)),
-            "time_offset_s": float(abs(self.time_offset_s - other.time_offset_s)),
+            "translation_m": float(np.linalg.norm(d[:3])),
+            "rotation_deg": float(np.degrees(np.linalg.norm(d[3:6]))),
+            "time_offset_s": float(abs(d[6])),
         }
 
     def on_shifted_clock(self, lidar_clock_offset_s: float, applied_shift_s: float) -> Extrinsic:

@@ -118,7 +118,6 @@ class Checks:
         intrinsics_uncertainty: 1-sigma of the estimated intrinsics (None when none were).
         effects: the score tests of the effects the fit held fixed (selected ones first).
         planes: the sigma factors for the map planes' own uncertainty (None: not computed).
-        sensors: the residual checks per sensor.
         split: the split-half comparison (None: not kept).
         notes: warnings of earlier stages the verdict took.
     """
@@ -133,7 +132,6 @@ class Checks:
     intrinsics_uncertainty: IntrinsicsUncertainty | None = None
     effects: tuple[EffectEvidence, ...] = ()
     planes: MapUncertainty | None = None
-    sensors: tuple[SensorCheck, ...] = ()
     split: SplitResult | None = None
     notes: tuple[str, ...] = ()
 
@@ -811,7 +809,6 @@ def run_checks(
         intrinsics_uncertainty=intrinsics,
         effects=tuple(effects),
         planes=planes,
-        sensors=sensors,
         split=split,
         notes=notes,
     )
@@ -826,7 +823,13 @@ def rejudge(
         msg = "the checks kept no split-half comparison to judge again"
         raise ValueError(msg)
     return run_checks(
-        fit, checks.sensors, list(effects), checks.split, cfg, checks.notes, checks.planes
+        fit,
+        checks.consistency.sensors,
+        list(effects),
+        checks.split,
+        cfg,
+        checks.notes,
+        checks.planes,
     )
 
 

@@ -23,7 +23,6 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from licalib_cli.geometry import so3
 from licalib_cli.results import Extrinsic
 
 __all__ = ["COORDINATES", "CRAWL_CONSISTENCY", "CRAWL_WINDOW", "Crawl", "crawl_at_cap"]
@@ -61,28 +60,15 @@ class Crawl:
         """E.g. ``t_x by +12.8 mm (its sigma 8.8 mm)``."""
         k = self.coordinate
         if k < 3:
-            value, unit, scale = self.net, "mm", 1e3
+            unit, scale = "mm", 1e3
         elif k < 6:
-            value, unit, scale = self.net, "deg", float(np.degrees(1.0))
+            unit, scale = "deg", float(np.degrees(1.0))
         else:
-            value, unit, scale = self.net, "ms", 1e3
+            unit, scale = "ms", 1e3
         return (
-            f"{COORDINATES[k]} by {scale * value:+.3g} {unit} (its sigma "
+            f"{COORDINATES[k]} by {scale * self.net:+.3g} {unit} (its sigma "
             f"{scale * self.sigma:.3g} {unit})"
         )
-
-
-def _coordinates(extrinsics: Sequence[Extrinsic]) -> F64:
-    """(n, 7) the extrinsics as translation, rotation from the first (LiDAR axes), time offset."""
-    r0 = np.asarray(extrinsics[0].rotation, dtype=np.float64)
-    rot = so3.log(np.einsum("ji,njk->nik", r0, np.stack([e.rotation for e in extrinsics])))
-    return np.column_stack(
-        [
-            np.stack([e.translation for e in extrinsics]),
-            np.atleast_2d(rot),
-            [e.time_offset_s for e in extrinsics],
-        ]
-    )
 
 
 def crawl_at_cap(
@@ -93,7 +79,8 @@ def crawl_at_cap(
     furthest in its sigmas, or None when none did (or there are too few rounds)."""
     if len(extrinsics) < window + 1:
         return None
-    x = _coordinates(extrinsics[-(window + 1) :])
+    last = extrinsics[-(window + 1) :]
+    x = np.stack([last[0].moved_to(e) for e in last])  # (window + 1, 7) from the first
     net = x[-1] - x[0]
     path = np.sum(np.abs(np.diff(x, axis=0)), axis=0)
     sigma = np.asarray(sigma, dtype=np.float64)

@@ -30,10 +30,10 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.estimation import CalibrationState
-from licalib_cli.geometry import so3
-from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
+from licalib_cli.pipeline.fitcheck import EffectEvidence
+from licalib_cli.pipeline.round import extrinsic_of
 
-__all__ = ["REFIT_STATISTIC_PER_DOF", "move_between", "refit_shifts", "unmistakable", "with_move"]
+__all__ = ["REFIT_STATISTIC_PER_DOF", "refit_shifts", "unmistakable", "with_move"]
 
 logger = logging.getLogger(__name__)
 
@@ -54,23 +54,9 @@ def unmistakable(effects: Sequence[EffectEvidence]) -> EffectEvidence | None:
         for e in effects
         if e.selected
         and e.score.rank > 0
-        and e.score.p_value < EFFECT_P_VALUE
         and e.score.statistic >= REFIT_STATISTIC_PER_DOF * e.score.rank
     ]
     return max(strong, key=lambda e: e.score.statistic / e.score.rank, default=None)
-
-
-def move_between(before: CalibrationState, after: CalibrationState) -> F64:
-    """(7,) how the extrinsic moved from ``before`` to ``after``: translation (m, IMU frame),
-    rotation (rad, about the LiDAR axes: ``log(R_before^T R_after)``), time offset (s)."""
-    return np.concatenate(
-        [
-            np.asarray(after.t_imu_lidar, dtype=np.float64)
-            - np.asarray(before.t_imu_lidar, dtype=np.float64),
-            so3.log(np.asarray(before.R_imu_lidar).T @ np.asarray(after.R_imu_lidar)),
-            [after.time_offset_s - before.time_offset_s],
-        ]
-    )
 
 
 def with_move(e: EffectEvidence, move: F64) -> EffectEvidence:
@@ -117,7 +103,7 @@ def refit_shifts(
     after = refit(name)
     if after is None:
         return None
-    move = move_between(state, after)
+    move = extrinsic_of(state).moved_to(extrinsic_of(after))
     logger.info(
         "The refit with %s moved the extrinsic by %.2f mm / %.4f deg / %.3f ms (one step "
         "predicted %.2f mm / %.4f deg / %.3f ms).",

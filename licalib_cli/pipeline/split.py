@@ -25,9 +25,8 @@ from licalib_cli.estimation import (
     build_problem,
     state_from_problem,
 )
-from licalib_cli.geometry import so3
 from licalib_cli.parallel.threads import map_blocks
-from licalib_cli.pipeline.round import RoundInputs
+from licalib_cli.pipeline.round import RoundInputs, extrinsic_of
 from licalib_cli.pipeline.settings import lm_params, spline_margin_s
 from licalib_cli.solver.lm import SolverReport, solve
 from licalib_cli.solver.problem import Problem
@@ -212,13 +211,7 @@ def split_half(state: CalibrationState, inputs: RoundInputs, cfg: CalibConfig) -
             return SplitResult(False, res, half)
         results.append(res)
     (s1, rep1), (s2, rep2) = results
-    diff = np.concatenate(
-        [
-            s2.t_imu_lidar - s1.t_imu_lidar,
-            so3.log(s1.R_imu_lidar.T @ s2.R_imu_lidar),
-            [s2.time_offset_s - s1.time_offset_s],
-        ]
-    )
+    diff = extrinsic_of(s1).moved_to(extrinsic_of(s2))
     result = compare_halves(
         diff, _sigmas(rep1), _sigmas(rep2), _covariance(rep1), _covariance(rep2), half
     )

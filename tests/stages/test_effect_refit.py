@@ -22,12 +22,12 @@ from licalib_cli.pipeline.checks import _effects, inflate
 from licalib_cli.pipeline.diagnose import with_effect
 from licalib_cli.pipeline.effect_refit import (
     REFIT_STATISTIC_PER_DOF,
-    move_between,
     refit_shifts,
     unmistakable,
     with_move,
 )
 from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
+from licalib_cli.pipeline.round import extrinsic_of
 
 RAW = np.array([1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4, 1e-5])
 
@@ -85,7 +85,7 @@ def test_the_move_is_translation_rotation_about_the_lidar_axes_and_time_offset()
         R_imu_lidar=before.R_imu_lidar @ so3.exp(delta),
         time_offset_s=0.0101,
     )
-    move = move_between(before, after)  # type: ignore[arg-type]
+    move = extrinsic_of(before).moved_to(extrinsic_of(after))  # type: ignore[arg-type]
     np.testing.assert_allclose(move[:3], [0.01, -0.02, 0.03], atol=1e-12)
     np.testing.assert_allclose(move[3:6], delta, atol=1e-12)
     assert move[6] == pytest.approx(1e-4)
