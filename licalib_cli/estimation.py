@@ -102,6 +102,7 @@ __all__ = [
     "Planes",
     "beam_point_counts",
     "build_problem",
+    "calibration_moved",
     "free_effect_blocks",
     "intrinsic_coordinates",
     "parameter_blocks",
@@ -786,6 +787,36 @@ def parameter_blocks(
             )
         )
     return blocks
+
+
+def calibration_moved(
+    before: CalibrationState, after: CalibrationState, names: Sequence[str]
+) -> F64:
+    """(len(names),) how ``after`` differs from ``before`` in the named calibration coordinates
+    (the solver's tangent coordinates and units: ``before [+] moved == after``); 0 for a name
+    neither state holds.
+
+    Args:
+        before: the earlier state (an initial guess).
+        after: the later state (a fit's estimate).
+        names: calibration coordinate names (a solver report's ``calibration_names``).
+    """
+    drifts = (GYRO_BIAS_DRIFT, ACCEL_BIAS_DRIFT, TIME_DRIFT, POINT_TIME_SCALE)
+    v0 = state_to_values(before, g_sensitivity=True, effects=drifts)
+    v1 = state_to_values(after, g_sensitivity=True, effects=drifts)
+    moved: dict[str, float] = {}
+    for spec in BLOCK_SPECS:
+        if spec.group != "calibration" or spec.name not in v0 or spec.name not in v1:
+            continue
+        block = ParameterBlock(
+            spec.name,
+            v0[spec.name],
+            manifold=spec.manifold,
+            group=spec.group,
+            coord_names=spec.coord_names(before.lidar_intrinsics.num_beams),
+        )
+        moved.update(zip(block.coord_names, block.local(v1[spec.name]), strict=True))
+    return np.array([moved.get(n, 0.0) for n in names], dtype=np.float64)
 
 
 # -------------------------------------------------------------------------------- builder

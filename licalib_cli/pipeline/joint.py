@@ -80,6 +80,7 @@ from licalib_cli.pipeline.joint_problem import joint_problem, segment_values
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty
 from licalib_cli.pipeline.points import points_in_global, solver_points, usable_points
 from licalib_cli.pipeline.round import RoundInputs
+from licalib_cli.pipeline.schedule import cover_truncated
 from licalib_cli.pipeline.segments import _with_range, select_segments
 from licalib_cli.pipeline.settings import lm_params, round_settings
 from licalib_cli.progress import NullProgress, Progress
@@ -405,6 +406,7 @@ def calibrate_segments(
             )
             states, inputs, report = list(refined.states), list(refined.inputs), refined.report
         timings["joint planes-free"] = time.perf_counter() - clock
+    report = cover_truncated(report, runs[best].initial.state, states[best])
     result = _joint_result(runs, kept, states, report, best, cfg)
     return JointRun(result, tuple(runs), tuple(kept), report, tuple(states), timings)
 

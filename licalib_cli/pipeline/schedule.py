@@ -23,10 +23,17 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.errors import ExcitationError
-from licalib_cli.estimation import CalibrationState, ImuData, intrinsic_coordinates
+from licalib_cli.estimation import (
+    CALIBRATION_SCALES,
+    CalibrationState,
+    ImuData,
+    calibration_moved,
+    intrinsic_coordinates,
+)
 from licalib_cli.measurements import Recording
 from licalib_cli.models.lidar import lidar_point
 from licalib_cli.pipeline.free_planes import (
@@ -48,7 +55,8 @@ from licalib_cli.pipeline.round import (
 )
 from licalib_cli.pipeline.settings import NoiseLevels, estimates_intrinsics, round_settings
 from licalib_cli.progress import Progress
-from licalib_cli.solver.lm import SolverReport
+from licalib_cli.residuals import EXT_ROTATION, GYRO_ROTATION
+from licalib_cli.solver.lm import SolverReport, widen_along_truncated
 
 __all__ = [
     "COARSE_FACTOR",
@@ -61,6 +69,7 @@ __all__ = [
     "WANDER_SHRINK",
     "Change",
     "Fit",
+    "cover_truncated",
     "crawls",
     "final_jump",
     "refined_summary",
@@ -68,6 +77,8 @@ __all__ = [
     "stalls",
     "within",
 ]
+
+F64 = npt.NDArray[np.float64]
 
 logger = logging.getLogger(__name__)
 
@@ -369,6 +380,36 @@ def stalls(rounds: Sequence[RoundSummary], *, settled: bool, steps_taken: int) -
     )
 
 
+def initial_sd(names: Sequence[str], scale: F64) -> F64:
+    """(len(names),) standard deviation of each calibration coordinate's initial value, own
+    units: one characteristic scale, except the extrinsic rotation's when the gyro-to-IMU
+    rotation is estimated: initialisation finds the rotation between the LiDAR and the gyro,
+    and so leaves the extrinsic as uncertain as that rotation's prior."""
+    sd = np.array(scale, dtype=np.float64)
+    if any(n.startswith(GYRO_ROTATION) for n in names):
+        rot = np.array([n.startswith(EXT_ROTATION) for n in names], dtype=bool)
+        sd[rot] = max(CALIBRATION_SCALES[GYRO_ROTATION])
+    return sd
+
+
+def cover_truncated(
+    report: SolverReport, initial: CalibrationState, final: CalibrationState
+) -> SolverReport:
+    """``report`` (at ``final``) with the sigmas of what lies in its truncated directions covering
+    where ``initial`` and the rounds from it put the estimate along them
+    (:func:`~licalib_cli.solver.lm.widen_along_truncated`): the last linearisation truncates
+    what the data do not determine, but the estimate sits along it where the initial guess and
+    the rounds before put it."""
+    if not report.truncated:
+        return report
+    names = report.calibration_names
+    return widen_along_truncated(
+        report,
+        calibration_moved(initial, final, names),
+        initial_sd(names, report.information.scale),
+    )
+
+
 def run_schedule(
     rec: Recording,
     guess: InitialGuess,
@@ -628,6 +669,7 @@ def run_schedule(
             rounds[-1] = refined_summary(rounds[-1], refined)
             state, report, inputs = refined.state, refined.report, refined.inputs
             solved = refined.solved
+    report = cover_truncated(report, guess.state, state)
     return Fit(
         state=state,
         rounds=tuple(rounds),

@@ -26,7 +26,9 @@ At the final estimate the report holds the undamped ``S_d`` spectrum, the trunca
 named in parameter terms, and the standard deviation of every calibration coordinate from the
 TSVD pseudo-inverse ``D U_l diag(1/s_l) U_l^T D`` (whitened residuals: unit covariance).
 Coordinates with a weight of at least ``_NOT_OBSERVABLE_WEIGHT`` (squared) in a truncated direction
-are reported as not observable (standard deviation ``inf``).
+are reported as not observable (standard deviation ``inf``). A truncated direction made mostly of
+intrinsics known a priori to within their characteristic scale adds that scale along it instead;
+:func:`widen_along_truncated` adds how far a fit of several linearisations moved along it.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -64,6 +66,7 @@ __all__ = [
     "observable_basis",
     "solve",
     "solve_with_linearization",
+    "widen_along_truncated",
 ]
 
 F64 = npt.NDArray[np.float64]
@@ -73,6 +76,13 @@ logger = logging.getLogger(__name__)
 _NOT_OBSERVABLE_WEIGHT = 1e-4
 """A coordinate whose squared components over the truncated directions sum to at least this is
 reported as not observable."""
+
+_MOVED_VERDICT = (
+    "not determined by the data (held in the last step); the fit moved the estimate {:.1f} "
+    "characteristic scales along it from its initial value, which the sigmas include"
+)
+"""How a truncated direction is described once the fit has moved along it by more than one
+characteristic scale (it then no longer "stays near its initial value")."""
 
 _MIN_GAIN_RATIO = 1e-3
 
@@ -559,3 +569,59 @@ def _report(
         covariance=covariance,
         truncated_weight=np.sum(trunc**2, axis=1) if trunc.size else np.zeros(len(owners)),
     )
+
+
+def widen_along_truncated(
+    report: SolverReport, moved: npt.ArrayLike, initial_sd: npt.ArrayLike | None = None
+) -> SolverReport:
+    """The report with each truncated direction's variance made to cover where the fit's
+    initial value put the estimate along it, and how far the fit moved it from there.
+
+    The last linearisation truncates what the data do not determine, and the estimate then
+    sits along that direction where the fit left it: at its initial value, plus whatever a fit
+    of several linearisations moved along it before (rounds that rebuild the map, intrinsics that
+    join late; the direction's information sat near the threshold, or the map moved with the
+    estimate). A direction of bounded intrinsics adds one characteristic scale (their prior);
+    this makes it ``u^T P0 u + m^2`` (scaled), with ``P0`` the initial value's variance per
+    coordinate and ``m = u . (moved / d)`` the fit's move along ``u``. A coordinate already
+    reported as not observable stays so. Directions moved by more than one characteristic scale
+    are described as such.
+
+    Args:
+        report: a solver report at the fit's final estimate.
+        moved: (Nc,) final estimate minus initial value of every calibration coordinate, in
+            ``report.calibration_names`` order and the coordinates' own units (tangent
+            coordinates for rotations).
+        initial_sd: (Nc,) standard deviation of each coordinate's initial value, own units
+            (default: one characteristic scale each).
+
+    Returns:
+        The report with ``covariance``, ``std`` and the truncated directions' text updated (the
+        same report when nothing changes).
+    """
+    moved = np.asarray(moved, dtype=np.float64).reshape(-1)
+    names = report.calibration_names
+    if not report.truncated or moved.shape[0] != len(names) or report.covariance.size == 0:
+        return report
+    scale = np.asarray(report.information.scale, dtype=np.float64)
+    sd0 = scale if initial_sd is None else np.asarray(initial_sd, dtype=np.float64).reshape(-1)
+    vectors = np.stack([d.vector for d in report.truncated], axis=1)  # (Nc, k) scaled
+    along = vectors.T @ (moved / scale)  # (k,) characteristic scales
+    start = np.sum((vectors * (sd0 / scale)[:, None]) ** 2, axis=0)  # (k,) u^T P0 u
+    extra = np.maximum(start - 1.0, 0.0) + along**2  # one scale is in the report already
+    if not np.any(extra > 1e-12):
+        return report
+    own = vectors * scale[:, None] * np.sqrt(extra)[None, :]
+    covariance = report.covariance + own @ own.T
+    std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+    std = np.where(report.observable, std, np.inf)
+    owners = report.information.owners
+    truncated = tuple(
+        describe_direction(d.vector, names, owners, verdict=_MOVED_VERDICT.format(abs(m)))
+        if abs(m) > 1.0
+        else d
+        for d, m in zip(report.truncated, along, strict=True)
+    )
+    for d, m, v in zip(truncated, along, start, strict=True):
+        logger.debug("%.2f characteristic scales moved, %.2f initial, along %s", m, v**0.5, d.text)
+    return replace(report, covariance=covariance, std=std, truncated=truncated)

@@ -18,6 +18,7 @@ from licalib_cli.estimation import (
     NoiseModel,
     Planes,
     build_problem,
+    calibration_moved,
     incidence_cosine,
     parameter_blocks,
     state_from_problem,
@@ -141,6 +142,43 @@ def test_state_values_round_trip() -> None:
     # biases are authoritative in the state and copied into the intrinsics
     b = _state(so3, r3, gyro_bias=np.array([0.1, 0.2, 0.3]))
     np.testing.assert_array_equal(b.imu_intrinsics.gyro_bias, [0.1, 0.2, 0.3])
+
+
+def test_calibration_moved_gives_the_solver_coordinates_of_a_change() -> None:
+    so3, r3 = _true_splines(1.0, 0.1)
+    rot = so3_exp(np.array([0.1, 0.2, 0.3]))
+    before = _state(so3, r3, R_imu_lidar=rot)
+    step = np.array([0.002, -0.001, 0.003])
+    after = _state(
+        so3,
+        r3,
+        R_imu_lidar=rot @ so3_exp(step),  # right perturbation: about the LiDAR axes
+        t_imu_lidar=np.array([0.01, 0.0, 0.0]),
+        time_offset_s=-0.002,
+        imu_intrinsics=ImuIntrinsics(
+            gyro_rotation=quat_exp([0.0, 0.004, 0.0]),
+            accel_misalignment=np.array([0.0, 0.0, 1e-3]),
+        ),
+        lidar_intrinsics=LidarIntrinsics.nominal(BEAMS).with_(
+            range_offset=np.r_[0.0, 0.02, np.zeros(14)]
+        ),
+    )
+    names = [
+        "ext.rotation.rx",
+        "ext.rotation.ry",
+        "ext.rotation.rz",
+        "ext.translation.x",
+        "ext.time_offset",
+        "imu.gyro_rotation.ry",
+        "imu.accel_misalignment.yz",
+        "lidar.intrinsics[1].drho",
+        "lidar.intrinsics[2].drho",
+        "no.such.coordinate",
+    ]
+    moved = calibration_moved(before, after, names)
+    np.testing.assert_allclose(moved[:3], step, atol=1e-12)
+    np.testing.assert_allclose(moved[3:], [0.01, -0.002, 0.004, 1e-3, 0.02, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(calibration_moved(after, after, names), 0.0, atol=1e-15)
 
 
 def test_parameter_blocks_gauge_and_weak_beams() -> None:

@@ -28,6 +28,7 @@ from licalib_cli.solver import (
     local,
     solve,
 )
+from licalib_cli.solver.lm import SolverReport, widen_along_truncated
 
 
 def _basis(u: np.ndarray) -> np.ndarray:
@@ -541,3 +542,46 @@ def test_direction_absorbed_by_trajectory_is_truncated_under_damping() -> None:
     assert report.singular_values[0] < 1e-6
     # the chain takes up the whole shift: x_true + 0.1 - 0.25
     np.testing.assert_allclose(pr["chain"].value[:, 0], x_true - 0.15, atol=2e-3)
+
+
+def _bounded_report() -> tuple[Problem, SolverReport]:
+    """The rank-deficient problem with both calibration blocks bounded a priori: its two truncated
+    directions add one characteristic scale each instead of leaving the coordinates unknown."""
+    pr = make_rank_deficient(np.random.default_rng(16))
+    report = solve(pr, LMParams(max_iterations=20, bounded_blocks=("offset", "weak")))
+    assert len(report.truncated) == 2 and report.observable.all()
+    return pr, report
+
+
+def test_a_move_along_a_truncated_direction_is_added_to_its_variance() -> None:
+    _, report = _bounded_report()
+    null = report.truncated[0].vector  # (2, -1, 0)/sqrt(5), scale 1
+    widened = widen_along_truncated(report, 3.0 * null)
+    grown = widened.covariance - report.covariance
+    np.testing.assert_allclose(grown, 9.0 * np.outer(null, null), atol=1e-12)
+    np.testing.assert_allclose(widened.std, np.sqrt(np.diag(widened.covariance)))
+    assert widened.truncated[0].text.endswith(
+        "the fit moved the estimate 3.0 characteristic scales along it from its initial value, "
+        "which the sigmas include"
+    )
+    assert widened.truncated[1] == report.truncated[1]  # not moved along: unchanged
+
+
+def test_an_uncertain_initial_value_widens_and_a_move_the_data_determine_does_not() -> None:
+    _, report = _bounded_report()
+    # the observable combination (1, 2)/sqrt(5) and a move within one scale: same report
+    assert widen_along_truncated(report, np.array([1.0, 2.0, 0.0]) / np.sqrt(5)) is report
+    small = widen_along_truncated(report, 0.5 * report.truncated[0].vector)
+    assert small.truncated == report.truncated  # within one scale: still near its initial value
+    # the weak coordinate's initial value known to 3 scales instead of 1: 9 - 1 more variance
+    wider = widen_along_truncated(report, np.zeros(3), initial_sd=np.array([1.0, 1.0, 3.0]))
+    assert wider.covariance[2, 2] - report.covariance[2, 2] == pytest.approx(8.0)
+    assert wider.std[2] == pytest.approx(np.sqrt(report.covariance[2, 2] + 8.0))
+    assert wider.std[0] == pytest.approx(report.std[0])
+
+
+def test_a_coordinate_the_data_do_not_determine_stays_unknown() -> None:
+    pr = make_rank_deficient(np.random.default_rng(16))
+    report = solve(pr, LMParams(max_iterations=20))  # nothing bounded: all three unknown
+    widened = widen_along_truncated(report, np.array([2.0, -1.0, 4.0]))
+    assert np.all(np.isinf(widened.std))

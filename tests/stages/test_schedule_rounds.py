@@ -41,6 +41,7 @@ from licalib_cli.pipeline.schedule import (
     Change,
     crawls,
     final_jump,
+    initial_sd,
     stalls,
 )
 from licalib_cli.progress import NullProgress
@@ -113,7 +114,7 @@ def _schedule(
     sharpening by 0.3 a round) and ``fraction`` of the sample on its planes."""
     run = _Run([], [])
     names = ("ext.translation.x", "ext.translation.y", "ext.translation.z")
-    report = SimpleNamespace(calibration_names=names, std=(1e-3 * sigma_mm,) * 3)
+    report = SimpleNamespace(calibration_names=names, std=(1e-3 * sigma_mm,) * 3, truncated=())
     held: dict[str, float] = {}  # an evaluate-only round's label: the step it left
 
     def run_round(state, sample, imu, settings, index, mapped=None):  # type: ignore[no-untyped-def]
@@ -589,3 +590,13 @@ def test_a_map_lost_after_the_first_round_is_told_as_a_divergence(
     assert "round 1 had 1 points" in text and "diverged" in text
     assert "1400.00 mm" in text  # how far the two rounds before it moved the estimate
     assert "initialization.rotation_rpy_deg" in text
+
+
+def test_the_initial_rotation_is_as_uncertain_as_the_gyro_rotation_when_that_is_estimated() -> None:
+    names = ("ext.rotation.rx", "ext.translation.x", "imu.accel_misalignment.yz")
+    scale = np.array([1e-3, 0.01, 1e-3])
+    np.testing.assert_array_equal(initial_sd(names, scale), scale)
+    with_gyro = (*names, "imu.gyro_rotation.rx")
+    sd = initial_sd(with_gyro, np.r_[scale, 1e-2])
+    # initialisation finds the LiDAR-to-gyro rotation: the extrinsic inherits R_wI's prior
+    np.testing.assert_array_equal(sd, [1e-2, 0.01, 1e-3, 1e-2])
