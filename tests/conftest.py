@@ -35,6 +35,22 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     )
 
 
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Run the modules with the most slow tests first, each module's tests together and in
+    their order. Under ``pytest -n 2 --dist loadscope`` (the README's test command) a module runs
+    on one worker, so its module fixtures (simulated bags, calibrations) are built once, and
+    the workers end on short modules instead of one of them still running a long one."""
+    modules: dict[str, list[pytest.Item]] = {}
+    for item in items:
+        modules.setdefault(item.nodeid.split("::", 1)[0], []).append(item)
+
+    def weight(group: list[pytest.Item]) -> float:
+        return sum(1.0 if item.get_closest_marker("slow") else 0.02 for item in group)
+
+    ordered = sorted(modules.values(), key=weight, reverse=True)  # stable: ties keep their order
+    items[:] = [item for group in ordered for item in group]
+
+
 @pytest.fixture
 def golden(request: pytest.FixtureRequest) -> Callable[[str, str], None]:
     """``golden(name, text)``: compare ``text`` with ``tests/golden/<name>`` (or rewrite it)."""
