@@ -209,7 +209,8 @@ def _convergence(
         return [
             Finding(
                 "note",
-                f"After schedule.max_rounds = {cfg.schedule.max_rounds} rounds the estimate "
+                f"After schedule.max_rounds = {cfg.schedule.max_rounds} rounds{_extra(fit)} "
+                "the estimate "
                 f"still moved {1e3 * c.translation_m:.2f} mm / {c.rotation_deg:.4f} deg / "
                 f"{1e3 * c.time_offset_s:.3f} ms per round (the map is rebuilt each round), "
                 "less than its reported sigmas; the sigmas include this change.",
@@ -220,7 +221,7 @@ def _convergence(
             Finding(
                 "fail",
                 f"The calibration did not converge: after schedule.max_rounds = "
-                f"{cfg.schedule.max_rounds} rounds the estimate still moved "
+                f"{cfg.schedule.max_rounds} rounds{_extra(fit)} the estimate still moved "
                 f"{1e3 * c.translation_m:.1f} mm / {c.rotation_deg:.3f} deg / "
                 f"{1e3 * c.time_offset_s:.2f} ms per round"
                 + (
@@ -242,6 +243,12 @@ def _convergence(
             )
         ]
     return []
+
+
+def _extra(fit: Fit) -> str:
+    """`` (and N more that checked a planes-free step)`` when the rounds ran beyond the cap."""
+    n = fit.extra_rounds
+    return f" (and {n} more that checked a planes-free step)" if n else ""
 
 
 def _observability(report: SolverReport) -> list[Finding]:

@@ -26,11 +26,23 @@ def test_a_change_below_every_reported_sigma_is_within_them() -> None:
 
 def test_rounds_moving_at_the_cap_fail_unless_within_the_sigmas() -> None:
     fit = SimpleNamespace(
-        converged=False, final_unsettled=False, jitter=False, last_change=Change(4e-4, 0.035, 3e-5)
+        converged=False,
+        final_unsettled=False,
+        jitter=False,
+        last_change=Change(4e-4, 0.035, 3e-5),
+        extra_rounds=0,
     )
     cfg = CalibConfig()
     (failed,) = _convergence(fit, cfg)  # type: ignore[arg-type]
     assert failed.severity == "fail" and "did not converge" in failed.text
+    assert "after schedule.max_rounds = 12 rounds the estimate" in failed.text
+    fit.extra_rounds = 2  # two rounds beyond the cap checked a planes-free step
+    (failed,) = _convergence(fit, cfg)  # type: ignore[arg-type]
+    assert (
+        "after schedule.max_rounds = 12 rounds (and 2 more that checked a planes-free step) the "
+        "estimate still moved" in failed.text
+    )
+    fit.extra_rounds = 0
     (noted,) = _convergence(fit, cfg, settled_in_sigmas=True)  # type: ignore[arg-type]
     assert noted.severity == "note" and "less than its reported sigmas" in noted.text
     # dense final rounds that jump stay a failure whatever the sigmas
@@ -41,7 +53,11 @@ def test_rounds_moving_at_the_cap_fail_unless_within_the_sigmas() -> None:
 
 def test_rounds_that_crawl_at_the_cap_fail_and_say_which_coordinate() -> None:
     fit = SimpleNamespace(
-        converged=False, final_unsettled=False, jitter=False, last_change=Change(5.1e-3, 0.03, 1e-5)
+        converged=False,
+        final_unsettled=False,
+        jitter=False,
+        last_change=Change(5.1e-3, 0.03, 1e-5),
+        extra_rounds=0,
     )
     crawl = Crawl(coordinate=0, net=12.7e-3, sigma=7.15e-3, rounds=4)
     (failed,) = _convergence(fit, CalibConfig(), crawl=crawl)  # type: ignore[arg-type]

@@ -265,7 +265,7 @@ def test_the_round_after_the_intrinsics_join_is_not_judged_a_crawl(
 ) -> None:
     # the intrinsics join after round 3 (the rounds do not settle): round 4's change is theirs,
     # so only round 5, compared with round 4, can tighten the distance for round 6
-    steps = [3.0 * 0.8**k for k in range(12)]
+    steps = [3.0 * 0.8**k for k in range(20)]
     run = _schedule(
         monkeypatch, lambda i, dense: steps[i - 1], lidar=True, moved_mm=30.0, warm=False
     )
@@ -600,3 +600,19 @@ def test_the_initial_rotation_is_as_uncertain_as_the_gyro_rotation_when_that_is_
     sd = initial_sd(with_gyro, np.r_[scale, 1e-2])
     # initialisation finds the LiDAR-to-gyro rotation: the extrinsic inherits R_wI's prior
     np.testing.assert_array_equal(sd, [1e-2, 0.01, 1e-3, 1e-2])
+
+
+def test_a_planes_free_step_at_the_cap_gets_the_rounds_that_check_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # eleven settling rounds (each under half the one before, above half a sigma), round 12 of
+    # 12 crawls: the step after it is checked by a round beyond the cap, which settles
+    steps = [200.0 * 0.49**k for k in range(11)] + [0.16, 1e-3, 1e-3, 1e-3]
+    run = _schedule(monkeypatch, lambda i, dense: steps[i - 1], lidar=False)
+    assert run.refined_from == ["round 12"]
+    assert [label for label, *_ in run.rounds][-2:] == ["round 12", "round 13"]
+    assert run.rounds[-1][1] == "step after round 12"  # round 13 starts from the step
+    assert run.fit.converged and run.fit.extra_rounds == 1
+    # without a step near the cap the cap holds: rounds that never settle stop at 12
+    run = _schedule(monkeypatch, lambda i, dense: 200.0 * 0.49 ** (i - 1) + 0.0, lidar=False)
+    assert len(run.rounds) == 12 and run.fit.extra_rounds == 0
