@@ -573,8 +573,9 @@ def run_schedule(
                 )
                 state, crawl_steps = stepped.state, crawl_steps + 1
                 mapped = solved = None  # both were at the round's estimate
-                # a step near the cap still gets the rounds that check it (steps are few)
-                cap = max(cap, index + STEP_CHECK_ROUNDS)
+                if stepped.steps > 0:
+                    # a step near the cap still gets the rounds that check it (steps are few)
+                    cap = max(cap, index + STEP_CHECK_ROUNDS)
         wanders = index >= 3 and _crawled(change, previous)
         previous, previous_at = change, max_dist
         max_dist = max(base, min(max_dist * (WANDER_SHRINK if wanders else 1.0), 3.0 * moved))

@@ -104,6 +104,7 @@ def _schedule(
     warm: bool | None = None,
     entropy: Callable[[int], float] = lambda index: -4.0 - 0.3 * index,
     fraction: float = 0.6,
+    kept_steps: int = 1,
 ) -> _Run:
     """Run :func:`run_schedule` with rounds that move the translation by ``step_mm(index,
     dense)`` mm (``dense``: a round on the final, denser sample), each reporting a translation
@@ -111,7 +112,8 @@ def _schedule(
     moves nothing; the planes-free step after it moves the translation by what the round would
     have, and any other planes-free step by ``refine_mm``. Every round moves the map by
     ``moved_mm``; round ``index`` ends with mean map entropy ``entropy(index)`` (by default
-    sharpening by 0.3 a round) and ``fraction`` of the sample on its planes."""
+    sharpening by 0.3 a round) and ``fraction`` of the sample on its planes. A planes-free step
+    keeps ``kept_steps`` steps (0: rejected, the state does not move)."""
     run = _Run([], [])
     names = ("ext.translation.x", "ext.translation.y", "ext.translation.z")
     report = SimpleNamespace(calibration_names=names, std=(1e-3 * sigma_mm,) * 3, truncated=())
@@ -147,11 +149,12 @@ def _schedule(
         return SimpleNamespace(
             solved=f"solved after {state.label}",
             state=_State(
-                f"step after {state.label}", state.x_mm + held.get(state.label, refine_mm)
+                f"step after {state.label}",
+                state.x_mm + (held.get(state.label, refine_mm) if kept_steps else 0.0),
             ),
             report=report,
             inputs=inputs,
-            steps=1,
+            steps=kept_steps,
             cost_start=1.0,
             cost_end=0.5,
             seconds=0.0,
@@ -613,6 +616,10 @@ def test_a_planes_free_step_at_the_cap_gets_the_rounds_that_check_it(
     assert [label for label, *_ in run.rounds][-2:] == ["round 12", "round 13"]
     assert run.rounds[-1][1] == "step after round 12"  # round 13 starts from the step
     assert run.fit.converged and run.fit.extra_rounds == 1
+    # a step that kept nothing has nothing to check: the cap holds
+    run = _schedule(monkeypatch, lambda i, dense: steps[i - 1], lidar=False, kept_steps=0)
+    assert run.refined_from == ["round 12"] and len(run.rounds) == 12
+    assert not run.fit.converged and run.fit.extra_rounds == 0
     # without a step near the cap the cap holds: rounds that never settle stop at 12
     run = _schedule(monkeypatch, lambda i, dense: 200.0 * 0.49 ** (i - 1) + 0.0, lidar=False)
     assert len(run.rounds) == 12 and run.fit.extra_rounds == 0
