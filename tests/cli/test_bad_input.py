@@ -335,6 +335,7 @@ def test_undecodable_imu_message_is_counted_in_the_result(tmp_path: Path) -> Non
         (["-c", "{tmp}/empty_table.yaml"], "'lidar.nominal_elevation_deg'"),
         (["-c", "{tmp}/cos0.yaml"], "Invalid setting 'noise.min_incidence_cos'"),
         (["-c", "{tmp}/cos2.yaml"], "Invalid setting 'noise.min_incidence_cos'"),
+        (["-c", "{tmp}/refit.yaml"], "Invalid setting 'checks.refit_effects'"),
     ],
 )
 def test_bad_options_and_configs_exit_6(
@@ -347,6 +348,7 @@ def test_bad_options_and_configs_exit_6(
     (tmp_path / "empty_table.yaml").write_text("lidar:\n  nominal_elevation_deg: []\n")
     (tmp_path / "cos0.yaml").write_text("noise:\n  min_incidence_cos: 0\n")
     (tmp_path / "cos2.yaml").write_text("noise:\n  min_incidence_cos: 1.5\n")
+    (tmp_path / "refit.yaml").write_text("checks:\n  refit_effects: maybe\n")
     options = [o.format(tmp=tmp_path) for o in options]
     code, out, err = run(["info", str(bag), "--json", *options], capsys)
     data = json.loads(out)
