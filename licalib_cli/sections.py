@@ -287,6 +287,9 @@ class SplitHalf(Section):
         difference_translation_m: second half minus first.
         difference_rotation_deg: second half relative to the first, about the LiDAR axes.
         difference_time_offset_s: second half minus first.
+        compared: the coordinates both halves determine, which the chi-square compares
+            (``translation.x`` ... ``rotation.z`` about the LiDAR axes, ``time_offset``); a half
+            that does not determine one holds it, so it says nothing about a change there.
     """
 
     _digits = 6
@@ -301,6 +304,26 @@ class SplitHalf(Section):
     difference_translation_m: tuple[float, ...] = ()
     difference_rotation_deg: tuple[float, ...] = ()
     difference_time_offset_s: float = 0.0
+    compared: tuple[str, ...] = ()
+
+    def compared_text(self) -> str:
+        """``""`` when every coordinate was compared (or the list is unknown), else which were:
+        ``"only t_y, t_z, time offset: a half does not determine the others"``."""
+        if not self.compared or len(self.compared) == len(_SPLIT_NAMES):
+            return ""
+        names = ", ".join(_SPLIT_NAMES.get(n, n) for n in self.compared)
+        return f"only {names}: a half does not determine the others"
+
+
+_SPLIT_NAMES = {
+    "translation.x": "t_x",
+    "translation.y": "t_y",
+    "translation.z": "t_z",
+    "rotation.x": "rotation about LiDAR x",
+    "rotation.y": "rotation about LiDAR y",
+    "rotation.z": "rotation about LiDAR z",
+    "time_offset": "time offset",
+}
 
 
 @dataclass(frozen=True)
@@ -362,6 +385,8 @@ class Consistency(Section):
                 f"{sh.halves_s:.1f} s each, chi-square {sh.chi2:.1f} on {sh.dof} "
                 f"(p = {sh.p_value:.2g})"
             )
+            if sh.compared_text():
+                figure += f"; {sh.compared_text()}"
             agree = sh.status == "agree"
             out.append(("split halves", figure, "agree" if agree else "disagree", not agree))
         return out

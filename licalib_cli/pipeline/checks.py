@@ -936,4 +936,5 @@ def _split_section(s: SplitResult) -> SplitHalf:
         difference_translation_m=tuple(float(x) for x in s.difference[:3]),
         difference_rotation_deg=tuple(float(np.degrees(x)) for x in s.difference[3:6]),
         difference_time_offset_s=float(s.difference[6]),
+        compared=s.compared,
     )

@@ -32,7 +32,14 @@ from licalib_cli.solver.lm import SolverReport, solve
 from licalib_cli.solver.problem import Problem
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
 
-__all__ = ["MIN_HALF_S", "SplitResult", "compare_halves", "half_problem", "split_half"]
+__all__ = [
+    "COORDINATES",
+    "MIN_HALF_S",
+    "SplitResult",
+    "compare_halves",
+    "half_problem",
+    "split_half",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -53,6 +60,19 @@ rebuilt its map)."""
 MAX_HALF_POINTS = 30_000
 """Points per half (a regular subset of the final round's): enough for sigmas of a fraction of
 a millimetre, and the check stays a small part of the run time."""
+
+
+COORDINATES = (
+    "translation.x",
+    "translation.y",
+    "translation.z",
+    "rotation.x",
+    "rotation.y",
+    "rotation.z",
+    "time_offset",
+)
+"""The compared coordinates, in ``SplitResult.difference`` order (rotation about the LiDAR
+axes)."""
 
 
 @dataclass(frozen=True)
@@ -82,6 +102,14 @@ class SplitResult:
     chi2: float = 0.0
     dof: int = 0
     p_value: float = 1.0
+
+    @property
+    def compared(self) -> tuple[str, ...]:
+        """Names (:data:`COORDINATES`) of the coordinates both halves determine: the ones the
+        chi-square compares."""
+        if not self.ran:
+            return ()
+        return tuple(n for n, s in zip(COORDINATES, self.sigma, strict=True) if np.isfinite(s))
 
     @property
     def max_z(self) -> float:

@@ -7,8 +7,9 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from licalib_cli.pipeline.checks import inflate
-from licalib_cli.pipeline.split import compare_halves
+from licalib_cli.pipeline.checks import _split_section, inflate
+from licalib_cli.pipeline.split import COORDINATES, compare_halves
+from licalib_cli.sections import Consistency, SplitHalf
 
 SIGMA = np.array([1e-3, 1e-3, 1e-3, 2e-4, 2e-4, 2e-4, 3e-5])
 
@@ -47,6 +48,7 @@ def test_a_coordinate_one_half_does_not_determine_is_left_out() -> None:
     assert res.ran and res.dof == 6
     np.testing.assert_allclose(res.chi2, float(diff[keep] @ np.linalg.solve(sub, diff[keep])))
     assert res.chi2 < 10.0 and np.isnan(res.z[2]) and not np.isfinite(res.sigma[2])
+    assert "translation.z" not in res.compared and len(res.compared) == 6
     # the checks enlarge no sigma by a difference the halves cannot both see
     sigma, _ = inflate(SIGMA, (), [], res, SimpleNamespace(jitter=False))
     assert sigma[2] == SIGMA[2]
@@ -58,3 +60,39 @@ def test_halves_that_share_no_determined_coordinate_are_not_compared() -> None:
         rng.normal(size=7), SIGMA, np.full(7, np.inf), _cov(SIGMA, rng), np.zeros((7, 7)), 5.0
     )
     assert not res.ran and "determined by both halves" in res.reason
+
+
+def _figure(section: SplitHalf) -> str:
+    rows = Consistency(split_half=section).rows()
+    (row,) = [r for r in rows if r[0] == "split halves"]
+    return row[1]
+
+
+def test_the_checks_table_and_the_result_name_what_the_halves_compared() -> None:
+    """An "agree" over the translation alone must not read as the whole extrinsic agreeing: the
+    table names the compared coordinates when a half leaves some undetermined, and the result
+    file lists them."""
+    rng = np.random.default_rng(3)
+    s1, s2 = SIGMA.copy(), 2 * SIGMA.copy()
+    s1[[0, 3, 4, 5]] = np.inf  # the first half determines t_y, t_z and the time offset only
+    c1 = _cov(SIGMA, rng)
+    c1[[0, 3, 4, 5], :] = 0.0
+    c1[:, [0, 3, 4, 5]] = 0.0
+    res = compare_halves(0.5 * SIGMA, s1, s2, c1, _cov(2 * SIGMA, rng), 10.0)
+    assert res.compared == ("translation.y", "translation.z", "time_offset")
+    section = _split_section(res)
+    assert section.to_dict()["compared"] == ["translation.y", "translation.z", "time_offset"]
+    assert SplitHalf.from_dict(section.to_dict()).compared == res.compared
+    assert _figure(section).endswith(
+        "; only t_y, t_z, time offset: a half does not determine the others"
+    )
+    # every coordinate compared: the figure stays as it was
+    full = _split_section(
+        compare_halves(0.5 * SIGMA, SIGMA, SIGMA, _cov(SIGMA, rng), _cov(SIGMA, rng), 10.0)
+    )
+    assert full.compared == COORDINATES and "only" not in _figure(full)
+    # a result file written before the list existed reads back without one
+    old = {k: v for k, v in full.to_dict().items() if k != "compared"}
+    assert SplitHalf.from_dict(old).compared == () and "only" not in _figure(
+        SplitHalf.from_dict(old)
+    )
