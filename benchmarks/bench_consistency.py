@@ -190,6 +190,17 @@ def one_run(case: dict, workdir: Path) -> dict:
         # what enlarged the sigmas, and the fixed effects whose shifts they cover
         inflation=list(res.consistency.inflation) if res.consistency else [],
         covered=[e.name for e in res.consistency.effects if e.covered] if res.consistency else [],
+        # the split-half check: its outcome, p-value and the coordinates it compared
+        split=(
+            {
+                "status": res.consistency.split_half.status,
+                "p_value": round(float(res.consistency.split_half.p_value), 4),
+                "dof": int(res.consistency.split_half.dof),
+                "compared": list(res.consistency.split_half.compared),
+            }
+            if res.consistency
+            else {}
+        ),
         # how far the denser final round moved the extrinsic, in its sigmas
         final_jump=round(float(getattr(run.fit, "final_jump", 0.0)), 2),
         # what the fit's own information allows against the clean runs' limits (it says

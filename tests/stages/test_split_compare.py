@@ -96,3 +96,51 @@ def test_the_checks_table_and_the_result_name_what_the_halves_compared() -> None
     assert SplitHalf.from_dict(old).compared == () and "only" not in _figure(
         SplitHalf.from_dict(old)
     )
+
+
+def _response(
+    names: tuple[str, ...], rng: np.random.Generator
+) -> tuple[tuple[str, ...], np.ndarray]:
+    return names, rng.normal(size=(7, len(names))) * 1e-3
+
+
+def test_what_the_halves_hold_adds_only_where_they_follow_it_differently() -> None:
+    """The halves hold the intrinsics at the whole segment's estimate: an error of them moves
+    both halves, and only the part they follow differently shows in their difference."""
+    from types import SimpleNamespace as NS
+
+    from licalib_cli.pipeline.split import common_covariance
+
+    rng = np.random.default_rng(4)
+    names = ("imu.gyro_scale.x", "imu.gyro_scale.y", "lidar.intrinsics[3].V")
+    a = rng.normal(size=(4, 4))
+    cov_full = a @ a.T * 1e-6
+    report = NS(calibration_names=("ext.translation.x", *names), covariance=cov_full)
+    first = _response(names, rng)
+    # followed the same way by both halves: cancels
+    np.testing.assert_allclose(common_covariance((first, first), report), 0.0, atol=1e-18)
+    second = _response(names, rng)
+    d = second[1] - first[1]
+    expected = d @ cov_full[1:, 1:] @ d.T
+    np.testing.assert_allclose(common_covariance((first, second), report), expected, rtol=1e-12)
+    # a beam one half holds no point of is in neither its response nor its difference's share
+    partial = (names[:2], second[1][:, :2])
+    d = np.concatenate([partial[1] - first[1][:, :2], -first[1][:, 2:]], axis=1)
+    np.testing.assert_allclose(
+        common_covariance((first, partial), report), d @ cov_full[1:, 1:] @ d.T, rtol=1e-12
+    )
+    # no report (intrinsics taken as exact) or no intrinsics: nothing added
+    assert not np.any(common_covariance((first, second), None))
+    empty = ((), np.zeros((7, 0)))
+    assert not np.any(common_covariance((empty, empty), report))
+
+
+def test_the_common_covariance_enters_sigma_and_chi_square() -> None:
+    rng = np.random.default_rng(5)
+    c1, c2 = _cov(SIGMA, rng), _cov(SIGMA, rng)
+    common = _cov(3 * SIGMA, rng)
+    diff = 2.0 * SIGMA
+    res = compare_halves(diff, SIGMA, SIGMA, c1, c2, 5.0, common=common)
+    np.testing.assert_allclose(res.sigma, np.sqrt(2 * SIGMA**2 + np.diag(common)))
+    np.testing.assert_allclose(res.chi2, float(diff @ np.linalg.solve(c1 + c2 + common, diff)))
+    assert res.chi2 < compare_halves(diff, SIGMA, SIGMA, c1, c2, 5.0).chi2

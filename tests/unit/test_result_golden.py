@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from licalib_cli.models.intrinsics import ImuIntrinsics
+from licalib_cli.pipeline.split import COORDINATES
 from licalib_cli.results import CalibrationResult, Extrinsic, matrix_from_rpy_deg
 from licalib_cli.sections import (
     Consistency,
@@ -66,15 +67,7 @@ def _result() -> CalibrationResult:
                 difference_translation_m=(0.0001, 0.0, 0.0),
                 difference_rotation_deg=(0.001, 0.0, 0.0),
                 difference_time_offset_s=1e-5,
-                compared=(
-                    "translation.x",
-                    "translation.y",
-                    "translation.z",
-                    "rotation.x",
-                    "rotation.y",
-                    "rotation.z",
-                    "time_offset",
-                ),
+                compared=COORDINATES,
             ),
             inflation=(),
         ),
