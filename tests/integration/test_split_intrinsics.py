@@ -40,7 +40,7 @@ def run(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-de
     spec = SimulationSpec(
         scenario="shake",
         lidar="vlp16",
-        duration_s=8.0,
+        duration_s=6.0,
         seed=33,
         time_offset_s=0.004,
         azimuth_resolution_deg=0.4,
