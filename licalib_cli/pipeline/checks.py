@@ -717,7 +717,7 @@ def check(fit: Fit, guess: InitialGuess, noise: NoiseLevels, cfg: CalibConfig) -
         cfg.model.imu_prior,
         planes_free_p=COVER_P_VALUE,
     )
-    split = split_half(fit.state, fit.inputs, cfg, fit.report)
+    split = split_half(fit.state, fit.inputs, cfg)
     notes: tuple[str, ...] = ()
     if guess.rotation_source == SINGLE_AXIS:
         notes = (
