@@ -35,6 +35,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 __all__ = [
+    "SPLIT_LABELS",
     "Consistency",
     "EffectCheck",
     "ExtraTerms",
@@ -309,21 +310,22 @@ class SplitHalf(Section):
     def compared_text(self) -> str:
         """``""`` when every coordinate was compared (or the list is unknown), else which were:
         ``"only t_y, t_z, time offset: a half does not determine the others"``."""
-        if not self.compared or len(self.compared) == len(_SPLIT_NAMES):
+        if not self.compared or len(self.compared) == len(SPLIT_LABELS):
             return ""
-        names = ", ".join(_SPLIT_NAMES.get(n, n) for n in self.compared)
+        names = ", ".join(SPLIT_LABELS.get(n, n) for n in self.compared)
         return f"only {names}: a half does not determine the others"
 
 
-_SPLIT_NAMES = {
+SPLIT_LABELS = {
     "translation.x": "t_x",
     "translation.y": "t_y",
     "translation.z": "t_z",
-    "rotation.x": "rotation about LiDAR x",
-    "rotation.y": "rotation about LiDAR y",
-    "rotation.z": "rotation about LiDAR z",
+    "rotation.x": "roll (LiDAR x)",
+    "rotation.y": "pitch (LiDAR y)",
+    "rotation.z": "yaw (LiDAR z)",
     "time_offset": "time offset",
 }
+"""How the checks name each split-half coordinate (``SplitHalf.compared``'s names) to a user."""
 
 
 @dataclass(frozen=True)
@@ -385,8 +387,9 @@ class Consistency(Section):
                 f"{sh.halves_s:.1f} s each, chi-square {sh.chi2:.1f} on {sh.dof} "
                 f"(p = {sh.p_value:.2g})"
             )
-            if sh.compared_text():
-                figure += f"; {sh.compared_text()}"
+            compared = sh.compared_text()
+            if compared:
+                figure += f"; {compared}"
             agree = sh.status == "agree"
             out.append(("split halves", figure, "agree" if agree else "disagree", not agree))
         return out

@@ -46,9 +46,10 @@ from licalib_cli.pipeline.initialise import SINGLE_AXIS, InitialGuess
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty, map_uncertainty
 from licalib_cli.pipeline.schedule import JITTER_FACTOR, MAX_FINAL_ROUNDS, Change, Fit, within
 from licalib_cli.pipeline.settings import NoiseLevels
-from licalib_cli.pipeline.split import SplitResult, split_half
+from licalib_cli.pipeline.split import COORDINATES, SplitResult, split_half
 from licalib_cli.results import vec3
 from licalib_cli.sections import (
+    SPLIT_LABELS,
     Consistency,
     EffectCheck,
     IntrinsicsUncertainty,
@@ -554,15 +555,6 @@ def _split(split: SplitResult) -> list[Finding]:
         return [Finding("note", f"Split-half check not run: {split.reason}.")]
     if split.p_value >= SPLIT_HALF_P:
         return []
-    names = [
-        "t_x",
-        "t_y",
-        "t_z",
-        "roll (LiDAR x)",
-        "pitch (LiDAR y)",
-        "yaw (LiDAR z)",
-        "time offset",
-    ]
     most = ""
     if np.any(np.isfinite(split.z)):
         k = int(np.nanargmax(split.z))
@@ -574,7 +566,8 @@ def _split(split: SplitResult) -> list[Finding]:
             if k < 6
             else f"{1e3 * value:+.3f} ms"
         )
-        most = f"; the most, {names[k]} by {text}, {split.z[k]:.1f} combined sigmas"
+        label = SPLIT_LABELS[COORDINATES[k]]
+        most = f"; the most, {label} by {text}, {split.z[k]:.1f} combined sigmas"
     return [
         Finding(
             "warn",

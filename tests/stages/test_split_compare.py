@@ -7,7 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from licalib_cli.pipeline.checks import _split_section, inflate
+from licalib_cli.pipeline.checks import _split, _split_section, inflate
 from licalib_cli.pipeline.split import COORDINATES, compare_halves
 from licalib_cli.sections import Consistency, SplitHalf
 
@@ -95,4 +95,19 @@ def test_the_checks_table_and_the_result_name_what_the_halves_compared() -> None
     old = {k: v for k, v in full.to_dict().items() if k != "compared"}
     assert SplitHalf.from_dict(old).compared == () and "only" not in _figure(
         SplitHalf.from_dict(old)
+    )
+
+
+def test_halves_that_disagree_name_the_coordinate_that_differs_most() -> None:
+    rng = np.random.default_rng(6)
+    diff = 0.5 * SIGMA.copy()
+    diff[3] = 40 * SIGMA[3]  # the rotation about the LiDAR x axis changed between the halves
+    res = compare_halves(diff, SIGMA, SIGMA, _cov(SIGMA, rng), _cov(SIGMA, rng), 10.0)
+    (finding,) = _split(res)
+    assert finding.severity == "warn" and "The two halves of the segment disagree" in finding.text
+    assert f"the most, roll (LiDAR x) by {np.degrees(diff[3]):+.4f} deg" in finding.text
+    # halves that agree add no finding
+    assert (
+        _split(compare_halves(0.5 * SIGMA, SIGMA, SIGMA, _cov(SIGMA, rng), _cov(SIGMA, rng), 10.0))
+        == []
     )
