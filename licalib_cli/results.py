@@ -33,6 +33,7 @@ import yaml
 
 from licalib_cli.config import read_yaml
 from licalib_cli.errors import ConfigError
+from licalib_cli.filetypes import FileValueError, number, numbers, wrong
 from licalib_cli.geometry import so3
 from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
 from licalib_cli.sections import (
@@ -110,17 +111,26 @@ class Extrinsic:
         }
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> Extrinsic:
+    def from_dict(cls, d: dict[str, Any], key: str = "extrinsic") -> Extrinsic:
+        """Read ``translation``, a rotation (``rotation_quaternion``, else ``rotation_rpy_deg``)
+        and ``time_offset_s``; an absent one is zero.
+
+        Raises:
+            FileValueError: a value is not of its kind (3 numbers, a unit quaternion, a
+                number).
+        """
+        rpy = None
+        if "rotation_rpy_deg" in d:  # read (and checked) also beside the quaternion
+            rpy = numbers(d["rotation_rpy_deg"], f"{key}.rotation_rpy_deg", 3, finite=True)
         if "rotation_quaternion" in d:
-            rot = so3.quat_to_matrix(np.asarray(d["rotation_quaternion"], float))
-        elif "rotation_rpy_deg" in d:
-            rot = matrix_from_rpy_deg(d["rotation_rpy_deg"])
+            q = quaternion(d["rotation_quaternion"], f"{key}.rotation_quaternion")
+            rot = so3.quat_to_matrix(q)
         else:
-            rot = np.eye(3)
+            rot = np.eye(3) if rpy is None else matrix_from_rpy_deg(rpy)
         return cls(
             rotation=rot,
-            translation=np.asarray(d.get("translation", [0.0, 0.0, 0.0]), dtype=np.float64),
-            time_offset_s=float(d.get("time_offset_s", 0.0)),
+            translation=numbers(d.get("translation", [0.0] * 3), f"{key}.translation", 3, True),
+            time_offset_s=number(d.get("time_offset_s", 0.0), f"{key}.time_offset_s", finite=True),
         )
 
     def factory_difference(
@@ -195,25 +205,51 @@ def imu_intrinsics_to_dict(k: ImuIntrinsics) -> dict[str, Any]:
     }
 
 
-def imu_intrinsics_from_dict(d: dict[str, Any]) -> ImuIntrinsics:
+def quaternion(value: Any, key: str) -> F64:
+    """A unit quaternion ``[x, y, z, w]`` read from a file (normalised).
+
+    Raises:
+        FileValueError: not four finite numbers of norm 1 (within 1e-3).
+    """
+    q = numbers(value, key, 4, finite=True)
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > 1e-3:
+        raise wrong(key, value, "a unit quaternion [x, y, z, w]")
+    return q / norm
+
+
+def imu_intrinsics_from_dict(d: dict[str, Any], key: str = "imu_intrinsics") -> ImuIntrinsics:
+    """Read the IMU model (an absent key: its default).
+
+    Raises:
+        FileValueError: a value is not of its size (3 numbers, a unit quaternion, 3 x 3).
+    """
     default = ImuIntrinsics()
     if "gyro_rotation_quaternion" in d:
-        q = np.asarray(d["gyro_rotation_quaternion"], dtype=np.float64)
+        q = quaternion(d["gyro_rotation_quaternion"], f"{key}.gyro_rotation_quaternion")
     elif "gyro_rotation_rpy_deg" in d:
-        q = so3.matrix_to_quat(matrix_from_rpy_deg(d["gyro_rotation_rpy_deg"]))
+        rpy = numbers(d["gyro_rotation_rpy_deg"], f"{key}.gyro_rotation_rpy_deg", 3, True)
+        q = so3.matrix_to_quat(matrix_from_rpy_deg(rpy))
     else:
         q = default.gyro_rotation
 
-    def arr(key: str, fallback: F64) -> F64:
-        return np.asarray(d[key], dtype=np.float64) if key in d else fallback
+    def arr(name: str, fallback: F64) -> F64:
+        return numbers(d[name], f"{key}.{name}", 3, True) if name in d else fallback
 
+    sensitivity = default.gyro_g_sensitivity
+    if "gyro_g_sensitivity" in d:
+        rows = d["gyro_g_sensitivity"]
+        where = f"{key}.gyro_g_sensitivity"
+        if not isinstance(rows, list) or len(rows) != 3:
+            raise wrong(where, rows, "3 rows of 3 numbers")
+        sensitivity = np.stack([numbers(r, f"{where}.{i}", 3, True) for i, r in enumerate(rows)])
     return ImuIntrinsics(
         gyro_scale=arr("gyro_scale", default.gyro_scale),
         gyro_misalignment=arr("gyro_misalignment", default.gyro_misalignment),
         gyro_rotation=q,
         accel_scale=arr("accel_scale", default.accel_scale),
         accel_misalignment=arr("accel_misalignment", default.accel_misalignment),
-        gyro_g_sensitivity=arr("gyro_g_sensitivity", default.gyro_g_sensitivity).reshape(3, 3),
+        gyro_g_sensitivity=sensitivity,
         gyro_bias=arr("gyro_bias", default.gyro_bias),
         accel_bias=arr("accel_bias", default.accel_bias),
     )
@@ -233,24 +269,42 @@ def lidar_intrinsics_to_dict(k: LidarIntrinsics) -> dict[str, Any]:
     }
 
 
-def lidar_intrinsics_from_dict(d: dict[str, Any]) -> LidarIntrinsics:
-    def arr(key: str) -> F64:
-        return np.asarray(d[key], dtype=np.float64)
+_LIDAR_KEYS = (
+    "nominal_elevation_deg",
+    "elevation_correction_deg",
+    "azimuth_correction_deg",
+    "vertical_offset_m",
+    "horizontal_offset_m",
+    "range_scale",
+    "range_offset_m",
+)
 
-    try:
-        return LidarIntrinsics(
-            nominal_elevation=np.radians(arr("nominal_elevation_deg")),
-            elevation_correction=np.radians(arr("elevation_correction_deg")),
-            azimuth_correction=np.radians(arr("azimuth_correction_deg")),
-            vertical_offset=arr("vertical_offset_m"),
-            horizontal_offset=arr("horizontal_offset_m"),
-            range_scale=arr("range_scale"),
-            range_offset=arr("range_offset_m"),
-        )
-    except KeyError as err:
-        key = err.args[0]
-        msg = f"lidar_intrinsics is missing the key {key!r}; see the README's result schema."
-        raise ConfigError(msg) from err
+
+def lidar_intrinsics_from_dict(d: dict[str, Any], key: str = "lidar_intrinsics") -> LidarIntrinsics:
+    """Read the per-beam model: seven lists of one number per beam.
+
+    Raises:
+        ConfigError: a key is missing; FileValueError: a list is not of finite numbers or not
+            as long as the first one.
+    """
+    missing = [name for name in _LIDAR_KEYS if name not in d]
+    if missing:
+        msg = f"lidar_intrinsics is missing the key {missing[0]!r}; see the README's result schema."
+        raise ConfigError(msg)
+    beams = d[_LIDAR_KEYS[0]]
+    size = len(beams) if isinstance(beams, list) and beams else None
+    arr = {name: numbers(d[name], f"{key}.{name}", size, True) for name in _LIDAR_KEYS}
+    if size is None:
+        raise wrong(f"{key}.{_LIDAR_KEYS[0]}", beams, "a list of one number per beam")
+    return LidarIntrinsics(
+        nominal_elevation=np.radians(arr["nominal_elevation_deg"]),
+        elevation_correction=np.radians(arr["elevation_correction_deg"]),
+        azimuth_correction=np.radians(arr["azimuth_correction_deg"]),
+        vertical_offset=arr["vertical_offset_m"],
+        horizontal_offset=arr["horizontal_offset_m"],
+        range_scale=arr["range_scale"],
+        range_offset=arr["range_offset_m"],
+    )
 
 
 _SECTIONS: tuple[tuple[str, type[Section]], ...] = (
@@ -324,34 +378,35 @@ class CalibrationResult:
         left aside).
 
         Raises:
-            ConfigError: another schema version, or an incomplete section.
+            ConfigError: another schema version; FileValueError: a key is missing or a value
+                is not of its type.
         """
         version = d.get("schema_version")
-        if version != SCHEMA_VERSION:
+        if version != SCHEMA_VERSION or isinstance(version, bool):
             msg = (
                 f"The result file has schema_version {version!r}, but this licalib reads "
                 f"version {SCHEMA_VERSION}; regenerate it with this version."
             )
             raise ConfigError(msg)
-        lidar = d.get("lidar_intrinsics")
-        gravity = d.get("gravity_G")
+        parts = {name: d.get(name) for name in ("extrinsic", "imu_intrinsics", "lidar_intrinsics")}
+        for name, value in parts.items():
+            if value is not None and not isinstance(value, dict):
+                raise wrong(name, value, "a mapping")
         sections: dict[str, Any] = {}
         for name, kind in _SECTIONS:
             value = d.get(name)
-            if isinstance(value, dict):
-                try:
-                    sections[name] = kind.from_dict(value)
-                except TypeError as err:
-                    msg = (
-                        f"The result's {name!r} section is incomplete or has unknown keys "
-                        f"({err}); regenerate the file with this licalib version."
-                    )
-                    raise ConfigError(msg) from err
+            if value is None:
+                continue
+            if not isinstance(value, dict):
+                raise wrong(name, value, "a mapping")
+            sections[name] = kind.from_dict(value, name)
+        gravity = d.get("gravity_G")
+        lidar = parts["lidar_intrinsics"]
         return cls(
-            extrinsic=Extrinsic.from_dict(d.get("extrinsic", {})),
-            imu_intrinsics=imu_intrinsics_from_dict(d.get("imu_intrinsics", {})),
+            extrinsic=Extrinsic.from_dict(parts["extrinsic"] or {}),
+            imu_intrinsics=imu_intrinsics_from_dict(parts["imu_intrinsics"] or {}),
             lidar_intrinsics=lidar_intrinsics_from_dict(lidar) if lidar else None,
-            gravity_G=None if gravity is None else vec3(gravity),
+            gravity_G=None if gravity is None else vec3(numbers(gravity, "gravity_G", 3, True)),
             **sections,
         )
 
@@ -369,7 +424,10 @@ class CalibrationResult:
         if not isinstance(data, dict):
             msg = f"The result file {path} is not a YAML mapping; regenerate it."
             raise ConfigError(msg)
-        return cls.from_dict(data)
+        try:
+            return cls.from_dict(data)
+        except FileValueError as err:
+            raise err.in_file(f"the result file {path}") from err
 
 
 class _Dumper(yaml.SafeDumper):

@@ -34,6 +34,8 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from licalib_cli.filetypes import FileValueError, field_types, joined, typed
+
 __all__ = [
     "SPLIT_LABELS",
     "Consistency",
@@ -88,20 +90,15 @@ def _plain(value: Any, digits: int | None) -> Any:
     return value
 
 
-def _tupled(value: Any) -> Any:
-    """Lists (nested ones too) as tuples."""
-    return tuple(_tupled(v) for v in value) if isinstance(value, list) else value
-
-
 class Section:
     """``to_dict`` over the dataclass fields, in order, and ``from_dict`` back.
 
     ``_digits`` rounds floats to that many significant digits (None: as they are; statistics
-    set it, stamps and clock offsets must not); ``_nested`` names the fields holding other
-    sections (one or a list).
+    set it, stamps and clock offsets must not). ``from_dict`` checks every value against its
+    field's annotation (:mod:`licalib_cli.filetypes`): a field holding another section (or a
+    tuple of them) reads that section.
     """
 
-    _nested: dict[str, Any] = {}  # noqa: RUF012 - read-only, overridden per section
     _digits: int | None = None
 
     def to_dict(self) -> dict[str, Any]:
@@ -111,23 +108,22 @@ class Section:
         }
 
     @classmethod
-    def from_dict(cls: type[T], d: dict[str, Any]) -> T:
-        names = {f.name for f in fields(cls)}  # type: ignore[arg-type]
-        nested: dict[str, Any] = getattr(cls, "_nested", {})
+    def from_dict(cls: type[T], d: dict[str, Any], key: str = "") -> T:
+        """Read the section from its mapping ``d`` (keys it does not know are left aside).
+
+        Args:
+            d: the mapping.
+            key: its dotted key in the file, for the messages.
+
+        Raises:
+            FileValueError: a required key is missing, or a value is not of its field's type.
+        """
         kwargs: dict[str, Any] = {}
-        for k, v in d.items():
-            if k not in names:
-                continue
-            if k in nested:
-                kind = nested[k]
-                v = (
-                    tuple(kind.from_dict(x) for x in v)
-                    if isinstance(v, list)
-                    else kind.from_dict(v)
-                )
-            elif isinstance(v, list):
-                v = _tupled(v)
-            kwargs[k] = v
+        for name, (hint, required) in field_types(cls).items():
+            if name in d:
+                kwargs[name] = typed(d[name], hint, joined(key, name))
+            elif required:
+                raise FileValueError(joined(key, name), "is missing")
         return cls(**kwargs)
 
 
@@ -231,8 +227,6 @@ class SensorCheck(Section):
     samples: int
     status: str
     patterns: tuple[PatternCheck, ...] = ()
-
-    _nested = {"patterns": PatternCheck}  # noqa: RUF012
 
 
 @dataclass(frozen=True)
@@ -345,8 +339,6 @@ class Consistency(Section):
     split_half: SplitHalf = field(default_factory=lambda: SplitHalf("not run"))
     inflation: tuple[str, ...] = ()
 
-    _nested = {"sensors": SensorCheck, "effects": EffectCheck, "split_half": SplitHalf}  # noqa: RUF012
-
     def rows(self) -> list[tuple[str, str, str, bool]]:
         """One row per fit check, as the console table and the report show them:
         ``(check, figure, outcome, warn)``; ``warn`` marks an outcome to highlight."""
@@ -440,8 +432,8 @@ class IntrinsicsUncertainty(Section):
         }
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> IntrinsicsUncertainty:
-        return cls({k: tuple(None if x is None else float(x) for x in v) for k, v in d.items()})
+    def from_dict(cls, d: dict[str, Any], key: str = "") -> IntrinsicsUncertainty:
+        return cls(typed(d, dict[str, tuple[float | None, ...]], key))
 
 
 @dataclass(frozen=True)
@@ -666,8 +658,6 @@ class SegmentsSection(Section):
             (in its own sigmas) is flagged.
         segments: one entry per segment, in time order.
     """
-
-    _nested = {"segments": SegmentEstimate}  # noqa: RUF012
 
     reference: int
     disagreement_threshold_sigmas: float

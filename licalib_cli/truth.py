@@ -23,6 +23,7 @@ from typing import Any
 
 from licalib_cli.config import read_yaml
 from licalib_cli.errors import ConfigError
+from licalib_cli.filetypes import FileValueError, typed
 from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
 from licalib_cli.results import CalibrationResult, Extrinsic, dump_yaml, write_text_atomic
 from licalib_cli.sections import Section
@@ -192,34 +193,9 @@ class Simulation(Section):
     licalib_version: str
     effects: tuple[InjectedEffect, ...] = ()
 
-    _nested = {  # noqa: RUF012
-        "initial_imu_pose": InitialImuPose,
-        "imu": SimulatedImu,
-        "lidar": SimulatedLidar,
-        "clock": SimulatedClock,
-        "bag": SimulatedBag,
-        "effects": InjectedEffect,
-    }
-
     def effect(self, name: str) -> InjectedEffect | None:
         """The injected effect of that name, or None."""
         return next((e for e in self.effects if e.name == name), None)
-
-
-def _seed(d: dict[str, Any], key: str) -> int | None:
-    """A truth file's whole-number seed under ``key``, or None when absent.
-
-    Raises:
-        ConfigError: the value is not a whole number.
-    """
-    value = d.get(key)
-    if value is None:
-        return None
-    try:
-        return int(value)
-    except (TypeError, ValueError) as err:
-        msg = f"The truth file's {key!r} is {value!r}, not a whole number; regenerate it."
-        raise ConfigError(msg) from err
 
 
 @dataclass(frozen=True)
@@ -301,21 +277,16 @@ class Truth:
         """Read a truth (or a calibration result used as one).
 
         Raises:
-            ConfigError: a section is incomplete or of another version.
+            ConfigError: another schema version; FileValueError: a key is missing or a value
+                is not of its type.
         """
         values = CalibrationResult.from_dict(d)
         sections: dict[str, Any] = {}
         for name, kind in (("scenario", Scenario), ("simulation", Simulation)):
-            if isinstance(d.get(name), dict):
-                try:
-                    sections[name] = kind.from_dict(d[name])
-                except TypeError as err:
-                    msg = (
-                        f"The truth file's {name!r} section is incomplete ({err}); regenerate "
-                        "it with this licalib version (licalib simulate)."
-                    )
-                    raise ConfigError(msg) from err
-        return cls(values, seed=_seed(d, "seed"), noise_seed=_seed(d, "noise_seed"), **sections)
+            if d.get(name) is not None:
+                sections[name] = typed(d[name], kind, name)
+        seeds = {key: typed(d.get(key), int | None, key) for key in ("seed", "noise_seed")}
+        return cls(values, **seeds, **sections)
 
     def to_yaml(self) -> str:
         return dump_yaml(self.to_dict())
@@ -337,4 +308,7 @@ class Truth:
         if not isinstance(data, dict):
             msg = f"The truth file {path} is not a YAML mapping; regenerate it."
             raise ConfigError(msg)
-        return cls.from_dict(data)
+        try:
+            return cls.from_dict(data)
+        except FileValueError as err:
+            raise err.in_file(f"the truth file {path}") from err

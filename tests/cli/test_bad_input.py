@@ -527,7 +527,9 @@ def test_truth_file_is_checked_before_the_run(
     for key in ("seed", "noise_seed"):  # a seed that is not a whole number
         truth.write_text(f"schema_version: 1\n{key}: abc\n")
         code, _, err = run(["calibrate", str(bag), "--truth", str(truth), "-o", "x.yaml"], capsys)
-        assert code == 6 and f"The truth file's '{key}' is 'abc'" in error_line(err)
+        line = error_line(err)
+        assert code == 6 and f"`{key}` is 'abc', not a whole number or null" in line
+        assert str(truth) in line
 
 
 # --------------------------------------------------------------------------------------------

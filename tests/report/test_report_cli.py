@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from licalib_cli.cli import main
 from licalib_cli.report import ReportData, report_data_path, write_report
@@ -247,6 +248,36 @@ def test_not_a_result_is_refused(tmp_path, capsys, content, expected):
     text = _one_sentence_error(err, code, 6)
     assert expected in text
     assert not (tmp_path / "x.html").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.yaml"]
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "expected"),
+    [
+        (("consistency", "split_half", "compared"), 5, "is 5, not a list of strings"),
+        (("consistency", "split_half", "chi2"), "abc", "is 'abc', not a number"),
+        (("consistency", "sensors", 0, "patterns"), "x", "is 'x', not a list of mappings"),
+        (("uncertainty", "translation_std_m"), [1], "is [1], not a list of 3 numbers"),
+        (("verdict",), 5, "is 5, not a mapping"),
+        (("extrinsic", "rotation_quaternion"), [0, 0, 0, 0], "is [0, 0, 0, 0], not a unit"),
+        (("imu_intrinsics", "gyro_g_sensitivity"), [1], "is [1], not 3 rows of 3"),
+        (("gravity_G",), "down", "is 'down', not a list of 3"),
+    ],
+)
+def test_a_value_of_the_wrong_type_is_named_by_its_key(tmp_path, capsys, key, value, expected):
+    golden = Path(__file__).parents[1] / "golden" / "result_v1.yaml"
+    data = yaml.safe_load(golden.read_text())
+    node = data
+    for k in key[:-1]:
+        node = node[k]
+    node[key[-1]] = value
+    path = tmp_path / "x.yaml"
+    path.write_text(yaml.safe_dump(data))
+    code, _, err = run(["report", str(path)], capsys)
+    text = _one_sentence_error(err, code, 6)
+    dotted = ".".join(str(k) for k in key)
+    assert f"In the result file {path}, `{dotted}` {expected}" in text
+    assert "regenerate the file" in text
     assert sorted(p.name for p in tmp_path.iterdir()) == ["x.yaml"]
 
 

@@ -129,5 +129,5 @@ def test_extra_terms_round_trip_and_an_incomplete_section_is_one_sentence(tmp_pa
     data = yaml.safe_load(path.read_text())
     del data["extra_terms"]["reference_ns"]
     path.write_text(yaml.safe_dump(data))
-    with pytest.raises(ConfigError, match="'extra_terms' section is incomplete"):
+    with pytest.raises(ConfigError, match=r"`extra_terms\.reference_ns` is missing"):
         CalibrationResult.load(path)
