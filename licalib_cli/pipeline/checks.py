@@ -626,12 +626,13 @@ def inflate(
             f"times {np.sqrt(chi):.2f}, the root of the {worst.sensor} residuals' chi-square "
             "per sample"
         )
-    if split.ran:
-        # what the halves say only about the coordinates both determine
-        half_gap = np.where(np.isfinite(split.sigma), 0.5 * np.abs(split.difference), 0.0)
-        grown = np.maximum(sigma, half_gap)
+    if split.ran and split.p_value < SPLIT_HALF_P:
+        grown = np.maximum(sigma, split_floor(split))
         if np.any(grown > sigma * (1 + 1e-9)):
-            why.append("at least half the difference between the two halves of the segment")
+            why.append(
+                "at least half the difference between the two halves of the segment beyond "
+                "its expected spread"
+            )
         sigma = grown
     for e in effects:
         # Held fixed, the effect biases the estimate by about its shift; freed, the estimate
@@ -663,6 +664,24 @@ def inflate(
         sigma = _with_change(sigma, fit.last_change)
         why.append("by the last round's change (the rounds settled only to within it)")
     return sigma, tuple(why)
+
+
+def split_floor(split: SplitResult) -> F64:
+    """(7,) the least sigma the two halves' difference ``d`` supports: half its excess over
+    the spread ``sigma_d`` it has without any change between the halves,
+    ``0.5 sqrt(max(d^2 - sigma_d^2, 0))``; zero where the halves do not both determine the
+    coordinate.
+
+    Each half's estimate errs by a common part (the whole segment's error) and its own; a
+    difference within its expected spread says nothing the solver's sigma does not already
+    hold, while one beyond it is a change over the recording the whole estimate averages, of
+    which half stays as its error. :func:`inflate` applies it only when the halves disagree
+    (``p < SPLIT_HALF_P``): one coordinate of seven beyond its spread by chance is common.
+    """
+    d, sd = np.asarray(split.difference), np.asarray(split.sigma)
+    known = np.isfinite(sd)
+    excess = np.where(known, d**2 - np.where(known, sd, 0.0) ** 2, 0.0)
+    return 0.5 * np.sqrt(np.maximum(excess, 0.0))
 
 
 def _with_change(sigma: F64, c: Change) -> F64:
@@ -710,7 +729,7 @@ def check(fit: Fit, guess: InitialGuess, noise: NoiseLevels, cfg: CalibConfig) -
         cfg.model.imu_prior,
         planes_free_p=COVER_P_VALUE,
     )
-    split = split_half(fit.state, fit.inputs, cfg)
+    split = split_half(fit.state, fit.inputs, cfg, fit.report)
     notes: tuple[str, ...] = ()
     if guess.rotation_source == SINGLE_AXIS:
         notes = (

@@ -3,15 +3,17 @@
 Each half gets the final estimate restricted to it (the same spline on a sub-range of its
 knots), the final round's IMU samples and associated points that fall in it, and the final
 map's planes; a few Levenberg-Marquardt iterations re-estimate everything the final round
-estimated. If the model explains the data, the two halves agree within their combined sigmas;
-an effect that changes over time (a drifting bias, a clock running at another rate, a sensor
-moving on its mount) makes them disagree.
+estimated except the intrinsics, which the halves hold at the whole segment's estimate (their
+uncertainty enters the comparison through how each half follows them). If the model explains
+the data, the two halves agree within their combined sigmas; an effect that changes over time
+(a drifting bias, a clock running at another rate, a sensor moving on its mount) makes them
+disagree.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -20,7 +22,9 @@ from licalib_cli.config import CalibConfig
 from licalib_cli.consistency.distributions import chi2_sf
 from licalib_cli.errors import LicalibError
 from licalib_cli.estimation import (
+    IMU_INTRINSIC_BLOCKS,
     CalibrationState,
+    FreeParameters,
     ImuData,
     build_problem,
     state_from_problem,
@@ -28,7 +32,9 @@ from licalib_cli.estimation import (
 from licalib_cli.parallel.threads import map_blocks
 from licalib_cli.pipeline.round import RoundInputs, extrinsic_of
 from licalib_cli.pipeline.settings import lm_params, spline_margin_s
+from licalib_cli.residuals import LIDAR_INTRINSICS
 from licalib_cli.solver.lm import SolverReport, solve
+from licalib_cli.solver.observability import calibration_information
 from licalib_cli.solver.problem import Problem
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
 
@@ -36,8 +42,11 @@ __all__ = [
     "COORDINATES",
     "MIN_HALF_S",
     "SplitResult",
+    "common_covariance",
     "compare_halves",
     "half_problem",
+    "held_free",
+    "intrinsic_response",
     "split_half",
 ]
 
@@ -159,12 +168,33 @@ def _covariance(report: SolverReport) -> F64:
     return cov
 
 
+def held_free(free: FreeParameters) -> FreeParameters:
+    """What a half estimates: the whole segment's free parameters less the intrinsics, which a
+    half holds at the whole segment's estimate (constants of the sensors, not what changes over
+    a recording; a half alone seldom determines them, and with the gyro-to-IMU rotation free it
+    leaves the extrinsic rotation to the accelerometer)."""
+    return replace(
+        free,
+        imu_intrinsics=False,
+        imu_blocks=frozenset(),
+        g_sensitivity=False,
+        lidar_intrinsics=False,
+        lidar_columns=frozenset(),
+    )
+
+
 def half_problem(
-    state: CalibrationState, inputs: RoundInputs, lo_s: float, hi_s: float, cfg: CalibConfig
+    state: CalibrationState,
+    inputs: RoundInputs,
+    lo_s: float,
+    hi_s: float,
+    cfg: CalibConfig,
+    free: FreeParameters | None = None,
 ) -> tuple[CalibrationState, Problem] | str:
     """The problem of IMU-clock seconds ``[lo, hi]``: the state's splines cut to the half
     (with the spline margin), the IMU samples over that sub-spline and the associated points of
-    the half; a sentence when the half holds too few points."""
+    the half, estimating ``free`` (default :func:`held_free` of the round's); a sentence when
+    the half holds too few points."""
     margin = spline_margin_s(cfg)
     sub = _sub_state(state, lo_s - margin, hi_s + margin)
     knots = sub.knots
@@ -184,14 +214,73 @@ def half_problem(
     picked = idx[:: max(1, idx.size // MAX_HALF_POINTS)]
     half_imu = ImuData(imu.t_s[in_imu], imu.gyro[in_imu], imu.accel[in_imu])
     half_lidar = lid.subset(picked)
-    problem = build_problem(sub, half_imu, half_lidar, inputs.planes, inputs.noise, inputs.free)
+    free = held_free(inputs.free) if free is None else free
+    problem = build_problem(sub, half_imu, half_lidar, inputs.planes, inputs.noise, free)
     return sub, problem
+
+
+def intrinsic_response(problem: Problem) -> tuple[tuple[str, ...], F64]:
+    """How a half's extrinsic follows the intrinsics it holds: ``J = -S_xx^+ S_xh``.
+
+    ``problem`` is the half's problem at its estimate with the intrinsics free; ``S`` its
+    calibration information (the trajectory eliminated), ``x`` the coordinates the half
+    estimates and ``h`` the intrinsics. An error ``dh`` of the held intrinsics moves the half's
+    estimate by ``J dh``.
+
+    Returns:
+        The intrinsics' coordinate names and the (7, Nh) response of the extrinsic coordinates
+        (:data:`COORDINATES` order; zero rows for ones not estimated), in the coordinates' own
+        units.
+    """
+    info = calibration_information(problem)
+    names = list(info.names)
+    held = np.array([_is_intrinsic(o) for o in info.owners], dtype=bool)
+    kept = ~held
+    s_d, d = info.information, np.asarray(info.scale, dtype=np.float64)
+    s_xx = s_d[np.ix_(kept, kept)]
+    s_xh = s_d[np.ix_(kept, held)]
+    j_d = -np.linalg.pinv(0.5 * (s_xx + s_xx.T), rcond=1e-12, hermitian=True) @ s_xh
+    j = d[kept][:, None] * j_d / d[held][None, :]
+    kept_names = [n for n, k in zip(names, kept, strict=True) if k]
+    out = np.zeros((7, int(held.sum())))
+    for i, n in enumerate(_EXT):
+        if n in kept_names:
+            out[i] = j[kept_names.index(n)]
+    return tuple(n for n, h in zip(names, held, strict=True) if h), out
+
+
+def _is_intrinsic(owner: str) -> bool:
+    return owner in IMU_INTRINSIC_BLOCKS or owner == LIDAR_INTRINSICS
+
+
+def common_covariance(
+    responses: tuple[tuple[tuple[str, ...], F64], tuple[tuple[str, ...], F64]],
+    report: SolverReport | None,
+) -> F64:
+    """(7, 7) covariance the held intrinsics' uncertainty adds to the halves' difference:
+    ``(J_2 - J_1) C_h (J_2 - J_1)^T``, ``C_h`` the whole segment's covariance of the
+    intrinsics (``report``); zero without intrinsics or a report."""
+    if report is None:
+        return np.zeros((7, 7))
+    names = list(report.calibration_names)
+    union = sorted({n for r in responses for n in r[0]} & set(names))
+    if not union:
+        return np.zeros((7, 7))
+    diff = np.zeros((7, len(union)))
+    for sign, (held, j) in zip((-1.0, 1.0), responses, strict=True):
+        for col, n in enumerate(held):
+            if n in union:
+                diff[:, union.index(n)] += sign * j[:, col]
+    idx = [names.index(n) for n in union]
+    c_h = np.asarray(report.covariance, dtype=np.float64)[np.ix_(idx, idx)]
+    return diff @ c_h @ diff.T
 
 
 def _estimate_half(
     state: CalibrationState, inputs: RoundInputs, lo_s: float, hi_s: float, cfg: CalibConfig
-) -> tuple[CalibrationState, SolverReport] | str:
-    """Re-estimate on IMU-clock seconds ``[lo, hi]``; a sentence when it cannot be done."""
+) -> tuple[CalibrationState, SolverReport, tuple[tuple[str, ...], F64]] | str:
+    """Re-estimate on IMU-clock seconds ``[lo, hi]`` with the intrinsics held, and how that
+    estimate follows them; a sentence when it cannot be done."""
     built = half_problem(state, inputs, lo_s, hi_s, cfg)
     if isinstance(built, str):
         return built
@@ -199,16 +288,34 @@ def _estimate_half(
     report = solve(problem, lm_params(cfg, max_iterations=_HALF_ITERATIONS))
     if report.status == "failed":
         return f"the optimisation of a half failed ({report.reason})"
-    return state_from_problem(sub, problem), report
+    estimate = state_from_problem(sub, problem)
+    response: tuple[tuple[str, ...], F64] = ((), np.zeros((7, 0)))
+    if inputs.free.any_imu_intrinsics or inputs.free.any_lidar_intrinsics:
+        with_intrinsics = half_problem(estimate, inputs, lo_s, hi_s, cfg, free=inputs.free)
+        if not isinstance(with_intrinsics, str):
+            response = intrinsic_response(with_intrinsics[1])
+    return estimate, report, response
 
 
-def split_half(state: CalibrationState, inputs: RoundInputs, cfg: CalibConfig) -> SplitResult:
+def split_half(
+    state: CalibrationState,
+    inputs: RoundInputs,
+    cfg: CalibConfig,
+    report: SolverReport | None = None,
+) -> SplitResult:
     """Estimate the extrinsic on each half of the segment and compare.
+
+    The halves hold the intrinsics at the whole segment's estimate; their uncertainty (from
+    ``report``) enters the difference's covariance through how each half's estimate follows
+    them (:func:`common_covariance`): what both halves share cancels, what they see
+    differently does not.
 
     Args:
         state: the final estimate.
         inputs: the final round's problem inputs (IMU, associated points, planes, weights).
         cfg: the configuration.
+        report: the final solve's report (the intrinsics' covariance); without it the
+            intrinsics count as exact.
 
     Returns:
         The comparison, or a result with ``ran=False`` and the reason.
@@ -226,7 +333,9 @@ def split_half(state: CalibrationState, inputs: RoundInputs, cfg: CalibConfig) -
     mid = start + half
     bounds = ((start, mid), (mid, end))
 
-    def estimate(i: int) -> tuple[CalibrationState, SolverReport] | str:
+    def estimate(
+        i: int,
+    ) -> tuple[CalibrationState, SolverReport, tuple[tuple[str, ...], F64]] | str:
         try:
             return _estimate_half(state, inputs, *bounds[i], cfg)
         except (LicalibError, ValueError, np.linalg.LinAlgError) as err:
@@ -238,10 +347,16 @@ def split_half(state: CalibrationState, inputs: RoundInputs, cfg: CalibConfig) -
         if isinstance(res, str):
             return SplitResult(False, res, half)
         results.append(res)
-    (s1, rep1), (s2, rep2) = results
+    (s1, rep1, resp1), (s2, rep2, resp2) = results
     diff = extrinsic_of(s1).moved_to(extrinsic_of(s2))
     result = compare_halves(
-        diff, _sigmas(rep1), _sigmas(rep2), _covariance(rep1), _covariance(rep2), half
+        diff,
+        _sigmas(rep1),
+        _sigmas(rep2),
+        _covariance(rep1),
+        _covariance(rep2),
+        half,
+        common=common_covariance((resp1, resp2), report),
     )
     if not result.ran:
         return result
@@ -261,7 +376,13 @@ def split_half(state: CalibrationState, inputs: RoundInputs, cfg: CalibConfig) -
 
 
 def compare_halves(
-    diff: F64, sigma1: F64, sigma2: F64, cov1: F64, cov2: F64, half_s: float
+    diff: F64,
+    sigma1: F64,
+    sigma2: F64,
+    cov1: F64,
+    cov2: F64,
+    half_s: float,
+    common: F64 | None = None,
 ) -> SplitResult:
     """The halves' difference against their combined covariance.
 
@@ -275,11 +396,14 @@ def compare_halves(
         sigma1, sigma2: (7,) each half's 1-sigma (``inf`` where it does not determine one).
         cov1, cov2: (7, 7) each half's covariance.
         half_s: duration of each half, s.
+        common: (7, 7) covariance the difference gets from what both halves hold fixed at a
+            shared uncertain value (:func:`common_covariance`; default none).
 
     Returns:
         The comparison; ``ran=False`` when no coordinate is determined by both halves.
     """
-    sigma = np.sqrt(sigma1**2 + sigma2**2)
+    common = np.zeros((7, 7)) if common is None else np.asarray(common, dtype=np.float64)
+    sigma = np.sqrt(sigma1**2 + sigma2**2 + np.clip(np.diag(common), 0.0, None))
     z = np.where(np.isfinite(sigma), np.abs(diff) / np.maximum(sigma, 1e-300), np.nan)
     both = np.isfinite(sigma)
     if not np.any(both):
@@ -289,7 +413,7 @@ def compare_halves(
             "a half with too little motion)",
             half_s,
         )
-    cov = (cov1 + cov2)[np.ix_(both, both)]
+    cov = (cov1 + cov2 + common)[np.ix_(both, both)]
     unit = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
     corr = cov / np.outer(unit, unit)
     w, v = np.linalg.eigh(0.5 * (corr + corr.T))

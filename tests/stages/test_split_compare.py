@@ -7,7 +7,13 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from licalib_cli.pipeline.checks import _split, _split_section, inflate
+from licalib_cli.pipeline.checks import (
+    SPLIT_HALF_P,
+    _split,
+    _split_section,
+    inflate,
+    split_floor,
+)
 from licalib_cli.pipeline.split import COORDINATES, compare_halves
 from licalib_cli.sections import Consistency, SplitHalf
 
@@ -52,6 +58,36 @@ def test_a_coordinate_one_half_does_not_determine_is_left_out() -> None:
     # the checks enlarge no sigma by a difference the halves cannot both see
     sigma, _ = inflate(SIGMA, (), [], res, SimpleNamespace(jitter=False))
     assert sigma[2] == SIGMA[2]
+
+
+def test_the_sigmas_take_half_the_difference_only_when_the_halves_disagree() -> None:
+    """Halves that agree lift no sigma, also where one coordinate differs by 2.5 of its
+    combined sigma (seven compared: one such in about a tenth of agreeing runs); halves that
+    disagree lift each compared sigma to half the difference's excess over its spread,
+    ``0.5 sqrt(max(d^2 - sigma_d^2, 0))``."""
+    c1 = c2 = np.diag(SIGMA**2)
+    spread = np.sqrt(2.0) * SIGMA  # the difference's sigma: both halves' added
+    raw = 0.1 * SIGMA  # tiny solver sigmas: only the halves could lift them
+    within = 0.5 * spread
+    within[0] = 2.5 * spread[0]
+    res = compare_halves(within, SIGMA, SIGMA, c1, c2, 5.0)
+    np.testing.assert_allclose(res.sigma, spread, rtol=1e-12)
+    assert res.p_value > SPLIT_HALF_P and split_floor(res)[0] > raw[0]
+    sigma, why = inflate(raw, (), [], res, SimpleNamespace(jitter=False))
+    np.testing.assert_array_equal(sigma, raw)
+    assert why == ()
+    beyond = within.copy()
+    beyond[1] = 8.0 * spread[1]  # t_y changed between the halves
+    res = compare_halves(beyond, SIGMA, SIGMA, c1, c2, 5.0)
+    assert res.p_value < SPLIT_HALF_P
+    sigma, why = inflate(raw, (), [], res, SimpleNamespace(jitter=False))
+    expected = np.maximum(raw, 0.5 * np.sqrt(np.maximum(beyond**2 - spread**2, 0.0)))
+    np.testing.assert_allclose(sigma, expected, rtol=1e-12)
+    assert sigma[1] > 10 * raw[1] and sigma[2] == raw[2]  # t_z within its spread: as it was
+    assert why == (
+        "at least half the difference between the two halves of the segment beyond its "
+        "expected spread",
+    )
 
 
 def test_halves_that_share_no_determined_coordinate_are_not_compared() -> None:
@@ -111,3 +147,51 @@ def test_halves_that_disagree_name_the_coordinate_that_differs_most() -> None:
         _split(compare_halves(0.5 * SIGMA, SIGMA, SIGMA, _cov(SIGMA, rng), _cov(SIGMA, rng), 10.0))
         == []
     )
+
+
+def _response(
+    names: tuple[str, ...], rng: np.random.Generator
+) -> tuple[tuple[str, ...], np.ndarray]:
+    return names, rng.normal(size=(7, len(names))) * 1e-3
+
+
+def test_what_the_halves_hold_adds_only_where_they_follow_it_differently() -> None:
+    """The halves hold the intrinsics at the whole segment's estimate: an error of them moves
+    both halves, and only the part they follow differently shows in their difference."""
+    from types import SimpleNamespace as NS
+
+    from licalib_cli.pipeline.split import common_covariance
+
+    rng = np.random.default_rng(4)
+    names = ("imu.gyro_scale.x", "imu.gyro_scale.y", "lidar.intrinsics[3].V")
+    a = rng.normal(size=(4, 4))
+    cov_full = a @ a.T * 1e-6
+    report = NS(calibration_names=("ext.translation.x", *names), covariance=cov_full)
+    first = _response(names, rng)
+    # followed the same way by both halves: cancels
+    np.testing.assert_allclose(common_covariance((first, first), report), 0.0, atol=1e-18)
+    second = _response(names, rng)
+    d = second[1] - first[1]
+    expected = d @ cov_full[1:, 1:] @ d.T
+    np.testing.assert_allclose(common_covariance((first, second), report), expected, rtol=1e-12)
+    # a beam one half holds no point of is in neither its response nor its difference's share
+    partial = (names[:2], second[1][:, :2])
+    d = np.concatenate([partial[1] - first[1][:, :2], -first[1][:, 2:]], axis=1)
+    np.testing.assert_allclose(
+        common_covariance((first, partial), report), d @ cov_full[1:, 1:] @ d.T, rtol=1e-12
+    )
+    # no report (intrinsics taken as exact) or no intrinsics: nothing added
+    assert not np.any(common_covariance((first, second), None))
+    empty = ((), np.zeros((7, 0)))
+    assert not np.any(common_covariance((empty, empty), report))
+
+
+def test_the_common_covariance_enters_sigma_and_chi_square() -> None:
+    rng = np.random.default_rng(5)
+    c1, c2 = _cov(SIGMA, rng), _cov(SIGMA, rng)
+    common = _cov(3 * SIGMA, rng)
+    diff = 2.0 * SIGMA
+    res = compare_halves(diff, SIGMA, SIGMA, c1, c2, 5.0, common=common)
+    np.testing.assert_allclose(res.sigma, np.sqrt(2 * SIGMA**2 + np.diag(common)))
+    np.testing.assert_allclose(res.chi2, float(diff @ np.linalg.solve(c1 + c2 + common, diff)))
+    assert res.chi2 < compare_halves(diff, SIGMA, SIGMA, c1, c2, 5.0).chi2
