@@ -284,13 +284,12 @@ def lidar_intrinsics_from_dict(d: dict[str, Any], key: str = "lidar_intrinsics")
     """Read the per-beam model: seven lists of one number per beam.
 
     Raises:
-        ConfigError: a key is missing; FileValueError: a list is not of finite numbers or not
-            as long as the first one.
+        FileValueError: a key is missing, or a list is not of finite numbers or not as long as
+            the first one.
     """
     missing = [name for name in _LIDAR_KEYS if name not in d]
     if missing:
-        msg = f"lidar_intrinsics is missing the key {missing[0]!r}; see the README's result schema."
-        raise ConfigError(msg)
+        raise FileValueError(f"{key}.{missing[0]}", "is missing")
     beams = d[_LIDAR_KEYS[0]]
     size = len(beams) if isinstance(beams, list) and beams else None
     arr = {name: numbers(d[name], f"{key}.{name}", size, True) for name in _LIDAR_KEYS}

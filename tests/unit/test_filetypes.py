@@ -142,3 +142,27 @@ def test_a_quaternion_is_normalised_and_a_bad_one_refused() -> None:
     d["extrinsic"]["rotation_quaternion"] = [0, 0, 0, 2]
     with pytest.raises(FileValueError, match="not a unit quaternion"):
         CalibrationResult.from_dict(d)
+
+
+def test_lidar_intrinsics_of_one_length_each_and_none_missing() -> None:
+    beams = {
+        name: [0.0, 0.0]
+        for name in (
+            "nominal_elevation_deg",
+            "elevation_correction_deg",
+            "azimuth_correction_deg",
+            "vertical_offset_m",
+            "horizontal_offset_m",
+            "range_offset_m",
+        )
+    }
+    d = {"schema_version": 1, "lidar_intrinsics": {**beams, "range_scale": [1.0, 1.0]}}
+    assert CalibrationResult.from_dict(d).lidar_intrinsics.num_beams == 2
+    d["lidar_intrinsics"]["range_scale"] = [1.0]
+    with pytest.raises(
+        FileValueError, match=r"`lidar_intrinsics\.range_scale` is \[1\.0\], not a list of 2"
+    ):
+        CalibrationResult.from_dict(d)
+    del d["lidar_intrinsics"]["range_scale"]
+    with pytest.raises(FileValueError, match=r"`lidar_intrinsics\.range_scale` is missing"):
+        CalibrationResult.from_dict(d)
