@@ -59,17 +59,15 @@ class FileValueError(ConfigError):
     def __init__(self, key: str, problem: str) -> None:
         self.key = key
         self.problem = problem
-        super().__init__(
-            f"`{key}` {problem}; correct that key or regenerate the file with this licalib version."
-        )
+        super().__init__(f"`{key}` {problem}; {_FIX}.")
 
     def in_file(self, what: str) -> ConfigError:
         """The same finding as one sentence naming the file (``what``: e.g. ``the result file
         out/result.yaml``)."""
-        return ConfigError(
-            f"In {what}, `{self.key}` {self.problem}; correct that key or regenerate the file "
-            "with this licalib version."
-        )
+        return ConfigError(f"In {what}, `{self.key}` {self.problem}; {_FIX}.")
+
+
+_FIX = "correct that key or regenerate the file with this licalib version"
 
 
 def _shown(value: Any) -> str:

@@ -33,7 +33,7 @@ import yaml
 
 from licalib_cli.config import read_yaml
 from licalib_cli.errors import ConfigError
-from licalib_cli.filetypes import FileValueError, number, numbers, wrong
+from licalib_cli.filetypes import FileValueError, number, numbers, typed, wrong
 from licalib_cli.geometry import so3
 from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
 from licalib_cli.sections import (
@@ -119,11 +119,8 @@ class Extrinsic:
             FileValueError: a value is not of its kind (3 numbers, a unit quaternion, a
                 number).
         """
-        rpy = None
-        if "rotation_rpy_deg" in d:  # read (and checked) also beside the quaternion
-            rpy = numbers(d["rotation_rpy_deg"], f"{key}.rotation_rpy_deg", 3, finite=True)
-        if "rotation_quaternion" in d:
-            q = quaternion(d["rotation_quaternion"], f"{key}.rotation_quaternion")
+        q, rpy = rotation_keys(d, key, "rotation")
+        if q is not None:
             rot = so3.quat_to_matrix(q)
         else:
             rot = np.eye(3) if rpy is None else matrix_from_rpy_deg(rpy)
@@ -218,6 +215,20 @@ def quaternion(value: Any, key: str) -> F64:
     return q / norm
 
 
+def rotation_keys(d: dict[str, Any], key: str, prefix: str) -> tuple[F64 | None, F64 | None]:
+    """A rotation's two keys, ``<prefix>_quaternion`` (a unit quaternion) and its readable twin
+    ``<prefix>_rpy_deg`` (3 finite numbers), each checked when present and None when absent.
+
+    Raises:
+        FileValueError: a present one is not of its kind.
+    """
+    quat, rpy = f"{prefix}_quaternion", f"{prefix}_rpy_deg"
+    return (
+        quaternion(d[quat], f"{key}.{quat}") if quat in d else None,
+        numbers(d[rpy], f"{key}.{rpy}", 3, finite=True) if rpy in d else None,
+    )
+
+
 def imu_intrinsics_from_dict(d: dict[str, Any], key: str = "imu_intrinsics") -> ImuIntrinsics:
     """Read the IMU model (an absent key: its default).
 
@@ -225,13 +236,9 @@ def imu_intrinsics_from_dict(d: dict[str, Any], key: str = "imu_intrinsics") -> 
         FileValueError: a value is not of its size (3 numbers, a unit quaternion, 3 x 3).
     """
     default = ImuIntrinsics()
-    if "gyro_rotation_quaternion" in d:
-        q = quaternion(d["gyro_rotation_quaternion"], f"{key}.gyro_rotation_quaternion")
-    elif "gyro_rotation_rpy_deg" in d:
-        rpy = numbers(d["gyro_rotation_rpy_deg"], f"{key}.gyro_rotation_rpy_deg", 3, True)
-        q = so3.matrix_to_quat(matrix_from_rpy_deg(rpy))
-    else:
-        q = default.gyro_rotation
+    q, rpy = rotation_keys(d, key, "gyro_rotation")
+    if q is None:
+        q = default.gyro_rotation if rpy is None else so3.matrix_to_quat(matrix_from_rpy_deg(rpy))
 
     def arr(name: str, fallback: F64) -> F64:
         return numbers(d[name], f"{key}.{name}", 3, True) if name in d else fallback
@@ -393,12 +400,8 @@ class CalibrationResult:
                 raise wrong(name, value, "a mapping")
         sections: dict[str, Any] = {}
         for name, kind in _SECTIONS:
-            value = d.get(name)
-            if value is None:
-                continue
-            if not isinstance(value, dict):
-                raise wrong(name, value, "a mapping")
-            sections[name] = kind.from_dict(value, name)
+            if d.get(name) is not None:
+                sections[name] = typed(d[name], kind, name)
         gravity = d.get("gravity_G")
         lidar = parts["lidar_intrinsics"]
         return cls(

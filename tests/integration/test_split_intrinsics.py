@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from licalib_cli.config import load_config
+from licalib_cli.config import INTRINSIC_PRESETS, load_config
 from licalib_cli.estimation import state_from_problem
 from licalib_cli.pipeline import calibrate
 from licalib_cli.pipeline.round import extrinsic_of
@@ -24,13 +24,7 @@ from licalib_cli.simulation import SimulationSpec, simulate
 from licalib_cli.solver.lm import solve
 
 CONFIG = Path(__file__).resolve().parents[2] / "configs" / "vlp16.yaml"
-IMU_BLOCKS = [
-    "gyro_scale",
-    "gyro_misalignment",
-    "gyro_rotation",
-    "accel_scale",
-    "accel_misalignment",
-]
+IMU_BLOCKS = list(INTRINSIC_PRESETS["imu"][0])
 
 pytestmark = pytest.mark.slow
 

@@ -166,3 +166,13 @@ def test_lidar_intrinsics_of_one_length_each_and_none_missing() -> None:
     del d["lidar_intrinsics"]["range_scale"]
     with pytest.raises(FileValueError, match=r"`lidar_intrinsics\.range_scale` is missing"):
         CalibrationResult.from_dict(d)
+
+
+@pytest.mark.parametrize("block", ["extrinsic", "imu_intrinsics"])
+def test_a_rotations_readable_twin_is_checked_beside_its_quaternion(block: str) -> None:
+    prefix = "rotation" if block == "extrinsic" else "gyro_rotation"
+    d = {"schema_version": 1, block: {f"{prefix}_quaternion": [0, 0, 0, 1]}}
+    CalibrationResult.from_dict(d)
+    d[block][f"{prefix}_rpy_deg"] = "level"
+    with pytest.raises(FileValueError, match=rf"`{block}\.{prefix}_rpy_deg` is 'level'"):
+        CalibrationResult.from_dict(d)
