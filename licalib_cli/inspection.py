@@ -4,10 +4,11 @@
 :class:`BagReport`: topics, IMU and LiDAR rates, gaps, unsorted or duplicated stamps, the
 detected point layout, IMU units, unreadable messages and the coarse IMU-LiDAR clock
 difference, plus the list of findings. It reads through the reader's own functions
-(:func:`licalib_cli.io.reader.read_imu_stream`, :func:`~licalib_cli.io.reader.read_lidar_stream`,
-:func:`~licalib_cli.io.reader.segment_findings`), so that a bag that ``info`` calls usable can
-be read by the other commands, and a bag it refuses is refused by them with the same message
-and exit code.
+(:func:`licalib_cli.io.imu_stream.read_imu_stream`,
+:func:`licalib_cli.io.scan_stream.read_lidar_stream`,
+:func:`licalib_cli.io.reader.segment_findings`), so that a bag that ``info`` calls usable can be
+read by the other commands, and a bag it refuses is refused by them with the same message and
+exit code.
 
 Unlike the reader, topic, segment and data findings do not raise: they are collected so that
 the whole report can be shown; :meth:`BagReport.error` gives the exception for the first fatal
@@ -33,9 +34,13 @@ import numpy as np
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.errors import ConfigError, ExcitationError, LicalibError, TopicError
-from licalib_cli.io import reader as rd
 from licalib_cli.io.bag import CLOUD_TYPE, IMU_TYPE, open_bag, select_topic
+from licalib_cli.io.findings import Finding
+from licalib_cli.io.imu_stream import ImuRead, read_imu_stream
 from licalib_cli.io.ouster import FactoryExtrinsic, cloud_frame, read_factory_extrinsic
+from licalib_cli.io.reader import segment_findings
+from licalib_cli.io.scan_stream import LidarRead, read_lidar_stream
+from licalib_cli.io.window import MIN_SEGMENT_S, segment_window, window_findings
 
 __all__ = [
     "BagReport",
@@ -304,7 +309,7 @@ class BagReport:
     imu: ImuReport | None
     lidar: LidarReport | None
     clock_offset_s: float | None
-    problems: tuple[rd.Finding, ...]
+    problems: tuple[Finding, ...]
     notes: tuple[str, ...] = ()
     factory_extrinsic: FactoryExtrinsic | None = None
 
@@ -441,14 +446,14 @@ def factory_extrinsic_dict(f: FactoryExtrinsic) -> dict[str, Any]:
     return {**ext, "cloud_frame": f.cloud_frame, "topic": f.topic, "sensor": f.sensor}
 
 
-def _imu_report(imu: rd.ImuRead, unreadable: int, findings: list[rd.Finding]) -> ImuReport:
+def _imu_report(imu: ImuRead, unreadable: int, findings: list[Finding]) -> ImuReport:
     excitation = None
     if len(imu.samples) >= 10:
         assumption = imu.units.gyro_assumption if imu.units is not None else None
         excitation = motion_excitation(imu.samples.gyro, imu.samples.accel, assumption)
         if not excitation.ok:
             msg = f"The IMU shows {excitation.summary}."
-            findings.append(rd.Finding(msg, False, ExcitationError))
+            findings.append(Finding(msg, False, ExcitationError))
     units, stats = imu.units, imu.stats
     basis = None
     if units is not None and units.gyro_source == "assumed":
@@ -479,7 +484,7 @@ def _imu_report(imu: rd.ImuRead, unreadable: int, findings: list[rd.Finding]) ->
     )
 
 
-def _lidar_report(lidar: rd.LidarRead, unreadable: int) -> LidarReport:
+def _lidar_report(lidar: LidarRead, unreadable: int) -> LidarReport:
     stats, tally, layout = lidar.stats, lidar.tally, lidar.layout
     base = LidarReport(
         topic=lidar.topic,
@@ -537,7 +542,7 @@ def _excitation_dict(e: Excitation) -> dict[str, Any]:
     }
 
 
-def inspect_bag(path: Path, cfg: CalibConfig, *, min_span_s: float = rd.MIN_SEGMENT_S) -> BagReport:
+def inspect_bag(path: Path, cfg: CalibConfig, *, min_span_s: float = MIN_SEGMENT_S) -> BagReport:
     """Inspect a segment of a bag (the whole bag by default) without calibrating.
 
     Args:
@@ -556,10 +561,10 @@ def inspect_bag(path: Path, cfg: CalibConfig, *, min_span_s: float = rd.MIN_SEGM
     Raises:
         BagError: the path is missing, not a bag, or corrupt/truncated.
     """
-    findings: list[rd.Finding] = []
+    findings: list[Finding] = []
     notes: list[str] = []
-    imu_read: rd.ImuRead | None = None
-    lidar_read: rd.LidarRead | None = None
+    imu_read: ImuRead | None = None
+    lidar_read: LidarRead | None = None
     imu = lidar = None
     with open_bag(path) as bag:
         dur = max((bag.end_ns - bag.start_ns) / _NS, 1e-9)
@@ -576,23 +581,23 @@ def inspect_bag(path: Path, cfg: CalibConfig, *, min_span_s: float = rd.MIN_SEGM
                 chosen[key] = select_topic(bag, msgtype, name, option, config_key).name
             except TopicError as err:
                 if all(f.message != str(err) for f in findings):  # e.g. a packet-mode bag
-                    findings.append(rd.Finding(str(err), True, TopicError))
+                    findings.append(Finding(str(err), True, TopicError))
         try:
-            window = rd.segment_window(bag, cfg)
+            window = segment_window(bag, cfg)
         except ConfigError as err:
-            findings.append(rd.Finding(str(err), True, ConfigError))
+            findings.append(Finding(str(err), True, ConfigError))
             window = None
         if window is not None:
-            findings += rd.window_findings(bag, window, cfg, min_span_s)
+            findings += window_findings(bag, window, cfg, min_span_s)
             if "imu" in chosen:
-                imu_read = rd.read_imu_stream(bag, chosen["imu"], window, cfg, chosen.get("lidar"))
+                imu_read = read_imu_stream(bag, chosen["imu"], window, cfg, chosen.get("lidar"))
                 findings += imu_read.findings
             if "lidar" in chosen:
                 listed = next(t.count for t in bag.topics if t.name == chosen["lidar"])
                 end = bag.end_ns if window.stop_ns is None else min(window.stop_ns, bag.end_ns)
                 share = max(0.0, (end - window.start_ns) / _NS / dur)
                 every = max(1, int(np.ceil(listed * min(share, 1.0) / _MAX_DECODED)))
-                lidar_read = rd.read_lidar_stream(
+                lidar_read = read_lidar_stream(
                     bag,
                     chosen["lidar"],
                     window,
@@ -604,7 +609,7 @@ def inspect_bag(path: Path, cfg: CalibConfig, *, min_span_s: float = rd.MIN_SEGM
                 )
                 findings += lidar_read.findings
             if imu_read is not None and lidar_read is not None:
-                both = rd.segment_findings(imu_read, lidar_read, bag.start_ns, min_span_s)
+                both = segment_findings(imu_read, lidar_read, bag.start_ns, min_span_s)
                 if any(p.fatal and p.error is ExcitationError for p in findings):
                     # the segment itself is too short: say so once, as calibrate does
                     both = [p for p in both if p.error is not ExcitationError]

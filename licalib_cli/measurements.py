@@ -13,9 +13,9 @@ import numpy as np
 import numpy.typing as npt
 
 if TYPE_CHECKING:
+    from licalib_cli.io.cloud_layout import CloudLayout
     from licalib_cli.io.imu_units import ImuUnits
     from licalib_cli.io.ouster import FactoryExtrinsic
-    from licalib_cli.io.reader import CloudLayout
 
 _NS = 1_000_000_000
 

@@ -64,7 +64,7 @@ from licalib_cli.estimation import (
 )
 from licalib_cli.geometry import so3
 from licalib_cli.io.bag import open_bag
-from licalib_cli.io.reader import MIN_SEGMENT_S
+from licalib_cli.io.window import MIN_SEGMENT_S
 from licalib_cli.pipeline import CalibrationRun, calibrate
 from licalib_cli.pipeline.assemble import extra_terms
 from licalib_cli.pipeline.checks import (

@@ -13,7 +13,8 @@ import numpy.typing as npt
 from licalib_cli.config import CalibConfig
 from licalib_cli.consistency import imu_noise, range_noise
 from licalib_cli.geometry.vectors import norms
-from licalib_cli.io.reader import MIN_SEGMENT_S, read_segment
+from licalib_cli.io.reader import read_segment
+from licalib_cli.io.window import MIN_SEGMENT_S
 from licalib_cli.measurements import Recording
 from licalib_cli.pipeline.points import nominal_elevations
 from licalib_cli.pipeline.settings import NoiseLevels

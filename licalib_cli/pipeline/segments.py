@@ -57,13 +57,10 @@ from licalib_cli.estimation import (
 from licalib_cli.geometry.vectors import norms
 from licalib_cli.initialization.rotation import GyroIntegrator
 from licalib_cli.io.bag import IMU_TYPE, open_bag, select_topic
-from licalib_cli.io.reader import (
-    MIN_SEGMENT_S,
-    first_fatal,
-    iter_scans,
-    read_imu_stream,
-    segment_window,
-)
+from licalib_cli.io.findings import first_fatal
+from licalib_cli.io.imu_stream import read_imu_stream
+from licalib_cli.io.reader import iter_scans
+from licalib_cli.io.window import MIN_SEGMENT_S, segment_window
 from licalib_cli.measurements import ImuSamples, LidarScan
 from licalib_cli.models.intrinsics import LidarIntrinsics
 from licalib_cli.models.lidar import nominal_point

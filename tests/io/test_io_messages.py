@@ -8,13 +8,8 @@ import re
 import numpy as np
 
 from licalib_cli.inspection import BagReport
-from licalib_cli.io.reader import (
-    IMU_GAP_FACTOR,
-    ScanTally,
-    imu_problems,
-    lidar_stamp_problems,
-    stamp_stats,
-)
+from licalib_cli.io.cloud_layout import ScanTally
+from licalib_cli.io.findings import IMU_GAP_FACTOR, imu_problems, lidar_stamp_problems, stamp_stats
 
 NS = 1_000_000_000
 BAD = re.compile(r"\b1 (times|gaps|samples|messages|clouds|LiDAR clouds|IMU samples)\b")

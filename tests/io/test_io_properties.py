@@ -17,16 +17,11 @@ from hypothesis import strategies as st
 
 from licalib_cli.config import load_config
 from licalib_cli.errors import LicalibError
+from licalib_cli.io.cloud_layout import CloudLayout, Skip
+from licalib_cli.io.findings import IMU_GAP_FACTOR, stamp_stats
+from licalib_cli.io.imu_stream import RawImu, validate_imu
 from licalib_cli.io.pointcloud2 import decode_cloud, valid_mask
-from licalib_cli.io.reader import (
-    IMU_GAP_FACTOR,
-    CloudLayout,
-    RawImu,
-    Skip,
-    make_scan,
-    stamp_stats,
-    validate_imu,
-)
+from licalib_cli.io.scan_stream import make_scan
 from licalib_cli.io.timestamps import TimeLayout
 from licalib_cli.measurements import LidarScan
 

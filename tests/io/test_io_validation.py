@@ -10,7 +10,7 @@ from _layouts import NS, VELODYNE, read_short, velodyne_points, write_custom_bag
 
 from licalib_cli.config import load_config
 from licalib_cli.errors import ConfigError, DataError, TimestampError, TopicError
-from licalib_cli.io.reader import stamp_stats
+from licalib_cli.io.findings import stamp_stats
 from licalib_cli.io.writer import BagWriter
 
 T0 = 1_700_000_000 * NS

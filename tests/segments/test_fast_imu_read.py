@@ -34,19 +34,20 @@ def test_fixed_offsets_match_the_full_decode(tmp_path: Path, fmt: str) -> None:
 def test_imu_read_in_chunks_equals_one_chunk(tmp_path: Path, monkeypatch) -> None:
     """Samples packed into arrays every few messages (as an hour-long bag is read) come out
     the same as gathered in one piece."""
-    from licalib_cli.io import reader
+    from licalib_cli.io import imu_stream
+    from licalib_cli.io import window as segment
 
     spec = SimulationSpec(
         duration_s=2.2, intrinsics="none", azimuth_resolution_deg=8.0, imu_topic="/imu"
     )
     sim = simulate(spec, tmp_path / "sim")
-    window = reader.SegmentWindow(0, None, from_bag_start=True)
+    window = segment.SegmentWindow(0, None, from_bag_start=True)
     topic = "/imu"
     with open_bag(sim.bag_path) as bag:
-        whole = reader.read_raw_imu(bag, topic, window, 0)
-    monkeypatch.setattr(reader, "_IMU_CHUNK", 7)
+        whole = imu_stream.read_raw_imu(bag, topic, window, 0)
+    monkeypatch.setattr(imu_stream, "_IMU_CHUNK", 7)
     with open_bag(sim.bag_path) as bag:
-        chunked = reader.read_raw_imu(bag, topic, window, 0)
+        chunked = imu_stream.read_raw_imu(bag, topic, window, 0)
     assert whole.t_ns.size > 800 and whole.t_ns.size % 7 != 0
     for a, b in zip(whole.__dict__.values(), chunked.__dict__.values(), strict=True):
         np.testing.assert_array_equal(a, b)
