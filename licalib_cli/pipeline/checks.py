@@ -37,6 +37,7 @@ import numpy.typing as npt
 from licalib_cli.config import CalibConfig, ChecksSection
 from licalib_cli.pipeline.crawl import Crawl, crawl_at_cap
 from licalib_cli.pipeline.fitcheck import (
+    CHI2_QUIET,
     EFFECT_P_VALUE,
     EffectEvidence,
     effect_evidence,
@@ -454,6 +455,18 @@ def _sensors(sensors: tuple[SensorCheck, ...]) -> list[Finding]:
                     f"The {name} residuals are {np.sqrt(s.chi2_per_sample):.2f} times their "
                     f"noise (chi-square {s.chi2_per_sample:.2f} per sample): {where} the "
                     f"{name} model does not explain the data.",
+                )
+            )
+        elif s.noise_source == "config" and s.chi2_per_sample < CHI2_QUIET:
+            out.append(
+                Finding(
+                    "note",
+                    f"The {name} residuals are {np.sqrt(s.chi2_per_sample):.2f} of their noise "
+                    f"(chi-square {s.chi2_per_sample:.2f} per sample, RMS "
+                    f"{_size(s.rms, s.unit)} against {_size(max(s.noise), s.unit)}): "
+                    f"{_NOISE_KEY[s.sensor]} in the config states the {name} noisier than the "
+                    "data show, so the sigmas are wider than the data support; lower it, or "
+                    "remove it to have the noise measured.",
                 )
             )
         for p in s.patterns:

@@ -42,6 +42,7 @@ from licalib_cli.solver.schur import schur_complement
 
 __all__ = [
     "CHI2_EXCESS",
+    "CHI2_QUIET",
     "EFFECT_P_VALUE",
     "PATTERN_EXPLAINED",
     "EffectEvidence",
@@ -59,6 +60,11 @@ F64 = npt.NDArray[np.float64]
 CHI2_EXCESS = 1.5
 """A sensor whose chi-square per sample exceeds this (residual RMS 1.22 times the noise) is not
 explained by the model (or its noise setting is wrong)."""
+
+CHI2_QUIET = 0.5
+"""A sensor weighted with a configured noise whose chi-square per sample is below this (residual
+RMS 0.71 of that noise; a fit that explains the data leaves about 0.9) is stated noisier than
+it is: its sigmas are wider than the data support."""
 
 PATTERN_EXPLAINED = 0.01
 """A residual pattern counts when it explains more than this share of the residual variance
