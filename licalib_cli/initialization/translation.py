@@ -7,7 +7,8 @@ constant) and the accelerometer gives the specific force. Both are linear in
 * the control points ``c`` of the IMU position spline ``p_G_I(t) = B(t) c``,
 * the lever arm ``t = t_imu_lidar`` (the LiDAR origin in the IMU frame),
 * gravity ``g_G`` (3 free components; its norm is imposed afterwards) and the accelerometer
-  bias ``b_a``:
+  bias ``b_a`` (with a loose prior about zero, which decides only what the motion leaves
+  undetermined: with rotation about one axis, the bias and gravity along that axis):
 
     odometry       p_G_I(t_k) + R_G_I(t_k) t            = p_G_L(t_k)       (sigma_p)
     accelerometer  R_G_I(t_i)^T (p_G_I''(t_i) - g_G) + b_a = a_m(t_i)      (sigma_a)
@@ -45,6 +46,10 @@ logger = logging.getLogger(__name__)
 
 _OFFSETS = np.arange(4, dtype=np.intp)
 
+MAX_BIAS_SIGMAS = 4.0
+"""An accelerometer bias beyond this many of its prior sigmas means the least squares fitted an
+odometry that the accelerometer contradicts: no estimate is returned."""
+
 
 @dataclass(frozen=True)
 class LeverArmConfig:
@@ -57,6 +62,12 @@ class LeverArmConfig:
         gravity_norm: norm imposed on gravity, m/s^2.
         max_std_m: a lever-arm direction whose standard deviation exceeds this is not
             determined by the data and stays at the prior.
+        accel_bias_sigma: prior standard deviation of the accelerometer bias about zero,
+            m/s^2. Loose (a MEMS accelerometer's turn-on bias is a few tenths at most), it
+            matters only where the data leave the bias undetermined: rotation about one axis
+            ``v`` only (planar motion) leaves the bias along ``v`` and gravity along ``v``
+            interchangeable, and without it the split between them is arbitrary (a bias of
+            several m/s^2 with gravity turned to match).
         huber_sigmas: Huber threshold of the reweighting, in sigmas (odometry outliers).
         iterations: reweighting iterations.
         smoothing: weight of a curvature penalty on the control points (relative to the data),
@@ -71,6 +82,7 @@ class LeverArmConfig:
     accel_sigma: float = 0.1
     gravity_norm: float = 9.81
     max_std_m: float = 0.05
+    accel_bias_sigma: float = 1.0
     huber_sigmas: float = 3.0
     iterations: int = 3
     smoothing: float = 1e-8
@@ -165,7 +177,8 @@ def estimate_lever_arm(
         The estimate.
 
     Raises:
-        ExcitationError: fewer than 4 poses, or the system cannot be solved.
+        ExcitationError: fewer than 4 poses, the system cannot be solved, or the odometry and
+            the accelerometer disagree (:data:`MAX_BIAS_SIGMAS`).
     """
     cfg = LeverArmConfig() if cfg is None else cfg
     t_i = np.asarray(t_imu_s, dtype=np.float64).reshape(-1)
@@ -219,6 +232,10 @@ def estimate_lever_arm(
     d3 = sp.diags([-1.0, 3.0, -3.0, 1.0], [0, 1, 2, 3], shape=(n_cp - 3, n_cp))
     reg_c = sp.kron(d3.T @ d3, sp.identity(3))
     reg = sp.block_diag([reg_c, sp.csr_matrix((12, 12))]).tocsc()
+    # the accelerometer bias's prior (about zero), added to the normal equations below
+    bias_prior = sp.block_diag(
+        [sp.csr_matrix((n - 3, n - 3)), sp.identity(3) / cfg.accel_bias_sigma**2]
+    ).tocsc()
 
     w_pos = np.ones(t_k.shape[0])
     w_acc = np.ones(t_i.shape[0])
@@ -236,7 +253,7 @@ def estimate_lever_arm(
         normal = (a_w.T @ a_w).tocsc()
         rhs = a_w.T @ y_w
         scale = float(normal.diagonal()[:n_c].max())
-        normal = normal + cfg.smoothing * scale * reg
+        normal = normal + cfg.smoothing * scale * reg + bias_prior
         free = np.ones(n, dtype=bool)
         if gravity_fixed is not None:
             free[g_idx] = False
@@ -259,6 +276,15 @@ def estimate_lever_arm(
             w_pos = _huber_weights(r_pos, cfg.huber_sigmas)
             w_acc = _huber_weights(r_acc, cfg.huber_sigmas)
 
+    bias = float(np.linalg.norm(x[b_idx]))
+    if bias > MAX_BIAS_SIGMAS * cfg.accel_bias_sigma:
+        # the odometry (drifting, or a map blurred by the LiDAR's errors) and the accelerometer
+        # disagree: the fit pushed the bias far beyond its prior and its lever arm means nothing
+        msg = (
+            "The odometry and the accelerometer disagree: the lever-arm least squares needs an "
+            f"accelerometer bias of {bias:.1f} m/s^2."
+        )
+        raise ExcitationError(msg)
     # Covariance of t from its information, scaled by the a-posteriori variance factor.
     res_pos = (a_pos @ x - y_pos).reshape(-1, 3)
     res_acc = (a_acc @ x - y_acc).reshape(-1, 3)
