@@ -12,7 +12,6 @@ from licalib_cli.pipeline.checks import (
     _split,
     _split_section,
     inflate,
-    split_floor,
 )
 from licalib_cli.pipeline.split import COORDINATES, compare_halves
 from licalib_cli.sections import Consistency, SplitHalf
@@ -60,11 +59,11 @@ def test_a_coordinate_one_half_does_not_determine_is_left_out() -> None:
     assert sigma[2] == SIGMA[2]
 
 
-def test_the_sigmas_take_half_the_difference_only_when_the_halves_disagree() -> None:
-    """Halves that agree lift no sigma, also where one coordinate differs by 2.5 of its
-    combined sigma (seven compared: one such in about a tenth of agreeing runs); halves that
-    disagree lift each compared sigma to half the difference's excess over its spread,
-    ``0.5 sqrt(max(d^2 - sigma_d^2, 0))``."""
+def test_the_sigmas_take_half_the_difference_beyond_its_spread() -> None:
+    """Each compared sigma is lifted to half the difference's excess over its spread,
+    ``0.5 sqrt(max(d^2 - sigma_d^2, 0))``, whether the halves disagree as a whole or not (a
+    coordinate 2.5 of its combined sigma apart in halves that agree is lifted too); a
+    difference within its spread lifts nothing."""
     c1 = c2 = np.diag(SIGMA**2)
     spread = np.sqrt(2.0) * SIGMA  # the difference's sigma: both halves' added
     raw = 0.1 * SIGMA  # tiny solver sigmas: only the halves could lift them
@@ -72,10 +71,12 @@ def test_the_sigmas_take_half_the_difference_only_when_the_halves_disagree() -> 
     within[0] = 2.5 * spread[0]
     res = compare_halves(within, SIGMA, SIGMA, c1, c2, 5.0)
     np.testing.assert_allclose(res.sigma, spread, rtol=1e-12)
-    assert res.p_value > SPLIT_HALF_P and split_floor(res)[0] > raw[0]
+    assert res.p_value > SPLIT_HALF_P  # the halves agree as a whole
     sigma, why = inflate(raw, (), [], res, SimpleNamespace(jitter=False))
-    np.testing.assert_array_equal(sigma, raw)
-    assert why == ()
+    lifted = 0.5 * np.sqrt(2.5**2 - 1.0) * spread[0]
+    np.testing.assert_allclose(sigma[0], lifted, rtol=1e-12)
+    np.testing.assert_array_equal(sigma[1:], raw[1:])  # within their spread: as they were
+    assert sigma[0] > raw[0] and len(why) == 1
     beyond = within.copy()
     beyond[1] = 8.0 * spread[1]  # t_y changed between the halves
     res = compare_halves(beyond, SIGMA, SIGMA, c1, c2, 5.0)
