@@ -232,10 +232,6 @@ def estimate_lever_arm(
     d3 = sp.diags([-1.0, 3.0, -3.0, 1.0], [0, 1, 2, 3], shape=(n_cp - 3, n_cp))
     reg_c = sp.kron(d3.T @ d3, sp.identity(3))
     reg = sp.block_diag([reg_c, sp.csr_matrix((12, 12))]).tocsc()
-    # the accelerometer bias's prior (about zero), added to the normal equations below
-    bias_prior = sp.block_diag(
-        [sp.csr_matrix((n - 3, n - 3)), sp.identity(3) / cfg.accel_bias_sigma**2]
-    ).tocsc()
 
     w_pos = np.ones(t_k.shape[0])
     w_acc = np.ones(t_i.shape[0])
@@ -243,6 +239,10 @@ def estimate_lever_arm(
     t_idx = slice(n_c, n_c + 3)
     g_idx = slice(n_c + 6, n_c + 9)
     b_idx = slice(n_c + 9, n_c + 12)
+    # the accelerometer bias's prior (about zero), added to the normal equations below
+    prior_weight = np.zeros(n)
+    prior_weight[b_idx] = 1.0 / cfg.accel_bias_sigma**2
+    bias_prior = sp.diags(prior_weight, format="csc")
     gravity_fixed: F64 | None = None
     info_t = np.zeros((3, 3))
     for it in range(cfg.iterations + 1):
