@@ -12,7 +12,14 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from licalib_cli.errors import ConfigError
 
@@ -162,8 +169,44 @@ class InitializationConfig(_Section):
     """Optional initial extrinsic rotation; hand-eye alignment is used when unset."""
     translation_m: list[float] | None = Field(default=None, min_length=3, max_length=3)
     """Optional initial extrinsic translation; zero when unset."""
+    translation_sigma_m: list[Annotated[float, Field(gt=0.0)]] | None = Field(
+        default=None, min_length=3, max_length=3
+    )
+    """How well ``translation_m`` is known (a tape measure, a CAD drawing): 1-sigma, one number
+    or one per IMU axis, m. The calibration then holds the translation to it as a Gaussian
+    prior: what the data do not determine (the vertical on planar motion) comes from it with
+    this sigma instead of being reported unobservable, and the result says which directions
+    rest on it. Needs ``translation_m``; unset: no prior."""
     time_offset_s: float | None = None
     """Optional initial time offset; cross-correlation is used when unset."""
+
+    @field_validator("translation_sigma_m", mode="before")
+    @classmethod
+    def _one_sigma_for_every_axis(cls, value: Any) -> Any:
+        # one number: the same on every axis
+        return (
+            [value] * 3
+            if isinstance(value, (int, float)) and not isinstance(value, bool)
+            else value
+        )
+
+    @model_validator(mode="after")
+    def _translation_sigma_needs_translation(self) -> InitializationConfig:
+        if self.translation_sigma_m is not None and self.translation_m is None:
+            msg = (
+                "translation_sigma_m says how well translation_m is known, but translation_m "
+                "is not set; give translation_m (the measured lever arm) too, or remove "
+                "translation_sigma_m"
+            )
+            raise ValueError(msg)
+        return self
+
+    def translation_prior(self) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """``(mean, sigma)`` of the prior on the extrinsic translation, m (IMU frame); sigma
+        ``inf`` on every axis when no prior is configured."""
+        mean = self.translation_m if self.translation_m is not None else [0.0, 0.0, 0.0]
+        sigma = self.translation_sigma_m or [math.inf] * 3
+        return (mean[0], mean[1], mean[2]), (sigma[0], sigma[1], sigma[2])
 
 
 class SplineConfig(_Section):

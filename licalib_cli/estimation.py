@@ -93,6 +93,7 @@ __all__ = [
     "BLOCK_SPECS",
     "CALIBRATION_SCALES",
     "IMU_INTRINSIC_BLOCKS",
+    "PRIOR_SCALE_FACTOR",
     "BlockSpec",
     "CalibrationState",
     "FreeParameters",
@@ -430,6 +431,9 @@ class FreeParameters:
         time_drift: an IMU clock running at another rate (``ext.time_drift``).
         point_time: an error of the per-point times within a sweep
             (``lidar.point_time_scale``).
+        translation_prior: ``(mean, sigma)`` (m, IMU frame) of a Gaussian prior on
+            ``ext.translation`` (a measured lever arm), or None. Not a freedom but what the
+            problems built for these parameters add to the data (the rounds' own priors).
     """
 
     trajectory: bool = True
@@ -448,6 +452,7 @@ class FreeParameters:
     accel_bias_drift: bool = False
     time_drift: bool = False
     point_time: bool = False
+    translation_prior: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
 
     def imu_block_free(self, block: str) -> bool:
         """Whether IMU intrinsic block ``block`` (e.g. ``imu.gyro_scale``) is estimated."""
@@ -782,11 +787,29 @@ def parameter_blocks(
                 manifold=spec.manifold,
                 group=spec.group,
                 coord_names=spec.coord_names(state.lidar_intrinsics.num_beams),
-                scale=np.asarray(CALIBRATION_SCALES[spec.name], dtype=np.float64),
+                scale=_scale_of(spec.name, free),
                 fixed=fixed,
             )
         )
     return blocks
+
+
+PRIOR_SCALE_FACTOR = 2.0
+"""With a prior on the extrinsic translation (``FreeParameters.translation_prior``), its
+characteristic scale is at least this many times the prior's sigma: the truncated SVD keeps
+every direction whose information exceeds one over the squared scale, and the prior alone then
+gives each translation direction four times that, so the solver uses the prior where the data
+say nothing instead of holding the estimate wherever the rounds left it."""
+
+
+def _scale_of(name: str, free: FreeParameters) -> F64:
+    """Characteristic scales of calibration block ``name`` (:data:`CALIBRATION_SCALES`, the
+    translation's widened to :data:`PRIOR_SCALE_FACTOR` times its prior's sigma)."""
+    scale = np.asarray(CALIBRATION_SCALES[name], dtype=np.float64)
+    if name == EXT_TRANSLATION and free.translation_prior is not None:
+        sigma = np.asarray(free.translation_prior[1], dtype=np.float64)
+        scale = np.maximum(scale, PRIOR_SCALE_FACTOR * sigma)
+    return scale
 
 
 def calibration_moved(

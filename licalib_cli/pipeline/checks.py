@@ -28,7 +28,7 @@ and by the last round's change when the rounds only settled to within their jitt
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,8 +45,9 @@ from licalib_cli.pipeline.fitcheck import (
 )
 from licalib_cli.pipeline.initialise import SINGLE_AXIS, InitialGuess
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty, map_uncertainty
+from licalib_cli.pipeline.prior_directions import OnPrior, data_determined, on_prior
 from licalib_cli.pipeline.schedule import JITTER_FACTOR, MAX_FINAL_ROUNDS, Change, Fit, within
-from licalib_cli.pipeline.settings import NoiseLevels
+from licalib_cli.pipeline.settings import NoiseLevels, prior_sd
 from licalib_cli.pipeline.split import COORDINATES, SplitResult, split_half
 from licalib_cli.results import vec3
 from licalib_cli.sections import (
@@ -164,13 +165,18 @@ def raw_uncertainty(report: SolverReport, planes: MapUncertainty | None = None) 
     return std
 
 
-def observability_of(report: SolverReport) -> Observability:
-    """Spectrum of the scaled calibration information and the truncated directions."""
+def observability_of(report: SolverReport, resting: Sequence[OnPrior] = ()) -> Observability:
+    """Spectrum of the scaled calibration information, the truncated directions and the
+    directions the data leave to the translation's prior (those the solver kept, its prior
+    being tighter than the threshold, are added)."""
+    listed = tuple(d.text for d in report.truncated)
+    named = tuple(d.text.split(":", 1)[0] for d in report.truncated)
+    extra = tuple(r.text for r in resting if r.text.split(":", 1)[0] not in named)
     return Observability(
         scaling=report.scaling,
         threshold=float(report.tsvd_threshold),
         singular_values=tuple(float(f"{s:.6g}") for s in report.singular_values),
-        unobservable=tuple(d.text for d in report.truncated),
+        unobservable=listed + extra,
     )
 
 
@@ -253,11 +259,13 @@ def _extra(fit: Fit) -> str:
     return f" (and {n} more that checked a planes-free step)" if n else ""
 
 
-def _observability(report: SolverReport) -> list[Finding]:
+def _observability(report: SolverReport, prior: Mapping[str, float]) -> list[Finding]:
     out: list[Finding] = []
+    # a prior's directions are never truncated: its scale widens to leave them in (estimation)
     ext_truncated = [
         d.text for d in report.truncated if any(b.startswith("ext.") for b, _ in d.blocks)
     ]
+    out.extend(Finding("note", f"Rests on the prior: {r.text}.") for r in on_prior(report, prior))
     if ext_truncated:
         out.extend(Finding("warn", f"Not observable from this data: {t}") for t in ext_truncated)
         out.append(
@@ -267,8 +275,8 @@ def _observability(report: SolverReport) -> list[Finding]:
                 "measurement (initialization.translation_m, rotation_rpy_deg, time_offset_s).",
             )
         )
-    ext = [i for i, n in enumerate(report.calibration_names) if n.startswith("ext.")]
-    n_observable = int(np.count_nonzero(report.observable[ext])) if ext else 0
+    ext = [n for n in report.calibration_names if n.startswith("ext.")]
+    n_observable = int(np.count_nonzero(data_determined(report, prior, ext))) if ext else 0
     if ext and n_observable < (len(ext) + 1) // 2:
         out.insert(
             0,
@@ -748,9 +756,14 @@ def check(fit: Fit, guess: InitialGuess, noise: NoiseLevels, cfg: CalibConfig) -
     split = split_half(fit.state, fit.inputs, cfg, fit.report)
     notes: tuple[str, ...] = ()
     if guess.rotation_source == SINGLE_AXIS:
+        along = (
+            "comes from initialization.translation_m and its sigma"
+            if cfg.initialization.translation_sigma_m is not None
+            else "is not observable"
+        )
         notes = (
             "The rig turned about one axis only; the rotation about it rests on the "
-            "accelerations, and the translation along it is not observable.",
+            f"accelerations, and the translation along it {along}.",
         )
     return run_checks(fit, sensors, effects, split, cfg, notes, planes)
 
@@ -803,7 +816,7 @@ def run_checks(
         )
     findings = [Finding("warn", n) for n in notes]
     findings += _convergence(fit, cfg, settled_in_sigmas, crawl)
-    findings += _observability(report)
+    findings += _observability(report, prior_sd(cfg))
     covered = [e.score.name for e in effects if effect_to_cover(e, raw)]
     without_effects, _ = inflate(raw, sensors, [], split, fit)
     findings += uncertainty_findings(
@@ -837,7 +850,7 @@ def run_checks(
             time_offset_std_s=float(sigma[6]),
         ),
         raw_sigma=raw,
-        observability=observability_of(report),
+        observability=observability_of(report, on_prior(report, prior_sd(cfg))),
         consistency=consistency,
         findings=tuple(findings),
         exit_status=exit_status,

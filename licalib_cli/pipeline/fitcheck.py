@@ -34,7 +34,7 @@ from licalib_cli.consistency import (
 from licalib_cli.estimation import CalibrationState, build_problem, incidence_cosine
 from licalib_cli.pipeline.effect_shift import planes_free_shifts
 from licalib_cli.pipeline.round import RoundInputs, SolvedProblem
-from licalib_cli.pipeline.settings import NoiseLevels
+from licalib_cli.pipeline.settings import NoiseLevels, translation_priors
 from licalib_cli.residuals import TIME_OFFSET, AccelResidual, GyroResidual, PointToPlaneResidual
 from licalib_cli.sections import PatternCheck, SensorCheck
 from licalib_cli.solver.problem import Evaluation, Linearization, Problem
@@ -452,7 +452,17 @@ def effect_evidence(
     # about half their chi-square size on clean simulated data (twin recordings), so the test
     # lost power.
     weighted = replace(inputs.noise, min_incidence_cos=MIN_INCIDENCE_COS, incidence_floor=True)
-    problem = build_problem(state, inputs.imu, lidar, inputs.planes, weighted, all_free)
+    # the translation's prior as in the rounds (it bounds the shifts along what the data leave
+    # to it); the intrinsics' weak priors stay out (the IMU's are model.imu_prior's part)
+    problem = build_problem(
+        state,
+        inputs.imu,
+        lidar,
+        inputs.planes,
+        weighted,
+        all_free,
+        extra_residuals=translation_priors(all_free),
+    )
     evaluation = problem.evaluate(jacobians=True)
     n_free = problem.layout().num_free
     variance_factor = max(

@@ -23,7 +23,7 @@ from licalib_cli.estimation import (
     build_problem,
 )
 from licalib_cli.pipeline.round import RoundInputs
-from licalib_cli.pipeline.settings import intrinsic_priors
+from licalib_cli.pipeline.settings import model_priors
 from licalib_cli.residuals import ACCEL_BIAS_DRIFT, GYRO_BIAS_DRIFT, TIME_DRIFT, TIME_OFFSET
 from licalib_cli.solver.parameters import ParameterBlock
 from licalib_cli.solver.problem import Problem, ResidualBlock, ResidualEval
@@ -95,7 +95,7 @@ def joint_problem(
             data.planes,
             data.noise,
             free,
-            extra_residuals=intrinsic_priors(state, free) if k == 0 else (),
+            extra_residuals=model_priors(state, free) if k == 0 else (),
         )
         rename: dict[str, str] = {}
         mine = {segment_name(k, b) for b in own}

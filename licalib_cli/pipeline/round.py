@@ -31,7 +31,7 @@ from licalib_cli.pipeline.points import (
     solver_points,
     usable_mask,
 )
-from licalib_cli.pipeline.settings import RoundSettings, intrinsic_priors
+from licalib_cli.pipeline.settings import RoundSettings, model_priors
 from licalib_cli.pipeline.timing import StageTime, Stopwatch
 from licalib_cli.results import Extrinsic
 from licalib_cli.solver.lm import SolverReport, solve_with_linearization
@@ -104,7 +104,7 @@ class RoundInputs:
             self.planes if planes is None else planes,
             self.noise,
             free,
-            extra_residuals=intrinsic_priors(state, free),
+            extra_residuals=model_priors(state, free),
         )
 
 

@@ -26,6 +26,7 @@ from licalib_cli.models.lidar import nominal_intrinsics_array
 from licalib_cli.odometry import OdometryConfig
 from licalib_cli.residuals import (
     ACCEL_SCALE,
+    EXT_TRANSLATION,
     GYRO_G_SENSITIVITY,
     GYRO_ROTATION,
     GYRO_SCALE,
@@ -251,9 +252,11 @@ def free_parameters(cfg: CalibConfig, intrinsics: bool) -> FreeParameters:
     """What a round estimates: always the trajectory, biases, gravity, extrinsic and time
     offset; with ``intrinsics`` also the blocks of the ``model:`` section."""
     m = cfg.model
+    prior = translation_prior(cfg)
     if not intrinsics:
-        return FreeParameters(min_points_per_beam=m.min_points_per_beam)
+        return FreeParameters(min_points_per_beam=m.min_points_per_beam, translation_prior=prior)
     return FreeParameters(
+        translation_prior=prior,
         imu_blocks=frozenset(f"imu.{name}" for name in m.imu if name in _IMU_INTRINSIC_NAMES),
         g_sensitivity="g_sensitivity" in m.imu,
         lidar_columns=frozenset(LIDAR_COLUMNS[name] for name in m.lidar if name in LIDAR_COLUMNS),
@@ -263,6 +266,33 @@ def free_parameters(cfg: CalibConfig, intrinsics: bool) -> FreeParameters:
         time_drift="clock_drift" in m.imu,
         point_time="point_time" in m.lidar,
     )
+
+
+def translation_prior(
+    cfg: CalibConfig,
+) -> tuple[tuple[float, float, float], tuple[float, float, float]] | None:
+    """``(mean, sigma)`` of the prior on the extrinsic translation
+    (``initialization.translation_m`` and ``translation_sigma_m``), or None without one."""
+    if cfg.initialization.translation_sigma_m is None:
+        return None
+    return cfg.initialization.translation_prior()
+
+
+def prior_sd(cfg: CalibConfig) -> dict[str, float]:
+    """Calibration coordinate -> sigma of the configured prior on the extrinsic translation
+    (empty without one)."""
+    prior = translation_prior(cfg)
+    if prior is None:
+        return {}
+    return {f"{EXT_TRANSLATION}.{a}": s for a, s in zip("xyz", prior[1], strict=True)}
+
+
+def translation_priors(free: FreeParameters) -> list[GaussianPrior]:
+    """The prior on the extrinsic translation of ``free`` (``free.translation_prior``), as a
+    residual block; none without one or when the translation is held."""
+    if free.translation_prior is None or not free.extrinsic_translation:
+        return []
+    return [GaussianPrior(EXT_TRANSLATION, *free.translation_prior)]
 
 
 _IMU_INTRINSIC_NAMES = (
@@ -290,9 +320,10 @@ scales 1 %, misalignments 0.6 deg, gyro rotation 3 deg, beam angles 0.6 deg, bea
 rounds and barely move well-observed ones."""
 
 
-def intrinsic_priors(state: CalibrationState, free: FreeParameters) -> list[GaussianPrior]:
-    """Weak priors toward nominal on every estimated intrinsic block."""
-    out = []
+def model_priors(state: CalibrationState, free: FreeParameters) -> list[GaussianPrior]:
+    """Weak priors toward nominal on every estimated intrinsic block, and the configured prior
+    on the extrinsic translation (``free.translation_prior``)."""
+    out = translation_priors(free)
     for block in IMU_INTRINSIC_BLOCKS:
         if not free.imu_block_free(block):
             continue

@@ -25,7 +25,7 @@ Each iteration solves the damped normal equations ``(H + lambda diag(D)) dx = -g
 At the final estimate the report holds the undamped ``S_d`` spectrum, the truncated directions
 named in parameter terms, and the standard deviation of every calibration coordinate from the
 TSVD pseudo-inverse ``D U_l diag(1/s_l) U_l^T D`` (whitened residuals: unit covariance).
-Coordinates with a weight of at least ``_NOT_OBSERVABLE_WEIGHT`` (squared) in a truncated direction
+Coordinates with a weight of at least ``NOT_OBSERVABLE_WEIGHT`` (squared) in a truncated direction
 are reported as not observable (standard deviation ``inf``). A truncated direction made mostly of
 intrinsics known a priori to within their characteristic scale adds that scale along it instead;
 :func:`widen_along_truncated` adds how far a fit of several linearisations moved along it.
@@ -57,6 +57,7 @@ from licalib_cli.solver.problem import Evaluation, Linearization, Problem
 from licalib_cli.solver.schur import schur_complement
 
 __all__ = [
+    "NOT_OBSERVABLE_WEIGHT",
     "IterationSummary",
     "LMParams",
     "Solution",
@@ -73,7 +74,7 @@ F64 = npt.NDArray[np.float64]
 
 logger = logging.getLogger(__name__)
 
-_NOT_OBSERVABLE_WEIGHT = 1e-4
+NOT_OBSERVABLE_WEIGHT = 1e-4
 """A coordinate whose squared components over the truncated directions sum to at least this is
 reported as not observable."""
 
@@ -530,7 +531,7 @@ def _report(
     prior_mass = np.sum(trunc[bounded] ** 2, axis=0) if trunc.size else np.zeros(0)
     free_dir = prior_mass < 0.5
     weight = np.sum(trunc[:, free_dir] ** 2, axis=1) if trunc.size else np.zeros(len(owners))
-    observable = weight < _NOT_OBSERVABLE_WEIGHT
+    observable = weight < NOT_OBSERVABLE_WEIGHT
     if s.size:
         cov_d = (u[:, keep] / s[keep]) @ u[:, keep].T
         if trunc.size and np.any(~free_dir):

@@ -62,11 +62,8 @@ def test_calibrate_recovers_extrinsic_and_time_offset(short_bag, tmp_path, capsy
     assert "Verdict" in printed
 
 
-@pytest.mark.slow
-def test_planar_motion_reports_the_unobservable_lever_arm(tmp_path, capsys):
-    """Figure-8 (rotation about the vertical only): the translation along the vertical cannot be
-    told from a shift of the trajectory; it is reported as not observable, kept, and the verdict
-    warns, while the horizontal components are still estimated."""
+@pytest.fixture(scope="module")
+def planar_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     spec = SimulationSpec(
         scenario="figure8",
         lidar="vlp16",
@@ -77,14 +74,21 @@ def test_planar_motion_reports_the_unobservable_lever_arm(tmp_path, capsys):
         intrinsics="none",
         azimuth_resolution_deg=0.4,
     )
-    sim = simulate(spec, tmp_path / "sim")
+    return simulate(spec, tmp_path_factory.mktemp("planar")).bag_path
+
+
+@pytest.mark.slow
+def test_planar_motion_reports_the_unobservable_lever_arm(planar_bag, tmp_path, capsys):
+    """Figure-8 (rotation about the vertical only): the translation along the vertical cannot be
+    told from a shift of the trajectory; it is reported as not observable, kept, and the verdict
+    warns, while the horizontal components are still estimated."""
     out = tmp_path / "result.yaml"
     plots = tmp_path / "plots"
-    main(["calibrate", str(sim.bag_path), "-c", str(CONFIG), "-o", str(out), "--plots", str(plots)])
+    main(["calibrate", str(planar_bag), "-c", str(CONFIG), "-o", str(out), "--plots", str(plots)])
     result = yaml.safe_load(out.read_text())
     for name in ("fit.png", "observability.png"):
         assert (plots / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    true = yaml.safe_load((sim.bag_path.parent / "truth.yaml").read_text())
+    true = yaml.safe_load((planar_bag.parent / "truth.yaml").read_text())
     assert result["verdict"]["status"] == "warn"
     texts = result["observability"]["unobservable"]
     assert any(
@@ -101,3 +105,41 @@ def test_planar_motion_reports_the_unobservable_lever_arm(tmp_path, capsys):
         assert abs(ext["rotation_rpy_deg"][i] - ext_true["rotation_rpy_deg"][i]) < 0.2
     assert abs(ext["time_offset_s"] - ext_true["time_offset_s"]) < 0.001
     assert "not observable" in capsys.readouterr().out.lower()
+
+
+@pytest.mark.slow
+def test_planar_motion_with_a_measured_lever_arm_takes_the_vertical_from_it(
+    planar_bag, tmp_path, capsys
+):
+    """The same figure-8 with the lever arm measured to 1 cm (6 mm off along the vertical): the
+    vertical comes from the measurement with its sigma, named as resting on it; the horizontal
+    components are still the data's, and the verdict still counts only what the data determine
+    (it warns for the single rotation axis, as without the measurement)."""
+    true = yaml.safe_load((planar_bag.parent / "truth.yaml").read_text())
+    measured = [
+        v + d for v, d in zip(true["extrinsic"]["translation"], (0.004, -0.004, 0.006), strict=True)
+    ]
+    config = yaml.safe_load(CONFIG.read_text())
+    config.setdefault("initialization", {}).update(translation_m=measured, translation_sigma_m=0.01)
+    config_path = tmp_path / "measured.yaml"
+    config_path.write_text(yaml.safe_dump(config))
+    out = tmp_path / "result.yaml"
+    main(["calibrate", str(planar_bag), "-c", str(config_path), "-o", str(out)])
+    printed = capsys.readouterr().out
+    result = yaml.safe_load(out.read_text())
+    assert result["verdict"]["status"] == "warn"
+    t_std = result["uncertainty"]["translation_std_m"]
+    # the vertical: the measurement's 1 cm (the checks may only widen it), not unobservable
+    assert 0.009 < t_std[2] < 0.02 and all(s < 0.005 for s in t_std[:2])
+    error = [
+        e - t
+        for e, t in zip(
+            result["extrinsic"]["translation"], true["extrinsic"]["translation"], strict=True
+        )
+    ]
+    assert abs(error[2]) < 3 * t_std[2] and abs(error[2] - 0.006) < 0.004  # from the measurement
+    assert all(abs(e) < 0.01 for e in error[:2])
+    texts = result["observability"]["unobservable"]
+    assert any("1.00] in the IMU frame: not determined by the data; taken from" in t for t in texts)
+    assert "Rests on the prior" in printed
+    assert not any("Not observable from this data" in r for r in result["verdict"]["reasons"])

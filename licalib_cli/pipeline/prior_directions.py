@@ -1,0 +1,125 @@
+"""What rests on the configured prior of the extrinsic translation, not on the data.
+
+A measured lever arm (``initialization.translation_m`` with ``translation_sigma_m``) enters every
+round's problem as a Gaussian prior, so the solver's information holds it too: a direction the
+data leave undetermined (the vertical on planar motion) is then determined, by the prior. The
+verdict must still say what the data determine, so the prior's part is taken out again: the
+prior adds ``diag((d / sigma)^2)`` to the scaled calibration information ``S_d`` (``d`` the
+characteristic scales; a prior on a calibration block couples with nothing else, so the
+trajectory's elimination leaves it as it is), and ``S_d`` minus that is the data's own. It is
+judged in the default characteristic scales (the prior widens the translation's to
+:data:`~licalib_cli.estimation.PRIOR_SCALE_FACTOR` times its sigma in the problems, so that the
+solver uses the prior along every direction): its directions below the truncation threshold that
+lie mostly in the prior's coordinates rest on the prior (each named, with the prior's sigma along
+it), and what the data determine is counted as the solver counts it, with those directions
+counted as undetermined.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from licalib_cli.estimation import CALIBRATION_SCALES
+from licalib_cli.residuals import EXT_TRANSLATION
+from licalib_cli.solver.lm import NOT_OBSERVABLE_WEIGHT, LMParams, SolverReport
+from licalib_cli.solver.observability import describe_direction, truncation_mask
+
+__all__ = ["OnPrior", "data_determined", "on_prior"]
+
+F64 = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class OnPrior:
+    """A direction of the extrinsic translation the data leave to the prior.
+
+    Attributes:
+        direction: (3,) unit vector, IMU frame (sign: largest component positive).
+        sigma_m: the prior's standard deviation along it.
+        text: one sentence naming it.
+    """
+
+    direction: tuple[float, float, float]
+    sigma_m: float
+    text: str
+
+
+def _undetermined(
+    report: SolverReport, prior_sd: Mapping[str, float]
+) -> tuple[F64, npt.NDArray[np.bool_]]:
+    """The data's own truncated directions (columns, in the default scales) and which
+    coordinates have a prior."""
+    names = report.calibration_names
+    scale = np.asarray(report.information.scale, dtype=np.float64)
+    default = np.array(
+        [
+            CALIBRATION_SCALES[EXT_TRANSLATION][0] if n.startswith(f"{EXT_TRANSLATION}.") else d
+            for n, d in zip(names, scale, strict=True)
+        ]
+    )
+    ratio = default / scale
+    info = np.asarray(report.information.information, dtype=np.float64)
+    prior = np.array(
+        [
+            (d / prior_sd[n]) ** 2 if n in prior_sd else 0.0
+            for n, d in zip(names, default, strict=True)
+        ]
+    )
+    data = ratio[:, None] * info * ratio[None, :] - np.diag(prior)
+    values, vectors = np.linalg.eigh(0.5 * (data + data.T))
+    keep = truncation_mask(values, float(report.tsvd_threshold))
+    return vectors[:, ~keep], prior > 0.0
+
+
+def on_prior(report: SolverReport, prior_sd: Mapping[str, float]) -> tuple[OnPrior, ...]:
+    """Directions of the extrinsic translation that rest on its prior (``prior_sd``: calibration
+    coordinate -> sigma): the data's own information along them is below the truncation
+    threshold and they lie mostly in the prior's coordinates. Empty without a prior."""
+    if not prior_sd or report.information.information.size == 0:
+        return ()
+    trunc, with_prior = _undetermined(report, prior_sd)
+    names = report.calibration_names
+    idx = [names.index(f"{EXT_TRANSLATION}.{a}") for a in "xyz"]
+    sd = np.array([prior_sd.get(f"{EXT_TRANSLATION}.{a}", np.inf) for a in "xyz"])
+    out = []
+    for u in trunc.T:
+        if np.sum(u[with_prior] ** 2) < 0.5:
+            continue
+        n = u[idx] / np.linalg.norm(u[idx])  # the translation's scales are equal
+        if n[np.argmax(np.abs(n))] < 0.0:
+            n = -n
+        sigma = float(np.sqrt(np.sum(n**2 * sd**2)))
+        text = describe_direction(u, names, report.information.owners, verdict="").text
+        out.append(
+            OnPrior(
+                (float(n[0]), float(n[1]), float(n[2])),
+                sigma,
+                f"{text}: not determined by the data; taken from initialization.translation_m "
+                f"with the prior's {1e3 * sigma:.1f} mm (initialization.translation_sigma_m)",
+            )
+        )
+    return tuple(out)
+
+
+def data_determined(
+    report: SolverReport, prior_sd: Mapping[str, float], names: Sequence[str]
+) -> npt.NDArray[np.bool_]:
+    """Which of ``names`` (calibration coordinates) the data determine: ``report.observable``
+    without a prior; with one, the solver's rule applied to the data's own information, the
+    directions resting on the prior counted as undetermined (a direction made mostly of
+    intrinsics known a priori leaves its coordinates determined, as in the solver)."""
+    index = [report.calibration_names.index(n) for n in names]
+    if not prior_sd:
+        return np.asarray(report.observable, dtype=bool)[index]
+    trunc, _ = _undetermined(report, prior_sd)
+    owners = report.information.owners
+    bounded = np.array(
+        [any(o.startswith(p) for p in LMParams.bounded_blocks) for o in owners], dtype=bool
+    )
+    free_dir = np.sum(trunc[bounded] ** 2, axis=0) < 0.5
+    weight = np.sum(trunc[:, free_dir] ** 2, axis=1)
+    return (weight < NOT_OBSERVABLE_WEIGHT)[index]
