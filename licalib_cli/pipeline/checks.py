@@ -167,16 +167,13 @@ def raw_uncertainty(report: SolverReport, planes: MapUncertainty | None = None) 
 
 def observability_of(report: SolverReport, resting: Sequence[OnPrior] = ()) -> Observability:
     """Spectrum of the scaled calibration information, the truncated directions and the
-    directions the data leave to the translation's prior (those the solver kept, its prior
-    being tighter than the threshold, are added)."""
-    listed = tuple(d.text for d in report.truncated)
-    named = tuple(d.text.split(":", 1)[0] for d in report.truncated)
-    extra = tuple(r.text for r in resting if r.text.split(":", 1)[0] not in named)
+    directions the data leave to the translation's prior (``resting``; the solver keeps those,
+    the prior determining them)."""
     return Observability(
         scaling=report.scaling,
         threshold=float(report.tsvd_threshold),
         singular_values=tuple(float(f"{s:.6g}") for s in report.singular_values),
-        unobservable=listed + extra,
+        unobservable=tuple(d.text for d in report.truncated) + tuple(r.text for r in resting),
     )
 
 
@@ -261,11 +258,11 @@ def _extra(fit: Fit) -> str:
 
 def _observability(report: SolverReport, prior: Mapping[str, float]) -> list[Finding]:
     out: list[Finding] = []
-    # a prior's directions are never truncated: its scale widens to leave them in (estimation)
+    # a prior's directions are never truncated (its scale widens to leave them in: estimation);
+    # those the data leave to it are listed in ``observability`` (observability_of)
     ext_truncated = [
         d.text for d in report.truncated if any(b.startswith("ext.") for b, _ in d.blocks)
     ]
-    out.extend(Finding("note", f"Rests on the prior: {r.text}.") for r in on_prior(report, prior))
     if ext_truncated:
         out.extend(Finding("warn", f"Not observable from this data: {t}") for t in ext_truncated)
         out.append(

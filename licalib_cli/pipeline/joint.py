@@ -79,10 +79,11 @@ from licalib_cli.pipeline.joint_planes import refine_segments_with_planes
 from licalib_cli.pipeline.joint_problem import joint_problem, segment_values
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty
 from licalib_cli.pipeline.points import points_in_global, solver_points, usable_points
+from licalib_cli.pipeline.prior_directions import on_prior
 from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.pipeline.schedule import cover_truncated
 from licalib_cli.pipeline.segments import _with_range, select_segments
-from licalib_cli.pipeline.settings import lm_params, round_settings
+from licalib_cli.pipeline.settings import lm_params, prior_sd, round_settings
 from licalib_cli.progress import NullProgress, Progress
 from licalib_cli.residuals import (
     EXT_ROTATION,
@@ -613,6 +614,8 @@ def _joint_result(
     if any(any(bk.startswith("ext.") for bk, _ in d.blocks) for d in report.truncated):
         worst = "warn" if worst == "pass" else worst
         reasons += [f"Not observable from the segments together: {t}" for t in truncated]
+    resting = on_prior(report, prior_sd(cfg))
+    reasons += [f"Rests on the prior (joint estimate): {r.text}." for r in resting]
     if np.any(own_grow > 1.005) or np.any(scatter > 1.005):
         reasons.append(
             f"Joint sigmas enlarged up to {float(own_grow.max()):.2f} times, the segments' own "
@@ -657,7 +660,7 @@ def _joint_result(
             scaling=report.scaling,
             threshold=float(report.tsvd_threshold),
             singular_values=tuple(float(s) for s in report.singular_values),
-            unobservable=truncated,
+            unobservable=truncated + tuple(r.text for r in resting),
         ),
         verdict=VerdictSection(worst, tuple(reasons)),
         segments=section,

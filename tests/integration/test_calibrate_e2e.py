@@ -141,5 +141,5 @@ def test_planar_motion_with_a_measured_lever_arm_takes_the_vertical_from_it(
     assert all(abs(e) < 0.01 for e in error[:2])
     texts = result["observability"]["unobservable"]
     assert any("1.00] in the IMU frame: not determined by the data; taken from" in t for t in texts)
-    assert "Rests on the prior" in printed
+    assert "taken from initialization.translation_m" in printed
     assert not any("Not observable from this data" in r for r in result["verdict"]["reasons"])
