@@ -28,7 +28,7 @@ from licalib_cli.residuals import EXT_TRANSLATION
 from licalib_cli.solver.lm import NOT_OBSERVABLE_WEIGHT, LMParams, SolverReport
 from licalib_cli.solver.observability import describe_direction, truncation_mask
 
-__all__ = ["OnPrior", "data_determined", "on_prior"]
+__all__ = ["OnPrior", "data_determined", "data_translation_std", "on_prior"]
 
 F64 = npt.NDArray[np.float64]
 
@@ -48,11 +48,11 @@ class OnPrior:
     text: str
 
 
-def _undetermined(
+def _data_spectrum(
     report: SolverReport, prior_sd: Mapping[str, float]
-) -> tuple[F64, npt.NDArray[np.bool_]]:
-    """The data's own truncated directions (columns, in the default scales) and which
-    coordinates have a prior."""
+) -> tuple[F64, F64, F64, npt.NDArray[np.bool_]]:
+    """Eigenvalues and eigenvectors of the data's own scaled information in the default scales,
+    those scales, and which coordinates have a prior."""
     names = report.calibration_names
     scale = np.asarray(report.information.scale, dtype=np.float64)
     default = np.array(
@@ -71,8 +71,38 @@ def _undetermined(
     )
     data = ratio[:, None] * info * ratio[None, :] - np.diag(prior)
     values, vectors = np.linalg.eigh(0.5 * (data + data.T))
+    return values, vectors, default, prior > 0.0
+
+
+def _undetermined(
+    report: SolverReport, prior_sd: Mapping[str, float]
+) -> tuple[F64, npt.NDArray[np.bool_]]:
+    """The data's own truncated directions (columns, in the default scales) and which
+    coordinates have a prior."""
+    values, vectors, _, with_prior = _data_spectrum(report, prior_sd)
     keep = truncation_mask(values, float(report.tsvd_threshold))
-    return vectors[:, ~keep], prior > 0.0
+    return vectors[:, ~keep], with_prior
+
+
+def data_translation_std(report: SolverReport, prior_sd: Mapping[str, float]) -> float:
+    """The largest 1-sigma of the extrinsic translation's axes along what the data determine,
+    m: from the truncated pseudo-inverse of the data's own information (without a prior, the
+    largest finite sigma the solver reports). The rounds settle against it: the prior's sigma
+    along what the data leave to it says nothing of how far the rest may still move."""
+    names = report.calibration_names
+    if not prior_sd or report.information.information.size == 0:
+        finite = [
+            s
+            for n, s in zip(names, report.std, strict=True)
+            if n.startswith(f"{EXT_TRANSLATION}.") and np.isfinite(s)
+        ]
+        return float(max(finite)) if finite else 0.0
+    values, vectors, default, _ = _data_spectrum(report, prior_sd)
+    keep = truncation_mask(values, float(report.tsvd_threshold))
+    idx = [names.index(f"{EXT_TRANSLATION}.{a}") for a in "xyz"]
+    rows = vectors[idx][:, keep]
+    variance = np.sum(rows**2 / values[keep], axis=1) * default[idx] ** 2
+    return float(np.sqrt(np.max(variance)))
 
 
 def on_prior(report: SolverReport, prior_sd: Mapping[str, float]) -> tuple[OnPrior, ...]:

@@ -44,6 +44,7 @@ from licalib_cli.pipeline.free_planes import (
 )
 from licalib_cli.pipeline.initialise import InitialGuess
 from licalib_cli.pipeline.points import PointSample, points_per_scan, sample_points
+from licalib_cli.pipeline.prior_directions import data_translation_std
 from licalib_cli.pipeline.round import (
     MappedSample,
     RoundInputs,
@@ -53,7 +54,12 @@ from licalib_cli.pipeline.round import (
     plane_distances,
     run_round,
 )
-from licalib_cli.pipeline.settings import NoiseLevels, estimates_intrinsics, round_settings
+from licalib_cli.pipeline.settings import (
+    NoiseLevels,
+    estimates_intrinsics,
+    prior_sd,
+    round_settings,
+)
 from licalib_cli.progress import Progress
 from licalib_cli.residuals import EXT_ROTATION, GYRO_ROTATION
 from licalib_cli.solver.lm import SolverReport, widen_along_truncated
@@ -243,11 +249,12 @@ def _largest_std(report: SolverReport, prefix: str) -> float:
 
 
 def _threshold(report: SolverReport, cfg: CalibConfig) -> Change:
-    """Settle tolerances: the configured ones or half the estimate's own 1-sigma."""
+    """Settle tolerances: the configured ones or half the estimate's own 1-sigma (the
+    translation's along what the data determine, not a measured lever arm's prior)."""
     sch = cfg.schedule
 
     return Change(
-        max(sch.translation_tolerance_m, 0.5 * _largest_std(report, "ext.translation")),
+        max(sch.translation_tolerance_m, 0.5 * data_translation_std(report, prior_sd(cfg))),
         max(
             sch.rotation_tolerance_deg,
             0.5 * float(np.degrees(_largest_std(report, "ext.rotation"))),

@@ -16,7 +16,7 @@ from licalib_cli.estimation import (
     CalibrationState,
     FreeParameters,
 )
-from licalib_cli.pipeline.prior_directions import data_determined, on_prior
+from licalib_cli.pipeline.prior_directions import data_determined, data_translation_std, on_prior
 from licalib_cli.pipeline.settings import free_parameters, model_priors, prior_sd
 from licalib_cli.residuals import EXT_TRANSLATION, GaussianPrior
 from licalib_cli.solver.lm import LMParams, SolverReport, solve
@@ -98,6 +98,17 @@ def test_the_unseen_direction_takes_the_prior_with_its_sigma_and_is_named():
     assert "initialization.translation_sigma_m" in rests.text
     # the verdict counts what the data determine, not the prior
     assert data_determined(report, sd, NAMES).tolist() == [True, True, False]
+
+
+def test_the_rounds_settle_against_what_the_data_determine_not_the_prior():
+    """The schedule's settle tolerance takes half the translation's largest sigma: with a
+    measured lever arm that is the data's 1 mm, not the prior's 20 mm along the vertical."""
+    seen = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    plain, _ = _fit(seen, None, np.zeros(3))
+    assert data_translation_std(plain, {}) == pytest.approx(0.001, rel=0.01)
+    report, _ = _fit(seen, np.full(3, 0.02), np.array([0.1, 0.2, 0.33]))
+    assert max(report.std) == pytest.approx(0.02, rel=1e-3)
+    assert data_translation_std(report, {n: 0.02 for n in NAMES}) == pytest.approx(0.001, rel=0.01)
 
 
 def test_a_tilted_vertical_and_sigmas_per_axis():
