@@ -265,8 +265,9 @@ def _threshold(report: SolverReport, cfg: CalibConfig) -> Change:
 
 def final_jump(change: Change, report: SolverReport, cfg: CalibConfig) -> float:
     """How far a round moved the extrinsic in its own sigmas: the largest of the translation's
-    change over its largest 1-sigma, the rotation's and the time offset's. A part within its
-    configured tolerance, or without a finite sigma (not observable), counts as 0."""
+    change over its largest 1-sigma (along what the data determine, as the settle tolerance),
+    the rotation's and the time offset's. A part within its configured tolerance, or without a
+    finite sigma (not observable), counts as 0."""
     sch = cfg.schedule
     parts = (
         ("ext.translation", change.translation_m, sch.translation_tolerance_m, 1.0),
@@ -275,7 +276,11 @@ def final_jump(change: Change, report: SolverReport, cfg: CalibConfig) -> float:
     )
     worst = 0.0
     for prefix, moved, tolerance, unit in parts:
-        sigma = unit * _largest_std(report, prefix)
+        sigma = unit * (
+            data_translation_std(report, prior_sd(cfg))
+            if prefix == "ext.translation"
+            else _largest_std(report, prefix)
+        )
         if moved > tolerance and sigma > 0.0:
             worst = max(worst, moved / sigma)
     return worst
