@@ -201,13 +201,6 @@ class InitializationConfig(_Section):
             raise ValueError(msg)
         return self
 
-    def translation_prior(self) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
-        """``(mean, sigma)`` of the prior on the extrinsic translation, m (IMU frame); sigma
-        ``inf`` on every axis when no prior is configured."""
-        mean = self.translation_m if self.translation_m is not None else [0.0, 0.0, 0.0]
-        sigma = self.translation_sigma_m or [math.inf] * 3
-        return (mean[0], mean[1], mean[2]), (sigma[0], sigma[1], sigma[2])
-
 
 class SplineConfig(_Section):
     """Continuous-time trajectory."""

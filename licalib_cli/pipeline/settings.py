@@ -273,9 +273,11 @@ def translation_prior(
 ) -> tuple[tuple[float, float, float], tuple[float, float, float]] | None:
     """``(mean, sigma)`` of the prior on the extrinsic translation
     (``initialization.translation_m`` and ``translation_sigma_m``), or None without one."""
-    if cfg.initialization.translation_sigma_m is None:
-        return None
-    return cfg.initialization.translation_prior()
+    ini = cfg.initialization
+    if ini.translation_m is None or ini.translation_sigma_m is None:
+        return None  # the config refuses a sigma without translation_m
+    (mx, my, mz), (sx, sy, sz) = ini.translation_m, ini.translation_sigma_m
+    return (mx, my, mz), (sx, sy, sz)
 
 
 def prior_sd(cfg: CalibConfig) -> dict[str, float]:
