@@ -250,3 +250,22 @@ def test_segments_scattering_beyond_their_sigmas_grow_the_joint_sigma() -> None:
     # a single segment determining a coordinate says nothing about scatter
     one = [run([0.01, 0, 0], 0.002), run([0.0, 0, 0], np.inf)]
     assert _scatter_factor(one, joint, np.zeros(2))[0] == 1.0
+
+
+def test_a_measured_lever_arm_is_held_once_for_all_segments(two_segments) -> None:
+    """The translation's prior enters the joint problem once (the segments share the extrinsic):
+    the joint cost is the segments' costs without it plus the prior's own."""
+    states, inputs = two_segments
+    mean, sigma = (0.31, 0.14, 0.06), (0.01, 0.01, 0.02)
+    with_prior = FreeParameters(time_offset=False, translation_prior=(mean, sigma))
+    singles = [
+        build_problem(s, d.imu, d.lidar, d.planes, d.noise, FreeParameters(time_offset=False))
+        for s, d in zip(states, inputs, strict=True)
+    ]
+    joint = joint_problem(states, inputs, with_prior)
+    moved = T_TRUE + np.array([0.01, -0.02, 0.005])
+    for p in [*singles, joint]:
+        p.set_values({EXT_TRANSLATION: moved})
+    prior_cost = 0.5 * float(np.sum(((moved - np.array(mean)) / np.array(sigma)) ** 2))
+    cost = sum(p.evaluate(jacobians=False).cost for p in singles)
+    assert joint.evaluate(jacobians=False).cost == pytest.approx(cost + prior_cost, rel=1e-10)
