@@ -25,7 +25,7 @@ import numpy.typing as npt
 
 from licalib_cli.estimation import CALIBRATION_SCALES
 from licalib_cli.residuals import EXT_TRANSLATION
-from licalib_cli.solver.lm import NOT_OBSERVABLE_WEIGHT, LMParams, SolverReport
+from licalib_cli.solver.lm import LMParams, SolverReport, observable_coordinates
 from licalib_cli.solver.observability import describe_direction, truncation_mask
 
 __all__ = ["OnPrior", "data_determined", "data_translation_std", "on_prior"]
@@ -86,17 +86,10 @@ def _undetermined(
 
 def data_translation_std(report: SolverReport, prior_sd: Mapping[str, float]) -> float:
     """The largest 1-sigma of the extrinsic translation's axes along what the data determine,
-    m: from the truncated pseudo-inverse of the data's own information (without a prior, the
-    largest finite sigma the solver reports). The rounds settle against it: the prior's sigma
-    along what the data leave to it says nothing of how far the rest may still move."""
+    m, with a prior (``prior_sd`` not empty): from the truncated pseudo-inverse of the data's own
+    information. The rounds settle against it: the prior's sigma along what the data leave to it
+    says nothing of how far the rest may still move."""
     names = report.calibration_names
-    if not prior_sd or report.information.information.size == 0:
-        finite = [
-            s
-            for n, s in zip(names, report.std, strict=True)
-            if n.startswith(f"{EXT_TRANSLATION}.") and np.isfinite(s)
-        ]
-        return float(max(finite)) if finite else 0.0
     values, vectors, default, _ = _data_spectrum(report, prior_sd)
     keep = truncation_mask(values, float(report.tsvd_threshold))
     idx = [names.index(f"{EXT_TRANSLATION}.{a}") for a in "xyz"]
@@ -146,10 +139,7 @@ def data_determined(
     if not prior_sd:
         return np.asarray(report.observable, dtype=bool)[index]
     trunc, _ = _undetermined(report, prior_sd)
-    owners = report.information.owners
-    bounded = np.array(
-        [any(o.startswith(p) for p in LMParams.bounded_blocks) for o in owners], dtype=bool
+    observable, _ = observable_coordinates(
+        trunc, report.information.owners, LMParams.bounded_blocks
     )
-    free_dir = np.sum(trunc[bounded] ** 2, axis=0) < 0.5
-    weight = np.sum(trunc[:, free_dir] ** 2, axis=1)
-    return (weight < NOT_OBSERVABLE_WEIGHT)[index]
+    return observable[index]

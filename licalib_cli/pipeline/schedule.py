@@ -248,13 +248,22 @@ def _largest_std(report: SolverReport, prefix: str) -> float:
     return float(max(vals)) if vals else 0.0
 
 
+def _translation_std(report: SolverReport, cfg: CalibConfig) -> float:
+    """The translation's largest finite 1-sigma; with a measured lever arm, along what the data
+    determine (:func:`~licalib_cli.pipeline.prior_directions.data_translation_std`)."""
+    prior = prior_sd(cfg)
+    if prior and report.information.information.size:
+        return data_translation_std(report, prior)
+    return _largest_std(report, "ext.translation")
+
+
 def _threshold(report: SolverReport, cfg: CalibConfig) -> Change:
     """Settle tolerances: the configured ones or half the estimate's own 1-sigma (the
     translation's along what the data determine, not a measured lever arm's prior)."""
     sch = cfg.schedule
 
     return Change(
-        max(sch.translation_tolerance_m, 0.5 * data_translation_std(report, prior_sd(cfg))),
+        max(sch.translation_tolerance_m, 0.5 * _translation_std(report, cfg)),
         max(
             sch.rotation_tolerance_deg,
             0.5 * float(np.degrees(_largest_std(report, "ext.rotation"))),
@@ -270,17 +279,20 @@ def final_jump(change: Change, report: SolverReport, cfg: CalibConfig) -> float:
     finite sigma (not observable), counts as 0."""
     sch = cfg.schedule
     parts = (
-        ("ext.translation", change.translation_m, sch.translation_tolerance_m, 1.0),
-        ("ext.rotation", change.rotation_deg, sch.rotation_tolerance_deg, float(np.degrees(1.0))),
-        ("ext.time_offset", change.time_offset_s, sch.time_offset_tolerance_s, 1.0),
+        (change.translation_m, sch.translation_tolerance_m, _translation_std(report, cfg)),
+        (
+            change.rotation_deg,
+            sch.rotation_tolerance_deg,
+            float(np.degrees(_largest_std(report, "ext.rotation"))),
+        ),
+        (
+            change.time_offset_s,
+            sch.time_offset_tolerance_s,
+            _largest_std(report, "ext.time_offset"),
+        ),
     )
     worst = 0.0
-    for prefix, moved, tolerance, unit in parts:
-        sigma = unit * (
-            data_translation_std(report, prior_sd(cfg))
-            if prefix == "ext.translation"
-            else _largest_std(report, prefix)
-        )
+    for moved, tolerance, sigma in parts:
         if moved > tolerance and sigma > 0.0:
             worst = max(worst, moved / sigma)
     return worst

@@ -36,7 +36,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
@@ -65,6 +65,7 @@ __all__ = [
     "Step",
     "compute_step",
     "observable_basis",
+    "observable_coordinates",
     "solve",
     "solve_with_linearization",
     "widen_along_truncated",
@@ -521,17 +522,8 @@ def _report(
     )
     scale = layout.calibration_scale
     owners = layout.calibration_owner
-    bounded = np.array(
-        [any(o.startswith(p) for p in params.bounded_blocks) for o in owners], dtype=bool
-    )
-    # A truncated direction made mostly of bounded coordinates (intrinsics known a priori to
-    # within their characteristic scale) only adds that prior uncertainty to the coordinates it
-    # touches; a direction made mostly of unbounded ones (the extrinsic) leaves them unknown.
     trunc = u[:, ~keep] if u.size else np.zeros((0, 0))
-    prior_mass = np.sum(trunc[bounded] ** 2, axis=0) if trunc.size else np.zeros(0)
-    free_dir = prior_mass < 0.5
-    weight = np.sum(trunc[:, free_dir] ** 2, axis=1) if trunc.size else np.zeros(len(owners))
-    observable = weight < NOT_OBSERVABLE_WEIGHT
+    observable, free_dir = observable_coordinates(trunc, owners, params.bounded_blocks)
     if s.size:
         cov_d = (u[:, keep] / s[keep]) @ u[:, keep].T
         if trunc.size and np.any(~free_dir):
@@ -570,6 +562,35 @@ def _report(
         covariance=covariance,
         truncated_weight=np.sum(trunc**2, axis=1) if trunc.size else np.zeros(len(owners)),
     )
+
+
+def observable_coordinates(
+    truncated: F64, owners: Sequence[str], bounded_blocks: Sequence[str]
+) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
+    """Which coordinates the truncated directions leave observable, and which of those
+    directions leave their coordinates unknown.
+
+    A truncated direction made mostly of bounded coordinates (``bounded_blocks``: intrinsics
+    known a priori to within their characteristic scale) only adds that prior uncertainty to the
+    coordinates it touches; a direction made mostly of unbounded ones (the extrinsic) leaves them
+    unknown: a coordinate with a squared weight of at least :data:`NOT_OBSERVABLE_WEIGHT` in such
+    directions is not observable.
+
+    Args:
+        truncated: (Nc, k) unit truncated directions (columns), scaled coordinates.
+        owners: (Nc,) owning block of each coordinate.
+        bounded_blocks: prefixes of the bounded blocks (``LMParams.bounded_blocks``).
+
+    Returns:
+        ``(observable, free)``: (Nc,) per coordinate, and (k,) per direction whether it leaves
+        its coordinates unknown.
+    """
+    if truncated.size == 0:
+        return np.ones(len(owners), dtype=bool), np.zeros(0, dtype=bool)
+    bounded = np.array([any(o.startswith(p) for p in bounded_blocks) for o in owners], dtype=bool)
+    free = np.sum(truncated[bounded] ** 2, axis=0) < 0.5
+    weight = np.sum(truncated[:, free] ** 2, axis=1)
+    return weight < NOT_OBSERVABLE_WEIGHT, free
 
 
 def widen_along_truncated(

@@ -17,6 +17,7 @@ from licalib_cli.estimation import (
     FreeParameters,
 )
 from licalib_cli.pipeline.prior_directions import data_determined, data_translation_std, on_prior
+from licalib_cli.pipeline.schedule import _translation_std
 from licalib_cli.pipeline.settings import free_parameters, model_priors, prior_sd
 from licalib_cli.residuals import EXT_TRANSLATION, GaussianPrior
 from licalib_cli.solver.lm import LMParams, SolverReport, solve
@@ -105,10 +106,19 @@ def test_the_rounds_settle_against_what_the_data_determine_not_the_prior():
     measured lever arm that is the data's 1 mm, not the prior's 20 mm along the vertical."""
     seen = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     plain, _ = _fit(seen, None, np.zeros(3))
-    assert data_translation_std(plain, {}) == pytest.approx(0.001, rel=0.01)
+    # without a prior: the largest finite sigma (z is not observable)
+    assert _translation_std(plain, load_config(None)) == pytest.approx(0.001, rel=0.01)
     report, _ = _fit(seen, np.full(3, 0.02), np.array([0.1, 0.2, 0.33]))
     assert max(report.std) == pytest.approx(0.02, rel=1e-3)
     assert data_translation_std(report, {n: 0.02 for n in NAMES}) == pytest.approx(0.001, rel=0.01)
+    measured = load_config(
+        None,
+        {
+            "initialization.translation_m": [0.1, 0.2, 0.33],
+            "initialization.translation_sigma_m": 0.02,
+        },
+    )
+    assert _translation_std(report, measured) == pytest.approx(0.001, rel=0.01)
 
 
 def test_a_tilted_vertical_and_sigmas_per_axis():
