@@ -45,7 +45,13 @@ from licalib_cli.pipeline.fitcheck import (
 )
 from licalib_cli.pipeline.initialise import SINGLE_AXIS, InitialGuess
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty, map_uncertainty
-from licalib_cli.pipeline.prior_directions import OnPrior, data_determined, on_prior
+from licalib_cli.pipeline.prior_directions import (
+    OnPrior,
+    PriorConflict,
+    data_determined,
+    on_prior,
+    prior_conflict,
+)
 from licalib_cli.pipeline.schedule import JITTER_FACTOR, MAX_FINAL_ROUNDS, Change, Fit, within
 from licalib_cli.pipeline.settings import NoiseLevels, prior_sd
 from licalib_cli.pipeline.split import COORDINATES, SplitResult, split_half
@@ -705,6 +711,31 @@ def split_floor(split: SplitResult) -> F64:
     return 0.5 * np.sqrt(np.maximum(excess, 0.0))
 
 
+def _measured_lever_arm(fit: Fit, cfg: CalibConfig) -> PriorConflict | None:
+    """The measured lever arm against the data's own estimate (None without one)."""
+    mean = cfg.initialization.translation_m
+    if mean is None:
+        return None
+    return prior_conflict(fit.report, prior_sd(cfg), fit.state.t_imu_lidar, mean)
+
+
+def _prior_conflict(conflict: PriorConflict | None) -> list[Finding]:
+    if conflict is None or not conflict.disagrees:
+        return []
+    diff = ", ".join(f"{1e3 * v:+.1f}" for v in conflict.difference_m)
+    pull = float(np.linalg.norm(conflict.pull_m))
+    return [
+        Finding(
+            "warn",
+            f"The measured lever arm (initialization.translation_m) disagrees with the data: "
+            f"their own estimate differs from it by [{diff}] mm (chi-square "
+            f"{conflict.statistic:.1f} on {conflict.dof}, p = {conflict.p_value:.2g}) and it "
+            f"pulled the translation {1e3 * pull:.1f} mm away from that (the sigmas include "
+            "this); check the measurement, or widen initialization.translation_sigma_m.",
+        )
+    ]
+
+
 def _with_change(sigma: F64, c: Change) -> F64:
     """The (7,) sigmas with a round's change of the extrinsic added in quadrature."""
     jitter = np.array([c.translation_m] * 3 + [np.radians(c.rotation_deg)] * 3 + [c.time_offset_s])
@@ -811,7 +842,15 @@ def run_checks(
             "same points (solver sigmas hold them fixed)",
             *why,
         )
+    conflict = _measured_lever_arm(fit, cfg)
+    if conflict is not None and conflict.disagrees:
+        # the estimate is a compromise the data do not support: covered as far as the prior
+        # pulled it from the data's own
+        sigma = sigma.copy()
+        sigma[:3] = np.sqrt(sigma[:3] ** 2 + np.square(conflict.pull_m))
+        why = (*why, "by how far the measured lever arm pulled the translation from the data's")
     findings = [Finding("warn", n) for n in notes]
+    findings += _prior_conflict(conflict)
     findings += _convergence(fit, cfg, settled_in_sigmas, crawl)
     findings += _observability(report, prior_sd(cfg))
     covered = [e.score.name for e in effects if effect_to_cover(e, raw)]

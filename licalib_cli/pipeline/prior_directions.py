@@ -23,14 +23,26 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from licalib_cli.consistency.distributions import chi2_sf
 from licalib_cli.estimation import CALIBRATION_SCALES
 from licalib_cli.residuals import EXT_TRANSLATION
 from licalib_cli.solver.lm import LMParams, SolverReport, observable_coordinates
 from licalib_cli.solver.observability import describe_direction, truncation_mask
 
-__all__ = ["OnPrior", "data_determined", "data_translation_std", "on_prior"]
+__all__ = [
+    "PRIOR_CONFLICT_P",
+    "OnPrior",
+    "PriorConflict",
+    "data_determined",
+    "data_translation_std",
+    "on_prior",
+    "prior_conflict",
+]
 
 F64 = npt.NDArray[np.float64]
+
+PRIOR_CONFLICT_P = 1e-3
+"""The measured lever arm and the data disagree below this p-value (the split halves' level)."""
 
 
 @dataclass(frozen=True)
@@ -143,3 +155,72 @@ def data_determined(
         trunc, report.information.owners, LMParams.bounded_blocks
     )
     return observable[index]
+
+
+@dataclass(frozen=True)
+class PriorConflict:
+    """The measured lever arm against the data's own estimate of it.
+
+    With a Gaussian prior the estimate is a compromise: at it the data's information
+    ``S`` and the prior's ``P`` balance, ``S (x - x_data) + P (x - mean) = 0``, so the data's
+    own estimate is ``x_data = x + S^+ P (x - mean)`` (``S^+`` the truncated pseudo-inverse of
+    the data's information, nothing along what the data leave to the prior). Its difference from
+    the measurement has the covariance ``S^+ + P^-1`` when both are right.
+
+    Attributes:
+        difference_m: (3,) the data's own translation minus the measurement, IMU frame.
+        pull_m: (3,) how far the prior pulled the estimate from the data's own.
+        statistic: chi-square of the difference with that covariance.
+        dof: the translation directions the data determine.
+        p_value: its probability when both are right.
+    """
+
+    difference_m: tuple[float, float, float]
+    pull_m: tuple[float, float, float]
+    statistic: float
+    dof: int
+    p_value: float
+
+    @property
+    def disagrees(self) -> bool:
+        """Whether the measurement and the data disagree (:data:`PRIOR_CONFLICT_P`)."""
+        return self.p_value < PRIOR_CONFLICT_P
+
+
+def prior_conflict(
+    report: SolverReport,
+    prior_sd: Mapping[str, float],
+    estimate_m: npt.ArrayLike,
+    mean_m: npt.ArrayLike,
+) -> PriorConflict | None:
+    """How the measured lever arm (``mean_m``, sigmas ``prior_sd``) compares with the data's own
+    estimate, from the fit's ``report`` at ``estimate_m`` (see :class:`PriorConflict`); None
+    without a prior or when the data determine no translation direction."""
+    if not prior_sd or report.information.information.size == 0:
+        return None
+    values, vectors, default, _ = _data_spectrum(report, prior_sd)
+    keep = truncation_mask(values, float(report.tsvd_threshold))
+    names = report.calibration_names
+    idx = [names.index(f"{EXT_TRANSLATION}.{a}") for a in "xyz"]
+    sd = np.array([prior_sd[f"{EXT_TRANSLATION}.{a}"] for a in "xyz"])
+    d = default[idx]
+    moved = np.asarray(estimate_m, dtype=np.float64) - np.asarray(mean_m, dtype=np.float64)
+    g = np.zeros(len(names))
+    g[idx] = (d / sd) ** 2 * moved / d  # the prior's pull on the scaled coordinates
+    kept, w = vectors[:, keep], values[keep]
+    pull = (kept @ ((kept.T @ g) / w))[idx] * d
+    rows = kept[idx] * d[:, None]
+    data_cov = (rows / w) @ rows.T
+    own = np.linalg.eigvalsh(0.5 * (data_cov + data_cov.T))
+    dof = int(np.count_nonzero(own > 1e-6 * sd.min() ** 2))
+    if dof == 0:
+        return None
+    difference = moved + pull
+    statistic = float(difference @ np.linalg.solve(data_cov + np.diag(sd**2), difference))
+    return PriorConflict(
+        (float(difference[0]), float(difference[1]), float(difference[2])),
+        (float(pull[0]), float(pull[1]), float(pull[2])),
+        statistic,
+        dof,
+        float(chi2_sf(statistic, dof)),
+    )

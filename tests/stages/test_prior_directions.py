@@ -16,7 +16,13 @@ from licalib_cli.estimation import (
     CalibrationState,
     FreeParameters,
 )
-from licalib_cli.pipeline.prior_directions import data_determined, data_translation_std, on_prior
+from licalib_cli.pipeline.checks import _prior_conflict
+from licalib_cli.pipeline.prior_directions import (
+    data_determined,
+    data_translation_std,
+    on_prior,
+    prior_conflict,
+)
 from licalib_cli.pipeline.schedule import _translation_std
 from licalib_cli.pipeline.settings import free_parameters, model_priors, prior_sd
 from licalib_cli.residuals import EXT_TRANSLATION, GaussianPrior
@@ -177,3 +183,27 @@ def test_a_prior_the_run_cannot_use_is_refused_at_load_time(tmp_path, text, frag
     with pytest.raises(ConfigError, match=fragment) as info:
         load_config(path)
     assert "\n" not in str(info.value)
+
+
+def test_a_measured_lever_arm_the_data_contradict_is_found_and_its_pull_measured():
+    """A tight prior 20 mm off: the estimate ends half way, the data's own estimate is
+    recovered from the balance, and the two disagree far beyond chance; a prior within its
+    sigma of the data, or a loose one, agrees."""
+    seen = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    wrong = np.array([0.13, 0.19, 0.3])  # the data say x = 0.11 (to 1 mm)
+    report, estimate = _fit(seen, np.full(3, 0.001), wrong)
+    sd = {n: 0.001 for n in NAMES}
+    conflict = prior_conflict(report, sd, estimate, wrong)
+    assert conflict is not None and conflict.disagrees
+    assert conflict.difference_m[0] == pytest.approx(-0.02, abs=1e-6)  # data's own 0.11
+    assert conflict.pull_m[0] == pytest.approx(-0.01, abs=1e-6)  # estimate 0.12
+    assert conflict.dof == 2 and conflict.statistic == pytest.approx(200.0, rel=1e-4)
+    (finding,) = _prior_conflict(conflict)
+    assert finding.severity == "warn" and "initialization.translation_sigma_m" in finding.text
+    for mean, sigma in ((np.array([0.111, 0.19, 0.3]), 0.001), (wrong, 0.02)):
+        report, estimate = _fit(seen, np.full(3, sigma), mean)
+        conflict = prior_conflict(report, {n: sigma for n in NAMES}, estimate, mean)
+        assert conflict is not None and not conflict.disagrees
+        assert _prior_conflict(conflict) == []
+    plain, estimate = _fit(seen, None, np.zeros(3))
+    assert prior_conflict(plain, {}, estimate, np.zeros(3)) is None
