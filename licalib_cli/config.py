@@ -169,14 +169,16 @@ class InitializationConfig(_Section):
     """Optional initial extrinsic rotation; hand-eye alignment is used when unset."""
     translation_m: list[float] | None = Field(default=None, min_length=3, max_length=3)
     """Optional initial extrinsic translation; zero when unset."""
-    translation_sigma_m: list[Annotated[float, Field(gt=0.0)]] | None = Field(
+    translation_sigma_m: list[Annotated[float, Field(ge=1e-4)]] | None = Field(
         default=None, min_length=3, max_length=3
     )
     """How well ``translation_m`` is known (a tape measure, a CAD drawing): 1-sigma, one number
-    or one per IMU axis, m. The calibration then holds the translation to it as a Gaussian
-    prior: what the data do not determine (the vertical on planar motion) comes from it with
-    this sigma instead of being reported unobservable, and the result says which directions
-    rest on it. Needs ``translation_m``; unset: no prior."""
+    or one per IMU axis, m, at least 0.1 mm (no lever arm is measured better; a tighter prior
+    swamps the solver's information and its truncation drops real directions). The calibration
+    then holds the translation to it as a Gaussian prior: what the data do not determine (the
+    vertical on planar motion) comes from it with this sigma instead of being reported
+    unobservable, and the result says which directions rest on it. Needs ``translation_m``;
+    unset: no prior."""
     time_offset_s: float | None = None
     """Optional initial time offset; cross-correlation is used when unset."""
 
