@@ -32,7 +32,7 @@ from licalib_cli.solver import (
     Problem,
     ResidualEval,
 )
-from licalib_cli.solver.assembly import _compress_key, _element_key
+from licalib_cli.solver.assembly import _compress_key, _element_key, _unique_entries
 
 NUM_CTRL = 14
 NUM_BEAMS = 5
@@ -265,3 +265,18 @@ def test_group_keys() -> None:
         assert pairs.shape[0] == key.num_groups
         np.testing.assert_array_equal(np.bincount(key.key), key.counts)
     assert _element_key(np.tile([3, 1], (5, 1))).key is None
+
+
+@pytest.mark.parametrize("n", [1, 37, 4526, 2**16 - 1, 2**16 + 3])
+def test_unique_entries_is_numpys_unique(n: int) -> None:
+    """The radix-sorted pattern of ``H_tt`` (and its fallback above 16-bit indices) equals
+    ``np.unique(..., return_inverse=True)``."""
+    rng = np.random.default_rng(n)
+    rows = rng.integers(0, n, 3000)
+    cols = np.clip(rows + rng.integers(-5, 6, 3000), 0, n - 1)
+    flat = np.concatenate([cols * n + rows, (cols * n + rows)[::7]]).astype(np.int64)
+    uniq, inverse = _unique_entries(flat, n)
+    expected, expected_inverse = np.unique(flat, return_inverse=True)
+    np.testing.assert_array_equal(uniq, expected)
+    np.testing.assert_array_equal(inverse, expected_inverse.reshape(-1))
+    assert _unique_entries(np.zeros(0, dtype=np.int64), n)[0].size == 0
