@@ -48,6 +48,7 @@ from licalib_cli.pipeline.map_uncertainty import MapUncertainty, map_uncertainty
 from licalib_cli.pipeline.prior_directions import (
     OnPrior,
     PriorConflict,
+    added_variance,
     data_determined,
     on_prior,
     prior_conflict,
@@ -711,29 +712,22 @@ def split_floor(split: SplitResult) -> F64:
     return 0.5 * np.sqrt(np.maximum(excess, 0.0))
 
 
-def _measured_lever_arm(fit: Fit, cfg: CalibConfig) -> PriorConflict | None:
-    """The measured lever arm against the data's own estimate (None without one)."""
+def _measured_lever_arm(fit: Fit, cfg: CalibConfig, raw: F64, sigma: F64) -> PriorConflict | None:
+    """The measured lever arm against the data's own estimate (None without one), that estimate
+    as uncertain as the checks found the result (what they added to the solver's variances of
+    the translation, ``sigma**2 - raw**2``)."""
     mean = cfg.initialization.translation_m
     if mean is None:
         return None
-    return prior_conflict(fit.report, prior_sd(cfg), fit.state.t_imu_lidar, mean)
+    return prior_conflict(
+        fit.report, prior_sd(cfg), fit.state.t_imu_lidar, mean, added_variance(raw[:3], sigma[:3])
+    )
 
 
 def _prior_conflict(conflict: PriorConflict | None) -> list[Finding]:
     if conflict is None or not conflict.disagrees:
         return []
-    diff = ", ".join(f"{1e3 * v:+.1f}" for v in conflict.difference_m)
-    pull = float(np.linalg.norm(conflict.pull_m))
-    return [
-        Finding(
-            "warn",
-            f"The measured lever arm (initialization.translation_m) disagrees with the data: "
-            f"their own estimate differs from it by [{diff}] mm (chi-square "
-            f"{conflict.statistic:.1f} on {conflict.dof}, p = {conflict.p_value:.2g}) and it "
-            f"pulled the translation {1e3 * pull:.1f} mm away from that (the sigmas include "
-            "this); check the measurement, or widen initialization.translation_sigma_m.",
-        )
-    ]
+    return [Finding("warn", conflict.text)]
 
 
 def _with_change(sigma: F64, c: Change) -> F64:
@@ -842,12 +836,10 @@ def run_checks(
             "same points (solver sigmas hold them fixed)",
             *why,
         )
-    conflict = _measured_lever_arm(fit, cfg)
+    conflict = _measured_lever_arm(fit, cfg, raw, sigma)
     if conflict is not None and conflict.disagrees:
-        # the estimate is a compromise the data do not support: covered as far as the prior
-        # pulled it from the data's own
         sigma = sigma.copy()
-        sigma[:3] = np.sqrt(sigma[:3] ** 2 + np.square(conflict.pull_m))
+        sigma[:3] = conflict.covered(sigma[:3])
         why = (*why, "by how far the measured lever arm pulled the translation from the data's")
     findings = [Finding("warn", n) for n in notes]
     findings += _prior_conflict(conflict)

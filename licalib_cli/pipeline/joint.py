@@ -38,8 +38,11 @@ are the reference segment's (the one with the smallest sigmas).
 A segment whose own estimate differs from the joint one by more than
 :data:`DISAGREEMENT_SIGMAS` of its own sigma (any translation or rotation axis) is flagged.
 The verdict is ``warn`` when a segment disagrees, when a segment alone does not pass (a short
-segment may not determine everything; the joint problem may) or when the joint problem leaves
-an extrinsic direction unobservable; ``pass`` otherwise.
+segment may not determine everything; the joint problem may), when the joint problem leaves
+an extrinsic direction unobservable or when a measured lever arm
+(``initialization.translation_sigma_m``) disagrees with the segments' data (their own joint
+estimate, recovered as for one segment; the translation sigmas then grow by how far the
+measurement pulled the estimate); ``pass`` otherwise.
 """
 
 from __future__ import annotations
@@ -79,7 +82,7 @@ from licalib_cli.pipeline.joint_planes import refine_segments_with_planes
 from licalib_cli.pipeline.joint_problem import joint_problem, segment_values
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty
 from licalib_cli.pipeline.points import points_in_global, solver_points, usable_points
-from licalib_cli.pipeline.prior_directions import on_prior
+from licalib_cli.pipeline.prior_directions import PriorConflict, on_prior, prior_conflict
 from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.pipeline.schedule import cover_truncated
 from licalib_cli.pipeline.segments import _with_range, select_segments
@@ -528,6 +531,18 @@ def _sigma_size(run: CalibrationRun) -> float:
     return v if np.isfinite(v) else float("inf")
 
 
+def _measured_lever_arm(
+    report: SolverReport, joint: Extrinsic, cfg: CalibConfig, added_m2: npt.ArrayLike = 0.0
+) -> PriorConflict | None:
+    """The measured lever arm against the segments' own joint estimate (None without one): the
+    joint problem holds the prior once, so its information holds it once too. ``added_m2``:
+    variances added to the joint solver's (unbounded: nothing is compared)."""
+    mean = cfg.initialization.translation_m
+    if mean is None:
+        return None
+    return prior_conflict(report, prior_sd(cfg), joint.translation, mean, added_m2)
+
+
 def _joint_result(
     runs: Sequence[CalibrationRun],
     windows: Sequence[tuple[float, float]],
@@ -557,8 +572,18 @@ def _joint_result(
     grow = np.sqrt(own_grow**2 + effect_ratio) * scatter
     raw = _uncertainty(report)
     shared = np.sqrt(prior)
+    translation_std = np.hypot(np.asarray(raw.translation_std_m) * grow[:3], shared[:3])
+    # compared with the joint solver's spread of the data's estimate: the joint enlargements
+    # hold the segments' own (their checks widen the translation by the measurement's pull when
+    # it disagrees with them), so they would hide the very disagreement; unbounded sigmas: the
+    # data's own estimate is not known
+    conflict = _measured_lever_arm(
+        report, joint, cfg, np.where(np.isfinite(translation_std), 0.0, np.inf)
+    )
     unc = Uncertainty(
-        translation_std_m=vec3(np.hypot(np.asarray(raw.translation_std_m) * grow[:3], shared[:3])),
+        translation_std_m=vec3(
+            conflict.covered(translation_std) if conflict is not None else translation_std
+        ),
         rotation_std_deg=vec3(
             np.hypot(np.asarray(raw.rotation_std_deg) * grow[3:6], np.degrees(shared[3:6]))
         ),
@@ -567,6 +592,9 @@ def _joint_result(
     entries = []
     worst = "pass"
     reasons: list[str] = []
+    if conflict is not None and conflict.disagrees:
+        worst = "warn"
+        reasons.append(f"Joint estimate: {conflict.text}")
     for k, (run, (a, b)) in enumerate(zip(runs, windows, strict=True)):
         own = run.result.extrinsic
         ou = run.result.uncertainty

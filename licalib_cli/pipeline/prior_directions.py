@@ -33,6 +33,7 @@ __all__ = [
     "PRIOR_CONFLICT_P",
     "OnPrior",
     "PriorConflict",
+    "added_variance",
     "data_determined",
     "data_translation_std",
     "on_prior",
@@ -186,17 +187,59 @@ class PriorConflict:
         """Whether the measurement and the data disagree (:data:`PRIOR_CONFLICT_P`)."""
         return self.p_value < PRIOR_CONFLICT_P
 
+    @property
+    def text(self) -> str:
+        """One sentence for the verdict: the disagreement, its size and what to do."""
+        diff = ", ".join(f"{1e3 * v:+.1f}" for v in self.difference_m)
+        pull = float(np.linalg.norm(self.pull_m))
+        return (
+            "The measured lever arm (initialization.translation_m) disagrees with the data: "
+            f"their own estimate differs from it by [{diff}] mm (chi-square "
+            f"{self.statistic:.1f} on {self.dof}, p = {self.p_value:.2g}) and it pulled the "
+            f"translation {1e3 * pull:.1f} mm away from that (the sigmas include this); check "
+            "the measurement, or widen initialization.translation_sigma_m."
+        )
+
+    def covered(self, sigma_m: npt.ArrayLike) -> F64:
+        """(3,) translation sigmas with the pull added in quadrature when the measurement and
+        the data disagree (the estimate is then a compromise the data do not support: covered as
+        far as the prior pulled it from the data's own); unchanged otherwise."""
+        sigma = np.asarray(sigma_m, dtype=np.float64)
+        if not self.disagrees:
+            return sigma.copy()
+        return np.sqrt(sigma**2 + np.square(self.pull_m))
+
+
+def added_variance(raw: npt.ArrayLike, sigma: npt.ArrayLike) -> F64:
+    """What the checks added to each solver variance, ``sigma**2 - raw**2`` (m^2; zero where the
+    solver's sigma is unbounded, unbounded where the checks' is)."""
+    r = np.asarray(raw, dtype=np.float64)
+    s = np.asarray(sigma, dtype=np.float64)
+    bounded = np.isfinite(r)
+    added = np.where(bounded, s**2 - np.where(bounded, r, 0.0) ** 2, 0.0)
+    return np.where(np.isfinite(s), np.maximum(added, 0.0), np.inf)
+
 
 def prior_conflict(
     report: SolverReport,
     prior_sd: Mapping[str, float],
     estimate_m: npt.ArrayLike,
     mean_m: npt.ArrayLike,
+    added_m2: npt.ArrayLike = 0.0,
 ) -> PriorConflict | None:
     """How the measured lever arm (``mean_m``, sigmas ``prior_sd``) compares with the data's own
-    estimate, from the fit's ``report`` at ``estimate_m`` (see :class:`PriorConflict`); None
-    without a prior or when the data determine no translation direction."""
-    if not prior_sd or report.information.information.size == 0:
+    estimate, from the fit's ``report`` at ``estimate_m`` (see :class:`PriorConflict`).
+
+    ``added_m2`` (scalar or (3,), m^2) is what the checks added to the solver's variances of
+    the translation's axes (:func:`added_variance`: the effects held fixed, the split halves,
+    the residuals' chi-square): the data's own estimate is as uncertain as the checks found the
+    result, so its spread grows alike before it is compared with the measurement; where the
+    checks leave a sigma unbounded the data's own estimate is not known and nothing is
+    compared. None without a prior, when the data determine no translation direction or when
+    the checks bound none.
+    """
+    added = np.broadcast_to(np.asarray(added_m2, dtype=np.float64), (3,))
+    if not prior_sd or report.information.information.size == 0 or not np.all(np.isfinite(added)):
         return None
     values, vectors, default, _ = _data_spectrum(report, prior_sd)
     keep = truncation_mask(values, float(report.tsvd_threshold))
@@ -216,7 +259,8 @@ def prior_conflict(
     if dof == 0:
         return None
     difference = moved + pull
-    statistic = float(difference @ np.linalg.solve(data_cov + np.diag(sd**2), difference))
+    total = data_cov + np.diag(added + sd**2)
+    statistic = float(difference @ np.linalg.solve(total, difference))
     return PriorConflict(
         (float(difference[0]), float(difference[1]), float(difference[2])),
         (float(pull[0]), float(pull[1]), float(pull[2])),

@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import (
     CalibrationState,
     FreeParameters,
@@ -19,7 +20,12 @@ from licalib_cli.estimation import (
 )
 from licalib_cli.geometry.so3 import exp as so3_exp
 from licalib_cli.models.intrinsics import LidarIntrinsics
-from licalib_cli.pipeline.joint import _disagreement, _growth, _scatter_factor
+from licalib_cli.pipeline.joint import (
+    _disagreement,
+    _growth,
+    _measured_lever_arm,
+    _scatter_factor,
+)
 from licalib_cli.pipeline.joint_problem import joint_problem, per_segment_blocks, segment_name
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty
 from licalib_cli.pipeline.points import PointSample
@@ -269,3 +275,38 @@ def test_a_measured_lever_arm_is_held_once_for_all_segments(two_segments) -> Non
     prior_cost = 0.5 * float(np.sum(((moved - np.array(mean)) / np.array(sigma)) ** 2))
     cost = sum(p.evaluate(jacobians=False).cost for p in singles)
     assert joint.evaluate(jacobians=False).cost == pytest.approx(cost + prior_cost, rel=1e-10)
+
+
+@pytest.mark.parametrize(
+    ("off_m", "disagrees"),
+    [((0.004, -0.003, 0.002), False), ((0.05, -0.04, 0.0), True)],
+)
+def test_the_joint_estimate_compares_the_measured_lever_arm_with_the_segments_data(
+    two_segments, off_m: tuple[float, float, float], disagrees: bool
+) -> None:
+    """A measured lever arm within its sigma of what the segments' data say passes; one 5 of its
+    sigmas off is found from the joint problem's information (which holds the prior once), the
+    data's own estimate recovered and the translation sigmas widened by the prior's pull."""
+    states, inputs = two_segments
+    mean, sigma = T_TRUE + np.array(off_m), 0.01
+    free = FreeParameters(translation_prior=(tuple(mean), (sigma,) * 3))
+    problem = joint_problem(states, inputs, free)
+    report = solve(problem, LMParams(max_iterations=30))
+    assert report.converged, report.reason
+    cfg = CalibConfig.model_validate(
+        {"initialization": {"translation_m": mean.tolist(), "translation_sigma_m": sigma}}
+    )
+    joint = Extrinsic(R_TRUE, problem.values()[EXT_TRANSLATION].reshape(-1), 0.0)
+    conflict = _measured_lever_arm(report, joint, cfg)
+    assert conflict is not None and conflict.dof == 3
+    assert conflict.disagrees is disagrees
+    # exact measurements: the data's own estimate is the truth
+    np.testing.assert_allclose(conflict.difference_m, T_TRUE - mean, atol=5e-4)
+    widened = conflict.covered(np.full(3, 1e-3))
+    if disagrees:
+        assert "disagrees with the data" in conflict.text
+        np.testing.assert_allclose(widened, np.hypot(1e-3, conflict.pull_m))
+        assert np.all(widened > 1e-3)
+    else:
+        np.testing.assert_array_equal(widened, np.full(3, 1e-3))
+    assert _measured_lever_arm(report, joint, CalibConfig()) is None

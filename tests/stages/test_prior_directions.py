@@ -18,6 +18,7 @@ from licalib_cli.estimation import (
 )
 from licalib_cli.pipeline.checks import _prior_conflict
 from licalib_cli.pipeline.prior_directions import (
+    added_variance,
     data_determined,
     data_translation_std,
     on_prior,
@@ -210,3 +211,28 @@ def test_a_measured_lever_arm_the_data_contradict_is_found_and_its_pull_measured
         assert _prior_conflict(conflict) == []
     plain, estimate = _fit(seen, None, np.zeros(3))
     assert prior_conflict(plain, {}, estimate, np.zeros(3)) is None
+
+
+def test_the_data_estimate_is_as_uncertain_as_the_checks_found_the_result():
+    """What the checks added to the translation's variances widens the data's own estimate before
+    it is compared with the measurement: the 20 mm the data say to 1 mm is 2 sigma when the
+    checks added 10 mm along x, and nothing is compared where they leave a sigma unbounded."""
+    seen = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    wrong = np.array([0.13, 0.19, 0.3])
+    report, estimate = _fit(seen, np.full(3, 0.001), wrong)
+    sd = {n: 0.001 for n in NAMES}
+    at_solver = prior_conflict(report, sd, estimate, wrong, np.zeros(3))
+    assert at_solver is not None and at_solver.disagrees
+    wider = prior_conflict(report, sd, estimate, wrong, np.array([1e-4, 0.0, 0.0]))
+    assert wider is not None and not wider.disagrees
+    assert wider.statistic == pytest.approx(4e-4 / (1e-6 + 1e-4 + 1e-6), rel=1e-4)
+    assert wider.pull_m == at_solver.pull_m  # what the prior did does not change
+    assert prior_conflict(report, sd, estimate, wrong, np.array([0.0, np.inf, 0.0])) is None
+    np.testing.assert_allclose(
+        added_variance([1e-3, 2e-3, np.inf, 1e-3], [2e-3, 2e-3, np.inf, np.inf]),
+        [3e-6, 0.0, np.inf, np.inf],
+    )
+    assert added_variance([np.inf], [1e-3])[0] == 0.0
+    sigma = np.array([1e-3, 2e-3, 3e-3])
+    np.testing.assert_allclose(at_solver.covered(sigma), np.hypot(sigma, at_solver.pull_m))
+    np.testing.assert_array_equal(wider.covered(sigma), sigma)
