@@ -368,6 +368,32 @@ def _entangled_advice(entangled: Entangled | None) -> str:
     )
 
 
+RESTING_COMPONENT = 0.5
+"""A translation axis lies along a direction resting on the measured lever arm when that unit
+direction's component on it exceeds this (60 deg)."""
+
+
+def _resting_advice(sigma_m: F64, limit_m: float, resting: Sequence[OnPrior]) -> str:
+    """Advice when a translation axis above ``limit_m`` lies mostly along a direction the data
+    leave to the measured lever arm: only a better measurement narrows it there."""
+    over = np.isfinite(sigma_m) & (sigma_m > limit_m)
+    along = [
+        r
+        for r in resting
+        if np.any(over & (np.abs(np.asarray(r.direction)) > RESTING_COMPONENT))
+        and r.sigma_m > limit_m
+    ]
+    if not along:
+        return ""
+    widest = max(along, key=lambda r: r.sigma_m)
+    axis = ", ".join(f"{v:.2f}" for v in widest.direction)
+    return (
+        f" Along [{axis}] (IMU frame) it is the measured lever arm's {1e3 * widest.sigma_m:.3g} "
+        "mm (initialization.translation_sigma_m): the data do not determine the translation "
+        "there, so only a more precise measurement (or rotation about more axes) narrows it."
+    )
+
+
 def uncertainty_findings(
     sigma: F64,
     without_effects: F64,
@@ -375,6 +401,7 @@ def uncertainty_findings(
     covered: Sequence[str] = (),
     prior: str | None = None,
     entangled: Entangled | None = None,
+    resting: Sequence[OnPrior] = (),
 ) -> list[Finding]:
     """Sigmas above the ``checks`` limits (5 mm / 0.1 deg / 0.2 ms by default).
 
@@ -382,7 +409,10 @@ def uncertainty_findings(
     by the data) and the IMU priors (``prior``: the block that adds most, None when none do)
     add: when those alone are within the limits, the finding names them instead of the motion
     as the cause. ``entangled`` (:func:`entangled_intrinsics`): the estimated intrinsics that
-    move with the least determined translation axis, named in the translation's finding."""
+    move with the least determined translation axis, named in the translation's finding.
+    ``resting`` (:func:`~licalib_cli.pipeline.prior_directions.on_prior`): the translation
+    directions the data leave to a measured lever arm; an axis above the limit along one is
+    said to be the measurement's."""
     out = []
     t, r, c = sigma[:3], np.degrees(sigma[3:6]), float(sigma[6])
     t_max, r_max = limits.max_translation_sigma_m, limits.max_rotation_sigma_deg
@@ -417,7 +447,8 @@ def uncertainty_findings(
                     bool(np.any(t0[np.isfinite(t0)] > t_max)),
                     " Record with more rotation about all axes (and a quieter IMU).",
                 )
-                + _entangled_advice(entangled),
+                + _entangled_advice(entangled)
+                + _resting_advice(t, t_max, resting),
             )
         )
     finite_r = r[np.isfinite(r)]
@@ -836,6 +867,7 @@ def run_checks(
             "same points (solver sigmas hold them fixed)",
             *why,
         )
+    resting = on_prior(report, prior_sd(cfg))
     conflict = _measured_lever_arm(fit, cfg, raw, sigma)
     if conflict is not None and conflict.disagrees:
         sigma = sigma.copy()
@@ -854,6 +886,7 @@ def run_checks(
         covered,
         _largest_prior(effects, raw),
         entangled_intrinsics(report, sigma[:3]),
+        resting,
     )
     findings += _sensors(sensors)
     findings += _effects(effects, raw)
@@ -878,7 +911,7 @@ def run_checks(
             time_offset_std_s=float(sigma[6]),
         ),
         raw_sigma=raw,
-        observability=observability_of(report, on_prior(report, prior_sd(cfg))),
+        observability=observability_of(report, resting),
         consistency=consistency,
         findings=tuple(findings),
         exit_status=exit_status,

@@ -635,14 +635,16 @@ def _joint_result(
         worst = "warn"
     sigma = unc.vector()
     entangled = entangled_intrinsics(report, sigma[:3])
-    for finding in uncertainty_findings(sigma, sigma, cfg.checks, entangled=entangled):
+    resting = on_prior(report, prior_sd(cfg))
+    for finding in uncertainty_findings(
+        sigma, sigma, cfg.checks, entangled=entangled, resting=resting
+    ):
         worst = "warn" if worst == "pass" else worst
         reasons.append(f"Joint estimate: {finding.text}")
     truncated = tuple(d.text for d in report.truncated)
     if any(any(bk.startswith("ext.") for bk, _ in d.blocks) for d in report.truncated):
         worst = "warn" if worst == "pass" else worst
         reasons += [f"Not observable from the segments together: {t}" for t in truncated]
-    resting = on_prior(report, prior_sd(cfg))
     reasons += [f"Rests on the prior (joint estimate): {r.text}." for r in resting]
     if np.any(own_grow > 1.005) or np.any(scatter > 1.005):
         reasons.append(

@@ -8,6 +8,7 @@ import pytest
 from licalib_cli.config import CalibConfig, ChecksSection, load_config
 from licalib_cli.errors import ConfigError
 from licalib_cli.pipeline.checks import uncertainty_findings
+from licalib_cli.pipeline.prior_directions import OnPrior
 
 
 def _sigma(t_mm: float, r_deg: float, dt_ms: float) -> np.ndarray:
@@ -112,3 +113,23 @@ def test_an_uncertain_translation_names_the_estimated_intrinsics_it_moves_with()
     # the y axis, the largest sigma now, moves with nothing
     sigma[1] = 9e-3
     assert entangled_intrinsics(_report(-0.8), sigma[:3]) is None
+
+
+def test_a_translation_over_the_limit_along_the_measured_lever_arm_says_so() -> None:
+    """On a planar vehicle the vertical takes the measured lever arm's sigma: above the limit,
+    the finding says the data do not determine it there and that a better measurement narrows
+    it; a measurement within the limit, or a direction across the axis over the limit, does not
+    take the blame."""
+    limits = CalibConfig().checks
+    sigma = _sigma(2.0, 0.01, 0.05)
+    sigma[2] = 0.0101  # the vertical, from a 1 cm measurement
+    vertical = OnPrior((0.0, 0.02, 0.9998), 0.01, "ext.translation along [0.00, 0.02, 1.00] ...")
+    (text,) = [f.text for f in uncertainty_findings(sigma, sigma, limits, resting=[vertical])]
+    assert text.startswith("Translation is uncertain (1-sigma up to 10.1 mm")
+    assert "Along [0.00, 0.02, 1.00] (IMU frame) it is the measured lever arm's 10 mm" in text
+    assert "initialization.translation_sigma_m" in text
+    precise = OnPrior(vertical.direction, 0.004, vertical.text)
+    sideways = OnPrior((1.0, 0.0, 0.0), 0.01, vertical.text)
+    for resting in ([], [precise], [sideways]):
+        (text,) = [f.text for f in uncertainty_findings(sigma, sigma, limits, resting=resting)]
+        assert "initialization.translation_sigma_m" not in text
