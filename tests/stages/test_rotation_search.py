@@ -159,6 +159,34 @@ def test_single_axis_motion_takes_the_rotation_from_the_accelerations(tmp_path: 
     found = single_axis_rotation(rec.imu, gyro, odo.refined, 0.0)
     vertical = np.array([0.5, 0.433, 0.75]) / np.linalg.norm([0.5, 0.433, 0.75])
     assert abs(abs(found.axis_imu @ vertical) - 1.0) < 1e-3
+    # Odometry of the same rig: its rotations between scans are the gyro's to a few per cent.
+    assert found.relative_residual < 0.15
+    # Poses of another motion (turning about the LiDAR's axis as much, at other times): the
+    # sensors do not turn together.
+    steps = np.linalg.norm(
+        (
+            Rotation.from_matrix(odo.refined.T_map_lidar[:-1, :3, :3]).inv()
+            * Rotation.from_matrix(odo.refined.T_map_lidar[1:, :3, :3])
+        ).as_rotvec(),
+        axis=1,
+    )
+    angles = np.concatenate([[0.0], np.cumsum(np.random.default_rng(5).permutation(steps))])
+    turned = odo.refined.T_map_lidar.copy()
+    turned[:, :3, :3] = (
+        Rotation.from_rotvec(angles[:, None] * found.axis_lidar)
+        * Rotation.from_matrix(turned[0, :3, :3])
+    ).as_matrix()
+    other = PoseSeries(
+        t_ns=odo.refined.t_ns,
+        T_map_lidar=turned,
+        n_points=odo.refined.n_points,
+        n_keypoints=odo.refined.n_keypoints,
+        threshold_m=odo.refined.threshold_m,
+        deviation_m=odo.refined.deviation_m,
+        deviation_deg=odo.refined.deviation_deg,
+    )
+    with pytest.raises(ExcitationError, match="disagree on how the rig turned"):
+        single_axis_rotation(rec.imu, gyro, other, 0.0)
 
 
 def test_single_axis_rotation_refuses_a_rig_that_does_not_turn(tmp_path: Path) -> None:
