@@ -50,8 +50,8 @@ from licalib_cli.pipeline.prior_directions import (
     PriorConflict,
     added_variance,
     data_determined,
+    lever_arm_conflict,
     on_prior,
-    prior_conflict,
 )
 from licalib_cli.pipeline.schedule import JITTER_FACTOR, MAX_FINAL_ROUNDS, Change, Fit, within
 from licalib_cli.pipeline.settings import NoiseLevels, prior_sd
@@ -743,18 +743,6 @@ def split_floor(split: SplitResult) -> F64:
     return 0.5 * np.sqrt(np.maximum(excess, 0.0))
 
 
-def _measured_lever_arm(fit: Fit, cfg: CalibConfig, raw: F64, sigma: F64) -> PriorConflict | None:
-    """The measured lever arm against the data's own estimate (None without one), that estimate
-    as uncertain as the checks found the result (what they added to the solver's variances of
-    the translation, ``sigma**2 - raw**2``)."""
-    mean = cfg.initialization.translation_m
-    if mean is None:
-        return None
-    return prior_conflict(
-        fit.report, prior_sd(cfg), fit.state.t_imu_lidar, mean, added_variance(raw[:3], sigma[:3])
-    )
-
-
 def _prior_conflict(conflict: PriorConflict | None) -> list[Finding]:
     if conflict is None or not conflict.disagrees:
         return []
@@ -867,8 +855,12 @@ def run_checks(
             "same points (solver sigmas hold them fixed)",
             *why,
         )
-    resting = on_prior(report, prior_sd(cfg))
-    conflict = _measured_lever_arm(fit, cfg, raw, sigma)
+    prior = prior_sd(cfg)
+    resting = on_prior(report, prior)
+    # the data's own estimate as uncertain as the checks found the result
+    conflict = lever_arm_conflict(
+        report, cfg, fit.state.t_imu_lidar, added_variance(raw[:3], sigma[:3])
+    )
     if conflict is not None and conflict.disagrees:
         sigma = sigma.copy()
         sigma[:3] = conflict.covered(sigma[:3])
@@ -876,7 +868,7 @@ def run_checks(
     findings = [Finding("warn", n) for n in notes]
     findings += _prior_conflict(conflict)
     findings += _convergence(fit, cfg, settled_in_sigmas, crawl)
-    findings += _observability(report, prior_sd(cfg))
+    findings += _observability(report, prior)
     covered = [e.score.name for e in effects if effect_to_cover(e, raw)]
     without_effects, _ = inflate(raw, sensors, [], split, fit)
     findings += uncertainty_findings(

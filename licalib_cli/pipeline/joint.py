@@ -82,7 +82,7 @@ from licalib_cli.pipeline.joint_planes import refine_segments_with_planes
 from licalib_cli.pipeline.joint_problem import joint_problem, segment_values
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty
 from licalib_cli.pipeline.points import points_in_global, solver_points, usable_points
-from licalib_cli.pipeline.prior_directions import PriorConflict, on_prior, prior_conflict
+from licalib_cli.pipeline.prior_directions import lever_arm_conflict, on_prior
 from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.pipeline.schedule import cover_truncated
 from licalib_cli.pipeline.segments import _with_range, select_segments
@@ -531,18 +531,6 @@ def _sigma_size(run: CalibrationRun) -> float:
     return v if np.isfinite(v) else float("inf")
 
 
-def _measured_lever_arm(
-    report: SolverReport, joint: Extrinsic, cfg: CalibConfig, added_m2: npt.ArrayLike = 0.0
-) -> PriorConflict | None:
-    """The measured lever arm against the segments' own joint estimate (None without one): the
-    joint problem holds the prior once, so its information holds it once too. ``added_m2``:
-    variances added to the joint solver's (unbounded: nothing is compared)."""
-    mean = cfg.initialization.translation_m
-    if mean is None:
-        return None
-    return prior_conflict(report, prior_sd(cfg), joint.translation, mean, added_m2)
-
-
 def _joint_result(
     runs: Sequence[CalibrationRun],
     windows: Sequence[tuple[float, float]],
@@ -577,8 +565,8 @@ def _joint_result(
     # hold the segments' own (their checks widen the translation by the measurement's pull when
     # it disagrees with them), so they would hide the very disagreement; unbounded sigmas: the
     # data's own estimate is not known
-    conflict = _measured_lever_arm(
-        report, joint, cfg, np.where(np.isfinite(translation_std), 0.0, np.inf)
+    conflict = lever_arm_conflict(
+        report, cfg, joint.translation, np.where(np.isfinite(translation_std), 0.0, np.inf)
     )
     unc = Uncertainty(
         translation_std_m=vec3(

@@ -23,8 +23,10 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from licalib_cli.config import CalibConfig
 from licalib_cli.consistency.distributions import chi2_sf
 from licalib_cli.estimation import CALIBRATION_SCALES
+from licalib_cli.pipeline.settings import prior_sd
 from licalib_cli.residuals import EXT_TRANSLATION
 from licalib_cli.solver.lm import LMParams, SolverReport, observable_coordinates
 from licalib_cli.solver.observability import describe_direction, truncation_mask
@@ -36,6 +38,7 @@ __all__ = [
     "added_variance",
     "data_determined",
     "data_translation_std",
+    "lever_arm_conflict",
     "on_prior",
     "prior_conflict",
 ]
@@ -59,6 +62,11 @@ class OnPrior:
     direction: tuple[float, float, float]
     sigma_m: float
     text: str
+
+
+def _translation_index(names: Sequence[str]) -> list[int]:
+    """Positions of the extrinsic translation's x, y, z among calibration coordinates ``names``."""
+    return [names.index(f"{EXT_TRANSLATION}.{a}") for a in "xyz"]
 
 
 def _data_spectrum(
@@ -105,7 +113,7 @@ def data_translation_std(report: SolverReport, prior_sd: Mapping[str, float]) ->
     names = report.calibration_names
     values, vectors, default, _ = _data_spectrum(report, prior_sd)
     keep = truncation_mask(values, float(report.tsvd_threshold))
-    idx = [names.index(f"{EXT_TRANSLATION}.{a}") for a in "xyz"]
+    idx = _translation_index(names)
     rows = vectors[idx][:, keep]
     variance = np.sum(rows**2 / values[keep], axis=1) * default[idx] ** 2
     return float(np.sqrt(np.max(variance)))
@@ -119,7 +127,7 @@ def on_prior(report: SolverReport, prior_sd: Mapping[str, float]) -> tuple[OnPri
         return ()
     trunc, with_prior = _undetermined(report, prior_sd)
     names = report.calibration_names
-    idx = [names.index(f"{EXT_TRANSLATION}.{a}") for a in "xyz"]
+    idx = _translation_index(names)
     sd = np.array([prior_sd.get(f"{EXT_TRANSLATION}.{a}", np.inf) for a in "xyz"])
     out = []
     for u in trunc.T:
@@ -220,6 +228,21 @@ def added_variance(raw: npt.ArrayLike, sigma: npt.ArrayLike) -> F64:
     return np.where(np.isfinite(s), np.maximum(added, 0.0), np.inf)
 
 
+def lever_arm_conflict(
+    report: SolverReport,
+    cfg: CalibConfig,
+    estimate_m: npt.ArrayLike,
+    added_m2: npt.ArrayLike = 0.0,
+) -> PriorConflict | None:
+    """:func:`prior_conflict` of the configured measured lever arm
+    (``initialization.translation_m`` with ``translation_sigma_m``; None without one) and the
+    fit's ``report`` at ``estimate_m``."""
+    mean = cfg.initialization.translation_m
+    if mean is None:
+        return None
+    return prior_conflict(report, prior_sd(cfg), estimate_m, mean, added_m2)
+
+
 def prior_conflict(
     report: SolverReport,
     prior_sd: Mapping[str, float],
@@ -244,7 +267,7 @@ def prior_conflict(
     values, vectors, default, _ = _data_spectrum(report, prior_sd)
     keep = truncation_mask(values, float(report.tsvd_threshold))
     names = report.calibration_names
-    idx = [names.index(f"{EXT_TRANSLATION}.{a}") for a in "xyz"]
+    idx = _translation_index(names)
     sd = np.array([prior_sd[f"{EXT_TRANSLATION}.{a}"] for a in "xyz"])
     d = default[idx]
     moved = np.asarray(estimate_m, dtype=np.float64) - np.asarray(mean_m, dtype=np.float64)

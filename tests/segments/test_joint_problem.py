@@ -23,12 +23,12 @@ from licalib_cli.models.intrinsics import LidarIntrinsics
 from licalib_cli.pipeline.joint import (
     _disagreement,
     _growth,
-    _measured_lever_arm,
     _scatter_factor,
 )
 from licalib_cli.pipeline.joint_problem import joint_problem, per_segment_blocks, segment_name
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty
 from licalib_cli.pipeline.points import PointSample
+from licalib_cli.pipeline.prior_directions import lever_arm_conflict
 from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.residuals import (
     ACCEL_BIAS,
@@ -296,8 +296,8 @@ def test_the_joint_estimate_compares_the_measured_lever_arm_with_the_segments_da
     cfg = CalibConfig.model_validate(
         {"initialization": {"translation_m": mean.tolist(), "translation_sigma_m": sigma}}
     )
-    joint = Extrinsic(R_TRUE, problem.values()[EXT_TRANSLATION].reshape(-1), 0.0)
-    conflict = _measured_lever_arm(report, joint, cfg)
+    joint = problem.values()[EXT_TRANSLATION].reshape(-1)
+    conflict = lever_arm_conflict(report, cfg, joint)
     assert conflict is not None and conflict.dof == 3
     assert conflict.disagrees is disagrees
     # exact measurements: the data's own estimate is the truth
@@ -309,4 +309,4 @@ def test_the_joint_estimate_compares_the_measured_lever_arm_with_the_segments_da
         assert np.all(widened > 1e-3)
     else:
         np.testing.assert_array_equal(widened, np.full(3, 1e-3))
-    assert _measured_lever_arm(report, joint, CalibConfig()) is None
+    assert lever_arm_conflict(report, CalibConfig(), joint) is None
