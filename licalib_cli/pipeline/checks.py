@@ -278,12 +278,12 @@ gyro-to-IMU rotation's share was 1 % (its characteristic scale is ten times the 
 rotation's), too little to be named."""
 
 ACCELEROMETER_FRAME_ADVICE = (
-    "With the gyro-to-IMU rotation estimated (gyro_rotation in model.imu), the gyro fixes only "
-    "the rotation between the gyro and the LiDAR; the accelerometer alone places the IMU frame, "
-    "from gravity seen at different attitudes and from the rig's accelerations, and this "
-    "recording does not determine it. Record with the rig tilted by tens of degrees about both "
-    "horizontal axes, or drop gyro_rotation from model.imu when the gyro and the accelerometer "
-    "share one frame (as in most IMUs)."
+    "With the gyro-to-IMU rotation estimated (gyro_rotation), the gyro fixes only the rotation "
+    "between the gyro and the LiDAR; the accelerometer alone places the IMU frame, from gravity "
+    "seen at different attitudes and from the rig's accelerations, and this recording does not "
+    "determine it. Record with the rig tilted by tens of degrees about both horizontal axes, or "
+    "leave gyro_rotation out of the model (model.imu) when the gyro and the accelerometer share "
+    "one frame (as in most IMUs)."
 )
 """What to do when an extrinsic direction is not observable because it turns the accelerometer's
 frame (:func:`turns_the_accelerometer_frame`): more rotation about more axes, the generic
