@@ -56,7 +56,7 @@ from licalib_cli.pipeline.prior_directions import (
 from licalib_cli.pipeline.schedule import JITTER_FACTOR, MAX_FINAL_ROUNDS, Change, Fit, within
 from licalib_cli.pipeline.settings import NoiseLevels, prior_sd
 from licalib_cli.pipeline.split import COORDINATES, SplitResult, split_half
-from licalib_cli.residuals import EXT_ROTATION, GYRO_ROTATION
+from licalib_cli.residuals import ACCEL_MISALIGNMENT, EXT_ROTATION, GYRO_ROTATION
 from licalib_cli.results import vec3
 from licalib_cli.sections import (
     SPLIT_LABELS,
@@ -73,13 +73,15 @@ from licalib_cli.solver.lm import SolverReport
 from licalib_cli.solver.observability import DirectionDescription
 
 __all__ = [
-    "ACCELEROMETER_FRAME_ADVICE",
+    "ACCELEROMETER_FRAME_BLOCKS",
     "ACCELEROMETER_FRAME_SHARE",
     "ENTANGLED_CORRELATION",
     "SPLIT_HALF_P",
     "Checks",
     "Entangled",
     "Finding",
+    "accelerometer_frame_advice",
+    "accelerometer_frame_partners",
     "check",
     "correlated_with",
     "entangled_intrinsics",
@@ -90,7 +92,6 @@ __all__ = [
     "raw_uncertainty",
     "rejudge",
     "run_checks",
-    "turns_the_accelerometer_frame",
     "uncertainty_findings",
 ]
 
@@ -269,42 +270,69 @@ def _extra(fit: Fit) -> str:
 
 
 ACCELEROMETER_FRAME_SHARE = 0.5
-"""A truncated direction whose gyro-to-IMU rotation part is at least this fraction of its
-extrinsic rotation part (radians both) turns the accelerometer's frame against the gyro's and
-the LiDAR's. On the diagnose benchmark's seed 809 (OS1-64 shake, the gyro-to-IMU rotation
-1.7 deg per angle, estimated) the truncated direction held 0.99 mrad of gyro-to-IMU rotation
-per 1.00 mrad of extrinsic rotation, while in the scaled coordinates the truncation works in the
-gyro-to-IMU rotation's share was 1 % (its characteristic scale is ten times the extrinsic
-rotation's), too little to be named."""
+"""An estimated block of the accelerometer's frame (:data:`ACCELEROMETER_FRAME_BLOCKS`) whose
+part of a truncated direction is at least this fraction of the direction's extrinsic rotation
+part (radians both) turns the accelerometer's frame against the gyro's and the LiDAR's with it.
+On the diagnose benchmark's seed 809 (OS1-64 shake, the gyro-to-IMU rotation 1.7 deg per angle,
+estimated) the truncated direction held 0.99 mrad of gyro-to-IMU rotation per 1.00 mrad of
+extrinsic rotation, while in the scaled coordinates the truncation works in the gyro-to-IMU
+rotation's share was 1 % (its characteristic scale is ten times the extrinsic rotation's), too
+little to be named; on 20 s shakes with every intrinsic estimated (trust bags 4452, 4456, 4458)
+the accelerometer's misalignment held 0.8-1.4 times the extrinsic rotation's part."""
 
-ACCELEROMETER_FRAME_ADVICE = (
-    "With the gyro-to-IMU rotation estimated (gyro_rotation), the gyro fixes only the rotation "
-    "between the gyro and the LiDAR; the accelerometer alone places the IMU frame, from gravity "
-    "seen at different attitudes and from the rig's accelerations, and this recording does not "
-    "determine it. Record with the rig tilted by tens of degrees about both horizontal axes, or "
-    "leave gyro_rotation out of the model (model.imu) when the gyro and the accelerometer share "
-    "one frame (as in most IMUs)."
-)
-"""What to do when an extrinsic direction is not observable because it turns the accelerometer's
-frame (:func:`turns_the_accelerometer_frame`): more rotation about more axes, the generic
-advice, does not help a rig that rotated about all three axes without tilting much."""
+ACCELEROMETER_FRAME_BLOCKS: Mapping[str, str] = {
+    GYRO_ROTATION: "the gyro-to-IMU rotation",
+    ACCEL_MISALIGNMENT: "the accelerometer's misalignment",
+}
+"""The estimated blocks that turn the accelerometer's frame against the gyro's and the LiDAR's
+together with the extrinsic rotation, and how a finding calls them."""
 
 
-def turns_the_accelerometer_frame(report: SolverReport, direction: DirectionDescription) -> bool:
-    """Whether a truncated direction of ``report`` rotates the extrinsic and the gyro-to-IMU
-    rotation together (:data:`ACCELEROMETER_FRAME_SHARE`): the IMU frame turned against the gyro
-    and the LiDAR, which only the accelerometer sees. Compared in the coordinates' own units
-    (radians), not in the scaled ones the truncation and the direction's text use."""
+def accelerometer_frame_partners(
+    report: SolverReport, direction: DirectionDescription
+) -> tuple[str, ...]:
+    """The blocks of :data:`ACCELEROMETER_FRAME_BLOCKS` that a truncated direction of ``report``
+    turns together with the extrinsic rotation (:data:`ACCELEROMETER_FRAME_SHARE`): the IMU frame
+    turned against the gyro and the LiDAR, which only the accelerometer sees. Compared in the
+    coordinates' own units (radians), not in the scaled ones the truncation and the direction's
+    text use. Empty when the direction has no extrinsic rotation part."""
     names = report.calibration_names
     moved = np.asarray(direction.vector, dtype=np.float64) * np.asarray(
         report.information.scale, dtype=np.float64
     )
-    ext = [i for i, n in enumerate(names) if n.startswith(EXT_ROTATION + ".")]
-    gyro = [i for i, n in enumerate(names) if n.startswith(GYRO_ROTATION + ".")]
-    if not ext or not gyro:
-        return False
-    e, g = float(np.linalg.norm(moved[ext])), float(np.linalg.norm(moved[gyro]))
-    return e > 0.0 and g >= ACCELEROMETER_FRAME_SHARE * e
+
+    def part(block: str) -> float:
+        index = [i for i, n in enumerate(names) if n.startswith(block + ".")]
+        return float(np.linalg.norm(moved[index])) if index else 0.0
+
+    ext = part(EXT_ROTATION)
+    if ext <= 0.0:
+        return ()
+    return tuple(
+        b for b in ACCELEROMETER_FRAME_BLOCKS if part(b) >= ACCELEROMETER_FRAME_SHARE * ext
+    )
+
+
+def _short(block: str) -> str:
+    return block.rsplit(".", 1)[-1]
+
+
+def accelerometer_frame_advice(partners: Sequence[str]) -> str:
+    """What to do when an extrinsic direction is not observable because it turns the
+    accelerometer's frame with ``partners`` (:func:`accelerometer_frame_partners`): more rotation
+    about more axes, the generic advice, does not help a rig that rotated about all three axes
+    without tilting much."""
+    said = " and ".join(ACCELEROMETER_FRAME_BLOCKS[b] for b in partners)
+    names = " and ".join(_short(b) for b in partners)
+    them = "them" if len(partners) > 1 else "it"
+    return (
+        f"With {said} estimated ({names}), the extrinsic rotation trades off with {them}: the "
+        "accelerometer alone places the IMU frame against the gyro and the LiDAR, from gravity "
+        "seen at different attitudes and from the rig's accelerations, and this recording does "
+        "not determine it. Record with the rig tilted by tens of degrees about both horizontal "
+        f"axes, or leave {names} out of the model (model.imu) when the IMU's own calibration "
+        f"covers {them} (most IMUs' gyro and accelerometer share one frame)."
+    )
 
 
 def _observability(report: SolverReport, prior: Mapping[str, float]) -> list[Finding]:
@@ -312,7 +340,8 @@ def _observability(report: SolverReport, prior: Mapping[str, float]) -> list[Fin
     # a prior's directions are never truncated (its scale widens to leave them in: estimation);
     # those the data leave to it are listed in ``observability`` (observability_of)
     ext_truncated = [d for d in report.truncated if any(b.startswith("ext.") for b, _ in d.blocks)]
-    accelerometer = any(turns_the_accelerometer_frame(report, d) for d in ext_truncated)
+    found = {b for d in ext_truncated for b in accelerometer_frame_partners(report, d)}
+    partners = tuple(b for b in ACCELEROMETER_FRAME_BLOCKS if b in found)
     if ext_truncated:
         out.extend(
             Finding("warn", f"Not observable from this data: {d.text}") for d in ext_truncated
@@ -320,8 +349,8 @@ def _observability(report: SolverReport, prior: Mapping[str, float]) -> list[Fin
         out.append(
             Finding(
                 "warn",
-                ACCELEROMETER_FRAME_ADVICE
-                if accelerometer
+                accelerometer_frame_advice(partners)
+                if partners
                 else "Record with rotation about more axes, or set what is not observable from a "
                 "measurement (initialization.translation_m, rotation_rpy_deg, time_offset_s).",
             )
@@ -336,8 +365,10 @@ def _observability(report: SolverReport, prior: Mapping[str, float]) -> list[Fin
                 f"The data determine only {n_observable} of the {len(ext)} extrinsic "
                 "coordinates; the result is mostly the initial guess. "
                 + (
-                    "The extrinsic rotation trades off with the gyro-to-IMU rotation (below)."
-                    if accelerometer
+                    "The extrinsic rotation trades off with "
+                    + " and ".join(ACCELEROMETER_FRAME_BLOCKS[b] for b in partners)
+                    + " (below)."
+                    if partners
                     else "Record 10-60 s with rotation about all three axes."
                 ),
             ),

@@ -1,9 +1,10 @@
 """An extrinsic direction the data do not determine: the finding says what would determine it.
 
-With the gyro-to-IMU rotation estimated, the rotation that turns the accelerometer's frame
-against the gyro and the LiDAR is seen by the accelerometer alone (gravity from different
-attitudes). A shaken rig that hardly tilts leaves it undetermined although it rotated about all
-three axes, so "record with rotation about more axes" does not help there.
+With the gyro-to-IMU rotation or the accelerometer's misalignment estimated, the rotation that
+turns the accelerometer's frame against the gyro and the LiDAR is seen by the accelerometer alone
+(gravity from different attitudes). A shaken rig that hardly tilts leaves it undetermined
+although it rotated about all three axes, so "record with rotation about more axes" does not
+help there.
 """
 
 from __future__ import annotations
@@ -16,17 +17,24 @@ import pytest
 
 from licalib_cli.estimation import CALIBRATION_SCALES
 from licalib_cli.pipeline.checks import (
-    ACCELEROMETER_FRAME_ADVICE,
     _observability,
-    turns_the_accelerometer_frame,
+    accelerometer_frame_advice,
+    accelerometer_frame_partners,
 )
-from licalib_cli.residuals import EXT_ROTATION, EXT_TRANSLATION, GYRO_ROTATION, TIME_OFFSET
+from licalib_cli.residuals import (
+    ACCEL_MISALIGNMENT,
+    EXT_ROTATION,
+    EXT_TRANSLATION,
+    GYRO_ROTATION,
+    TIME_OFFSET,
+)
 from licalib_cli.solver.lm import NOT_OBSERVABLE_WEIGHT, SolverReport
 from licalib_cli.solver.observability import describe_direction
 
 EXT = [f"{EXT_ROTATION}.r{a}" for a in "xyz"] + [f"{EXT_TRANSLATION}.{a}" for a in "xyz"]
 EXT = [*EXT, TIME_OFFSET]
 GYRO = [f"{GYRO_ROTATION}.r{a}" for a in "xyz"]
+MISALIGNMENT = [f"{ACCEL_MISALIGNMENT}.{a}" for a in ("xy", "xz", "yz")]
 TZ = f"{EXT_TRANSLATION}.z"
 TILT = {
     f"{EXT_ROTATION}.rx": -0.17e-3,
@@ -70,23 +78,53 @@ def test_the_accelerometer_frame_is_named_though_the_text_shows_only_the_extrins
     report = _report(moved, EXT + GYRO)
     (direction,) = report.truncated
     assert GYRO_ROTATION not in direction.text  # what the user would see without the check
-    assert turns_the_accelerometer_frame(report, direction)
+    assert accelerometer_frame_partners(report, direction) == (GYRO_ROTATION,)
     texts = [f.text for f in _observability(report, {})]
-    assert ACCELEROMETER_FRAME_ADVICE in texts
+    advice = accelerometer_frame_advice((GYRO_ROTATION,))
+    assert advice in texts
+    assert "the gyro-to-IMU rotation estimated (gyro_rotation)" in advice
+    assert "leave gyro_rotation out of the model (model.imu)" in advice
     assert not any("rotation about more axes" in t for t in texts)
     assert not any("rotation about all three axes" in t for t in texts)
     (first,) = (t for t in texts if t.startswith("The data determine only"))
-    assert "trades off with the gyro-to-IMU rotation" in first
+    assert "trades off with the gyro-to-IMU rotation (below)" in first
+
+
+def test_the_accelerometers_misalignment_turns_its_frame_too() -> None:
+    """Trust bag 4456 (20 s VLP-16 shake, every intrinsic estimated): the truncated direction
+    held the accelerometer's misalignment [0.80, -0.09, 0.01] with the extrinsic rotation [0.31,
+    0.50, -0.05] (mrad both) and a WARN told the user to rotate about more axes."""
+    moved = {
+        f"{ACCEL_MISALIGNMENT}.xy": 0.80e-3,
+        f"{ACCEL_MISALIGNMENT}.xz": -0.09e-3,
+        f"{ACCEL_MISALIGNMENT}.yz": 0.01e-3,
+        f"{EXT_ROTATION}.rx": 0.31e-3,
+        f"{EXT_ROTATION}.ry": 0.50e-3,
+        f"{EXT_ROTATION}.rz": -0.05e-3,
+    }
+    report = _report(moved, EXT + GYRO + MISALIGNMENT)
+    (direction,) = report.truncated
+    assert accelerometer_frame_partners(report, direction) == (ACCEL_MISALIGNMENT,)
+    texts = [f.text for f in _observability(report, {})]
+    advice = accelerometer_frame_advice((ACCEL_MISALIGNMENT,))
+    assert advice in texts
+    assert "the accelerometer's misalignment estimated (accel_misalignment)" in advice
+    assert not any("rotation about more axes" in t for t in texts)
+    both = accelerometer_frame_advice((GYRO_ROTATION, ACCEL_MISALIGNMENT))
+    assert (
+        "(gyro_rotation and accel_misalignment), the extrinsic rotation trades off with them"
+        in (both)
+    )
 
 
 @pytest.mark.parametrize(
     ("moved", "names"),
     [
         # the extrinsic rotation alone: the motion's fault
-        ({**TILT, TZ: -3e-4}, EXT + GYRO),
+        ({**TILT, TZ: -3e-4}, EXT + GYRO + MISALIGNMENT),
         # a gyro-to-IMU part far smaller than the extrinsic one
         ({**TILT, f"{GYRO_ROTATION}.ry": -0.2e-3, TZ: -3e-4}, EXT + GYRO),
-        # the gyro-to-IMU rotation not estimated
+        # neither block estimated
         ({**TILT, TZ: -3e-4}, EXT),
     ],
 )
@@ -95,8 +133,8 @@ def test_other_directions_keep_the_advice_on_motion(
 ) -> None:
     report = _report(moved, names)
     (direction,) = report.truncated
-    assert not turns_the_accelerometer_frame(report, direction)
+    assert accelerometer_frame_partners(report, direction) == ()
     texts = [f.text for f in _observability(report, {})]
-    assert ACCELEROMETER_FRAME_ADVICE not in texts
+    assert not any(t.startswith("With the") for t in texts)
     assert any("rotation about more axes" in t for t in texts)
     assert any("rotation about all three axes" in t for t in texts)
