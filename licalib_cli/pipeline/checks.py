@@ -280,12 +280,12 @@ rotation's share was 1 % (its characteristic scale is ten times the extrinsic ro
 little to be named; on 20 s shakes with every intrinsic estimated (trust bags 4452, 4456, 4458)
 the accelerometer's misalignment held 0.8-1.4 times the extrinsic rotation's part."""
 
-ACCELEROMETER_FRAME_BLOCKS: Mapping[str, str] = {
-    GYRO_ROTATION: "the gyro-to-IMU rotation",
-    ACCEL_MISALIGNMENT: "the accelerometer's misalignment",
+ACCELEROMETER_FRAME_BLOCKS: Mapping[str, tuple[str, str]] = {
+    GYRO_ROTATION: ("the gyro-to-IMU rotation", "gyro_rotation"),
+    ACCEL_MISALIGNMENT: ("the accelerometer's misalignment", "accel_misalignment"),
 }
 """The estimated blocks that turn the accelerometer's frame against the gyro's and the LiDAR's
-together with the extrinsic rotation, and how a finding calls them."""
+together with the extrinsic rotation: how a finding calls each, and its name in ``model.imu``."""
 
 
 def accelerometer_frame_partners(
@@ -313,8 +313,10 @@ def accelerometer_frame_partners(
     )
 
 
-def _short(block: str) -> str:
-    return block.rsplit(".", 1)[-1]
+def _blocks_said(partners: Sequence[str], which: int = 0) -> str:
+    """``partners`` (:data:`ACCELEROMETER_FRAME_BLOCKS`) as a finding calls them (``which`` 0)
+    or by their ``model.imu`` names (1), joined by "and"."""
+    return " and ".join(ACCELEROMETER_FRAME_BLOCKS[b][which] for b in partners)
 
 
 def accelerometer_frame_advice(partners: Sequence[str]) -> str:
@@ -322,8 +324,7 @@ def accelerometer_frame_advice(partners: Sequence[str]) -> str:
     accelerometer's frame with ``partners`` (:func:`accelerometer_frame_partners`): more rotation
     about more axes, the generic advice, does not help a rig that rotated about all three axes
     without tilting much."""
-    said = " and ".join(ACCELEROMETER_FRAME_BLOCKS[b] for b in partners)
-    names = " and ".join(_short(b) for b in partners)
+    said, names = _blocks_said(partners), _blocks_said(partners, 1)
     them = "them" if len(partners) > 1 else "it"
     return (
         f"With {said} estimated ({names}), the extrinsic rotation trades off with {them}: the "
@@ -365,9 +366,7 @@ def _observability(report: SolverReport, prior: Mapping[str, float]) -> list[Fin
                 f"The data determine only {n_observable} of the {len(ext)} extrinsic "
                 "coordinates; the result is mostly the initial guess. "
                 + (
-                    "The extrinsic rotation trades off with "
-                    + " and ".join(ACCELEROMETER_FRAME_BLOCKS[b] for b in partners)
-                    + " (below)."
+                    f"The extrinsic rotation trades off with {_blocks_said(partners)} (below)."
                     if partners
                     else "Record 10-60 s with rotation about all three axes."
                 ),
