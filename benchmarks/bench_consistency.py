@@ -128,6 +128,7 @@ def cases(
 
 from _effects import EFFECTS, effect_spec_kwargs  # noqa: E402
 from _information import information_bound, outside_limits  # noqa: E402
+from _motion import add_tilt_option, tilt_spec_kwargs  # noqa: E402
 from _noise import add_noise_options, noise_spec_kwargs  # noqa: E402
 
 
@@ -167,6 +168,7 @@ def one_run(case: dict, workdir: Path) -> dict:
         random_time_offset=True,
         intrinsics=case["intrinsics"],
         **({"mounting": case["mounting"]} if "mounting" in case else {}),
+        **tilt_spec_kwargs(case),
         **kwargs,
     )
     t0 = time.perf_counter()
@@ -344,6 +346,7 @@ def main() -> None:
         "per seed) as initialization.translation_m with translation_sigma_m: SIGMA; on the "
         "figure-8 the translation error then counts the vertical too",
     )
+    add_tilt_option(p)
     p.add_argument("--list", action="store_true", help="print the cases and exit")
     p.add_argument("--jobs", type=int, default=1, help="runs at a time")
     p.add_argument("--json", default=None, help="also write the rows to this JSON file")
@@ -366,6 +369,7 @@ def main() -> None:
             "range_noise": args.range_noise,
             "noise_free": args.noise_free,
             "duration": args.duration,
+            "tilt_deg": args.tilt_deg,
             **({"lever_arm_prior": args.lever_arm_prior} if args.lever_arm_prior else {}),
         }
         for c in cases(args.first_seed, tuple(args.lidars), tuple(args.scenarios))

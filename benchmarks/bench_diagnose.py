@@ -43,6 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _effects import INTRINSIC_EFFECTS, SIMULATOR_EFFECTS
 from _information import information_bound, outside_limits
+from _motion import add_tilt_option, tilt_spec_kwargs
 
 SINGLE = [*INTRINSIC_EFFECTS, *SIMULATOR_EFFECTS]
 PAIRS = [
@@ -204,6 +205,7 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
         seed=case["seed"],
         intrinsics="none",
         random_time_offset=True,
+        **tilt_spec_kwargs(case),
         **kwargs,
     )
     out = simulate(spec, workdir / f"run{case['seed']}", force=True)
@@ -331,6 +333,8 @@ def main() -> None:
     p.add_argument("--json", default=None)
     p.add_argument("--jsonl", default=None, help="append each row to this file as it comes")
     p.add_argument("--skip", default="", help="seeds not to run (comma separated)")
+    p.add_argument("--seeds", type=int, nargs="+", default=None, help="run only these seeds")
+    add_tilt_option(p)
     p.add_argument(
         "--first-seed",
         type=int,
@@ -352,7 +356,7 @@ def main() -> None:
         print(json.dumps(row))
         return
     todo = [
-        c
+        {**c, "tilt_deg": args.tilt_deg}
         for c in cases(args.first_seed)
         if (
             args.only is None
@@ -360,6 +364,7 @@ def main() -> None:
             or (args.only == "clean" and not c["effects"])
         )
         and str(c["seed"]) not in args.skip.split(",")
+        and (args.seeds is None or c["seed"] in args.seeds)
     ]
     if args.list:
         for c in todo:

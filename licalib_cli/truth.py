@@ -53,6 +53,8 @@ class Scenario(Section):
         bursts_s: ``[start, end]`` of each burst of motion, s.
         mounting: figure-8 only: the mounting of the rig on the robot.
         vertical_in_imu: figure-8 only: the robot's vertical in the IMU frame.
+        tilt_deg: shake only: the amplitude of the slow tilt added about each horizontal axis,
+            deg (absent without one).
     """
 
     name: str
@@ -60,6 +62,7 @@ class Scenario(Section):
     bursts_s: tuple[tuple[float, ...], ...] = ()
     mounting: str | None = None
     vertical_in_imu: Vec3 | None = None
+    tilt_deg: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {k: v for k, v in super().to_dict().items() if v is not None}

@@ -103,6 +103,15 @@ def simulate_command(
     mounting: Annotated[
         Mounting, typer.Option("--mounting", help="Figure-8 mounting case.", rich_help_panel=_SCENE)
     ] = Mounting.A,
+    tilt_deg: Annotated[
+        float,
+        typer.Option(
+            "--tilt-deg",
+            help="Shake only: add a slow tilt of this amplitude about each horizontal axis, deg "
+            "(gravity seen from attitudes tens of degrees apart).",
+            rich_help_panel=_SCENE,
+        ),
+    ] = 0.0,
     lidar: Annotated[
         LidarKind, typer.Option("--lidar", help="LiDAR model.", rich_help_panel=_SENSORS)
     ] = LidarKind.VLP16,
@@ -328,6 +337,7 @@ def simulate_command(
         seed=seed,
         noise_seed=noise_seed,
         mounting=mounting,
+        tilt_deg=tilt_deg,
         imu_rate_hz=imu_rate,
         lidar_rate_hz=lidar_rate,
         translation=tuple(translation),  # type: ignore[arg-type]

@@ -7,7 +7,9 @@
   robot's origin. ``R_B_I`` is the smallest rotation doing so.
 * ``shake``: hand-held shaking around (2.5, 5, 1.5): per coordinate a sum of four sinusoids with
   random frequencies in 0.2-2 Hz and random phases, amplitudes bounded in value and in
-  acceleration/angular rate.
+  acceleration/angular rate. ``tilt_deg`` adds a slow tilt about each horizontal axis (one
+  sinusoid per axis at 0.1-0.2 Hz, random phase), so the accelerometer sees gravity from attitudes
+  tens of degrees apart (the shake alone turns it by 6-10 deg RMS).
 * ``walk``: calm walking on an ellipse around (2.5, 5) at 1.4 m (one lap in 40 s, heading along
   the path, gait bob and sway) with short shaking bursts (3-6 s, every 15-30 s) whose intervals
   are returned so they can be written to ``truth.yaml``.
@@ -34,6 +36,7 @@ MOUNTING_VERTICAL = {
 }
 
 SHAKE_CENTER = (2.5, 5.0, 1.5)
+TILT_FREQUENCY_HZ = (0.1, 0.2)
 WALK_CENTER = (2.5, 5.0, 1.4)
 WALK_RADII = (4.0, 3.0)
 WALK_LAP_S = 40.0
@@ -133,14 +136,20 @@ def _random_sines(
     return Signal.sines(u * scale, omega, phase, offset=offset, window=window)
 
 
-def shake(rng: np.random.Generator) -> EulerTrajectory:
-    """Random hand-held shaking (smooth, seed-driven)."""
+def shake(rng: np.random.Generator, tilt_rad: float = 0.0) -> EulerTrajectory:
+    """Random hand-held shaking (smooth, seed-driven), with a slow tilt of ``tilt_rad`` about
+    each horizontal axis when positive (drawn after the shaking, which it leaves unchanged)."""
     fr = (0.2, 2.0)
     pos = tuple(_random_sines(rng, 4, fr, 0.35, 5.0, 2, offset=c) for c in SHAKE_CENTER)
     yaw0 = float(rng.uniform(-np.pi, np.pi))
     rx = _random_sines(rng, 4, fr, 0.5, 2.5, 1)
     ry = _random_sines(rng, 4, fr, 0.5, 2.5, 1)
     rz = _random_sines(rng, 4, fr, 0.9, 2.5, 1, offset=yaw0)
+    if tilt_rad > 0.0:
+        omega = 2 * np.pi * rng.uniform(*TILT_FREQUENCY_HZ, size=2)
+        phase = rng.uniform(0.0, 2 * np.pi, size=2)
+        rx = rx + Signal.sines([tilt_rad], omega[0], phase[0])
+        ry = ry + Signal.sines([tilt_rad], omega[1], phase[1])
     return EulerTrajectory(position=pos, euler=(rx, ry, rz))  # type: ignore[arg-type]
 
 
@@ -198,7 +207,7 @@ def make_motion(spec: SimulationSpec, rng: np.random.Generator) -> ScenarioMotio
         v = MOUNTING_VERTICAL[spec.mounting]
         return ScenarioMotion(figure8(spec.mounting), none, v / np.linalg.norm(v))
     if spec.scenario is Scenario.SHAKE:
-        return ScenarioMotion(shake(rng), none)
+        return ScenarioMotion(shake(rng, float(np.radians(spec.tilt_deg))), none)
     if spec.scenario is Scenario.TRANSLATION:
         return ScenarioMotion(translation(), none)
     traj, bursts = walk(rng, spec.resolved_duration_s)

@@ -3,7 +3,7 @@
 ``truth.yaml`` is a :class:`~licalib_cli.truth.Truth`: the true values with the keys of a result
 file (schema v1: ``extrinsic``, ``imu_intrinsics``, ``lidar_intrinsics``) and these sections::
 
-    scenario: {name, duration_s, mounting, vertical_in_imu, bursts_s: [[t0, t1], ...]}
+    scenario: {name, duration_s, mounting, vertical_in_imu, tilt_deg, bursts_s: [[t0, t1], ...]}
     seed: 0
     simulation:
       gravity_world: [0, 0, -9.81]                # g_W, m/s^2
@@ -186,6 +186,8 @@ def build_truth(
             mounting=spec.mounting.value,
             vertical_in_imu=_vec3(setup.motion.vertical_in_imu),
         )
+    if spec.tilt_deg > 0.0:
+        scenario = replace(scenario, tilt_deg=float(spec.tilt_deg))
     imu = tr.SimulatedImu(
         topic=spec.imu_topic,
         frame_id=spec.imu_frame,

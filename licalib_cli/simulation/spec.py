@@ -114,6 +114,8 @@ EFFECT_IMU_CLOCK_DRIFT_PPM = EFFECT_SIZES[Effect.IMU_CLOCK_DRIFT].size
 """IMU clock drift of the ``imu_clock_drift`` effect, ppm (IMU stamps run fast)."""
 EFFECT_POINT_TIME_ERROR = EFFECT_SIZES[Effect.LIDAR_POINT_TIME].size
 """Per-point time error of the ``lidar_point_time`` effect (fraction of the time in the sweep)."""
+MAX_TILT_DEG = 60.0
+"""Largest ``tilt_deg`` (the rig stays upright enough for the room's floor and walls)."""
 RANDOM_TIME_OFFSET_MAX_S = 0.05
 """``random_time_offset`` draws the time offset uniformly in +-this, s."""
 
@@ -135,6 +137,9 @@ class SimulationSpec:
             noise and dropouts); None: ``seed``. Another noise seed with the same ``seed`` draws
             new noise for the same motion, mounting and intrinsics (a Monte Carlo over noise).
         mounting: figure-8 mounting case (ignored by the other scenarios).
+        tilt_deg: shake only: a slow tilt of this amplitude added about each horizontal axis
+            (one sinusoid per axis at 0.1-0.2 Hz, drawn from the seed), deg; 0 for none. The
+            accelerometer then sees gravity from attitudes tens of degrees apart.
         imu_rate_hz: IMU sample rate.
         lidar_rate_hz: sweeps per second.
         translation: ``t`` of ``T_imu_lidar`` (LiDAR origin in the IMU frame), m.
@@ -189,6 +194,7 @@ class SimulationSpec:
     seed: int = 0
     noise_seed: int | None = None
     mounting: Mounting = Mounting.A
+    tilt_deg: float = 0.0
     imu_rate_hz: float = 400.0
     lidar_rate_hz: float = 10.0
     translation: Vec3 = (0.3, 0.15, 0.05)
@@ -300,6 +306,15 @@ class SimulationSpec:
                 "--imu-clock-drift-ppm must be below 10000 in magnitude.",
             ),
             (self.gravity > 0, "gravity must be positive."),
+            (
+                0.0 <= self.tilt_deg <= MAX_TILT_DEG,
+                f"--tilt-deg {self.tilt_deg} must be in [0, {MAX_TILT_DEG:g}] degrees.",
+            ),
+            (
+                self.tilt_deg == 0.0 or self.scenario is Scenario.SHAKE,
+                f"--tilt-deg adds a tilt to the shake; the {self.scenario.value} has its own "
+                "attitude: drop --tilt-deg or pass --scenario shake.",
+            ),
         ]
         name = self.lidar.display_name
         if self.lidar.is_velodyne:

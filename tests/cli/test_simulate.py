@@ -72,6 +72,22 @@ def test_simulate_smoke(tmp_path: Path) -> None:
     assert again_truth.extrinsic.translation.tolist() == [-0.1, 0.2, 0.05]
 
 
+def test_tilted_shake_records_its_tilt(tmp_path: Path) -> None:
+    out_dir = tmp_path / "tilted"
+    args = ["simulate", str(out_dir), "--scenario", "shake", "--duration", "1", "--tilt-deg", "25"]
+    result = CliRunner().invoke(_app(), args)
+    assert result.exit_code == 0, result.output
+    truth = Truth.load(out_dir / "truth.yaml")
+    assert truth.scenario is not None and truth.scenario.tilt_deg == 25.0
+    assert truth.simulation is not None and "--tilt-deg 25.0" in truth.simulation.command_line
+    plain = tmp_path / "plain"
+    plain_args = ["simulate", str(plain), "--scenario", "shake", "--duration", "1"]
+    assert CliRunner().invoke(_app(), plain_args).exit_code == 0
+    # the key is absent without a tilt (truth files of earlier runs read the same)
+    assert "tilt_deg" not in (plain / "truth.yaml").read_text()
+    assert Truth.load(plain / "truth.yaml").scenario.tilt_deg is None  # type: ignore[union-attr]
+
+
 def test_invalid_option_is_a_clear_error(tmp_path: Path) -> None:
     result = CliRunner().invoke(_app(), ["simulate", str(tmp_path), "--duration", "-1"])
     assert isinstance(result.exception, ConfigError)
