@@ -313,6 +313,19 @@ def accelerometer_frame_partners(
     )
 
 
+def extrinsic_truncated(
+    report: SolverReport,
+) -> tuple[tuple[DirectionDescription, ...], tuple[str, ...]]:
+    """The truncated directions of ``report`` that move the extrinsic, and the blocks of
+    :data:`ACCELEROMETER_FRAME_BLOCKS` any of them turns with the extrinsic rotation
+    (:func:`accelerometer_frame_partners`), in that mapping's order."""
+    directions = tuple(
+        d for d in report.truncated if any(b.startswith("ext.") for b, _ in d.blocks)
+    )
+    found = {b for d in directions for b in accelerometer_frame_partners(report, d)}
+    return directions, tuple(b for b in ACCELEROMETER_FRAME_BLOCKS if b in found)
+
+
 def _blocks_said(partners: Sequence[str], which: int = 0) -> str:
     """``partners`` (:data:`ACCELEROMETER_FRAME_BLOCKS`) as a finding calls them (``which`` 0)
     or by their ``model.imu`` names (1), joined by "and"."""
@@ -340,9 +353,7 @@ def _observability(report: SolverReport, prior: Mapping[str, float]) -> list[Fin
     out: list[Finding] = []
     # a prior's directions are never truncated (its scale widens to leave them in: estimation);
     # those the data leave to it are listed in ``observability`` (observability_of)
-    ext_truncated = [d for d in report.truncated if any(b.startswith("ext.") for b, _ in d.blocks)]
-    found = {b for d in ext_truncated for b in accelerometer_frame_partners(report, d)}
-    partners = tuple(b for b in ACCELEROMETER_FRAME_BLOCKS if b in found)
+    ext_truncated, partners = extrinsic_truncated(report)
     if ext_truncated:
         out.extend(
             Finding("warn", f"Not observable from this data: {d.text}") for d in ext_truncated

@@ -72,8 +72,10 @@ from licalib_cli.pipeline import CalibrationRun, calibrate
 from licalib_cli.pipeline.assemble import extra_terms
 from licalib_cli.pipeline.checks import (
     COVER_P_VALUE,
+    accelerometer_frame_advice,
     effect_to_cover,
     entangled_intrinsics,
+    extrinsic_truncated,
     intrinsics_uncertainty,
     prior_variance,
     uncertainty_findings,
@@ -531,6 +533,20 @@ def _sigma_size(run: CalibrationRun) -> float:
     return v if np.isfinite(v) else float("inf")
 
 
+def joint_truncation_reasons(report: SolverReport) -> list[str]:
+    """The joint verdict's reasons for the extrinsic directions the segments together do not
+    determine: every truncated direction once one of them moves the extrinsic, then, when one
+    turns the accelerometer's frame with the extrinsic rotation, what would determine it (the
+    single run's advice, :func:`~licalib_cli.pipeline.checks.accelerometer_frame_advice`)."""
+    directions, partners = extrinsic_truncated(report)
+    if not directions:
+        return []
+    reasons = [f"Not observable from the segments together: {d.text}" for d in report.truncated]
+    if partners:
+        reasons.append(f"Segments together: {accelerometer_frame_advice(partners)}")
+    return reasons
+
+
 def _joint_result(
     runs: Sequence[CalibrationRun],
     windows: Sequence[tuple[float, float]],
@@ -630,9 +646,10 @@ def _joint_result(
         worst = "warn" if worst == "pass" else worst
         reasons.append(f"Joint estimate: {finding.text}")
     truncated = tuple(d.text for d in report.truncated)
-    if any(any(bk.startswith("ext.") for bk, _ in d.blocks) for d in report.truncated):
+    not_observable = joint_truncation_reasons(report)
+    if not_observable:
         worst = "warn" if worst == "pass" else worst
-        reasons += [f"Not observable from the segments together: {t}" for t in truncated]
+        reasons += not_observable
     reasons += [f"Rests on the prior (joint estimate): {r.text}." for r in resting]
     if np.any(own_grow > 1.005) or np.any(scatter > 1.005):
         reasons.append(

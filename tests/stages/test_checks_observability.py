@@ -138,3 +138,24 @@ def test_other_directions_keep_the_advice_on_motion(
     assert not any(t.startswith("With the") for t in texts)
     assert any("rotation about more axes" in t for t in texts)
     assert any("rotation about all three axes" in t for t in texts)
+
+
+def test_the_joint_verdict_of_segments_gives_the_same_advice() -> None:
+    """``--segments``: the segments' joint problem shares the extrinsic and the intrinsics, so a
+    direction it leaves undetermined is told apart the same way."""
+    from licalib_cli.pipeline.joint import joint_truncation_reasons
+
+    moved = {**TILT, f"{GYRO_ROTATION}.rx": 0.25e-3, f"{GYRO_ROTATION}.ry": -0.96e-3, TZ: -3e-4}
+    report = _report(moved, EXT + GYRO)
+    (direction,) = report.truncated
+    reasons = joint_truncation_reasons(report)
+    assert reasons == [
+        f"Not observable from the segments together: {direction.text}",
+        f"Segments together: {accelerometer_frame_advice((GYRO_ROTATION,))}",
+    ]
+    # the extrinsic alone: listed, no advice on tilting
+    alone = joint_truncation_reasons(_report({**TILT, TZ: -3e-4}, EXT + GYRO))
+    assert len(alone) == 1 and alone[0].startswith("Not observable from the segments together")
+    # a truncated direction that leaves the extrinsic alone is not a reason
+    gyro_only = {f"{GYRO_ROTATION}.rx": 1e-3}
+    assert joint_truncation_reasons(_report(gyro_only, EXT + GYRO)) == []
