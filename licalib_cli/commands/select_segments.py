@@ -49,16 +49,18 @@ def render_selection(sel: Selection, limit: int | None = None) -> Table:
     """The ranked table: window, metric, weakest direction, excitation, selected."""
     table = Table(
         title=f"Windows of {sel.length_s:g} s by the information they carry (min singular "
-        "value of the scaled calibration information; RMS angular rate and acceleration)"
+        "value of the scaled calibration information; RMS angular rate and acceleration; "
+        "tilt: RMS turn of gravity in the IMU frame, deg)"
     )
     for col, just in (
-        ("rank", "right"),
+        ("#", "right"),
         ("window s", "left"),
         ("min sv", "right"),
         ("weakest direction", "left"),
         ("deg/s", "right"),
         ("m/s^2", "right"),
-        ("selected", "center"),
+        ("tilt", "right"),
+        ("sel.", "center"),
     ):
         table.add_column(col, justify=just)  # type: ignore[arg-type]
     rows = sel.ranked if limit is None else sel.ranked[:limit]
@@ -71,6 +73,7 @@ def render_selection(sel: Selection, limit: int | None = None) -> Table:
             weak,
             f"{np.degrees(w.angular_rate):.0f}",
             f"{w.acceleration:.2f}",
+            f"{w.tilt_deg:.0f}",
             "yes" if w.selected else "",
         )
     return table

@@ -215,6 +215,24 @@ def _window_motion(imu: ImuSamples) -> tuple[float, float, float]:
     return w, a, float(np.sqrt(max(eig[0], 0.0)))
 
 
+def window_tilt_deg(imu: ImuSamples) -> float:
+    """RMS angle of gravity's direction in the IMU frame from its mean direction over the
+    samples, deg: how far the rig tilted. The attitude is the gyro's, gravity the mean specific
+    force in the first sample's frame (the rig's own accelerations average out). The
+    accelerometer's frame (``gyro_rotation``, ``accel_misalignment``) is told apart from the
+    extrinsic rotation by gravity seen at attitudes tens of degrees apart; hand-held shaking
+    without tilting gives 6-10 deg."""
+    if len(imu.t_ns) < 2:
+        return 0.0
+    rot = GyroIntegrator.from_imu(imu)(imu.t_ns).as_matrix()
+    g = -np.einsum("nij,nj->ni", rot, imu.accel).mean(axis=0)
+    up = np.einsum("nji,j->ni", rot, g / max(float(np.linalg.norm(g)), 1e-12))
+    mean = up.mean(axis=0)
+    mean /= max(float(np.linalg.norm(mean)), 1e-12)
+    angle = np.arccos(np.clip(up @ mean, -1.0, 1.0))
+    return float(np.degrees(np.sqrt(np.mean(angle**2))))
+
+
 def _slice(imu: ImuSamples, lo_ns: int, hi_ns: int) -> ImuSamples:
     i0, i1 = np.searchsorted(imu.t_ns, [lo_ns, hi_ns])
     return ImuSamples(imu.t_ns[i0:i1], imu.gyro[i0:i1], imu.accel[i0:i1])
@@ -470,6 +488,8 @@ class WindowScore:
         points: points that contributed.
         selected: chosen by ``--top`` / ``--threshold``.
         rank: 1 for the most informative window.
+        tilt_deg: RMS angle of gravity's direction in the IMU frame from its mean, deg
+            (:func:`window_tilt_deg`; not part of the metric).
     """
 
     start_s: float
@@ -485,6 +505,7 @@ class WindowScore:
     points: int
     selected: bool = False
     rank: int = 0
+    tilt_deg: float = 0.0
 
     def overlaps(self, other: WindowScore) -> bool:
         """Whether the two windows share more than an instant."""
@@ -507,6 +528,7 @@ class WindowScore:
             "weak_directions": list(self.weak_directions),
             "angular_rate_rad_s": self.angular_rate,
             "acceleration_m_s2": self.acceleration,
+            "tilt_deg": self.tilt_deg,
             "scans": self.scans,
             "points": self.points,
             "selected": self.selected,
@@ -627,6 +649,7 @@ def _score(
     cfg: CalibConfig,
 ) -> tuple[WindowScore, str]:
     rate, accel, _ = _window_motion(imu)
+    tilt = window_tilt_deg(imu)
     info = window_information(imu, parts, est, cfg)
     points = sum(len(p.sample) for p in parts)
     if info is None:
@@ -642,6 +665,7 @@ def _score(
             accel,
             len(parts),
             points,
+            tilt_deg=tilt,
         ), ""
     return WindowScore(
         window[0],
@@ -655,6 +679,7 @@ def _score(
         accel,
         len(parts),
         points,
+        tilt_deg=tilt,
     ), info.scaling
 
 

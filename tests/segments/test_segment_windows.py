@@ -92,3 +92,37 @@ def test_parse_segments_errors_are_one_sentence(text, error, match) -> None:
         parse_segments(text, 120.0)
     message = str(info.value)
     assert message.count(". ") == 0 and message.endswith(".")
+
+
+def _rocking_imu(amplitude_deg: float, yaw_rate: float = 0.0) -> object:
+    """An IMU rocking about its x axis by ``amplitude_deg`` (0.2 Hz, 10 s at 200 Hz), spinning
+    about its z axis at ``yaw_rate`` rad/s first, with the specific force gravity gives."""
+    from scipy.spatial.transform import Rotation
+
+    from licalib_cli.measurements import ImuSamples
+
+    t = np.arange(0.0, 10.0, 0.005)
+    a, w = np.radians(amplitude_deg), 2 * np.pi * 0.2
+    # R_W_I = Rx(a sin(w t)) Rz(yaw_rate t): body rate = Rz^T [a w cos, 0, 0] + [0, 0, yaw_rate]
+    rx = Rotation.from_rotvec(np.outer(a * np.sin(w * t), [1.0, 0.0, 0.0]))
+    rz = Rotation.from_rotvec(np.outer(yaw_rate * t, [0.0, 0.0, 1.0]))
+    r = (rx * rz).as_matrix()
+    gyro = np.add(
+        rz.inv().apply(np.outer(a * w * np.cos(w * t), [1.0, 0.0, 0.0])), [0, 0, yaw_rate]
+    )
+    accel = np.einsum("nji,j->ni", r, [0.0, 0.0, 9.81])
+    return ImuSamples((t * 1e9).astype(np.int64), gyro, accel)
+
+
+def test_a_windows_tilt_is_the_rms_turn_of_gravity_in_the_imu_frame() -> None:
+    """Rocking by A about a horizontal axis turns gravity in the IMU frame by A sin(w t): its
+    RMS is A / sqrt(2); spinning about the vertical (0.5 turns a second, so that gravity's
+    horizontal part averages out over the 10 s) does not tilt at all."""
+    from licalib_cli.pipeline.segments import window_tilt_deg
+
+    assert window_tilt_deg(_rocking_imu(30.0)) == pytest.approx(30.0 / np.sqrt(2), rel=0.02)
+    assert window_tilt_deg(_rocking_imu(8.0)) == pytest.approx(8.0 / np.sqrt(2), rel=0.02)
+    assert window_tilt_deg(_rocking_imu(0.0, yaw_rate=np.pi)) < 0.05
+    assert window_tilt_deg(_rocking_imu(20.0, yaw_rate=np.pi)) == pytest.approx(
+        20.0 / np.sqrt(2), rel=0.02
+    )

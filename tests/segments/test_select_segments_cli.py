@@ -49,6 +49,9 @@ def test_the_burst_windows_rank_first_and_json_lists_every_window(walk, capsys) 
             assert key in s
         assert s["weak_directions"] and s["weak_directions"][0].startswith("ext.")
     assert [s["selected"] for s in seg] == [True, True, False, False]
+    # the shaking burst tilts the rig; calm walking hardly does
+    tilt = {(s["start_s"], s["end_s"]): s["tilt_deg"] for s in seg}
+    assert tilt[(6.0, 9.0)] > 2.5 * tilt[(0, 3)] and tilt[(0, 3)] < 3.0
     # ranked by the minimum singular value; the shaking window by a wide margin
     values = [s["min_singular_value"] for s in seg]
     assert values == sorted(values, reverse=True)
