@@ -9,7 +9,7 @@
   random frequencies in 0.2-2 Hz and random phases, amplitudes bounded in value and in
   acceleration/angular rate. ``tilt_deg`` adds a slow tilt about each horizontal axis (one
   sinusoid per axis at 0.1-0.2 Hz, random phase), so the accelerometer sees gravity from attitudes
-  tens of degrees apart (the shake alone turns it by 6-10 deg RMS).
+  tens of degrees apart (the shake alone turns it by 7-13 deg RMS).
 * ``walk``: calm walking on an ellipse around (2.5, 5) at 1.4 m (one lap in 40 s, heading along
   the path, gait bob and sway) with short shaking bursts (3-6 s, every 15-30 s) whose intervals
   are returned so they can be written to ``truth.yaml``.
