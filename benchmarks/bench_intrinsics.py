@@ -59,16 +59,6 @@ PAPER_LIDAR_MAE = {
     "azimuth_deg": 0.003,
     "horizontal_offset_m": 0.21e-3,
 }
-SOLVER_COLUMNS = {
-    "elevation_deg": ("dphi", True),
-    "azimuth_deg": ("dtheta", True),
-    "vertical_offset_m": ("V", False),
-    "horizontal_offset_m": ("H", False),
-    "range_scale": ("s", False),
-    "range_offset_m": ("drho", False),
-}
-"""Each result key's column in the solver's ``lidar.intrinsics[b].<column>`` names (radians
-where the result gives degrees)."""
 
 
 def _override(item: str) -> tuple[str, object]:
@@ -86,6 +76,7 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
     from licalib_cli.config import INTRINSIC_PRESETS, load_config
     from licalib_cli.geometry import so3
     from licalib_cli.pipeline import calibrate
+    from licalib_cli.pipeline.checks import LIDAR_UNCERTAINTY_KEYS
     from licalib_cli.simulation import SimulationSpec, simulate
 
     spec = SimulationSpec(
@@ -199,6 +190,8 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
     lidar_mae, lidar_mean, lidar_expected = {}, {}, {}
     lidar_solver_mae, lidar_solver_z = {}, {}
     solver_sd = dict(zip(report.calibration_names, report.std, strict=True))
+    # each result key's solver column, and whether the result gives it in degrees
+    solver_columns = {key: (col, deg) for col, key, deg in LIDAR_UNCERTAINTY_KEYS.values()}
     if lidar_blocks and res.lidar_intrinsics is not None:
         est_l, true_l = res.lidar_intrinsics, out.truth.lidar_intrinsics
         pairs = {
@@ -223,7 +216,7 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
             lidar_expected[key] = float(np.sqrt(2 / np.pi) * np.mean(given)) if given else None
             # the same from the solver's own sigmas (before the checks enlarge them): the MAE
             # the fit's information allows, and the errors over those sigmas (RMS 1 unbiased)
-            col, degrees = SOLVER_COLUMNS[key]
+            col, degrees = solver_columns[key]
             sd = np.array(
                 [
                     solver_sd[f"lidar.intrinsics[{b}].{col}"]

@@ -1039,7 +1039,7 @@ _DRIFT_NAMES: dict[str, tuple[str, tuple[str, ...]]] = {
     "accel_bias_walk": ("imu.accel_bias_drift", ("x", "y", "z")),
     "clock_drift": ("ext.time_drift", ()),
 }
-_LIDAR_KEYS = {
+LIDAR_UNCERTAINTY_KEYS: Mapping[str, tuple[str, str, bool]] = {
     "elevation": ("dphi", "elevation_deg", True),
     "azimuth": ("dtheta", "azimuth_deg", True),
     "vertical_offset": ("V", "vertical_offset_m", False),
@@ -1047,6 +1047,9 @@ _LIDAR_KEYS = {
     "range_scale": ("s", "range_scale", False),
     "range_offset": ("drho", "range_offset_m", False),
 }
+"""Each ``model.lidar`` block: its column in the solver's ``lidar.intrinsics[b].<column>``
+names, its key in the result's ``intrinsics_uncertainty``, and whether that key is in degrees
+(the solver's coordinate in radians)."""
 
 
 def intrinsics_uncertainty(
@@ -1087,7 +1090,7 @@ def intrinsics_uncertainty(
         if name == "point_time":  # one number for the whole LiDAR
             values[name] = (get("lidar.point_time_scale"),)
             continue
-        col, key, degrees = _LIDAR_KEYS[name]
+        col, key, degrees = LIDAR_UNCERTAINTY_KEYS[name]
         values[key] = tuple(get(f"lidar.intrinsics[{b}].{col}", degrees) for b in range(num_beams))
     return IntrinsicsUncertainty(values)
 
