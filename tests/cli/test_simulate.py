@@ -99,6 +99,10 @@ def test_invalid_option_is_a_clear_error(tmp_path: Path) -> None:
     with pytest.raises(SystemExit) as exc:
         main(["simulate", str(tmp_path), "--scenario", "spiral"])
     assert exc.value.code == ConfigError.exit_code
+    with pytest.raises(SystemExit) as exc:  # a tilt belongs to the shake
+        main(["simulate", str(tmp_path), "--scenario", "walk", "--tilt-deg", "10"])
+    assert exc.value.code == ConfigError.exit_code
+    assert not (tmp_path / "truth.yaml").exists()
 
 
 @pytest.mark.parametrize(
