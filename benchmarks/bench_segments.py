@@ -17,6 +17,14 @@ Parts (all by default; choose with ``--parts``):
   (target: at most 60 s on the 2-core machine). ``--long-repeat 6`` ranks an hour instead: the
   walk played six times in a row (``benchmarks/_loop_bag.py``; the motion jumps at the seams),
   for the peak RSS of a one-hour bag.
+* ``tilt`` (not run by default): with the IMU intrinsics in the model (``--intrinsics imu``),
+  does the metric rank windows as the calibration turns out? For each seed of ``--tilt-seeds``
+  a 20 s hand-held shake (VLP-16, the simulator's random intrinsic errors, a random mounting
+  and time offset) is simulated plain and with ``--tilt-deg 30`` (the same shake); each bag's
+  two 10 s windows are ranked with and without the intrinsics in the metric, then calibrated
+  alone with ``--intrinsics imu``: the error against the truth, the largest error over its
+  sigma and the verdict, per window, in the order of the metric. Expected: the tilted windows
+  rank above the plain ones and calibrate the extrinsic rotation better.
 * ``intrinsics`` (not run by default): 30 s sinusoids with the simulator's random intrinsic
   errors (``licalib simulate --scenario sinusoid --duration 30 --seed S --random-time-offset``,
   seeds ``--intrinsics-seeds``), ``calibrate --intrinsics all --segments 0-10,10-20,20-30``: each
@@ -31,6 +39,7 @@ Examples::
     .venv/bin/python benchmarks/bench_segments.py --parts long --long-bag /tmp/walk600/bag.bag \
         --long-repeat 6 --workdir /tmp/hour
     .venv/bin/python benchmarks/bench_segments.py --parts intrinsics --intrinsics-seeds 3 5
+    .venv/bin/python benchmarks/bench_segments.py --parts tilt --tilt-seeds 2811 2812 2813
 
 Bags are simulated into ``--workdir`` (default: a temporary folder) unless given.
 """
@@ -65,7 +74,8 @@ def _simulate(workdir: Path, name: str, **spec: object) -> Path:
     if (folder / "bag.bag").exists():
         return folder / "bag.bag"
     t = time.perf_counter()
-    sim = simulate(SimulationSpec(intrinsics="none", **spec), folder)  # type: ignore[arg-type]
+    spec.setdefault("intrinsics", "none")
+    sim = simulate(SimulationSpec(**spec), folder)  # type: ignore[arg-type]
     print(f"simulated {name} in {time.perf_counter() - t:.0f} s", flush=True)
     return sim.bag_path
 
@@ -344,6 +354,93 @@ def intrinsics(args: argparse.Namespace, workdir: Path) -> None:
     print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
 
 
+def tilt(args: argparse.Namespace, workdir: Path) -> None:
+    import numpy as np
+
+    from licalib_cli.config import INTRINSIC_PRESETS, load_config
+    from licalib_cli.pipeline import calibrate
+    from licalib_cli.pipeline.segments import select_segments
+    from licalib_cli.truth import Truth
+
+    imu_blocks, _ = INTRINSIC_PRESETS["imu"]
+    plain_cfg = load_config(_config())
+    imu_cfg = load_config(_config(), {"model.imu": list(imu_blocks)})
+    print(
+        "\nwindows of 10 s, metric with the IMU intrinsics unknown (and without), then "
+        "calibrate --intrinsics imu on each window alone"
+    )
+    print(
+        " seed  tilt  window  metric imu  metric none  error t [mm]  rot [deg]  dt [ms]  "
+        "max err/sigma  verdict"
+    )
+    summary = []
+    for seed in args.tilt_seeds:
+        rows = []
+        for amplitude in (0.0, 30.0):
+            name = f"shake20-{seed}-tilt{amplitude:g}"
+            bag = _simulate(
+                workdir,
+                name,
+                scenario="shake",
+                duration_s=20.0,
+                seed=seed,
+                intrinsics="random",
+                random_extrinsic=True,
+                random_time_offset=True,
+                tilt_deg=amplitude,
+            )
+            truth = Truth.load(bag.parent / "truth.yaml")
+            with_imu = select_segments(bag, imu_cfg, 10.0).windows
+            without = select_segments(bag, plain_cfg, 10.0).windows
+            for w, w0 in zip(with_imu, without, strict=True):
+                cfg = load_config(
+                    _config(),
+                    {
+                        "model.imu": list(imu_blocks),
+                        "bag.start_s": w.start_s,
+                        "bag.duration_s": w.end_s - w.start_s,
+                    },
+                )
+                res = calibrate(bag, cfg).result
+                ref = truth.extrinsic_for(res)
+                d = ref.moved_to(res.extrinsic)
+                unc = res.uncertainty
+                sd = np.concatenate(
+                    [
+                        np.asarray(unc.translation_std_m),
+                        np.radians(np.asarray(unc.rotation_std_deg)),
+                        [unc.time_offset_std_s],
+                    ]
+                )
+                rows.append(
+                    (
+                        w.min_singular_value,
+                        amplitude,
+                        f"{w.start_s:.0f}-{w.end_s:.0f}",
+                        w0.min_singular_value,
+                        1e3 * float(np.linalg.norm(d[:3])),
+                        float(np.degrees(np.linalg.norm(d[3:6]))),
+                        1e3 * abs(float(d[6])),
+                        float(np.max(np.abs(d) / sd)),
+                        res.verdict.status,
+                    )
+                )
+        rows.sort(key=lambda r: -r[0])
+        for m, amp, win, m0, et, er, ec, ratio, verdict in rows:
+            print(
+                f" {seed:4d}  {amp:4.0f}  {win:6s}  {m:10.3g}  {m0:11.3g}  {et:12.2f}  "
+                f"{er:9.4f}  {ec:7.3f}  {ratio:13.2f}  {verdict}"
+            )
+        tilted_first = all(r[1] > 0 for r in rows[:2])
+        better = min(r[5] for r in rows if r[1] > 0) <= min(r[5] for r in rows if r[1] == 0)
+        summary.append((seed, tilted_first, better))
+    for seed, first, better in summary:
+        print(
+            f"seed {seed}: tilted windows ranked first: {first}; best tilted rotation error at "
+            f"most the best plain one: {better}"
+        )
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--parts", nargs="+", default=["walk", "planar", "long"])
@@ -361,12 +458,19 @@ def main() -> None:
     p.add_argument("--top", type=int, default=4)
     p.add_argument("--intrinsics-seeds", type=int, nargs="+", default=[3, 5])
     p.add_argument("--intrinsics-segments", default="0-10,10-20,20-30")
+    p.add_argument("--tilt-seeds", type=int, nargs="+", default=[2811, 2812, 2813])
     args = p.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         workdir = Path(args.workdir) if args.workdir else Path(tmp)
         workdir.mkdir(parents=True, exist_ok=True)
         for part in args.parts:
-            parts = {"walk": walk, "planar": planar, "long": long_run, "intrinsics": intrinsics}
+            parts = {
+                "walk": walk,
+                "planar": planar,
+                "long": long_run,
+                "intrinsics": intrinsics,
+                "tilt": tilt,
+            }
             parts[part](args, workdir)
 
 

@@ -14,12 +14,14 @@ from licalib_cli.commands.options import (
     ConfigOption,
     DurationOption,
     ImuTopicOption,
+    Intrinsics,
     LidarTopicOption,
     StartOption,
     input_overrides,
+    intrinsics_overrides,
 )
 from licalib_cli.commands.render import console, console_err, render_run
-from licalib_cli.config import INTRINSIC_PRESETS, dump_config, load_config
+from licalib_cli.config import dump_config, load_config
 from licalib_cli.errors import ConfigError, NotConverged, VerdictFailure
 from licalib_cli.report.data import report_data_path
 from licalib_cli.results import check_not_an_input, prepare_output, write_text_atomic
@@ -41,22 +43,6 @@ class ModelChoice(str, Enum):
 
     CONFIG = "config"
     AUTO = "auto"
-
-
-class Intrinsics(str, Enum):
-    """``--intrinsics`` choices."""
-
-    NONE = "none"
-    IMU = "imu"
-    LIDAR = "lidar"
-    ALL = "all"
-
-
-def _intrinsics_overrides(choice: Intrinsics | None) -> dict[str, list[str] | None]:
-    if choice is None:
-        return {}
-    imu, lidar = INTRINSIC_PRESETS[choice.value]
-    return {"model.imu": list(imu), "model.lidar": list(lidar)}
 
 
 class RichProgress:
@@ -259,7 +245,7 @@ def calibrate_command(
         config,
         {
             **input_overrides(imu_topic, lidar_topic, start, duration),
-            **_intrinsics_overrides(intrinsics),
+            **intrinsics_overrides(intrinsics),
         },
     )
     if segments is not None:

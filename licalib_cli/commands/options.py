@@ -6,10 +6,13 @@ the option's description for every command that uses it.
 
 from __future__ import annotations
 
+from enum import Enum
 from pathlib import Path
 from typing import Annotated
 
 import typer
+
+from licalib_cli.config import INTRINSIC_PRESETS
 
 __all__ = [
     "INPUT_PANEL",
@@ -17,9 +20,11 @@ __all__ = [
     "ConfigOption",
     "DurationOption",
     "ImuTopicOption",
+    "Intrinsics",
     "LidarTopicOption",
     "StartOption",
     "input_overrides",
+    "intrinsics_overrides",
 ]
 
 INPUT_PANEL = "Input"
@@ -67,3 +72,20 @@ def input_overrides(
         "bag.start_s": start,
         "bag.duration_s": duration,
     }
+
+
+class Intrinsics(str, Enum):
+    """``--intrinsics`` choices."""
+
+    NONE = "none"
+    IMU = "imu"
+    LIDAR = "lidar"
+    ALL = "all"
+
+
+def intrinsics_overrides(choice: Intrinsics | None) -> dict[str, list[str] | None]:
+    """Config overrides of ``--intrinsics`` (none: the config's ``model:`` section)."""
+    if choice is None:
+        return {}
+    imu, lidar = INTRINSIC_PRESETS[choice.value]
+    return {"model.imu": list(imu), "model.lidar": list(lidar)}

@@ -16,8 +16,10 @@ from licalib_cli.commands.options import (
     BagArgument,
     ConfigOption,
     ImuTopicOption,
+    Intrinsics,
     LidarTopicOption,
     input_overrides,
+    intrinsics_overrides,
 )
 from licalib_cli.commands.render import console
 from licalib_cli.config import load_config
@@ -126,6 +128,13 @@ def select_segments_command(
         help="Rank only this many seconds (default: to the end).",
         rich_help_panel=_IO,
     ),
+    intrinsics: Intrinsics | None = typer.Option(
+        None,
+        "--intrinsics",
+        help="The intrinsics the calibration will estimate (as calibrate --intrinsics; default: "
+        "the config's model section): the IMU blocks among them count as unknown in the metric.",
+        rich_help_panel=_WIN,
+    ),
     length: float = typer.Option(15.0, "--length", help="Window length, s.", rich_help_panel=_WIN),
     step: float | None = typer.Option(
         None,
@@ -173,7 +182,10 @@ def select_segments_command(
         prepare_output(plot, [("the input bag", bag), ("the config file", config)])
     cfg = load_config(
         config,
-        input_overrides(imu_topic, lidar_topic, start, duration),
+        {
+            **input_overrides(imu_topic, lidar_topic, start, duration),
+            **intrinsics_overrides(intrinsics),
+        },
     )
     from licalib_cli.commands.calibrate import RichProgress
 
@@ -190,6 +202,13 @@ def select_segments_command(
         out.print(render_selection(sel))
         chosen = ",".join(f"{w.start_s:g}-{w.end_s:g}" for w in sel.selected)
         out.print(f"Common estimate: {sel.estimate.source}.")
+        if sel.intrinsics:
+            out.print(
+                f"Metric with the model's {', '.join(sel.intrinsics)} unknown (to their "
+                "characteristic sizes)."
+            )
+        if sel.not_ranked:
+            out.print(f"Not part of the metric: {', '.join(sel.not_ranked)}.")
         if chosen:
             out.print(f"Selected: {chosen}  (licalib calibrate BAG --segments {chosen})")
         else:

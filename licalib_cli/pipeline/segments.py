@@ -9,6 +9,15 @@ Schur complement of the linearised problem of that window, scaled by the charact
 with its minimum singular value (the paper's metric), trace and log-determinant, and its weak
 directions in words. The metric compares windows of one bag; it is not an absolute figure.
 
+With IMU intrinsics in the model (``model.imu``: scales, misalignments, gyro rotation,
+g-sensitivity) the window's problem estimates them too, and the metric is the information of
+the extrinsic and time offset with them unknown to their characteristic sizes
+(:func:`~licalib_cli.solver.observability.marginal_information`): a window whose motion leaves
+the extrinsic rotation trading with the accelerometer's misalignment or the gyro's rotation (no
+tilt) ranks low. Directions mostly on the intrinsics that the window leaves undetermined are
+listed after the extrinsic's. LiDAR intrinsics and the drift effects are not part of it: a
+window's planes are each sweep's own, which would take up what the beams' intrinsics do.
+
 How it stays cheap (no window is calibrated):
 
 1. **IMU pass.** All IMU samples of the range are read (56 bytes a sample: 13 MB for ten
@@ -68,13 +77,20 @@ from licalib_cli.pipeline.initialise import initialise, lidar_odometry
 from licalib_cli.pipeline.points import PointSample, points_in_global, solver_points
 from licalib_cli.pipeline.read import read
 from licalib_cli.pipeline.settings import (
+    IMU_INTRINSIC_NAMES,
     NoiseLevels,
+    free_parameters,
     noise_model,
     spline_margin_s,
     surfel_config,
 )
+from licalib_cli.residuals import EXT_ROTATION, EXT_TRANSLATION, TIME_OFFSET
 from licalib_cli.results import matrix_from_rpy_deg
-from licalib_cli.solver.observability import InformationSummary, calibration_information
+from licalib_cli.solver.observability import (
+    InformationSummary,
+    calibration_information,
+    marginal_information,
+)
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
 from licalib_cli.surfels import SurfelConfig, associate_points, build_surfels
 
@@ -83,11 +99,13 @@ __all__ = [
     "CommonEstimate",
     "Excitation",
     "Selection",
+    "WindowInformation",
     "WindowScore",
     "choose",
     "common_estimate",
     "plan_windows",
     "select_segments",
+    "window_free",
     "window_information",
 ]
 
@@ -427,9 +445,32 @@ def _window_state(imu: ImuSamples, est: CommonEstimate, cfg: CalibConfig) -> Cal
     )
 
 
+def window_free(cfg: CalibConfig) -> FreeParameters:
+    """What a window's problem estimates: the extrinsic, time offset, trajectory, biases and
+    gravity, and the IMU intrinsic blocks of the config's ``model:`` section (g-sensitivity
+    included); LiDAR intrinsics and the drift effects are left out (see the module
+    docstring)."""
+    model = free_parameters(cfg, intrinsics=True)
+    return FreeParameters(imu_blocks=model.imu_blocks, g_sensitivity=model.g_sensitivity)
+
+
+@dataclass(frozen=True)
+class WindowInformation:
+    """What one window's data determine.
+
+    Attributes:
+        extrinsic: scaled information of the extrinsic and time offset, the model's IMU
+            intrinsics (if any) marginalised (:func:`marginal_information`): the metric.
+        full: scaled information of every estimated calibration coordinate.
+    """
+
+    extrinsic: InformationSummary
+    full: InformationSummary
+
+
 def window_information(
     imu: ImuSamples, parts: Sequence[SweepPlanes], est: CommonEstimate, cfg: CalibConfig
-) -> InformationSummary | None:
+) -> WindowInformation | None:
     """Scaled information of the extrinsic and time offset from one window's data (None:
     too little data in it).
 
@@ -437,7 +478,7 @@ def window_information(
         imu: the window's IMU samples (with :data:`_PAD_S` beyond its ends).
         parts: its sweeps reduced to points on planes.
         est: the common estimate.
-        cfg: configuration (knot spacing, noise, huber).
+        cfg: configuration (knot spacing, noise, huber, the model's IMU blocks).
     """
     if len(imu.t_ns) < 10 or not parts:
         return None
@@ -460,9 +501,16 @@ def window_information(
         lidar,
         Planes(normal=n_g, d=d),
         noise_model(cfg, est.noise),
-        FreeParameters(),
+        window_free(cfg),
     )
-    return calibration_information(problem)
+    full = calibration_information(problem)
+    return WindowInformation(marginal_information(full, _EXTRINSIC_BLOCKS), full)
+
+
+_EXTRINSIC_BLOCKS = frozenset((EXT_ROTATION, EXT_TRANSLATION, TIME_OFFSET))
+
+_WINDOW_IMU_BLOCKS = frozenset((*IMU_INTRINSIC_NAMES, "g_sensitivity"))
+"""``model.imu`` names a window's problem estimates (:func:`window_free`)."""
 
 
 # ------------------------------------------------------------------------------ selection
@@ -550,6 +598,10 @@ class Selection:
         scaling: statement of the scaling of the information.
         timings: wall seconds per stage.
         every: every how many clouds one was decoded.
+        intrinsics: the model's IMU intrinsics the metric counts as unknown
+            (:func:`window_free`), as ``imu.<model.imu name>``.
+        not_ranked: the model's blocks the metric leaves out (LiDAR intrinsics, drifts), as
+            ``imu.<name>`` / ``lidar.<name>``.
     """
 
     windows: tuple[WindowScore, ...]
@@ -562,6 +614,8 @@ class Selection:
     scaling: str
     timings: dict[str, float] = field(default_factory=dict)
     every: int = 1
+    intrinsics: tuple[str, ...] = ()
+    not_ranked: tuple[str, ...] = ()
 
     @property
     def ranked(self) -> tuple[WindowScore, ...]:
@@ -579,6 +633,8 @@ class Selection:
             "segments": [w.to_dict() for w in self.ranked],
             "metric": "min_singular_value",
             "scaling": self.scaling,
+            "intrinsics_unknown": list(self.intrinsics),
+            "model_not_ranked": list(self.not_ranked),
             "length_s": self.length_s,
             "step_s": self.step_s,
             "top": self.top,
@@ -629,16 +685,30 @@ def choose(
     return tuple(replace(w, rank=rank[i], selected=i in chosen) for i, w in enumerate(windows))
 
 
-def _weak(info: InformationSummary, threshold: float) -> tuple[str, ...]:
+def _weak(info: InformationSummary, threshold: float) -> list[str]:
     s = info.singular_values
     if s.size == 0:
-        return ()
+        return []
     out = []
     for i in range(s.size - 1, -1, -1):
         if i != s.size - 1 and s[i] >= threshold:
             break
         out.append(f"{info.describe(i).text} (singular value {s[i]:.3g})")
-    return tuple(out)
+    return out
+
+
+def _weak_intrinsics(info: InformationSummary, threshold: float) -> list[str]:
+    """Directions of the full information below ``threshold`` that lie mostly (over half
+    their squared norm) on the IMU intrinsics: what the window leaves undetermined there."""
+    out = []
+    s = info.singular_values
+    for i in range(s.size - 1, -1, -1):
+        if s[i] >= threshold:
+            break
+        blocks = info.describe(i).blocks
+        if sum(share for b, share in blocks if b not in _EXTRINSIC_BLOCKS) > 0.5:
+            out.append(f"{info.describe(i).text} (singular value {s[i]:.3g})")
+    return out
 
 
 def _score(
@@ -667,20 +737,21 @@ def _score(
             points,
             tilt_deg=tilt,
         ), ""
+    ext, thr = info.extrinsic, cfg.solver.tsvd_threshold
     return WindowScore(
         window[0],
         window[1],
-        info.min_singular_value,
-        info.trace,
-        info.log_determinant,
-        tuple(float(x) for x in info.singular_values),
-        _weak(info, cfg.solver.tsvd_threshold),
+        ext.min_singular_value,
+        ext.trace,
+        ext.log_determinant,
+        tuple(float(x) for x in ext.singular_values),
+        tuple(_weak(ext, thr) + _weak_intrinsics(info.full, thr)),
         rate,
         accel,
         len(parts),
         points,
         tilt_deg=tilt,
-    ), info.scaling
+    ), ext.scaling
 
 
 @dataclass(frozen=True)
@@ -840,4 +911,9 @@ def select_segments(
         scaling=scaling,
         timings=timings,
         every=every,
+        intrinsics=tuple(f"imu.{n}" for n in cfg.model.imu if n in _WINDOW_IMU_BLOCKS),
+        not_ranked=(
+            *(f"imu.{n}" for n in cfg.model.imu if n not in _WINDOW_IMU_BLOCKS),
+            *(f"lidar.{n}" for n in cfg.model.lidar),
+        ),
     )

@@ -37,6 +37,7 @@ from licalib_cli.solver.lm import LMParams
 from licalib_cli.surfels import SurfelConfig
 
 __all__ = [
+    "IMU_INTRINSIC_NAMES",
     "LIDAR_COLUMNS",
     "LOOSE_BLUR_SHARE",
     "MIN_THICKNESS_M",
@@ -257,7 +258,7 @@ def free_parameters(cfg: CalibConfig, intrinsics: bool) -> FreeParameters:
         return FreeParameters(min_points_per_beam=m.min_points_per_beam, translation_prior=prior)
     return FreeParameters(
         translation_prior=prior,
-        imu_blocks=frozenset(f"imu.{name}" for name in m.imu if name in _IMU_INTRINSIC_NAMES),
+        imu_blocks=frozenset(f"imu.{name}" for name in m.imu if name in IMU_INTRINSIC_NAMES),
         g_sensitivity="g_sensitivity" in m.imu,
         lidar_columns=frozenset(LIDAR_COLUMNS[name] for name in m.lidar if name in LIDAR_COLUMNS),
         min_points_per_beam=m.min_points_per_beam,
@@ -297,13 +298,14 @@ def translation_priors(free: FreeParameters) -> list[GaussianPrior]:
     return [GaussianPrior(EXT_TRANSLATION, *free.translation_prior)]
 
 
-_IMU_INTRINSIC_NAMES = (
+IMU_INTRINSIC_NAMES = (
     "gyro_scale",
     "gyro_misalignment",
     "gyro_rotation",
     "accel_scale",
     "accel_misalignment",
 )
+"""``model.imu`` names of the IMU intrinsic blocks (``imu.<name>``) besides g-sensitivity."""
 
 
 INTRINSIC_PRIOR_SIGMA: dict[str, float | tuple[float, ...]] = {

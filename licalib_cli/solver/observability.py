@@ -21,7 +21,7 @@ unobservable, not estimated (stays near its initial value)"``.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
 
@@ -38,6 +38,7 @@ __all__ = [
     "InformationSummary",
     "calibration_information",
     "describe_direction",
+    "marginal_information",
     "summarize_information",
     "truncation_mask",
     "undamped_schur",
@@ -303,6 +304,49 @@ def summarize_information(
         singular_values=w,
         singular_vectors=u,
         num_residuals=num_residuals,
+    )
+
+
+def marginal_information(
+    info: InformationSummary, owners: Collection[str], prior: float = 1.0
+) -> InformationSummary:
+    """The information of the coordinates of blocks ``owners`` when every other coordinate is
+    unknown as well, to within ``1 / sqrt(prior)`` of its characteristic scale a priori.
+
+    ``S_kk - S_kr (S_rr + prior I)^-1 S_rk`` in the scaled coordinates of ``info``: with the
+    default prior of 1 the other coordinates are taken as known to one characteristic scale
+    (the size the truncated SVD holds a direction at when the data say less), so a direction
+    of the kept blocks that trades with them loses what the trade costs, and no more.
+
+    Args:
+        info: The summary over all coordinates.
+        owners: Blocks whose coordinates are kept.
+        prior: Scaled information added to the other coordinates (> 0).
+
+    Returns:
+        The summary of the kept coordinates (same scales); ``info`` itself when nothing
+        else is in it.
+    """
+    keep = np.asarray([o in owners for o in info.owners], dtype=bool)
+    if keep.all():
+        return info
+    s = info.information
+    k, r = np.flatnonzero(keep), np.flatnonzero(~keep)
+    s_rr = s[np.ix_(r, r)] + prior * np.eye(r.size)
+    s_kr = s[np.ix_(k, r)]
+    sd = s[np.ix_(k, k)] - s_kr @ np.linalg.solve(s_rr, s_kr.T)
+    sd = 0.5 * (sd + sd.T)
+    w, u = np.linalg.eigh(sd)
+    names = tuple(info.names[i] for i in k)
+    return InformationSummary(
+        names=names,
+        owners=tuple(info.owners[i] for i in k),
+        scale=info.scale[k].copy(),
+        scaling=scaling_statement(names, info.scale[k]),
+        information=sd,
+        singular_values=np.clip(w[::-1], 0.0, None),
+        singular_vectors=u[:, ::-1],
+        num_residuals=info.num_residuals,
     )
 
 

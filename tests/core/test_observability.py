@@ -11,6 +11,7 @@ from licalib_cli.solver import ParameterBlock, Problem, ResidualEval, SparseJaco
 from licalib_cli.solver.observability import (
     calibration_information,
     describe_direction,
+    marginal_information,
     summarize_information,
     truncation_mask,
 )
@@ -176,3 +177,39 @@ def test_truncation_mask_absolute_and_relative() -> None:
     )
     np.testing.assert_allclose(info.singular_values, [4.0, 1.0])  # diag(1, 4) scaled
     np.testing.assert_allclose(np.abs(info.singular_vectors[:, 0]), [0.0, 1.0])
+
+
+def _summary(rng: np.random.Generator) -> object:
+    a = rng.normal(size=(40, 6)) * [30, 30, 3, 1, 0.5, 20]
+    a[:, 4] = a[:, 0] + 0.01 * rng.normal(size=40)  # block b trades with a[0]
+    names = ["a.x", "a.y", "a.z", "b.x", "b.y", "c.x"]
+    owners = ["a", "a", "a", "b", "b", "c"]
+    return summarize_information(a.T @ a, names, owners, np.array([1, 1, 1, 2, 2, 1.0]))
+
+
+def test_marginal_information_is_the_inverse_of_the_kept_covariance() -> None:
+    info = _summary(np.random.default_rng(4))
+    for prior in (1.0, 0.25):
+        out = marginal_information(info, {"a", "c"}, prior=prior)
+        assert out.names == ("a.x", "a.y", "a.z", "c.x")
+        assert out.owners == ("a", "a", "a", "c")
+        np.testing.assert_array_equal(out.scale, [1, 1, 1, 1])
+        # a prior of `prior` on the scaled b coordinates, then the kept block of the covariance
+        h = info.information + np.diag([0, 0, 0, prior, prior, 0])
+        keep = [0, 1, 2, 5]
+        expected = np.linalg.inv(np.linalg.inv(h)[np.ix_(keep, keep)])
+        np.testing.assert_allclose(out.information, expected, rtol=1e-8, atol=1e-8)
+        np.testing.assert_allclose(
+            out.singular_values, np.linalg.eigvalsh(expected)[::-1], rtol=1e-8, atol=1e-8
+        )
+    # what trades with b loses information; a weaker prior on b loses more
+    full = info.information
+    strong = marginal_information(info, {"a", "c"}, prior=100.0).information
+    weak = marginal_information(info, {"a", "c"}, prior=0.01).information
+    assert full[0, 0] > strong[0, 0] > weak[0, 0]
+    assert weak[0, 0] < 0.05 * full[0, 0]
+
+
+def test_marginal_information_of_every_block_is_the_summary_itself() -> None:
+    info = _summary(np.random.default_rng(5))
+    assert marginal_information(info, {"a", "b", "c"}) is info

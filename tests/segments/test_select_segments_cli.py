@@ -59,6 +59,48 @@ def test_the_burst_windows_rank_first_and_json_lists_every_window(walk, capsys) 
     assert out["estimate"]["source"] == "config"
 
 
+def _ranked(walk, capsys, *extra: str) -> dict:
+    bag, config, _ = walk
+    main(["select-segments", str(bag), "-c", str(config), "--length", "3", "--json", *extra])
+    return json.loads(capsys.readouterr().out)
+
+
+def test_the_models_imu_intrinsics_count_as_unknown_in_the_metric(walk, capsys) -> None:
+    base = _ranked(walk, capsys)
+    imu = _ranked(walk, capsys, "--intrinsics", "imu")
+    lidar = _ranked(walk, capsys, "--intrinsics", "lidar")
+    assert base["intrinsics_unknown"] == [] and base["model_not_ranked"] == []
+    assert imu["intrinsics_unknown"] == [
+        "imu.gyro_scale",
+        "imu.gyro_misalignment",
+        "imu.gyro_rotation",
+        "imu.accel_scale",
+        "imu.accel_misalignment",
+    ]
+    assert imu["model_not_ranked"] == []
+    assert lidar["intrinsics_unknown"] == []
+    assert lidar["model_not_ranked"][0] == "lidar.elevation" and len(lidar["model_not_ranked"]) == 6
+
+    def metric(out: dict) -> dict:
+        return {s["start_s"]: s["min_singular_value"] for s in out["segments"]}
+
+    m0, m_imu, m_lidar = metric(base), metric(imu), metric(lidar)
+    assert m_lidar == pytest.approx(m0, rel=1e-9)  # the LiDAR's are not part of it
+    for start, value in m0.items():
+        # unknown intrinsics can only take information away; the extrinsic rotation trades
+        # with the accelerometer's misalignment on a rig that hardly tilts
+        assert m_imu[start] < 0.8 * value
+    assert imu["segments"][0]["start_s"] == 6.0  # the shaking still ranks first
+    for s in imu["segments"]:
+        assert s["weak_directions"][0].startswith("ext.")
+        assert any(w.startswith("imu.accel_misalignment") for w in s["weak_directions"])
+    bag, config, _ = walk
+    main(["select-segments", str(bag), "-c", str(config), "--length", "6", "--intrinsics", "all"])
+    printed = " ".join(capsys.readouterr().out.split())
+    assert "Metric with the model's imu.gyro_scale, imu.gyro_misalignment," in printed
+    assert "Not part of the metric: lidar.elevation, lidar.azimuth," in printed
+
+
 def test_table_overlapping_windows_and_plot(walk, tmp_path, capsys) -> None:
     bag, config, _ = walk
     plot = tmp_path / "figs" / "segments.png"
