@@ -17,12 +17,13 @@ Parts (all by default; choose with ``--parts``):
   (target: at most 60 s on the 2-core machine). ``--long-repeat 6`` ranks an hour instead: the
   walk played six times in a row (``benchmarks/_loop_bag.py``; the motion jumps at the seams),
   for the peak RSS of a one-hour bag.
-* ``tilt`` (not run by default): with the IMU intrinsics in the model (``--intrinsics imu``),
-  does the metric rank windows as the calibration turns out? For each seed of ``--tilt-seeds``
+* ``tilt`` (not run by default): with every intrinsic in the model (``--intrinsics all``; the
+  IMU's count as unknown in the metric, the LiDAR's are not part of it), does the metric rank
+  windows as the calibration turns out? For each seed of ``--tilt-seeds``
   a 20 s hand-held shake (VLP-16, the simulator's random intrinsic errors, a random mounting
   and time offset) is simulated plain and with ``--tilt-deg 30`` (the same shake); each bag's
   two 10 s windows are ranked with and without the intrinsics in the metric, then calibrated
-  alone with ``--intrinsics imu``: the error against the truth, the largest error over its
+  alone with ``--intrinsics all``: the error against the truth, the largest error over its
   sigma and the verdict, per window, in the order of the metric. Expected: the tilted windows
   rank above the plain ones and calibrate the extrinsic rotation better.
 * ``intrinsics`` (not run by default): 30 s sinusoids with the simulator's random intrinsic
@@ -362,12 +363,13 @@ def tilt(args: argparse.Namespace, workdir: Path) -> None:
     from licalib_cli.pipeline.segments import select_segments
     from licalib_cli.truth import Truth
 
-    imu_blocks, _ = INTRINSIC_PRESETS["imu"]
+    imu_blocks, lidar_blocks = INTRINSIC_PRESETS["all"]
+    model = {"model.imu": list(imu_blocks), "model.lidar": list(lidar_blocks)}
     plain_cfg = load_config(_config())
-    imu_cfg = load_config(_config(), {"model.imu": list(imu_blocks)})
+    imu_cfg = load_config(_config(), model)
     print(
         "\nwindows of 10 s, metric with the IMU intrinsics unknown (and without), then "
-        "calibrate --intrinsics imu on each window alone"
+        "calibrate --intrinsics all on each window alone"
     )
     print(
         " seed  tilt  window  metric imu  metric none  error t [mm]  rot [deg]  dt [ms]  "
@@ -396,7 +398,7 @@ def tilt(args: argparse.Namespace, workdir: Path) -> None:
                 cfg = load_config(
                     _config(),
                     {
-                        "model.imu": list(imu_blocks),
+                        **model,
                         "bag.start_s": w.start_s,
                         "bag.duration_s": w.end_s - w.start_s,
                     },
