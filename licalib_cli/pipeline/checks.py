@@ -344,8 +344,9 @@ def accelerometer_frame_advice(partners: Sequence[str]) -> str:
         "accelerometer alone places the IMU frame against the gyro and the LiDAR, from gravity "
         "seen at different attitudes and from the rig's accelerations, and this recording does "
         "not determine it. Record with the rig tilted by tens of degrees about both horizontal "
-        f"axes, or leave {names} out of the model (model.imu) when the IMU's own calibration "
-        f"covers {them} (most IMUs' gyro and accelerometer share one frame)."
+        "axes (in a longer recording, licalib select-segments with this model ranks the windows "
+        f"that determine it), or leave {names} out of the model (model.imu) when the IMU's own "
+        f"calibration covers {them} (most IMUs' gyro and accelerometer share one frame)."
     )
 
 

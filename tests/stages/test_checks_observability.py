@@ -84,6 +84,7 @@ def test_the_accelerometer_frame_is_named_though_the_text_shows_only_the_extrins
     assert advice in texts
     assert "the gyro-to-IMU rotation estimated (gyro_rotation)" in advice
     assert "leave gyro_rotation out of the model (model.imu)" in advice
+    assert "licalib select-segments with this model ranks the windows" in advice
     assert not any("rotation about more axes" in t for t in texts)
     assert not any("rotation about all three axes" in t for t in texts)
     (first,) = (t for t in texts if t.startswith("The data determine only"))
