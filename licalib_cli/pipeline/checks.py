@@ -29,7 +29,7 @@ and by the last round's change when the rounds only settled to within their jitt
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -113,10 +113,17 @@ _SEVERITY = {"note": 0, "warn": 1, "fail": 2}
 
 @dataclass(frozen=True)
 class Finding:
-    """One finding of a check: ``note`` (informational), ``warn`` or ``fail``."""
+    """One finding of a check: ``note`` (informational), ``warn`` or ``fail``.
+
+    ``information``: the finding is about what the data do not determine (directions left
+    unobservable, sigmas above the ``checks`` limits), not about how the model fits them; a
+    joint problem over several segments checks those again for itself
+    (:mod:`licalib_cli.pipeline.joint`).
+    """
 
     severity: str
     text: str
+    information: bool = False
 
 
 @dataclass(frozen=True)
@@ -384,7 +391,7 @@ def _observability(report: SolverReport, prior: Mapping[str, float]) -> list[Fin
                 ),
             ),
         )
-    return out
+    return [replace(f, information=True) for f in out]
 
 
 ENTANGLED_CORRELATION = 0.7
@@ -505,7 +512,7 @@ def uncertainty_findings(
     move with the least determined translation axis, named in the translation's finding.
     ``resting`` (:func:`~licalib_cli.pipeline.prior_directions.on_prior`): the translation
     directions the data leave to a measured lever arm; an axis above the limit along one is
-    said to be the measurement's."""
+    said to be the measurement's. Every finding is marked ``information``."""
     out = []
     t, r, c = sigma[:3], np.degrees(sigma[3:6]), float(sigma[6])
     t_max, r_max = limits.max_translation_sigma_m, limits.max_rotation_sigma_deg
@@ -564,7 +571,7 @@ def uncertainty_findings(
                 + cause(bool(without_effects[6] > c_max), ""),
             )
         )
-    return out
+    return [replace(f, information=True) for f in out]
 
 
 _SENSOR_NAME = {"gyro": "gyro", "accelerometer": "accelerometer", "lidar": "LiDAR"}

@@ -72,6 +72,7 @@ from licalib_cli.pipeline import CalibrationRun, calibrate
 from licalib_cli.pipeline.assemble import extra_terms
 from licalib_cli.pipeline.checks import (
     COVER_P_VALUE,
+    Finding,
     accelerometer_frame_advice,
     effect_to_cover,
     entangled_intrinsics,
@@ -303,6 +304,12 @@ class _KeptOpen:
 
     def close(self) -> None:
         return None
+
+
+def _only_information(findings: Sequence[Finding]) -> bool:
+    """Whether every warning and failure among a segment's findings is about what its data do
+    not determine (:attr:`Finding.information`), none about how the model fits them."""
+    return all(f.information for f in findings if f.severity != "note")
 
 
 def calibrate_segments(
@@ -606,8 +613,15 @@ def _joint_result(
         z = _disagreement(run, joint)
         disagrees = z > DISAGREEMENT_SIGMAS
         status = run.checks.verdict.status
-        if status != "pass":
-            # expected of a short segment: what it cannot determine alone, the others may
+        if status != "pass" and _only_information(run.checks.findings):
+            # what a short segment cannot determine alone, the others may: the joint
+            # problem's observability and sigmas are checked below
+            reasons.append(
+                f"Segment {a:g}-{b:g} s alone: verdict {status} for what it does not determine "
+                "on its own (its own reasons come from calibrating it alone); the joint "
+                "problem is judged on what the segments determine together."
+            )
+        elif status != "pass":
             worst = "warn"
             reasons.append(
                 f"Segment {a:g}-{b:g} s alone: verdict {status} (its own sections and "

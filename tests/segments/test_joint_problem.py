@@ -20,9 +20,11 @@ from licalib_cli.estimation import (
 )
 from licalib_cli.geometry.so3 import exp as so3_exp
 from licalib_cli.models.intrinsics import LidarIntrinsics
+from licalib_cli.pipeline.checks import Finding
 from licalib_cli.pipeline.joint import (
     _disagreement,
     _growth,
+    _only_information,
     _scatter_factor,
 )
 from licalib_cli.pipeline.joint_problem import joint_problem, per_segment_blocks, segment_name
@@ -310,3 +312,15 @@ def test_the_joint_estimate_compares_the_measured_lever_arm_with_the_segments_da
     else:
         np.testing.assert_array_equal(widened, np.full(3, 1e-3))
     assert lever_arm_conflict(report, CalibConfig(), joint) is None
+
+
+def test_a_segment_short_only_of_information_does_not_lower_the_joint_verdict() -> None:
+    """What a segment alone leaves undetermined the joint problem judges for itself; a finding
+    about the model's fit (or a note on the data) holds for the joint fit too."""
+    unobservable = Finding("warn", "Not observable from this data: ...", information=True)
+    too_few = Finding("fail", "The data determine only 3 of the 7 ...", information=True)
+    misfit = Finding("warn", "The LiDAR residuals depend on the beam ...")
+    note = Finding("note", "The gyro residuals are below their configured noise ...")
+    assert _only_information([unobservable, too_few, note])
+    assert not _only_information([unobservable, misfit])
+    assert _only_information([])

@@ -79,7 +79,9 @@ def test_the_accelerometer_frame_is_named_though_the_text_shows_only_the_extrins
     (direction,) = report.truncated
     assert GYRO_ROTATION not in direction.text  # what the user would see without the check
     assert accelerometer_frame_partners(report, direction) == (GYRO_ROTATION,)
-    texts = [f.text for f in _observability(report, {})]
+    findings = _observability(report, {})
+    assert findings and all(f.information for f in findings)
+    texts = [f.text for f in findings]
     advice = accelerometer_frame_advice((GYRO_ROTATION,))
     assert advice in texts
     assert "the gyro-to-IMU rotation estimated (gyro_rotation)" in advice

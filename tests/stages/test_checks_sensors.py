@@ -41,6 +41,7 @@ def test_no_note_for_a_fit_that_explains_the_data_or_a_measured_noise() -> None:
 def test_a_configured_noise_below_the_residuals_warns() -> None:
     (warn,) = _sensors((_gyro(2.0),))
     assert warn.severity == "warn"
+    assert not warn.information  # about the fit: a joint over segments keeps it
     assert "check noise.gyro_noise_density in the config" in warn.text
 
 

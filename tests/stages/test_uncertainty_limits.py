@@ -61,6 +61,8 @@ def test_a_sigma_over_the_limit_by_the_imu_priors_names_them_not_the_motion() ->
     assert "(accel_scale)" in both.text and "(most from gyro_rotation)" in both.text
     (motion,) = uncertainty_findings(sigma, sigma, limits, prior="gyro_rotation")
     assert "more rotation" in motion.text
+    # about what the data determine: a joint over segments judges its own sigmas instead
+    assert finding.information and both.information and motion.information
 
 
 def _report(corr_with_scale: float):
