@@ -211,6 +211,12 @@ def select_segments_command(
             out.print(f"Not part of the metric: {', '.join(sel.not_ranked)}.")
         if chosen:
             out.print(f"Selected: {chosen}  (licalib calibrate BAG --segments {chosen})")
+            if len(sel.selected) > 1 and sel.together is not None:
+                weak = short_direction(sel.together.describe(-1, verdict="").text)
+                out.print(
+                    f"Together: min sv {sel.together.min_singular_value:.3g} (the extrinsic, "
+                    f"each window with its own time offset), weakest {weak}"
+                )
         else:
             out.print("Selected: none (no window reaches --threshold).")
         stages = ", ".join(f"{k} {v:.1f} s" for k, v in sel.timings.items())

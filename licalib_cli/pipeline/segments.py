@@ -90,6 +90,7 @@ from licalib_cli.solver.observability import (
     InformationSummary,
     calibration_information,
     marginal_information,
+    summarize_information,
 )
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
 from licalib_cli.surfels import SurfelConfig, associate_points, build_surfels
@@ -103,6 +104,7 @@ __all__ = [
     "WindowScore",
     "choose",
     "common_estimate",
+    "joint_information",
     "plan_windows",
     "select_segments",
     "window_free",
@@ -510,6 +512,42 @@ def window_information(
 _EXTRINSIC_BLOCKS = frozenset((EXT_ROTATION, EXT_TRANSLATION, TIME_OFFSET))
 
 _WINDOW_IMU_BLOCKS = frozenset((*IMU_INTRINSIC_NAMES, "g_sensitivity"))
+
+_TIME_OFFSET_ELIMINATION = 1e-9
+"""Scaled information added to a window's time offset when it is eliminated (its own)."""
+
+
+def joint_information(infos: Sequence[InformationSummary]) -> InformationSummary | None:
+    """What windows calibrated together (``calibrate --segments``) determine of the extrinsic:
+    they share it and the model's intrinsics, and each keeps its own trajectory and time
+    offset. Each window's time offset is eliminated, the rest summed, and the intrinsics
+    marginalised as in one window's metric. None without windows.
+
+    Args:
+        infos: the windows' full information (:attr:`WindowInformation.full`), one model.
+    """
+    if not infos:
+        return None
+    shared = [
+        marginal_information(i, set(i.owners) - {TIME_OFFSET}, prior=_TIME_OFFSET_ELIMINATION)
+        for i in infos
+    ]
+    first = shared[0]
+    if any(i.names != first.names for i in shared):
+        msg = "windows of one selection estimate the same coordinates"
+        raise ValueError(msg)
+    inv = 1.0 / first.scale
+    total = sum(i.information for i in shared)
+    summed = summarize_information(
+        inv[:, None] * total * inv[None, :],
+        first.names,
+        first.owners,
+        first.scale,
+        sum(i.num_residuals for i in shared),
+    )
+    return marginal_information(summed, _EXTRINSIC_BLOCKS)
+
+
 """``model.imu`` names a window's problem estimates (:func:`window_free`)."""
 
 
@@ -538,6 +576,8 @@ class WindowScore:
         rank: 1 for the most informative window.
         tilt_deg: RMS angle of gravity's direction in the IMU frame from its mean, deg
             (:func:`window_tilt_deg`; not part of the metric).
+        information: the window's scaled information of every estimated calibration
+            coordinate (None without data; not in the JSON).
     """
 
     start_s: float
@@ -554,6 +594,7 @@ class WindowScore:
     selected: bool = False
     rank: int = 0
     tilt_deg: float = 0.0
+    information: InformationSummary | None = field(default=None, compare=False, repr=False)
 
     def overlaps(self, other: WindowScore) -> bool:
         """Whether the two windows share more than an instant."""
@@ -602,6 +643,8 @@ class Selection:
             (:func:`window_free`), as ``imu.<model.imu name>``.
         not_ranked: the model's blocks the metric leaves out (LiDAR intrinsics, drifts), as
             ``imu.<name>`` / ``lidar.<name>``.
+        together: what the selected windows determine of the extrinsic together
+            (:func:`joint_information`; None when none is selected).
     """
 
     windows: tuple[WindowScore, ...]
@@ -616,6 +659,7 @@ class Selection:
     every: int = 1
     intrinsics: tuple[str, ...] = ()
     not_ranked: tuple[str, ...] = ()
+    together: InformationSummary | None = None
 
     @property
     def ranked(self) -> tuple[WindowScore, ...]:
@@ -635,6 +679,13 @@ class Selection:
             "scaling": self.scaling,
             "intrinsics_unknown": list(self.intrinsics),
             "model_not_ranked": list(self.not_ranked),
+            "selected_together": None
+            if self.together is None
+            else {
+                "min_singular_value": self.together.min_singular_value,
+                "singular_values": [float(x) for x in self.together.singular_values],
+                "weakest_direction": self.together.describe(-1, verdict="").text,
+            },
             "length_s": self.length_s,
             "step_s": self.step_s,
             "top": self.top,
@@ -751,6 +802,7 @@ def _score(
         len(parts),
         points,
         tilt_deg=tilt,
+        information=info.full,
     ), ext.scaling
 
 
@@ -900,6 +952,7 @@ def select_segments(
         logger.warning(w)
     timings["windows"] = time.perf_counter() - clock
     ranked = choose(scores, top, threshold)
+    chosen = [w.information for w in ranked if w.selected and w.information is not None]
     return Selection(
         windows=ranked,
         estimate=est,
@@ -916,4 +969,5 @@ def select_segments(
             *(f"imu.{n}" for n in cfg.model.imu if n not in _WINDOW_IMU_BLOCKS),
             *(f"lidar.{n}" for n in cfg.model.lidar),
         ),
+        together=joint_information(chosen),
     )

@@ -126,3 +126,42 @@ def test_a_windows_tilt_is_the_rms_turn_of_gravity_in_the_imu_frame() -> None:
     assert window_tilt_deg(_rocking_imu(20.0, yaw_rate=np.pi)) == pytest.approx(
         20.0 / np.sqrt(2), rel=0.02
     )
+
+
+def _window_info(weak_axis: int | None, coupled_axis: int | None = None):
+    """A window's scaled information: strong everywhere but the extrinsic rotation about
+    ``weak_axis``; the rotation about ``coupled_axis`` trades with the gyro rotation's."""
+    from licalib_cli.solver.observability import summarize_information
+
+    names = [f"ext.rotation.{a}" for a in "xyz"] + [f"ext.translation.{a}" for a in "xyz"]
+    names += ["ext.time_offset"] + [f"imu.gyro_rotation.{a}" for a in "xyz"]
+    owners = [n.rsplit(".", 1)[0] if n != "ext.time_offset" else n for n in names]
+    d = np.full(10, 100.0)
+    if weak_axis is not None:
+        d[weak_axis] = 0.01
+    s = np.diag(d)
+    if coupled_axis is not None:
+        k = 7 + coupled_axis
+        s[coupled_axis, k] = s[k, coupled_axis] = 99.0
+    return summarize_information(s, names, owners, np.ones(10))
+
+
+def test_windows_together_add_their_information_and_keep_their_own_time_offsets() -> None:
+    from licalib_cli.pipeline.segments import joint_information
+
+    assert joint_information([]) is None
+    a, b = _window_info(0), _window_info(1)
+    alone = joint_information([a])
+    assert alone is not None
+    assert alone.names == tuple(a.names[:6])  # the extrinsic; the time offset is the window's
+    assert alone.min_singular_value == pytest.approx(0.01, rel=1e-3)
+    together = joint_information([a, b])
+    assert together is not None
+    # each window's weak rotation is the other's strong one
+    assert together.min_singular_value == pytest.approx(100.01, rel=1e-3)
+    # a rotation traded with the intrinsics (unknown to one characteristic size) is known
+    # only as well as the trade allows: 100 - 99^2 / (100 + 1)
+    traded = joint_information([_window_info(None, coupled_axis=2)])
+    assert traded is not None
+    assert traded.information[2, 2] == pytest.approx(100 - 99**2 / 101, rel=1e-6)
+    assert traded.information[1, 1] == pytest.approx(100.0, rel=1e-6)

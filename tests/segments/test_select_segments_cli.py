@@ -57,6 +57,11 @@ def test_the_burst_windows_rank_first_and_json_lists_every_window(walk, capsys) 
     assert values == sorted(values, reverse=True)
     assert values[0] > 5 * values[2]
     assert out["estimate"]["source"] == "config"
+    # the two selected windows together determine more than the better one alone
+    together = out["selected_together"]
+    assert together["min_singular_value"] > values[0]
+    assert together["weakest_direction"].startswith("ext.")
+    assert len(together["singular_values"]) == 6  # each window keeps its own time offset
 
 
 def _ranked(walk, capsys, *extra: str) -> dict:
