@@ -714,25 +714,40 @@ def choose(
 ) -> tuple[WindowScore, ...]:
     """Rank the windows and mark the selected ones; time order is kept.
 
-    Selection walks down the ranking and takes a window unless it overlaps one already
-    taken, until ``top`` are taken (default :data:`DEFAULT_TOP` without a threshold) and
-    while the metric is at least ``threshold``.
+    The candidates are the windows with data whose metric is at least ``threshold``; at most
+    ``top`` are taken (default :data:`DEFAULT_TOP` without a threshold), none overlapping
+    another. The first is the best ranked; each next one, when the windows carry their
+    information, the candidate that adds most to what the windows taken so far determine
+    together (the smallest singular value of :func:`joint_information`, ties to the better
+    rank), so that windows weak in the same direction do not crowd out one that is strong
+    there; without it, the next in rank.
     """
     order = sorted(range(len(windows)), key=lambda i: _rank_key(windows[i]))
     rank = {i: r + 1 for r, i in enumerate(order)}
     limit = top if top is not None else (None if threshold is not None else DEFAULT_TOP)
-    taken: list[WindowScore] = []
-    chosen: set[int] = set()
-    for i in order:
-        w = windows[i]
-        if limit is not None and len(taken) >= limit:
+    candidates = [
+        i
+        for i in order
+        if windows[i].min_singular_value > 0
+        and (threshold is None or windows[i].min_singular_value >= threshold)
+    ]
+    info = {i: windows[i].information for i in candidates}
+    known = {i: x for i, x in info.items() if x is not None}
+    greedy = limit is not None and len(known) == len(info)
+    taken: list[int] = []
+
+    def together(i: int) -> float:
+        joint = joint_information([known[t] for t in (*taken, i)])
+        return joint.min_singular_value if joint is not None else 0.0
+
+    while candidates and (limit is None or len(taken) < limit):
+        free = [i for i in candidates if not any(windows[i].overlaps(windows[t]) for t in taken)]
+        if not free:
             break
-        if threshold is not None and not w.min_singular_value >= threshold:
-            break
-        if w.min_singular_value <= 0 or any(w.overlaps(t) for t in taken):
-            continue
-        taken.append(w)
-        chosen.add(i)
+        pick = max(free, key=lambda i: (together(i), -rank[i])) if greedy and taken else free[0]
+        taken.append(pick)
+        candidates.remove(pick)
+    chosen = set(taken)
     return tuple(replace(w, rank=rank[i], selected=i in chosen) for i, w in enumerate(windows))
 
 

@@ -165,3 +165,22 @@ def test_windows_together_add_their_information_and_keep_their_own_time_offsets(
     assert traded is not None
     assert traded.information[2, 2] == pytest.approx(100 - 99**2 / 101, rel=1e-6)
     assert traded.information[1, 1] == pytest.approx(100.0, rel=1e-6)
+
+
+def test_the_next_window_chosen_is_the_one_that_adds_most_to_those_taken() -> None:
+    """Windows weak in the same direction do not crowd out one that is strong there."""
+    from dataclasses import replace
+
+    rx, ry = _window_info(0), _window_info(1)
+    w = [
+        replace(_score(0, 4, 0.012), information=rx),  # best ranked
+        replace(_score(4, 8, 0.011), information=rx),  # second: weak where the first is
+        replace(_score(8, 12, 0.010), information=ry),  # third: strong there
+    ]
+    assert [x.selected for x in choose(w, top=2, threshold=None)] == [True, False, True]
+    assert [x.rank for x in choose(w, top=2, threshold=None)] == [1, 2, 3]  # ranks unchanged
+    # without the windows' information: by rank alone
+    plain = [replace(x, information=None) for x in w]
+    assert [x.selected for x in choose(plain, top=2, threshold=None)] == [True, True, False]
+    # a threshold still bounds the candidates
+    assert [x.selected for x in choose(w, top=2, threshold=0.0105)] == [True, True, False]
