@@ -145,7 +145,8 @@ def select_segments_command(
     top: int | None = typer.Option(
         None,
         "--top",
-        help="Select the best K windows that do not overlap (default 3).",
+        help="Select K windows that do not overlap: the best, then each adding most to those "
+        "taken (default 3).",
         rich_help_panel=_WIN,
     ),
     threshold: float | None = typer.Option(

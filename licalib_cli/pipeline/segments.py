@@ -879,7 +879,7 @@ def select_segments(
             (``bag.max_duration_s`` does not apply).
         length_s: window length, s.
         step_s: window step, s (default: ``length_s``, windows side by side).
-        top: select the best ``top`` windows that do not overlap.
+        top: select ``top`` windows that do not overlap (:func:`choose`).
         threshold: select windows whose metric is at least this.
         every: decode every ``every``-th cloud (3: a third of them).
         progress: called as ``progress(done, total)`` after each window.
