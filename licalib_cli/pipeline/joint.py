@@ -346,7 +346,11 @@ def calibrate_segments(
         if not windows:
             msg = "No window of the bag carries enough information to calibrate."
             raise ExcitationError(msg)
-        logger.info("Segments selected: %s.", ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in windows))
+        logger.info(
+            "Segments selected: %s (together: min singular value %.3g).",
+            ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in windows),
+            sel.together.min_singular_value if sel.together is not None else 0.0,
+        )
         timings["selection"] = time.perf_counter() - clock
     else:
         windows = parse_segments(segments, bag_duration_s(bag))
