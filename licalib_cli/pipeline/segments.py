@@ -512,6 +512,7 @@ def window_information(
 _EXTRINSIC_BLOCKS = frozenset((EXT_ROTATION, EXT_TRANSLATION, TIME_OFFSET))
 
 _WINDOW_IMU_BLOCKS = frozenset((*IMU_INTRINSIC_NAMES, "g_sensitivity"))
+"""``model.imu`` names a window's problem estimates (:func:`window_free`)."""
 
 _TIME_OFFSET_ELIMINATION = 1e-9
 """Scaled information added to a window's time offset when it is eliminated (its own)."""
@@ -534,7 +535,7 @@ def joint_information(infos: Sequence[InformationSummary]) -> InformationSummary
     ]
     first = shared[0]
     if any(i.names != first.names for i in shared):
-        msg = "windows of one selection estimate the same coordinates"
+        msg = "the windows of one selection must estimate the same coordinates"
         raise ValueError(msg)
     inv = 1.0 / first.scale
     total = sum(i.information for i in shared)
@@ -546,9 +547,6 @@ def joint_information(infos: Sequence[InformationSummary]) -> InformationSummary
         sum(i.num_residuals for i in shared),
     )
     return marginal_information(summed, _EXTRINSIC_BLOCKS)
-
-
-"""``model.imu`` names a window's problem estimates (:func:`window_free`)."""
 
 
 # ------------------------------------------------------------------------------ selection
