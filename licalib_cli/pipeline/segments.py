@@ -763,7 +763,8 @@ def _weak(info: InformationSummary, threshold: float) -> list[str]:
 
 def _weak_intrinsics(info: InformationSummary, threshold: float) -> list[str]:
     """Directions of the full information below ``threshold`` that lie mostly (over half
-    their squared norm) on the IMU intrinsics: what the window leaves undetermined there."""
+    their squared norm) on the IMU intrinsics: what the window's reduced problem leaves
+    undetermined there (an indication; the calibration's own check decides)."""
     out = []
     s = info.singular_values
     for i in range(s.size - 1, -1, -1):
