@@ -25,7 +25,10 @@ Parts (all by default; choose with ``--parts``):
   two 10 s windows are ranked with and without the intrinsics in the metric, then calibrated
   alone with ``--intrinsics all``: the error against the truth, the largest error over its
   sigma and the verdict, per window, in the order of the metric. Expected: the tilted windows
-  rank above the plain ones and calibrate the extrinsic rotation better.
+  rank above the plain ones and calibrate the extrinsic rotation better. ``--tilt-lidars``
+  cycles LiDAR models over the seeds (their shipped config, or the defaults); ``--tilt-joint``
+  also calibrates each bag's two windows together (``--segments 0-10,10-20``): the joint error,
+  verdict and each segment's verdict alone.
 * ``intrinsics`` (not run by default): 30 s sinusoids with the simulator's random intrinsic
   errors (``licalib simulate --scenario sinusoid --duration 30 --seed S --random-time-offset``,
   seeds ``--intrinsics-seeds``), ``calibrate --intrinsics all --segments 0-10,10-20,20-30``: each
@@ -41,6 +44,8 @@ Examples::
         --long-repeat 6 --workdir /tmp/hour
     .venv/bin/python benchmarks/bench_segments.py --parts intrinsics --intrinsics-seeds 3 5
     .venv/bin/python benchmarks/bench_segments.py --parts tilt --tilt-seeds 2811 2812 2813
+    .venv/bin/python benchmarks/bench_segments.py --parts tilt --tilt-seeds 2821 2822 2823 \
+        --tilt-lidars os1-64 hdl-32 os1-32 --tilt-joint
 
 Bags are simulated into ``--workdir`` (default: a temporary folder) unless given.
 """
@@ -355,35 +360,65 @@ def intrinsics(args: argparse.Namespace, workdir: Path) -> None:
     print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
 
 
-def tilt(args: argparse.Namespace, workdir: Path) -> None:
+def _lidar_config(lidar: str) -> Path | None:
+    """The shipped config of a LiDAR model, or None (the defaults) for one without."""
+    path = Path(__file__).resolve().parents[1] / "configs" / f"{lidar}.yaml"
+    return path if path.exists() else None
+
+
+def _errors(truth, result) -> tuple[float, float, float, float]:
+    """Translation (mm), rotation (deg), time offset (ms) errors and the largest error over
+    its reported sigma."""
     import numpy as np
 
+    d = truth.extrinsic_for(result).moved_to(result.extrinsic)
+    unc = result.uncertainty
+    sd = np.concatenate(
+        [
+            np.asarray(unc.translation_std_m),
+            np.radians(np.asarray(unc.rotation_std_deg)),
+            [unc.time_offset_std_s],
+        ]
+    )
+    return (
+        1e3 * float(np.linalg.norm(d[:3])),
+        float(np.degrees(np.linalg.norm(d[3:6]))),
+        1e3 * abs(float(d[6])),
+        float(np.max(np.abs(d) / sd)),
+    )
+
+
+def tilt(args: argparse.Namespace, workdir: Path) -> None:
     from licalib_cli.config import INTRINSIC_PRESETS, load_config
     from licalib_cli.pipeline import calibrate
+    from licalib_cli.pipeline.joint import calibrate_segments
     from licalib_cli.pipeline.segments import select_segments
     from licalib_cli.truth import Truth
 
     imu_blocks, lidar_blocks = INTRINSIC_PRESETS["all"]
     model = {"model.imu": list(imu_blocks), "model.lidar": list(lidar_blocks)}
-    plain_cfg = load_config(_config())
-    imu_cfg = load_config(_config(), model)
     print(
         "\nwindows of 10 s, metric with the IMU intrinsics unknown (and without), then "
         "calibrate --intrinsics all on each window alone"
+        + (" and on both together (--segments 0-10,10-20)" if args.tilt_joint else "")
     )
     print(
-        " seed  tilt  window  metric imu  metric none  error t [mm]  rot [deg]  dt [ms]  "
-        "max err/sigma  verdict"
+        " seed  lidar    tilt  window  metric imu  metric none  error t [mm]  rot [deg]  "
+        "dt [ms]  max err/sigma  verdict"
     )
     summary = []
-    for seed in args.tilt_seeds:
+    for k, seed in enumerate(args.tilt_seeds):
+        lidar = args.tilt_lidars[k % len(args.tilt_lidars)]
+        config = _lidar_config(lidar)
         rows = []
+        joints = []
         for amplitude in (0.0, 30.0):
-            name = f"shake20-{seed}-tilt{amplitude:g}"
+            name = f"shake20-{seed}-tilt{amplitude:g}" + ("" if lidar == "vlp16" else f"-{lidar}")
             bag = _simulate(
                 workdir,
                 name,
                 scenario="shake",
+                lidar=lidar,
                 duration_s=20.0,
                 seed=seed,
                 intrinsics="random",
@@ -392,46 +427,40 @@ def tilt(args: argparse.Namespace, workdir: Path) -> None:
                 tilt_deg=amplitude,
             )
             truth = Truth.load(bag.parent / "truth.yaml")
-            with_imu = select_segments(bag, imu_cfg, 10.0).windows
-            without = select_segments(bag, plain_cfg, 10.0).windows
+            with_imu = select_segments(bag, load_config(config, model), 10.0).windows
+            without = select_segments(bag, load_config(config), 10.0).windows
             for w, w0 in zip(with_imu, without, strict=True):
                 cfg = load_config(
-                    _config(),
-                    {
-                        **model,
-                        "bag.start_s": w.start_s,
-                        "bag.duration_s": w.end_s - w.start_s,
-                    },
+                    config,
+                    {**model, "bag.start_s": w.start_s, "bag.duration_s": w.end_s - w.start_s},
                 )
                 res = calibrate(bag, cfg).result
-                ref = truth.extrinsic_for(res)
-                d = ref.moved_to(res.extrinsic)
-                unc = res.uncertainty
-                sd = np.concatenate(
-                    [
-                        np.asarray(unc.translation_std_m),
-                        np.radians(np.asarray(unc.rotation_std_deg)),
-                        [unc.time_offset_std_s],
-                    ]
-                )
                 rows.append(
                     (
                         w.min_singular_value,
                         amplitude,
                         f"{w.start_s:.0f}-{w.end_s:.0f}",
                         w0.min_singular_value,
-                        1e3 * float(np.linalg.norm(d[:3])),
-                        float(np.degrees(np.linalg.norm(d[3:6]))),
-                        1e3 * abs(float(d[6])),
-                        float(np.max(np.abs(d) / sd)),
+                        *_errors(truth, res),
                         res.verdict.status,
                     )
+                )
+            if args.tilt_joint:
+                run = calibrate_segments(bag, load_config(config, model), "0-10,10-20")
+                alone = "/".join(e.verdict for e in run.segments.segments)
+                joints.append(
+                    (amplitude, *_errors(truth, run.result), run.result.verdict.status, alone)
                 )
         rows.sort(key=lambda r: -r[0])
         for m, amp, win, m0, et, er, ec, ratio, verdict in rows:
             print(
-                f" {seed:4d}  {amp:4.0f}  {win:6s}  {m:10.3g}  {m0:11.3g}  {et:12.2f}  "
+                f" {seed:4d}  {lidar:7s}  {amp:4.0f}  {win:6s}  {m:10.3g}  {m0:11.3g}  {et:12.2f}  "
                 f"{er:9.4f}  {ec:7.3f}  {ratio:13.2f}  {verdict}"
+            )
+        for amp, et, er, ec, ratio, verdict, alone in joints:
+            print(
+                f" {seed:4d}  {lidar:7s}  {amp:4.0f}  joint   {'':10s}  {'':11s}  {et:12.2f}  "
+                f"{er:9.4f}  {ec:7.3f}  {ratio:13.2f}  {verdict} (alone {alone})"
             )
         tilted_first = all(r[1] > 0 for r in rows[:2])
         better = min(r[5] for r in rows if r[1] > 0) <= min(r[5] for r in rows if r[1] == 0)
@@ -461,6 +490,12 @@ def main() -> None:
     p.add_argument("--intrinsics-seeds", type=int, nargs="+", default=[3, 5])
     p.add_argument("--intrinsics-segments", default="0-10,10-20,20-30")
     p.add_argument("--tilt-seeds", type=int, nargs="+", default=[2811, 2812, 2813])
+    p.add_argument("--tilt-lidars", nargs="+", default=["vlp16"], help="cycled over the seeds")
+    p.add_argument(
+        "--tilt-joint",
+        action="store_true",
+        help="also calibrate each bag's two windows together (--segments 0-10,10-20)",
+    )
     args = p.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         workdir = Path(args.workdir) if args.workdir else Path(tmp)
