@@ -90,7 +90,7 @@ from licalib_cli.solver.observability import (
     InformationSummary,
     calibration_information,
     marginal_information,
-    summarize_information,
+    summed_information,
 )
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
 from licalib_cli.surfels import SurfelConfig, associate_points, build_surfels
@@ -533,19 +533,7 @@ def joint_information(infos: Sequence[InformationSummary]) -> InformationSummary
         marginal_information(i, set(i.owners) - {TIME_OFFSET}, prior=_TIME_OFFSET_ELIMINATION)
         for i in infos
     ]
-    first = shared[0]
-    if any(i.names != first.names for i in shared):
-        msg = "the windows of one selection must estimate the same coordinates"
-        raise ValueError(msg)
-    inv = 1.0 / first.scale
-    total = sum(i.information for i in shared)
-    summed = summarize_information(
-        inv[:, None] * total * inv[None, :],
-        first.names,
-        first.owners,
-        first.scale,
-        sum(i.num_residuals for i in shared),
-    )
+    summed = summed_information(shared)
     return marginal_information(summed, _EXTRINSIC_BLOCKS)
 
 

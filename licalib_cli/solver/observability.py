@@ -40,6 +40,7 @@ __all__ = [
     "describe_direction",
     "marginal_information",
     "summarize_information",
+    "summed_information",
     "truncation_mask",
     "undamped_schur",
 ]
@@ -289,6 +290,13 @@ def summarize_information(
     """
     scale = np.asarray(scale, dtype=np.float64)
     sd = scale[:, None] * np.asarray(S, dtype=np.float64) * scale[None, :]
+    return _scaled_summary(sd, names, owners, scale, num_residuals)
+
+
+def _scaled_summary(
+    sd: F64, names: Sequence[str], owners: Sequence[str], scale: F64, num_residuals: int
+) -> InformationSummary:
+    """The summary of an already scaled information ``sd`` (symmetrised and decomposed)."""
     sd = 0.5 * (sd + sd.T)
     if sd.size:
         w, u = np.linalg.eigh(sd)
@@ -335,18 +343,35 @@ def marginal_information(
     s_rr = s[np.ix_(r, r)] + prior * np.eye(r.size)
     s_kr = s[np.ix_(k, r)]
     sd = s[np.ix_(k, k)] - s_kr @ np.linalg.solve(s_rr, s_kr.T)
-    sd = 0.5 * (sd + sd.T)
-    w, u = np.linalg.eigh(sd)
-    names = tuple(info.names[i] for i in k)
-    return InformationSummary(
-        names=names,
-        owners=tuple(info.owners[i] for i in k),
-        scale=info.scale[k].copy(),
-        scaling=scaling_statement(names, info.scale[k]),
-        information=sd,
-        singular_values=np.clip(w[::-1], 0.0, None),
-        singular_vectors=u[:, ::-1],
-        num_residuals=info.num_residuals,
+    return _scaled_summary(
+        sd,
+        [info.names[i] for i in k],
+        [info.owners[i] for i in k],
+        info.scale[k],
+        info.num_residuals,
+    )
+
+
+def summed_information(infos: Sequence[InformationSummary]) -> InformationSummary:
+    """The information of independent data sets over the same coordinates (same names and
+    scales): their scaled matrices added.
+
+    Raises:
+        ValueError: no summaries, or summaries over different coordinates or scales.
+    """
+    if not infos:
+        msg = "no information to add"
+        raise ValueError(msg)
+    first = infos[0]
+    if any(i.names != first.names or not np.array_equal(i.scale, first.scale) for i in infos):
+        msg = "information over different coordinates or scales cannot be added"
+        raise ValueError(msg)
+    return _scaled_summary(
+        sum((i.information for i in infos), np.zeros_like(first.information)),
+        first.names,
+        first.owners,
+        first.scale,
+        sum(i.num_residuals for i in infos),
     )
 
 

@@ -213,3 +213,19 @@ def test_marginal_information_is_the_inverse_of_the_kept_covariance() -> None:
 def test_marginal_information_of_every_block_is_the_summary_itself() -> None:
     info = _summary(np.random.default_rng(5))
     assert marginal_information(info, {"a", "b", "c"}) is info
+
+
+def test_summed_information_adds_the_scaled_matrices() -> None:
+    from licalib_cli.solver.observability import summed_information
+
+    a, b = _summary(np.random.default_rng(6)), _summary(np.random.default_rng(7))
+    total = summed_information([a, b])
+    np.testing.assert_allclose(total.information, a.information + b.information)
+    assert total.names == a.names and total.num_residuals == a.num_residuals + b.num_residuals
+    np.testing.assert_allclose(
+        total.singular_values, np.linalg.eigvalsh(total.information)[::-1], atol=1e-9
+    )
+    with pytest.raises(ValueError, match="different coordinates"):
+        summed_information([a, marginal_information(b, {"a", "c"})])
+    with pytest.raises(ValueError, match="no information"):
+        summed_information([])
