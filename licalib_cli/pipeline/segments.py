@@ -717,9 +717,8 @@ def choose(
         if windows[i].min_singular_value > 0
         and (threshold is None or windows[i].min_singular_value >= threshold)
     ]
-    info = {i: windows[i].information for i in candidates}
-    known = {i: x for i, x in info.items() if x is not None}
-    greedy = limit is not None and len(known) == len(info)
+    known = {i: x for i in candidates if (x := windows[i].information) is not None}
+    greedy = limit is not None and len(known) == len(candidates)
     taken: list[int] = []
 
     def together(i: int) -> float:

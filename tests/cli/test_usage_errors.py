@@ -45,9 +45,22 @@ def _check_usage_error(code: int, out: str, err: str, usage: str, message: str) 
         ),
         (["info", "x.bag", "--start", "abc"], "licalib info", "Invalid value for '--start'"),
         (["simulate", "OUT", "--effect", "rain"], "licalib simulate", "'rain' is not one of"),
+        (
+            ["select-segments", "x.bag", "--intrinsics", "some"],
+            "licalib select-segments",
+            "'some' is not one of 'none', 'imu', 'lidar', 'all'",
+        ),
         (["frobnicate"], "licalib [OPTIONS] COMMAND", "No such command 'frobnicate'"),
     ],
-    ids=["unknown-option", "missing-bag", "bad-choice", "bad-number", "bad-effect", "bad-command"],
+    ids=[
+        "unknown-option",
+        "missing-bag",
+        "bad-choice",
+        "bad-number",
+        "bad-effect",
+        "bad-intrinsics",
+        "bad-command",
+    ],
 )
 def test_usage_error_exit_code_6(
     argv: list[str], usage: str, message: str, capsys: pytest.CaptureFixture[str]
