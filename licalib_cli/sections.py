@@ -57,9 +57,27 @@ __all__ = [
     "SplitHalf",
     "Uncertainty",
     "VerdictSection",
+    "p_is",
+    "p_text",
 ]
 
 T = TypeVar("T")
+
+P_FLOOR = 1e-300
+"""Smallest p-value printed as a number: below it the chi-square tail underflows (returns 0)."""
+
+
+def p_text(p: float, digits: int = 2) -> str:
+    """A p-value as printed: ``digits`` significant digits, or ``< 1e-300`` where it underflows
+    (a statistic so far in the tail that, printed as a number, it would read as a probability of
+    exactly zero)."""
+    return f"< {P_FLOOR:.0e}" if p < P_FLOOR else f"{p:.{digits}g}"
+
+
+def p_is(p: float, digits: int = 2) -> str:
+    """``p = 0.12``, or ``p < 1e-300`` where the p-value underflows (:func:`p_text`)."""
+    text = p_text(p, digits)
+    return f"p {text}" if text.startswith("<") else f"p = {text}"
 
 
 def _num(x: Any, digits: int = 6) -> Any:
@@ -363,7 +381,7 @@ class Consistency(Section):
             out.append(("effects held fixed", figure, ", ".join(e.name for e in material), True))
         elif self.effects:
             strongest = min(self.effects, key=lambda e: e.p_value)
-            figure = f"strongest {strongest.name}: p = {strongest.p_value:.2g}"
+            figure = f"strongest {strongest.name}: {p_is(strongest.p_value)}"
             hinted = [e.name for e in self.effects if e.covered]
             outcome = (
                 "hinted at: " + ", ".join(hinted) + " (shift in the sigmas)"
@@ -377,7 +395,7 @@ class Consistency(Section):
         else:
             figure = (
                 f"{sh.halves_s:.1f} s each, chi-square {sh.chi2:.1f} on {sh.dof} "
-                f"(p = {sh.p_value:.2g})"
+                f"({p_is(sh.p_value)})"
             )
             compared = sh.compared_text()
             if compared:

@@ -30,6 +30,7 @@ import numpy.typing as npt
 from licalib_cli.consistency.distributions import chi2_sf
 from licalib_cli.geometry import so3
 from licalib_cli.results import CalibrationResult, rpy_deg_from_matrix, write_text_atomic
+from licalib_cli.sections import p_is
 
 __all__ = [
     "DIFFER_P",
@@ -330,7 +331,7 @@ def rig_rows(rows: Sequence[BagRow]) -> tuple[list[BagRow], list[RigRow]]:
                 unit, scale = _UNITS[j]
                 text = (
                     f"{COORDINATES[j]} {diff[k, j] * scale:+.3g} {unit} from the others "
-                    f"({abs(z[k, j]):.1f} sigma, p = {p[k]:.1g})"
+                    f"({abs(z[k, j]):.1f} sigma, {p_is(p[k], 1)})"
                 )
                 out[i] = replace(out[i], differs=True, difference=text)
                 differing.append(rows[i].bag)

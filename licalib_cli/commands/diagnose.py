@@ -31,6 +31,7 @@ from licalib_cli.results import (
     dump_yaml,
     write_text_atomic,
 )
+from licalib_cli.sections import p_text
 
 _IO = INPUT_PANEL
 _OUT = "Output"
@@ -216,7 +217,7 @@ def render_diagnosis(diag: Any) -> None:
         table.add_row(
             s.effect,
             f"{s.statistic:.0f} ({s.dof})",
-            f"{s.p_value:.1g}",
+            p_text(s.p_value, 1),
             f"{s.delta_bic:+.0f}",
             f"{s.gap_before.sensor}: {s.gap_before.excess:+.3f} -> {s.gap_after.excess:+.3f}",
             f"{1e3 * s.moved_translation_m:.2f} mm / {s.moved_rotation_deg:.4f} deg / "

@@ -9,7 +9,7 @@ sentence); the verdict is the worst severity. A check that could not be computed
   sigmas include that change);
 * observability: extrinsic directions the data do not determine (``warn``; ``fail`` when fewer
   than half of the coordinates are determined);
-* uncertainty: sigmas above 1 cm / 0.1 deg / 2 ms (``warn``);
+* uncertainty: sigmas above the ``checks`` limits, 5 mm / 0.1 deg / 0.2 ms by default (``warn``);
 * fit per sensor: residuals beyond the noise, structure left in them (``warn``);
 * fixed effects: an effect the model holds fixed that the data show and that would move the
   extrinsic by more than its sigma (``warn``);
@@ -68,6 +68,7 @@ from licalib_cli.sections import (
     SplitHalf,
     Uncertainty,
     VerdictSection,
+    p_is,
 )
 from licalib_cli.solver.lm import SolverReport
 from licalib_cli.solver.observability import DirectionDescription
@@ -728,7 +729,7 @@ def _split(split: SplitResult) -> list[Finding]:
         Finding(
             "warn",
             f"The two halves of the segment disagree (chi-square {split.chi2:.0f} on {split.dof} "
-            f"degrees of freedom, p = {split.p_value:.1g}{most}): something changes over the "
+            f"degrees of freedom, {p_is(split.p_value, 1)}{most}): something changes over the "
             "recording (a drifting bias, a clock running at another rate, a loose mount) that "
             "the model does not describe.",
         )
@@ -800,7 +801,7 @@ def inflate(
             hint = (
                 ""
                 if effect_is_material(e, raw)
-                else f", which the data hint at (p = {e.score.p_value:.1g})"
+                else f", which the data hint at ({p_is(e.score.p_value, 1)})"
             )
             if e.refitted:
                 why.append(f"by the move of a refit with {e.score.name} estimated")

@@ -28,6 +28,7 @@ from licalib_cli.consistency.distributions import chi2_sf
 from licalib_cli.estimation import CALIBRATION_SCALES
 from licalib_cli.pipeline.settings import prior_sd
 from licalib_cli.residuals import EXT_TRANSLATION
+from licalib_cli.sections import p_is
 from licalib_cli.solver.lm import LMParams, SolverReport, observable_coordinates
 from licalib_cli.solver.observability import describe_direction, truncation_mask
 
@@ -203,7 +204,7 @@ class PriorConflict:
         return (
             "The measured lever arm (initialization.translation_m) disagrees with the data: "
             f"their own estimate differs from it by [{diff}] mm (chi-square "
-            f"{self.statistic:.1f} on {self.dof}, p = {self.p_value:.2g}) and it pulled the "
+            f"{self.statistic:.1f} on {self.dof}, {p_is(self.p_value)}) and it pulled the "
             f"translation {1e3 * pull:.1f} mm away from that (the sigmas include this); check "
             "the measurement, or widen initialization.translation_sigma_m."
         )

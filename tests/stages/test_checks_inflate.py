@@ -114,6 +114,32 @@ def test_the_checks_table_names_a_hinted_effect() -> None:
     assert "accel_scale" in outcome((quiet, hinted)) and "hinted" in outcome((quiet, hinted))
 
 
+def test_a_p_value_that_underflows_is_printed_as_a_bound() -> None:
+    """A statistic far in the tail has a chi-square p-value of exactly 0.0 in floating point;
+    the tables and sentences say "p < 1e-300" rather than a probability of zero."""
+    from licalib_cli.consistency.distributions import chi2_sf
+    from licalib_cli.sections import Consistency, EffectCheck, p_is, p_text
+
+    assert float(chi2_sf(1469.0, 3)) == 0.0  # the gyro scale of the README's diagnose example
+    assert p_text(0.0) == "< 1e-300" and p_is(0.0) == "p < 1e-300"
+    assert p_text(0.1234) == "0.12" and p_is(0.1234) == "p = 0.12"
+    assert p_is(4e-293, 1) == "p = 4e-293"
+    effect = EffectCheck(
+        name="gyro_scale",
+        sensor="imu",
+        statistic=1469.0,
+        dof=3,
+        p_value=0.0,
+        shift_translation_m=(0.0, 0.0, 1e-5),
+        shift_rotation_deg=(0.0, 0.0, 0.0),
+        shift_time_offset_s=0.0,
+    )
+    figure = next(
+        r[1] for r in Consistency(effects=(effect,)).rows() if r[0] == "effects held fixed"
+    )
+    assert figure == "strongest gyro_scale: p < 1e-300"
+
+
 def test_every_material_effect_is_covered() -> None:
     """A named effect is also one the data hint at: the covering level is the looser one."""
     assert EFFECT_P_VALUE <= COVER_P_VALUE
