@@ -159,6 +159,10 @@ def render_report(report: BagReport) -> None:
             )
             colour = "green" if e.ok else "yellow"
             imu.add_row("excitation", f"[{colour}]{escape(e.summary)}[/]")
+            if e.imu_intrinsics_note:
+                colour = "green" if e.gravity_turn_ok else "yellow"
+                note = f"[{colour}]{escape(e.imu_intrinsics_note)}[/]"
+                imu.add_row("tilt (IMU intrinsics)", note)
         out.print(imu)
 
     if report.lidar is not None:

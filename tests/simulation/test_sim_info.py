@@ -130,6 +130,13 @@ def test_info_judges_the_motion(
     assert bool(warned) is (not ok)
     if scenario == "figure8":
         assert e["rotation_axis_strength_deg_s"][1] < 0.1 * e["rotation_axis_strength_deg_s"][0]
+    # the tilt the IMU intrinsics need: the sinusoid turns gravity (16 deg RMS in these 3 s),
+    # the planar figure-8 and the pure translation hardly
+    if scenario == "sinusoid":
+        assert e["gravity_turn_deg"] > 15.0 and "enough" in e["imu_intrinsics"], e
+    else:
+        # (3 deg: the path's own accelerations tilt the specific force a little)
+        assert e["gravity_turn_deg"] < 5.0 and "tilted by tens of degrees" in e["imu_intrinsics"]
 
 
 def test_motion_excitation_two_axes_and_units() -> None:
@@ -146,3 +153,42 @@ def test_motion_excitation_two_axes_and_units() -> None:
     assert e.rotation_rms_deg_s[0] == pytest.approx(expected_x, rel=1e-9)
     assert e.rotation_axis_strength[2] < 0.1 * e.rotation_axis_strength[0]
     assert e.accel_std_m_s2 == pytest.approx((0.0, 0.0, 0.0), abs=1e-9)
+
+
+def test_the_excitation_says_whether_gravity_turned_enough_for_the_imu_intrinsics() -> None:
+    """Rocking slowly by A about a horizontal axis turns gravity in the IMU frame by A / sqrt(2)
+    RMS (the 0.5 s means shrink a 0.2 Hz swing by 1.6 %): 30 deg is enough for the
+    accelerometer's frame, 8 deg is not and the note says what to do. Stamps out of order and
+    repeated give the same figure; without stamps there is no such note."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from licalib_cli.inspection import GRAVITY_TURN_FOR_IMU_DEG, motion_excitation
+
+    def rocking(amplitude_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        t = np.arange(0.0, 10.0, 0.005)
+        a, w = np.radians(amplitude_deg), 2 * np.pi * 0.2
+        r = Rotation.from_rotvec(np.outer(a * np.sin(w * t), [1.0, 0.0, 0.0])).as_matrix()
+        gyro = np.outer(a * w * np.cos(w * t), [1.0, 0.0, 0.0])
+        accel = np.einsum("nji,j->ni", r, [0.0, 0.0, 9.81])
+        return (t * 1e9).astype(np.int64), gyro, accel
+
+    t, gyro, accel = rocking(30.0)
+    e = motion_excitation(gyro, accel, t_ns=t)
+    assert e.gravity_turn_deg == pytest.approx(30.0 / np.sqrt(2), rel=0.03)
+    assert e.gravity_turn_ok and e.imu_intrinsics_note.startswith("gravity turned 21 deg RMS")
+    t, gyro, accel = rocking(8.0)
+    e = motion_excitation(gyro, accel, t_ns=t)
+    assert e.gravity_turn_deg == pytest.approx(8.0 / np.sqrt(2), rel=0.03)
+    assert e.gravity_turn_deg < GRAVITY_TURN_FOR_IMU_DEG and not e.gravity_turn_ok
+    assert "only 6 deg" in e.imu_intrinsics_note
+    assert "tilted by tens of degrees" in e.imu_intrinsics_note
+    # two samples swapped and one repeated: the same turn
+    i = np.arange(t.size)
+    i[[100, 101]] = i[[101, 100]]
+    i = np.insert(i, 500, 500)
+    messy = motion_excitation(gyro[i], accel[i], t_ns=t[i])
+    assert messy.gravity_turn_deg == pytest.approx(e.gravity_turn_deg, rel=1e-3)
+    plain = motion_excitation(gyro, accel)
+    assert plain.gravity_turn_deg is None and plain.imu_intrinsics_note == ""
+    assert plain.gravity_turn_ok
