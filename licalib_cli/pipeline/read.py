@@ -4,6 +4,7 @@ sensors' noise."""
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -13,13 +14,21 @@ import numpy.typing as npt
 from licalib_cli.config import CalibConfig
 from licalib_cli.consistency import imu_noise, range_noise
 from licalib_cli.geometry.vectors import norms
+from licalib_cli.inspection import GRAVITY_TURN_FOR_IMU_DEG, gravity_turn_deg
 from licalib_cli.io.reader import read_segment
 from licalib_cli.io.window import MIN_SEGMENT_S
-from licalib_cli.measurements import Recording
+from licalib_cli.measurements import ImuSamples, Recording
 from licalib_cli.pipeline.points import nominal_elevations
 from licalib_cli.pipeline.settings import NoiseLevels
 
-__all__ = ["MIN_SEGMENT_S", "Segment", "measure_noise", "read", "read_recording"]
+__all__ = [
+    "MIN_SEGMENT_S",
+    "Segment",
+    "measure_noise",
+    "read",
+    "read_recording",
+    "tilt_warning",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -53,8 +62,38 @@ def read(bag: Path, cfg: CalibConfig) -> Segment:
         ExcitationError: the segment is shorter than :data:`MIN_SEGMENT_S`.
     """
     rec = read_recording(bag, cfg)
+    warning = tilt_warning(rec.imu, [str(b) for b in cfg.model.imu])
+    if warning:
+        logger.warning(warning)
     phi = nominal_elevations(rec.scans, cfg)
     return Segment(rec, phi, measure_noise(rec, cfg, phi.shape[0]))
+
+
+_ACCELEROMETER_FRAME = ("gyro_rotation", "accel_misalignment")
+"""The ``model.imu`` blocks that turn the accelerometer's frame against the gyro's and the
+LiDAR's: only gravity seen at other attitudes tells them from the extrinsic rotation."""
+
+
+def tilt_warning(imu: ImuSamples, model_imu: Sequence[str]) -> str | None:
+    """A warning before the fit when the model estimates the accelerometer's frame
+    (``gyro_rotation``, ``accel_misalignment``) and gravity turned less than
+    :data:`~licalib_cli.inspection.GRAVITY_TURN_FOR_IMU_DEG` in the IMU frame over the segment
+    (:func:`~licalib_cli.inspection.gravity_turn_deg`); None otherwise. The checks after the fit
+    say whether the frame was in fact left undetermined."""
+    blocks = [b for b in _ACCELEROMETER_FRAME if b in model_imu]
+    if not blocks:
+        return None
+    turn = gravity_turn_deg(imu.t_ns, imu.accel)
+    if turn is None or turn >= GRAVITY_TURN_FOR_IMU_DEG:
+        return None
+    them = " and ".join(blocks)
+    return (
+        f"Gravity turned only {turn:.0f} deg RMS in the IMU frame over this segment: with "
+        f"{them} estimated, the accelerometer's frame may trade off with the extrinsic rotation "
+        "(the checks after the fit say whether it did); record with the rig tilted by tens of "
+        f"degrees about both horizontal axes, or leave {them} out of model.imu when the IMU's "
+        f"own calibration covers {'them' if len(blocks) > 1 else 'it'}."
+    )
 
 
 def read_recording(bag: Path, cfg: CalibConfig) -> Recording:
