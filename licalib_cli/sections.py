@@ -567,6 +567,11 @@ class RecordingSection(Section):
     """``header.frame_id`` of the IMU messages ("" when unknown)."""
     lidar_frame: str = ""
     """``header.frame_id`` of the LiDAR messages ("" when unknown)."""
+    gravity_turn_deg: float | None = None
+    """How far gravity turned in the IMU frame over the segment, deg RMS (the accelerometer's
+    0.5 s mean direction; :func:`licalib_cli.inspection.gravity_turn_deg`): tens of degrees
+    tell the accelerometer's frame from the extrinsic rotation when the IMU intrinsics are
+    estimated. None in results written before it was recorded."""
 
 
 @dataclass(frozen=True)

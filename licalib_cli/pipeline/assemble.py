@@ -11,6 +11,7 @@ import numpy as np
 from licalib_cli import __version__
 from licalib_cli.config import CalibConfig, config_fingerprint
 from licalib_cli.estimation import CalibrationState, beam_point_counts
+from licalib_cli.inspection import gravity_turn_deg
 from licalib_cli.io.frames import frame_ids
 from licalib_cli.measurements import Recording
 from licalib_cli.pipeline.checks import Checks
@@ -67,7 +68,12 @@ def recording_section(bag: Path, rec: Recording) -> RecordingSection:
         scans_skipped=rec.scans_skipped,
         imu_frame=frames.get(rec.imu_topic, ""),
         lidar_frame=frames.get(rec.lidar_topic, ""),
+        gravity_turn_deg=_rounded(gravity_turn_deg(rec.imu.t_ns, rec.imu.accel), 3),
     )
+
+
+def _rounded(value: float | None, digits: int) -> float | None:
+    return None if value is None else round(value, digits)
 
 
 def factory_section(rec: Recording, calibrated: Extrinsic) -> FactoryExtrinsicSection | None:

@@ -102,6 +102,7 @@ def test_calibrate_writes_report_and_maps(tmp_path, browser_if_installed):
     recording = yaml.safe_load((out / "calib.yaml").read_text())["recording"]
     assert recording["imu_frame"] == truth["imu"]["frame_id"]
     assert recording["lidar_frame"] == truth["lidar"]["frame_id"]
+    assert recording["gravity_turn_deg"] > 5.0  # the sinusoid tilts the rig
     urdf = tmp_path / "joint.urdf"
     assert (
         _main(["export", str(out / "calib.yaml"), "--to", "urdf", "--force", "-o", str(urdf)]) == 0

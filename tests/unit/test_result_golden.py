@@ -93,6 +93,7 @@ def _result() -> CalibrationResult:
             -1000000.25,
             imu_frame="imu_link",
             lidar_frame="velodyne",
+            gravity_turn_deg=27.365,
         ),
         provenance=Provenance(
             "0.1.0", "0123456789abcdef", "2026-11-24T07:00:00Z", "fedcba9876543210"
