@@ -17,6 +17,7 @@ import pytest
 from licalib_cli.consistency.score import EffectScore
 from licalib_cli.pipeline.checks import COVER_P_VALUE, effect_to_cover, inflate
 from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
+from licalib_cli.sections import EffectCheck
 
 RAW = np.array([1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4, 1e-5])
 
@@ -86,23 +87,27 @@ def test_a_hinted_effect_is_named_as_such() -> None:
     assert "hint" not in why[0]
 
 
+def _effect_check(name: str, p_value: float, covered: bool, statistic: float = 20.0) -> EffectCheck:
+    """An IMU effect's line of the checks (3 degrees of freedom, a 1 mm shift in z)."""
+    return EffectCheck(
+        name=name,
+        sensor="imu",
+        statistic=statistic,
+        dof=3,
+        p_value=p_value,
+        shift_translation_m=(0.0, 0.0, 1e-3),
+        shift_rotation_deg=(0.0, 0.0, 0.0),
+        shift_time_offset_s=0.0,
+        covered=covered,
+    )
+
+
 def test_the_checks_table_names_a_hinted_effect() -> None:
     """The console and report table say which effect the sigmas cover though it is not named,
     instead of "none that moves the extrinsic"."""
-    from licalib_cli.sections import Consistency, EffectCheck
+    from licalib_cli.sections import Consistency
 
-    def check(name: str, p_value: float, covered: bool) -> EffectCheck:
-        return EffectCheck(
-            name=name,
-            sensor="imu",
-            statistic=20.0,
-            dof=3,
-            p_value=p_value,
-            shift_translation_m=(0.0, 0.0, 1e-3),
-            shift_rotation_deg=(0.0, 0.0, 0.0),
-            shift_time_offset_s=0.0,
-            covered=covered,
-        )
+    check = _effect_check
 
     def outcome(effects: tuple[EffectCheck, ...]) -> str:
         rows = Consistency(effects=effects).rows()
@@ -118,22 +123,13 @@ def test_a_p_value_that_underflows_is_printed_as_a_bound() -> None:
     """A statistic far in the tail has a chi-square p-value of exactly 0.0 in floating point;
     the tables and sentences say "p < 1e-300" rather than a probability of zero."""
     from licalib_cli.consistency.distributions import chi2_sf
-    from licalib_cli.sections import Consistency, EffectCheck, p_is, p_text
+    from licalib_cli.sections import Consistency, p_is, p_text
 
     assert float(chi2_sf(1469.0, 3)) == 0.0  # the gyro scale of the README's diagnose example
     assert p_text(0.0) == "< 1e-300" and p_is(0.0) == "p < 1e-300"
     assert p_text(0.1234) == "0.12" and p_is(0.1234) == "p = 0.12"
     assert p_is(4e-293, 1) == "p = 4e-293"
-    effect = EffectCheck(
-        name="gyro_scale",
-        sensor="imu",
-        statistic=1469.0,
-        dof=3,
-        p_value=0.0,
-        shift_translation_m=(0.0, 0.0, 1e-5),
-        shift_rotation_deg=(0.0, 0.0, 0.0),
-        shift_time_offset_s=0.0,
-    )
+    effect = _effect_check("gyro_scale", 0.0, False, statistic=1469.0)
     figure = next(
         r[1] for r in Consistency(effects=(effect,)).rows() if r[0] == "effects held fixed"
     )
