@@ -22,6 +22,7 @@ from licalib_cli.pipeline.points import nominal_elevations
 from licalib_cli.pipeline.settings import NoiseLevels
 
 __all__ = [
+    "ACCELEROMETER_FRAME_MODEL",
     "MIN_SEGMENT_S",
     "Segment",
     "measure_noise",
@@ -69,9 +70,11 @@ def read(bag: Path, cfg: CalibConfig) -> Segment:
     return Segment(rec, phi, measure_noise(rec, cfg, phi.shape[0]))
 
 
-_ACCELEROMETER_FRAME = ("gyro_rotation", "accel_misalignment")
+ACCELEROMETER_FRAME_MODEL = ("gyro_rotation", "accel_misalignment")
 """The ``model.imu`` blocks that turn the accelerometer's frame against the gyro's and the
-LiDAR's: only gravity seen at other attitudes tells them from the extrinsic rotation."""
+LiDAR's: only gravity seen at other attitudes tells them from the extrinsic rotation (the
+checks' :data:`~licalib_cli.pipeline.checks.ACCELEROMETER_FRAME_BLOCKS`, by their model
+names)."""
 
 
 def tilt_warning(imu: ImuSamples, model_imu: Sequence[str]) -> str | None:
@@ -80,7 +83,7 @@ def tilt_warning(imu: ImuSamples, model_imu: Sequence[str]) -> str | None:
     :data:`~licalib_cli.inspection.GRAVITY_TURN_FOR_IMU_DEG` in the IMU frame over the segment
     (:func:`~licalib_cli.inspection.gravity_turn_deg`); None otherwise. The checks after the fit
     say whether the frame was in fact left undetermined."""
-    blocks = [b for b in _ACCELEROMETER_FRAME if b in model_imu]
+    blocks = [b for b in ACCELEROMETER_FRAME_MODEL if b in model_imu]
     if not blocks:
         return None
     turn = gravity_turn_deg(imu.t_ns, imu.accel)
