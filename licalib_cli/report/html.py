@@ -459,6 +459,8 @@ def _provenance(result: CalibrationResult, data: ReportData | None, source: str)
             ["segment duration", f"{rec.duration_s:.3f} s"],
             ["clock offset t_imu - t_lidar", f"{rec.clock_offset_s:+.6f} s"],
         ]
+        if rec.gravity_turn_deg is not None:
+            rows.append(["gravity turned in the IMU frame", f"{rec.gravity_turn_deg:.1f} deg RMS"])
     rows.append(["result file", source])
     if data is not None and data.command_line:
         rows.append(["command line", data.command_line])

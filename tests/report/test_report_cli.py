@@ -71,6 +71,7 @@ def write_result(
             1700000000000000000,
             0.0,
             0.0,
+            gravity_turn_deg=27.365,
         ),
         provenance=Provenance("0.1.0", "0123456789abcdef", CREATED),
     )
@@ -169,6 +170,7 @@ def test_report_data_round_trip_and_figures(tmp_path):
     assert "-3.9000" in page and "-4.1000" in page  # both entropies
     assert "licalib calibrate rig.bag" in page and "start_s: 0.0" in page
     assert "initial guess" in page and "truth" in page and "+0.25" in page
+    assert 'gravity turned in the IMU frame</td><td class="">27.4 deg RMS' in page
 
 
 @pytest.mark.slow
