@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.markup import escape
@@ -24,7 +24,9 @@ from licalib_cli.commands.options import input_overrides
 from licalib_cli.commands.render import console
 from licalib_cli.config import load_config
 from licalib_cli.errors import LicalibError
-from licalib_cli.inspection import BagReport, error_report, factory_extrinsic_dict, inspect_bag
+
+if TYPE_CHECKING:
+    from licalib_cli.inspection import BagReport
 
 
 def info_command(
@@ -54,6 +56,8 @@ def info_command(
     ] = None,
 ) -> None:
     """Show topics, rates, gaps, point layout, IMU units and clock offsets of a bag."""
+    from licalib_cli.inspection import error_report, inspect_bag
+
     try:
         cfg = load_config(
             config,
@@ -213,6 +217,8 @@ def render_report(report: BagReport) -> None:
         )
     if report.factory_extrinsic is not None:
         f = report.factory_extrinsic
+        from licalib_cli.inspection import factory_extrinsic_dict
+
         d = factory_extrinsic_dict(f)
         t_text = ", ".join(f"{v:+.6f}" for v in d["translation"])
         rpy = ", ".join(f"{v:.2f}" for v in d["rotation_rpy_deg"])

@@ -11,10 +11,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from rosbags.rosbag1 import Writer as Writer1
-from rosbags.rosbag2 import StoragePlugin
-from rosbags.rosbag2 import Writer as Writer2
-from rosbags.typesys import Stores, get_typestore
 
 if TYPE_CHECKING:
     from types import TracebackType
@@ -66,6 +62,13 @@ class BagWriter:
     """
 
     def __init__(self, path: Path, fmt: BagFormat | str) -> None:
+        # rosbags is imported here, not with the module: the command line imports BagFormat
+        # for its options and should not pay for the bag library to print its help
+        from rosbags.rosbag1 import Writer as Writer1
+        from rosbags.rosbag2 import StoragePlugin
+        from rosbags.rosbag2 import Writer as Writer2
+        from rosbags.typesys import Stores, get_typestore
+
         self.path = Path(path)
         self.fmt = BagFormat(fmt)
         self._ros1 = self.fmt is BagFormat.ROS1

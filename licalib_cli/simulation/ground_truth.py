@@ -33,7 +33,6 @@ from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial.transform import Rotation
 
 from licalib_cli.errors import ConfigError
 from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
@@ -147,6 +146,8 @@ def draw_extrinsic(spec: SimulationSpec) -> Extrinsic:
 
     The time offset comes from :func:`draw_time_offset`.
     """
+    from scipy.spatial.transform import Rotation
+
     offset = draw_time_offset(spec)
     if not spec.random_extrinsic:
         return Extrinsic(
@@ -174,6 +175,8 @@ def _load_intrinsics_file(path: Path) -> CalibrationResult:
 
 def draw_imu_intrinsics(spec: SimulationSpec) -> ImuIntrinsics:
     """IMU intrinsics from a file, the paper's Table (random) or identity; biases included."""
+    from scipy.spatial.transform import Rotation
+
     rng = rng_for(spec.seed, Stream.IMU_INTRINSICS)
     k = spec.intrinsics_scale
     # Always draw in the same order so every field is reproducible on its own.
@@ -253,6 +256,8 @@ def _effect_rng(spec: SimulationSpec, effect: Effect) -> np.random.Generator:
 
 def _named_imu_effects(spec: SimulationSpec, base: ImuIntrinsics) -> ImuIntrinsics:
     """``base`` with each named IMU intrinsic effect drawn at its size times the scale."""
+    from scipy.spatial.transform import Rotation
+
     for effect in spec.effects:
         if effect not in _IMU_DRAWN:
             continue

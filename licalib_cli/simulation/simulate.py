@@ -37,7 +37,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from licalib_cli import __version__
 from licalib_cli import truth as tr
@@ -100,6 +99,8 @@ def injected_effects(
     spec: SimulationSpec, setup: SimulationSetup, imu_truth: ImuTruth
 ) -> tuple[tr.InjectedEffect, ...]:
     """Every effect in force with its size and the values injected (truth ``effects``)."""
+    from scipy.spatial.transform import Rotation
+
     imu = setup.imu_intrinsics
     lid = setup.lidar_intrinsics
     out = []
@@ -165,6 +166,8 @@ def build_truth(
     bag_path: Path | None = None,
 ) -> tr.Truth:
     """The ground truth of a run: the true values and how they were simulated."""
+    from scipy.spatial.transform import Rotation
+
     imu_truth = imu_truth if imu_truth is not None else generate_imu(spec, setup)[1]
     t_first = float(imu_truth.t_true_s[0])
     state = setup.trajectory.state(np.array([t_first]))

@@ -23,7 +23,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial.transform import Rotation
 
 F64 = npt.NDArray[np.float64]
 I32 = npt.NDArray[np.int32]
@@ -266,6 +265,8 @@ def _box(
     half: tuple[float, float, float],
     rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0),
 ) -> tuple[F64, F64, F64]:
+    from scipy.spatial.transform import Rotation
+
     rot = Rotation.from_euler("ZYX", rpy_deg[::-1], degrees=True).as_matrix()
     return np.asarray(center, float), rot, np.asarray(half, float)
 

@@ -439,14 +439,14 @@ def test_info_json_prints_one_object_for_errors(
 def test_info_json_for_internal_errors_and_interrupts(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from licalib_cli.commands import info
+    from licalib_cli import inspection
 
     bag = layouts.write_bag(tmp_path / "bag")
 
     def broken(*args: object, **kwargs: object) -> None:
         raise RuntimeError("boom")
 
-    monkeypatch.setattr(info, "inspect_bag", broken)
+    monkeypatch.setattr(inspection, "inspect_bag", broken)
     code, out, err = run(["info", str(bag), "--json"], capsys)
     assert code == 1 and "Internal error: RuntimeError: boom" in err
     assert json.loads(out)["problems"][0]["exit_code"] == 1
@@ -454,7 +454,7 @@ def test_info_json_for_internal_errors_and_interrupts(
     def interrupted(*args: object, **kwargs: object) -> None:
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(info, "inspect_bag", interrupted)
+    monkeypatch.setattr(inspection, "inspect_bag", interrupted)
     code, out, err = run(["info", str(bag), "--json"], capsys)
     assert code == 130 and err.strip() == "Interrupted."
     assert json.loads(out)["exit_code"] == 130
@@ -578,7 +578,7 @@ def test_ctrl_c_turned_into_another_error_by_a_library_is_an_interrupt(
     import signal
     import time
 
-    from licalib_cli.commands import info
+    from licalib_cli import inspection
 
     def interrupted_import(*args: object, **kwargs: object) -> None:
         try:
@@ -587,7 +587,7 @@ def test_ctrl_c_turned_into_another_error_by_a_library_is_an_interrupt(
         except KeyboardInterrupt:
             raise ImportError("initialization failed") from None
 
-    monkeypatch.setattr(info, "inspect_bag", interrupted_import)
+    monkeypatch.setattr(inspection, "inspect_bag", interrupted_import)
     # Python's own Ctrl-C handler, as from a terminal (a test runner's worker may ignore SIGINT)
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
