@@ -413,8 +413,10 @@ def main() -> None:
                         f.write(json.dumps(row) + "\n")
                 b, a = row["before"], row["after"]
                 misses = judge(row)
+                from licalib_cli.sections import p_is
+
                 evidence = " ".join(
-                    f"{k} score {v[0]:.1f} ({v[1]}) p {v[2]:.1g}"
+                    f"{k} score {v[0]:.1f} ({v[1]}) {p_is(v[2], 1)}"
                     for k, v in row["evidence"].items()
                 )
                 if evidence:
