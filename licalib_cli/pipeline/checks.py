@@ -503,6 +503,7 @@ def uncertainty_findings(
     prior: str | None = None,
     entangled: Entangled | None = None,
     resting: Sequence[OnPrior] = (),
+    halves: SplitResult | None = None,
 ) -> list[Finding]:
     """Sigmas above the ``checks`` limits (5 mm / 0.1 deg / 0.2 ms by default).
 
@@ -513,7 +514,9 @@ def uncertainty_findings(
     move with the least determined translation axis, named in the translation's finding.
     ``resting`` (:func:`~licalib_cli.pipeline.prior_directions.on_prior`): the translation
     directions the data leave to a measured lever arm; an axis above the limit along one is
-    said to be the measurement's. Every finding is marked ``information``."""
+    said to be the measurement's. ``halves``: the split-half comparison; a coordinate whose
+    floor from it (:func:`split_floor`) alone exceeds the limit is said to be held there by the
+    halves' difference. Every finding is marked ``information``."""
     out = []
     t, r, c = sigma[:3], np.degrees(sigma[3:6]), float(sigma[6])
     t_max, r_max = limits.max_translation_sigma_m, limits.max_rotation_sigma_deg
@@ -536,6 +539,32 @@ def uncertainty_findings(
             return f" It comes from {'; and from '.join(sources)}."
         return advice
 
+    floor = split_floor(halves) if halves is not None and halves.ran else np.zeros(7)
+
+    def from_halves(k: int, limit: float) -> str:
+        """Why coordinate ``k`` (the group's worst above ``limit``) is held up by the halves."""
+        if not floor[k] > limit:
+            return ""
+        assert halves is not None
+        d = float(halves.difference[k])
+        size = (
+            f"{1e3 * d:+.2f} mm"
+            if k < 3
+            else f"{np.degrees(d):+.3f} deg"
+            if k < 6
+            else f"{1e3 * d:+.3f} ms"
+        )
+        return (
+            f" The two halves of the segment differ by {size} in {SPLIT_LABELS[COORDINATES[k]]} "
+            f"({float(halves.z[k]):.1f} of their combined sigmas), and half of that beyond its "
+            "expected spread stays in the sigma: a longer recording (or --segments over more "
+            "of the bag) narrows it."
+        )
+
+    def worst(lo: int, hi: int, values: F64) -> int:
+        part = np.where(np.isfinite(values[lo:hi]), values[lo:hi], -np.inf)
+        return lo + int(np.argmax(part))
+
     finite_t = t[np.isfinite(t)]
     if finite_t.size and finite_t.max() > t_max:
         t0 = without_effects[:3]
@@ -548,6 +577,7 @@ def uncertainty_findings(
                     bool(np.any(t0[np.isfinite(t0)] > t_max)),
                     " Record with more rotation about all axes (and a quieter IMU).",
                 )
+                + from_halves(worst(0, 3, floor), t_max)
                 + _entangled_advice(entangled)
                 + _resting_advice(t, t_max, resting),
             )
@@ -560,7 +590,8 @@ def uncertainty_findings(
                 "warn",
                 f"Rotation is uncertain (1-sigma up to {finite_r.max():.3g} deg, above "
                 f"checks.max_rotation_sigma_deg = {r_max:g} deg)."
-                + cause(bool(np.any(r0[np.isfinite(r0)] > r_max)), ""),
+                + cause(bool(np.any(r0[np.isfinite(r0)] > r_max)), "")
+                + from_halves(worst(3, 6, floor), np.radians(r_max)),
             )
         )
     if np.isfinite(c) and c > c_max:
@@ -569,7 +600,8 @@ def uncertainty_findings(
                 "warn",
                 f"Time offset is uncertain (1-sigma {1e3 * c:.3g} ms, above "
                 f"checks.max_time_offset_sigma_s = {1e3 * c_max:g} ms)."
-                + cause(bool(without_effects[6] > c_max), ""),
+                + cause(bool(without_effects[6] > c_max), "")
+                + from_halves(6, c_max),
             )
         )
     return [replace(f, information=True) for f in out]
@@ -980,6 +1012,7 @@ def run_checks(
         _largest_prior(effects, raw),
         entangled_intrinsics(report, sigma[:3]),
         resting,
+        split,
     )
     findings += _sensors(sensors)
     findings += _effects(effects, raw)

@@ -135,3 +135,36 @@ def test_a_translation_over_the_limit_along_the_measured_lever_arm_says_so() -> 
     for resting in ([], [precise], [sideways]):
         (text,) = [f.text for f in uncertainty_findings(sigma, sigma, limits, resting=resting)]
         assert "initialization.translation_sigma_m" not in text
+
+
+def test_a_sigma_held_over_the_limit_by_the_halves_says_so() -> None:
+    """A clean OS1-64 sinusoid warned for a time offset of 0.298 ms: the halves differed by 0.70
+    ms (1.9 of their combined sigmas) and half the excess over that spread stayed in the sigma.
+    The finding says where it comes from; a floor below the limit is not named."""
+    from licalib_cli.pipeline.checks import split_floor
+    from licalib_cli.pipeline.split import SplitResult
+
+    limits = CalibConfig().checks
+    difference = np.array([1e-3, 0.0, 0.0, np.radians(0.01), 0.0, 0.0, -0.698e-3])
+    spread = np.array([2e-3, 2e-3, 2e-3, np.radians(0.02), np.radians(0.02), 1.0, 0.371e-3])
+    halves = SplitResult(
+        ran=True, half_s=5.0, difference=difference, sigma=spread, z=np.abs(difference) / spread
+    )
+    floor = split_floor(halves)
+    assert floor[6] == pytest.approx(0.5 * np.sqrt(0.698**2 - 0.371**2) * 1e-3)
+    sigma = _sigma(1.0, 0.01, 1e3 * floor[6])
+    (finding,) = uncertainty_findings(sigma, _sigma(1.0, 0.01, 0.15), limits, halves=halves)
+    assert finding.text.startswith("Time offset is uncertain (1-sigma 0.296 ms")
+    assert "The two halves of the segment differ by -0.698 ms in time offset (1.9 of" in (
+        finding.text
+    )
+    assert "a longer recording" in finding.text
+    # the same sigma with halves that agree within their spread: no such sentence
+    calm = SplitResult(
+        ran=True, half_s=5.0, difference=0.5 * spread, sigma=spread, z=0.5 + 0 * spread
+    )
+    (finding,) = uncertainty_findings(sigma, sigma, limits, halves=calm)
+    assert "halves" not in finding.text
+    # halves not compared (a segment too short to split): nothing either
+    (finding,) = uncertainty_findings(sigma, sigma, limits, halves=SplitResult(ran=False))
+    assert "halves" not in finding.text
