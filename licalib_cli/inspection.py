@@ -26,6 +26,7 @@ latency, milliseconds).
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,6 +44,7 @@ from licalib_cli.io.scan_stream import LidarRead, read_lidar_stream
 from licalib_cli.io.window import MIN_SEGMENT_S, segment_window, window_findings
 
 __all__ = [
+    "ACCELEROMETER_FRAME_MODEL",
     "GRAVITY_TURN_FOR_IMU_DEG",
     "BagReport",
     "Excitation",
@@ -53,6 +55,7 @@ __all__ = [
     "gravity_turn_deg",
     "inspect_bag",
     "motion_excitation",
+    "tilt_advice",
 ]
 
 logger = logging.getLogger(__name__)
@@ -90,6 +93,11 @@ intrinsics are estimated. On the simulator's 10-20 s bags with ``gyro_rotation``
 ``accel_misalignment`` estimated, hand-held shakes at 7-10 deg by this measure left the two
 traded off (the extrinsic rotation undetermined); the same shakes tilted slowly by 15-30 deg
 (about 17-30 deg by this measure) and the paper's sinusoids (27 deg) determined them."""
+ACCELEROMETER_FRAME_MODEL = ("gyro_rotation", "accel_misalignment")
+"""The ``model.imu`` blocks that turn the accelerometer's frame against the gyro's and the
+LiDAR's: only gravity seen at other attitudes tells them from the extrinsic rotation (the
+checks' :data:`~licalib_cli.pipeline.checks.ACCELEROMETER_FRAME_BLOCKS`, by their model
+names)."""
 GRAVITY_TURN_BIN_S = 0.5
 """The specific force is averaged over bins of this length before its direction is taken: the
 rig's own accelerations (shaking, vibration) mostly average out, gravity stays."""
@@ -239,8 +247,18 @@ def _imu_intrinsics_note(turn_deg: float) -> str:
     return (
         f"gravity turned only {turn_deg:.0f} deg RMS in the IMU frame: with the IMU intrinsics "
         "estimated (--intrinsics imu) the accelerometer's frame may trade off with the extrinsic "
-        "rotation; record with the rig tilted by tens of degrees about both horizontal axes, or "
-        "leave gyro_rotation and accel_misalignment out of the model"
+        f"rotation; {tilt_advice(ACCELEROMETER_FRAME_MODEL)}"
+    )
+
+
+def tilt_advice(blocks: Sequence[str]) -> str:
+    """What to do when gravity turned too little for the accelerometer-frame ``blocks``
+    (:data:`ACCELEROMETER_FRAME_MODEL` names) the model estimates."""
+    them = " and ".join(blocks)
+    return (
+        "record with the rig tilted by tens of degrees about both horizontal axes, or leave "
+        f"{them} out of model.imu when the IMU's own calibration covers "
+        f"{'them' if len(blocks) > 1 else 'it'}"
     )
 
 

@@ -546,24 +546,17 @@ def uncertainty_findings(
         if not floor[k] > limit:
             return ""
         assert halves is not None
-        d = float(halves.difference[k])
-        size = (
-            f"{1e3 * d:+.2f} mm"
-            if k < 3
-            else f"{np.degrees(d):+.3f} deg"
-            if k < 6
-            else f"{1e3 * d:+.3f} ms"
-        )
+        label, size = _split_difference(halves, k)
         return (
-            f" The two halves of the segment differ by {size} in {SPLIT_LABELS[COORDINATES[k]]} "
+            f" The two halves of the segment differ by {size} in {label} "
             f"({float(halves.z[k]):.1f} of their combined sigmas), and half of that beyond its "
             "expected spread stays in the sigma: a longer recording (or --segments over more "
             "of the bag) narrows it."
         )
 
-    def worst(lo: int, hi: int, values: F64) -> int:
-        part = np.where(np.isfinite(values[lo:hi]), values[lo:hi], -np.inf)
-        return lo + int(np.argmax(part))
+    def worst(lo: int, hi: int) -> int:
+        """The coordinate of ``lo:hi`` the halves hold highest (the floor is finite)."""
+        return lo + int(np.argmax(floor[lo:hi]))
 
     finite_t = t[np.isfinite(t)]
     if finite_t.size and finite_t.max() > t_max:
@@ -577,7 +570,7 @@ def uncertainty_findings(
                     bool(np.any(t0[np.isfinite(t0)] > t_max)),
                     " Record with more rotation about all axes (and a quieter IMU).",
                 )
-                + from_halves(worst(0, 3, floor), t_max)
+                + from_halves(worst(0, 3), t_max)
                 + _entangled_advice(entangled)
                 + _resting_advice(t, t_max, resting),
             )
@@ -591,7 +584,7 @@ def uncertainty_findings(
                 f"Rotation is uncertain (1-sigma up to {finite_r.max():.3g} deg, above "
                 f"checks.max_rotation_sigma_deg = {r_max:g} deg)."
                 + cause(bool(np.any(r0[np.isfinite(r0)] > r_max)), "")
-                + from_halves(worst(3, 6, floor), np.radians(r_max)),
+                + from_halves(worst(3, 6), np.radians(r_max)),
             )
         )
     if np.isfinite(c) and c > c_max:
@@ -739,6 +732,20 @@ def _effects(effects: list[EffectEvidence], raw_sigma: F64) -> list[Finding]:
     return out
 
 
+def _split_difference(split: SplitResult, k: int) -> tuple[str, str]:
+    """Coordinate ``k`` of the halves' difference as a user reads it: its label and the
+    difference in mm, deg or ms (second half minus first)."""
+    value = float(split.difference[k])
+    text = (
+        f"{1e3 * value:+.2f} mm"
+        if k < 3
+        else f"{np.degrees(value):+.4f} deg"
+        if k < 6
+        else f"{1e3 * value:+.3f} ms"
+    )
+    return SPLIT_LABELS[COORDINATES[k]], text
+
+
 def _split(split: SplitResult) -> list[Finding]:
     if not split.ran:
         return [Finding("note", f"Split-half check not run: {split.reason}.")]
@@ -747,15 +754,7 @@ def _split(split: SplitResult) -> list[Finding]:
     most = ""
     if np.any(np.isfinite(split.z)):
         k = int(np.nanargmax(split.z))
-        value = split.difference[k]
-        text = (
-            f"{1e3 * value:+.2f} mm"
-            if k < 3
-            else f"{np.degrees(value):+.4f} deg"
-            if k < 6
-            else f"{1e3 * value:+.3f} ms"
-        )
-        label = SPLIT_LABELS[COORDINATES[k]]
+        label, text = _split_difference(split, k)
         most = f"; the most, {label} by {text}, {split.z[k]:.1f} combined sigmas"
     return [
         Finding(

@@ -14,7 +14,12 @@ import numpy.typing as npt
 from licalib_cli.config import CalibConfig
 from licalib_cli.consistency import imu_noise, range_noise
 from licalib_cli.geometry.vectors import norms
-from licalib_cli.inspection import GRAVITY_TURN_FOR_IMU_DEG, gravity_turn_deg
+from licalib_cli.inspection import (
+    ACCELEROMETER_FRAME_MODEL,
+    GRAVITY_TURN_FOR_IMU_DEG,
+    gravity_turn_deg,
+    tilt_advice,
+)
 from licalib_cli.io.reader import read_segment
 from licalib_cli.io.window import MIN_SEGMENT_S
 from licalib_cli.measurements import ImuSamples, Recording
@@ -22,7 +27,6 @@ from licalib_cli.pipeline.points import nominal_elevations
 from licalib_cli.pipeline.settings import NoiseLevels
 
 __all__ = [
-    "ACCELEROMETER_FRAME_MODEL",
     "MIN_SEGMENT_S",
     "Segment",
     "measure_noise",
@@ -63,18 +67,11 @@ def read(bag: Path, cfg: CalibConfig) -> Segment:
         ExcitationError: the segment is shorter than :data:`MIN_SEGMENT_S`.
     """
     rec = read_recording(bag, cfg)
-    warning = tilt_warning(rec.imu, [str(b) for b in cfg.model.imu])
+    warning = tilt_warning(rec.imu, cfg.model.imu)
     if warning:
         logger.warning(warning)
     phi = nominal_elevations(rec.scans, cfg)
     return Segment(rec, phi, measure_noise(rec, cfg, phi.shape[0]))
-
-
-ACCELEROMETER_FRAME_MODEL = ("gyro_rotation", "accel_misalignment")
-"""The ``model.imu`` blocks that turn the accelerometer's frame against the gyro's and the
-LiDAR's: only gravity seen at other attitudes tells them from the extrinsic rotation (the
-checks' :data:`~licalib_cli.pipeline.checks.ACCELEROMETER_FRAME_BLOCKS`, by their model
-names)."""
 
 
 def tilt_warning(imu: ImuSamples, model_imu: Sequence[str]) -> str | None:
@@ -89,13 +86,10 @@ def tilt_warning(imu: ImuSamples, model_imu: Sequence[str]) -> str | None:
     turn = gravity_turn_deg(imu.t_ns, imu.accel)
     if turn is None or turn >= GRAVITY_TURN_FOR_IMU_DEG:
         return None
-    them = " and ".join(blocks)
     return (
         f"Gravity turned only {turn:.0f} deg RMS in the IMU frame over this segment: with "
-        f"{them} estimated, the accelerometer's frame may trade off with the extrinsic rotation "
-        "(the checks after the fit say whether it did); record with the rig tilted by tens of "
-        f"degrees about both horizontal axes, or leave {them} out of model.imu when the IMU's "
-        f"own calibration covers {'them' if len(blocks) > 1 else 'it'}."
+        f"{' and '.join(blocks)} estimated, the accelerometer's frame may trade off with the "
+        f"extrinsic rotation (the checks after the fit say whether it did); {tilt_advice(blocks)}."
     )
 
 

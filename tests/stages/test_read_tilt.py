@@ -58,7 +58,7 @@ def test_the_read_stage_logs_the_warning(tmp_path, caplog) -> None:
 
 
 def test_the_blocks_warned_of_are_those_the_checks_name() -> None:
+    from licalib_cli.inspection import ACCELEROMETER_FRAME_MODEL
     from licalib_cli.pipeline.checks import ACCELEROMETER_FRAME_BLOCKS
-    from licalib_cli.pipeline.read import ACCELEROMETER_FRAME_MODEL
 
     assert set(ACCELEROMETER_FRAME_MODEL) == {m for _, m in ACCELEROMETER_FRAME_BLOCKS.values()}
