@@ -217,7 +217,8 @@ def gravity_turn_deg(
     order of the stamps matters. Fast tilting (shaking at a few Hz) partly averages out within a
     bin and counts less than a slow tilt of the same size (9 deg by the gyro's attitude read 7
     deg on a simulated shake, 31 deg read 30 deg on the same shake tilted slowly): the measure
-    leans to saying too little. None without two bins of at least half the usual samples.
+    leans to saying too little. None without two bins of at least half the usual samples and a
+    specific force other than zero.
     """
     t = np.asarray(t_ns, dtype=np.int64)
     a = np.asarray(accel_m_s2, dtype=np.float64)
@@ -230,7 +231,13 @@ def gravity_turn_deg(
         return None
     sums = np.stack([np.bincount(k, weights=a[:, j], minlength=counts.size) for j in range(3)], 1)
     mean_force = sums[full] / counts[full, None]
-    u = mean_force / np.maximum(np.linalg.norm(mean_force, axis=1, keepdims=True), 1e-12)
+    size = np.linalg.norm(mean_force, axis=1)
+    seen = (
+        size > 1e-6
+    )  # a bin without specific force (an accelerometer reading zeros) has no direction
+    if int(seen.sum()) < 2:
+        return None
+    u = mean_force[seen] / size[seen, None]
     mean = u.mean(axis=0)
     mean /= max(float(np.linalg.norm(mean)), 1e-12)
     angle = np.arccos(np.clip(u @ mean, -1.0, 1.0))

@@ -189,6 +189,8 @@ def test_the_excitation_says_whether_gravity_turned_enough_for_the_imu_intrinsic
     i = np.insert(i, 500, 500)
     messy = motion_excitation(gyro[i], accel[i], t_ns=t[i])
     assert messy.gravity_turn_deg == pytest.approx(e.gravity_turn_deg, rel=1e-3)
+    # an accelerometer reading zeros shows no direction: no figure, rather than 90 deg
+    assert motion_excitation(gyro, 0.0 * accel, t_ns=t).gravity_turn_deg is None
     plain = motion_excitation(gyro, accel)
     assert plain.gravity_turn_deg is None and plain.imu_intrinsics_note == ""
     assert plain.gravity_turn_ok
