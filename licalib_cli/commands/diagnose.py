@@ -31,7 +31,7 @@ from licalib_cli.results import (
     dump_yaml,
     write_text_atomic,
 )
-from licalib_cli.sections import p_text
+from licalib_cli.sections import p_is, p_text
 
 _IO = INPUT_PANEL
 _OUT = "Output"
@@ -42,6 +42,49 @@ def _num(x: float, digits: int = 6) -> float | None:
     if not math.isfinite(v):
         return None
     return float(f"{v:.{digits}g}")
+
+
+def _unpaid_dict(u: Any) -> dict[str, Any] | None:
+    if u is None:
+        return None
+    return {
+        "coordinates": u.coordinates,
+        "bic_penalty_per_coordinate": _num(u.log_n, 4),
+        "sigmas_each": _num(u.sigmas_each, 3),
+        "sigmas_to_pay": _num(u.sigmas_to_pay, 3),
+        "data_factor": _num(u.data_factor, 3),
+    }
+
+
+def unpaid_sentence(s: Any) -> str | None:
+    """Why a significant effect was not added, and what data would add it (None unless its
+    refit did not pay, :attr:`~licalib_cli.pipeline.diagnose.DiagnosisStep.unpaid`)."""
+    u = s.unpaid
+    if u is None:
+        return None
+    if u.coordinates == 1:
+        part = (
+            f"its one number is determined to about {u.sigmas_each:.1f} of its sigma, and pays its"
+        )
+    else:
+        part = (
+            f"its {u.coordinates} numbers are determined to about {u.sigmas_each:.1f} of their "
+            "sigmas each on average, and a number pays its"
+        )
+    if math.isfinite(u.data_factor):
+        more = (
+            f"About {u.data_factor:.0f} times as much data of this kind (a longer recording of "
+            "the same motion, or --segments over more of the bag) would add it"
+        )
+    else:
+        more = "The refit gained no more than fitting noise does"
+    return (
+        f"{s.effect} shows in this bag (score {s.statistic:.0f} on {s.dof}, "
+        f"{p_is(s.p_value, 1)}) but was not added: {part} BIC penalty (ln n = {u.log_n:.1f}) "
+        f"from about {u.sigmas_to_pay:.1f} (BIC {s.delta_bic:+.0f} with it). {more}; with it "
+        f"the extrinsic moved {1e3 * s.moved_translation_m:.2f} mm / "
+        f"{s.moved_rotation_deg:.4f} deg / {1e3 * s.moved_time_offset_s:.3f} ms."
+    )
 
 
 def diagnosis_dict(diag: Any) -> dict[str, Any]:
@@ -63,6 +106,7 @@ def diagnosis_dict(diag: Any) -> dict[str, Any]:
                 "estimate": {k: _num(v[0]) for k, v in s.estimate.items()},
                 "sigma": {k: _num(v[1]) for k, v in s.estimate.items()},
                 "held": list(s.held),
+                "unpaid": _unpaid_dict(s.unpaid),
                 "gap_before": _gap_dict(s.gap_before),
                 "gap_after": _gap_dict(s.gap_after),
                 "gap_shrink": _num(s.shrink, 3),
@@ -253,6 +297,10 @@ def render_diagnosis(diag: Any) -> None:
                 f"(BIC on the same data {s.rival_delta_bic:+.1f}); it shows an effect of the "
                 "kind, not which one."
             )
+    for s in diag.steps:
+        sentence = unpaid_sentence(s)
+        if sentence is not None:
+            out.print(sentence)
     for s in diag.steps:
         if s.held:
             shown = ", ".join(s.held[:3]) + (

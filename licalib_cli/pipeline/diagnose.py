@@ -241,6 +241,8 @@ class DiagnosisStep:
             dropped it: :func:`drop_redundant`); ``kept`` is then False.
         drop_delta_bic: the BIC with it minus without it on the final fit's data when it was
             dropped (positive), NaN otherwise.
+        bic_log_n: ``ln n`` of its BIC penalty (``n`` the residuals of its sensor): what each
+            of its coordinates costs; NaN when not computed.
     """
 
     effect: str
@@ -263,6 +265,16 @@ class DiagnosisStep:
     after_twin: Twin | None = field(default=None, repr=False, compare=False)
     dropped_for: tuple[str, ...] = ()
     drop_delta_bic: float = float("nan")
+    bic_log_n: float = float("nan")
+
+    @property
+    def unpaid(self) -> Unpaid | None:
+        """Why a significant effect was not added (None unless its refit did not pay)."""
+        if self.kept or self.dropped_for or not self.delta_bic >= 0.0:
+            return None
+        return unpaid_effect(
+            self.delta_bic, self.dof, len(self.estimate), self.bic_log_n, self.p_value
+        )
 
     @property
     def shrink(self) -> float:
@@ -310,6 +322,80 @@ class NotShown:
         """``detectable_rms_best`` in the unit of :data:`DISPLAY_UNITS`."""
         factor, unit = DISPLAY_UNITS[self.effect]
         return self.detectable_rms_best * factor, unit
+
+
+@dataclass(frozen=True)
+class Unpaid:
+    """A significant effect whose refit did not pay its BIC penalty, in terms a user can act on.
+
+    Attributes:
+        coordinates: its free coordinates (each costs ``log_n`` in the BIC).
+        log_n: ``ln n``, ``n`` the residuals of its sensor.
+        gain: how much the refit lowered the sum of squares (``coordinates * log_n`` minus its
+            BIC change).
+        sigmas_each: how well the bag determines each coordinate on average, in its sigmas:
+            ``sqrt((gain - dof) / dof)``, the refit's gain beyond what fitting noise with ``dof``
+            directions gives, spread over them.
+        sigmas_to_pay: what a coordinate needs to pay its penalty, ``sqrt(log_n - 1)`` sigmas
+            (its term of the gain is ``1 + (value / sigma)^2``).
+        data_factor: how many times this bag's data of the same kind the effect needs before it
+            pays (:func:`data_to_pay`); ``inf``: the refit gained nothing beyond noise.
+    """
+
+    coordinates: int
+    log_n: float
+    gain: float
+    sigmas_each: float
+    sigmas_to_pay: float
+    data_factor: float
+
+
+def data_to_pay(gain: float, dof: int, coordinates: int, log_n: float) -> float:
+    """The smallest ``m >= 1`` with ``dof + m (gain - dof) >= coordinates (log_n + ln m)``.
+
+    An effect of fixed size determined from ``m`` times the data: the part of the refit's gain
+    beyond noise (``gain - dof``, the non-centrality) grows ``m`` times, the noise part stays
+    ``dof``, and the BIC penalty grows with ``ln (m n)``. ``inf`` when nothing is beyond noise
+    or more than a million times the data would be needed.
+    """
+    signal = gain - dof
+    if signal <= 0.0 or coordinates <= 0:
+        return float("inf")
+
+    def short(m: float) -> float:
+        return dof + m * signal - coordinates * (log_n + math.log(m))
+
+    if short(1.0) >= 0.0:
+        return 1.0
+    # convex in m, least at coordinates / signal: from there on it only grows
+    lo = max(1.0, coordinates / signal)
+    hi = 2.0 * lo
+    while short(hi) < 0.0:
+        hi *= 2.0
+        if hi > 1e6:
+            return float("inf")
+    return float(optimize.brentq(short, lo, hi))
+
+
+def unpaid_effect(
+    delta_bic: float, dof: int, coordinates: int, log_n: float, p_value: float
+) -> Unpaid | None:
+    """:class:`Unpaid` for a significant effect (``p_value`` below
+    :data:`~licalib_cli.pipeline.fitcheck.EFFECT_P_VALUE`) whose refit changed the BIC by
+    ``delta_bic >= 0``; None otherwise or without the penalty's ``log_n``."""
+    if not (delta_bic >= 0.0 and p_value < EFFECT_P_VALUE and math.isfinite(log_n)):
+        return None
+    if coordinates <= 0 or dof <= 0:
+        return None
+    gain = coordinates * log_n - delta_bic
+    return Unpaid(
+        coordinates=coordinates,
+        log_n=log_n,
+        gain=gain,
+        sigmas_each=math.sqrt(max(gain - dof, 0.0) / dof),
+        sigmas_to_pay=math.sqrt(max(log_n - 1.0, 0.0)),
+        data_factor=data_to_pay(gain, dof, coordinates, log_n),
+    )
 
 
 DETECTION_POWER = 0.9
@@ -764,9 +850,8 @@ def _try_effect(
     )
     start = replace(prepared.guess, state=run.state)
     new = fit_and_check(prepared, start, new_cfg, progress, timer, warm=True)
-    (delta_bic,) = _bic_against(
-        new, new_cfg, [(run.state, _with_effects(cfg, kept), _sensor_samples(run, sensor))]
-    )
+    samples = _sensor_samples(run, sensor)
+    (delta_bic,) = _bic_against(new, new_cfg, [(run.state, _with_effects(cfg, kept), samples)])
     moved = extrinsic_of(new.state).error_to(extrinsic_of(run.state))
     new_twin = twin_of(new, cfg)
     alone = float(getattr(evidence, "statistic_alone", score.statistic))
@@ -788,6 +873,7 @@ def _try_effect(
         before=run,
         after=new,
         after_twin=new_twin,
+        bic_log_n=math.log(max(samples, 2)),
     )
     logger.info(
         "Diagnose: %s %s (BIC %+.1f); %s gap %.3f -> %.3f; the extrinsic moved %.2f mm / "

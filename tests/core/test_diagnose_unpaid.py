@@ -1,0 +1,146 @@
+"""A significant effect that does not pay its BIC penalty: how well the bag determines it, and
+how much more data would add it."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from licalib_cli.commands.diagnose import diagnosis_dict, unpaid_sentence
+from licalib_cli.pipeline.diagnose import (
+    DiagnosisStep,
+    Gap,
+    data_to_pay,
+    unpaid_effect,
+)
+
+
+def _per_beam_gain(rng: np.random.Generator, beta: np.ndarray, n: int) -> float:
+    """The drop in the sum of squares (unit noise) when ``beta`` is fitted: each sample sees
+    one beam, ``y = beta[beam] x + noise`` (a per-beam effect, as a per-beam range scale)."""
+    k = beta.size
+    beam = rng.integers(0, k, size=n)
+    x = rng.normal(size=n)
+    y = beta[beam] * x + rng.normal(size=n)
+    xy = np.bincount(beam, weights=x * y, minlength=k)
+    xx = np.bincount(beam, weights=x * x, minlength=k)
+    return float(np.sum(xy**2 / xx))
+
+
+def test_the_data_factor_is_where_the_bic_starts_to_pay() -> None:
+    """16 per-beam numbers of 1.4 sigmas each on 2000 samples: significant together, not worth
+    their penalty; at the factor the BIC change averages zero, a quarter of it never pays, four
+    times it nearly always does, and the factor estimated from one draw is close to the true."""
+    rng = np.random.default_rng(30)
+    k, n = 16, 2000
+    beta = np.full(k, 1.4 / math.sqrt(n / k)) * rng.choice([-1.0, 1.0], size=k)
+    noncentrality = float(np.sum(beta**2) * n / k)
+    m = data_to_pay(k + noncentrality, k, k, math.log(n))
+    assert 3.0 < m < 10.0
+
+    def bic_changes(factor: float, runs: int = 300) -> np.ndarray:
+        size = round(factor * n)
+        return np.array([k * math.log(size) - _per_beam_gain(rng, beta, size) for _ in range(runs)])
+
+    at = bic_changes(m)
+    assert abs(at.mean()) < 3.0 * at.std() / math.sqrt(at.size)
+    assert np.mean(bic_changes(m / 4) < 0.0) < 0.2
+    assert np.mean(bic_changes(4 * m) < 0.0) > 0.8
+    base = bic_changes(1.0, 100)
+    assert np.mean(base < 0.0) < 0.1  # the bag itself: not worth it
+    estimated = [data_to_pay(k * math.log(n) - d, k, k, math.log(n)) for d in base]
+    assert 0.6 * m < float(np.median(estimated)) < 1.6 * m
+
+
+def test_data_to_pay_edges() -> None:
+    assert data_to_pay(100.0, 3, 3, 8.0) == 1.0  # already pays
+    assert data_to_pay(2.0, 3, 3, 8.0) == math.inf  # nothing beyond noise
+    assert data_to_pay(3.0 + 1e-9, 3, 3, 8.0) == math.inf  # a million times would not do
+    m = data_to_pay(40.0, 9, 9, 8.7)
+    assert 9 + m * 31 == pytest.approx(9 * (8.7 + math.log(m)))
+
+
+def _step(**kw: object) -> DiagnosisStep:
+    gap = Gap("lidar", 1.02, 1.0, 0.008)
+    values: dict[str, object] = {
+        "effect": "lidar_range_scale",
+        "statistic": 192.5,
+        "dof": 64,
+        "p_value": 9e-15,
+        "delta_bic": 600.0,
+        "kept": False,
+        "estimate": {f"lidar.intrinsics[{i}].s": (1.0, 1e-4) for i in range(64)},
+        "gap_before": gap,
+        "gap_after": gap,
+        "moved_translation_m": 8e-4,
+        "moved_rotation_deg": 0.004,
+        "moved_time_offset_s": 2e-5,
+        "bic_log_n": 12.0,
+    }
+    values.update(kw)
+    return DiagnosisStep(**values)  # type: ignore[arg-type]
+
+
+def test_a_significant_effect_that_did_not_pay_is_explained() -> None:
+    step = _step()
+    u = step.unpaid
+    assert u is not None
+    assert u.coordinates == 64 and u.gain == pytest.approx(64 * 12.0 - 600.0)
+    assert u.sigmas_each == pytest.approx(math.sqrt((168.0 - 64.0) / 64.0))
+    assert u.sigmas_to_pay == pytest.approx(math.sqrt(11.0))
+    assert 1.0 < u.data_factor < math.inf
+    text = unpaid_sentence(step)
+    assert text is not None
+    assert text.startswith("lidar_range_scale shows in this bag (score 192 on 64, p = 9e-15)")
+    assert "its 64 numbers are determined to about 1.3 of their sigmas" in text
+    assert f"About {u.data_factor:.0f} times as much data" in text
+    assert "the extrinsic moved 0.80 mm / 0.0040 deg / 0.020 ms" in text
+    one = _step(
+        effect="imu_clock_drift",
+        dof=1,
+        statistic=30.0,
+        delta_bic=2.0,
+        bic_log_n=9.0,
+        estimate={"ext.clock_drift": (1e-5, 2e-6)},
+    )
+    assert "its one number is determined to about" in (unpaid_sentence(one) or "")
+
+
+def test_nothing_is_explained_for_an_effect_that_paid_was_dropped_or_was_not_significant() -> None:
+    step = _step()
+    assert replace(step, kept=True, delta_bic=-20.0).unpaid is None
+    assert replace(step, delta_bic=-5.0).unpaid is None  # a rival that paid and lost
+    assert replace(step, dropped_for=("lidar_range_offset",)).unpaid is None
+    assert replace(step, p_value=0.2).unpaid is None
+    assert replace(step, bic_log_n=float("nan")).unpaid is None
+    assert unpaid_sentence(replace(step, kept=True, delta_bic=-20.0)) is None
+    assert unpaid_effect(600.0, 0, 64, 12.0, 1e-9) is None
+
+
+def test_the_diagnosis_file_carries_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    from types import SimpleNamespace
+
+    import licalib_cli.commands.diagnose as cmd
+
+    paid = _step(kept=True, delta_bic=-30.0)
+    diag = SimpleNamespace(
+        steps=(paid, _step()),
+        not_shown=(),
+        effects_found=("lidar_range_scale",),
+        base=SimpleNamespace(verdict=SimpleNamespace(status="warn")),
+        final=SimpleNamespace(
+            verdict=SimpleNamespace(status="pass"),
+            result=SimpleNamespace(to_dict=lambda: {}),
+        ),
+        base_twin=None,
+        final_twin=None,
+    )
+    monkeypatch.setattr(cmd, "_residuals", lambda run, twin: {})
+    first, second = diagnosis_dict(diag)["steps"]
+    assert first["unpaid"] is None
+    assert second["unpaid"]["coordinates"] == 64
+    assert second["unpaid"]["bic_penalty_per_coordinate"] == 12.0
+    assert 1.0 < second["unpaid"]["data_factor"] < 1e6
