@@ -63,26 +63,35 @@ def unpaid_sentence(s: Any) -> str | None:
     if u is None:
         return None
     if u.coordinates == 1:
-        part = (
-            f"its one number is determined to about {u.sigmas_each:.1f} of its sigma, and pays its"
-        )
+        part = f"its number is about {u.sigmas_each:.1f} of its sigma from nominal, and pays"
     else:
         part = (
-            f"its {u.coordinates} numbers are determined to about {u.sigmas_each:.1f} of their "
-            "sigmas each on average, and a number pays its"
+            f"each of its {u.coordinates} numbers is about {u.sigmas_each:.1f} of its sigma from "
+            "nominal on average, and one pays"
         )
     if math.isfinite(u.data_factor):
+        seen_by = (
+            "points that see it: a longer recording, or --segments over more of the bag, with "
+            "surfels.max_points (the cap on a round's points) raised to keep them"
+            if s.gap_before.sensor == "lidar"
+            else "samples that see it: a longer recording, or --segments over more of the bag"
+        )
         more = (
-            f"About {u.data_factor:.0f} times as much data of this kind (a longer recording of "
-            "the same motion, or --segments over more of the bag) would add it"
+            f"It would pay with about {u.data_factor:.1f} times the information this bag holds "
+            f"about it (more {seen_by})"
         )
     else:
         more = "The refit gained no more than fitting noise does"
+    apart = (
+        f"; this bag does not tell it from {' or '.join(s.not_told_apart)}"
+        if s.not_told_apart
+        else ""
+    )
     return (
         f"{s.effect} shows in this bag (score {s.statistic:.0f} on {s.dof}, "
-        f"{p_is(s.p_value, 1)}) but was not added: {part} BIC penalty (ln n = {u.log_n:.1f}) "
-        f"from about {u.sigmas_to_pay:.1f} (BIC {s.delta_bic:+.0f} with it). {more}; with it "
-        f"the extrinsic moved {1e3 * s.moved_translation_m:.2f} mm / "
+        f"{p_is(s.p_value, 1)}{apart}) but was not added: {part} the BIC penalty "
+        f"(ln n = {u.log_n:.1f}) from about {u.sigmas_to_pay:.1f} (BIC {s.delta_bic:+.0f} with "
+        f"it). {more}; with it the extrinsic moved {1e3 * s.moved_translation_m:.2f} mm / "
         f"{s.moved_rotation_deg:.4f} deg / {1e3 * s.moved_time_offset_s:.3f} ms."
     )
 
@@ -106,6 +115,7 @@ def diagnosis_dict(diag: Any) -> dict[str, Any]:
                 "estimate": {k: _num(v[0]) for k, v in s.estimate.items()},
                 "sigma": {k: _num(v[1]) for k, v in s.estimate.items()},
                 "held": list(s.held),
+                "rival_named": s.rival_named or None,
                 "unpaid": _unpaid_dict(s.unpaid),
                 "gap_before": _gap_dict(s.gap_before),
                 "gap_after": _gap_dict(s.gap_after),

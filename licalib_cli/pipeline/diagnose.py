@@ -243,6 +243,8 @@ class DiagnosisStep:
             dropped (positive), NaN otherwise.
         bic_log_n: ``ln n`` of its BIC penalty (``n`` the residuals of its sensor): what each
             of its coordinates costs; NaN when not computed.
+        rival_named: the rival refitted with it that was picked in its place (empty when it
+            was the pick, or had no rival).
     """
 
     effect: str
@@ -266,11 +268,13 @@ class DiagnosisStep:
     dropped_for: tuple[str, ...] = ()
     drop_delta_bic: float = float("nan")
     bic_log_n: float = float("nan")
+    rival_named: str = ""
 
     @property
     def unpaid(self) -> Unpaid | None:
-        """Why a significant effect was not added (None unless its refit did not pay)."""
-        if self.kept or self.dropped_for or not self.delta_bic >= 0.0:
+        """Why a significant effect was not added (None unless its refit did not pay and it
+        was the pick among its rivals: a rival picked in its place explains its score)."""
+        if self.kept or self.dropped_for or self.rival_named or not self.delta_bic >= 0.0:
             return None
         return unpaid_effect(
             self.delta_bic, self.dof, len(self.estimate), self.bic_log_n, self.p_value
@@ -333,9 +337,9 @@ class Unpaid:
         log_n: ``ln n``, ``n`` the residuals of its sensor.
         gain: how much the refit lowered the sum of squares (``coordinates * log_n`` minus its
             BIC change).
-        sigmas_each: how well the bag determines each coordinate on average, in its sigmas:
-            ``sqrt((gain - dof) / dof)``, the refit's gain beyond what fitting noise with ``dof``
-            directions gives, spread over them.
+        sigmas_each: how far each coordinate is from nominal on average, in its sigmas (how
+            well the bag shows it): ``sqrt((gain - dof) / dof)``, the refit's gain beyond what
+            fitting noise with ``dof`` directions gives, spread over them.
         sigmas_to_pay: what a coordinate needs to pay its penalty, ``sqrt(log_n - 1)`` sigmas
             (its term of the gain is ``1 + (value / sigma)^2``).
         data_factor: how many times this bag's data of the same kind the effect needs before it
@@ -966,7 +970,7 @@ def diagnose(
         ]
         for t in trials:
             if t is not step:
-                steps.append(replace(t, kept=False))
+                steps.append(replace(t, kept=False, rival_named=step.effect))
         steps.append(step)
         if step.kept:
             kept = (*kept, step.effect)

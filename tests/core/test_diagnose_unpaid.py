@@ -95,8 +95,9 @@ def test_a_significant_effect_that_did_not_pay_is_explained() -> None:
     text = unpaid_sentence(step)
     assert text is not None
     assert text.startswith("lidar_range_scale shows in this bag (score 192 on 64, p = 9e-15)")
-    assert "its 64 numbers are determined to about 1.3 of their sigmas" in text
-    assert f"About {u.data_factor:.0f} times as much data" in text
+    assert "each of its 64 numbers is about 1.3 of its sigma from nominal on average" in text
+    assert f"It would pay with about {u.data_factor:.1f} times the information" in text
+    assert "surfels.max_points" in text  # a LiDAR effect: a round's points are capped
     assert "the extrinsic moved 0.80 mm / 0.0040 deg / 0.020 ms" in text
     one = _step(
         effect="imu_clock_drift",
@@ -106,7 +107,14 @@ def test_a_significant_effect_that_did_not_pay_is_explained() -> None:
         bic_log_n=9.0,
         estimate={"ext.clock_drift": (1e-5, 2e-6)},
     )
-    assert "its one number is determined to about" in (unpaid_sentence(one) or "")
+    imu = replace(one, gap_before=Gap("gyro", 0.9, 0.88, 0.003))
+    text = unpaid_sentence(imu) or ""
+    assert "its number is about" in text and "more samples that see it" in text
+    assert "surfels.max_points" not in text
+    apart = unpaid_sentence(replace(step, not_told_apart=("lidar_range_offset",))) or ""
+    assert "(score 192 on 64, p = 9e-15; this bag does not tell it from lidar_range_offset)" in (
+        apart
+    )
 
 
 def test_nothing_is_explained_for_an_effect_that_paid_was_dropped_or_was_not_significant() -> None:
@@ -114,6 +122,7 @@ def test_nothing_is_explained_for_an_effect_that_paid_was_dropped_or_was_not_sig
     assert replace(step, kept=True, delta_bic=-20.0).unpaid is None
     assert replace(step, delta_bic=-5.0).unpaid is None  # a rival that paid and lost
     assert replace(step, dropped_for=("lidar_range_offset",)).unpaid is None
+    assert replace(step, rival_named="lidar_range_offset").unpaid is None  # its rival explains it
     assert replace(step, p_value=0.2).unpaid is None
     assert replace(step, bic_log_n=float("nan")).unpaid is None
     assert unpaid_sentence(replace(step, kept=True, delta_bic=-20.0)) is None
