@@ -72,7 +72,7 @@ def unpaid_sentence(s: Any) -> str | None:
     if math.isfinite(u.data_factor):
         seen_by = (
             "points that see it: a longer recording, or --segments over more of the bag, with "
-            "surfels.max_points (the cap on a round's points) raised to keep them"
+            "surfels.max_points, the cap on a round's points, raised to keep them"
             if s.gap_before.sensor == "lidar"
             else "samples that see it: a longer recording, or --segments over more of the bag"
         )
