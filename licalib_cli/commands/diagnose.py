@@ -116,6 +116,7 @@ def diagnosis_dict(diag: Any) -> dict[str, Any]:
                 "sigma": {k: _num(v[1]) for k, v in s.estimate.items()},
                 "held": list(s.held),
                 "rival_named": s.rival_named or None,
+                "final_p_value": _num(s.final_p_value, 3),
                 "unpaid": _unpaid_dict(s.unpaid),
                 "gap_before": _gap_dict(s.gap_before),
                 "gap_after": _gap_dict(s.gap_after),

@@ -245,6 +245,9 @@ class DiagnosisStep:
             of its coordinates costs; NaN when not computed.
         rival_named: the rival refitted with it that was picked in its place (empty when it
             was the pick, or had no rival).
+        final_p_value: its score test's p-value on the final fit when it is not in the final
+            model (NaN otherwise): above :data:`EFFECT_P_VALUE`, the effects added after it
+            explain what it showed.
     """
 
     effect: str
@@ -269,12 +272,16 @@ class DiagnosisStep:
     drop_delta_bic: float = float("nan")
     bic_log_n: float = float("nan")
     rival_named: str = ""
+    final_p_value: float = float("nan")
 
     @property
     def unpaid(self) -> Unpaid | None:
-        """Why a significant effect was not added (None unless its refit did not pay and it
-        was the pick among its rivals: a rival picked in its place explains its score)."""
+        """Why a significant effect was not added (None unless its refit did not pay, it was
+        the pick among its rivals, and the final fit still shows it: a rival picked in its
+        place, or an effect added later, explains its score otherwise)."""
         if self.kept or self.dropped_for or self.rival_named or not self.delta_bic >= 0.0:
+            return None
+        if self.final_p_value >= EFFECT_P_VALUE:
             return None
         return unpaid_effect(
             self.delta_bic, self.dof, len(self.estimate), self.bic_log_n, self.p_value
@@ -997,6 +1004,11 @@ def diagnose(
         steps[i] = replace(steps[i], kept=False, dropped_for=later, drop_delta_bic=delta)
         kept = tuple(e for e in kept if e != effect)
     progress.close()
+    final_p = {e.score.name: float(e.score.p_value) for e in run.effects}
+    steps = [
+        replace(t, final_p_value=final_p.get(t.effect, float("nan"))) if not t.kept else t
+        for t in steps
+    ]
     return Diagnosis(
         base=base,
         steps=tuple(steps),

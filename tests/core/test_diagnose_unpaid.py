@@ -123,6 +123,8 @@ def test_nothing_is_explained_for_an_effect_that_paid_was_dropped_or_was_not_sig
     assert replace(step, delta_bic=-5.0).unpaid is None  # a rival that paid and lost
     assert replace(step, dropped_for=("lidar_range_offset",)).unpaid is None
     assert replace(step, rival_named="lidar_range_offset").unpaid is None  # its rival explains it
+    assert replace(step, final_p_value=0.3).unpaid is None  # an effect added later explains it
+    assert replace(step, final_p_value=1e-9).unpaid is not None  # still shows on the final fit
     assert replace(step, p_value=0.2).unpaid is None
     assert replace(step, bic_log_n=float("nan")).unpaid is None
     assert unpaid_sentence(replace(step, kept=True, delta_bic=-20.0)) is None

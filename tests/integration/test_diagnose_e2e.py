@@ -75,6 +75,12 @@ def test_a_hidden_gyro_scale_is_named_added_and_its_gap_shrinks(
             determined += 1
             assert abs(value - true) < max(4 * sigma, 3e-4)
     assert determined >= 2
+    for s in data["steps"]:
+        if s["kept"]:
+            assert s["final_p_value"] is None and s["unpaid"] is None
+        else:  # scored again on the final fit; a rival named in its place explains it
+            assert s["final_p_value"] is not None
+            assert s["unpaid"] is None or not s["rival_named"]
     assert set(data) >= {"effects_found", "steps", "calibration", "verdict", "residuals"}
     # the twin recording of each fit is the reference of the gap, shown next to the measured
     base = {r["sensor"]: r for r in data["residuals"]["base"]}
