@@ -349,8 +349,9 @@ class Unpaid:
             fitting noise with ``dof`` directions gives, spread over them.
         sigmas_to_pay: what a coordinate needs to pay its penalty, ``sqrt(log_n - 1)`` sigmas
             (its term of the gain is ``1 + (value / sigma)^2``).
-        data_factor: how many times this bag's data of the same kind the effect needs before it
-            pays (:func:`data_to_pay`); ``inf``: the refit gained nothing beyond noise.
+        data_factor: how many times this bag's information about the effect (the points or
+            samples that see it) it needs before it pays (:func:`data_to_pay`); ``inf``: the
+            refit gained nothing beyond noise.
     """
 
     coordinates: int
@@ -364,9 +365,11 @@ class Unpaid:
 def data_to_pay(gain: float, dof: int, coordinates: int, log_n: float) -> float:
     """The smallest ``m >= 1`` with ``dof + m (gain - dof) >= coordinates (log_n + ln m)``.
 
-    An effect of fixed size determined from ``m`` times the data: the part of the refit's gain
-    beyond noise (``gain - dof``, the non-centrality) grows ``m`` times, the noise part stays
-    ``dof``, and the BIC penalty grows with ``ln (m n)``. ``inf`` when nothing is beyond noise
+    An effect of fixed size seen by ``m`` times the points or samples: the part of the refit's
+    gain beyond noise (``gain - dof``, the non-centrality) grows ``m`` times, the noise part
+    stays ``dof``, and the BIC penalty grows with ``ln (m n)``. (A longer recording of the same
+    motion gives that only while the points per scan are kept: ``surfels.max_points`` caps a
+    round's points.) ``inf`` when nothing is beyond noise
     or more than a million times the data would be needed.
     """
     signal = gain - dof
