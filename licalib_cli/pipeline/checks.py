@@ -56,6 +56,7 @@ from licalib_cli.pipeline.prior_directions import (
 from licalib_cli.pipeline.schedule import JITTER_FACTOR, MAX_FINAL_ROUNDS, Change, Fit, within
 from licalib_cli.pipeline.settings import NoiseLevels, prior_sd
 from licalib_cli.pipeline.split import COORDINATES, SplitResult, split_half
+from licalib_cli.pipeline.unchecked_priors import unchecked_priors, unchecked_text
 from licalib_cli.residuals import ACCEL_MISALIGNMENT, EXT_ROTATION, GYRO_ROTATION
 from licalib_cli.results import vec3
 from licalib_cli.sections import (
@@ -843,9 +844,11 @@ def inflate(
         grown = np.sqrt(sigma**2 + prior_var)
         finite = np.isfinite(sigma) & (sigma > 0.0)
         factor = float(np.max(grown[finite] / sigma[finite])) if np.any(finite) else 1.0
+        held = [e for e in effects if not effect_to_cover(e, raw)]
         why.append(
             "by the IMU intrinsics held fixed, each known to within model.imu_prior "
             f"(times up to {factor:.2f}; most from {_largest_prior(effects, raw)})"
+            + unchecked_text(unchecked_priors(held, grown))
         )
         sigma = grown
     if fit.jitter:

@@ -43,12 +43,11 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 
-import numpy as np
-import numpy.typing as npt
 from scipy import optimize
 
 from licalib_cli.config import CalibConfig
-from licalib_cli.consistency.distributions import chi2_isf, chi2_sf, ncx2_sf
+from licalib_cli.consistency.distributions import chi2_isf, chi2_sf
+from licalib_cli.consistency.power import DETECTION_POWER, DISPLAY_UNITS, detectable_rms
 from licalib_cli.estimation import CalibrationState, intrinsic_coordinates
 from licalib_cli.pipeline import (
     CalibrationRun,
@@ -126,26 +125,6 @@ _LIDAR_SUFFIX = {
     "lidar_horizontal_offset": ".H",
 }
 
-
-DISPLAY_UNITS: dict[str, tuple[float, str]] = {
-    "gyro_scale": (1e6, "ppm"),
-    "gyro_misalignment": (math.degrees(1.0), "deg"),
-    "gyro_rotation": (math.degrees(1.0), "deg"),
-    "accel_scale": (1e6, "ppm"),
-    "accel_misalignment": (math.degrees(1.0), "deg"),
-    "g_sensitivity": (math.degrees(1.0) * 9.80665, "deg/s per g"),
-    "gyro_bias_walk": (math.degrees(1.0), "deg/s^2"),
-    "accel_bias_walk": (1.0, "m/s^3"),
-    "imu_clock_drift": (1e6, "ppm"),
-    "lidar_range_offset": (1e3, "mm"),
-    "lidar_range_scale": (1e6, "ppm"),
-    "lidar_elevation": (math.degrees(1.0), "deg"),
-    "lidar_azimuth": (math.degrees(1.0), "deg"),
-    "lidar_vertical_offset": (1e3, "mm"),
-    "lidar_horizontal_offset": (1e3, "mm"),
-    "lidar_point_time": (100.0, "% of the sweep time"),
-}
-"""Effect -> (factor from its solver coordinates, unit) for printing sizes."""
 
 GAP_NOISE_SIGMAS = 3.0
 """A gap counts (and its shrink is measured) above this many of its noise sigmas."""
@@ -409,43 +388,6 @@ def unpaid_effect(
         sigmas_each=math.sqrt(max(gain - dof, 0.0) / dof),
         sigmas_to_pay=math.sqrt(max(log_n - 1.0, 0.0)),
         data_factor=data_to_pay(gain, dof, coordinates, log_n),
-    )
-
-
-DETECTION_POWER = 0.9
-"""``not_shown`` sizes are those an effect needs to be named at least this often."""
-
-
-def detectable_rms(
-    statistic_threshold: float,
-    coordinates: int,
-    information: npt.ArrayLike,
-    power: float = DETECTION_POWER,
-) -> tuple[float, float]:
-    """RMS per coordinate of an effect whose score statistic exceeds ``statistic_threshold``
-    with probability ``power``: ``(along the weakest determined direction, along the
-    strongest)``.
-
-    The statistic of an effect ``d`` is non-central chi-square with ``rank`` degrees of freedom
-    and non-centrality ``d^T I d``; ``d`` has ``coordinates`` entries, ``information`` holds the
-    eigenvalues of ``I`` along the directions the data determine (``inf`` without any).
-    """
-    info = np.asarray(information, dtype=np.float64)
-    info = info[info > 0.0]
-    if coordinates <= 0 or info.size == 0:
-        return float("inf"), float("inf")
-    rank = info.size
-
-    def shortfall(nc: float) -> float:
-        return ncx2_sf(statistic_threshold, rank, nc) - power
-
-    hi = max(statistic_threshold, 1.0)
-    while shortfall(hi) < 0.0:
-        hi *= 2.0
-    needed = float(optimize.brentq(shortfall, 0.0, hi)) if shortfall(0.0) < 0.0 else 0.0
-    per_coordinate = needed / coordinates
-    return math.sqrt(per_coordinate / float(info.min())), math.sqrt(
-        per_coordinate / float(info.max())
     )
 
 

@@ -371,6 +371,8 @@ class EffectEvidence:
             order of :attr:`shift`).
         prior_std: (7,) what the effect, known only to within its prior (``model.imu_prior``),
             adds to the sigmas of the extrinsic and time offset (zeros without a prior).
+        prior_sigma: that prior's sigma per coordinate, in the effect's solver coordinates (0:
+            none).
         refitted: the shift is (per coordinate, the larger of) the step's and a refit's with
             the effect estimated (:mod:`licalib_cli.pipeline.effect_refit`).
     """
@@ -385,6 +387,7 @@ class EffectEvidence:
     shift_std: F64 = field(default_factory=lambda: np.zeros(7))
     prior_std: F64 = field(default_factory=lambda: np.zeros(7))
     refitted: bool = False
+    prior_sigma: float = 0.0
 
     @property
     def shift(self) -> F64:
@@ -541,6 +544,7 @@ def effect_evidence(
                     statistic_alone=float(selection.alone.get(s.name, s.statistic)),
                     shift_std=sd if sd.size == 7 else np.zeros(7),
                     prior_std=ps if ps.size == 7 else np.zeros(7),
+                    prior_sigma=float(prior[s.name][0]) if s.name in prior else 0.0,
                 )
             )
     logger.debug(
