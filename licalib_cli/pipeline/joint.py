@@ -90,6 +90,7 @@ from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.pipeline.schedule import cover_truncated
 from licalib_cli.pipeline.segments import _with_range, select_segments
 from licalib_cli.pipeline.settings import lm_params, prior_sd, round_settings
+from licalib_cli.pipeline.unchecked_priors import combined_unchecked_priors, unchecked_text
 from licalib_cli.progress import NullProgress, Progress
 from licalib_cli.residuals import (
     EXT_ROTATION,
@@ -688,9 +689,15 @@ def _joint_result(
             "information where the segments together do not show the effect)."
         )
     if np.any(prior > 0.0):
+        held = [
+            [e for e in r.checks.effects if not effect_to_cover(e, r.checks.raw_sigma)]
+            for r in runs
+        ]
         reasons.append(
             "Joint sigmas include the IMU intrinsics held fixed (model.imu_prior) as the "
-            "best-determined segment's do: an IMU error moves every segment alike."
+            "best-determined segment's do: an IMU error moves every segment alike"
+            + unchecked_text(combined_unchecked_priors(held, sigma))
+            + "."
         )
     base = runs[best].result
     section = SegmentsSection(

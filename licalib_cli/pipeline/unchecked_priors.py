@@ -27,6 +27,7 @@ __all__ = [
     "HIDDEN_SHIFT",
     "UNCHECKED_FACTOR",
     "UncheckedPrior",
+    "combined_unchecked_priors",
     "unchecked_priors",
     "unchecked_text",
 ]
@@ -75,31 +76,87 @@ def unchecked_priors(held: Sequence[EffectEvidence], sigma: F64) -> list[Uncheck
     contribution ``prior_std``; one as large as the recording can hide moves it by about that
     times ``detectable / prior``.
     """
-    finite = np.isfinite(sigma) & (sigma > 0.0)
     out = []
     for e in held:
-        if e.prior_sigma <= 0.0 or not np.any(finite):
-            continue
-        coordinates = int(e.score.estimate.size)
-        rank = int(e.score.rank)
-        if rank < coordinates:
-            detectable = float("inf")
-        else:
-            threshold = chi2_isf(EFFECT_P_VALUE, max(rank, 1))
-            detectable, _ = detectable_rms(threshold, coordinates, e.score.information)
-        share = float(np.max(e.prior_std[finite] / sigma[finite]))
-        hidden = share * detectable / e.prior_sigma if share > 0.0 else 0.0
-        logger.debug(
-            "prior of %s: %.3g, named from %.3g, spread %.2f of a sigma, hidden shift %.2f",
+        u = _unchecked(
             e.score.name,
             e.prior_sigma,
-            detectable,
-            share,
-            hidden,
+            e.prior_std,
+            e.score.information,
+            int(e.score.estimate.size),
+            int(e.score.rank),
+            sigma,
         )
-        if detectable > UNCHECKED_FACTOR * e.prior_sigma and hidden >= HIDDEN_SHIFT:
-            out.append(UncheckedPrior(e.score.name, e.prior_sigma, detectable, hidden))
+        if u is not None:
+            out.append(u)
     return sorted(out, key=lambda u: -u.hidden_shift)
+
+
+def combined_unchecked_priors(
+    segments: Sequence[Sequence[EffectEvidence]], sigma: F64, relative_rank: float = 1e-8
+) -> list[UncheckedPrior]:
+    """:func:`unchecked_priors` for several segments of one recording calibrated together, with
+    ``sigma`` the joint sigmas: an effect of the rig shows in their information summed (as the
+    combined score test, :func:`~licalib_cli.consistency.score.combined_score`), and its prior
+    moves the joint estimate as much as in the best-determined segment (the smallest
+    ``prior_std``). ``segments`` holds each segment's held effects that its sigmas do not cover
+    by their shift; an effect missing from one is left out."""
+    by_name: dict[str, list[EffectEvidence]] = {}
+    for held in segments:
+        for e in held:
+            by_name.setdefault(e.score.name, []).append(e)
+    out = []
+    for name, effects in by_name.items():
+        sizes = {e.score.profiled_information.shape for e in effects}
+        if len(effects) != len(segments) or len(sizes) != 1 or 0 in next(iter(sizes)):
+            continue
+        info = np.sum([e.score.profiled_information for e in effects], axis=0)
+        vals = np.linalg.eigvalsh(0.5 * (info + info.T))
+        kept = vals[vals > relative_rank * max(float(vals.max(initial=0.0)), 1e-300)]
+        u = _unchecked(
+            name,
+            min(e.prior_sigma for e in effects),
+            np.min([e.prior_std for e in effects], axis=0),
+            kept,
+            int(info.shape[0]),
+            int(kept.size),
+            sigma,
+        )
+        if u is not None:
+            out.append(u)
+    return sorted(out, key=lambda u: -u.hidden_shift)
+
+
+def _unchecked(
+    name: str,
+    prior_sigma: float,
+    prior_std: F64,
+    information: npt.ArrayLike,
+    coordinates: int,
+    rank: int,
+    sigma: F64,
+) -> UncheckedPrior | None:
+    finite = np.isfinite(sigma) & (sigma > 0.0)
+    if prior_sigma <= 0.0 or not np.any(finite):
+        return None
+    if rank < coordinates:
+        detectable = float("inf")
+    else:
+        threshold = chi2_isf(EFFECT_P_VALUE, max(rank, 1))
+        detectable, _ = detectable_rms(threshold, coordinates, information)
+    share = float(np.max(np.asarray(prior_std)[finite] / sigma[finite]))
+    hidden = share * detectable / prior_sigma if share > 0.0 else 0.0
+    logger.debug(
+        "prior of %s: %.3g, named from %.3g, spread %.2f of a sigma, hidden shift %.2f",
+        name,
+        prior_sigma,
+        detectable,
+        share,
+        hidden,
+    )
+    if detectable > UNCHECKED_FACTOR * prior_sigma and hidden >= HIDDEN_SHIFT:
+        return UncheckedPrior(name, prior_sigma, detectable, hidden)
+    return None
 
 
 def unchecked_text(items: Sequence[UncheckedPrior]) -> str:

@@ -18,6 +18,7 @@ from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
 from licalib_cli.pipeline.unchecked_priors import (
     HIDDEN_SHIFT,
     UNCHECKED_FACTOR,
+    combined_unchecked_priors,
     unchecked_priors,
     unchecked_text,
 )
@@ -46,6 +47,7 @@ def held(
         shift=np.zeros(7),
         shift_sigma=np.zeros(7),
         information=info,
+        profiled_information=np.diag(np.pad(info, (0, 3 - info.size))),
     )
     return EffectEvidence(
         score=score,
@@ -126,3 +128,22 @@ def test_the_sigmas_reason_carries_it() -> None:
     )
     _, why = inflate(RAW, (), [hinted], SimpleNamespace(ran=False), SimpleNamespace(jitter=False))
     assert not any("cannot check" in w for w in why)
+
+
+def test_segments_calibrated_together_check_a_prior_with_their_information_summed() -> None:
+    """The joint result's line: the segments' profiled informations add up (as their combined
+    score test), and the prior moves the joint estimate as in the best-determined segment."""
+    info = [3e5, 1e6, 1e7]
+    one = [held(info, 0.35)]
+    (u,) = combined_unchecked_priors([one, [held(info, 0.3)]], RAW)
+    twice = detectable_rms(chi2_isf(EFFECT_P_VALUE, 3), 3, [2 * x for x in info])[0]
+    assert u.detectable == pytest.approx(twice) and twice < weakest(info)
+    assert u.hidden_shift == pytest.approx(0.3 * twice / 1e-3)
+    # forty segments name it from below three times its prior: checked together
+    assert combined_unchecked_priors([one] * 40, RAW) == []
+    # an effect one segment does not test is left out
+    assert combined_unchecked_priors([one, []], RAW) == []
+    # a direction no segment determines: never checked
+    flat = held([1e6, 1e7], 0.3, name="gyro_rotation", prior=np.radians(0.05), rank=2)
+    (g,) = combined_unchecked_priors([[flat], [flat]], RAW)
+    assert np.isinf(g.detectable)
