@@ -47,7 +47,12 @@ from scipy import optimize
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.consistency.distributions import chi2_isf, chi2_sf
-from licalib_cli.consistency.power import DETECTION_POWER, DISPLAY_UNITS, detectable_rms
+from licalib_cli.consistency.power import (
+    DETECTION_POWER,
+    DISPLAY_UNITS,
+    detectable_rms,
+    display_size,
+)
 from licalib_cli.estimation import CalibrationState, intrinsic_coordinates
 from licalib_cli.pipeline import (
     CalibrationRun,
@@ -304,14 +309,12 @@ class NotShown:
     @property
     def detectable(self) -> tuple[float, str]:
         """``detectable_rms`` in the unit of :data:`DISPLAY_UNITS`."""
-        factor, unit = DISPLAY_UNITS[self.effect]
-        return self.detectable_rms * factor, unit
+        return display_size(self.effect, self.detectable_rms)
 
     @property
     def detectable_best(self) -> tuple[float, str]:
         """``detectable_rms_best`` in the unit of :data:`DISPLAY_UNITS`."""
-        factor, unit = DISPLAY_UNITS[self.effect]
-        return self.detectable_rms_best * factor, unit
+        return display_size(self.effect, self.detectable_rms_best)
 
 
 @dataclass(frozen=True)
