@@ -13,6 +13,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from held_effects import imu_effect
 
 from licalib_cli.consistency.score import EffectScore
 from licalib_cli.pipeline.fitcheck import EffectEvidence
@@ -23,25 +24,8 @@ RAW = np.array([1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4, 1e-5])
 
 
 def _effect(prior_std: np.ndarray) -> EffectEvidence:
-    score = EffectScore(
-        name="accel_scale",
-        statistic=1.0,
-        rank=3,
-        p_value=0.8,  # not shown: covered by its prior, not by a shift
-        estimate=np.zeros(3),
-        sigma=np.ones(3),
-        shift=np.zeros(7),
-        shift_sigma=np.zeros(7),
-    )
-    return EffectEvidence(
-        score=score,
-        sensor="imu",
-        selected=False,
-        shift_translation_m=np.zeros(3),
-        shift_rotation_rad=np.zeros(3),
-        shift_time_offset_s=0.0,
-        prior_std=prior_std,
-    )
+    # not shown (p = 0.8): covered by its prior, not by a shift
+    return imu_effect(p_value=0.8, statistic=1.0, prior_std=prior_std)
 
 
 def _segment(factor: float, prior_std: np.ndarray) -> SimpleNamespace:

@@ -13,8 +13,8 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from held_effects import imu_effect
 
-from licalib_cli.consistency.score import EffectScore
 from licalib_cli.pipeline.checks import COVER_P_VALUE, effect_to_cover, inflate
 from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
 from licalib_cli.sections import EffectCheck
@@ -27,25 +27,13 @@ def evidence(
 ) -> EffectEvidence:
     """An accelerometer scale moving t_z by ``shift_z_mm``, with a shift sigma of 0.5 mm (and,
     known to within its prior, adding ``prior_z_mm`` to the sigma of t_z)."""
-    score = EffectScore(
-        name="accel_scale",
-        statistic=10.0,
-        rank=3,
-        p_value=p_value,
-        estimate=np.zeros(3),
-        sigma=np.ones(3),
-        shift=np.zeros(7),
-        shift_sigma=np.zeros(7),
-    )
     std = np.zeros(7)
     std[2] = 0.5e-3
-    return EffectEvidence(
-        score=score,
-        sensor="imu",
+    return imu_effect(
+        p_value=p_value,
+        statistic=10.0,
         selected=selected,
-        shift_translation_m=np.array([0.0, 0.0, 1e-3 * shift_z_mm]),
-        shift_rotation_rad=np.zeros(3),
-        shift_time_offset_s=0.0,
+        shift=np.array([0.0, 0.0, 1e-3 * shift_z_mm, 0.0, 0.0, 0.0, 0.0]),
         shift_std=std,
         prior_std=np.array([0.0, 0.0, 1e-3 * prior_z_mm, 0.0, 0.0, 0.0, 0.0]),
     )

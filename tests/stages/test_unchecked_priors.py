@@ -9,10 +9,10 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from held_effects import imu_effect
 
 from licalib_cli.consistency.distributions import chi2_isf
 from licalib_cli.consistency.power import detectable_rms
-from licalib_cli.consistency.score import EffectScore
 from licalib_cli.pipeline.checks import COVER_P_VALUE, inflate
 from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
 from licalib_cli.pipeline.unchecked_priors import (
@@ -33,31 +33,21 @@ def held(
     name: str = "accel_scale",
     prior: float = 1e-3,
     rank: int | None = None,
+    p_value: float = 0.3,
+    shift_z_mm: float = 0.0,
 ) -> EffectEvidence:
-    """An IMU effect of three coordinates the data do not show (p = 0.3), known to within
-    ``prior`` per coordinate, whose prior spread adds ``prior_z_mm`` to the sigma of t_z."""
-    info = np.asarray(information, dtype=np.float64)
-    score = EffectScore(
-        name=name,
+    """An IMU effect of three coordinates the data do not show (p = 0.3 by default), known to
+    within ``prior`` per coordinate, whose prior spread adds ``prior_z_mm`` to the sigma of t_z
+    (and whose shift moves t_z by ``shift_z_mm``)."""
+    return imu_effect(
+        name,
+        p_value=p_value,
         statistic=3.0,
-        rank=info.size if rank is None else rank,
-        p_value=0.3,
-        estimate=np.zeros(3),
-        sigma=np.ones(3),
-        shift=np.zeros(7),
-        shift_sigma=np.zeros(7),
-        information=info,
-        profiled_information=np.diag(np.pad(info, (0, 3 - info.size))),
-    )
-    return EffectEvidence(
-        score=score,
-        sensor="imu",
-        selected=False,
-        shift_translation_m=np.zeros(3),
-        shift_rotation_rad=np.zeros(3),
-        shift_time_offset_s=0.0,
+        rank=rank,
+        shift=np.array([0.0, 0.0, 1e-3 * shift_z_mm, 0.0, 0.0, 0.0, 0.0]),
         prior_std=np.array([0.0, 0.0, 1e-3 * prior_z_mm, 0.0, 0.0, 0.0, 0.0]),
         prior_sigma=prior,
+        information=information,
     )
 
 
@@ -118,14 +108,7 @@ def test_the_sigmas_reason_carries_it() -> None:
     assert "cannot check" in reason([held([3e5, 1e6, 1e7], 0.35)])
     assert "cannot check" not in reason([held([3e7, 1e8, 1e9], 0.9)])
     # an effect the data hint at is covered by its shift, not by its prior: not listed
-    hinted = held([3e5, 1e6, 1e7], 0.35)
-    hinted = EffectEvidence(
-        **{
-            **hinted.__dict__,
-            "score": EffectScore(**{**hinted.score.__dict__, "p_value": 0.5 * COVER_P_VALUE}),
-            "shift_translation_m": np.array([0.0, 0.0, 3e-3]),
-        }
-    )
+    hinted = held([3e5, 1e6, 1e7], 0.35, p_value=0.5 * COVER_P_VALUE, shift_z_mm=3.0)
     _, why = inflate(RAW, (), [hinted], SimpleNamespace(ran=False), SimpleNamespace(jitter=False))
     assert not any("cannot check" in w for w in why)
 

@@ -1,0 +1,57 @@
+"""Test factory: an IMU effect the checks hold fixed (``EffectEvidence`` with its score test)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from licalib_cli.consistency.score import EffectScore
+from licalib_cli.pipeline.fitcheck import EffectEvidence
+
+
+def imu_effect(
+    name: str = "accel_scale",
+    *,
+    p_value: float,
+    statistic: float,
+    rank: int | None = None,
+    selected: bool = False,
+    shift: np.ndarray | None = None,
+    shift_std: np.ndarray | None = None,
+    prior_std: np.ndarray | None = None,
+    prior_sigma: float = 0.0,
+    information: Sequence[float] | None = None,
+) -> EffectEvidence:
+    """A three-coordinate IMU effect: its test (``p_value``, ``statistic``; ``information``
+    the eigenvalues along the directions the data determine, ``rank`` their number by default,
+    and the profiled information diagonal in them) and what it does to the (7,) extrinsic
+    (``shift``, ``shift_std``, ``prior_std``; zeros by default)."""
+    zeros = np.zeros(7)
+    info = np.zeros(0) if information is None else np.asarray(information, dtype=np.float64)
+    score = EffectScore(
+        name=name,
+        statistic=statistic,
+        rank=(3 if information is None else info.size) if rank is None else rank,
+        p_value=p_value,
+        estimate=np.zeros(3),
+        sigma=np.ones(3),
+        shift=np.zeros(7),
+        shift_sigma=np.zeros(7),
+        information=info,
+        profiled_information=(
+            np.zeros((0, 0)) if information is None else np.diag(np.pad(info, (0, 3 - info.size)))
+        ),
+    )
+    moved = zeros if shift is None else np.asarray(shift, dtype=np.float64)
+    return EffectEvidence(
+        score=score,
+        sensor="imu",
+        selected=selected,
+        shift_translation_m=moved[:3],
+        shift_rotation_rad=moved[3:6],
+        shift_time_offset_s=float(moved[6]),
+        shift_std=zeros if shift_std is None else shift_std,
+        prior_std=zeros if prior_std is None else prior_std,
+        prior_sigma=prior_sigma,
+    )
