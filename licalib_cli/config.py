@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -331,6 +332,58 @@ class ImuPriorSection(_Section):
         return float(getattr(self, effect, 0.0))
 
 
+class LidarSpreadSection(_Section):
+    """How far each beam's intrinsics are expected to lie from nominal (one sigma, the spread
+    across beams): the prior of the per-beam intrinsics the model estimates (``model.lidar``).
+
+    Unset, a block gets a weak prior of about ten times real sensors' spread, and each beam's
+    value is the data's alone. Set, the beams' values are drawn toward nominal as far as the
+    data leave them uncertain: many small per-beam errors are then estimated together with one
+    number, their spread, instead of one free number each. ``licalib diagnose`` sets it from
+    the data when a per-beam effect the data show pays only so (README, "Reading a diagnosis").
+    """
+
+    elevation_deg: float | None = Field(default=None, gt=0.0, le=10.0)
+    """Elevation correction per beam, degrees."""
+    azimuth_deg: float | None = Field(default=None, gt=0.0, le=10.0)
+    """Azimuth correction per beam, degrees."""
+    vertical_offset: float | None = Field(default=None, gt=0.0, le=1.0)
+    """Vertical offset per beam, m."""
+    horizontal_offset: float | None = Field(default=None, gt=0.0, le=1.0)
+    """Horizontal offset per beam, m."""
+    range_scale: float | None = Field(default=None, gt=0.0, le=0.1)
+    """Range scale error per beam, as a fraction (1e-4 = 100 ppm)."""
+    range_offset: float | None = Field(default=None, gt=0.0, le=1.0)
+    """Range offset per beam, m."""
+
+    def sigma_of(self, block: str) -> float | None:
+        """The spread of ``model.lidar`` block ``block`` in the model's units (radians for the
+        angles); None when unset."""
+        if block in ("elevation", "azimuth"):
+            deg = getattr(self, f"{block}_deg")
+            return None if deg is None else math.radians(deg)
+        value = getattr(self, block, None)
+        return None if value is None else float(value)
+
+    def configured(self, blocks: Sequence[str]) -> dict[str, float]:
+        """The spreads set among ``model.lidar`` blocks ``blocks``, by their keys here (in this
+        section's units)."""
+        out = {}
+        for block in blocks:
+            key = f"{block}_deg" if block in ("elevation", "azimuth") else block
+            value = getattr(self, key, None)
+            if value is not None:
+                out[key] = float(value)
+        return out
+
+    def with_sigma(self, block: str, sigma: float) -> LidarSpreadSection:
+        """A copy with ``block``'s spread set to ``sigma`` (the model's units), kept to three
+        significant digits in this section's units (as a config file would give it)."""
+        if block in ("elevation", "azimuth"):
+            return self.model_copy(update={f"{block}_deg": float(f"{math.degrees(sigma):.3g}")})
+        return self.model_copy(update={block: float(f"{sigma:.3g}")})
+
+
 class ModelSection(_Section):
     """Which intrinsics the calibration estimates; the others stay at their nominal values (and
     the checks test whether the data show them)."""
@@ -350,6 +403,9 @@ class ModelSection(_Section):
     imu_prior: ImuPriorSection = ImuPriorSection()
     """How well the IMU intrinsics held fixed are known (their sigmas enter the reported
     sigmas)."""
+    lidar_spread: LidarSpreadSection = LidarSpreadSection()
+    """The spread across beams of each per-beam intrinsic estimated (its prior); unset: a weak
+    prior."""
 
 
 class ChecksSection(_Section):

@@ -434,6 +434,9 @@ class FreeParameters:
         translation_prior: ``(mean, sigma)`` (m, IMU frame) of a Gaussian prior on
             ``ext.translation`` (a measured lever arm), or None. Not a freedom but what the
             problems built for these parameters add to the data (the rounds' own priors).
+        lidar_spread: ``(name, sigma)`` per per-beam intrinsic (``dphi`` ... ``drho``) whose
+            prior toward nominal has this sigma instead of the weak default
+            (``model.lidar_spread``); like ``translation_prior``, part of what the problems add.
     """
 
     trajectory: bool = True
@@ -453,6 +456,7 @@ class FreeParameters:
     time_drift: bool = False
     point_time: bool = False
     translation_prior: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    lidar_spread: tuple[tuple[str, float], ...] = ()
 
     def imu_block_free(self, block: str) -> bool:
         """Whether IMU intrinsic block ``block`` (e.g. ``imu.gyro_scale``) is estimated."""

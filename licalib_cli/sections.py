@@ -421,12 +421,16 @@ class ModelInfo(Section):
         lidar: per-beam LiDAR intrinsics estimated (``elevation`` ...).
         gauge_beam: the beam whose angles and offsets were held (the gauge), or -1.
         held_beams: beams with too few points, held at nominal.
+        lidar_spread: per-beam intrinsics estimated with a configured spread across beams
+            (``model.lidar_spread``, the config's keys and units: ``range_scale``,
+            ``elevation_deg`` ...); empty when each took the weak default prior.
     """
 
     imu: tuple[str, ...] = ()
     lidar: tuple[str, ...] = ()
     gauge_beam: int = -1
     held_beams: tuple[int, ...] = ()
+    lidar_spread: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

@@ -96,7 +96,8 @@ def model_info(fit: Fit, cfg: CalibConfig) -> ModelInfo:
         enough = counts >= cfg.model.min_points_per_beam
         gauge = int(np.argmax(enough)) if np.any(enough) else -1
         held = tuple(int(b) for b in np.flatnonzero(~enough))
-    return ModelInfo(tuple(cfg.model.imu), tuple(cfg.model.lidar), gauge, held)
+    spread = cfg.model.lidar_spread.configured(cfg.model.lidar)
+    return ModelInfo(tuple(cfg.model.imu), tuple(cfg.model.lidar), gauge, held, spread)
 
 
 def extra_terms(state: CalibrationState, cfg: CalibConfig) -> ExtraTerms | None:

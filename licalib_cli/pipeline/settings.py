@@ -22,7 +22,7 @@ from licalib_cli.estimation import (
 from licalib_cli.initialization.rotation import HandEyeConfig
 from licalib_cli.initialization.time_offset import TimeOffsetConfig
 from licalib_cli.initialization.translation import LeverArmConfig
-from licalib_cli.models.lidar import nominal_intrinsics_array
+from licalib_cli.models.lidar import INTRINSIC_NAMES, nominal_intrinsics_array
 from licalib_cli.odometry import OdometryConfig
 from licalib_cli.residuals import (
     ACCEL_SCALE,
@@ -256,8 +256,14 @@ def free_parameters(cfg: CalibConfig, intrinsics: bool) -> FreeParameters:
     prior = translation_prior(cfg)
     if not intrinsics:
         return FreeParameters(min_points_per_beam=m.min_points_per_beam, translation_prior=prior)
+    spread = tuple(
+        (LIDAR_COLUMNS[name], sigma)
+        for name in m.lidar
+        if name in LIDAR_COLUMNS and (sigma := m.lidar_spread.sigma_of(name)) is not None
+    )
     return FreeParameters(
         translation_prior=prior,
+        lidar_spread=spread,
         imu_blocks=frozenset(f"imu.{name}" for name in m.imu if name in IMU_INTRINSIC_NAMES),
         g_sensitivity="g_sensitivity" in m.imu,
         lidar_columns=frozenset(LIDAR_COLUMNS[name] for name in m.lidar if name in LIDAR_COLUMNS),
@@ -347,7 +353,10 @@ def model_priors(state: CalibrationState, free: FreeParameters) -> list[Gaussian
     if free.any_lidar_intrinsics:
         b = state.lidar_intrinsics.num_beams
         nominal = nominal_intrinsics_array(b)
-        sigma = np.broadcast_to(np.asarray(INTRINSIC_PRIOR_SIGMA[LIDAR_INTRINSICS]), nominal.shape)
+        columns = np.array(INTRINSIC_PRIOR_SIGMA[LIDAR_INTRINSICS], dtype=np.float64)
+        for name, spread in free.lidar_spread:
+            columns[INTRINSIC_NAMES.index(name)] = spread
+        sigma = np.broadcast_to(columns, nominal.shape)
         out.append(GaussianPrior(LIDAR_INTRINSICS, nominal, sigma))
     return out
 

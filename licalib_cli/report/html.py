@@ -197,9 +197,11 @@ def _intrinsics(result: CalibrationResult) -> str:
                 row.append(f"{value:.4g} +- {_sigma_of(sig, key, b, sigma_factor)}")
             beam_rows.append(row)
         held = ", ".join(str(b) for b in model.held_beams) or "none"
+        spread = ", ".join(f"{k} {v:.3g}" for k, v in model.lidar_spread.items())
+        drawn = f"; drawn toward nominal with the spread across beams {spread}" if spread else ""
         out.append(
             f"<details><summary>Per-beam LiDAR intrinsics (estimate +- 1-sigma; gauge beam "
-            f"{model.gauge_beam}, beams held for lack of points: {_e(held)})</summary>"
+            f"{model.gauge_beam}, beams held for lack of points: {_e(held)}{_e(drawn)})</summary>"
             + _table(header, beam_rows, "beams")
             + "</details>"
         )

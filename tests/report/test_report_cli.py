@@ -5,6 +5,7 @@ partial file."""
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -360,6 +361,13 @@ def test_estimated_intrinsics_are_tabled_with_their_sigmas(tmp_path):
     assert '<td class="l">gyro_scale x</td><td class="">1.002</td><td class="">0.0001</td>' in page
     assert '<td class="l">gyro_scale z</td><td class="">1</td><td class="">-</td>' in page
     assert "range_offset (mm)" in page and "12 +- 2" in page
+    assert "spread across beams" not in page
+    spread = ModelInfo(("gyro_scale",), ("range_offset",), 0, (), {"range_offset": 0.0021})
+    page = render_html(replace(result, model=spread), None, "calib.yaml")
+    assert "drawn toward nominal with the spread across beams range_offset 0.0021" in page
+    saved = tmp_path / "spread.yaml"
+    replace(result, model=spread).save(saved)
+    assert CalibrationResult.load(saved).model.lidar_spread == {"range_offset": 0.0021}
 
 
 def test_truth_given_to_report_is_shown_beside_the_estimate(tmp_path, capsys):

@@ -129,3 +129,47 @@ def test_imu_prior_defaults_units_and_limits(tmp_path):
     path.write_text("model:\n  imu_prior:\n    accel_scale: -0.001\n")
     with pytest.raises(ConfigError, match="accel_scale"):
         load_config(path)
+
+
+def test_lidar_spread_units_limits_and_the_priors_it_sets(tmp_path):
+    """``model.lidar_spread``: unset by default (the weak prior); degrees for the angles; set,
+    the prior of that per-beam intrinsic, and only while the model estimates it."""
+    import math
+    from types import SimpleNamespace
+
+    from licalib_cli.models.lidar import INTRINSIC_NAMES
+    from licalib_cli.pipeline.settings import (
+        INTRINSIC_PRIOR_SIGMA,
+        free_parameters,
+        model_priors,
+    )
+
+    spread = load_config(None).model.lidar_spread
+    assert all(getattr(spread, name) is None for name in type(spread).model_fields)
+    assert spread.sigma_of("range_scale") is None
+    path = tmp_path / "c.yaml"
+    path.write_text(
+        "model:\n  lidar: [range_scale, elevation]\n  lidar_spread:\n"
+        "    range_scale: 1.5e-4\n    elevation_deg: 0.02\n    range_offset: 0.004\n"
+    )
+    cfg = load_config(path)
+    assert cfg.model.lidar_spread.sigma_of("elevation") == pytest.approx(math.radians(0.02))
+    assert cfg.model.lidar_spread.with_sigma("azimuth", math.radians(0.3)).azimuth_deg == (
+        pytest.approx(0.3)
+    )
+    free = free_parameters(cfg, True)
+    # range_offset is not estimated: its spread sets nothing
+    assert dict(free.lidar_spread) == pytest.approx({"s": 1.5e-4, "dphi": math.radians(0.02)})
+    state = SimpleNamespace(lidar_intrinsics=SimpleNamespace(num_beams=16))
+    (prior,) = [p for p in model_priors(state, free) if p.block == "lidar.intrinsics"]
+    sigma = 1.0 / prior.inv_sigma
+    assert sigma.shape == (16, 6)
+    default = INTRINSIC_PRIOR_SIGMA["lidar.intrinsics"]
+    for j, name in enumerate(INTRINSIC_NAMES):
+        expected = {"s": 1.5e-4, "dphi": math.radians(0.02)}.get(name, default[j])
+        assert sigma[:, j] == pytest.approx(expected)
+    assert "lidar_spread" in dump_config(cfg)
+    for bad in ("range_scale: -1.0e-4", "elevation_deg: 0.0", "vertical_offset: 2.0"):
+        path.write_text(f"model:\n  lidar_spread:\n    {bad}\n")
+        with pytest.raises(ConfigError, match=bad.split(":")[0]):
+            load_config(path)
