@@ -246,6 +246,8 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
         "shrink": {s.effect: s.shrink for s in diag.steps if s.kept},
         # rivals the bag does not tell apart from a named effect (diagnose says so)
         "not_told_apart": {s.effect: list(s.not_told_apart) for s in diag.steps if s.kept},
+        # effects kept as one spread across beams (their free numbers did not pay): the spread
+        "spread": {s.effect: s.spread for s in diag.steps if s.kept and np.isfinite(s.spread)},
         "before": err(diag.base),
         "after": err(diag.final),
         "steps": [
@@ -424,7 +426,9 @@ def main() -> None:
                 injected = ",".join(row["effects"]) or "none"
                 named = (
                     ",".join(
-                        n + "".join(f" (~{a})" for a in row.get("not_told_apart", {}).get(n, []))
+                        n
+                        + (" [spread]" if n in row.get("spread", {}) else "")
+                        + "".join(f" (~{a})" for a in row.get("not_told_apart", {}).get(n, []))
                         for n in row["named"]
                     )
                     or "none"

@@ -296,7 +296,10 @@ def calibrate_command(
 
         render_diagnosis(diagnosis)
     run.result.save(out)
-    config_text = dump_config(cfg)
+    # With --model auto, the model the diagnosis arrived at: calibrating with it estimates it.
+    config_text = dump_config(
+        diagnosis.config if diagnosis is not None and diagnosis.config is not None else cfg
+    )
     write_text_atomic(config_out, config_text)
     render_run(run, reference)
     console().print(f"Result: {out}  (resolved config: {config_out})")

@@ -56,6 +56,44 @@ def _unpaid_dict(u: Any) -> dict[str, Any] | None:
     }
 
 
+def _spread_dict(s: Any) -> dict[str, Any] | None:
+    """A per-beam effect refitted as one spread across beams: the spread (printed units), its
+    BIC change and whether it was kept so; None when not tried."""
+    if not math.isfinite(s.spread):
+        return None
+    from licalib_cli.consistency.power import display_size
+
+    size, unit = display_size(s.effect, s.spread)
+    return {
+        "value": _num(size, 4),
+        "unit": unit,
+        "delta_bic": _num(s.spread_delta_bic),
+        "kept": bool(s.kept),
+    }
+
+
+def spread_sentence(s: Any) -> str | None:
+    """How a per-beam effect fared as one spread across beams (None when not tried)."""
+    if not math.isfinite(s.spread):
+        return None
+    from licalib_cli.consistency.power import display_size
+
+    size, unit = display_size(s.effect, s.spread)
+    coordinates = len(s.estimate)
+    if s.kept:
+        return (
+            f"{s.effect} was added as one spread across beams: as {coordinates} free numbers it "
+            f"did not pay (BIC {s.delta_bic:+.0f}); as numbers drawn from a spread of "
+            f"{size:.3g} {unit} (estimated from this bag, model.lidar_spread) it does (BIC "
+            f"{s.spread_delta_bic:+.0f}, one parameter). Each beam's value is drawn toward "
+            "nominal as far as the data leave it uncertain; its sigma says how far."
+        )
+    return (
+        f"As one spread across beams ({size:.3g} {unit}) {s.effect} did not pay either (BIC "
+        f"{s.spread_delta_bic:+.0f})."
+    )
+
+
 def unpaid_sentence(s: Any) -> str | None:
     """Why a significant effect was not added, and what data would add it (None unless its
     refit did not pay, :attr:`~licalib_cli.pipeline.diagnose.DiagnosisStep.unpaid`)."""
@@ -118,6 +156,7 @@ def diagnosis_dict(diag: Any) -> dict[str, Any]:
                 "rival_named": s.rival_named or None,
                 "final_p_value": _num(s.final_p_value, 3),
                 "unpaid": _unpaid_dict(s.unpaid),
+                "spread": _spread_dict(s),
                 "gap_before": _gap_dict(s.gap_before),
                 "gap_after": _gap_dict(s.gap_after),
                 "gap_shrink": _num(s.shrink, 3),
@@ -273,7 +312,8 @@ def render_diagnosis(diag: Any) -> None:
             s.effect,
             f"{s.statistic:.0f} ({s.dof})",
             p_text(s.p_value, 1),
-            f"{s.delta_bic:+.0f}",
+            f"{s.delta_bic:+.0f}"
+            + (f", spread {s.spread_delta_bic:+.0f}" if math.isfinite(s.spread) else ""),
             f"{s.gap_before.sensor}: {s.gap_before.excess:+.3f} -> {s.gap_after.excess:+.3f}",
             f"{1e3 * s.moved_translation_m:.2f} mm / {s.moved_rotation_deg:.4f} deg / "
             f"{1e3 * s.moved_time_offset_s:.3f} ms",
@@ -311,7 +351,10 @@ def render_diagnosis(diag: Any) -> None:
     for s in diag.steps:
         sentence = unpaid_sentence(s)
         if sentence is not None:
-            out.print(sentence)
+            spread = spread_sentence(s)
+            out.print(sentence if spread is None else f"{sentence} {spread}")
+        elif s.kept and spread_sentence(s) is not None:
+            out.print(spread_sentence(s))
     for s in diag.steps:
         if s.held:
             shown = ", ".join(s.held[:3]) + (
@@ -423,7 +466,7 @@ def diagnose_command(
             out / "diagnosis.yaml", dump_yaml({k: v for k, v in data.items() if k != "calibration"})
         )
         diag.final.result.save(out / "calibration.yaml")
-        write_text_atomic(out / "calibration.config.yaml", dump_config(cfg))
+        write_text_atomic(out / "calibration.config.yaml", dump_config(diag.config or cfg))
         if plots:
             from licalib_cli.plots import save_diagnosis_plots
 

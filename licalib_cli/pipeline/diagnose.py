@@ -14,6 +14,11 @@
    A close rival of the same sensor is refitted as well and compared with it on the same
    data (:func:`_rival_delta_bic`); a pair that neither score test separates is reported as
    not told apart (:func:`not_told_apart`).
+   A per-beam effect whose free numbers do not pay (each pays ``ln n``) is refitted once more
+   as one random effect across beams: its numbers drawn from ``N(0, s^2)`` with the spread
+   ``s`` that best explains its score (:mod:`licalib_cli.consistency.spread`, set in
+   ``model.lidar_spread``), its BIC the refit's sum of squares (the prior's term included)
+   plus ``ln det(1 + s^2 I)`` and ``ln n`` for ``s`` (:func:`spread_worth_trying`).
 4. Repeat until no candidate is significant, or ``max_effects`` were added.
 5. Check backwards: an effect added early may explain nothing that the effects added after it
    do not (an accelerometer misalignment picked first on a bag whose gyro is rotated: once the
@@ -40,12 +45,12 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 from scipy import optimize
 
-from licalib_cli.config import CalibConfig
+from licalib_cli.config import CalibConfig, LidarSpreadSection
 from licalib_cli.consistency.distributions import chi2_isf, chi2_sf
 from licalib_cli.consistency.power import (
     DETECTION_POWER,
@@ -53,6 +58,8 @@ from licalib_cli.consistency.power import (
     detectable_rms,
     display_size,
 )
+from licalib_cli.consistency.score import EffectScore
+from licalib_cli.consistency.spread import SharedSpread, shared_spread
 from licalib_cli.estimation import CalibrationState, intrinsic_coordinates
 from licalib_cli.pipeline import (
     CalibrationRun,
@@ -80,8 +87,11 @@ __all__ = [
     "detectable_rms",
     "diagnose",
     "drop_redundant",
+    "final_config",
+    "spread_worth_trying",
     "twin_of",
     "with_effect",
+    "with_spread",
     "without_effect",
 ]
 
@@ -232,6 +242,12 @@ class DiagnosisStep:
         final_p_value: its score test's p-value on the final fit when it is not in the final
             model (NaN otherwise): above :data:`EFFECT_P_VALUE`, the effects added after it
             explain what it showed.
+        spread: for a per-beam effect whose free numbers did not pay, the spread across beams
+            of its refit as one random effect (:mod:`licalib_cli.consistency.spread`, solver
+            units; NaN when not tried). Kept so, ``delta_bic`` stays that of the free numbers
+            and ``estimate``, the gaps and the moves are the spread's refit's.
+        spread_delta_bic: the BIC change of that refit (one parameter, the spread; NaN when
+            not tried).
     """
 
     effect: str
@@ -257,6 +273,8 @@ class DiagnosisStep:
     bic_log_n: float = float("nan")
     rival_named: str = ""
     final_p_value: float = float("nan")
+    spread: float = float("nan")
+    spread_delta_bic: float = float("nan")
 
     @property
     def unpaid(self) -> Unpaid | None:
@@ -437,6 +455,9 @@ class Diagnosis:
         base_twin: the twin recordings of the base fit (None if none could be fitted).
         final_twin: those of the final fit.
         not_shown: the candidates not added, each with the size this bag would need to show it.
+        config: the configuration of the final fit: the ``model:`` section lists the effects
+            kept (and the spread of those kept as one spread across beams); calibrating with it
+            estimates that model.
     """
 
     base: CalibrationRun
@@ -446,6 +467,7 @@ class Diagnosis:
     base_twin: Twin | None = None
     final_twin: Twin | None = None
     not_shown: tuple[NotShown, ...] = ()
+    config: CalibConfig | None = None
 
 
 def _expected_chi2(sensor: str, cfg: CalibConfig, imu_rate_hz: float) -> float:
@@ -495,6 +517,42 @@ def _with_effects(cfg: CalibConfig, effects: tuple[str, ...]) -> CalibConfig:
     )
 
 
+def with_spread(cfg: CalibConfig, effect: str, sigma: float) -> CalibConfig:
+    """``cfg`` whose ``model.lidar_spread`` gives per-beam ``effect`` the spread ``sigma``
+    (solver units)."""
+    block = CANDIDATES[effect][1]
+    spread = cfg.model.lidar_spread.with_sigma(block, sigma)
+    return cfg.model_copy(update={"model": cfg.model.model_copy(update={"lidar_spread": spread})})
+
+
+def final_config(cfg: CalibConfig, kept: tuple[str, ...]) -> CalibConfig:
+    """``cfg`` estimating exactly ``kept``, with the spreads of those among them kept as one
+    spread across beams (the others' unset)."""
+    out = _with_effects(cfg, kept)
+    spread = LidarSpreadSection()
+    for effect in kept:
+        block = CANDIDATES[effect][1]
+        sigma = cfg.model.lidar_spread.sigma_of(block) if effect in _LIDAR_SUFFIX else None
+        if sigma is not None:
+            spread = spread.with_sigma(block, sigma)
+    return out.model_copy(update={"model": out.model.model_copy(update={"lidar_spread": spread})})
+
+
+def spread_worth_trying(step: DiagnosisStep, score: EffectScore) -> SharedSpread | None:
+    """The spread across beams to refit a per-beam effect with, when its free numbers did not
+    pay (``step``, the pick of its step) although its score test is significant, and the linear
+    model says that one spread would pay (:mod:`licalib_cli.consistency.spread`); None
+    otherwise."""
+    if step.kept or step.effect not in _LIDAR_SUFFIX or not step.p_value < EFFECT_P_VALUE:
+        return None
+    if not math.isfinite(step.bic_log_n):
+        return None
+    spread = shared_spread(score.gradient, score.profiled_information)
+    if not (spread.sigma > 0.0 and spread.delta_bic(step.bic_log_n) < 0.0):
+        return None
+    return spread
+
+
 def with_effect(cfg: CalibConfig, effect: str) -> CalibConfig:
     """``cfg`` whose ``model:`` section estimates ``effect`` too."""
     sensor, block = CANDIDATES[effect][:2]
@@ -523,21 +581,20 @@ def _sum_of_squares(run: CalibrationRun, cfg: CalibConfig, refit: bool) -> tuple
     return 2.0 * cost, n_res, n_free
 
 
-def _bic_against(
+def _bic_terms(
     fit: CalibrationRun,
     fit_cfg: CalibConfig,
-    others: Sequence[tuple[CalibrationState, CalibConfig, int]],
-) -> list[float]:
-    """BIC of ``fit``'s model (``fit_cfg``) minus that of each other model, all on ``fit``'s final
-    data. Each other model is given as its starting estimate, its configuration and the ``n`` of
-    its penalty (the residuals of the sensor the difference belongs to), and is re-solved from
-    that estimate (a few iterations, :func:`_sum_of_squares`). Negative: ``fit``'s model is
-    worth its parameters."""
+    others: Sequence[tuple[CalibrationState, CalibConfig]],
+) -> list[tuple[float, int]]:
+    """``(sum r^2, free parameters)`` of ``fit``'s model (``fit_cfg``) minus those of each other
+    model, all on ``fit``'s final data. Each other model is given as its starting estimate and
+    its configuration, and is re-solved from that estimate (a few iterations,
+    :func:`_sum_of_squares`)."""
     ss, _, k = _sum_of_squares(fit, fit_cfg, refit=False)
     out = []
-    for state, other_cfg, samples in others:
+    for state, other_cfg in others:
         ss_other, _, k_other = _sum_of_squares(replace(fit, state=state), other_cfg, refit=True)
-        out.append((ss - ss_other) + (k - k_other) * math.log(max(samples, 2)))
+        out.append((ss - ss_other, k - k_other))
     return out
 
 
@@ -674,20 +731,24 @@ def _deltas_without(
     effects: tuple[str, ...],
     start: CalibrationState,
     cfg: CalibConfig,
+    spread_log_det: Mapping[str, float] | None = None,
 ) -> dict[str, float]:
     """Per effect of ``effects``: the BIC of ``run``'s model (the effects ``kept``) minus that of
     the model without it, both on ``run``'s final data; the latter re-solved from ``run``'s
     estimate with the effect back at its value in ``start``. Positive: the others explain what
-    it did."""
+    it did. An effect kept as one spread across beams (``spread_log_det``: its ``ln det(1 +
+    s^2 I)``) costs that and ``ln n`` instead of ``ln n`` per coordinate."""
+    spread_log_det = spread_log_det or {}
     others = [
-        (
-            without_effect(run.state, e, start),
-            _with_effects(cfg, tuple(x for x in kept if x != e)),
-            _sensor_samples(run, CANDIDATES[e][2]),
-        )
+        (without_effect(run.state, e, start), _with_effects(cfg, tuple(x for x in kept if x != e)))
         for e in effects
     ]
-    deltas = dict(zip(effects, _bic_against(run, _with_effects(cfg, kept), others), strict=True))
+    terms = _bic_terms(run, _with_effects(cfg, kept), others)
+    deltas = {}
+    for e, (ss, k) in zip(effects, terms, strict=True):
+        log_n = math.log(max(_sensor_samples(run, CANDIDATES[e][2]), 2))
+        penalty = log_n + spread_log_det[e] if e in spread_log_det else k * log_n
+        deltas[e] = ss + penalty
     for effect, delta in deltas.items():
         logger.info("Diagnose: %s with the others in: BIC %+.1f against without it.", effect, delta)
     return deltas
@@ -794,8 +855,12 @@ def _try_effect(
     progress: Progress,
     timer: Timer,
     rate: float,
+    spread: SharedSpread | None = None,
 ) -> DiagnosisStep:
-    """Refit ``run`` with one more effect and judge it (BIC on the refit's data)."""
+    """Refit ``run`` with one more effect and judge it (BIC on the refit's data). With
+    ``spread`` (``cfg`` then sets ``model.lidar_spread`` for the effect), the effect is one
+    random effect across beams: its penalty is ``ln n + ln det(1 + s^2 I)`` instead of ``ln n``
+    per coordinate (:mod:`licalib_cli.consistency.spread`)."""
     score = evidence.score  # type: ignore[attr-defined]
     name = score.name
     sensor = CANDIDATES[name][2]
@@ -810,7 +875,9 @@ def _try_effect(
     start = replace(prepared.guess, state=run.state)
     new = fit_and_check(prepared, start, new_cfg, progress, timer, warm=True)
     samples = _sensor_samples(run, sensor)
-    (delta_bic,) = _bic_against(new, new_cfg, [(run.state, _with_effects(cfg, kept), samples)])
+    log_n = math.log(max(samples, 2))
+    ((ss, k),) = _bic_terms(new, new_cfg, [(run.state, _with_effects(cfg, kept))])
+    delta_bic = ss + (k * log_n if spread is None else log_n + spread.log_det)
     moved = extrinsic_of(new.state).error_to(extrinsic_of(run.state))
     new_twin = twin_of(new, cfg)
     alone = float(getattr(evidence, "statistic_alone", score.statistic))
@@ -832,12 +899,13 @@ def _try_effect(
         before=run,
         after=new,
         after_twin=new_twin,
-        bic_log_n=math.log(max(samples, 2)),
+        bic_log_n=log_n,
     )
     logger.info(
-        "Diagnose: %s %s (BIC %+.1f); %s gap %.3f -> %.3f; the extrinsic moved %.2f mm / "
+        "Diagnose: %s%s %s (BIC %+.1f); %s gap %.3f -> %.3f; the extrinsic moved %.2f mm / "
         "%.4f deg / %.3f ms.",
         name,
+        "" if spread is None else " as one spread across beams",
         "pays" if step.kept else "does not pay",
         delta_bic,
         sensor,
@@ -875,6 +943,9 @@ def diagnose(
     progress = progress or NullProgress()
     allowed = tuple(candidates) if candidates else tuple(CANDIDATES)
     timer = Timer()
+    cfg = cfg.model_copy(
+        update={"model": cfg.model.model_copy(update={"lidar_spread": LidarSpreadSection()})}
+    )
     base_cfg = _with_effects(cfg, ())
     prepared: Prepared = prepare(Path(str(bag)), base_cfg, progress, timer)
     rate = (len(prepared.rec.imu) - 1) / max(
@@ -886,6 +957,7 @@ def diagnose(
     base, base_twin = run, run_twin
     kept: tuple[str, ...] = ()
     tried: set[str] = set()
+    spread_log_det: dict[str, float] = {}
     steps: list[DiagnosisStep] = []
     while max_effects is None or len(kept) < max_effects:
         options = [
@@ -926,6 +998,28 @@ def diagnose(
         for t in trials:
             if t is not step:
                 steps.append(replace(t, kept=False, rival_named=step.effect))
+        evidence = next(e for e in [best, *rivals] if e.score.name == step.effect)
+        spread = spread_worth_trying(step, evidence.score)
+        if spread is not None:
+            spread_cfg = with_spread(cfg, step.effect, spread.sigma)
+            used = spread_cfg.model.lidar_spread.sigma_of(CANDIDATES[step.effect][1])
+            assert used is not None
+            shared = _try_effect(
+                evidence, run, run_twin, kept, prepared, spread_cfg, progress, timer, rate, spread
+            )
+            if shared.kept:
+                step = replace(
+                    shared,
+                    delta_bic=step.delta_bic,
+                    not_told_apart=step.not_told_apart,
+                    rival_delta_bic=step.rival_delta_bic,
+                    spread=used,
+                    spread_delta_bic=shared.delta_bic,
+                )
+                cfg = spread_cfg
+                spread_log_det[step.effect] = spread.log_det
+            else:
+                step = replace(step, spread=used, spread_delta_bic=shared.delta_bic)
         steps.append(step)
         if step.kept:
             kept = (*kept, step.effect)
@@ -944,7 +1038,9 @@ def diagnose(
 
     dropped = drop_redundant(
         kept,
-        lambda effects, tested: _deltas_without(run, effects, tested, base.state, cfg),
+        lambda effects, tested: _deltas_without(
+            run, effects, tested, base.state, cfg, spread_log_det
+        ),
         refit_without,
     )
     for effect, later, delta in dropped:
@@ -965,4 +1061,5 @@ def diagnose(
         base_twin=base_twin,
         final_twin=run_twin,
         not_shown=_not_shown(run, allowed, (*kept, *sorted(tried))),
+        config=final_config(cfg, kept),
     )

@@ -1,5 +1,5 @@
-"""A significant effect that does not pay its BIC penalty: how well the bag determines it, and
-how much more data would add it."""
+"""A significant effect that does not pay its BIC penalty: how well the bag determines it, how
+much more data would add it, and a per-beam effect tried as one spread across beams."""
 
 from __future__ import annotations
 
@@ -151,7 +151,74 @@ def test_the_diagnosis_file_carries_it(monkeypatch: pytest.MonkeyPatch) -> None:
     )
     monkeypatch.setattr(cmd, "_residuals", lambda run, twin: {})
     first, second = diagnosis_dict(diag)["steps"]
-    assert first["unpaid"] is None
+    assert first["unpaid"] is None and first["spread"] is None
     assert second["unpaid"]["coordinates"] == 64
     assert second["unpaid"]["bic_penalty_per_coordinate"] == 12.0
     assert 1.0 < second["unpaid"]["data_factor"] < 1e6
+
+
+def _score_of(statistic_per_dof: float, k: int = 64) -> object:
+    """A per-beam group's score (unit information) whose statistic is ``statistic_per_dof`` per
+    degree of freedom, spread evenly."""
+    from licalib_cli.consistency.score import EffectScore
+
+    g = np.full(k, math.sqrt(statistic_per_dof))
+    return EffectScore(
+        name="lidar_range_scale",
+        statistic=float(g @ g),
+        rank=k,
+        p_value=1e-14,
+        estimate=g,
+        sigma=np.ones(k),
+        shift=np.zeros(7),
+        shift_sigma=np.zeros(7),
+        gradient=g,
+        profiled_information=np.eye(k),
+    )
+
+
+def test_a_per_beam_effect_that_did_not_pay_is_tried_as_one_spread() -> None:
+    from licalib_cli.pipeline.diagnose import spread_worth_trying
+
+    step = _step()
+    spread = spread_worth_trying(step, _score_of(3.0))  # type: ignore[arg-type]
+    assert spread is not None
+    # unit information, c = 3 on every beam: L(t) = 32 (3 t / (1 + t) - ln(1 + t)), max at t = 2
+    assert spread.sigma == pytest.approx(math.sqrt(2.0), rel=1e-4)
+    assert spread.delta_bic(12.0) == pytest.approx(-64 * (2.0 - math.log(3.0)) + 12.0, rel=1e-6)
+    # not when the numbers paid, an IMU effect, not significant, or one spread would not pay
+    assert spread_worth_trying(replace(step, kept=True), _score_of(3.0)) is None  # type: ignore[arg-type]
+    assert spread_worth_trying(replace(step, effect="gyro_scale"), _score_of(3.0)) is None  # type: ignore[arg-type]
+    assert spread_worth_trying(replace(step, p_value=1e-3), _score_of(3.0)) is None  # type: ignore[arg-type]
+    assert spread_worth_trying(step, _score_of(1.1)) is None  # type: ignore[arg-type]
+
+
+def test_the_final_config_keeps_the_spreads_of_the_effects_kept() -> None:
+    from licalib_cli.config import CalibConfig
+    from licalib_cli.pipeline.diagnose import final_config, with_spread
+
+    cfg = with_spread(CalibConfig(), "lidar_range_scale", 1.2e-4)
+    cfg = with_spread(cfg, "lidar_elevation", math.radians(0.01))
+    out = final_config(cfg, ("gyro_scale", "lidar_range_scale"))
+    assert out.model.imu == ["gyro_scale"] and out.model.lidar == ["range_scale"]
+    assert out.model.lidar_spread.range_scale == pytest.approx(1.2e-4)
+    assert out.model.lidar_spread.elevation_deg is None  # not kept: its spread is not the model's
+    assert final_config(cfg, ()).model.lidar_spread.configured(["range_scale"]) == {}
+
+
+def test_the_spread_is_said_and_written() -> None:
+    from licalib_cli.commands.diagnose import _spread_dict, spread_sentence
+
+    kept = _step(kept=True, delta_bic=370.0, spread=1.09e-4, spread_delta_bic=-230.0)
+    text = spread_sentence(kept) or ""
+    assert text.startswith("lidar_range_scale was added as one spread across beams")
+    assert "as 64 free numbers it did not pay (BIC +370)" in text
+    assert "a spread of 109 ppm" in text and "(BIC -230, one parameter)" in text
+    assert _spread_dict(kept) == {"value": 109.0, "unit": "ppm", "delta_bic": -230.0, "kept": True}
+    assert kept.unpaid is None
+    failed = _step(spread=5e-5, spread_delta_bic=14.0)
+    assert spread_sentence(failed) == (
+        "As one spread across beams (50 ppm) lidar_range_scale did not pay either (BIC +14)."
+    )
+    assert failed.unpaid is not None  # the free numbers' explanation still holds
+    assert spread_sentence(_step()) is None and _spread_dict(_step()) is None

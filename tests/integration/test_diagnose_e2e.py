@@ -106,6 +106,36 @@ def test_a_hidden_gyro_scale_is_named_added_and_its_gap_shrinks(
     written = yaml.safe_load((out / "diagnosis.yaml").read_text())
     assert written["effects_found"] == data["effects_found"]
     assert CalibrationResult.load(out / "calibration.yaml").imu_intrinsics.gyro_scale[0] > 1.002
+    # the config written beside it estimates the model found (calibrate -c reproduces it)
+    model = yaml.safe_load((out / "calibration.config.yaml").read_text())["model"]
+    assert model["imu"] == ["gyro_scale"] and model["lidar"] == []
+
+
+def test_calibrate_model_auto_estimates_and_writes_the_model_it_arrives_at(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``calibrate --model auto``: the diagnosis printed, the result of the model it arrived at,
+    and that model in the resolved config (calibrating with it estimates the same); with
+    ``--intrinsics`` it is refused in one sentence."""
+    bag = _bag(tmp_path, ImuIntrinsics(gyro_scale=np.array([1.004, 0.996, 1.003])))
+    out = tmp_path / "auto.yaml"
+    config_before = CONFIG.read_bytes()
+    try:
+        main(["calibrate", str(bag), "-c", str(CONFIG), "--model", "auto", "-o", str(out)])
+    except SystemExit as err:
+        assert not err.code  # PASS or WARN: a result to use
+    printed = capsys.readouterr().out
+    assert "Effects added to the model: gyro_scale" in " ".join(printed.split())
+    result = CalibrationResult.load(out)
+    assert result.model is not None and result.model.imu == ("gyro_scale",)
+    assert result.imu_intrinsics is not None and result.imu_intrinsics.gyro_scale[0] > 1.002
+    resolved = yaml.safe_load((tmp_path / "auto.config.yaml").read_text())
+    assert resolved["model"]["imu"] == ["gyro_scale"] and resolved["model"]["lidar"] == []
+    assert CONFIG.read_bytes() == config_before
+    with pytest.raises(SystemExit) as err:
+        main(["calibrate", str(bag), "--model", "auto", "--intrinsics", "all", "-o", str(out)])
+    assert err.value.code == 6
+    assert "--model auto chooses the intrinsics itself" in capsys.readouterr().err
 
 
 def test_a_clock_drift_the_score_test_finds_is_estimated_not_truncated(
