@@ -33,7 +33,11 @@ from licalib_cli.initialization.rotation import (
     estimate_rotation_extrinsic,
     lidar_rotation_at,
 )
-from licalib_cli.initialization.rotation_search import RotationSearch, search_rotation_extrinsic
+from licalib_cli.initialization.rotation_search import (
+    RotationSearch,
+    search_rotation_and_time_offset,
+    search_rotation_extrinsic,
+)
 from licalib_cli.initialization.single_axis import rotation_axes, single_axis_rotation
 from licalib_cli.initialization.time_offset import (
     TimeOffsetConfig,
@@ -201,10 +205,17 @@ def lidar_odometry(
             rot: F64 | None = matrix_from_rpy_deg(ini.rotation_rpy_deg)
         else:
             try:
-                search = search_rotation_extrinsic(rec.scans, gyro, t_c)
+                if ini.time_offset_s is None:
+                    search = search_rotation_and_time_offset(
+                        rec.scans, gyro, t_c, max_lag_s=ini.time_offset_max_lag_s
+                    )
+                else:
+                    search = search_rotation_extrinsic(rec.scans, gyro, t_c)
             except ExcitationError as err:
                 logger.info("Rotation search not possible: %s", err)
-            rot = search.R_imu_lidar if search is not None and _unambiguous(search) else None
+            rot = search.R_imu_lidar if search is not None and search.unambiguous else None
+            if rot is not None and search is not None:
+                t_c = search.time_offset_s
         sweeps = prepare_sweeps(rec.scans, ocfg)
         if rot is not None:
             # A searched rotation is a few degrees off and the next round redoes the
@@ -230,10 +241,6 @@ def lidar_odometry(
         kiss = run_odometry(rec.scans, ocfg)
     refined = refine_odometry(rec.scans, kiss, ocfg, prepared=sweeps, progress=progress)
     return Odometry(kiss, refined, sweeps, search, None, 0.0, cv_deg)
-
-
-def _unambiguous(found: RotationSearch) -> bool:
-    return found.ambiguity >= 1.02
 
 
 def _with_rotation_hint(err: ExcitationError) -> ExcitationError:
@@ -265,10 +272,16 @@ def _searched_rotation(
         ExcitationError: the search is ambiguous (rotation about one axis only) or hand-eye on the
             gyro-aided odometry is still refused.
     """
-    found = (
-        odo.search if odo.search is not None else search_rotation_extrinsic(rec.scans, gyro, t_c)
-    )
-    if not _unambiguous(found):
+    free_time = cfg.initialization.time_offset_s is None
+    if odo.search is not None:
+        found = odo.search
+    elif free_time:
+        found = search_rotation_and_time_offset(
+            rec.scans, gyro, t_c, max_lag_s=cfg.initialization.time_offset_max_lag_s
+        )
+    else:
+        found = search_rotation_extrinsic(rec.scans, gyro, t_c)
+    if not found.unambiguous:
         msg = (
             "Rotation excitation is too weak: the LiDAR odometry did not follow the motion and "
             "no rotation extrinsic makes the map clearly sharper than others (the rig turned "
@@ -276,9 +289,10 @@ def _searched_rotation(
         )
         raise ExcitationError(msg)
     rot = found.R_imu_lidar
+    if free_time:
+        t_c = found.time_offset_s  # the offset the search's clouds were sharpest at
     ocfg = odometry_config(cfg)
     toc = time_offset_config(cfg)
-    free_time = cfg.initialization.time_offset_s is None
     hand_eye: HandEyeRotation | None = None
     poses = odo.refined
     for k in range(max_rounds):

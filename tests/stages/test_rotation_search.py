@@ -76,6 +76,50 @@ def test_search_finds_any_mounting_without_odometry(shake: tuple[Path, Simulatio
     assert found.smear_score > 1.15 * found.score
 
 
+def _fake_search(best_at: float, calls: list[float], sharp_within: float = 0.012):
+    """A search whose score is V-shaped in the time offset assumed (lowest at ``best_at``) and
+    that tells the rotation only within ``sharp_within`` of it, as on a violent shake."""
+    from licalib_cli.initialization.rotation_search import RotationSearch
+
+    def search(scans, gyro, time_offset_s=0.0, cfg=None):
+        calls.append(time_offset_s)
+        off = abs(time_offset_s - best_at)
+        return RotationSearch(
+            R_imu_lidar=np.eye(3),
+            score=1.28 + 2.5 * off,
+            ambiguity=1.10 if off < sharp_within else 1.007,
+            smear_score=2.0,
+            windows=np.zeros((1, 2), dtype=np.int64),
+            time_offset_s=time_offset_s,
+        )
+
+    return search
+
+
+def test_an_ambiguous_search_searches_the_time_offset_too(monkeypatch: pytest.MonkeyPatch) -> None:
+    """At the offset assumed (0 s) the rotation is ambiguous; the true one is -44 ms: the offset
+    is stepped downhill (20 ms steps), a parabola refines it, and the sharpest search is
+    returned, unambiguous, with its offset. Not searched when the first search is clear, nor
+    beyond the lag allowed; a score rising both ways keeps the first."""
+    from licalib_cli.initialization import rotation_search as rs
+
+    calls: list[float] = []
+    monkeypatch.setattr(rs, "search_rotation_extrinsic", _fake_search(-0.044, calls))
+    found = rs.search_rotation_and_time_offset([], None, 0.0)  # type: ignore[arg-type]
+    assert found.unambiguous and abs(found.time_offset_s + 0.044) < 0.005
+    assert len(calls) <= 6 and min(calls) >= -0.0601
+    calls.clear()
+    clear = rs.search_rotation_and_time_offset([], None, -0.045)  # type: ignore[arg-type]
+    assert calls == [-0.045] and clear.time_offset_s == -0.045
+    calls.clear()
+    limited = rs.search_rotation_and_time_offset([], None, 0.0, max_lag_s=0.02)  # type: ignore[arg-type]
+    assert not limited.unambiguous and min(calls) >= -0.0201
+    calls.clear()
+    monkeypatch.setattr(rs, "search_rotation_extrinsic", _fake_search(0.001, calls, 0.0))
+    flat = rs.search_rotation_and_time_offset([], None, 0.0)  # type: ignore[arg-type]
+    assert flat.time_offset_s == 0.0 and sorted(calls) == [-0.02, 0.0, 0.02]
+
+
 def test_search_threaded_is_the_serial_search(
     shake: tuple[Path, SimulationSpec], monkeypatch: pytest.MonkeyPatch
 ) -> None:
