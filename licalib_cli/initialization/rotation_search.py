@@ -24,6 +24,7 @@ times are int64 nanoseconds at the interface.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
@@ -474,31 +475,35 @@ def search_rotation_and_time_offset(
     if first.unambiguous:
         return first
     logger.info("The rotation search is ambiguous at the time offset assumed; searching it too.")
-    tried: dict[float, RotationSearch] = {round(time_offset_s, 6): first}
+    tried: dict[float, RotationSearch | None] = {round(time_offset_s, 6): first}
 
-    def at(t: float) -> RotationSearch:
+    def score(t: float) -> float:
+        """The search's score at offset ``t`` (inf where it cannot run: too few scans inside
+        the IMU data at that offset)."""
         key = round(t, 6)
         if key not in tried:
-            tried[key] = search_rotation_extrinsic(scans, gyro, t, cfg)
-        return tried[key]
+            try:
+                tried[key] = search_rotation_extrinsic(scans, gyro, t, cfg)
+            except ExcitationError:
+                tried[key] = None
+        found = tried[key]
+        return math.inf if found is None else found.score
 
     best_t = time_offset_s
     for direction in (-1.0, 1.0):
         t = time_offset_s + direction * step_s
-        while (
-            abs(t - time_offset_s) <= max_lag_s + 1e-9
-            and at(t).score < at(t - direction * step_s).score
+        while abs(t - time_offset_s) <= max_lag_s + 1e-9 and score(t) < score(
+            t - direction * step_s
         ):
-            best_t = t if at(t).score < at(best_t).score else best_t
+            best_t = t if score(t) < score(best_t) else best_t
             t += direction * step_s
         if best_t != time_offset_s:
             break  # the score fell this way; the other side rises from the start
     lo, hi = best_t - step_s, best_t + step_s
     inside = max(abs(lo - time_offset_s), abs(hi - time_offset_s)) <= max_lag_s + 1e-9
     if best_t != time_offset_s and inside:
-        f_lo, f_mid, f_hi = at(lo).score, at(best_t).score, at(hi).score
+        f_lo, f_mid, f_hi = score(lo), score(best_t), score(hi)
         curvature = f_lo - 2.0 * f_mid + f_hi
-        if curvature > 0.0:
-            vertex = best_t + 0.5 * step_s * (f_lo - f_hi) / curvature
-            at(vertex)
-    return min(tried.values(), key=lambda r: r.score)
+        if math.isfinite(curvature) and curvature > 0.0:
+            score(best_t + 0.5 * step_s * (f_lo - f_hi) / curvature)
+    return min((r for r in tried.values() if r is not None), key=lambda r: r.score)

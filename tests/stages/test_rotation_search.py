@@ -118,6 +118,19 @@ def test_an_ambiguous_search_searches_the_time_offset_too(monkeypatch: pytest.Mo
     monkeypatch.setattr(rs, "search_rotation_extrinsic", _fake_search(0.001, calls, 0.0))
     flat = rs.search_rotation_and_time_offset([], None, 0.0)  # type: ignore[arg-type]
     assert flat.time_offset_s == 0.0 and sorted(calls) == [-0.02, 0.0, 0.02]
+    # an offset at which the search cannot run (too few scans inside the IMU data) is skipped
+    calls.clear()
+    fake = _fake_search(-0.044, calls)
+
+    def limited_data(scans, gyro, time_offset_s=0.0, cfg=None):
+        if time_offset_s < -0.05:
+            calls.append(time_offset_s)
+            raise ExcitationError("too few scans")
+        return fake(scans, gyro, time_offset_s, cfg)
+
+    monkeypatch.setattr(rs, "search_rotation_extrinsic", limited_data)
+    edge = rs.search_rotation_and_time_offset([], None, 0.0)  # type: ignore[arg-type]
+    assert edge.unambiguous and abs(edge.time_offset_s + 0.044) < 0.005
 
 
 def test_search_threaded_is_the_serial_search(
