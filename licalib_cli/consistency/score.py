@@ -68,6 +68,9 @@ class EffectScore:
             by summing these two (:func:`combined_score`).
         profiled_information: (k, k) the group's information with the estimated coordinates
             profiled out, divided by the variance factor.
+        prior_shift: (m,) the change of the estimated coordinates if the group, held at zero,
+            were at its posterior mean (data and prior): what holding it at zero biases them by,
+            as far as the data and the prior tell; zeros without a prior.
     """
 
     name: str
@@ -82,6 +85,7 @@ class EffectScore:
     prior_shift_sigma: F64 = field(default_factory=lambda: np.zeros(0))
     gradient: F64 = field(default_factory=lambda: np.zeros(0))
     profiled_information: F64 = field(default_factory=lambda: np.zeros((0, 0)))
+    prior_shift: F64 = field(default_factory=lambda: np.zeros(0))
 
     @property
     def shift_z(self) -> F64:
@@ -175,6 +179,9 @@ def score_effects(
                 prior_shift_sigma=_prior_shift_sigma(
                     s_bb_inv @ s_eb.T, s_ee_b / max(vf, 1.0), prior, bi.size
                 ),
+                prior_shift=_prior_shift(
+                    s_bb_inv @ s_eb.T, s_ee_b / max(vf, 1.0), g_e / max(vf, 1.0), prior, bi.size
+                ),
                 gradient=g_e / vf,
                 profiled_information=s_ee_b / vf,
             )
@@ -222,6 +229,22 @@ def _prior_shift_sigma(
     a = shift_map[:, on]
     post = np.linalg.inv(information[np.ix_(on, on)] + np.diag(1.0 / p[on] ** 2))
     return np.sqrt(np.clip(np.einsum("ij,jk,ik->i", a, 0.5 * (post + post.T), a), 0.0, None))
+
+
+def _prior_shift(
+    shift_map: F64, information: F64, gradient: F64, prior: npt.ArrayLike | None, m: int
+) -> F64:
+    """(m,) ``-A (I + P^-1)^-1 g`` over the coordinates with a positive prior standard
+    deviation: the shift of the estimated coordinates with the group at its posterior mean
+    (see :func:`score_effects`); zeros without any prior."""
+    if prior is None:
+        return np.zeros(m)
+    p = np.broadcast_to(np.asarray(prior, dtype=np.float64), (information.shape[0],))
+    on = p > 0.0
+    if not np.any(on):
+        return np.zeros(m)
+    mean = np.linalg.solve(information[np.ix_(on, on)] + np.diag(1.0 / p[on] ** 2), gradient[on])
+    return -shift_map[:, on] @ mean
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,7 @@ from licalib_cli.consistency import (
     group_pattern,
     normalised_chi2,
     regression_pattern,
+    score_effects,
     select_effects,
 )
 from licalib_cli.estimation import CalibrationState, build_problem, incidence_cosine
@@ -373,6 +374,16 @@ class EffectEvidence:
             adds to the sigmas of the extrinsic and time offset (zeros without a prior).
         prior_sigma: that prior's sigma per coordinate, in the effect's solver coordinates (0:
             none).
+        joint_prior_var: (7,) the variance every IMU block with a prior adds to the estimate
+            when all of them are held at zero together: the spread of their joint posterior
+            (data and priors) carried into it (the same array on each IMU block with a prior;
+            zeros on the others). Blocks correlated with each other and with the extrinsic (the
+            accelerometer's scale and misalignment with the gyro rotation) can move it together
+            well beyond what each does alone.
+        joint_prior_shift: (7,) the move of the estimate to the joint posterior mean of those
+            blocks: what holding them all at zero biases it by, as far as the data and the
+            priors tell (likewise on each).
+        joint_p_value: the score test of those blocks together (NaN without a prior).
         refitted: the shift is (per coordinate, the larger of) the step's and a refit's with
             the effect estimated (:mod:`licalib_cli.pipeline.effect_refit`).
     """
@@ -388,6 +399,9 @@ class EffectEvidence:
     prior_std: F64 = field(default_factory=lambda: np.zeros(7))
     refitted: bool = False
     prior_sigma: float = 0.0
+    joint_prior_var: F64 = field(default_factory=lambda: np.zeros(7))
+    joint_prior_shift: F64 = field(default_factory=lambda: np.zeros(7))
+    joint_p_value: float = float("nan")
 
     @property
     def shift(self) -> F64:
@@ -503,6 +517,7 @@ def effect_evidence(
         sch.S, sch.b, base, groups, EFFECT_P_VALUE, max(variance_factor, 1.0), prior_sigma=prior
     )
     base_names = [names[i] for i in base]
+    joint = _joint_prior(sch.S, sch.b, base, groups, prior, variance_factor)
     planes_free = _planes_free(
         problem,
         evaluation,
@@ -519,6 +534,12 @@ def effect_evidence(
 
     def pick(prefix: str, shift: F64) -> F64:
         return np.array([s for n, s in zip(base_names, shift, strict=True) if n.startswith(prefix)])
+
+    def pick_extrinsic(x: F64) -> F64:
+        out = np.concatenate(
+            [pick(p, x) for p in ("ext.translation", "ext.rotation", "ext.time_offset")]
+        )
+        return out if out.size == 7 else np.zeros(7)
 
     out = []
     for sel, scores in ((True, selection.selected), (False, selection.remaining)):
@@ -545,6 +566,15 @@ def effect_evidence(
                     shift_std=sd if sd.size == 7 else np.zeros(7),
                     prior_std=ps if ps.size == 7 else np.zeros(7),
                     prior_sigma=float(prior[s.name][0]) if s.name in prior else 0.0,
+                    joint_prior_var=pick_extrinsic(joint.prior_shift_sigma**2)
+                    if joint is not None and s.name in prior
+                    else np.zeros(7),
+                    joint_prior_shift=pick_extrinsic(joint.prior_shift)
+                    if joint is not None and s.name in prior
+                    else np.zeros(7),
+                    joint_p_value=float(joint.p_value)
+                    if joint is not None and s.name in prior
+                    else float("nan"),
                 )
             )
     logger.debug(
@@ -553,6 +583,28 @@ def effect_evidence(
         ", ".join(f"{e.score.name} {e.score.statistic:.1f} (dof {e.score.rank})" for e in out),
     )
     return out
+
+
+def _joint_prior(
+    S: F64,
+    b: F64,
+    base: list[int],
+    groups: dict[str, list[int]],
+    prior: dict[str, F64],
+    variance_factor: float,
+) -> EffectScore | None:
+    """The score test of every block with a prior as one group, with its posterior spread and
+    posterior-mean shift of the estimated coordinates (:attr:`EffectEvidence.joint_prior_var`
+    and ``joint_prior_shift``); None without any prior."""
+    if not prior:
+        return None
+    names = sorted(prior)
+    idx = [i for n in names for i in groups[n]]
+    sigma = np.concatenate([prior[n] for n in names])
+    (joint,) = score_effects(
+        S, b, base, {"held": idx}, max(variance_factor, 1.0), prior_sigma={"held": sigma}
+    )
+    return joint
 
 
 def _planes_free(

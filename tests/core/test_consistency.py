@@ -224,6 +224,82 @@ def test_prior_shift_sigma_is_the_extra_spread_of_marginalising_a_prior() -> Non
     np.testing.assert_allclose(half.prior_shift_sigma, np.sqrt(extra), rtol=1e-9)
 
 
+def test_prior_shift_is_the_move_to_the_posterior_mean_of_the_group() -> None:
+    """The estimated coordinates' move when the group, held at zero, is solved with them under
+    its Gaussian prior (the MAP of the joint model): what holding it at zero biases them by, as
+    far as the data and the prior tell; the shift itself for a wide prior, nothing for a tight
+    one or without a prior."""
+    from licalib_cli.consistency import score_effects
+
+    rng = np.random.default_rng(10)
+    effect = np.array([0.3, -0.2])
+    s, b, a_b, a_e, y, xb_hat = _linear_problem(rng, effect)
+    base, e = [0, 1, 2], [3, 4]
+    prior = np.array([0.1, 0.3])
+    (res,) = score_effects(s, b, base, {"e": e}, prior_sigma={"e": prior})
+    # the MAP of y = A_b x_b + A_e x_e + noise with x_e ~ N(0, diag(prior^2))
+    j = np.hstack([a_b, a_e])
+    normal = j.T @ j
+    normal[np.ix_(e, e)] += np.diag(1.0 / prior**2)
+    map_estimate = np.linalg.solve(normal, j.T @ y)
+    np.testing.assert_allclose(res.prior_shift, map_estimate[:3] - xb_hat, rtol=1e-8, atol=1e-12)
+    (wide,) = score_effects(s, b, base, {"e": e}, prior_sigma={"e": np.full(2, 1e6)})
+    np.testing.assert_allclose(wide.prior_shift, wide.shift, rtol=1e-6)
+    (tight,) = score_effects(s, b, base, {"e": e}, prior_sigma={"e": np.full(2, 1e-6)})
+    assert np.all(np.abs(tight.prior_shift) < 1e-4 * np.abs(wide.shift))
+    (none,) = score_effects(s, b, base, {"e": e})
+    assert np.all(none.prior_shift == 0.0)
+
+
+def test_blocks_held_together_can_move_the_estimate_beyond_each_alone() -> None:
+    """Two correlated blocks, each well determined by the data alone (so each one's prior
+    spread carried into the estimate is small), held at zero while both are off: the estimate's
+    error exceeds their spreads summed one by one, and the joint group's move to its posterior
+    mean covers it. The checks take the larger of the two, the move only when the joint score
+    test is significant (``fitcheck._joint_prior``, ``checks.prior_variance``)."""
+    from licalib_cli.consistency import score_effects
+    from licalib_cli.pipeline.checks import prior_variance
+    from licalib_cli.pipeline.fitcheck import EffectEvidence, _joint_prior
+
+    rng = np.random.default_rng(11)
+    n = 2000
+    u, v, w = rng.normal(size=(3, n))
+    # x_b (true 0) is seen through u; the two blocks through u + v and v - u + 0.3 w
+    a = np.column_stack([u, u + v, -u + v + 0.3 * w])
+    y = a @ np.array([0.0, 0.1, 0.1]) + 0.05 * rng.normal(size=n)
+    s = a.T @ a / 0.05**2
+    xb_hat = float(u @ y / (u @ u))  # the estimate with both blocks held at zero
+    b = -(a.T @ ((u * xb_hat) - y)) / 0.05**2
+    groups = {"one": [1], "two": [2]}
+    prior = {"one": np.array([0.1]), "two": np.array([0.1])}
+    alone = score_effects(s, b, [0], groups, prior_sigma=prior)
+    summed = sum(float(r.prior_shift_sigma[0] ** 2) for r in alone)
+    joint = _joint_prior(s, b, [0], groups, prior, 1.0)
+    assert joint is not None and joint.p_value < 1e-6
+    assert np.sqrt(summed) < abs(xb_hat) < abs(float(joint.prior_shift[0]))
+    assert _joint_prior(s, b, [0], groups, {}, 1.0) is None
+
+    def evidence(var: float, shift: float, p_value: float) -> EffectEvidence:
+        return EffectEvidence(
+            score=alone[0],
+            sensor="imu",
+            selected=False,
+            shift_translation_m=np.zeros(3),
+            shift_rotation_rad=np.zeros(3),
+            shift_time_offset_s=0.0,
+            prior_std=np.full(7, 0.1),
+            joint_prior_var=np.full(7, var),
+            joint_prior_shift=np.full(7, shift),
+            joint_p_value=p_value,
+        )
+
+    raw = np.ones(7)
+    # the summed spreads (two blocks, 0.01 each), the joint spread, the joint move when shown
+    np.testing.assert_allclose(prior_variance([evidence(0.001, 0.3, 0.5)] * 2, raw), 0.02)
+    np.testing.assert_allclose(prior_variance([evidence(0.04, 0.3, 0.5)] * 2, raw), 0.04)
+    np.testing.assert_allclose(prior_variance([evidence(0.001, 0.3, 1e-6)] * 2, raw), 0.091)
+
+
 def test_detectable_sizes_are_named_nine_times_in_ten() -> None:
     """An effect of the size diagnose calls detectable in any direction exceeds the threshold
     in 90 % of recordings along its weakest direction, one of the best direction's size along
