@@ -215,20 +215,32 @@ def combined_score(
     return statistic, rank, float(chi2_sf(statistic, rank)) if rank else 1.0
 
 
+def _posterior(
+    information: F64, prior: npt.ArrayLike | None
+) -> tuple[npt.NDArray[np.bool_], F64] | None:
+    """``(on, (I + P^-1)^-1)`` over the coordinates with a positive prior standard deviation
+    (``on`` their mask); None without any."""
+    if prior is None:
+        return None
+    p = np.broadcast_to(np.asarray(prior, dtype=np.float64), (information.shape[0],))
+    on = p > 0.0
+    if not np.any(on):
+        return None
+    post = np.linalg.inv(information[np.ix_(on, on)] + np.diag(1.0 / p[on] ** 2))
+    return on, 0.5 * (post + post.T)
+
+
 def _prior_shift_sigma(
     shift_map: F64, information: F64, prior: npt.ArrayLike | None, m: int
 ) -> F64:
     """(m,) root of the diagonal of ``A (I + P^-1)^-1 A^T`` over the coordinates with a
     positive prior standard deviation (see :func:`score_effects`); zeros without any."""
-    if prior is None:
+    found = _posterior(information, prior)
+    if found is None:
         return np.zeros(m)
-    p = np.broadcast_to(np.asarray(prior, dtype=np.float64), (information.shape[0],))
-    on = p > 0.0
-    if not np.any(on):
-        return np.zeros(m)
+    on, post = found
     a = shift_map[:, on]
-    post = np.linalg.inv(information[np.ix_(on, on)] + np.diag(1.0 / p[on] ** 2))
-    return np.sqrt(np.clip(np.einsum("ij,jk,ik->i", a, 0.5 * (post + post.T), a), 0.0, None))
+    return np.sqrt(np.clip(np.einsum("ij,jk,ik->i", a, post, a), 0.0, None))
 
 
 def _prior_shift(
@@ -237,14 +249,11 @@ def _prior_shift(
     """(m,) ``-A (I + P^-1)^-1 g`` over the coordinates with a positive prior standard
     deviation: the shift of the estimated coordinates with the group at its posterior mean
     (see :func:`score_effects`); zeros without any prior."""
-    if prior is None:
+    found = _posterior(information, prior)
+    if found is None:
         return np.zeros(m)
-    p = np.broadcast_to(np.asarray(prior, dtype=np.float64), (information.shape[0],))
-    on = p > 0.0
-    if not np.any(on):
-        return np.zeros(m)
-    mean = np.linalg.solve(information[np.ix_(on, on)] + np.diag(1.0 / p[on] ** 2), gradient[on])
-    return -shift_map[:, on] @ mean
+    on, post = found
+    return -shift_map[:, on] @ (post @ gradient[on])
 
 
 @dataclass(frozen=True)
