@@ -349,12 +349,11 @@ def render_diagnosis(diag: Any) -> None:
                 "kind, not which one."
             )
     for s in diag.steps:
-        sentence = unpaid_sentence(s)
+        sentence, spread = unpaid_sentence(s), spread_sentence(s)
         if sentence is not None:
-            spread = spread_sentence(s)
             out.print(sentence if spread is None else f"{sentence} {spread}")
-        elif s.kept and spread_sentence(s) is not None:
-            out.print(spread_sentence(s))
+        elif s.kept and spread is not None:
+            out.print(spread)
     for s in diag.steps:
         if s.held:
             shown = ", ".join(s.held[:3]) + (

@@ -541,6 +541,17 @@ def effect_evidence(
         )
         return out if out.size == 7 else np.zeros(7)
 
+    # every IMU block with a prior carries the group's figures; the others none
+    no_group: tuple[F64, F64, float] = (np.zeros(7), np.zeros(7), float("nan"))
+    group = (
+        no_group
+        if joint is None
+        else (
+            pick_extrinsic(joint.prior_shift_sigma**2),
+            pick_extrinsic(joint.prior_shift),
+            float(joint.p_value),
+        )
+    )
     out = []
     for sel, scores in ((True, selection.selected), (False, selection.remaining)):
         for s in scores:
@@ -548,12 +559,7 @@ def effect_evidence(
             t = pick("ext.translation", shift)
             r = pick("ext.rotation", shift)
             c = pick("ext.time_offset", shift)
-            sd, ps = (
-                np.concatenate(
-                    [pick(p, x) for p in ("ext.translation", "ext.rotation", "ext.time_offset")]
-                )
-                for x in (shift_sigma, s.prior_shift_sigma)
-            )
+            joint_var, joint_shift, joint_p = group if s.name in prior else no_group
             out.append(
                 EffectEvidence(
                     score=s,
@@ -563,18 +569,12 @@ def effect_evidence(
                     shift_rotation_rad=r if r.size == 3 else np.zeros(3),
                     shift_time_offset_s=float(c[0]) if c.size else 0.0,
                     statistic_alone=float(selection.alone.get(s.name, s.statistic)),
-                    shift_std=sd if sd.size == 7 else np.zeros(7),
-                    prior_std=ps if ps.size == 7 else np.zeros(7),
+                    shift_std=pick_extrinsic(shift_sigma),
+                    prior_std=pick_extrinsic(s.prior_shift_sigma),
                     prior_sigma=float(prior[s.name][0]) if s.name in prior else 0.0,
-                    joint_prior_var=pick_extrinsic(joint.prior_shift_sigma**2)
-                    if joint is not None and s.name in prior
-                    else np.zeros(7),
-                    joint_prior_shift=pick_extrinsic(joint.prior_shift)
-                    if joint is not None and s.name in prior
-                    else np.zeros(7),
-                    joint_p_value=float(joint.p_value)
-                    if joint is not None and s.name in prior
-                    else float("nan"),
+                    joint_prior_var=joint_var,
+                    joint_prior_shift=joint_shift,
+                    joint_p_value=joint_p,
                 )
             )
     logger.debug(
