@@ -9,6 +9,7 @@ segment's part as it is) and the shift of an effect held fixed that the checks c
 
 from __future__ import annotations
 
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -32,19 +33,6 @@ def _segment(factor: float, prior_std: np.ndarray) -> SimpleNamespace:
     """A segment whose checks enlarged its solver sigmas ``factor`` times, then added the
     priors' ``prior_std`` in quadrature."""
     return _checked(np.sqrt((RAW * factor) ** 2 + prior_std**2), (_effect(prior_std),))
-
-
-def _covered(score: EffectScore, shift: np.ndarray, shift_std: np.ndarray) -> EffectEvidence:
-    """An IMU effect selected by the checks, moving the (7,) extrinsic by ``shift``."""
-    return EffectEvidence(
-        score=score,
-        sensor="imu",
-        selected=True,
-        shift_translation_m=shift[:3],
-        shift_rotation_rad=shift[3:6],
-        shift_time_offset_s=0.0,
-        shift_std=shift_std,
-    )
 
 
 def _checked(shown: np.ndarray, effects: tuple[EffectEvidence, ...]) -> SimpleNamespace:
@@ -75,17 +63,9 @@ def test_a_covered_effects_shift_is_kept_apart_from_the_weighted_factors() -> No
     by its shift: the joint keeps the largest ratio of that variance to a segment's solver
     variance instead of weighting it down with the other segments' information."""
     shift = np.array([3e-3, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # 3 raw sigmas on t_x
-    score = EffectScore(
-        name="accel_scale",
-        statistic=30.0,
-        rank=3,
-        p_value=1e-5,
-        estimate=np.zeros(3),
-        sigma=np.ones(3),
-        shift=np.zeros(7),
-        shift_sigma=np.zeros(7),
+    covered = imu_effect(
+        p_value=1e-5, statistic=30.0, selected=True, shift=shift, shift_std=np.full(7, 1e-4)
     )
-    covered = _covered(score, shift, np.full(7, 1e-4))
     seg = _checked(np.sqrt((RAW * 1.2) ** 2 + shift**2 + 1e-4**2), (covered,))
     plain = _segment(1.2, np.zeros(7))
     grow, _, _, effects, prior = _growth([seg, plain])  # type: ignore[list-item]
@@ -113,7 +93,10 @@ def _covering_segment(
         gradient=gradient,
         profiled_information=information,
     )
-    return _checked(np.sqrt(RAW**2 + shift**2), (_covered(score, shift, np.zeros(7)),))
+    covered = replace(
+        imu_effect(name, p_value=1e-6, statistic=statistic, selected=True, shift=shift), score=score
+    )
+    return _checked(np.sqrt(RAW**2 + shift**2), (covered,))
 
 
 def _quiet_segment(name: str, gradient: np.ndarray, information: np.ndarray) -> SimpleNamespace:
