@@ -282,10 +282,17 @@ def _searched_rotation(
     else:
         found = search_rotation_extrinsic(rec.scans, gyro, t_c)
     if not found.unambiguous:
+        lag = cfg.initialization.time_offset_max_lag_s
+        why = (
+            "the rig turned about one axis only, or the clocks differ by more than "
+            f"initialization.time_offset_max_lag_s = {lag:g} s"
+            if free_time
+            else "the rig turned about one axis only"
+        )
         msg = (
             "Rotation excitation is too weak: the LiDAR odometry did not follow the motion and "
-            "no rotation extrinsic makes the map clearly sharper than others (the rig turned "
-            "about one axis only); rotate the rig about at least two axes during the recording"
+            f"no rotation extrinsic makes the map clearly sharper than others ({why}); rotate "
+            "the rig about at least two axes during the recording"
         )
         raise ExcitationError(msg)
     rot = found.R_imu_lidar
@@ -388,8 +395,9 @@ def _initial_rotation(
     except ExcitationError as err:
         if first is not None:
             return first.R_imu_lidar, poses, first, "hand-eye"
-        assert failure is not None
-        raise _with_rotation_hint(failure) from err
+        # Both failed: the search's reason is the last way tried (and names the time offset's
+        # lag when the offset was searched too); the hand-eye's stays in the log.
+        raise _with_rotation_hint(err) from err
     if first is not None and first.residual_rms_deg <= hand_eye.residual_rms_deg:
         return first.R_imu_lidar, poses, first, "hand-eye"
     return rot, searched_poses, hand_eye, "search + gyro-aided hand-eye"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,7 @@ from licalib_cli.config import load_config
 from licalib_cli.errors import ExcitationError
 from licalib_cli.initialization.rotation import GyroIntegrator
 from licalib_cli.initialization.rotation_search import (
+    RotationSearchConfig,
     search_rotation_extrinsic,
     super_fibonacci_rotations,
 )
@@ -76,17 +78,25 @@ def test_search_finds_any_mounting_without_odometry(shake: tuple[Path, Simulatio
     assert found.smear_score > 1.15 * found.score
 
 
-def _fake_search(best_at: float, calls: list[float], sharp_within: float = 0.012):
-    """A search whose score is V-shaped in the time offset assumed (lowest at ``best_at``) and
-    that tells the rotation only within ``sharp_within`` of it, as on a violent shake."""
-    from licalib_cli.initialization.rotation_search import RotationSearch
+def _fake_search(
+    best_at: float, calls: list[float], sharp_within: float = 0.012, flat_beyond: float = 1.0
+):
+    """A search whose score is V-shaped in the time offset assumed (lowest at ``best_at``),
+    flat with a little noise farther than ``flat_beyond`` from it, and that tells the rotation
+    only within ``sharp_within`` of it, as on a violent shake. The full searches' offsets are
+    appended to ``calls``; the coarse scan's cheaper ones (fewer starts) are not."""
+    from licalib_cli.initialization.rotation_search import RotationSearch, RotationSearchConfig
+
+    full_starts = RotationSearchConfig().refine_starts
 
     def search(scans, gyro, time_offset_s=0.0, cfg=None):
-        calls.append(time_offset_s)
+        if cfg is None or cfg.refine_starts == full_starts:
+            calls.append(time_offset_s)
         off = abs(time_offset_s - best_at)
+        noise = 0.01 * math.sin(997.0 * time_offset_s) if off > flat_beyond else 0.0
         return RotationSearch(
             R_imu_lidar=np.eye(3),
-            score=1.28 + 2.5 * off,
+            score=1.28 + 2.5 * min(off, flat_beyond) + noise,
             ambiguity=1.10 if off < sharp_within else 1.007,
             smear_score=2.0,
             windows=np.zeros((1, 2), dtype=np.int64),
@@ -97,40 +107,86 @@ def _fake_search(best_at: float, calls: list[float], sharp_within: float = 0.012
 
 
 def test_an_ambiguous_search_searches_the_time_offset_too(monkeypatch: pytest.MonkeyPatch) -> None:
-    """At the offset assumed (0 s) the rotation is ambiguous; the true one is -44 ms: the offset
-    is stepped downhill (20 ms steps), a parabola refines it, and the sharpest search is
-    returned, unambiguous, with its offset. Not searched when the first search is clear, nor
-    beyond the lag allowed; a score rising both ways keeps the first."""
+    """At the offset assumed (0 s) the rotation is ambiguous; the true one is -44 ms: the lag is
+    scanned (40 ms steps, a cheaper search), the offset stepped downhill from the scan's best
+    (20 ms steps) and refined by a parabola, and the sharpest search is returned, unambiguous,
+    with its offset. Not searched when the first search is clear, nor beyond the lag allowed."""
     from licalib_cli.initialization import rotation_search as rs
 
     calls: list[float] = []
-    monkeypatch.setattr(rs, "search_rotation_extrinsic", _fake_search(-0.044, calls))
+    scanned: list[float] = []
+    fake = _fake_search(-0.044, calls)
+
+    def recording(scans, gyro, time_offset_s=0.0, cfg=None):
+        if cfg is not None and cfg.refine_starts < RotationSearchConfig().refine_starts:
+            scanned.append(time_offset_s)
+        return fake(scans, gyro, time_offset_s, cfg)
+
+    monkeypatch.setattr(rs, "search_rotation_extrinsic", recording)
     found = rs.search_rotation_and_time_offset([], None, 0.0)  # type: ignore[arg-type]
     assert found.unambiguous and abs(found.time_offset_s + 0.044) < 0.005
     assert len(calls) <= 6 and min(calls) >= -0.0601
+    # the scan: every 40 ms within the lag (0.2 s), the assumed offset not searched twice
+    grid = sorted(scanned)
+    assert grid == pytest.approx([-0.2, -0.16, -0.12, -0.08, -0.04, 0.04, 0.08, 0.12, 0.16, 0.2])
     calls.clear()
     clear = rs.search_rotation_and_time_offset([], None, -0.045)  # type: ignore[arg-type]
     assert calls == [-0.045] and clear.time_offset_s == -0.045
     calls.clear()
+    scanned.clear()
     limited = rs.search_rotation_and_time_offset([], None, 0.0, max_lag_s=0.02)  # type: ignore[arg-type]
-    assert not limited.unambiguous and min(calls) >= -0.0201
-    calls.clear()
-    monkeypatch.setattr(rs, "search_rotation_extrinsic", _fake_search(0.001, calls, 0.0))
-    flat = rs.search_rotation_and_time_offset([], None, 0.0)  # type: ignore[arg-type]
-    assert flat.time_offset_s == 0.0 and sorted(calls) == [-0.02, 0.0, 0.02]
+    assert not limited.unambiguous and min(calls) >= -0.0201 and not scanned
     # an offset at which the search cannot run (too few scans inside the IMU data) is skipped
     calls.clear()
-    fake = _fake_search(-0.044, calls)
 
     def limited_data(scans, gyro, time_offset_s=0.0, cfg=None):
         if time_offset_s < -0.05:
-            calls.append(time_offset_s)
             raise ExcitationError("too few scans")
         return fake(scans, gyro, time_offset_s, cfg)
 
     monkeypatch.setattr(rs, "search_rotation_extrinsic", limited_data)
     edge = rs.search_rotation_and_time_offset([], None, 0.0)  # type: ignore[arg-type]
     assert edge.unambiguous and abs(edge.time_offset_s + 0.044) < 0.005
+
+
+def test_the_offset_scan_finds_an_offset_where_the_sharpness_is_flat(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """+180 ms on a shake: within 0.1 s of the assumed offset the sharpness is flat and noisy
+    (the downhill steps alone stopped at once, or walked the wrong way); the scan over the lag
+    finds the basin and the steps and the parabola its bottom."""
+    from licalib_cli.initialization import rotation_search as rs
+
+    for truth in (0.18, -0.18, 0.09):
+        calls: list[float] = []
+        monkeypatch.setattr(rs, "search_rotation_extrinsic", _fake_search(truth, calls, 0.012, 0.1))
+        found = rs.search_rotation_and_time_offset([], None, 0.0)  # type: ignore[arg-type]
+        assert found.unambiguous and abs(found.time_offset_s - truth) < 0.005, truth
+        assert len(calls) <= 7
+
+
+def test_an_ambiguous_search_names_the_lag_when_the_offset_was_searched(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The refusal after an ambiguous search says the clocks may differ by more than the lag
+    scanned when the time offset was free (a +0.4 s offset on a shake, the lag 0.2 s), and only
+    the rotation when the offset was given."""
+    import importlib
+    from types import SimpleNamespace
+
+    ini = importlib.import_module("licalib_cli.pipeline.initialise")
+
+    ambiguous = _fake_search(0.4, [], 0.012)(None, None, 0.0)
+    monkeypatch.setattr(ini, "search_rotation_and_time_offset", lambda *a, **k: ambiguous)
+    monkeypatch.setattr(ini, "search_rotation_extrinsic", lambda *a, **k: ambiguous)
+    odo, rec = SimpleNamespace(search=None), SimpleNamespace(scans=[])
+    with pytest.raises(ExcitationError, match="time_offset_max_lag_s = 0.2 s") as free:
+        ini._searched_rotation(rec, odo, None, 0.0, load_config(None))  # type: ignore[arg-type]
+    assert str(free.value).count(". ") == 0  # one sentence
+    given = load_config(None, {"initialization": {"time_offset_s": 0.0}})
+    with pytest.raises(ExcitationError, match="about one axis only\\)") as fixed:
+        ini._searched_rotation(rec, odo, None, 0.0, given)  # type: ignore[arg-type]
+    assert "max_lag" not in str(fixed.value)
 
 
 def test_search_threaded_is_the_serial_search(
