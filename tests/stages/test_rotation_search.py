@@ -79,7 +79,11 @@ def test_search_finds_any_mounting_without_odometry(shake: tuple[Path, Simulatio
 
 
 def _fake_search(
-    best_at: float, calls: list[float], sharp_within: float = 0.012, flat_beyond: float = 1.0
+    best_at: float,
+    calls: list[float],
+    sharp_within: float = 0.012,
+    flat_beyond: float = 1.0,
+    smear: float = 2.0,
 ):
     """A search whose score is V-shaped in the time offset assumed (lowest at ``best_at``),
     flat with a little noise farther than ``flat_beyond`` from it, and that tells the rotation
@@ -98,7 +102,7 @@ def _fake_search(
             R_imu_lidar=np.eye(3),
             score=1.28 + 2.5 * min(off, flat_beyond) + noise,
             ambiguity=1.10 if off < sharp_within else 1.007,
-            smear_score=2.0,
+            smear_score=smear,
             windows=np.zeros((1, 2), dtype=np.int64),
             time_offset_s=time_offset_s,
         )
@@ -163,6 +167,20 @@ def test_the_offset_scan_finds_an_offset_where_the_sharpness_is_flat(
         found = rs.search_rotation_and_time_offset([], None, 0.0)  # type: ignore[arg-type]
         assert found.unambiguous and abs(found.time_offset_s - truth) < 0.005, truth
         assert len(calls) <= 7
+    # unambiguous at 0 s but hardly sharper than a random rotation (an OS1-32 shake at +190 ms:
+    # 1.029 and 1.09x): the offset is scanned all the same, and the sharper one taken
+    calls = []
+    blurred = _fake_search(0.19, calls, sharp_within=1.0, flat_beyond=0.1, smear=1.8)
+    monkeypatch.setattr(rs, "search_rotation_extrinsic", blurred)
+    found = rs.search_rotation_and_time_offset([], None, 0.0)  # type: ignore[arg-type]
+    assert abs(found.time_offset_s - 0.19) < 0.005
+    # slow motion: the offset hardly changes the sharpness; the scan's minimum is noise and the
+    # unambiguous search at the offset assumed is kept
+    calls = []
+    slow = _fake_search(0.0, calls, sharp_within=1.0, flat_beyond=0.0, smear=1.4)
+    monkeypatch.setattr(rs, "search_rotation_extrinsic", slow)
+    kept = rs.search_rotation_and_time_offset([], None, 0.0)  # type: ignore[arg-type]
+    assert kept.time_offset_s == 0.0 and len(calls) > 1
 
 
 def test_an_ambiguous_search_names_the_lag_when_the_offset_was_searched(
@@ -180,7 +198,7 @@ def test_an_ambiguous_search_names_the_lag_when_the_offset_was_searched(
     monkeypatch.setattr(ini, "search_rotation_and_time_offset", lambda *a, **k: ambiguous)
     monkeypatch.setattr(ini, "search_rotation_extrinsic", lambda *a, **k: ambiguous)
     odo, rec = SimpleNamespace(search=None), SimpleNamespace(scans=[])
-    with pytest.raises(ExcitationError, match="time_offset_max_lag_s = 0.2 s") as free:
+    with pytest.raises(ExcitationError, match=r"time_offset_max_lag_s = 0\.2 s") as free:
         ini._searched_rotation(rec, odo, None, 0.0, load_config(None))  # type: ignore[arg-type]
     assert str(free.value).count(". ") == 0  # one sentence
     given = load_config(None, {"initialization": {"time_offset_s": 0.0}})
