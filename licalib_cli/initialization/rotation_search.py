@@ -40,6 +40,7 @@ from licalib_cli.parallel.threads import map_slices
 
 __all__ = [
     "MIN_AMBIGUITY",
+    "MIN_NORMAL_SHARPENING",
     "MIN_SHARPENING",
     "RotationSearch",
     "RotationSearchConfig",
@@ -117,6 +118,8 @@ class RotationSearch:
         windows: (W, 2) int first and last scan index of each window used.
         time_offset_s: the time offset ``t_imu = t_lidar + time_offset_s`` the points were
             rotated with, s.
+        normal_sharpening: how much sharper the best rotation makes the distribution of surface
+            normals than a random rotation (None: no planar patches).
     """
 
     R_imu_lidar: FloatArray
@@ -125,6 +128,7 @@ class RotationSearch:
     smear_score: float
     windows: npt.NDArray[np.int64]
     time_offset_s: float = 0.0
+    normal_sharpening: float | None = None
 
     @property
     def unambiguous(self) -> bool:
@@ -138,18 +142,36 @@ class RotationSearch:
         (``smear_score / score``)."""
         return self.smear_score / self.score
 
+    @property
+    def clear(self) -> bool:
+        """Unambiguous, and sharp enough to have been searched near the right time offset: the
+        surface normals at least :data:`MIN_NORMAL_SHARPENING` times sharper than under a random
+        rotation (without planar patches, the whole score :data:`MIN_SHARPENING` times)."""
+        if not self.unambiguous:
+            return False
+        if self.normal_sharpening is not None:
+            return self.normal_sharpening >= MIN_NORMAL_SHARPENING
+        return self.sharpening >= MIN_SHARPENING
+
 
 MIN_AMBIGUITY = 1.02
 """A search whose next distinct candidate scores less than this times the best cannot tell the
 rotation (about one axis only, or points rotated with a time offset far from the true one)."""
 
+MIN_NORMAL_SHARPENING = 1.45
+"""On violent motion the best rotation at the right time offset makes the surface normals
+1.61-1.96 times sharper than a random rotation does (shakes of 10 s, five LiDAR models, offsets
+up to 0.19 s), still 1.54-1.64 times 30-50 ms from it (lever arms up to 1.9 m included: normals
+do not move with the translation); 100 ms and more from it, 1.17-1.34 times, and the rotation
+can even look unambiguous there (1.029 on an OS1-32 shake at +190 ms). Below this the time
+offset is searched too, the search at the offset assumed being kept unless another is clearly
+sharper (:data:`SCAN_GAIN`)."""
+
 MIN_SHARPENING = 1.3
-"""On violent motion the best rotation at the right time offset makes the clouds 1.44-1.53 times
-sharper than a random one (eight 10 s shakes, five LiDAR models, offsets 0.1-0.19 s), and still
-1.33 times at 50 ms from it; 100 ms and more from it, 1.09-1.19 times, and the rotation can even
-look unambiguous there (1.029 on an OS1-32 shake at +190 ms). Below this the time offset is
-searched too, the search at the offset assumed being kept unless another is clearly sharper
-(:data:`SCAN_GAIN`)."""
+"""The same for the whole score when the windows hold no planar patches: 1.44-1.53 at the right
+offset and 1.09-1.19 100 ms and more from it on the same shakes; a lever arm of metres blurs the
+points too (1.27 at 30 ms on a shake with the LiDAR 1.7 m from the IMU), hence the normals
+first."""
 
 SCAN_GAIN = 1.05
 """An unambiguous search at the offset assumed is replaced by the offset scan's only when that
@@ -326,9 +348,12 @@ class _CombinedScorer:
 class _Scorer:
     """Occupied-voxel count of the windows' clouds for candidate extrinsics."""
 
-    def __init__(self, windows: list[tuple[FloatArray, FloatArray]], voxel: float) -> None:
+    def __init__(
+        self, windows: list[tuple[FloatArray, FloatArray]], voxel: float, is_normals: bool = False
+    ) -> None:
         self.windows = windows
         self.voxel = voxel
+        self.is_normals = is_normals
 
     def __call__(self, rotations: FloatArray) -> FloatArray:
         """Scores of (C, 3, 3) candidate ``R_imu_lidar``; (C,) float64, lower is sharper."""
@@ -347,6 +372,15 @@ class _Scorer:
             flat.sort(axis=1)
             out += 1.0 + np.count_nonzero(np.diff(flat, axis=1), axis=1)
         return out
+
+
+def _normal_sharpening(scorer: _CombinedScorer, best: FloatArray) -> float | None:
+    """A random rotation's score of the surface normals over ``best``'s (None: no normals)."""
+    normals = [(sc, n) for sc, n in zip(scorer.scorers, scorer.norms, strict=True) if sc.is_normals]
+    if not normals:
+        return None
+    sc, n = normals[0]
+    return float(n / sc(best[None])[0])
 
 
 def _batched(
@@ -410,7 +444,7 @@ def search_rotation_extrinsic(
     normal_spans = _select_windows(scans, gyro, t_c_ns, normal_cfg)
     normal_windows = [_window_normals(scans, w, gyro, t_c_ns, cfg) for w in normal_spans]
     normal_windows = [w for w in normal_windows if w[0].shape[0] > 0]
-    scorers = []
+    scorers: list[_Scorer] = []
     if cfg.use_points:
         scorers.append(
             _Scorer(
@@ -419,7 +453,7 @@ def search_rotation_extrinsic(
             )
         )
     if normal_windows and cfg.use_normals:
-        scorers.append(_Scorer(normal_windows, cfg.normal_bin))
+        scorers.append(_Scorer(normal_windows, cfg.normal_bin, is_normals=True))
     scorer = _CombinedScorer(scorers, coarse[:: max(1, coarse.shape[0] // 200)])
 
     coarse_scores = _batched(scorer, coarse)
@@ -459,13 +493,15 @@ def search_rotation_extrinsic(
         smear_score=float(np.median(coarse_scores)),
         windows=np.asarray(spans, dtype=np.int64),
         time_offset_s=float(time_offset_s),
+        normal_sharpening=_normal_sharpening(scorer, best),
     )
     logger.info(
-        "rotation search: sharpest extrinsic scores %.3g (next distinct %.3fx, random %.2fx) "
-        "over windows %s at time offset %+.3f s",
+        "rotation search: sharpest extrinsic scores %.3g (next distinct %.3fx, random %.2fx, "
+        "normals %s) over windows %s at time offset %+.3f s",
         result.score,
         result.ambiguity,
-        result.smear_score / result.score,
+        result.sharpening,
+        "none" if result.normal_sharpening is None else f"{result.normal_sharpening:.2f}x",
         [tuple(w) for w in spans],
         time_offset_s,
     )
@@ -488,7 +524,8 @@ def search_rotation_and_time_offset(
     cfg: RotationSearchConfig | None = None,
 ) -> RotationSearch:
     """:func:`search_rotation_extrinsic`, with the time offset searched too when the rotation
-    at the one assumed is ambiguous or hardly sharpens the clouds (:data:`MIN_SHARPENING`).
+    at the one assumed is not :attr:`RotationSearch.clear` (ambiguous, or hardly sharpening the
+    surface normals: :data:`MIN_NORMAL_SHARPENING`).
 
     On violent motion an offset of tens of milliseconds smears the clouds as much as a rotation
     error of degrees (the rig turns some 90 deg/s): on a 10 s OS1-64 shake with a true offset of
@@ -507,14 +544,12 @@ def search_rotation_and_time_offset(
     """
     cfg = cfg or RotationSearchConfig()
     first = search_rotation_extrinsic(scans, gyro, time_offset_s, cfg)
-    if first.unambiguous and first.sharpening >= MIN_SHARPENING:
+    if first.clear:
         return first
     logger.info(
         "The rotation search at the time offset assumed is %s; scanning the offset within "
         "+-%.3g s too.",
-        "ambiguous"
-        if not first.unambiguous
-        else f"hardly sharper than a random rotation ({first.sharpening:.2f}x)",
+        "ambiguous" if not first.unambiguous else "hardly sharper than a random rotation",
         max_lag_s,
     )
     tried: dict[float, RotationSearch | None] = {round(time_offset_s, 6): first}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -84,6 +85,7 @@ def _fake_search(
     sharp_within: float = 0.012,
     flat_beyond: float = 1.0,
     smear: float = 2.0,
+    normals: Callable[[float], float] | None = None,
 ):
     """A search whose score is V-shaped in the time offset assumed (lowest at ``best_at``),
     flat with a little noise farther than ``flat_beyond`` from it, and that tells the rotation
@@ -105,6 +107,7 @@ def _fake_search(
             smear_score=smear,
             windows=np.zeros((1, 2), dtype=np.int64),
             time_offset_s=time_offset_s,
+            normal_sharpening=None if normals is None else normals(off),
         )
 
     return search
@@ -181,6 +184,22 @@ def test_the_offset_scan_finds_an_offset_where_the_sharpness_is_flat(
     monkeypatch.setattr(rs, "search_rotation_extrinsic", slow)
     kept = rs.search_rotation_and_time_offset([], None, 0.0)  # type: ignore[arg-type]
     assert kept.time_offset_s == 0.0 and len(calls) > 1
+    # the surface normals decide when there are any: a lever arm of metres blurs the points
+    # (the whole score 1.25x) but not the normals (1.6x), and nothing is scanned
+    calls = []
+    lever = _fake_search(-0.03, calls, sharp_within=1.0, smear=1.6, normals=lambda off: 1.6)
+    monkeypatch.setattr(rs, "search_rotation_extrinsic", lever)
+    near = rs.search_rotation_and_time_offset([], None, 0.0)  # type: ignore[arg-type]
+    assert calls == [0.0] and near.time_offset_s == 0.0
+    # while normals hardly sharper than at random (1.25x) have the offset scanned, however
+    # sharp the points look
+    calls = []
+    far = _fake_search(
+        0.19, calls, 1.0, 0.1, smear=3.0, normals=lambda off: 1.8 if off < 0.05 else 1.25
+    )
+    monkeypatch.setattr(rs, "search_rotation_extrinsic", far)
+    found = rs.search_rotation_and_time_offset([], None, 0.0)  # type: ignore[arg-type]
+    assert abs(found.time_offset_s - 0.19) < 0.005
 
 
 def test_an_ambiguous_search_names_the_lag_when_the_offset_was_searched(
