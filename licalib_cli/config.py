@@ -153,7 +153,9 @@ class InitializationConfig(_Section):
     """Initial guesses and the checks on them."""
 
     time_offset_max_lag_s: float = Field(default=0.2, gt=0.0, le=30.0)
-    """Largest |time offset| searched by cross-correlating angular speeds."""
+    """Largest |time offset| searched by cross-correlating angular speeds (and by the rotation
+    search on violent motion); widened to the clocks' difference from record times plus 0.1 s
+    when that is larger and under 1 s (from 1 s on the LiDAR times are shifted)."""
     min_peak_correlation: float = Field(default=0.7, ge=0.0, le=1.0)
     min_rotation_deg: float = Field(default=0.5, ge=0.0)
     """Scan-to-scan rotations smaller than this are not used for hand-eye alignment."""

@@ -177,6 +177,29 @@ def _violent_motion_deg(rec: Recording, gyro: GyroIntegrator, t_c: float) -> flo
     return float(np.median(err)) if err.size else float("nan")
 
 
+CLOCK_MARGIN_S = 0.1
+"""Margin added to the clocks' coarse difference when it widens the lag searched (that
+difference, from record times, is good to the sensors' publication latencies)."""
+
+
+def time_offset_lag_s(rec: Recording, cfg: CalibConfig) -> float:
+    """The lag the time offset is searched within: ``initialization.time_offset_max_lag_s``,
+    widened to the clocks' coarse difference from record times plus :data:`CLOCK_MARGIN_S`
+    when that is larger and was not shifted away (a shift is applied from 1 s on).
+
+    A LiDAR stamped 0.4 s behind the IMU was refused with the default lag of 0.2 s although
+    the record times told the difference to a millisecond; the window stays centred on zero,
+    so a difference that is only latency keeps a true offset near zero inside it.
+    """
+    lag = cfg.initialization.time_offset_max_lag_s
+    if rec.lidar_shift_ns != 0:
+        return lag
+    coarse = abs(rec.clock_offset_s)
+    if coarse <= lag:
+        return lag
+    return coarse + CLOCK_MARGIN_S
+
+
 def lidar_odometry(
     rec: Recording, cfg: CalibConfig, progress: Callable[[int, int], None] | None = None
 ) -> Odometry:
@@ -190,6 +213,16 @@ def lidar_odometry(
     """
     ocfg = odometry_config(cfg)
     ini = cfg.initialization
+    lag = time_offset_lag_s(rec, cfg)
+    if ini.time_offset_s is None and lag > ini.time_offset_max_lag_s:
+        logger.info(
+            "The record times put the clocks %+.3f s apart, beyond "
+            "initialization.time_offset_max_lag_s = %g s: the time offset is searched within "
+            "+-%.3g s.",
+            rec.clock_offset_s,
+            ini.time_offset_max_lag_s,
+            lag,
+        )
     gyro = GyroIntegrator.from_imu(rec.imu)
     t_c = 0.0 if ini.time_offset_s is None else float(ini.time_offset_s)
     cv_deg = _violent_motion_deg(rec, gyro, t_c)
@@ -206,9 +239,7 @@ def lidar_odometry(
         else:
             try:
                 if ini.time_offset_s is None:
-                    search = search_rotation_and_time_offset(
-                        rec.scans, gyro, t_c, max_lag_s=ini.time_offset_max_lag_s
-                    )
+                    search = search_rotation_and_time_offset(rec.scans, gyro, t_c, max_lag_s=lag)
                 else:
                     search = search_rotation_extrinsic(rec.scans, gyro, t_c)
             except ExcitationError as err:
@@ -277,15 +308,15 @@ def _searched_rotation(
         found = odo.search
     elif free_time:
         found = search_rotation_and_time_offset(
-            rec.scans, gyro, t_c, max_lag_s=cfg.initialization.time_offset_max_lag_s
+            rec.scans, gyro, t_c, max_lag_s=time_offset_lag_s(rec, cfg)
         )
     else:
         found = search_rotation_extrinsic(rec.scans, gyro, t_c)
     if not found.unambiguous:
-        lag = cfg.initialization.time_offset_max_lag_s
+        lag = time_offset_lag_s(rec, cfg)
         why = (
-            "the rig turned about one axis only, or the clocks differ by more than "
-            f"initialization.time_offset_max_lag_s = {lag:g} s"
+            f"the rig turned about one axis only, or the clocks differ by more than the {lag:.3g} "
+            "s searched: raise initialization.time_offset_max_lag_s"
             if free_time
             else "the rig turned about one axis only"
         )
@@ -299,7 +330,7 @@ def _searched_rotation(
     if free_time:
         t_c = found.time_offset_s  # the offset the search's clouds were sharpest at
     ocfg = odometry_config(cfg)
-    toc = time_offset_config(cfg)
+    toc = time_offset_config(cfg, time_offset_lag_s(rec, cfg))
     hand_eye: HandEyeRotation | None = None
     poses = odo.refined
     for k in range(max_rounds):
@@ -455,7 +486,9 @@ def align_rotation_and_time(
     if ini.time_offset_s is not None:
         t_c, t_source = float(ini.time_offset_s), "config"
     else:
-        est = _coarse_time_offset(rec, poses, rot, time_offset_config(cfg))
+        est = _coarse_time_offset(
+            rec, poses, rot, time_offset_config(cfg, time_offset_lag_s(rec, cfg))
+        )
         if est is not None and est.ok:
             t_c, t_source = float(est.time_offset_s), "cross-correlation"
             correlation = float(est.peak_correlation)
@@ -495,7 +528,7 @@ def gyro_aided_alignment(
         return a
     rot, t_c, hand_eye, poses = a.rotation, a.time_offset_s, a.hand_eye, a.poses
     ocfg = odometry_config(cfg)
-    toc = time_offset_config(cfg)
+    toc = time_offset_config(cfg, time_offset_lag_s(rec, cfg))
     for _ in range(3):
         poses = refine_odometry(
             rec.scans,

@@ -139,11 +139,13 @@ def hand_eye_config(cfg: CalibConfig) -> HandEyeConfig:
     )
 
 
-def time_offset_config(cfg: CalibConfig) -> TimeOffsetConfig:
-    """Angular-rate cross-correlation settings."""
+def time_offset_config(cfg: CalibConfig, max_lag_s: float | None = None) -> TimeOffsetConfig:
+    """Angular-rate cross-correlation settings; the lag ``max_lag_s`` (default
+    ``initialization.time_offset_max_lag_s``)."""
     ini = cfg.initialization
     return TimeOffsetConfig(
-        max_lag_s=ini.time_offset_max_lag_s, min_peak_correlation=ini.min_peak_correlation
+        max_lag_s=ini.time_offset_max_lag_s if max_lag_s is None else max_lag_s,
+        min_peak_correlation=ini.min_peak_correlation,
     )
 
 

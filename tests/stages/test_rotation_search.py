@@ -216,14 +216,34 @@ def test_an_ambiguous_search_names_the_lag_when_the_offset_was_searched(
     ambiguous = _fake_search(0.4, [], 0.012)(None, None, 0.0)
     monkeypatch.setattr(ini, "search_rotation_and_time_offset", lambda *a, **k: ambiguous)
     monkeypatch.setattr(ini, "search_rotation_extrinsic", lambda *a, **k: ambiguous)
-    odo, rec = SimpleNamespace(search=None), SimpleNamespace(scans=[])
-    with pytest.raises(ExcitationError, match=r"time_offset_max_lag_s = 0\.2 s") as free:
+    odo = SimpleNamespace(search=None)
+    rec = SimpleNamespace(scans=[], lidar_shift_ns=0, clock_offset_s=0.01)
+    with pytest.raises(
+        ExcitationError, match=r"more than the 0\.2 s searched: raise initialization\.time_offset"
+    ) as free:
         ini._searched_rotation(rec, odo, None, 0.0, load_config(None))  # type: ignore[arg-type]
     assert str(free.value).count(". ") == 0  # one sentence
     given = load_config(None, {"initialization": {"time_offset_s": 0.0}})
     with pytest.raises(ExcitationError, match="about one axis only\\)") as fixed:
         ini._searched_rotation(rec, odo, None, 0.0, given)  # type: ignore[arg-type]
     assert "max_lag" not in str(fixed.value)
+
+
+def test_the_lag_widens_to_the_clocks_difference_from_record_times() -> None:
+    """The record times put the clocks 0.4 s apart (a LiDAR stamped late): the time offset is
+    searched within +-0.5 s instead of the configured 0.2 s, still around zero; a smaller
+    difference, or one shifted away (1 s and more), leaves the lag as configured."""
+    import importlib
+    from types import SimpleNamespace
+
+    ini = importlib.import_module("licalib_cli.pipeline.initialise")
+    cfg = load_config(None)
+    for coarse, shift, lag in ((0.4, 0, 0.5), (-0.4, 0, 0.5), (0.15, 0, 0.2), (3.0, 3, 0.2)):
+        rec = SimpleNamespace(clock_offset_s=coarse, lidar_shift_ns=shift)
+        assert ini.time_offset_lag_s(rec, cfg) == pytest.approx(lag), coarse
+    wide = load_config(None, {"initialization": {"time_offset_max_lag_s": 0.6}})
+    rec = SimpleNamespace(clock_offset_s=0.4, lidar_shift_ns=0)
+    assert ini.time_offset_lag_s(rec, wide) == pytest.approx(0.6)
 
 
 def test_search_threaded_is_the_serial_search(
