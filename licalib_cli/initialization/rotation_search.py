@@ -170,7 +170,7 @@ sharper (:data:`SCAN_GAIN`)."""
 MIN_SHARPENING = 1.3
 """The same for the whole score when the windows hold no planar patches: 1.44-1.53 at the right
 offset and 1.09-1.19 100 ms and more from it on the same shakes; a lever arm of metres blurs the
-points too (1.27 at 30 ms on a shake with the LiDAR 1.7 m from the IMU), hence the normals
+points too (1.27 at 30 ms on a shake with the LiDAR 1.8 m from the IMU), hence the normals
 first."""
 
 SCAN_GAIN = 1.05
@@ -533,7 +533,7 @@ def search_rotation_and_time_offset(
     times its score) while at -40 ms it did (1.10 times). Far from the true offset the
     sharpness is flat and noisy (a VLP-16 shake at +180 ms: 1.75-1.79 from -0.2 to 0 s, 1.32 at
     +0.2 s), so stepping downhill from the assumed offset can stop at once or walk the wrong way.
-    The whole lag is therefore scanned first, every ``2 step_s`` within ``max_lag_s`` of
+    The whole lag is then scanned, every ``2 step_s`` within ``max_lag_s`` of
     ``time_offset_s`` with a cheaper search (:func:`_scan_config`); from the sharpest point of
     the scan the offset is stepped by ``step_s`` with the full search in the direction the score
     falls, as long as it falls and stays within the lag, and a parabola through the best step
