@@ -534,13 +534,15 @@ def search_rotation_and_time_offset(
     sharpness is flat and noisy (a VLP-16 shake at +180 ms: 1.75-1.79 from -0.2 to 0 s, 1.32 at
     +0.2 s), so stepping downhill from the assumed offset can stop at once or walk the wrong way.
     The whole lag is then scanned, every ``2 step_s`` within ``max_lag_s`` of
-    ``time_offset_s`` with a cheaper search (:func:`_scan_config`); from the sharpest point of
-    the scan the offset is stepped by ``step_s`` with the full search in the direction the score
-    falls, as long as it falls and stays within the lag, and a parabola through the best step
-    and its neighbours gives one more search. The sharpest full search is returned (its own
-    ``time_offset_s``), unless the one at the offset assumed was unambiguous and no other is
-    :data:`SCAN_GAIN` times sharper; offsets where the search cannot run (too few scans inside
-    the IMU data) are skipped.
+    ``time_offset_s``, with a cheaper search (:func:`_scan_config`); from the sharpest point of
+    the scan the offset is stepped by ``step_s`` in the direction the score falls, as long as it
+    falls and stays within the lag, and a parabola through the best step and its neighbours
+    (they may lie a step beyond the lag, its vertex not) gives one more, all with the cheaper
+    search (the rotation needs only a few degrees: the
+    gyro-aided hand-eye rounds refine it). The full search at the sharpest offset is returned
+    (its own ``time_offset_s``), unless the one at the offset assumed scores lower, or was
+    unambiguous and is not :data:`SCAN_GAIN` times less sharp; offsets where the search cannot
+    run (too few scans inside the IMU data) are skipped.
     """
     cfg = cfg or RotationSearchConfig()
     first = search_rotation_extrinsic(scans, gyro, time_offset_s, cfg)
@@ -552,42 +554,32 @@ def search_rotation_and_time_offset(
         "ambiguous" if not first.unambiguous else "hardly sharper than a random rotation",
         max_lag_s,
     )
-    tried: dict[float, RotationSearch | None] = {round(time_offset_s, 6): first}
+    quick = _scan_config(cfg)
+    tried: dict[float, float] = {}
 
     def score(t: float) -> float:
-        """The full search's score at offset ``t`` (inf where it cannot run)."""
+        """The cheaper search's score at offset ``t`` (inf where it cannot run)."""
         key = round(t, 6)
         if key not in tried:
             try:
-                tried[key] = search_rotation_extrinsic(scans, gyro, t, cfg)
+                tried[key] = search_rotation_extrinsic(scans, gyro, key, quick).score
             except ExcitationError:
-                tried[key] = None
-        found = tried[key]
-        return math.inf if found is None else found.score
+                tried[key] = math.inf
+        return tried[key]
 
     def within(t: float) -> bool:
         return abs(t - time_offset_s) <= max_lag_s + 1e-9
 
     coarse = 2.0 * step_s
     half = math.floor(max_lag_s / coarse + 1e-9)
-    scanned: dict[float, float] = {round(time_offset_s, 6): first.score}
-    quick = _scan_config(cfg)
-    for k in range(-half, half + 1):
-        t = round(time_offset_s + k * coarse, 6)
-        if t in scanned:
-            continue
-        try:
-            scanned[t] = search_rotation_extrinsic(scans, gyro, t, quick).score
-        except ExcitationError:
-            scanned[t] = math.inf
-    start = min(scanned, key=lambda t: scanned[t])
+    grid = [time_offset_s + k * coarse for k in range(-half, half + 1)]
+    start = min(grid, key=score)
     logger.info(
         "Offset scan: sharpest at %+.3f s (%.3g; at the offset assumed %.3g).",
         start,
-        scanned[start],
-        first.score,
+        score(start),
+        score(time_offset_s),
     )
-
     best_t = start
     for direction in (-1.0, 1.0):
         t = start + direction * step_s
@@ -596,13 +588,19 @@ def search_rotation_and_time_offset(
             t += direction * step_s
         if best_t != start:
             break  # the score fell this way; the other side rises from the start
-    lo, hi = best_t - step_s, best_t + step_s
-    if within(lo) and within(hi):
-        f_lo, f_mid, f_hi = score(lo), score(best_t), score(hi)
-        curvature = f_lo - 2.0 * f_mid + f_hi
-        if math.isfinite(curvature) and curvature > 0.0:
-            score(best_t + 0.5 * step_s * (f_lo - f_hi) / curvature)
-    best = min((r for r in tried.values() if r is not None), key=lambda r: r.score)
-    if first.unambiguous and best.score * SCAN_GAIN > first.score:
+    # the parabola's neighbours may lie a step beyond the lag; its vertex may not
+    f_lo, f_mid, f_hi = score(best_t - step_s), score(best_t), score(best_t + step_s)
+    curvature = f_lo - 2.0 * f_mid + f_hi
+    if math.isfinite(curvature) and curvature > 0.0:
+        vertex = best_t + 0.5 * step_s * (f_lo - f_hi) / curvature
+        vertex = min(max(vertex, time_offset_s - max_lag_s), time_offset_s + max_lag_s)
+        best_t = vertex if score(vertex) < f_mid else best_t
+    if round(best_t, 6) == round(time_offset_s, 6):
         return first
-    return best
+    try:
+        found = search_rotation_extrinsic(scans, gyro, round(best_t, 6), cfg)
+    except ExcitationError:
+        return first
+    if found.score > first.score or (first.unambiguous and found.score * SCAN_GAIN > first.score):
+        return first
+    return found
