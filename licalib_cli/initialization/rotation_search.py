@@ -348,12 +348,9 @@ class _CombinedScorer:
 class _Scorer:
     """Occupied-voxel count of the windows' clouds for candidate extrinsics."""
 
-    def __init__(
-        self, windows: list[tuple[FloatArray, FloatArray]], voxel: float, is_normals: bool = False
-    ) -> None:
+    def __init__(self, windows: list[tuple[FloatArray, FloatArray]], voxel: float) -> None:
         self.windows = windows
         self.voxel = voxel
-        self.is_normals = is_normals
 
     def __call__(self, rotations: FloatArray) -> FloatArray:
         """Scores of (C, 3, 3) candidate ``R_imu_lidar``; (C,) float64, lower is sharper."""
@@ -372,15 +369,6 @@ class _Scorer:
             flat.sort(axis=1)
             out += 1.0 + np.count_nonzero(np.diff(flat, axis=1), axis=1)
         return out
-
-
-def _normal_sharpening(scorer: _CombinedScorer, best: FloatArray) -> float | None:
-    """A random rotation's score of the surface normals over ``best``'s (None: no normals)."""
-    normals = [(sc, n) for sc, n in zip(scorer.scorers, scorer.norms, strict=True) if sc.is_normals]
-    if not normals:
-        return None
-    sc, n = normals[0]
-    return float(n / sc(best[None])[0])
 
 
 def _batched(
@@ -452,8 +440,11 @@ def search_rotation_extrinsic(
                 cfg.voxel_size_m,
             )
         )
-    if normal_windows and cfg.use_normals:
-        scorers.append(_Scorer(normal_windows, cfg.normal_bin, is_normals=True))
+    normals = (
+        _Scorer(normal_windows, cfg.normal_bin) if normal_windows and cfg.use_normals else None
+    )
+    if normals is not None:
+        scorers.append(normals)
     scorer = _CombinedScorer(scorers, coarse[:: max(1, coarse.shape[0] // 200)])
 
     coarse_scores = _batched(scorer, coarse)
@@ -493,7 +484,10 @@ def search_rotation_extrinsic(
         smear_score=float(np.median(coarse_scores)),
         windows=np.asarray(spans, dtype=np.int64),
         time_offset_s=float(time_offset_s),
-        normal_sharpening=_normal_sharpening(scorer, best),
+        # a random rotation's score of the normals (the combined score's norm) over the best's
+        normal_sharpening=None
+        if normals is None
+        else float(scorer.norms[-1] / normals(np.asarray(best)[None])[0]),
     )
     logger.info(
         "rotation search: sharpest extrinsic scores %.3g (next distinct %.3fx, random %.2fx, "

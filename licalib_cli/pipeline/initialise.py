@@ -304,16 +304,14 @@ def _searched_rotation(
             gyro-aided odometry is still refused.
     """
     free_time = cfg.initialization.time_offset_s is None
+    lag = time_offset_lag_s(rec, cfg)
     if odo.search is not None:
         found = odo.search
     elif free_time:
-        found = search_rotation_and_time_offset(
-            rec.scans, gyro, t_c, max_lag_s=time_offset_lag_s(rec, cfg)
-        )
+        found = search_rotation_and_time_offset(rec.scans, gyro, t_c, max_lag_s=lag)
     else:
         found = search_rotation_extrinsic(rec.scans, gyro, t_c)
     if not found.unambiguous:
-        lag = time_offset_lag_s(rec, cfg)
         why = (
             f"the rig turned about one axis only, or the clocks differ by more than the {lag:.3g} "
             "s searched: raise initialization.time_offset_max_lag_s"
@@ -330,7 +328,7 @@ def _searched_rotation(
     if free_time:
         t_c = found.time_offset_s  # the offset the search's clouds were sharpest at
     ocfg = odometry_config(cfg)
-    toc = time_offset_config(cfg, time_offset_lag_s(rec, cfg))
+    toc = time_offset_config(cfg, lag)
     hand_eye: HandEyeRotation | None = None
     poses = odo.refined
     for k in range(max_rounds):
