@@ -454,7 +454,10 @@ def estimate_rows(
     """The estimate table's rows, as the console and the report show them.
 
     Columns: parameter, estimate, 1-sigma, then the initial guess (``initial``: translation m,
-    roll/pitch/yaw deg, time offset s) and the truth and error (``truth``) when given.
+    roll/pitch/yaw deg, time offset s) and the truth and error (``truth``) when given. The
+    rotation rows' 1-sigma and error are about the LiDAR x, y and z axes
+    (``log(R_true^T R_est)``), not differences of Euler angles: those come apart near a pitch
+    of 90 deg, where a tiny rotation moves roll and yaw by large and opposite amounts.
 
     Args:
         result: the result.
@@ -476,6 +479,7 @@ def estimate_rows(
 
     rpy = rpy_deg_from_matrix(ext.rotation)
     t_rpy = rpy_deg_from_matrix(truth.rotation) if truth is not None else None
+    r_err = np.degrees(truth.moved_to(ext)[3:6]) if truth is not None else None
     rows = []
     for i, axis in enumerate("xyz"):
         row = [f"t_{axis}", f"{ext.translation[i]:+.4f} m", sigma(t_std[i], 1e3, "mm", 2)]
@@ -491,8 +495,8 @@ def estimate_rows(
         row = [name, f"{rpy[i]:+.4f} deg", sigma(r_std[i], 1.0, "deg", 4)]
         if initial is not None:
             row.append(f"{initial[1][i]:+.4f} deg")
-        if t_rpy is not None:
-            row += [f"{t_rpy[i]:+.4f} deg", f"{rpy[i] - t_rpy[i]:+.4f} deg"]
+        if t_rpy is not None and r_err is not None:
+            row += [f"{t_rpy[i]:+.4f} deg", f"{r_err[i]:+.4f} deg"]
         rows.append(row)
     extra = result.extra_terms
     drifting = extra is not None and extra.clock_drift is not None

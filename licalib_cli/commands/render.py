@@ -42,7 +42,8 @@ def render_estimate(result: CalibrationResult, truth: Truth | None) -> Table:
     """The extrinsic and time offset with their 1-sigma (and the truth and error if given)."""
     true_ext = truth.extrinsic_for(result) if truth is not None else None
     table = Table(
-        title="T_imu_lidar (p_imu = R p_lidar + t) and time offset (t_imu = t_lidar + dt)"
+        title="T_imu_lidar (p_imu = R p_lidar + t) and time offset (t_imu = t_lidar + dt)",
+        caption="rotation 1-sigma" + (" and error" if truth else "") + " about LiDAR x, y, z",
     )
     for name in ("parameter", "estimate", "1-sigma") + (("truth", "error") if truth else ()):
         table.add_column(name, justify="left" if name == "parameter" else "right")

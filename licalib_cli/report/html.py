@@ -103,8 +103,9 @@ def _estimate(result: CalibrationResult, data: ReportData | None) -> str:
         "<h2>Estimate</h2>",
         '<p class="note">T_imu_lidar maps LiDAR points into the IMU frame: p_imu = R p_lidar + '
         "t (t is the LiDAR origin in the IMU frame; roll, pitch, yaw with R = Rz(yaw) Ry(pitch) "
-        "Rx(roll)). Time offset: t_imu = t_lidar + time offset. The rotation sigmas are about "
-        "the LiDAR axes.</p>",
+        "Rx(roll)). Time offset: t_imu = t_lidar + time offset. The rotation sigmas"
+        + (" and errors" if truth is not None else "")
+        + " are about the LiDAR x, y, z axes.</p>",
         _table(header, rows, "estimate"),
     ]
     q = ext.quaternion

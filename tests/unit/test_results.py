@@ -131,3 +131,31 @@ def test_extra_terms_round_trip_and_an_incomplete_section_is_one_sentence(tmp_pa
     path.write_text(yaml.safe_dump(data))
     with pytest.raises(ConfigError, match=r"`extra_terms\.reference_ns` is missing"):
         CalibrationResult.load(path)
+
+
+def test_truth_table_rotation_error_is_about_the_lidar_axes_near_a_pitch_of_90_deg() -> None:
+    """Near a pitch of 90 deg a rotation of 0.006 deg moves roll and yaw by far more: the error
+    column must show the error about the LiDAR axes, the axes of the sigma column."""
+    from licalib_cli.results import estimate_rows
+    from licalib_cli.sections import Uncertainty
+
+    r_true = matrix_from_rpy_deg((30.0, -86.4, 120.0))
+    small = np.radians([0.004, -0.003, 0.0035])  # about the LiDAR axes
+    r_est = r_true @ Rotation.from_rotvec(small).as_matrix()
+    truth = Extrinsic(r_true, np.array([0.1, 0.0, 0.0]), 0.0)
+    est = Extrinsic(r_est, np.array([0.1, 0.0, 0.0]), 0.0)
+    unc = Uncertainty(
+        translation_std_m=(1e-3, 1e-3, 1e-3),
+        rotation_std_deg=(0.01, 0.01, 0.01),
+        time_offset_std_s=1e-5,
+    )
+    rows = estimate_rows(CalibrationResult(est, uncertainty=unc), truth)
+    by_name = {r[0]: r for r in rows}
+    shown = [float(by_name[n][-1].split()[0]) for n in ("roll", "pitch", "yaw")]
+    np.testing.assert_allclose(shown, np.degrees(small), atol=6e-5)
+    # the Euler differences would have claimed several sigmas on roll and yaw
+    euler = rpy_deg_from_matrix(r_est) - rpy_deg_from_matrix(r_true)
+    assert np.abs(euler[[0, 2]]).min() > 0.015  # against at most 0.004 deg about any axis
+    assert [by_name[n][3] for n in ("roll", "pitch", "yaw")] == [
+        f"{v:+.4f} deg" for v in rpy_deg_from_matrix(r_true)
+    ]
