@@ -25,7 +25,8 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -81,6 +82,8 @@ class RotationSearchConfig:
         normal_min_points: points a cell needs to give a patch.
         normal_min_planarity: plane-likeness ``2 (l1 - l0) / (l0 + l1 + l2)`` a patch needs.
         normal_bin: bin size of the normal directions on the unit sphere (about 6 deg).
+        log_level: level of the line that reports the search (the offset scan's many cheaper
+            searches log theirs at DEBUG).
     """
 
     window_scans: int = 5
@@ -100,6 +103,7 @@ class RotationSearchConfig:
     normal_min_points: int = 8
     normal_min_planarity: float = 0.7
     normal_bin: float = 0.1
+    log_level: int = logging.INFO
     use_points: bool = True
     use_normals: bool = True
 
@@ -489,7 +493,8 @@ def search_rotation_extrinsic(
         if normals is None
         else float(scorer.norms[-1] / normals(np.asarray(best)[None])[0]),
     )
-    logger.info(
+    logger.log(
+        cfg.log_level,
         "rotation search: sharpest extrinsic scores %.3g (next distinct %.3fx, random %.2fx, "
         "normals %s) over windows %s at time offset %+.3f s",
         result.score,
@@ -506,7 +511,21 @@ def _scan_config(cfg: RotationSearchConfig) -> RotationSearchConfig:
     """The cheaper search of the coarse scan over the lag: a quarter of the coarse grid and two
     local refinements (on the OS1-64 shake of :func:`search_rotation_and_time_offset` the
     same landscape over the offset as the full search, in half its time)."""
-    return replace(cfg, coarse_candidates=max(200, cfg.coarse_candidates // 4), refine_starts=2)
+    return replace(
+        cfg,
+        coarse_candidates=max(200, cfg.coarse_candidates // 4),
+        refine_starts=2,
+        log_level=logging.DEBUG,
+    )
+
+
+def _duration_text(seconds: float) -> str:
+    """``42 s`` or ``3.5 min`` or ``1.2 h``."""
+    if seconds < 90.0:
+        return f"{seconds:.0f} s"
+    if seconds < 5400.0:
+        return f"{seconds / 60.0:.1f} min"
+    return f"{seconds / 3600.0:.1f} h"
 
 
 def search_rotation_and_time_offset(
@@ -516,6 +535,7 @@ def search_rotation_and_time_offset(
     max_lag_s: float = 0.2,
     step_s: float = 0.02,
     cfg: RotationSearchConfig | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> RotationSearch:
     """:func:`search_rotation_extrinsic`, with the time offset searched too when the rotation
     at the one assumed is not :attr:`RotationSearch.clear` (ambiguous, or hardly sharpening the
@@ -537,6 +557,10 @@ def search_rotation_and_time_offset(
     (its own ``time_offset_s``), unless the one at the offset assumed scores lower, or was
     unambiguous and is not :data:`SCAN_GAIN` times less sharp; offsets where the search cannot
     run (too few scans inside the IMU data) are skipped.
+
+    The scan's length grows with the lag (``2 max_lag_s / (2 step_s) + 1`` searches): it is
+    logged with the time it will take, from the first search's, and ``progress(done, total)``
+    follows it.
     """
     cfg = cfg or RotationSearchConfig()
     first = search_rotation_extrinsic(scans, gyro, time_offset_s, cfg)
@@ -567,6 +591,21 @@ def search_rotation_and_time_offset(
     coarse = 2.0 * step_s
     half = math.floor(max_lag_s / coarse + 1e-9)
     grid = [time_offset_s + k * coarse for k in range(-half, half + 1)]
+    began = time.perf_counter()
+    score(time_offset_s)
+    each = time.perf_counter() - began
+    logger.info(
+        "Offset scan: %d searches every %.0f ms, about %s (%.1f s each); "
+        "initialization.time_offset_s or a smaller time_offset_max_lag_s shortens it.",
+        len(grid),
+        1e3 * coarse,
+        _duration_text(each * len(grid)),
+        each,
+    )
+    for done, t in enumerate(grid, start=1):
+        score(t)
+        if progress is not None:
+            progress(done, len(grid))
     start = min(grid, key=score)
     logger.info(
         "Offset scan: sharpest at %+.3f s (%.3g; at the offset assumed %.3g).",

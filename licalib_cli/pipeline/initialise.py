@@ -239,7 +239,9 @@ def lidar_odometry(
         else:
             try:
                 if ini.time_offset_s is None:
-                    search = search_rotation_and_time_offset(rec.scans, gyro, t_c, max_lag_s=lag)
+                    search = search_rotation_and_time_offset(
+                        rec.scans, gyro, t_c, max_lag_s=lag, progress=progress
+                    )
                 else:
                     search = search_rotation_extrinsic(rec.scans, gyro, t_c)
             except ExcitationError as err:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -173,6 +174,38 @@ def test_the_offset_scan_finds_an_offset_where_the_sharpness_is_flat(
         found = rs.search_rotation_and_time_offset([], None, 0.0)  # type: ignore[arg-type]
         assert found.unambiguous and abs(found.time_offset_s - truth) < 0.005, truth
         assert len(calls) == 2  # the full search at 0 s and at the offset found
+
+
+def test_the_offset_scan_says_how_long_it_takes_and_shows_its_progress(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A lag raised by hand to 1 s makes the scan 51 searches: the log gives their number and
+    the time they take (from the first's) and names the settings that shorten it; the progress
+    callback counts them."""
+    from licalib_cli.initialization import rotation_search as rs
+
+    calls: list[float] = []
+    monkeypatch.setattr(rs, "search_rotation_extrinsic", _fake_search(0.5, calls, 0.012, 0.1))
+    ticks: list[tuple[int, int]] = []
+    with caplog.at_level("INFO", logger=rs.__name__):
+        found = rs.search_rotation_and_time_offset(
+            [],
+            None,  # type: ignore[arg-type]
+            0.0,
+            max_lag_s=1.0,
+            progress=lambda done, total: ticks.append((done, total)),
+        )
+    assert abs(found.time_offset_s - 0.5) < 0.005
+    assert ticks == [(k, 51) for k in range(1, 52)]
+    said = " ".join(r.getMessage() for r in caplog.records)
+    assert "51 searches every 40 ms, about" in said
+    assert "initialization.time_offset_s" in said and "time_offset_max_lag_s" in said
+    assert rs._duration_text(42.0) == "42 s"
+    assert rs._duration_text(210.0) == "3.5 min"
+    assert rs._duration_text(3.0 * 3600) == "3.0 h"
+    # the 51 cheaper searches report themselves at DEBUG, the full ones at INFO
+    assert rs._scan_config(RotationSearchConfig()).log_level == logging.DEBUG
+    assert RotationSearchConfig().log_level == logging.INFO
     # unambiguous at 0 s but hardly sharper than a random rotation (an OS1-32 shake at +190 ms:
     # 1.029 and 1.09x): the offset is scanned all the same, and the sharper one taken
     calls = []
