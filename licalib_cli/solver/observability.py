@@ -29,7 +29,7 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.solver.problem import Linearization, Problem, ResidualBlock
-from licalib_cli.solver.schur import schur_complement
+from licalib_cli.solver.schur import SchurSystem, schur_complement
 
 __all__ = [
     "BLOCK_FRAMES",
@@ -43,6 +43,7 @@ __all__ = [
     "summed_information",
     "truncation_mask",
     "undamped_schur",
+    "undamped_schur_system",
 ]
 
 F64 = npt.NDArray[np.float64]
@@ -388,14 +389,20 @@ def undamped_schur(lin: Linearization) -> F64:
     Returns:
         (Nc, Nc) ``S``.
     """
+    return undamped_schur_system(lin).S
+
+
+def undamped_schur_system(lin: Linearization) -> SchurSystem:
+    """:func:`undamped_schur`'s whole reduced system: ``S`` and the right-hand side ``b`` (the
+    calibration's gradient with the trajectory eliminated)."""
     try:
-        s = schur_complement(lin, 0.0).S
-        if np.all(np.isfinite(s)):
-            return s
+        system = schur_complement(lin, 0.0)
+        if np.all(np.isfinite(system.S)) and np.all(np.isfinite(system.b)):
+            return system
     except np.linalg.LinAlgError:
         pass
     reg = TRAJECTORY_REGULARISATION * lin.H_tt.diagonal()
-    return schur_complement(lin, reg).S
+    return schur_complement(lin, reg)
 
 
 def calibration_information(

@@ -435,6 +435,66 @@ def test_plain_step_moves_unobservable_direction() -> None:
     assert tsvd.num_truncated == 2
 
 
+class WeakResidual:
+    """The chain seen directly (sigma 0.01) and ``weak`` seen once with ``sigma``."""
+
+    def __init__(self, y: np.ndarray, c_meas: float, sigma: float) -> None:
+        self.name = "chain"
+        self.y, self.c_meas, self.sigma = y, c_meas, sigma
+
+    def evaluate(self, params: Mapping[str, np.ndarray], jacobians: bool = True) -> ResidualEval:
+        x = params["chain"][:, 0]
+        n = x.size
+        w = float(params["weak"])
+        r = np.concatenate([(x - self.y) / 0.01, [(w - self.c_meas) / self.sigma]])
+        jx = np.zeros((n + 1, 1, 1, 1))
+        jx[:n] = 100.0
+        jc = np.zeros((n + 1, 1, 1, 1))
+        jc[n] = 1.0 / self.sigma
+        el = np.concatenate([np.arange(n), [0]])[:, None]
+        return ResidualEval(
+            r,
+            (
+                DenseJacobian("chain", el, jx),
+                DenseJacobian("weak", np.zeros((n + 1, 1), dtype=int), jc),
+            ),
+        )
+
+
+def _weak_problem(pull_sigmas: float, sigma: float = np.sqrt(2.0)) -> Problem:
+    """``weak`` (scale 1) with information 1 / sigma^2 (0.5: below the threshold of 1, above
+    its release floor), its measurement ``pull_sigmas`` standard deviations from the start."""
+    n = 5
+    pr = Problem()
+    pr.add_parameter_block(ParameterBlock("chain", np.zeros((n, 1))))
+    pr.add_parameter_block(ParameterBlock("weak", 0.5, group="calibration"))
+    pr.add_residual_block(WeakResidual(np.arange(n, dtype=float), 0.5 + pull_sigmas * sigma, sigma))
+    return pr
+
+
+def test_a_weak_direction_far_from_where_the_data_put_it_is_released() -> None:
+    """Below the threshold but seen by the data: held when the data pull it by less than
+    ``release_sigmas`` of its standard deviations, stepped along (and still reported as
+    truncated) when they pull it by more; a direction under the release floor is always held."""
+    params = LMParams(max_iterations=20, tsvd_threshold=1.0)
+    far = _weak_problem(20.0)
+    report = solve(far, params)
+    assert float(far["weak"].value) == pytest.approx(0.5 + 20.0 * np.sqrt(2.0), abs=0.05)
+    assert len(report.truncated) == 1 and not report.observable[0]  # the report still says so
+    near = _weak_problem(3.0)
+    solve(near, params)
+    assert float(near["weak"].value) == 0.5
+    never = _weak_problem(20.0)
+    solve(never, LMParams(max_iterations=20, tsvd_threshold=1.0, release_sigmas=0.0))
+    assert float(never["weak"].value) == 0.5
+    hardly = _weak_problem(20.0, sigma=10.0)  # information 0.01, under the floor of 0.1
+    solve(hardly, params)
+    assert float(hardly["weak"].value) == 0.5
+    intrinsic = _weak_problem(20.0)  # a bounded block (an intrinsic) is held at its start
+    solve(intrinsic, LMParams(max_iterations=20, tsvd_threshold=1.0, bounded_blocks=("weak",)))
+    assert float(intrinsic["weak"].value) == 0.5
+
+
 # --------------------------------------------------------------------------- Monte Carlo stds
 @pytest.mark.slow
 def test_reported_std_matches_monte_carlo_spread() -> None:
