@@ -289,16 +289,16 @@ def observable_basis(
     the threshold is kept too when the data pull the estimate along it by at least
     ``params.release_sigmas`` of its standard deviations, its singular value at least
     ``params.release_floor`` of the threshold, and it is made mostly of coordinates outside
-    ``params.bounded_blocks`` (the extrinsic). Holding such a direction keeps the estimate far
-    from where the data put it: on a 10 s OS1-64 shake with a gyro-to-IMU rotation of 4.5 deg
-    estimated, the extrinsic rotation along its weakest direction (singular value 0.3-0.8, one
-    standard deviation 1.1-1.9 characteristic scales) was held some 54 scales from where the
-    data put it (3.1 deg off); released (the data pulled 25-38 of its standard deviations), it
-    ended 0.20 deg off. A direction of the intrinsics is not released: they start at their
-    nominal values, known to their characteristic scale, and a pull far beyond that came from
-    what the model lacked (a 10 s OS1-64 shake with per-beam horizontal offsets: the beams'
-    common offset, pulled 5.8 standard deviations in the refit that added them, then 0.050 deg
-    off in the extrinsic rotation instead of 0.012).
+    ``params.bounded_blocks`` (the extrinsic, the time offset). Holding such a direction keeps
+    the estimate far from where the data put it: on a 10 s OS1-64 shake with a gyro-to-IMU
+    rotation of 4.5 deg estimated, the extrinsic rotation along its weakest direction (singular
+    value 0.3-0.8, one standard deviation 1.1-1.9 characteristic scales) was held some 54 scales
+    from where the data put it (3.1 deg off); released (the data pulled 25-38 of its standard
+    deviations), it ended 0.20 deg off. A direction of the intrinsics is not released: they
+    start at their nominal values, known to their characteristic scale, and a pull far beyond
+    that came from what the model lacked (a 10 s OS1-64 shake with per-beam horizontal offsets:
+    the beams' common offset, pulled 5.8 standard deviations in the refit that added them, then
+    0.050 deg off in the extrinsic rotation instead of 0.012).
 
     Args:
         information: Undamped scaled calibration information (:func:`undamped_schur`).
@@ -318,10 +318,7 @@ def observable_basis(
         weak = ~keep & truncation_mask(s, params.release_floor * threshold)
         # intrinsics start at their nominal values, known a priori to their characteristic
         # scale: a pull far beyond that is the model's error, not their information
-        bounded = np.array(
-            [any(o.startswith(p) for p in params.bounded_blocks) for o in information.owners],
-            dtype=bool,
-        )
+        bounded = _in_blocks(information.owners, params.bounded_blocks)
         weak &= np.sum(u[bounded] ** 2, axis=0) < 0.5
         pull = np.abs(u.T @ (information.scale * gradient)) / np.sqrt(np.maximum(s, 1e-300))
         released = weak & (pull >= params.release_sigmas)
@@ -334,6 +331,11 @@ def observable_basis(
             )
         keep = keep | released
     return u[:, keep]
+
+
+def _in_blocks(owners: Sequence[str], prefixes: Sequence[str]) -> npt.NDArray[np.bool_]:
+    """(len(owners),) whether each coordinate's block starts with one of ``prefixes``."""
+    return np.array([any(o.startswith(p) for p in prefixes) for o in owners], dtype=bool)
 
 
 def _undamped_information(lin: Linearization) -> InformationSummary:
@@ -647,7 +649,7 @@ def observable_coordinates(
     """
     if truncated.size == 0:
         return np.ones(len(owners), dtype=bool), np.zeros(0, dtype=bool)
-    bounded = np.array([any(o.startswith(p) for p in bounded_blocks) for o in owners], dtype=bool)
+    bounded = _in_blocks(owners, bounded_blocks)
     free = np.sum(truncated[bounded] ** 2, axis=0) < 0.5
     weight = np.sum(truncated[:, free] ** 2, axis=1)
     return weight < NOT_OBSERVABLE_WEIGHT, free
