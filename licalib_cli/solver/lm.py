@@ -314,8 +314,7 @@ def observable_basis(
     s, u = information.singular_values, information.singular_vectors
     keep = truncation_mask(s, params.tsvd_threshold, relative=params.tsvd_relative)
     if gradient is not None and params.release_sigmas > 0.0 and not np.all(keep):
-        threshold = params.tsvd_threshold * (float(s[0]) if params.tsvd_relative else 1.0)
-        weak = ~keep & truncation_mask(s, params.release_floor * threshold)
+        weak = ~keep & truncation_mask(s, params.release_floor * _absolute_threshold(s, params))
         # intrinsics start at their nominal values, known a priori to their characteristic
         # scale: a pull far beyond that is the model's error, not their information
         bounded = _in_blocks(information.owners, params.bounded_blocks)
@@ -331,6 +330,12 @@ def observable_basis(
             )
         keep = keep | released
     return u[:, keep]
+
+
+def _absolute_threshold(singular_values: F64, params: LMParams) -> float:
+    """``params.tsvd_threshold`` in singular-value units (times the largest when relative)."""
+    s = singular_values
+    return params.tsvd_threshold * (float(s[0]) if params.tsvd_relative and s.size else 1.0)
 
 
 def _in_blocks(owners: Sequence[str], prefixes: Sequence[str]) -> npt.NDArray[np.bool_]:
@@ -599,7 +604,7 @@ def _report(
     std = np.where(observable, std, np.inf)
     redundancy = lin.num_residuals - layout.num_free
     variance_factor = 2.0 * history[-1] / redundancy if redundancy > 0 else math.nan
-    threshold = params.tsvd_threshold * (float(s[0]) if params.tsvd_relative and s.size else 1.0)
+    threshold = _absolute_threshold(s, params)
     for d in truncated:
         logger.debug("calibration direction %s", d.text)
     return SolverReport(
