@@ -20,9 +20,10 @@ coordinates                               scale
 ``ext.rotation``                          1e-3 rad (0.057 deg)
 ``ext.translation``                       0.01 m
 ``ext.time_offset``                       1e-3 s
-``imu.gyro_scale``, ``imu.accel_scale``   1e-3
+``imu.gyro_scale``                        1e-3
+``imu.accel_scale``                       5e-3
 ``imu.*_misalignment``                    1e-3
-``imu.gyro_rotation``                     1e-3 rad
+``imu.gyro_rotation``                     1e-2 rad (0.57 deg)
 ``imu.gyro_g_sensitivity``                1e-4 rad/s per m/s^2
 ``lidar.intrinsics`` dphi, dtheta         1e-3 rad
 ``lidar.intrinsics`` V, H                 0.005 m

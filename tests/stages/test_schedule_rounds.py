@@ -603,6 +603,34 @@ def test_the_initial_rotation_is_as_uncertain_as_the_gyro_rotation_when_that_is_
     sd = initial_sd(with_gyro, np.r_[scale, 1e-2])
     # initialisation finds the LiDAR-to-gyro rotation: the extrinsic inherits R_wI's prior
     np.testing.assert_array_equal(sd, [1e-2, 0.01, 1e-3, 1e-2])
+    # ... or the fit's move of R_wI when the data took it beyond that prior (0.04 rad here)
+    sd = initial_sd(with_gyro, np.r_[scale, 1e-2], gyro_rotation_moved=0.04)
+    np.testing.assert_allclose(sd, [np.hypot(1e-2, 0.04), 0.01, 1e-3, 1e-2])
+
+
+def test_held_directions_cover_the_gyro_rotation_the_fit_found(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    names = ("ext.rotation.rx", "ext.rotation.ry", "imu.gyro_rotation.rx", "imu.gyro_rotation.ry")
+    scale = np.array([1e-3, 1e-3, 1e-2, 1e-2])
+    report: Any = SimpleNamespace(
+        truncated=("a held direction",),
+        calibration_names=names,
+        information=SimpleNamespace(scale=scale),
+    )
+    seen: dict[str, np.ndarray] = {}
+
+    def widen(report: Any, moved: np.ndarray, initial_sd: np.ndarray) -> Any:
+        seen["moved"], seen["sd"] = moved, initial_sd
+        return report
+
+    moved = np.array([0.0, 0.0, 0.03, -0.04])  # R_wI moved 0.05 rad (2.9 deg) from its start
+    monkeypatch.setattr(schedule, "calibration_moved", lambda a, b, n: moved)
+    monkeypatch.setattr(schedule, "widen_along_truncated", widen)
+    assert schedule.cover_truncated(report, Any, Any) is report
+    np.testing.assert_array_equal(seen["moved"], moved)
+    # the extrinsic started where the LiDAR-to-gyro rotation put it: as far off as R_wI is
+    np.testing.assert_allclose(seen["sd"], [np.hypot(1e-2, 0.05)] * 2 + [1e-2] * 2)
 
 
 def test_a_planes_free_step_at_the_cap_gets_the_rounds_that_check_it(
