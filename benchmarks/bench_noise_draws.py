@@ -16,6 +16,7 @@ Examples::
     .venv/bin/python benchmarks/bench_noise_draws.py --scenario shake --seed 3 --draws 6 --jobs 2
     .venv/bin/python benchmarks/bench_noise_draws.py --lidar os1-64 --seed 5 --draws 4
     .venv/bin/python benchmarks/bench_noise_draws.py --config my.yaml   # another configuration
+    .venv/bin/python benchmarks/bench_noise_draws.py --imu-noise-scale 10 --draws 8  # poor IMU
 
 Each calibration runs in a fresh subprocess.
 """
@@ -35,6 +36,9 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _noise import add_noise_options, noise_spec_kwargs  # noqa: E402
+
 COORDINATES = ("t_x mm", "t_y mm", "t_z mm", "roll deg", "pitch deg", "yaw deg", "dt ms")
 
 
@@ -56,7 +60,7 @@ def one_draw(args: argparse.Namespace, noise_seed: int, folder: Path) -> dict:
         intrinsics="none",
         random_time_offset=True,
         random_extrinsic=args.random_extrinsic,
-        range_noise_m=args.range_noise,
+        **noise_spec_kwargs(args.range_noise, args.imu_noise_scale, args.noise_free),
     )
     out = simulate(spec, folder, force=True)
     cfg = load_config(Path(args.config) if args.config else ROOT / "configs" / f"{args.lidar}.yaml")
@@ -93,7 +97,7 @@ def main() -> None:
     p.add_argument(
         "--random-extrinsic", action="store_true", help="the seed draws the mounting (any rotation)"
     )
-    p.add_argument("--range-noise", type=float, default=None, help="m (default: the model's)")
+    add_noise_options(p)
     p.add_argument("--config", default=None, help="config file (default: configs/LIDAR.yaml)")
     p.add_argument("--draws", type=int, default=6, help="noise draws (noise seeds 101, 102, ...)")
     p.add_argument("--jobs", type=int, default=1, help="draws at a time")
@@ -123,6 +127,10 @@ def main() -> None:
         base += ["--config", str(Path(args.config).resolve())]
     if args.range_noise is not None:
         base += ["--range-noise", str(args.range_noise)]
+    if args.imu_noise_scale != 1.0:
+        base += ["--imu-noise-scale", str(args.imu_noise_scale)]
+    if args.noise_free:
+        base.append("--noise-free")
     if args.random_extrinsic:
         base.append("--random-extrinsic")
 
