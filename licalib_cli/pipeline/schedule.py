@@ -7,7 +7,8 @@ previous round moved the points, and to :data:`WANDER_SHRINK` of it at least whe
 crawl (never below the configured distance). Rounds that crawl at the configured distance take
 a Gauss-Newton step with the map's planes estimated too before the next round; so do rounds whose
 map stalls at any distance (:func:`stalls`: it gets blurrier, or stays blurred with few points
-on its planes). Rounds run until
+on its planes); a round that takes such a step back (:func:`takes_back`) is no crawl and ends
+the steps. Rounds run until
 one moves the estimate by less than the tolerances (or by less than half its own 1-sigma,
 whichever is larger) at the configured distance; a last, denser round
 then refines the settled estimate with Gauss-Newton steps that estimate the map's planes too
@@ -61,7 +62,7 @@ from licalib_cli.pipeline.settings import (
     round_settings,
 )
 from licalib_cli.progress import Progress
-from licalib_cli.residuals import EXT_ROTATION, GYRO_ROTATION
+from licalib_cli.residuals import EXT_ROTATION, EXT_TRANSLATION, GYRO_ROTATION, TIME_OFFSET
 from licalib_cli.solver.lm import SolverReport, widen_along_truncated
 
 __all__ = [
@@ -82,6 +83,7 @@ __all__ = [
     "refined_summary",
     "run_schedule",
     "stalls",
+    "takes_back",
     "within",
 ]
 
@@ -214,6 +216,29 @@ class Fit:
 def _change(before: CalibrationState, after: CalibrationState) -> Change:
     err = extrinsic_of(before).error_to(extrinsic_of(after))
     return Change(err["translation_m"], err["rotation_deg"], err["time_offset_s"])
+
+
+def takes_back(
+    step_from: CalibrationState, step_to: CalibrationState, after: CalibrationState
+) -> bool:
+    """Whether the round from ``step_to`` to ``after`` took back at least half of the
+    planes-free step from ``step_from`` to ``step_to``, along the step (the extrinsic's
+    coordinates in characteristic scales: 1 cm, 1 mrad, 1 ms).
+
+    The rounds hold each map's planes fixed and the step frees them: where the two disagree
+    about a weakly determined direction, each undoes the other, and a round that takes a step
+    back moves about as far as the step did, which reads as a crawl and calls for the next step
+    (an OS1-64 shake with every intrinsic estimated: 0.17 deg there and back three times, then
+    twelve rounds were up and it failed as not converged, 1.3 mm / 0.04 deg from the truth)."""
+    scale = np.r_[
+        CALIBRATION_SCALES[EXT_TRANSLATION],
+        CALIBRATION_SCALES[EXT_ROTATION],
+        CALIBRATION_SCALES[TIME_OFFSET],
+    ]
+    step = extrinsic_of(step_from).moved_to(extrinsic_of(step_to)) / scale
+    back = extrinsic_of(step_to).moved_to(extrinsic_of(after)) / scale
+    size = float(step @ step)
+    return size > 0.0 and float(back @ step) <= -0.5 * size
 
 
 def _diverged(
@@ -494,6 +519,7 @@ def run_schedule(
     previous: Change | None = None  # the change of the round before
     previous_at = np.inf  # the association distance of the round before
     crawl_steps = 0
+    step: tuple[CalibrationState, CalibrationState] | None = None  # the last step, from and to
     final = cfg.surfels.final_points_per_scan
     if final is not None:
         final = points_per_scan(cfg, len(rec.scans), final)
@@ -563,6 +589,15 @@ def run_schedule(
         # a step compares two rounds at about the configured distance: a round after a much
         # tighter association (or after a coarse round that stopped at once) moves for that
         comparable = previous if previous_at * WANDER_SHRINK <= max_dist * (1 + 1e-9) else None
+        if step is not None and before is step[1] and takes_back(*step, state):
+            # the rounds and the planes-free step disagree: this round's move is the step
+            # taken back, not a crawl, and another step would be taken back again
+            logger.info(
+                "Round %d took back the planes-free step before it; no more steps between the "
+                "rounds.",
+                index,
+            )
+            comparable, crawl_steps = None, MAX_CRAWL_STEPS
         stalled = stalls(rounds, settled=settled, steps_taken=crawl_steps)
         if stalled or (
             not settled
@@ -601,6 +636,7 @@ def run_schedule(
                     why,
                     _describe(_change(state, stepped.state)),
                 )
+                step = (state, stepped.state)
                 state, crawl_steps = stepped.state, crawl_steps + 1
                 mapped = solved = None  # both were at the round's estimate
                 if stepped.steps > 0:

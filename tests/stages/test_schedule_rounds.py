@@ -29,6 +29,7 @@ import numpy as np
 import pytest
 
 from licalib_cli.config import CalibConfig
+from licalib_cli.geometry import so3
 from licalib_cli.pipeline import checks, free_planes, schedule
 from licalib_cli.pipeline.schedule import (
     CRAWL_RATIO,
@@ -43,6 +44,7 @@ from licalib_cli.pipeline.schedule import (
     final_jump,
     initial_sd,
     stalls,
+    takes_back,
 )
 from licalib_cli.progress import NullProgress
 
@@ -183,6 +185,12 @@ def _schedule(
     monkeypatch.setattr(schedule, "refine_with_planes", refine)
     monkeypatch.setattr(schedule, "planes_free_steps_from", steps_only)
     monkeypatch.setattr(schedule, "_change", change)
+
+    def takes_back(step_from: Any, step_to: Any, after: Any) -> bool:
+        step = step_to.x_mm - step_from.x_mm
+        return step != 0.0 and (after.x_mm - step_to.x_mm) * step <= -0.5 * step**2
+
+    monkeypatch.setattr(schedule, "takes_back", takes_back)
     monkeypatch.setattr(schedule, "map_movement", lambda before, after, probe: 1e-3 * moved_mm)
     monkeypatch.setattr(schedule, "intrinsic_change", lambda before, after, report: 0.0)
     monkeypatch.setattr(schedule, "sample_points", sample_points)
@@ -244,6 +252,41 @@ def test_a_crawl_takes_a_planes_free_step_before_the_next_round(
         assert starts[f"round {k}"] == (f"step after round {k - 1}", False)
     # past the cap the rounds go on as before: each from the one before, its map kept
     assert starts["round 7"] == ("round 6", True)
+
+
+def test_a_round_that_takes_the_step_back_is_no_crawl_and_ends_the_steps(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    # rounds 1-3 crawl, the step after round 3 moves +5 mm and round 4 takes 4 mm of it back
+    # (the rounds and the step disagree): that is not a crawl, and no step follows
+    steps = [3.0, 2.4, 1.92, -4.0, 1.0, 0.3, 0.05, 0.005, 0.001, 0.001, 0.001, 0.001]
+    with caplog.at_level("INFO", logger=schedule.__name__):
+        run = _schedule(monkeypatch, lambda i, dense: steps[i - 1], lidar=False)
+    assert run.refined_from == ["round 3"]
+    assert "Round 4 took back the planes-free step before it" in caplog.text
+    assert run.fit.converged and len(run.rounds) == 8
+    # a round that goes on in the step's direction is judged as before: a crawl, another step
+    steps[3] = 4.0
+    run = _schedule(monkeypatch, lambda i, dense: steps[i - 1], lidar=False)
+    assert run.refined_from[:2] == ["round 3", "round 4"]
+
+
+def test_takes_back_measures_along_the_step_in_characteristic_scales() -> None:
+    def at(x_m: float, yaw_mrad: float) -> Any:
+        """A state with only the extrinsic: translation along x, m; yaw, mrad."""
+        return SimpleNamespace(
+            R_imu_lidar=so3.exp(np.array([0.0, 0.0, 1e-3 * yaw_mrad])),
+            t_imu_lidar=np.array([x_m, 0.0, 0.0]),
+            time_offset_s=0.0,
+        )
+
+    a, b = at(0.0, 0.0), at(0.0, 2.0)  # a step of 2 mrad in yaw
+    assert takes_back(a, b, at(0.0, 0.9))  # 1.1 of the 2 mrad back
+    assert not takes_back(a, b, at(0.0, 1.1))  # 0.9 back: less than half
+    assert not takes_back(a, b, at(0.0, 3.0))  # further on
+    # 2 mm across the step (0.2 scales) does not count as taking it back
+    assert not takes_back(a, b, at(0.002, 1.5))
+    assert not takes_back(a, a, at(0.01, 0.0))  # no step, nothing to take back
 
 
 def test_crawling_rounds_above_the_base_distance_tighten_it_then_step(
