@@ -317,8 +317,7 @@ def observable_basis(
         weak = ~keep & truncation_mask(s, params.release_floor * _absolute_threshold(s, params))
         # intrinsics start at their nominal values, known a priori to their characteristic
         # scale: a pull far beyond that is the model's error, not their information
-        bounded = _in_blocks(information.owners, params.bounded_blocks)
-        weak &= np.sum(u[bounded] ** 2, axis=0) < 0.5
+        weak &= _mostly_free(u, information.owners, params.bounded_blocks)
         pull = np.abs(u.T @ (information.scale * gradient)) / np.sqrt(np.maximum(s, 1e-300))
         released = weak & (pull >= params.release_sigmas)
         for i in np.flatnonzero(released):
@@ -338,9 +337,13 @@ def _absolute_threshold(singular_values: F64, params: LMParams) -> float:
     return params.tsvd_threshold * (float(s[0]) if params.tsvd_relative and s.size else 1.0)
 
 
-def _in_blocks(owners: Sequence[str], prefixes: Sequence[str]) -> npt.NDArray[np.bool_]:
-    """(len(owners),) whether each coordinate's block starts with one of ``prefixes``."""
-    return np.array([any(o.startswith(p) for p in prefixes) for o in owners], dtype=bool)
+def _mostly_free(
+    directions: F64, owners: Sequence[str], bounded_blocks: Sequence[str]
+) -> npt.NDArray[np.bool_]:
+    """(k,) whether each unit direction (columns of ``directions``, scaled coordinates) is made
+    mostly of coordinates outside ``bounded_blocks`` (the extrinsic, the time offset)."""
+    bounded = np.array([any(o.startswith(p) for p in bounded_blocks) for o in owners], dtype=bool)
+    return np.asarray(np.sum(directions[bounded] ** 2, axis=0) < 0.5)
 
 
 def _undamped_information(lin: Linearization) -> InformationSummary:
@@ -654,8 +657,7 @@ def observable_coordinates(
     """
     if truncated.size == 0:
         return np.ones(len(owners), dtype=bool), np.zeros(0, dtype=bool)
-    bounded = _in_blocks(owners, bounded_blocks)
-    free = np.sum(truncated[bounded] ** 2, axis=0) < 0.5
+    free = _mostly_free(truncated, owners, bounded_blocks)
     weight = np.sum(truncated[:, free] ** 2, axis=1)
     return weight < NOT_OBSERVABLE_WEIGHT, free
 
