@@ -6,8 +6,9 @@ effects named, the gap shrink of each named effect's sensor, the extrinsic error
 and the wall time; at the end a confusion table (injected against named).
 
 Targets: the right effect(s) named in every case and nothing on the clean controls; the gap of
-the effect's sensor shrinks by at least 50 %; the extrinsic after diagnosis within 0.3 cm /
-0.05 deg / 0.1 ms.
+the effect's sensor shrinks by at least 50 % once it is added (with several effects named: on
+the final fit's data, without it against with it, the others in; the row keeps both figures,
+``shrink`` and ``share``); the extrinsic after diagnosis within 0.3 cm / 0.05 deg / 0.1 ms.
 
 Examples::
 
@@ -244,6 +245,14 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
         **case,
         "named": list(diag.effects_found),
         "shrink": {s.effect: s.shrink for s in diag.steps if s.kept},
+        # with the final model's other effects in (only when it holds several): the gap of the
+        # effect's sensor without it -> with it, on the final fit's data
+        "share": {s.effect: s.share for s in diag.steps if s.kept and s.share_before is not None},
+        "share_gaps": {
+            s.effect: [s.share_before.excess, s.share_after.excess, s.share_before.sigma]
+            for s in diag.steps
+            if s.kept and s.share_before is not None and s.share_after is not None
+        },
         # rivals the bag does not tell apart from a named effect (diagnose says so)
         "not_told_apart": {s.effect: list(s.not_told_apart) for s in diag.steps if s.kept},
         # effects kept as one spread across beams (their free numbers did not pay): the spread
@@ -314,9 +323,15 @@ def judge(row: dict) -> list[str]:
                 f"{shown[0]:.2g} from which diagnose says this bag shows it in any direction{best}"
             )
     for effect, shrink in row["shrink"].items():
-        # NaN: the gap was within 3 sigma of its noise (only the score test shows the effect)
-        if effect in injected and shrink == shrink and not shrink >= 0.5:
-            misses.append(f"{effect} gap shrank {shrink:.0%}")
+        # NaN: the gap was within 3 sigma of its noise (only the score test shows the effect).
+        # With several effects named, the gap an effect closes once the others are in (its
+        # share) counts: when it was added, another effect's part of the same sensor's gap
+        # could still be open.
+        share = row.get("share", {}).get(effect)
+        closed = share if share is not None else shrink
+        if effect in injected and closed == closed and not closed >= 0.5:
+            also = f" (with the others in {share:.0%})" if share is not None else ""
+            misses.append(f"{effect} gap shrank {shrink:.0%}{also}")
     a = row["after"]
     if outside_limits(a):
         misses.append("extrinsic after diagnosis outside 0.3 cm / 0.05 deg / 0.1 ms")

@@ -160,6 +160,10 @@ def diagnosis_dict(diag: Any) -> dict[str, Any]:
                 "gap_before": _gap_dict(s.gap_before),
                 "gap_after": _gap_dict(s.gap_after),
                 "gap_shrink": _num(s.shrink, 3),
+                # with the final model's other effects in: without it -> with it
+                "share_gap_before": _gap_dict(s.share_before) if s.share_before else None,
+                "share_gap_after": _gap_dict(s.share_after) if s.share_after else None,
+                "share_shrink": _num(s.share, 3),
                 "extrinsic_moved": {
                     "translation_m": _num(s.moved_translation_m),
                     "rotation_deg": _num(s.moved_rotation_deg),
@@ -239,6 +243,17 @@ def _residuals(run: Any, twin: Any) -> list[dict[str, Any]]:
     return out
 
 
+def _gap_text(s: Any) -> str:
+    """A step's gap before and after it, and with the final model's other effects in."""
+    text = f"{s.gap_before.sensor}: {s.gap_before.excess:+.3f} -> {s.gap_after.excess:+.3f}"
+    if s.share_before is not None and s.share_after is not None:
+        text += (
+            f"; with the other effects in {s.share_before.excess:+.3f} -> "
+            f"{s.share_after.excess:+.3f}"
+        )
+    return text
+
+
 def _gap_dict(g: Any) -> dict[str, Any]:
     out = {
         "sensor": g.sensor,
@@ -314,7 +329,7 @@ def render_diagnosis(diag: Any) -> None:
             p_text(s.p_value, 1),
             f"{s.delta_bic:+.0f}"
             + (f", spread {s.spread_delta_bic:+.0f}" if math.isfinite(s.spread) else ""),
-            f"{s.gap_before.sensor}: {s.gap_before.excess:+.3f} -> {s.gap_after.excess:+.3f}",
+            _gap_text(s),
             f"{1e3 * s.moved_translation_m:.2f} mm / {s.moved_rotation_deg:.4f} deg / "
             f"{1e3 * s.moved_time_offset_s:.3f} ms",
             "yes" if s.kept else ("dropped" if s.dropped_for else "no"),

@@ -222,3 +222,65 @@ def test_the_spread_is_said_and_written() -> None:
     )
     assert failed.unpaid is not None  # the free numbers' explanation still holds
     assert spread_sentence(_step()) is None and _spread_dict(_step()) is None
+
+
+def _steps_dict(monkeypatch: pytest.MonkeyPatch, *steps: DiagnosisStep) -> list[dict]:
+    """``diagnosis_dict``'s steps of a diagnosis made of ``steps``."""
+    from types import SimpleNamespace
+
+    import licalib_cli.commands.diagnose as cmd
+
+    diag = SimpleNamespace(
+        steps=steps,
+        not_shown=(),
+        effects_found=(),
+        base=SimpleNamespace(verdict=SimpleNamespace(status="warn")),
+        final=SimpleNamespace(
+            verdict=SimpleNamespace(status="pass"),
+            result=SimpleNamespace(to_dict=lambda: {}),
+        ),
+        base_twin=None,
+        final_twin=None,
+    )
+    monkeypatch.setattr(cmd, "_residuals", lambda run, twin: {})
+    return list(diagnosis_dict(diag)["steps"])
+
+
+def test_a_share_is_the_gap_an_effect_closes_with_the_others_in(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """1437's elevation: added before the gyro rotation it closed 15 % of a LiDAR gap that was
+    mostly the rotation's; with the rotation in, taking it out reopens a gap it closes whole."""
+    from licalib_cli.commands.diagnose import _gap_text
+
+    n = 300_000
+    step = _step(
+        effect="lidar_elevation",
+        kept=True,
+        gap_before=Gap("lidar", 1.303, 1.0, 0.02, twin_chi2_per_sample=0.973, samples=n),
+        gap_after=Gap("lidar", 1.252, 1.0, 0.02, twin_chi2_per_sample=0.973, samples=n),
+    )
+    assert step.shrink == pytest.approx(1.0 - 0.279 / 0.330, abs=1e-3)
+    assert math.isnan(step.share)  # no other effect in the final model
+    (alone,) = _steps_dict(monkeypatch, step)
+    assert alone["share_gap_before"] is None and alone["share_shrink"] is None
+    assert _gap_text(step) == "lidar: +0.330 -> +0.279"
+    shared = replace(
+        step,
+        share_before=Gap("lidar", 1.04, 1.0, 0.01, twin_chi2_per_sample=0.973, samples=n),
+        share_after=Gap("lidar", 0.97, 1.0, 0.01, twin_chi2_per_sample=0.973, samples=n),
+    )
+    assert shared.share == pytest.approx(1.0)  # its excess below the twin's: all closed
+    assert shared.share_after is not None and shared.share_before is not None
+    half = replace(shared, share_after=replace(shared.share_after, chi2_per_sample=1.0065))
+    assert half.share == pytest.approx(0.5, abs=1e-3)
+    # a gap within three of its noise sigmas cannot be seen to close
+    within = replace(shared, share_before=replace(shared.share_before, chi2_per_sample=0.9745))
+    assert math.isnan(within.share)
+    assert _gap_text(shared) == (
+        "lidar: +0.330 -> +0.279; with the other effects in +0.067 -> -0.003"
+    )
+    (row,) = _steps_dict(monkeypatch, shared)
+    assert row["share_shrink"] == pytest.approx(1.0)
+    assert row["share_gap_before"]["excess"] == pytest.approx(0.067)
+    assert row["gap_shrink"] == pytest.approx(0.155, abs=1e-3)

@@ -467,3 +467,49 @@ def test_an_effect_taken_out_is_back_at_its_starting_value_and_nothing_else_move
     # the effect had moved (the test would pass on a no-op otherwise)
     assert any(before[n] != nominal[n] for n in before if _of_effect(n, effect))
     assert out.so3_spline is fitted.so3_spline
+
+
+def test_each_effect_of_a_final_model_with_several_gets_its_share_of_its_sensors_gap(
+    tmp_path: Path,
+) -> None:
+    """A gyro scale and an accelerometer scale hidden together: on the final fit with both, each
+    taken out (the other re-solved) reopens its own sensor's gap, and both close it."""
+    from dataclasses import replace
+
+    from licalib_cli.config import load_config
+    from licalib_cli.pipeline import Timer, fit_and_check, prepare
+    from licalib_cli.pipeline.diagnose import _gap, _with_effects, final_shares
+    from licalib_cli.progress import NullProgress
+
+    bag = _bag(
+        tmp_path,
+        ImuIntrinsics(
+            gyro_scale=np.array([1.004, 0.996, 1.003]),
+            accel_scale=np.array([1.006, 0.994, 1.005]),
+        ),
+    )
+    cfg = load_config(CONFIG)
+    progress, timer = NullProgress(), Timer()
+    base_cfg = _with_effects(cfg, ())
+    prepared = prepare(bag, base_cfg, progress, timer)
+    base = fit_and_check(prepared, prepared.guess, base_cfg, progress, timer)
+    kept = ("gyro_scale", "accel_scale")
+    start = replace(prepared.guess, state=base.state)
+    run = fit_and_check(prepared, start, _with_effects(cfg, kept), progress, timer, warm=True)
+    rate = 400.0
+    shares = final_shares(run, None, kept, base.state, cfg, rate)
+    assert set(shares) == set(kept)
+    for effect, sensor in (("gyro_scale", "gyro"), ("accel_scale", "accelerometer")):
+        without, with_it = shares[effect]
+        assert without.sensor == with_it.sensor == sensor
+        # taken out, its sensor's gap is back near the base fit's (which lacked both)
+        assert without.excess > 3.0 * without.sigma
+        reopened = _gap(base, sensor, cfg, rate, None).excess
+        assert 0.5 * reopened < without.excess < 1.5 * reopened
+        # in, it closes most of it; the same checks as the final fit's own
+        assert max(with_it.excess, 0.0) < 0.3 * without.excess
+        assert with_it.chi2_per_sample == pytest.approx(
+            _gap(run, sensor, cfg, rate, None).chi2_per_sample, rel=1e-3
+        )
+    # one effect: its own step measured the same, nothing to share
+    assert final_shares(run, None, ("gyro_scale",), base.state, cfg, rate) == {}
