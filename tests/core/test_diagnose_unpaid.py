@@ -131,16 +131,16 @@ def test_nothing_is_explained_for_an_effect_that_paid_was_dropped_or_was_not_sig
     assert unpaid_effect(600.0, 0, 64, 12.0, 1e-9) is None
 
 
-def test_the_diagnosis_file_carries_it(monkeypatch: pytest.MonkeyPatch) -> None:
+def _steps_dict(monkeypatch: pytest.MonkeyPatch, *steps: DiagnosisStep) -> list[dict]:
+    """``diagnosis_dict``'s steps of a diagnosis made of ``steps``."""
     from types import SimpleNamespace
 
     import licalib_cli.commands.diagnose as cmd
 
-    paid = _step(kept=True, delta_bic=-30.0)
     diag = SimpleNamespace(
-        steps=(paid, _step()),
+        steps=steps,
         not_shown=(),
-        effects_found=("lidar_range_scale",),
+        effects_found=(),
         base=SimpleNamespace(verdict=SimpleNamespace(status="warn")),
         final=SimpleNamespace(
             verdict=SimpleNamespace(status="pass"),
@@ -150,7 +150,12 @@ def test_the_diagnosis_file_carries_it(monkeypatch: pytest.MonkeyPatch) -> None:
         final_twin=None,
     )
     monkeypatch.setattr(cmd, "_residuals", lambda run, twin: {})
-    first, second = diagnosis_dict(diag)["steps"]
+    return list(diagnosis_dict(diag)["steps"])
+
+
+def test_the_diagnosis_file_carries_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    paid = _step(kept=True, delta_bic=-30.0)
+    first, second = _steps_dict(monkeypatch, paid, _step())
     assert first["unpaid"] is None and first["spread"] is None
     assert second["unpaid"]["coordinates"] == 64
     assert second["unpaid"]["bic_penalty_per_coordinate"] == 12.0
@@ -222,28 +227,6 @@ def test_the_spread_is_said_and_written() -> None:
     )
     assert failed.unpaid is not None  # the free numbers' explanation still holds
     assert spread_sentence(_step()) is None and _spread_dict(_step()) is None
-
-
-def _steps_dict(monkeypatch: pytest.MonkeyPatch, *steps: DiagnosisStep) -> list[dict]:
-    """``diagnosis_dict``'s steps of a diagnosis made of ``steps``."""
-    from types import SimpleNamespace
-
-    import licalib_cli.commands.diagnose as cmd
-
-    diag = SimpleNamespace(
-        steps=steps,
-        not_shown=(),
-        effects_found=(),
-        base=SimpleNamespace(verdict=SimpleNamespace(status="warn")),
-        final=SimpleNamespace(
-            verdict=SimpleNamespace(status="pass"),
-            result=SimpleNamespace(to_dict=lambda: {}),
-        ),
-        base_twin=None,
-        final_twin=None,
-    )
-    monkeypatch.setattr(cmd, "_residuals", lambda run, twin: {})
-    return list(diagnosis_dict(diag)["steps"])
 
 
 def test_a_share_is_the_gap_an_effect_closes_with_the_others_in(
