@@ -6,9 +6,10 @@ effects named, the gap shrink of each named effect's sensor, the extrinsic error
 and the wall time; at the end a confusion table (injected against named).
 
 Targets: the right effect(s) named in every case and nothing on the clean controls; the gap of
-the effect's sensor shrinks by at least 50 % once it is added (with several effects named: on
-the final fit's data, without it against with it, the others in; the row keeps both figures,
-``shrink`` and ``share``); the extrinsic after diagnosis within 0.3 cm / 0.05 deg / 0.1 ms.
+the effect's sensor shrinks by at least 50 % once it is added (with several effects named, an
+effect whose own step closed less counts with the others in: the final model refitted without
+it against the final fit; the row keeps both, ``shrink`` and ``share``); the extrinsic after
+diagnosis within 0.3 cm / 0.05 deg / 0.1 ms.
 
 Examples::
 
@@ -245,8 +246,8 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
         **case,
         "named": list(diag.effects_found),
         "shrink": {s.effect: s.shrink for s in diag.steps if s.kept},
-        # with the final model's other effects in (only when it holds several): the gap of the
-        # effect's sensor without it -> with it, on the final fit's data
+        # with the final model's other effects in (when it holds several and the effect's own
+        # step closed less than half): its sensor's gap refitted without it -> the final fit's
         "share": {s.effect: s.share for s in diag.steps if s.kept and s.share_before is not None},
         "share_gaps": {
             s.effect: [s.share_before.excess, s.share_after.excess, s.share_before.sigma]

@@ -60,7 +60,7 @@ from licalib_cli.consistency.power import (
 )
 from licalib_cli.consistency.score import EffectScore
 from licalib_cli.consistency.spread import SharedSpread, shared_spread
-from licalib_cli.estimation import CalibrationState, intrinsic_coordinates, state_from_problem
+from licalib_cli.estimation import CalibrationState, intrinsic_coordinates
 from licalib_cli.pipeline import (
     CalibrationRun,
     Prepared,
@@ -68,12 +68,11 @@ from licalib_cli.pipeline import (
     fit_and_check,
     prepare,
 )
-from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, sensor_checks
+from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.settings import free_parameters, lm_params
 from licalib_cli.pipeline.twin import TWIN_ITERATIONS, Twin, twin_checks
 from licalib_cli.progress import NullProgress, Progress
-from licalib_cli.sections import SensorCheck
 from licalib_cli.solver.lm import solve
 
 __all__ = [
@@ -249,10 +248,10 @@ class DiagnosisStep:
             and ``estimate``, the gaps and the moves are the spread's refit's.
         spread_delta_bic: the BIC change of that refit (one parameter, the spread; NaN when
             not tried).
-        share_before: when the final model holds other effects too, the gap of its sensor on
-            the final fit's data with this effect taken out and the rest re-solved
-            (:func:`final_shares`); None otherwise.
-        share_after: ... and with it in (the final fit), on the same footing.
+        share_before: when the final model holds other effects too and this step closed less
+            than :data:`SHARE_BELOW` of its sensor's gap, that sensor's gap on the final model
+            refitted without this effect (:func:`share_of`); None otherwise.
+        share_after: ... and on the final fit, against the same twin.
     """
 
     effect: str
@@ -305,9 +304,9 @@ class DiagnosisStep:
 
     @property
     def share(self) -> float:
-        """Fraction of its sensor's gap on the final fit's data that the effect closes with the
-        final model's other effects in (:attr:`share_before` -> :attr:`share_after`, as
-        :attr:`shrink`); NaN when the final model has no other effect, or without such a gap.
+        """Fraction of its sensor's gap that the effect closes with the final model's other
+        effects in (:attr:`share_before` -> :attr:`share_after`, as :attr:`shrink`); NaN when
+        not measured (:data:`SHARE_BELOW`) or without such a gap.
 
         :attr:`shrink` measures the effect when it was added, against whatever the model then
         lacked: a per-beam elevation added before a gyro-to-IMU rotation of 4.5 deg closed 15 %
@@ -509,31 +508,19 @@ def _gap(
 ) -> Gap:
     consistency = run.result.consistency
     assert consistency is not None
-    check = next(c for c in consistency.sensors if c.sensor == sensor)
-    entropy = run.rounds[-1].map_entropy if sensor == "lidar" else float("nan")
-    return _gap_of(check, cfg, imu_rate_hz, twin, entropy)
-
-
-def _gap_of(
-    check: SensorCheck,
-    cfg: CalibConfig,
-    imu_rate_hz: float,
-    twin: Twin | None,
-    map_entropy: float = float("nan"),
-) -> Gap:
-    """The gap of one sensor's check, against ``twin``'s figure for that sensor."""
-    t = twin.sensor(check.sensor) if twin is not None else None
+    s = next(c for c in consistency.sensors if c.sensor == sensor)
+    t = twin.sensor(sensor) if twin is not None else None
     nan = float("nan")
     return Gap(
-        sensor=check.sensor,
-        chi2_per_sample=check.chi2_per_sample,
-        expected=_expected_chi2(check.sensor, cfg, imu_rate_hz),
-        rms=check.rms,
-        map_entropy=map_entropy,
+        sensor=sensor,
+        chi2_per_sample=s.chi2_per_sample,
+        expected=_expected_chi2(sensor, cfg, imu_rate_hz),
+        rms=s.rms,
+        map_entropy=run.rounds[-1].map_entropy if sensor == "lidar" else nan,
         twin_chi2_per_sample=t.chi2_per_sample if t is not None else nan,
         twin_spread=t.chi2_spread if t is not None else nan,
         twin_rms=t.rms if t is not None else nan,
-        samples=int(check.samples),
+        samples=int(s.samples),
     )
 
 
@@ -602,11 +589,6 @@ def with_effect(cfg: CalibConfig, effect: str) -> CalibConfig:
     return cfg.model_copy(update={"model": cfg.model.model_copy(update=update)})
 
 
-REFIT_ITERATIONS = 4
-"""Solver iterations of a model re-solved on another fit's data (the BIC's comparisons, the
-shares of the final model's effects)."""
-
-
 def _sum_of_squares(run: CalibrationRun, cfg: CalibConfig, refit: bool) -> tuple[float, int, int]:
     """``(sum r^2, residuals, free parameters)`` of ``run``'s model on ``run``'s final data.
 
@@ -615,7 +597,7 @@ def _sum_of_squares(run: CalibrationRun, cfg: CalibConfig, refit: bool) -> tuple
     free = free_parameters(cfg, bool(cfg.model.imu or cfg.model.lidar))
     problem = run.fit.inputs.problem(run.state, free=free)
     if refit:
-        report = solve(problem, lm_params(cfg, max_iterations=REFIT_ITERATIONS))
+        report = solve(problem, lm_params(cfg, max_iterations=4))
         cost = report.final_cost
         n_res, n_free = report.num_residuals, report.num_parameters
     else:
@@ -798,63 +780,37 @@ def _deltas_without(
     return deltas
 
 
-def without_resolved(
+SHARE_BELOW = 0.5
+"""A kept effect whose own step closed less than this fraction of its sensor's gap gets its
+share on the final model (:func:`share_of`) when that model holds other effects too."""
+
+
+def wants_share(step: DiagnosisStep, kept: tuple[str, ...]) -> bool:
+    """Whether a step's effect gets its share on the final model of the effects ``kept``: it is
+    one of several there and its own step closed less than :data:`SHARE_BELOW` of its
+    sensor's gap (a gap within its noise has no shrink, and no share either)."""
+    return len(kept) >= 2 and step.kept and step.effect in kept and step.shrink < SHARE_BELOW
+
+
+def share_of(
     run: CalibrationRun,
-    kept: tuple[str, ...],
+    without: CalibrationRun,
     effect: str,
-    start: CalibrationState,
-    cfg: CalibConfig,
-) -> CalibrationState:
-    """``run``'s estimate with ``effect`` taken out (back at its value in ``start``, the base
-    fit) and the rest of ``run``'s model (the effects ``kept``) re-solved on ``run``'s final
-    data, as the BIC's comparisons do (:data:`REFIT_ITERATIONS`)."""
-    rest = _with_effects(cfg, tuple(e for e in kept if e != effect))
-    state = without_effect(run.state, effect, start)
-    free = free_parameters(rest, bool(rest.model.imu or rest.model.lidar))
-    problem = run.fit.inputs.problem(state, free=free)
-    solve(problem, lm_params(rest, max_iterations=REFIT_ITERATIONS))
-    return state_from_problem(state, problem)
-
-
-def final_shares(
-    run: CalibrationRun,
-    twin: Twin | None,
-    kept: tuple[str, ...],
-    start: CalibrationState,
     cfg: CalibConfig,
     imu_rate_hz: float,
-) -> dict[str, tuple[Gap, Gap]]:
-    """Per effect of a final model that holds more than one: the gap of its sensor on the final
-    fit's data without it (:func:`without_resolved`) and with it (the final fit), both from
-    the same residual checks and against the final fit's twin. Empty for fewer than two
-    effects: the step that added the one then measured the same.
+    twin: Twin | None,
+) -> tuple[Gap, Gap]:
+    """The gap of ``effect``'s sensor on the final model without it (``without``: the final fit
+    refitted from its estimate with the effect taken out, its map rebuilt) and with it (``run``,
+    the final fit), both against the final fit's twin.
 
     An effect's own step measures its gap against what the model lacked when it was added; an
     effect added later that moves the same residuals (a gyro-to-IMU rotation bends the
-    trajectory every LiDAR point is mapped with) leaves the earlier one's step with little of
-    the gap to close. This is its share with the others in.
+    trajectory every LiDAR point is mapped with) leaves the earlier one's step little of the
+    gap to close. This is what it closes with the others in.
     """
-    if len(kept) < 2:
-        return {}
-    inputs, noise = run.fit.inputs, run.noise
-
-    def gap(state: CalibrationState, sensor: str) -> Gap:
-        check = next(c for c in sensor_checks(state, inputs, noise) if c.sensor == sensor)
-        return _gap_of(check, cfg, imu_rate_hz, twin)
-
-    out = {}
-    for effect in kept:
-        sensor = CANDIDATES[effect][2]
-        without = without_resolved(run, kept, effect, start, cfg)
-        out[effect] = (gap(without, sensor), gap(run.state, sensor))
-        logger.info(
-            "Diagnose: with the other effects in, %s's %s gap is %.3f without it and %.3f with it.",
-            effect,
-            sensor,
-            out[effect][0].excess,
-            out[effect][1].excess,
-        )
-    return out
+    sensor = CANDIDATES[effect][2]
+    return _gap(without, sensor, cfg, imu_rate_hz, twin), _gap(run, sensor, cfg, imu_rate_hz, twin)
 
 
 def drop_redundant(
@@ -1129,14 +1085,19 @@ def diagnose(
             assert step.after is not None
             run, run_twin = step.after, step.after_twin
 
+    def fit_without(effects: tuple[str, ...], effect: str) -> CalibrationRun:
+        # the model of ``effects`` but ``effect``, refitted from the current fit's estimate
+        rest = tuple(e for e in effects if e != effect)
+        start = replace(prepared.guess, state=without_effect(run.state, effect, base.state))
+        return fit_and_check(prepared, start, _with_effects(cfg, rest), progress, timer, warm=True)
+
     def refit_without(effects: tuple[str, ...], effect: str) -> None:
         nonlocal run, run_twin
         rest = tuple(e for e in effects if e != effect)
         logger.info(
             "Diagnose: %s explains nothing %s does not; refit without it.", effect, ", ".join(rest)
         )
-        start = replace(prepared.guess, state=without_effect(run.state, effect, base.state))
-        run = fit_and_check(prepared, start, _with_effects(cfg, rest), progress, timer, warm=True)
+        run = fit_without(effects, effect)
         run_twin = twin_of(run, cfg)
 
     dropped = drop_redundant(
@@ -1150,7 +1111,21 @@ def diagnose(
         i = next(i for i, t in enumerate(steps) if t.effect == effect and t.kept)
         steps[i] = replace(steps[i], kept=False, dropped_for=later, drop_delta_bic=delta)
         kept = tuple(e for e in kept if e != effect)
-    shares = final_shares(run, run_twin, kept, base.state, cfg, rate)
+    shares: dict[str, tuple[Gap, Gap]] = {}
+    for t in steps:
+        if wants_share(t, kept):
+            with timer.stage("share", progress):
+                without = fit_without(kept, t.effect)
+            shares[t.effect] = share_of(run, without, t.effect, cfg, rate, run_twin)
+            logger.info(
+                "Diagnose: %s closed %.0f %% of the %s gap when it was added; with the other "
+                "effects in, the gap is %.3f without it and %.3f with it.",
+                t.effect,
+                100 * t.shrink,
+                t.gap_before.sensor,
+                shares[t.effect][0].excess,
+                shares[t.effect][1].excess,
+            )
     progress.close()
     final_p = {e.score.name: float(e.score.p_value) for e in run.effects}
     steps = [

@@ -267,3 +267,24 @@ def test_a_share_is_the_gap_an_effect_closes_with_the_others_in(
     assert row["share_shrink"] == pytest.approx(1.0)
     assert row["share_gap_before"]["excess"] == pytest.approx(0.067)
     assert row["gap_shrink"] == pytest.approx(0.155, abs=1e-3)
+
+
+def test_a_share_is_measured_for_a_step_that_closed_less_than_half_among_several() -> None:
+    from licalib_cli.pipeline.diagnose import wants_share
+
+    n = 300_000
+    low = _step(
+        effect="lidar_elevation",
+        kept=True,
+        gap_before=Gap("lidar", 1.303, 1.0, 0.02, twin_chi2_per_sample=0.973, samples=n),
+        gap_after=Gap("lidar", 1.252, 1.0, 0.02, twin_chi2_per_sample=0.973, samples=n),
+    )
+    pair = ("lidar_elevation", "gyro_rotation")
+    assert wants_share(low, pair)
+    assert not wants_share(low, ("lidar_elevation",))  # alone: its step measured the same
+    assert not wants_share(low, ("gyro_rotation", "gyro_scale"))  # dropped from the model
+    assert not wants_share(replace(low, kept=False), pair)
+    closed = replace(low, gap_after=replace(low.gap_after, chi2_per_sample=0.98))
+    assert not wants_share(closed, pair)  # its own step closed it
+    quiet = replace(low, gap_before=replace(low.gap_before, chi2_per_sample=0.975))
+    assert math.isnan(quiet.shrink) and not wants_share(quiet, pair)  # no gap to share
