@@ -229,6 +229,16 @@ def test_the_spread_is_said_and_written() -> None:
     assert spread_sentence(_step()) is None and _spread_dict(_step()) is None
 
 
+def _elevation_step(n: int = 300_000) -> DiagnosisStep:
+    """1437's per-beam elevation step: added first, it closed 15 % of the LiDAR gap."""
+    return _step(
+        effect="lidar_elevation",
+        kept=True,
+        gap_before=Gap("lidar", 1.303, 1.0, 0.02, twin_chi2_per_sample=0.973, samples=n),
+        gap_after=Gap("lidar", 1.252, 1.0, 0.02, twin_chi2_per_sample=0.973, samples=n),
+    )
+
+
 def test_a_share_is_the_gap_an_effect_closes_with_the_others_in(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -237,12 +247,7 @@ def test_a_share_is_the_gap_an_effect_closes_with_the_others_in(
     from licalib_cli.commands.diagnose import _gap_text
 
     n = 300_000
-    step = _step(
-        effect="lidar_elevation",
-        kept=True,
-        gap_before=Gap("lidar", 1.303, 1.0, 0.02, twin_chi2_per_sample=0.973, samples=n),
-        gap_after=Gap("lidar", 1.252, 1.0, 0.02, twin_chi2_per_sample=0.973, samples=n),
-    )
+    step = _elevation_step(n)
     assert step.shrink == pytest.approx(1.0 - 0.279 / 0.330, abs=1e-3)
     assert math.isnan(step.share)  # no other effect in the final model
     (alone,) = _steps_dict(monkeypatch, step)
@@ -272,13 +277,7 @@ def test_a_share_is_the_gap_an_effect_closes_with_the_others_in(
 def test_a_share_is_measured_for_a_step_that_closed_less_than_half_among_several() -> None:
     from licalib_cli.pipeline.diagnose import wants_share
 
-    n = 300_000
-    low = _step(
-        effect="lidar_elevation",
-        kept=True,
-        gap_before=Gap("lidar", 1.303, 1.0, 0.02, twin_chi2_per_sample=0.973, samples=n),
-        gap_after=Gap("lidar", 1.252, 1.0, 0.02, twin_chi2_per_sample=0.973, samples=n),
-    )
+    low = _elevation_step()
     pair = ("lidar_elevation", "gyro_rotation")
     assert wants_share(low, pair)
     assert not wants_share(low, ("lidar_elevation",))  # alone: its step measured the same
