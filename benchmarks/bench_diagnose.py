@@ -303,6 +303,7 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
         "duration_s": duration,
         "verdict_before": diag.base.verdict.status,
         "verdict_after": diag.final.verdict.status,
+        "reasons_after": list(diag.final.verdict.reasons),
         "seconds": wall,
     }
 
