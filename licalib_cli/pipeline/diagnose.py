@@ -1111,31 +1111,25 @@ def diagnose(
         i = next(i for i, t in enumerate(steps) if t.effect == effect and t.kept)
         steps[i] = replace(steps[i], kept=False, dropped_for=later, drop_delta_bic=delta)
         kept = tuple(e for e in kept if e != effect)
-    shares: dict[str, tuple[Gap, Gap]] = {}
-    for t in steps:
+    for i, t in enumerate(steps):
         if wants_share(t, kept):
             with timer.stage("share", progress):
                 without = fit_without(kept, t.effect)
-            shares[t.effect] = share_of(run, without, t.effect, cfg, rate, run_twin)
+            before, after = share_of(run, without, t.effect, cfg, rate, run_twin)
+            steps[i] = replace(t, share_before=before, share_after=after)
             logger.info(
                 "Diagnose: %s closed %.0f %% of the %s gap when it was added; with the other "
                 "effects in, the gap is %.3f without it and %.3f with it.",
                 t.effect,
                 100 * t.shrink,
                 t.gap_before.sensor,
-                shares[t.effect][0].excess,
-                shares[t.effect][1].excess,
+                before.excess,
+                after.excess,
             )
     progress.close()
     final_p = {e.score.name: float(e.score.p_value) for e in run.effects}
     steps = [
         replace(t, final_p_value=final_p.get(t.effect, float("nan"))) if not t.kept else t
-        for t in steps
-    ]
-    steps = [
-        replace(t, share_before=shares[t.effect][0], share_after=shares[t.effect][1])
-        if t.kept and t.effect in shares
-        else t
         for t in steps
     ]
     return Diagnosis(
