@@ -11,9 +11,9 @@
    effect belongs to: an IMU scale is determined by some 10^4 IMU residuals, not by the 10^5
    LiDAR points that dominate the total (with the total, an IMU effect with three parameters
    needed a cost decrease of 38 where its score test was significant from 26).
-   A close rival of the same sensor is refitted as well and compared with it on the same
-   data (:func:`_rival_delta_bic`); a pair that neither score test separates is reported as
-   not told apart (:func:`not_told_apart`).
+   A close rival (of the same sensor, or one of :data:`ALIKE`) is refitted as well and
+   compared with it on the same data (:func:`_rival_delta_bic`); a pair that neither score
+   test separates is reported as not told apart (:func:`not_told_apart`).
    A per-beam effect whose free numbers do not pay (each pays ``ln n``) is refitted once more
    as one random effect across beams: its numbers drawn from ``N(0, s^2)`` with the spread
    ``s`` that best explains its score (:mod:`licalib_cli.consistency.spread`, set in
@@ -68,7 +68,7 @@ from licalib_cli.pipeline import (
     fit_and_check,
     prepare,
 )
-from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE
+from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.settings import free_parameters, lm_params
 from licalib_cli.pipeline.twin import TWIN_ITERATIONS, Twin, twin_checks
@@ -84,10 +84,12 @@ __all__ = [
     "DiagnosisStep",
     "Gap",
     "NotShown",
+    "alike",
     "detectable_rms",
     "diagnose",
     "drop_redundant",
     "final_config",
+    "rivals_of",
     "spread_worth_trying",
     "twin_of",
     "with_effect",
@@ -897,11 +899,44 @@ def pick_rival(delta_bic: Sequence[float], rival_bic: Sequence[float]) -> int:
 
 
 RIVAL_FRACTION = 0.3
-"""A candidate of the same sensor whose score per degree of freedom is at least this fraction
+"""A rival candidate (:func:`alike`) whose score per degree of freedom is at least this fraction
 of the strongest one's is refitted as well; among those that pay, the lower BIC on the same data
 wins (:func:`pick_rival`)."""
 
 MAX_RIVALS = 1
+
+ALIKE: tuple[frozenset[str], ...] = (frozenset({"gyro_rotation", "accel_misalignment"}),)
+"""Candidates of different sensors that explain the same thing, and so are rivals too: a gyro
+triad rotated against the accelerometer's (``R_wI``) looks, with the extrinsic rotation
+re-estimated, like an accelerometer triad rotated against the gyro's, which its misalignment
+partly mimics. On an OS1-64 sinusoid with a 2.9 deg gyro rotation and per-beam elevations (bag
+1837 of ``bench_diagnose.py --first-seed 1800``) the accelerometer misalignment's score (3100 on
+3 degrees of freedom) led the rotation's after the elevations, so it was added first and the
+rotation after it. In one run the backward check dropped it again (BIC +7.2 without it); in
+another the model holding both, with the extrinsic rotation, did not converge (15 mm / 0.17 deg
+off, FAIL) and the misalignment stayed. Refitted as rivals, the two are compared on the same
+data at one step."""
+
+
+def alike(a: str, b: str) -> bool:
+    """Whether candidates ``a`` and ``b`` are rivals at a step: they close the gap of the same
+    sensor, or they are a pair of :data:`ALIKE`."""
+    return CANDIDATES[a][2] == CANDIDATES[b][2] or frozenset((a, b)) in ALIKE
+
+
+def rivals_of(best: EffectEvidence, options: Sequence[EffectEvidence]) -> list[EffectEvidence]:
+    """The rivals refitted with ``best`` at a step: at most :data:`MAX_RIVALS` of ``options``
+    :func:`alike` it with a score per degree of freedom (each on its own) at least
+    :data:`RIVAL_FRACTION` of its, the strongest first."""
+    per_dof = best.statistic_alone / max(best.score.rank, 1)
+    rivals = [
+        e
+        for e in options
+        if e is not best
+        and alike(e.score.name, best.score.name)
+        and e.statistic_alone / max(e.score.rank, 1) >= RIVAL_FRACTION * per_dof
+    ]
+    return sorted(rivals, key=lambda e: -e.statistic_alone)[:MAX_RIVALS]
 
 
 def _try_effect(
@@ -1029,19 +1064,11 @@ def diagnose(
             break
         # The forward selection's first pick (conditional tests) when it is allowed here, else
         # the most significant on its own; a close rival (a per-beam range scale against a
-        # range offset in a room seen at similar ranges) is refitted too and the BIC on the same
-        # data decides.
+        # range offset in a room seen at similar ranges, a gyro rotation against an
+        # accelerometer misalignment) is refitted too and the BIC on the same data decides.
         picked = [e for e in significant if e.selected]
         best = picked[0] if picked else min(significant, key=lambda e: e.score.p_value)
-        per_dof = best.statistic_alone / max(best.score.rank, 1)
-        rivals = [
-            e
-            for e in options
-            if e is not best
-            and CANDIDATES[e.score.name][2] == CANDIDATES[best.score.name][2]
-            and e.statistic_alone / max(e.score.rank, 1) >= RIVAL_FRACTION * per_dof
-        ]
-        rivals = sorted(rivals, key=lambda e: -e.statistic_alone)[:MAX_RIVALS]
+        rivals = rivals_of(best, options)
         trials = [
             _try_effect(e, run, run_twin, kept, prepared, cfg, progress, timer, rate)
             for e in [best, *rivals]

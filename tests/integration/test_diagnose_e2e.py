@@ -371,6 +371,42 @@ def test_rivals_are_compared_on_the_same_data_and_an_indistinguishable_pair_is_n
     assert not not_told_apart(offset_of_offset_bag, scale_of_offset_bag)
 
 
+def _evidence(name: str, alone: float, rank: int) -> Any:
+    from types import SimpleNamespace
+
+    from licalib_cli.consistency import EffectScore
+
+    z = np.zeros(rank)
+    return SimpleNamespace(
+        score=EffectScore(name, alone, rank, 0.0, z, z, z, z), statistic_alone=alone
+    )
+
+
+def test_a_gyro_rotation_and_an_accelerometer_misalignment_are_refitted_as_rivals() -> None:
+    """Bag 1837 (OS1-64 sinusoid, 2.9 deg gyro rotation and per-beam elevations): after the
+    elevations the accelerometer misalignment led (3100 on 3 degrees of freedom) and the gyro
+    rotation (about 2000) belongs to another sensor; the two explain the same relative rotation
+    of the triads and are refitted together. Rivals of another sensor otherwise are not."""
+    from licalib_cli.pipeline.diagnose import alike, rivals_of
+
+    misalignment = _evidence("accel_misalignment", 3100.0, 3)
+    rotation = _evidence("gyro_rotation", 2000.0, 3)
+    g_sens = _evidence("g_sensitivity", 1200.0, 9)  # the gyro's too, but weaker per dof
+    accel_scale = _evidence("accel_scale", 2900.0, 3)  # the accelerometer's: closer per dof
+    weak = _evidence("accel_bias_walk", 10.0, 3)
+    options = [misalignment, rotation, g_sens, weak]
+    assert rivals_of(misalignment, options) == [rotation]
+    assert rivals_of(rotation, options) == [misalignment]
+    # the strongest rival first, at most one
+    assert rivals_of(misalignment, [*options, accel_scale]) == [accel_scale]
+    # the gyro scale and the accelerometer scale are not rivals, nor the rotation and a scale
+    assert alike("gyro_rotation", "accel_misalignment")
+    assert not alike("gyro_scale", "accel_scale") and not alike("gyro_rotation", "accel_scale")
+    assert rivals_of(_evidence("accel_scale", 100.0, 3), [_evidence("gyro_scale", 90.0, 3)]) == []
+    # a rival far weaker per degree of freedom is not refitted
+    assert rivals_of(misalignment, [misalignment, _evidence("gyro_rotation", 500.0, 3)]) == []
+
+
 def test_an_effect_the_later_ones_explain_is_dropped_again() -> None:
     """The backward check: on a VLP-16 sinusoid with a rotated gyro the forward selection added
     an accelerometer misalignment and scale before the gyro rotation; with the rotation in, the
