@@ -385,7 +385,9 @@ def _observability(report: SolverReport, prior: Mapping[str, float]) -> list[Fin
             Finding(
                 "fail",
                 f"The data determine only {n_observable} of the {len(ext)} extrinsic "
-                "coordinates; the result is mostly the initial guess. "
+                "coordinates: each of the others lies partly along a direction the data do not "
+                "determine (listed below), where the estimate is where the fit left it, not a "
+                "measurement. "
                 + (
                     f"The extrinsic rotation trades off with {_blocks_said(partners)} (below)."
                     if partners
