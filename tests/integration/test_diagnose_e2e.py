@@ -385,8 +385,8 @@ def _evidence(name: str, alone: float, rank: int) -> Any:
 def test_a_gyro_rotation_and_an_accelerometer_misalignment_are_refitted_as_rivals() -> None:
     """Bag 1837 (OS1-64 sinusoid, 2.9 deg gyro rotation and per-beam elevations): after the
     elevations the accelerometer misalignment led (3100 on 3 degrees of freedom) and the gyro
-    rotation (about 2000) belongs to another sensor; the two explain the same relative rotation
-    of the triads and are refitted together. Rivals of another sensor otherwise are not."""
+    rotation, weaker, belongs to another sensor; the two explain the same relative rotation of
+    the triads and are refitted together. Rivals of another sensor otherwise are not."""
     from licalib_cli.pipeline.diagnose import alike, rivals_of
 
     misalignment = _evidence("accel_misalignment", 3100.0, 3)
