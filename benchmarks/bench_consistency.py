@@ -29,6 +29,7 @@ Examples::
     .venv/bin/python benchmarks/bench_consistency.py --only clean --range-noise 0.002  # quiet LiDAR
     .venv/bin/python benchmarks/bench_consistency.py --only clean --lidars hdl-32 os1-32 os1-128
     .venv/bin/python benchmarks/bench_consistency.py --duration 30    # longer bags, as users record
+    .venv/bin/python benchmarks/bench_consistency.py --imu-rate 100 --lidar-rate 20  # other rates
     .venv/bin/python benchmarks/bench_consistency.py --scenarios figure8 --duration 20  # planar
     .venv/bin/python benchmarks/bench_consistency.py --scenarios figure8 --lever-arm-prior 0.01
 
@@ -130,6 +131,7 @@ from _effects import EFFECTS, effect_spec_kwargs  # noqa: E402
 from _information import information_bound, outside_limits  # noqa: E402
 from _motion import add_tilt_option, tilt_spec_kwargs  # noqa: E402
 from _noise import add_noise_options, noise_spec_kwargs  # noqa: E402
+from _rates import add_rate_options, check_rates, rate_spec_kwargs  # noqa: E402
 
 
 def _rotation_error_lidar(r_est, r_true):
@@ -157,6 +159,7 @@ def one_run(case: dict, workdir: Path) -> dict:
             case.get("range_noise"), case.get("imu_noise_scale", 1.0), case.get("noise_free", False)
         )
     )
+    kwargs.update(rate_spec_kwargs(case.get("imu_rate"), case.get("lidar_rate")))
     spec = SimulationSpec(
         scenario=case["scenario"],
         lidar=case["lidar"],
@@ -316,6 +319,7 @@ def main() -> None:
         help="intrinsics the calibration estimates (calibrate --intrinsics); default none",
     )
     add_noise_options(p)
+    add_rate_options(p)
     p.add_argument(
         "--duration",
         type=float,
@@ -358,6 +362,7 @@ def main() -> None:
     args = p.parse_args()
     if not args.duration > 0:
         p.error(f"--duration must be a positive number of seconds, not {args.duration}")
+    check_rates(p, args)
     if args.one is not None:
         print(json.dumps(one_run(json.loads(args.one), Path(args.workdir))))
         return
@@ -368,6 +373,8 @@ def main() -> None:
             "imu_noise_scale": args.imu_noise_scale,
             "range_noise": args.range_noise,
             "noise_free": args.noise_free,
+            "imu_rate": args.imu_rate,
+            "lidar_rate": args.lidar_rate,
             "duration": args.duration,
             "tilt_deg": args.tilt_deg,
             **({"lever_arm_prior": args.lever_arm_prior} if args.lever_arm_prior else {}),

@@ -26,6 +26,7 @@ Examples::
     .venv/bin/python benchmarks/bench_intrinsics.py --scenario shake --lidar os1-64 --model lidar
     .venv/bin/python benchmarks/bench_intrinsics.py --noise-free --seeds 1 2 4   # a quiet rig
     .venv/bin/python benchmarks/bench_intrinsics.py --range-noise 0.002 --seeds 5 11 12
+    .venv/bin/python benchmarks/bench_intrinsics.py --imu-rate 200 --seeds 3   # a 200 Hz IMU
     .venv/bin/python benchmarks/bench_intrinsics.py --seeds 1 \
         --set surfels.final_points_per_scan=8000
 
@@ -50,6 +51,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _information import information_bound, plane_factors
 from _noise import add_noise_options, noise_spec_kwargs
+from _rates import add_rate_options, check_rates, rate_spec_kwargs
 
 PAPER_LIDAR_MAE = {
     "range_scale": 0.006e-2,  # 0.006 %
@@ -88,6 +90,7 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
         intrinsics=args.intrinsics_mode,
         random_time_offset=True,
         **noise_spec_kwargs(args.range_noise, args.imu_noise_scale, args.noise_free),
+        **rate_spec_kwargs(args.imu_rate, args.lidar_rate),
     )
     t0 = time.perf_counter()
     out = simulate(spec, workdir / f"seed{seed}", force=True)
@@ -254,6 +257,7 @@ def main() -> None:
     p.add_argument("--intrinsics-mode", default="random", choices=["random", "none"])
     p.add_argument("--json", default=None)
     add_noise_options(p)
+    add_rate_options(p)
     p.add_argument(
         "--set",
         action="append",
@@ -265,6 +269,7 @@ def main() -> None:
     p.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--workdir", default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
+    check_rates(p, args)
     if args.one is not None:
         print(json.dumps(one_run(args, args.one, Path(args.workdir))))
         return

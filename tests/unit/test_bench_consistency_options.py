@@ -1,4 +1,5 @@
-"""The trust benchmark's ``--duration``: every case carries it, and a bad one is refused."""
+"""The trust benchmark's ``--duration`` and sensor rates: every case carries them, and a bad
+one is refused."""
 
 from __future__ import annotations
 
@@ -34,4 +35,27 @@ def test_a_duration_that_is_not_a_positive_number_of_seconds_is_refused(value: s
     out = _run("--duration", value)
     assert out.returncode == 2
     assert "--duration must be a positive number of seconds" in out.stderr
+    assert "Traceback" not in out.stderr
+
+
+def test_every_listed_case_carries_the_sensor_rates() -> None:
+    out = _run("--imu-rate", "100", "--lidar-rate", "20", "--only", "clean")
+    assert out.returncode == 0, out.stderr
+    cases = [ast.literal_eval(line) for line in out.stdout.splitlines() if line.startswith("{")]
+    assert cases and all(c["imu_rate"] == 100.0 and c["lidar_rate"] == 20.0 for c in cases)
+
+
+def test_the_default_rates_are_left_to_the_simulator() -> None:
+    out = _run("--only", "clean")
+    assert out.returncode == 0, out.stderr
+    cases = [ast.literal_eval(line) for line in out.stdout.splitlines() if line.startswith("{")]
+    assert cases and all(c["imu_rate"] is None and c["lidar_rate"] is None for c in cases)
+
+
+@pytest.mark.parametrize("flag", ["--imu-rate", "--lidar-rate"])
+@pytest.mark.parametrize("value", ["0", "-100", "nan"])
+def test_a_rate_that_is_not_a_positive_number_is_refused(flag: str, value: str) -> None:
+    out = _run(flag, value)
+    assert out.returncode == 2
+    assert f"{flag} must be a positive number of samples per second" in out.stderr
     assert "Traceback" not in out.stderr
