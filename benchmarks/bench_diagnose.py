@@ -16,6 +16,7 @@ Examples::
     .venv/bin/python benchmarks/bench_diagnose.py --jobs 2
     .venv/bin/python benchmarks/bench_diagnose.py --only gyro_scale --list
     .venv/bin/python benchmarks/bench_diagnose.py --jobs 2 --first-seed 500   # new bags
+    .venv/bin/python benchmarks/bench_diagnose.py --jobs 2 --imu-rate 100   # a slower IMU
 
 Sizes: every effect at ``--scale`` (default 3) times its reference size: the paper's table for
 the intrinsics, 0.1 deg/s/g g-sensitivity, 50 ppm clock drift, bias walks ten times the
@@ -46,6 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _effects import INTRINSIC_EFFECTS, SIMULATOR_EFFECTS
 from _information import information_bound, outside_limits
 from _motion import add_tilt_option, tilt_spec_kwargs
+from _rates import add_rate_options, check_rates, rate_spec_kwargs
 
 SINGLE = [*INTRINSIC_EFFECTS, *SIMULATOR_EFFECTS]
 PAIRS = [
@@ -208,6 +210,7 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
         intrinsics="none",
         random_time_offset=True,
         **tilt_spec_kwargs(case),
+        **rate_spec_kwargs(case.get("imu_rate"), case.get("lidar_rate")),
         **kwargs,
     )
     out = simulate(spec, workdir / f"run{case['seed']}", force=True)
@@ -354,6 +357,7 @@ def main() -> None:
     p.add_argument("--skip", default="", help="seeds not to run (comma separated)")
     p.add_argument("--seeds", type=int, nargs="+", default=None, help="run only these seeds")
     add_tilt_option(p)
+    add_rate_options(p)
     p.add_argument(
         "--first-seed",
         type=int,
@@ -364,6 +368,7 @@ def main() -> None:
     p.add_argument("--one", default=None, help=argparse.SUPPRESS)
     p.add_argument("--workdir", default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
+    check_rates(p, args)
     if args.report is not None:
         rows = [json.loads(x) for x in Path(args.report).read_text().splitlines() if x.strip()]
         for r in rows:
@@ -375,7 +380,7 @@ def main() -> None:
         print(json.dumps(row))
         return
     todo = [
-        {**c, "tilt_deg": args.tilt_deg}
+        {**c, "tilt_deg": args.tilt_deg, "imu_rate": args.imu_rate, "lidar_rate": args.lidar_rate}
         for c in cases(args.first_seed)
         if (
             args.only is None
