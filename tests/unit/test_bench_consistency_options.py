@@ -1,5 +1,5 @@
-"""The trust benchmark's ``--duration`` and sensor rates: every case carries them, and a bad
-one is refused."""
+"""The trust benchmark's ``--duration`` and sensor rates, and the diagnose and intrinsics
+benchmarks' rates: every case carries them, and a bad one is refused."""
 
 from __future__ import annotations
 
@@ -58,4 +58,35 @@ def test_a_rate_that_is_not_a_positive_number_is_refused(flag: str, value: str) 
     out = _run(flag, value)
     assert out.returncode == 2
     assert f"{flag} must be a positive number of samples per second" in out.stderr
+    assert "Traceback" not in out.stderr
+
+
+DIAGNOSE = BENCH.parent / "bench_diagnose.py"
+INTRINSICS = BENCH.parent / "bench_intrinsics.py"
+
+
+def test_the_diagnose_benchmark_carries_the_sensor_rates_into_every_case() -> None:
+    out = subprocess.run(
+        [sys.executable, str(DIAGNOSE), "--imu-rate", "200", "--only", "clean", "--list"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert out.returncode == 0, out.stderr
+    cases = [ast.literal_eval(line) for line in out.stdout.splitlines() if line.startswith("{")]
+    assert cases and all(c["imu_rate"] == 200.0 and c["lidar_rate"] is None for c in cases)
+
+
+@pytest.mark.parametrize("bench", [DIAGNOSE, INTRINSICS], ids=["diagnose", "intrinsics"])
+def test_the_other_benchmarks_refuse_a_rate_that_is_not_positive(bench: Path) -> None:
+    out = subprocess.run(
+        [sys.executable, str(bench), "--lidar-rate", "-10"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert out.returncode == 2
+    assert "--lidar-rate must be a positive number of samples per second" in out.stderr
     assert "Traceback" not in out.stderr
