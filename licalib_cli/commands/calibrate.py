@@ -257,20 +257,14 @@ def calibrate_command(
                 "(select-segments --start/--duration restricts the search)."
             )
             raise ConfigError(msg)
-        drawn = [
-            o
-            for o, v in (
-                ("--plots", plots),
-                ("--report", report),
-                ("--map", map_file),
-                ("--map-before", map_before),
-            )
-            if v is not None
-        ]
+        drawn = [o for o, v in (("--plots", plots), ("--report", report)) if v is not None]
         if drawn:
-            msg = f"{drawn[0]} shows one segment's fit; drop it with --segments."
+            msg = (
+                f"{drawn[0]} shows one segment's fit, not the joint one; drop it with --segments "
+                "(--map and --map-before write one map per segment)."
+            )
             raise ConfigError(msg)
-        run_segments(bag, cfg, segments, out, config_out, reference)
+        run_segments(bag, cfg, segments, out, config_out, reference, map_file, map_before)
         return
     if plots is not None:
         from licalib_cli.plots import prepare_plots

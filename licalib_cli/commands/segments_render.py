@@ -77,8 +77,15 @@ def run_segments(
     out: Path,
     config_out: Path,
     truth: Truth | None,
+    map_file: Path | None = None,
+    map_before: Path | None = None,
 ) -> JointRun:
     """Calibrate over the segments, write the result and its config, print the table.
+
+    ``map_file`` and ``map_before`` write one map per segment (:func:`segment_map_path`): its
+    points mapped with the joint calibration and the segment's trajectory in the joint estimate,
+    or with the segment's initial guess. The segments' maps are not in one frame (each segment's
+    trajectory starts its own), so they are not merged.
 
     Raises:
         VerdictFailure: the joint verdict is fail (the result is written for inspection).
@@ -110,7 +117,39 @@ def run_segments(
     stages = ", ".join(f"{k} {v:.1f} s" for k, v in run.timings.items())
     con.print(f"Stages: {stages}")
     con.print(f"Result: {out}  (resolved config: {config_out})")
+    _write_segment_maps(run, cfg, map_file, map_before)
     if verdict.status == "fail":
         msg = f"The verdict is FAIL; the result in {out} is for inspection only."
         raise VerdictFailure(msg)
     return run
+
+
+def segment_map_path(path: Path, index: int) -> Path:
+    """The map file of segment ``index`` (1-based) for ``--map path`` with ``--segments``:
+    ``map.ply`` -> ``map.seg1.ply`` (the result's ``seg1`` names the same segment)."""
+    return path.with_name(f"{path.stem}.seg{index}{path.suffix}")
+
+
+def _write_segment_maps(
+    run: JointRun, cfg: CalibConfig, map_file: Path | None, map_before: Path | None
+) -> None:
+    """Each segment's map with the joint calibration (``map_file``) and with its initial guess
+    (``map_before``), one file per segment."""
+    if map_file is None and map_before is None:
+        return
+    from licalib_cli.io.map_writer import write_map
+    from licalib_cli.pipeline.map_export import map_chunks
+
+    con = console()
+    for path, which in ((map_file, "joint"), (map_before, "initial")):
+        if path is None:
+            continue
+        for k, (seg_run, joint_state) in enumerate(zip(run.runs, run.states, strict=True)):
+            assert seg_run.segment is not None
+            state = joint_state if which == "joint" else seg_run.initial.state
+            target = segment_map_path(path, k + 1)
+            count, chunks = map_chunks(seg_run.segment, state, cfg)
+            write_map(target, count, chunks)
+            con.print(
+                f"Map of segment {k + 1} with the {which} calibration: {target} ({count} points)"
+            )

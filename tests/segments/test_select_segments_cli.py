@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -170,6 +171,20 @@ def test_segments_with_start_is_refused(walk, tmp_path, capsys) -> None:
     assert info.value.code == 6
 
 
+def _ply_points(path: Path) -> np.ndarray:
+    """The records of a map file ``calibrate --map`` wrote as PLY."""
+    from licalib_cli.io.map_writer import POINT_DTYPE
+
+    raw = path.read_bytes()
+    head, body = raw.split(b"end_header\n", 1)
+    count = int(
+        next(x for x in head.decode().splitlines() if x.startswith("element vertex")).split()[-1]
+    )
+    points = np.frombuffer(body, dtype=POINT_DTYPE)
+    assert points.shape[0] == count
+    return points
+
+
 def test_calibrate_two_segments_jointly(walk, tmp_path, capsys) -> None:
     bag, config, _ = walk
     out = tmp_path / "joint.yaml"
@@ -186,10 +201,30 @@ def test_calibrate_two_segments_jointly(walk, tmp_path, capsys) -> None:
             str(out),
             "--truth",
             str(truth),
+            "--map",
+            str(tmp_path / "map.ply"),
+            "--map-before",
+            str(tmp_path / "before.ply"),
         ]
     )
     printed = capsys.readouterr().out
     assert "joint" in printed and "Verdict:" in printed
+    # One map per segment, each with its own points on its own time axis (s since its start);
+    # the joint calibration and trajectory place them otherwise than the initial guess does.
+    maps = {p.name: _ply_points(p) for p in sorted(tmp_path.glob("*.ply"))}
+    assert sorted(maps) == ["before.seg1.ply", "before.seg2.ply", "map.seg1.ply", "map.seg2.ply"]
+    for name, points in maps.items():
+        assert points.shape[0] > 10_000, name
+        assert points["beam"].min() >= 0 and points["beam"].max() == 15  # VLP-16
+        assert 0.0 <= points["time"].min() and points["time"].max() <= 3.2, name
+        said = f"{tmp_path / name}({points.shape[0]}points)"
+        assert said in "".join(printed.split())  # rich wraps long lines
+    assert not np.array_equal(maps["map.seg1.ply"], maps["map.seg2.ply"])
+    for k in (1, 2):
+        joint, before = maps[f"map.seg{k}.ply"], maps[f"before.seg{k}.ply"]
+        assert np.array_equal(joint["beam"], before["beam"])  # the same points, placed twice
+        xyz = lambda p: np.stack([p["x"], p["y"], p["z"]], axis=1)  # noqa: E731
+        assert not np.allclose(xyz(joint), xyz(before), atol=1e-4)
     result = yaml.safe_load(out.read_text())
     seg = result["segments"]
     assert [(s["start_s"], s["end_s"]) for s in seg["segments"]] == [(6.0, 9.0), (9.0, 12.0)]
@@ -215,3 +250,17 @@ def test_the_joint_sigmas_meet_the_checks_limits_of_a_pass(walk, tmp_path, capsy
     verdict = yaml.safe_load(out.read_text())["verdict"]
     assert verdict["status"] != "pass"
     assert any(r.startswith("Joint estimate: Translation is uncertain") for r in verdict["reasons"])
+
+
+@pytest.mark.parametrize("option", ["--plots", "--report"])
+def test_segments_refuse_the_outputs_of_one_segments_fit(walk, tmp_path, capsys, option) -> None:
+    bag, config, _ = walk
+    target = tmp_path / ("plots" if option == "--plots" else "r.html")
+    args = ["calibrate", str(bag), "-c", str(config), "--segments", "6-9,9-12"]
+    with pytest.raises(SystemExit) as info:
+        main([*args, "-o", str(tmp_path / "r.yaml"), option, str(target)])
+    assert info.value.code == 6
+    err = capsys.readouterr().err
+    assert f"{option} shows one segment's fit, not the joint one" in err
+    assert "--map and --map-before write one map per segment" in err and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
