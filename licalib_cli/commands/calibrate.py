@@ -257,14 +257,13 @@ def calibrate_command(
                 "(select-segments --start/--duration restricts the search)."
             )
             raise ConfigError(msg)
-        drawn = [o for o, v in (("--plots", plots), ("--report", report)) if v is not None]
-        if drawn:
+        if plots is not None:
             msg = (
-                f"{drawn[0]} shows one segment's fit, not the joint one; drop it with --segments "
-                "(--map and --map-before write one map per segment)."
+                "--plots shows one segment's fit, not the joint one; drop it with --segments "
+                "(--report, --map and --map-before show the joint calibration)."
             )
             raise ConfigError(msg)
-        run_segments(bag, cfg, segments, out, config_out, reference, map_file, map_before)
+        run_segments(bag, cfg, segments, out, config_out, reference, map_file, map_before, report)
         return
     if plots is not None:
         from licalib_cli.plots import prepare_plots

@@ -79,8 +79,13 @@ def run_segments(
     truth: Truth | None,
     map_file: Path | None = None,
     map_before: Path | None = None,
+    report: Path | None = None,
 ) -> JointRun:
     """Calibrate over the segments, write the result and its config, print the table.
+
+    ``report`` writes the HTML report of the joint result: the joint estimate with each
+    segment's own beside it; the figures that need one fit's data (distances, residuals, rounds,
+    motion, map views) are said to be missing.
 
     ``map_file`` and ``map_before`` write one map per segment (:func:`segment_map_path`): its
     points mapped with the joint calibration and the segment's trajectory in the joint estimate,
@@ -117,6 +122,11 @@ def run_segments(
     stages = ", ".join(f"{k} {v:.1f} s" for k, v in run.timings.items())
     con.print(f"Stages: {stages}")
     con.print(f"Result: {out}  (resolved config: {config_out})")
+    if report is not None:
+        from licalib_cli.report import write_report
+
+        write_report(report, run.result, None, str(out))
+        con.print(f"Report: {report}")
     _write_segment_maps(run, cfg, map_file, map_before)
     if verdict.status == "fail":
         msg = f"The verdict is FAIL; the result in {out} is for inspection only."

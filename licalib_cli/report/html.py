@@ -75,12 +75,89 @@ def _table(header: Sequence[str], rows: Sequence[Sequence[str]], cls: str = "") 
     return f'<table class="{cls}"><tr>{head}</tr>{"".join(body)}</table>'
 
 
-def _missing(what: str) -> str:
+def _missing(what: str, result: CalibrationResult | None = None) -> str:
+    if result is not None and result.segments is not None:
+        return (
+            f'<p class="missing">{_e(what)} not shown: a calibration over several segments '
+            "has no report data (a window's figures come from calibrating it alone, with "
+            "calibrate --start and --duration).</p>"
+        )
     return (
         f'<p class="missing">{_e(what)} not shown: the result has no report data '
         "(&lt;stem&gt;.report-data.npz, written by this licalib's calibrate next to the "
         "result).</p>"
     )
+
+
+def _largest_sigma(translation_m: Sequence[float], rotation_deg: Sequence[float]) -> str:
+    """The largest translation and rotation 1-sigma, or "not observable" where one is not."""
+    t, r = max(translation_m), max(rotation_deg)
+    t_text = f"{1e3 * t:.2f} mm" if np.isfinite(t) else "not observable"
+    r_text = f"{r:.4f} deg" if np.isfinite(r) else "not observable"
+    return f"{t_text} / {r_text}"
+
+
+def _segments(result: CalibrationResult) -> str:
+    """The segments of a joint calibration: each one's own estimate beside the joint one."""
+    seg = result.segments
+    if seg is None:
+        return ""
+    ref = seg.segments[seg.reference - 1] if 0 < seg.reference <= len(seg.segments) else None
+    rows = []
+    for k, e in enumerate(seg.segments, start=1):
+        rows.append(
+            [
+                f"seg{k}" + (" (reference)" if k == seg.reference else ""),
+                f"{e.start_s:.1f}-{e.end_s:.1f} s",
+                " ".join(f"{1e3 * v:+.1f}" for v in e.translation),
+                " ".join(f"{v:+.3f}" for v in e.rotation_rpy_deg),
+                f"{1e3 * e.time_offset_s:+.3f} -> {1e3 * e.joint_time_offset_s:+.3f}",
+                _largest_sigma(e.translation_std_m, e.rotation_std_deg),
+                f"{e.disagreement_sigmas:.1f}" + (" (disagrees)" if e.disagrees else ""),
+                e.verdict.upper(),
+            ]
+        )
+    ext, unc = result.extrinsic, result.uncertainty
+    rows.append(
+        [
+            "joint",
+            "",
+            " ".join(f"{1e3 * v:+.1f}" for v in ext.translation),
+            " ".join(f"{v:+.3f}" for v in rpy_deg_from_matrix(ext.rotation)),
+            f"{1e3 * ext.time_offset_s:+.3f}",
+            _largest_sigma(unc.translation_std_m, unc.rotation_std_deg) if unc is not None else "-",
+            "",
+            result.verdict.status.upper() if result.verdict is not None else "",
+        ]
+    )
+    header = [
+        "segment",
+        "window",
+        "t (mm)",
+        "roll pitch yaw (deg)",
+        "time offset (ms): alone -> joint",
+        "largest 1-sigma",
+        "own sigmas off the joint",
+        "verdict",
+    ]
+    out = [
+        "<h2>Segments</h2>",
+        '<p class="note">Calibrated over several windows of the bag in one problem: one '
+        "extrinsic (and the model's intrinsics) for all, a trajectory, biases, gravity and time "
+        "offset per window. Each row is the window calibrated alone; a window further than "
+        f"{seg.disagreement_threshold_sigmas:g} of its own sigmas from the joint estimate "
+        "disagrees with the others."
+        + (
+            f" The fit and motion sections below describe seg{seg.reference} "
+            f"({ref.start_s:.1f}-{ref.end_s:.1f} s, the window with the smallest sigmas) "
+            "calibrated alone."
+            if ref is not None
+            else ""
+        )
+        + "</p>",
+        _table(header, rows, "segments"),
+    ]
+    return "\n".join(out)
 
 
 def _estimate(result: CalibrationResult, data: ReportData | None) -> str:
@@ -301,7 +378,7 @@ def _fit(result: CalibrationResult, data: ReportData | None) -> str:
             )
         )
     else:
-        out.append(_missing("The distance histogram is"))
+        out.append(_missing("The distance histogram is", result))
     out.append("<h3>IMU residuals against time</h3>")
     if data is not None and data.imu_t_s.size:
         out.append(
@@ -312,7 +389,7 @@ def _fit(result: CalibrationResult, data: ReportData | None) -> str:
             )
         )
     else:
-        out.append(_missing("The IMU residuals are"))
+        out.append(_missing("The IMU residuals are", result))
     out.append("<h3>Checks of the fit</h3>")
     if result.consistency is not None:
         out.append(_checks(result.consistency))
@@ -373,7 +450,7 @@ def _fit(result: CalibrationResult, data: ReportData | None) -> str:
             )
         )
     else:
-        out.append(_missing("The per-round convergence is"))
+        out.append(_missing("The per-round convergence is", result))
     return "\n".join(out)
 
 
@@ -397,14 +474,14 @@ def _motion(result: CalibrationResult, data: ReportData | None) -> str:
             )
         )
     else:
-        out.append(_missing("The motion plot is"))
+        out.append(_missing("The motion plot is", result))
     return "\n".join(out)
 
 
-def _map(data: ReportData | None) -> str:
+def _map(result: CalibrationResult, data: ReportData | None) -> str:
     out = ["<h2>The map</h2>"]
     if data is None or not data.has_map:
-        out.append(_missing("The map views are"))
+        out.append(_missing("The map views are", result))
         return "\n".join(out)
     before, after = data.map_entropy_before, data.map_entropy_after
     out.append(
@@ -472,7 +549,7 @@ def _provenance(result: CalibrationResult, data: ReportData | None, source: str)
         out.append("<h3>Configuration (resolved)</h3>")
         out.append(f"<pre>{_e(data.config_text)}</pre>")
     elif data is None:
-        out.append(_missing("The command line and configuration are"))
+        out.append(_missing("The command line and configuration are", result))
     return "\n".join(out)
 
 
@@ -510,10 +587,11 @@ def render_html(result: CalibrationResult, data: ReportData | None, source: str 
         f'<p class="sub">{_e(source)}{" - " + _e(created) if created else ""}</p>',
         verdict_html,
         _estimate(result, data),
+        _segments(result),
         _observability(result, data),
         _fit(result, data),
         _motion(result, data),
-        _map(data),
+        _map(result, data),
         _provenance(result, data, source),
     ]
     return (
