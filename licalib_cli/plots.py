@@ -8,6 +8,12 @@
 * ``observability.png``: the singular values of the scaled calibration information (the
   spectrum the truncated SVD acts on) against the truncation threshold, each labelled with the
   coordinate that dominates its direction; truncated directions in red.
+* ``map_entropy.png``: the mean map entropy per round (the paper's MME figure).
+
+:func:`save_segment_plots` writes those of a calibration over several segments: the joint
+problem's ``observability.png``, ``segments.png`` (each window calibrated alone against the
+joint estimate, in its own sigmas) and each window's own ``segK.fit.png`` and
+``segK.map_entropy.png``.
 
 matplotlib is an optional dependency (the ``plot`` extra); it is imported here only, with the
 non-interactive Agg backend, so plots work without a display.
@@ -26,8 +32,10 @@ from licalib_cli.results import Extrinsic, create_folder
 
 if TYPE_CHECKING:
     from licalib_cli.pipeline import CalibrationRun
+    from licalib_cli.pipeline.joint import JointRun
+    from licalib_cli.solver.lm import SolverReport
 
-__all__ = ["dominant_labels", "prepare_plots", "pyplot", "save_plots"]
+__all__ = ["dominant_labels", "prepare_plots", "pyplot", "save_plots", "save_segment_plots"]
 
 _DPI = 110
 
@@ -78,20 +86,136 @@ def save_plots(run: CalibrationRun, folder: Path) -> list[Path]:
     plt = pyplot()
     folder = Path(folder)
     prepare_plots(folder)
-    written = []
-    for name, draw in (
-        ("fit.png", _fit_figure),
-        ("observability.png", _spectrum_figure),
-        ("map_entropy.png", _entropy_figure),
-    ):
-        fig = draw(plt, run)
-        path = folder / name
-        tmp = path.with_name(f".{path.name}.tmp")
-        fig.savefig(tmp, dpi=_DPI, format="png")
-        plt.close(fig)
-        tmp.replace(path)
-        written.append(path)
+    return [
+        _save(plt, _fit_figure(plt, run), folder / "fit.png"),
+        _save(plt, _spectrum_figure(plt, run.solver), folder / "observability.png"),
+        _save(plt, _entropy_figure(plt, run), folder / "map_entropy.png"),
+    ]
+
+
+def save_segment_plots(run: JointRun, folder: Path) -> list[Path]:
+    """Write the figures of a calibration over several segments into ``folder``.
+
+    ``observability.png`` is the joint problem's spectrum; ``segments.png`` shows how far each
+    window calibrated alone lies from the joint estimate; ``segK.fit.png`` and
+    ``segK.map_entropy.png`` are window K's own fit (``segK`` as in the result).
+
+    Raises:
+        ConfigError: matplotlib is not installed.
+    """
+    plt = pyplot()
+    folder = Path(folder)
+    prepare_plots(folder)
+    written = [
+        _save(
+            plt, _spectrum_figure(plt, run.report, "joint problem"), folder / "observability.png"
+        ),
+        _save(plt, _segments_figure(plt, run), folder / "segments.png"),
+    ]
+    for k, seg_run in enumerate(run.runs, start=1):
+        fig = _fit_figure(plt, seg_run)
+        fig.suptitle(f"seg{k} calibrated alone: verdict {seg_run.verdict.status.upper()}")
+        written.append(_save(plt, fig, folder / f"seg{k}.fit.png"))
+        fig = _entropy_figure(plt, seg_run)
+        fig.axes[0].set_title(f"seg{k} calibrated alone: map sharpness over the rounds")
+        written.append(_save(plt, fig, folder / f"seg{k}.map_entropy.png"))
     return written
+
+
+def _save(plt: Any, fig: Any, path: Path) -> Path:
+    """Write ``fig`` to ``path`` as PNG atomically and close it."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    fig.savefig(tmp, dpi=_DPI, format="png")
+    plt.close(fig)
+    tmp.replace(path)
+    return path
+
+
+def segment_offsets(run: JointRun) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each window alone minus the joint estimate, and the sigmas to judge it by.
+
+    Returns:
+        ``(own, own_sigma, joint_sigma, windows)``: (K, 7) differences of each window's own
+        estimate from the joint one, translation per IMU axis (mm), rotation about the LiDAR
+        axes (deg, ``log(R_joint^T R_own)``) and time offset (ms, against that window's own time
+        offset in the joint problem); (K, 7) the window's own 1-sigma; (K, 7) the joint
+        1-sigma (the time offset's that of the window in the joint problem); (K, 2) windows, s.
+    """
+    from licalib_cli.geometry import so3
+    from licalib_cli.results import matrix_from_rpy_deg
+
+    result = run.result
+    ext, unc = result.extrinsic, result.uncertainty
+    t_joint = np.asarray(ext.translation, dtype=np.float64)
+    joint_t_sd = np.asarray(unc.translation_std_m) if unc is not None else np.full(3, np.nan)
+    joint_r_sd = np.asarray(unc.rotation_std_deg) if unc is not None else np.full(3, np.nan)
+    own, own_sd, joint_sd, windows = [], [], [], []
+    for e in run.segments.segments:
+        rot = so3.log(np.asarray(ext.rotation).T @ matrix_from_rpy_deg(e.rotation_rpy_deg))
+        own.append(
+            [
+                *(1e3 * (np.asarray(e.translation) - t_joint)),
+                *np.degrees(rot),
+                1e3 * (e.time_offset_s - e.joint_time_offset_s),
+            ]
+        )
+        own_sd.append([*(1e3 * np.asarray(e.translation_std_m)), *e.rotation_std_deg])
+        own_sd[-1].append(1e3 * e.time_offset_std_s)
+        joint_sd.append([*(1e3 * joint_t_sd), *joint_r_sd, 1e3 * e.joint_time_offset_std_s])
+        windows.append([e.start_s, e.end_s])
+    return np.array(own), np.array(own_sd), np.array(joint_sd), np.array(windows)
+
+
+def _segments_figure(plt: Any, run: JointRun) -> Any:
+    """Each window calibrated alone against the joint estimate, one panel per coordinate."""
+    own, own_sd, joint_sd, windows = segment_offsets(run)
+    labels = (
+        "t_x (mm)",
+        "t_y (mm)",
+        "t_z (mm)",
+        "rotation about LiDAR x (deg)",
+        "rotation about LiDAR y (deg)",
+        "rotation about LiDAR z (deg)",
+        "time offset (ms)",
+    )
+    fig, axes = plt.subplots(1, 7, figsize=(17, 3.8))
+    x = np.arange(1, own.shape[0] + 1)
+    names = [f"seg{k}\n{a:.0f}-{b:.0f} s" for k, (a, b) in zip(x, windows, strict=True)]
+    for j, ax in enumerate(axes):
+        seen = np.isfinite(own_sd[:, j])
+        ax.errorbar(
+            x[seen],
+            own[seen, j],
+            yerr=own_sd[seen, j],
+            fmt="o",
+            color="tab:blue",
+            capsize=4,
+            label="alone",
+        )
+        band = np.nanmax(joint_sd[:, j]) if np.any(np.isfinite(joint_sd[:, j])) else np.nan
+        if np.isfinite(band):
+            ax.axhspan(-band, band, color="tab:green", alpha=0.2, label="joint +-1 sigma")
+        ax.axhline(0.0, color="tab:green", lw=1.0)
+        if not np.all(seen):
+            ax.plot(x[~seen], own[~seen, j], "x", color="tab:red", label="not observable alone")
+        ax.set_xticks(x)
+        ax.set_xticklabels(names, fontsize=7)
+        ax.set_xlim(0.5, x[-1] + 0.5)
+        ax.set_title(labels[j], fontsize=9)
+        ax.grid(True, alpha=0.3)
+    axes[0].set_ylabel("alone minus joint")
+    legend: dict[str, Any] = {}
+    for ax in axes:  # every kind of mark once, wherever it was drawn
+        for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            legend.setdefault(label, handle)
+    fig.legend(list(legend.values()), list(legend), fontsize=8, loc="lower center", ncol=3)
+    fig.suptitle(
+        "Each window calibrated alone minus the joint estimate, with its own 1-sigma bars; "
+        f"joint verdict {run.result.verdict.status.upper() if run.result.verdict else '-'}",
+        fontsize=10,
+    )
+    fig.tight_layout(rect=(0.0, 0.07, 1.0, 1.0))
+    return fig
 
 
 def _fit_figure(plt: Any, run: CalibrationRun) -> Any:
@@ -178,14 +302,14 @@ def dominant_labels(vectors: np.ndarray, names: Sequence[str]) -> list[str]:
     return labels
 
 
-def _spectrum_figure(plt: Any, run: CalibrationRun) -> Any:
-    info = run.solver.information
+def _spectrum_figure(plt: Any, report: SolverReport, what: str = "") -> Any:
+    info = report.information
     s = np.asarray(info.singular_values, dtype=np.float64)
     fig, ax = plt.subplots(figsize=(max(8.0, 0.45 * s.size + 2.0), 4.8))
     if s.size == 0:
         ax.text(0.5, 0.5, "no calibration coordinates", ha="center", va="center")
         return fig
-    thr = float(run.solver.tsvd_threshold)
+    thr = float(report.tsvd_threshold)
     floor = max(float(s[s > 0].min()) if np.any(s > 0) else 1e-12, 1e-12) * 0.1
     kept = s > thr
     colours = np.where(kept, "tab:blue", "tab:red")
@@ -199,8 +323,9 @@ def _spectrum_figure(plt: Any, run: CalibrationRun) -> Any:
     )
     ax.set_ylabel("singular value of the scaled information")
     ax.set_title(
-        "Observability: one bar per direction in calibration space (labelled by its largest\n"
-        "coordinate); red: not observable, not updated; 1 = known to one characteristic scale",
+        f"Observability{' of the ' + what if what else ''}: one bar per direction in calibration "
+        "space (labelled by its\nlargest coordinate); red: not observable, not updated; 1 = "
+        "known to one characteristic scale",
         fontsize=9,
     )
     ax.legend(fontsize=8)
@@ -290,10 +415,5 @@ def save_diagnosis_plots(diag: Any, folder: Path) -> list[Path]:
             f"{step.gap_after.excess:+.3f})"
         )
         fig.tight_layout()
-        path = folder / f"diagnose_{n}_{step.effect}.png"
-        tmp = path.with_name(f".{path.name}.tmp")
-        fig.savefig(tmp, dpi=_DPI, format="png")
-        plt.close(fig)
-        tmp.replace(path)
-        written.append(path)
+        written.append(_save(plt, fig, folder / f"diagnose_{n}_{step.effect}.png"))
     return written

@@ -258,12 +258,12 @@ def calibrate_command(
             )
             raise ConfigError(msg)
         if plots is not None:
-            msg = (
-                "--plots shows one segment's fit, not the joint one; drop it with --segments "
-                "(--report, --map and --map-before show the joint calibration)."
-            )
-            raise ConfigError(msg)
-        run_segments(bag, cfg, segments, out, config_out, reference, map_file, map_before, report)
+            from licalib_cli.plots import prepare_plots
+
+            prepare_plots(plots)
+        run_segments(
+            bag, cfg, segments, out, config_out, reference, map_file, map_before, report, plots
+        )
         return
     if plots is not None:
         from licalib_cli.plots import prepare_plots

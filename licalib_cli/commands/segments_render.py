@@ -80,12 +80,14 @@ def run_segments(
     map_file: Path | None = None,
     map_before: Path | None = None,
     report: Path | None = None,
+    plots: Path | None = None,
 ) -> JointRun:
     """Calibrate over the segments, write the result and its config, print the table.
 
     ``report`` writes the HTML report of the joint result: the joint estimate with each
     segment's own beside it; the figures that need one fit's data (distances, residuals, rounds,
-    motion, map views) are said to be missing.
+    motion, map views) are said to be missing. ``plots`` writes the figures of
+    :func:`~licalib_cli.plots.save_segment_plots`.
 
     ``map_file`` and ``map_before`` write one map per segment (:func:`segment_map_path`): its
     points mapped with the joint calibration and the segment's trajectory in the joint estimate,
@@ -128,6 +130,11 @@ def run_segments(
         write_report(report, run.result, None, str(out))
         con.print(f"Report: {report}")
     _write_segment_maps(run, cfg, map_file, map_before)
+    if plots is not None:
+        from licalib_cli.plots import save_segment_plots
+
+        files = save_segment_plots(run, plots)
+        con.print("Plots: " + ", ".join(str(f) for f in files))
     if verdict.status == "fail":
         msg = f"The verdict is FAIL; the result in {out} is for inspection only."
         raise VerdictFailure(msg)

@@ -207,6 +207,8 @@ def test_calibrate_two_segments_jointly(walk, tmp_path, capsys) -> None:
             str(tmp_path / "before.ply"),
             "--report",
             str(tmp_path / "joint.html"),
+            "--plots",
+            str(tmp_path / "plots"),
         ]
     )
     printed = capsys.readouterr().out
@@ -219,6 +221,17 @@ def test_calibrate_two_segments_jointly(walk, tmp_path, capsys) -> None:
     assert "(reference)" in page and "calibrated alone" in page
     assert "a calibration over several segments has no report data" in page
     assert "the result has no report data" not in page
+    # The joint spectrum, the windows against the joint estimate, and each window's own fit.
+    drawn = sorted(p.name for p in (tmp_path / "plots").iterdir())
+    assert drawn == [
+        "observability.png",
+        "seg1.fit.png",
+        "seg1.map_entropy.png",
+        "seg2.fit.png",
+        "seg2.map_entropy.png",
+        "segments.png",
+    ]
+    assert all((tmp_path / "plots" / n).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for n in drawn)
     # One map per segment, each with its own points on its own time axis (s since its start);
     # the joint calibration and trajectory place them otherwise than the initial guess does.
     maps = {p.name: _ply_points(p) for p in sorted(tmp_path.glob("*.ply"))}
@@ -262,13 +275,24 @@ def test_the_joint_sigmas_meet_the_checks_limits_of_a_pass(walk, tmp_path, capsy
     assert any(r.startswith("Joint estimate: Translation is uncertain") for r in verdict["reasons"])
 
 
-def test_segments_refuse_the_plots_of_one_segments_fit(walk, tmp_path, capsys) -> None:
+def test_the_segments_figure_measures_each_window_as_the_disagreement_check_does(walk) -> None:
+    """``segments.png`` draws each window alone minus the joint estimate over its own sigmas:
+    the largest of those over the translation and rotation axes is the result's
+    ``disagreement_sigmas``, computed from the runs themselves (same rotation convention)."""
+    from licalib_cli.config import load_config
+    from licalib_cli.pipeline.joint import calibrate_segments
+    from licalib_cli.plots import segment_offsets
+
     bag, config, _ = walk
-    args = ["calibrate", str(bag), "-c", str(config), "--segments", "6-9,9-12"]
-    with pytest.raises(SystemExit) as info:
-        main([*args, "-o", str(tmp_path / "r.yaml"), "--plots", str(tmp_path / "plots")])
-    assert info.value.code == 6
-    err = capsys.readouterr().err
-    assert "--plots shows one segment's fit, not the joint one" in err
-    assert "--report, --map and --map-before show the joint calibration" in err
-    assert "Traceback" not in err and sorted(p.name for p in tmp_path.iterdir()) == []
+    run = calibrate_segments(bag, load_config(config), "6-9,9-12")
+    own, own_sd, joint_sd, windows = segment_offsets(run)
+    assert own.shape == own_sd.shape == joint_sd.shape == (2, 7)
+    assert windows.tolist() == [[6.0, 9.0], [9.0, 12.0]]
+    for k, e in enumerate(run.segments.segments):
+        z = np.abs(own[k, :6]) / own_sd[k, :6]
+        z = z[np.isfinite(z) & np.isfinite(own_sd[k, :6])]
+        assert (float(z.max()) if z.size else 0.0) == pytest.approx(e.disagreement_sigmas, abs=1e-3)
+        assert own[k, 6] == pytest.approx(1e3 * (e.time_offset_s - e.joint_time_offset_s))
+    # the joint sigmas are below each window's own where the window determines the coordinate
+    finite = np.isfinite(own_sd)
+    assert np.all(joint_sd[finite] < own_sd[finite])
