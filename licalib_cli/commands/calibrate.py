@@ -172,7 +172,8 @@ def calibrate_command(
         ModelChoice.CONFIG,
         "--model",
         help="config: estimate what the config's model section (or --intrinsics) says; auto: "
-        "start from the base model and add the effects the data show (as `licalib diagnose`).",
+        "start from the base model and add the effects the data show (as `licalib diagnose`; "
+        "with --segments, what any window shows).",
         rich_help_panel=_MODEL,
     ),
     intrinsics: Intrinsics | None = typer.Option(
@@ -248,12 +249,15 @@ def calibrate_command(
             **intrinsics_overrides(intrinsics),
         },
     )
+    if model is ModelChoice.AUTO and intrinsics is not None:
+        msg = "--model auto chooses the intrinsics itself; drop --intrinsics or use --model config."
+        raise ConfigError(msg)
     if segments is not None:
-        from licalib_cli.commands.segments_render import run_segments
+        from licalib_cli.commands.segments_render import SegmentOutputs, run_segments
 
-        if model is ModelChoice.AUTO or start is not None or duration is not None:
+        if start is not None or duration is not None:
             msg = (
-                "--segments chooses the data itself; drop --start/--duration and --model auto "
+                "--segments chooses the data itself; drop --start/--duration "
                 "(select-segments --start/--duration restricts the search)."
             )
             raise ConfigError(msg)
@@ -261,17 +265,13 @@ def calibrate_command(
             from licalib_cli.plots import prepare_plots
 
             prepare_plots(plots)
-        run_segments(
-            bag, cfg, segments, out, config_out, reference, map_file, map_before, report, plots
-        )
+        outputs = SegmentOutputs(out, config_out, map_file, map_before, report, plots)
+        run_segments(bag, cfg, segments, outputs, reference, model is ModelChoice.AUTO)
         return
     if plots is not None:
         from licalib_cli.plots import prepare_plots
 
         prepare_plots(plots)
-    if model is ModelChoice.AUTO and intrinsics is not None:
-        msg = "--model auto chooses the intrinsics itself; drop --intrinsics or use --model config."
-        raise ConfigError(msg)
     progress = RichProgress()
     diagnosis = None
     try:

@@ -3,6 +3,7 @@ next to the joint one (the paper's Table segment_mit)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -16,6 +17,7 @@ from licalib_cli.results import rpy_deg_from_matrix, write_text_atomic
 
 if TYPE_CHECKING:
     from licalib_cli.pipeline.joint import JointRun
+    from licalib_cli.pipeline.segments_model import SegmentsModel
     from licalib_cli.truth import Truth
 
 
@@ -70,29 +72,42 @@ def render_segments(run: JointRun, truth: Truth | None = None) -> Table:
     return table
 
 
+@dataclass(frozen=True)
+class SegmentOutputs:
+    """Where ``calibrate --segments`` writes.
+
+    Attributes:
+        result: the result file (``-o``).
+        config: the resolved configuration beside it.
+        map_file: ``--map``: one map per segment (:func:`segment_map_path`), each window's
+            points mapped with the joint calibration and its trajectory in the joint estimate.
+        map_before: ``--map-before``: the same with each segment's initial guess. The segments'
+            maps are not in one frame (each segment's trajectory starts its own), so they are
+            not merged.
+        report: ``--report``: the HTML report of the joint result (the joint estimate with each
+            segment's own beside it; the figures that need one fit's data are said to be
+            missing).
+        plots: ``--plots``: :func:`~licalib_cli.plots.save_segment_plots`.
+    """
+
+    result: Path
+    config: Path
+    map_file: Path | None = None
+    map_before: Path | None = None
+    report: Path | None = None
+    plots: Path | None = None
+
+
 def run_segments(
     bag: Path,
     cfg: CalibConfig,
     segments: str,
-    out: Path,
-    config_out: Path,
+    outputs: SegmentOutputs,
     truth: Truth | None,
-    map_file: Path | None = None,
-    map_before: Path | None = None,
-    report: Path | None = None,
-    plots: Path | None = None,
+    model_auto: bool = False,
 ) -> JointRun:
-    """Calibrate over the segments, write the result and its config, print the table.
-
-    ``report`` writes the HTML report of the joint result: the joint estimate with each
-    segment's own beside it; the figures that need one fit's data (distances, residuals, rounds,
-    motion, map views) are said to be missing. ``plots`` writes the figures of
-    :func:`~licalib_cli.plots.save_segment_plots`.
-
-    ``map_file`` and ``map_before`` write one map per segment (:func:`segment_map_path`): its
-    points mapped with the joint calibration and the segment's trajectory in the joint estimate,
-    or with the segment's initial guess. The segments' maps are not in one frame (each segment's
-    trajectory starts its own), so they are not merged.
+    """Calibrate over the segments, write the result, its config and the outputs asked for,
+    print the table (with ``model_auto``, each window's diagnosis and the model chosen first).
 
     Raises:
         VerdictFailure: the joint verdict is fail (the result is written for inspection).
@@ -100,14 +115,18 @@ def run_segments(
     from licalib_cli.commands.calibrate import RichProgress
     from licalib_cli.pipeline.joint import calibrate_segments
 
+    out, config_out, report = outputs.result, outputs.config, outputs.report
     progress = RichProgress()
     try:
-        run = calibrate_segments(bag, cfg, segments, progress)
+        run = calibrate_segments(bag, cfg, segments, progress, model_auto=model_auto)
     finally:
         progress.close()
     run.result.save(out)
-    write_text_atomic(config_out, dump_config(cfg))
+    # with --model auto, the model the diagnoses arrived at: calibrating with it estimates it
+    write_text_atomic(config_out, dump_config(run.config if run.config is not None else cfg))
     con = console()
+    if run.model is not None:
+        _render_model(run.model)
     con.print(render_segments(run, truth))
     if truth is not None:
         err = truth.extrinsic.error_to(run.result.extrinsic)
@@ -129,16 +148,32 @@ def run_segments(
 
         write_report(report, run.result, None, str(out))
         con.print(f"Report: {report}")
-    _write_segment_maps(run, cfg, map_file, map_before)
-    if plots is not None:
+    _write_segment_maps(run, cfg, outputs.map_file, outputs.map_before)
+    if outputs.plots is not None:
         from licalib_cli.plots import save_segment_plots
 
-        files = save_segment_plots(run, plots)
+        files = save_segment_plots(run, outputs.plots)
         con.print("Plots: " + ", ".join(str(f) for f in files))
     if verdict.status == "fail":
         msg = f"The verdict is FAIL; the result in {out} is for inspection only."
         raise VerdictFailure(msg)
     return run
+
+
+def _render_model(model: SegmentsModel) -> None:
+    """Each window's diagnosis, then the model the joint calibration estimates."""
+    from licalib_cli.commands.diagnose import render_diagnosis
+
+    con = console()
+    for k, ((a, b), diag) in enumerate(zip(model.windows, model.diagnoses, strict=True), 1):
+        con.rule(f"seg{k} ({a:.1f}-{b:.1f} s) diagnosed alone")
+        render_diagnosis(diag)
+    con.rule()
+    con.print(
+        "Model of the joint calibration (every effect a window kept): "
+        + (", ".join(model.effects) or "the base model, no effect kept")
+        + "."
+    )
 
 
 def segment_map_path(path: Path, index: int) -> Path:

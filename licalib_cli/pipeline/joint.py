@@ -89,6 +89,7 @@ from licalib_cli.pipeline.prior_directions import lever_arm_conflict, on_prior
 from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.pipeline.schedule import cover_truncated
 from licalib_cli.pipeline.segments import _with_range, select_segments
+from licalib_cli.pipeline.segments_model import SegmentsModel, model_for_segments
 from licalib_cli.pipeline.settings import lm_params, prior_sd, round_settings
 from licalib_cli.pipeline.unchecked_priors import combined_unchecked_priors, unchecked_text
 from licalib_cli.progress import NullProgress, Progress
@@ -217,6 +218,10 @@ class JointRun:
         report: the joint solver's report.
         states: each segment's state in the joint estimate.
         timings: wall seconds per stage.
+        model: with ``model_auto``, what each window's diagnosis found and the model the joint
+            calibration estimated (None otherwise).
+        config: the configuration the segments were calibrated with (with ``model_auto``, its
+            ``model:`` section is the one the diagnoses arrived at).
     """
 
     result: CalibrationResult
@@ -225,6 +230,8 @@ class JointRun:
     report: SolverReport
     states: tuple[CalibrationState, ...]
     timings: dict[str, float]
+    model: SegmentsModel | None = None
+    config: CalibConfig | None = None
 
     @property
     def segments(self) -> SegmentsSection:
@@ -321,6 +328,7 @@ def calibrate_segments(
     *,
     length_s: float = 15.0,
     top: int | None = None,
+    model_auto: bool = False,
 ) -> JointRun:
     """Calibrate over several segments of a bag in one problem.
 
@@ -332,6 +340,9 @@ def calibrate_segments(
         progress: stage progress.
         length_s: window length of ``auto``, s.
         top: windows ``auto`` selects (default 3).
+        model_auto: choose the model from the data: every window is diagnosed and the segments
+            are calibrated estimating every effect any of them kept
+            (:mod:`~licalib_cli.pipeline.segments_model`); ``cfg``'s ``model:`` is ignored.
 
     Raises:
         ConfigError, ExcitationError: invalid ``--segments``.
@@ -355,6 +366,16 @@ def calibrate_segments(
         timings["selection"] = time.perf_counter() - clock
     else:
         windows = parse_segments(segments, bag_duration_s(bag))
+    selection: SegmentsModel | None = None
+    if model_auto:
+        clock = time.perf_counter()
+        selection = model_for_segments(bag, cfg, windows, progress)
+        cfg = selection.config
+        logger.info(
+            "Model of the segments, from their diagnoses: %s.",
+            ", ".join(selection.effects) or "the base model (no effect kept)",
+        )
+        timings["diagnoses"] = time.perf_counter() - clock
     runs: list[CalibrationRun] = []
     kept: list[tuple[float, float]] = []
     shared_progress = _KeptOpen(progress)
@@ -426,7 +447,9 @@ def calibrate_segments(
         timings["joint planes-free"] = time.perf_counter() - clock
     report = cover_truncated(report, runs[best].initial.state, states[best])
     result = _joint_result(runs, kept, states, report, best, cfg)
-    return JointRun(result, tuple(runs), tuple(kept), report, tuple(states), timings)
+    return JointRun(
+        result, tuple(runs), tuple(kept), report, tuple(states), timings, selection, cfg
+    )
 
 
 def _growth(runs: Sequence[CalibrationRun]) -> tuple[F64, float, MapUncertainty | None, F64, F64]:

@@ -296,3 +296,51 @@ def test_the_segments_figure_measures_each_window_as_the_disagreement_check_does
     # the joint sigmas are below each window's own where the window determines the coordinate
     finite = np.isfinite(own_sd)
     assert np.all(joint_sd[finite] < own_sd[finite])
+
+
+def test_model_auto_diagnoses_every_window_and_calibrates_them_with_what_they_kept(
+    walk, tmp_path, capsys
+) -> None:
+    """``--segments --model auto``: each window is diagnosed alone, the joint calibration
+    estimates what any of them kept (nothing on this clean walk), and the resolved config
+    written beside the result estimates exactly that model."""
+    bag, config, _ = walk
+    out = tmp_path / "joint.yaml"
+    args = ["calibrate", str(bag), "-c", str(config), "--segments", "6-9,9-12", "--model", "auto"]
+    main([*args, "-o", str(out)])
+    printed = " ".join(capsys.readouterr().out.split())
+    assert "seg1 (6.0-9.0 s) diagnosed alone" in printed
+    assert "seg2 (9.0-12.0 s) diagnosed alone" in printed
+    assert printed.count("Base model: residuals measured and on its twin recording") == 2
+    assert "Model of the joint calibration (every effect a window kept): the base model" in printed
+    assert printed.index("diagnosed alone") < printed.index("Verdict:")
+    result = yaml.safe_load(out.read_text())
+    resolved = yaml.safe_load((tmp_path / "joint.config.yaml").read_text())
+    assert resolved["model"]["imu"] == [] and resolved["model"]["lidar"] == []
+    assert [(s["start_s"], s["end_s"]) for s in result["segments"]["segments"]] == [
+        (6.0, 9.0),
+        (9.0, 12.0),
+    ]
+    assert abs(result["extrinsic"]["translation"][0] - 0.3) < 0.01
+
+
+def test_model_auto_with_intrinsics_is_refused_with_segments_too(walk, tmp_path, capsys) -> None:
+    bag, _, _ = walk
+    with pytest.raises(SystemExit) as info:
+        main(
+            [
+                "calibrate",
+                str(bag),
+                "--segments",
+                "6-9,9-12",
+                "--model",
+                "auto",
+                "--intrinsics",
+                "imu",
+                "-o",
+                str(tmp_path / "r.yaml"),
+            ]
+        )
+    assert info.value.code == 6
+    err = capsys.readouterr().err
+    assert "--model auto chooses the intrinsics itself" in err and "Traceback" not in err

@@ -1,0 +1,81 @@
+"""The model of a calibration over several segments chosen from the data
+(``calibrate --segments ... --model auto``).
+
+Every window is diagnosed on its own (:func:`~licalib_cli.pipeline.diagnose.diagnose`, exactly
+as ``calibrate --start/--duration --model auto`` would); the joint calibration then estimates
+every effect any window kept. The effects are properties of the sensors, not of a window: a
+window that does not show one (too little excitation for it) loses nothing by estimating it
+with the others, while one that shows it would be biased without it. An effect that one window
+kept as one spread across beams (``model.lidar_spread``) keeps the spread of the first window
+that kept it so.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from licalib_cli.config import CalibConfig, LidarSpreadSection
+from licalib_cli.pipeline.diagnose import CANDIDATES, Diagnosis, diagnose
+from licalib_cli.pipeline.segments import _with_range
+from licalib_cli.progress import Progress
+
+__all__ = ["SegmentsModel", "model_for_segments", "union_config"]
+
+
+@dataclass(frozen=True)
+class SegmentsModel:
+    """The model the windows' diagnoses arrive at.
+
+    Attributes:
+        effects: every effect a window kept, in the order first kept.
+        windows: the windows diagnosed, seconds after the bag start.
+        diagnoses: each window's diagnosis, in the windows' order.
+        config: the configuration whose ``model:`` section estimates ``effects``.
+    """
+
+    effects: tuple[str, ...]
+    windows: tuple[tuple[float, float], ...]
+    diagnoses: tuple[Diagnosis, ...]
+    config: CalibConfig
+
+
+def union_config(
+    cfg: CalibConfig, diagnoses: Sequence[Diagnosis]
+) -> tuple[tuple[str, ...], CalibConfig]:
+    """The effects any of ``diagnoses`` kept, in the order first kept, and ``cfg`` estimating
+    exactly them (the spreads across beams of the first diagnosis that kept each so)."""
+    effects: list[str] = []
+    for diag in diagnoses:
+        effects.extend(e for e in diag.effects_found if e not in effects)
+    imu = [CANDIDATES[e][1] for e in effects if CANDIDATES[e][0] == "imu"]
+    lidar = [CANDIDATES[e][1] for e in effects if CANDIDATES[e][0] == "lidar"]
+    spread = LidarSpreadSection()
+    for block in lidar:
+        for diag in diagnoses:
+            sigma = diag.config.model.lidar_spread.sigma_of(block) if diag.config else None
+            if sigma is not None:
+                spread = spread.with_sigma(block, sigma)
+                break
+    model = cfg.model.model_copy(update={"imu": imu, "lidar": lidar, "lidar_spread": spread})
+    return tuple(effects), cfg.model_copy(update={"model": model})
+
+
+def model_for_segments(
+    bag: Path,
+    cfg: CalibConfig,
+    windows: Sequence[tuple[float, float]],
+    progress: Progress | None = None,
+) -> SegmentsModel:
+    """Diagnose every window of ``bag`` (seconds after its start) and join what they found.
+
+    Raises:
+        BagError, TopicError, DataError, TimestampError: unreadable input.
+        ExcitationError, SolverError: a window cannot be calibrated.
+    """
+    diagnoses = tuple(
+        diagnose(bag, _with_range(cfg, a, b - a), progress=progress) for a, b in windows
+    )
+    effects, config = union_config(cfg, diagnoses)
+    return SegmentsModel(effects, tuple(windows), diagnoses, config)
