@@ -252,26 +252,22 @@ def calibrate_command(
     if model is ModelChoice.AUTO and intrinsics is not None:
         msg = "--model auto chooses the intrinsics itself; drop --intrinsics or use --model config."
         raise ConfigError(msg)
-    if segments is not None:
-        from licalib_cli.commands.segments_render import SegmentOutputs, run_segments
-
-        if start is not None or duration is not None:
-            msg = (
-                "--segments chooses the data itself; drop --start/--duration "
-                "(select-segments --start/--duration restricts the search)."
-            )
-            raise ConfigError(msg)
-        if plots is not None:
-            from licalib_cli.plots import prepare_plots
-
-            prepare_plots(plots)
-        outputs = SegmentOutputs(out, config_out, map_file, map_before, report, plots)
-        run_segments(bag, cfg, segments, outputs, reference, model is ModelChoice.AUTO)
-        return
+    if segments is not None and (start is not None or duration is not None):
+        msg = (
+            "--segments chooses the data itself; drop --start/--duration "
+            "(select-segments --start/--duration restricts the search)."
+        )
+        raise ConfigError(msg)
     if plots is not None:
         from licalib_cli.plots import prepare_plots
 
         prepare_plots(plots)
+    if segments is not None:
+        from licalib_cli.commands.segments_render import SegmentOutputs, run_segments
+
+        outputs = SegmentOutputs(out, config_out, map_file, map_before, report, plots)
+        run_segments(bag, cfg, segments, outputs, reference, model is ModelChoice.AUTO)
+        return
     progress = RichProgress()
     diagnosis = None
     try:

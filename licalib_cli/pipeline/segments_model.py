@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from licalib_cli.config import CalibConfig, LidarSpreadSection
-from licalib_cli.pipeline.diagnose import CANDIDATES, Diagnosis, diagnose
+from licalib_cli.pipeline.diagnose import Diagnosis, _with_effects, diagnose
 from licalib_cli.pipeline.segments import _with_range
 from licalib_cli.progress import Progress
 
@@ -49,17 +49,16 @@ def union_config(
     effects: list[str] = []
     for diag in diagnoses:
         effects.extend(e for e in diag.effects_found if e not in effects)
-    imu = [CANDIDATES[e][1] for e in effects if CANDIDATES[e][0] == "imu"]
-    lidar = [CANDIDATES[e][1] for e in effects if CANDIDATES[e][0] == "lidar"]
+    out = _with_effects(cfg, tuple(effects))
     spread = LidarSpreadSection()
-    for block in lidar:
+    for block in out.model.lidar:
         for diag in diagnoses:
             sigma = diag.config.model.lidar_spread.sigma_of(block) if diag.config else None
             if sigma is not None:
                 spread = spread.with_sigma(block, sigma)
                 break
-    model = cfg.model.model_copy(update={"imu": imu, "lidar": lidar, "lidar_spread": spread})
-    return tuple(effects), cfg.model_copy(update={"model": model})
+    model = out.model.model_copy(update={"lidar_spread": spread})
+    return tuple(effects), out.model_copy(update={"model": model})
 
 
 def model_for_segments(
