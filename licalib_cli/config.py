@@ -393,13 +393,18 @@ class ModelSection(_Section):
     imu: list[ImuBlock] = Field(default_factory=list)
     """IMU blocks: gyro_scale, gyro_misalignment, gyro_rotation (R_wI), accel_scale,
     accel_misalignment, g_sensitivity (method.md section 3); and the effects gyro_bias_walk /
-    accel_bias_walk (a bias drifting linearly over the segment) and clock_drift (the IMU clock
-    running at another rate than the LiDAR's)."""
+    accel_bias_walk (a bias drifting over the segment: linearly, or piecewise linearly with
+    ``bias_walk_piece_s``) and clock_drift (the IMU clock running at another rate than the
+    LiDAR's)."""
     lidar: list[LidarBlock] = Field(default_factory=list)
     """Per-beam LiDAR intrinsics: elevation, azimuth, vertical_offset, horizontal_offset,
     range_scale, range_offset (method.md section 4; the first beam with enough points keeps
     its angles and offsets, the gauge); and the effect point_time (the per-point times within
     a sweep off by a constant fraction)."""
+    bias_walk_piece_s: float | None = Field(default=None, gt=0.0)
+    """With gyro_bias_walk or accel_bias_walk: the bias is piecewise linear over pieces of about
+    this many seconds (the segment cut into equal pieces, one drift per axis and piece); unset:
+    one linear drift over the segment. ``diagnose`` sets it when finer pieces pay their BIC."""
     min_points_per_beam: int = Field(default=200, ge=10)
     """Beams with fewer associated points keep their intrinsics at nominal (and are named)."""
     imu_prior: ImuPriorSection = ImuPriorSection()

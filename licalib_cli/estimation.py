@@ -53,6 +53,7 @@ import numpy.typing as npt
 from licalib_cli.geometry import so3
 from licalib_cli.geometry.so3 import matrix_to_quat, quat_to_matrix
 from licalib_cli.measurements import ImuSamples
+from licalib_cli.models.imu import drift_pieces, resample_drift
 from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
 from licalib_cli.models.lidar import (
     GAUGE_COLUMNS,
@@ -105,6 +106,7 @@ __all__ = [
     "beam_point_counts",
     "build_problem",
     "calibration_moved",
+    "drift_suffixes",
     "free_effect_blocks",
     "intrinsic_coordinates",
     "parameter_blocks",
@@ -178,8 +180,10 @@ class CalibrationState:
             :func:`~licalib_cli.models.intrinsics.imu_measure` reproduces the model.
         lidar_intrinsics: per-beam intrinsics.
         t0_ns: reference time of the splines' time axis, int nanoseconds (IMU clock).
-        gyro_bias_drift: (3,) ``d_w``: the gyro bias is ``b_w + d_w (t - t_ref_s)``, rad/s^2.
-        accel_bias_drift: (3,) ``d_a``, the same for the accelerometer, m/s^3.
+        gyro_bias_drift: (3,) ``d_w``: the gyro bias is ``b_w + d_w (t - t_ref_s)``, rad/s^2;
+            or (K, 3), one drift per piece of a bias that walks piecewise linearly over the
+            segment (:func:`~licalib_cli.models.imu.bias_drift_basis`).
+        accel_bias_drift: (3,) or (K, 3) ``d_a``, the same for the accelerometer, m/s^3.
         time_drift: ``k_drift``: the IMU time of a LiDAR time ``tau`` is
             ``tau + t_c + k_drift (tau - t_ref_s)`` (an IMU clock running at another rate).
         point_time_scale: ``k_point``: the per-point times within a sweep are off by this
@@ -211,11 +215,15 @@ class CalibrationState:
         if self.so3_spline.knots != self.r3_spline.knots:
             msg = "the rotation and position splines must share one knot vector"
             raise ValueError(msg)
+        for name in ("gyro_bias_drift", "accel_bias_drift"):
+            value = _f64(getattr(self, name))
+            if value.size == 0 or value.size % 3 or value.ndim > 2 or value.shape[-1] != 3:
+                msg = f"CalibrationState.{name} must have shape (3,) or (K, 3), got {value.shape}"
+                raise ValueError(msg)
+            object.__setattr__(self, name, resample_drift(value, value.size // 3))
         for name, shape in (
             ("gyro_bias", (3,)),
             ("accel_bias", (3,)),
-            ("gyro_bias_drift", (3,)),
-            ("accel_bias_drift", (3,)),
             ("gravity_G", (3,)),
             ("R_imu_lidar", (3, 3)),
             ("t_imu_lidar", (3,)),
@@ -427,8 +435,11 @@ class FreeParameters:
             :data:`~licalib_cli.models.lidar.INTRINSIC_NAMES`: ``dphi``, ``dtheta``, ``V``,
             ``H``, ``s``, ``drho``).
         min_points_per_beam: beams with fewer points keep their intrinsics fixed.
-        gyro_bias_drift: a linear drift of the gyro bias (``imu.gyro_bias_drift``).
-        accel_bias_drift: a linear drift of the accelerometer bias.
+        gyro_bias_drift: a drift of the gyro bias (``imu.gyro_bias_drift``).
+        accel_bias_drift: a drift of the accelerometer bias.
+        bias_walk_piece_s: the bias drifts are piecewise linear with pieces of about this
+            length (:func:`~licalib_cli.models.imu.drift_pieces`); None: one linear drift, or as
+            many pieces as the state holds.
         time_drift: an IMU clock running at another rate (``ext.time_drift``).
         point_time: an error of the per-point times within a sweep
             (``lidar.point_time_scale``).
@@ -456,6 +467,7 @@ class FreeParameters:
     accel_bias_drift: bool = False
     time_drift: bool = False
     point_time: bool = False
+    bias_walk_piece_s: float | None = None
     translation_prior: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     lidar_spread: tuple[tuple[str, float], ...] = ()
 
@@ -594,12 +606,8 @@ def state_from_values(
         imu_intrinsics=imu.with_(**imu_changes) if imu_changes else imu,
         lidar_intrinsics=lidar,
         t0_ns=state.t0_ns,
-        gyro_bias_drift=state.gyro_bias_drift
-        if (v := get(GYRO_BIAS_DRIFT)) is None
-        else v.reshape(3),
-        accel_bias_drift=state.accel_bias_drift
-        if (v := get(ACCEL_BIAS_DRIFT)) is None
-        else v.reshape(3),
+        gyro_bias_drift=state.gyro_bias_drift if (v := get(GYRO_BIAS_DRIFT)) is None else v,
+        accel_bias_drift=state.accel_bias_drift if (v := get(ACCEL_BIAS_DRIFT)) is None else v,
         time_drift=state.time_drift if (v := get(TIME_DRIFT)) is None else float(v.reshape(-1)[0]),
         point_time_scale=state.point_time_scale
         if (v := get(POINT_TIME_SCALE)) is None
@@ -627,8 +635,11 @@ def intrinsic_coordinates(state: CalibrationState) -> dict[str, float]:
     lidar = intrinsics_to_array(state.lidar_intrinsics).reshape(-1, len(INTRINSIC_NAMES))
     for b, row in enumerate(lidar):
         put(f"{LIDAR_INTRINSICS}[{b}]", INTRINSIC_NAMES, row)
-    put(GYRO_BIAS_DRIFT, _XYZ, state.gyro_bias_drift)
-    put(ACCEL_BIAS_DRIFT, _XYZ, state.accel_bias_drift)
+    for block, drift in (
+        (GYRO_BIAS_DRIFT, state.gyro_bias_drift),
+        (ACCEL_BIAS_DRIFT, state.accel_bias_drift),
+    ):
+        put(block, drift_suffixes(np.size(drift) // 3), drift)
     out[TIME_DRIFT] = state.time_drift
     out[POINT_TIME_SCALE] = state.point_time_scale
     return out
@@ -700,16 +711,29 @@ class BlockSpec:
     manifold: ManifoldName = "euclidean"
     suffixes: tuple[str, ...] | None = None
 
-    def coord_names(self, num_beams: int) -> list[str] | None:
+    def coord_names(self, num_beams: int, size: int | None = None) -> list[str] | None:
         """Names of the block's tangent coordinates (the per-beam LiDAR block has one set per
-        beam)."""
+        beam, a bias walk of ``size`` numbers one set per piece: :func:`drift_suffixes`)."""
         if self.name == LIDAR_INTRINSICS:
             return [f"{self.name}[{b}].{s}" for b in range(num_beams) for s in INTRINSIC_NAMES]
+        if self.name in _DRIFT_BLOCKS and size is not None:
+            return [f"{self.name}.{s}" for s in drift_suffixes(size // 3)]
         if self.suffixes is None:
             return None
         if not self.suffixes:
             return [self.name]
         return [f"{self.name}.{s}" for s in self.suffixes]
+
+
+_DRIFT_BLOCKS = (GYRO_BIAS_DRIFT, ACCEL_BIAS_DRIFT)
+
+
+def drift_suffixes(pieces: int) -> tuple[str, ...]:
+    """Coordinate suffixes of a bias walk's block: ``x, y, z`` for one piece (a linear drift),
+    else ``x_1, y_1, z_1, x_2, ...`` (the drift over piece 1, 2, ...)."""
+    if pieces <= 1:
+        return _XYZ
+    return tuple(f"{a}_{k}" for k in range(1, pieces + 1) for a in _XYZ)
 
 
 def _imu_block(name: str, suffixes: tuple[str, ...], manifold: ManifoldName) -> BlockSpec:
@@ -771,6 +795,11 @@ def parameter_blocks(
         g_sensitivity=free.imu_block_free(GYRO_G_SENSITIVITY) or None,
         effects=free_effect_blocks(free),
     )
+    if free.bias_walk_piece_s is not None:
+        pieces = drift_pieces(state.t_ref_s, free.bias_walk_piece_s)
+        for name in _DRIFT_BLOCKS:
+            if name in values:
+                values[name] = resample_drift(values[name], pieces)
     counts = None if beam_counts is None else np.asarray(beam_counts, dtype=np.int64)
     gauge = {TRAJ_SO3: 3, TRAJ_R3: 6}  # leading coordinates held by fix_gauge
     blocks = []
@@ -791,8 +820,10 @@ def parameter_blocks(
                 values[spec.name],
                 manifold=spec.manifold,
                 group=spec.group,
-                coord_names=spec.coord_names(state.lidar_intrinsics.num_beams),
-                scale=_scale_of(spec.name, free),
+                coord_names=spec.coord_names(
+                    state.lidar_intrinsics.num_beams, np.size(values[spec.name])
+                ),
+                scale=_scale_of(spec.name, free, np.size(values[spec.name])),
                 fixed=fixed,
             )
         )
@@ -807,10 +838,19 @@ gives each translation direction four times that, so the solver uses the prior w
 say nothing instead of holding the estimate wherever the rounds left it."""
 
 
-def _scale_of(name: str, free: FreeParameters) -> F64:
+def _scale_of(name: str, free: FreeParameters, size: int = 0) -> F64:
     """Characteristic scales of calibration block ``name`` (:data:`CALIBRATION_SCALES`, the
-    translation's widened to :data:`PRIOR_SCALE_FACTOR` times its prior's sigma)."""
+    translation's widened to :data:`PRIOR_SCALE_FACTOR` times its prior's sigma, a bias walk's
+    in ``K`` pieces (``size = 3 K``) ``K^1.5`` times the one drift's).
+
+    A piece holds ``1/K`` of the samples over ``1/K`` of the time, so the data determine its
+    drift ``K^1.5`` times less well than one drift over the segment; with its scale grown alike,
+    each piece faces the truncated SVD on the same footing as the one drift (at the one drift's
+    scale a gyro walk's pieces over 10 s, each some five of its sigmas from zero, were held).
+    """
     scale = np.asarray(CALIBRATION_SCALES[name], dtype=np.float64)
+    if name in _DRIFT_BLOCKS and size > 3:
+        scale = scale * (size // 3) ** 1.5
     if name == EXT_TRANSLATION and free.translation_prior is not None:
         sigma = np.asarray(free.translation_prior[1], dtype=np.float64)
         scale = np.maximum(scale, PRIOR_SCALE_FACTOR * sigma)
@@ -832,6 +872,8 @@ def calibration_moved(
     drifts = (GYRO_BIAS_DRIFT, ACCEL_BIAS_DRIFT, TIME_DRIFT, POINT_TIME_SCALE)
     v0 = state_to_values(before, g_sensitivity=True, effects=drifts)
     v1 = state_to_values(after, g_sensitivity=True, effects=drifts)
+    for name in _DRIFT_BLOCKS:  # a walk's pieces as ``after`` has them
+        v0[name] = resample_drift(v0[name], np.size(v1[name]) // 3)
     moved: dict[str, float] = {}
     for spec in BLOCK_SPECS:
         if spec.group != "calibration" or spec.name not in v0 or spec.name not in v1:
@@ -841,7 +883,7 @@ def calibration_moved(
             v0[spec.name],
             manifold=spec.manifold,
             group=spec.group,
-            coord_names=spec.coord_names(before.lidar_intrinsics.num_beams),
+            coord_names=spec.coord_names(before.lidar_intrinsics.num_beams, np.size(v0[spec.name])),
         )
         moved.update(zip(block.coord_names, block.local(v1[spec.name]), strict=True))
     return np.array([moved.get(n, 0.0) for n in names], dtype=np.float64)

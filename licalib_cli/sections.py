@@ -476,17 +476,24 @@ class ExtraTerms(Section):
         reference_ns: IMU-clock stamp (the segment's middle) at which the time offset and the
             biases hold, ns.
         clock_drift: ``k``, s/s (``1e-6`` = 1 ppm; positive: the IMU clock runs fast).
-        gyro_bias_walk: the gyro bias's drift per axis, rad/s^2.
-        accel_bias_walk: the accelerometer bias's drift per axis, m/s^3.
+        gyro_bias_walk: the gyro bias's drift per axis, rad/s^2; with ``bias_walk_pieces``
+            one drift per axis and piece (``x, y, z`` of the first piece, then of the second,
+            ...; their sigmas under the same key, in the same order).
+        accel_bias_walk: the accelerometer bias's drift per axis (and piece), m/s^3.
+        bias_walk_pieces: the number of equal pieces of the segment over which a bias walk is
+            linear (``model.bias_walk_piece_s``), written when more than one: the bias is
+            continuous, its value at ``reference_ns`` that of ``imu_intrinsics``, and it changes
+            by each piece's drift per second within that piece.
         point_time: the fraction by which the per-point times within a sweep are off (a point
             stamped ``tau`` was measured at ``tau - k_point (tau - sweep start)``).
     """
 
     reference_ns: int
     clock_drift: float | None = None
-    gyro_bias_walk: tuple[float, float, float] | None = None
-    accel_bias_walk: tuple[float, float, float] | None = None
+    gyro_bias_walk: tuple[float, ...] | None = None
+    accel_bias_walk: tuple[float, ...] | None = None
     point_time: float | None = None
+    bias_walk_pieces: int | None = None
 
     _digits = 8
 

@@ -94,6 +94,19 @@ def spread_sentence(s: Any) -> str | None:
     )
 
 
+def pieces_sentence(s: Any) -> str | None:
+    """How a bias walk kept in pieces fared against one linear drift (None otherwise)."""
+    if s.pieces <= 1 or not s.kept:
+        return None
+    assert s.after is not None
+    piece_s = 2.0 * s.after.state.t_ref_s / s.pieces
+    return (
+        f"{s.effect} was added as a bias that is linear over each of {s.pieces} pieces of "
+        f"{piece_s:.1f} s (model.bias_walk_piece_s): one linear drift over the recording "
+        f"changed the BIC by {s.linear_delta_bic:+.0f}, the pieces by {s.delta_bic:+.0f}."
+    )
+
+
 def unpaid_sentence(s: Any) -> str | None:
     """Why a significant effect was not added, and what data would add it (None unless its
     refit did not pay, :attr:`~licalib_cli.pipeline.diagnose.DiagnosisStep.unpaid`)."""
@@ -157,6 +170,8 @@ def diagnosis_dict(diag: Any) -> dict[str, Any]:
                 "final_p_value": _num(s.final_p_value, 3),
                 "unpaid": _unpaid_dict(s.unpaid),
                 "spread": _spread_dict(s),
+                "pieces": s.pieces,
+                "linear_delta_bic": _num(s.linear_delta_bic),
                 "gap_before": _gap_dict(s.gap_before),
                 "gap_after": _gap_dict(s.gap_after),
                 "gap_shrink": _num(s.shrink, 3),
@@ -328,7 +343,8 @@ def render_diagnosis(diag: Any) -> None:
             f"{s.statistic:.0f} ({s.dof})",
             p_text(s.p_value, 1),
             f"{s.delta_bic:+.0f}"
-            + (f", spread {s.spread_delta_bic:+.0f}" if math.isfinite(s.spread) else ""),
+            + (f", spread {s.spread_delta_bic:+.0f}" if math.isfinite(s.spread) else "")
+            + (f" in {s.pieces} pieces" if s.pieces > 1 else ""),
             _gap_text(s),
             f"{1e3 * s.moved_translation_m:.2f} mm / {s.moved_rotation_deg:.4f} deg / "
             f"{1e3 * s.moved_time_offset_s:.3f} ms",
@@ -369,6 +385,8 @@ def render_diagnosis(diag: Any) -> None:
             out.print(sentence if spread is None else f"{sentence} {spread}")
         elif s.kept and spread is not None:
             out.print(spread)
+        if (pieces := pieces_sentence(s)) is not None:
+            out.print(pieces)
     for s in diag.steps:
         if s.held:
             shown = ", ".join(s.held[:3]) + (

@@ -13,6 +13,12 @@ vectors into the gyro frame and is perturbed on the right (``R_wI Exp(delta)``),
 (3, 3) g-sensitivity flattened row-major into 9 numbers. :func:`gyro_model` and
 :func:`accel_model` are the one forward model (with derivatives); :func:`imu_measure` applies
 them to an :class:`~licalib_cli.models.intrinsics.ImuIntrinsics` (the simulator's readings).
+
+A bias that walks over the segment (``diagnose``'s ``gyro_bias_walk`` / ``accel_bias_walk``)
+is ``b(t) = b + sum_k d_k B_k(t)``: continuous and piecewise linear, with drift ``d_k`` (per axis,
+per second) over piece ``k`` of ``K`` equal pieces of the segment ``[0, 2 t_ref]`` and the value
+``b`` at ``t_ref`` (:func:`bias_drift_basis`). With one piece it is the linear drift
+``b + d (t - t_ref)``.
 """
 
 from __future__ import annotations
@@ -30,8 +36,11 @@ __all__ = [
     "GyroModel",
     "SpecificForce",
     "accel_model",
+    "bias_drift_basis",
+    "drift_pieces",
     "gyro_model",
     "imu_measure",
+    "resample_drift",
     "specific_force",
 ]
 
@@ -220,3 +229,41 @@ def imu_measure(intrinsics: ImuIntrinsics, omega_imu: F64, accel_imu: F64) -> tu
     )
     accel = accel_model(accel_imu, k.accel_scale, k.accel_misalignment, k.accel_bias, False)
     return gyro.value, accel.value
+
+
+def drift_pieces(t_ref_s: float, piece_s: float | None) -> int:
+    """Number of equal pieces of a bias walk over the segment ``[0, 2 t_ref_s]`` with pieces of
+    about ``piece_s`` seconds (None: one piece, a linear drift)."""
+    if piece_s is None or not piece_s > 0.0:
+        return 1
+    return max(1, round(2.0 * float(t_ref_s) / float(piece_s)))
+
+
+def bias_drift_basis(t_s: npt.ArrayLike, t_ref_s: float, pieces: int) -> F64:
+    """(N, K) ``B_k(t)``: how the bias at ``t`` moves per unit drift of piece ``k``.
+
+    The segment ``[0, 2 t_ref_s]`` is cut into ``pieces`` equal pieces; ``B_k(t)`` is the time
+    spent in piece ``k`` between ``t_ref_s`` and ``t`` (negative before ``t_ref_s``), the first
+    piece reaching back and the last forward without end. The bias ``b + sum_k d_k B_k(t)`` is
+    therefore continuous, linear within each piece with slope ``d_k``, and ``b`` at ``t_ref_s``;
+    one piece gives ``t - t_ref_s``.
+    """
+    t = np.asarray(t_s, dtype=np.float64).reshape(-1)
+    k = max(int(pieces), 1)
+    edges = np.linspace(0.0, 2.0 * float(t_ref_s), k + 1)
+    lo = edges[:-1].copy()
+    hi = edges[1:].copy()
+    lo[0], hi[-1] = -np.inf, np.inf
+    return np.clip(t[:, None], lo, hi) - np.clip(float(t_ref_s), lo, hi)[None, :]
+
+
+def resample_drift(drift: npt.ArrayLike, pieces: int) -> F64:
+    """A bias walk's drifts ``(3,)`` (one piece) or ``(K, 3)`` given with ``pieces`` pieces: the
+    same when the count matches, every piece at the one drift when going from one piece (the same
+    bias), else every piece at the mean drift. Returns ``(3,)`` for one piece, ``(pieces, 3)``
+    otherwise."""
+    d = np.asarray(drift, dtype=np.float64).reshape(-1, 3)
+    k = max(int(pieces), 1)
+    if d.shape[0] != k:
+        d = np.repeat(d.mean(axis=0, keepdims=True), k, axis=0)
+    return d.reshape(3).copy() if k == 1 else d.copy()

@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
 from licalib_cli import __version__
 from licalib_cli.config import CalibConfig, config_fingerprint
@@ -105,13 +106,28 @@ def extra_terms(state: CalibrationState, cfg: CalibConfig) -> ExtraTerms | None:
     imu, lidar = set(cfg.model.imu), set(cfg.model.lidar)
     if not ({"clock_drift", "gyro_bias_walk", "accel_bias_walk"} & imu or "point_time" in lidar):
         return None
+    walks = [
+        np.size(drift) // 3
+        for name, drift in (
+            ("gyro_bias_walk", state.gyro_bias_drift),
+            ("accel_bias_walk", state.accel_bias_drift),
+        )
+        if name in imu
+    ]
+    pieces = max(walks, default=1)
     return ExtraTerms(
         reference_ns=state.t0_ns + round(state.t_ref_s * _NS),
         clock_drift=state.time_drift if "clock_drift" in imu else None,
-        gyro_bias_walk=vec3(state.gyro_bias_drift) if "gyro_bias_walk" in imu else None,
-        accel_bias_walk=vec3(state.accel_bias_drift) if "accel_bias_walk" in imu else None,
+        gyro_bias_walk=_walk(state.gyro_bias_drift) if "gyro_bias_walk" in imu else None,
+        accel_bias_walk=_walk(state.accel_bias_drift) if "accel_bias_walk" in imu else None,
         point_time=state.point_time_scale if "point_time" in lidar else None,
+        bias_walk_pieces=pieces if pieces > 1 else None,
     )
+
+
+def _walk(drift: npt.ArrayLike) -> tuple[float, ...]:
+    """A bias walk's drifts, piece-major (``x, y, z`` of each piece)."""
+    return tuple(float(v) for v in np.asarray(drift, dtype=np.float64).reshape(-1))
 
 
 def assemble(

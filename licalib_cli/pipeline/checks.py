@@ -1134,9 +1134,12 @@ def intrinsics_uncertainty(
 
     values: dict[str, tuple[float | None, ...]] = {}
     for block in cfg.model.imu:
-        if block in _DRIFT_NAMES:  # linear drifts (diagnose's bias walks, clock drift)
+        if block in _DRIFT_NAMES:  # drifts (diagnose's bias walks, clock drift)
             prefix, suffixes = _DRIFT_NAMES[block]
             names = [f"{prefix}.{s}" for s in suffixes] if suffixes else [prefix]
+            pieces = [n for n in report.calibration_names if n.startswith(f"{prefix}.")]
+            if suffixes and len(pieces) > len(names):  # a walk in pieces: x_1, y_1, z_1, x_2 ...
+                names = pieces
             values[block] = tuple(get(n) for n in names)
             continue
         block_name = "imu.gyro_g_sensitivity" if block == "g_sensitivity" else f"imu.{block}"

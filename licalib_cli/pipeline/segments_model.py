@@ -45,7 +45,8 @@ def union_config(
     cfg: CalibConfig, diagnoses: Sequence[Diagnosis]
 ) -> tuple[tuple[str, ...], CalibConfig]:
     """The effects any of ``diagnoses`` kept, in the order first kept, and ``cfg`` estimating
-    exactly them (the spreads across beams of the first diagnosis that kept each so)."""
+    exactly them (the spreads across beams of the first diagnosis that kept each so; a bias walk
+    in the shortest pieces any diagnosis chose)."""
     effects: list[str] = []
     for diag in diagnoses:
         effects.extend(e for e in diag.effects_found if e not in effects)
@@ -57,7 +58,14 @@ def union_config(
             if sigma is not None:
                 spread = spread.with_sigma(block, sigma)
                 break
-    model = out.model.model_copy(update={"lidar_spread": spread})
+    pieces = [
+        d.config.model.bias_walk_piece_s
+        for d in diagnoses
+        if d.config is not None and d.config.model.bias_walk_piece_s is not None
+    ]
+    model = out.model.model_copy(
+        update={"lidar_spread": spread, "bias_walk_piece_s": min(pieces, default=None)}
+    )
     return tuple(effects), out.model_copy(update={"model": model})
 
 

@@ -274,6 +274,7 @@ def free_parameters(cfg: CalibConfig, intrinsics: bool) -> FreeParameters:
         accel_bias_drift="accel_bias_walk" in m.imu,
         time_drift="clock_drift" in m.imu,
         point_time="point_time" in m.lidar,
+        bias_walk_piece_s=m.bias_walk_piece_s,
     )
 
 

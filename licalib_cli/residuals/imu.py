@@ -18,7 +18,7 @@ from collections.abc import Mapping
 import numpy as np
 import numpy.typing as npt
 
-from licalib_cli.models.imu import accel_model, gyro_model, specific_force
+from licalib_cli.models.imu import accel_model, bias_drift_basis, gyro_model, specific_force
 from licalib_cli.residuals import (
     ACCEL_BIAS,
     ACCEL_BIAS_DRIFT,
@@ -96,7 +96,9 @@ class GyroResidual:
             gyro: (N, 3) gyro readings, rad/s.
             sigma: discrete noise standard deviation, rad/s (scalar or (3,) per axis).
             g_sensitivity: include the ``A_w a_I`` term.
-            t_ref_s: reference time of the bias drift ``b_w(t) = b_w + d_w (t - t_ref)``.
+            t_ref_s: reference time of the bias drift: ``b_w(t) = b_w + d_w (t - t_ref)``, or
+                piecewise linear over ``[0, 2 t_ref]`` with a ``(K, 3)`` drift block
+                (:func:`~licalib_cli.models.imu.bias_drift_basis`).
             name: residual block name.
             so3_cache: rotation-spline evaluation shared with an :class:`AccelResidual` at the
                 same sample times (see :class:`~licalib_cli.spline.SO3EvaluationCache`);
@@ -111,7 +113,7 @@ class GyroResidual:
         knots.locate(self.t_s)  # range check
         self.inv_sigma = _per_axis_inverse(sigma, "gyro")
         self.g_sensitivity = g_sensitivity
-        self.dt_ref = self.t_s - float(t_ref_s)
+        self.drift = _Drift(self.t_s, float(t_ref_s))
         self.so3_cache = SO3EvaluationCache() if so3_cache is None else so3_cache
         self._zeros = np.zeros((self.t_s.shape[0], 1), dtype=np.intp)
 
@@ -143,7 +145,7 @@ class GyroResidual:
         w = self.inv_sigma
         value = model.value
         if GYRO_BIAS_DRIFT in params:
-            value = value + self.dt_ref[:, None] * np.asarray(params[GYRO_BIAS_DRIFT]).reshape(3)
+            value = value + self.drift.value(params[GYRO_BIAS_DRIFT])
         r = (value - self.gyro) * w
         if not jacobians:
             return ResidualEval(r)
@@ -174,8 +176,7 @@ class GyroResidual:
         if GYRO_BIAS in params:
             jacs.append(DenseJacobian(GYRO_BIAS, self._zeros, _bias_jacobian(n, w)))
         if GYRO_BIAS_DRIFT in params:
-            j = _bias_jacobian(n, w) * self.dt_ref[:, None, None, None]
-            jacs.append(DenseJacobian(GYRO_BIAS_DRIFT, self._zeros, j))
+            jacs.append(self.drift.jacobian(GYRO_BIAS_DRIFT, params[GYRO_BIAS_DRIFT], w))
         for block, d in (
             (GYRO_SCALE, model.d_scale),
             (GYRO_MISALIGNMENT, model.d_misalignment),
@@ -214,7 +215,8 @@ class AccelResidual:
             t_s: (N,) sample times, IMU-clock seconds relative to the reference time.
             accel: (N, 3) accelerometer readings, m/s^2.
             sigma: discrete noise standard deviation, m/s^2 (scalar or (3,) per axis).
-            t_ref_s: reference time of the bias drift ``b_a(t) = b_a + d_a (t - t_ref)``.
+            t_ref_s: reference time of the bias drift ``b_a(t) = b_a + d_a (t - t_ref)`` (or
+                piecewise linear, as for :class:`GyroResidual`).
             name: residual block name.
             so3_cache: rotation-spline evaluation shared with a :class:`GyroResidual` at the
                 same sample times; default: a private one.
@@ -227,7 +229,7 @@ class AccelResidual:
         self.t_s, self.accel = _check_samples(t_s, accel, "accelerometer")
         knots.locate(self.t_s)
         self.inv_sigma = _per_axis_inverse(sigma, "accelerometer")
-        self.dt_ref = self.t_s - float(t_ref_s)
+        self.drift = _Drift(self.t_s, float(t_ref_s))
         self.so3_cache = SO3EvaluationCache() if so3_cache is None else so3_cache
         self._zeros = np.zeros((self.t_s.shape[0], 1), dtype=np.intp)
 
@@ -251,7 +253,7 @@ class AccelResidual:
         w = self.inv_sigma
         value = model.value
         if ACCEL_BIAS_DRIFT in params:
-            value = value + self.dt_ref[:, None] * np.asarray(params[ACCEL_BIAS_DRIFT]).reshape(3)
+            value = value + self.drift.value(params[ACCEL_BIAS_DRIFT])
         r = (value - self.accel) * w
         if not jacobians:
             return ResidualEval(r)
@@ -271,8 +273,7 @@ class AccelResidual:
         if ACCEL_BIAS in params:
             jacs.append(DenseJacobian(ACCEL_BIAS, self._zeros, _bias_jacobian(n, w)))
         if ACCEL_BIAS_DRIFT in params:
-            j = _bias_jacobian(n, w) * self.dt_ref[:, None, None, None]
-            jacs.append(DenseJacobian(ACCEL_BIAS_DRIFT, self._zeros, j))
+            jacs.append(self.drift.jacobian(ACCEL_BIAS_DRIFT, params[ACCEL_BIAS_DRIFT], w))
         for block, d in ((ACCEL_SCALE, model.d_scale), (ACCEL_MISALIGNMENT, model.d_misalignment)):
             if block in params:
                 assert d is not None
@@ -280,6 +281,39 @@ class AccelResidual:
                     DenseJacobian(block, self._zeros, (d * w[None, :, None])[:, :, None, :])
                 )
         return ResidualEval(r, tuple(jacs))
+
+
+class _Drift:
+    """A bias walk's term at the samples: ``B(t) d`` for a ``(3,)`` or ``(K, 3)`` drift block
+    (:func:`~licalib_cli.models.imu.bias_drift_basis`), its basis kept per piece count."""
+
+    def __init__(self, t_s: F64, t_ref_s: float) -> None:
+        self.t_s = t_s
+        self.t_ref_s = t_ref_s
+        self._basis: dict[int, tuple[F64, npt.NDArray[np.intp]]] = {}
+
+    def basis(self, pieces: int) -> F64:
+        """(N, K) basis for ``pieces`` pieces."""
+        return self._cached(pieces)[0]
+
+    def _cached(self, pieces: int) -> tuple[F64, npt.NDArray[np.intp]]:
+        out = self._basis.get(pieces)
+        if out is None:
+            basis = bias_drift_basis(self.t_s, self.t_ref_s, pieces)
+            elements = np.tile(np.arange(pieces, dtype=np.intp), (basis.shape[0], 1))
+            out = self._basis[pieces] = (basis, elements)
+        return out
+
+    def value(self, drift: F64) -> F64:
+        """(N, 3) the bias's change from its value at ``t_ref``."""
+        d = np.asarray(drift, dtype=np.float64).reshape(-1, 3)
+        return self.basis(d.shape[0]) @ d
+
+    def jacobian(self, block: str, drift: F64, w: F64) -> DenseJacobian:
+        """Whitened Jacobian of :meth:`value` (one element of 3 per piece)."""
+        basis, elements = self._cached(np.asarray(drift).size // 3)
+        j = np.diag(w)[None, :, None, :] * basis[:, None, :, None]  # (n, 3, K, 3)
+        return DenseJacobian(block, elements, j)
 
 
 def _bias_jacobian(n: int, w: F64) -> F64:

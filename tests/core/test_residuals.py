@@ -410,6 +410,54 @@ def test_bias_drift_jacobians() -> None:
     np.testing.assert_allclose(diff, (t - 0.4)[:, None] * params[GYRO_BIAS_DRIFT] * 2.0)
 
 
+def test_piecewise_bias_drift_jacobians_and_values() -> None:
+    """A bias walk in pieces (a ``(K, 3)`` drift block): Jacobians against finite differences,
+    and the bias continuous, linear within each piece with its own slope, and unchanged at
+    ``t_ref``."""
+    from licalib_cli.models.imu import bias_drift_basis
+    from licalib_cli.residuals import ACCEL_BIAS_DRIFT, GYRO_BIAS_DRIFT
+
+    rng = np.random.default_rng(41)
+    params = _random_params(rng)
+    del params[GYRO_G_SENSITIVITY]
+    t_ref = 0.5 * KNOTS.t_end_s
+    params[GYRO_BIAS_DRIFT] = 1e-3 * rng.standard_normal((3, 3))
+    params[ACCEL_BIAS_DRIFT] = 1e-2 * rng.standard_normal((4, 3))
+    t = np.sort(rng.uniform(0.0, KNOTS.t_end_s, 40))
+    gyro = GyroResidual(KNOTS, t, rng.standard_normal((40, 3)), 0.5, t_ref_s=t_ref)
+    _check_all(
+        gyro,
+        params,
+        [TRAJ_SO3, GYRO_BIAS, GYRO_BIAS_DRIFT, GYRO_SCALE, GYRO_MISALIGNMENT, GYRO_ROTATION],
+        float(np.abs(gyro.gyro * gyro.inv_sigma).max()),
+    )
+    accel = AccelResidual(KNOTS, t, rng.standard_normal((40, 3)) * 9.0, 0.5, t_ref_s=t_ref)
+    _check_all(
+        accel,
+        params,
+        [TRAJ_SO3, TRAJ_R3, GRAVITY, ACCEL_BIAS, ACCEL_BIAS_DRIFT, ACCEL_SCALE, ACCEL_MISALIGNMENT],
+        float(np.abs(accel.accel * accel.inv_sigma).max()),
+    )
+    # The bias's change: 0 at t_ref, continuous, slope d_k within piece k.
+    d = params[GYRO_BIAS_DRIFT]
+    edges = np.linspace(0.0, 2.0 * t_ref, 4)
+    grid = np.linspace(0.0, 2.0 * t_ref, 301)
+    change = bias_drift_basis(grid, t_ref, 3) @ d
+    np.testing.assert_allclose(bias_drift_basis([t_ref], t_ref, 3), 0.0, atol=1e-15)
+    for k in range(3):
+        inside = (grid > edges[k] + 1e-9) & (grid < edges[k + 1] - 1e-9)
+        slope = np.diff(change[inside], axis=0) / np.diff(grid[inside])[:, None]
+        np.testing.assert_allclose(slope, np.broadcast_to(d[k], slope.shape), rtol=1e-9)
+    assert np.max(np.abs(np.diff(change, axis=0))) < 2.0 * np.abs(d).max() * (grid[1] - grid[0])
+    # one piece is the linear drift; equal drifts in every piece are the same bias
+    np.testing.assert_allclose(bias_drift_basis(t, t_ref, 1)[:, 0], t - t_ref, atol=1e-15)
+    np.testing.assert_allclose(bias_drift_basis(t, t_ref, 5).sum(axis=1), t - t_ref, atol=1e-12)
+    without = dict(params)
+    del without[GYRO_BIAS_DRIFT]
+    diff = gyro.evaluate(params, False).residuals - gyro.evaluate(without, False).residuals
+    np.testing.assert_allclose(diff, bias_drift_basis(t, t_ref, 3) @ d * 2.0, atol=1e-14)
+
+
 def test_clock_drift_and_point_time_jacobians() -> None:
     """``ext.time_drift`` and ``lidar.point_time_scale`` move each point's query time by
     ``k_drift (tau - t_ref)`` and ``-k_point (tau - sweep start)``."""

@@ -54,3 +54,21 @@ def test_a_spread_across_beams_comes_from_the_first_window_that_kept_it() -> Non
     _, out = union_config(cfg, [plain, first, second])  # type: ignore[arg-type]
     assert out.model.lidar_spread.sigma_of("range_offset") == pytest.approx(0.002)
     assert out.model.lidar_spread.sigma_of("elevation") is None
+
+
+def test_a_bias_walk_in_pieces_takes_the_shortest_pieces_any_window_chose() -> None:
+    cfg = load_config(None)
+
+    def pieces(piece_s: float | None) -> CalibConfig:
+        return load_config(None, {"model.bias_walk_piece_s": piece_s} if piece_s else None)
+
+    found = [
+        _Found(("gyro_bias_walk",), pieces(5.0)),
+        _Found(("gyro_bias_walk",), pieces(2.5)),
+        _Found(("gyro_bias_walk",), pieces(None)),
+    ]
+    _, out = union_config(cfg, found)  # type: ignore[arg-type]
+    assert out.model.imu == ["gyro_bias_walk"]
+    assert out.model.bias_walk_piece_s == pytest.approx(2.5)
+    _, linear = union_config(cfg, found[2:])  # type: ignore[arg-type]
+    assert linear.model.bias_walk_piece_s is None
