@@ -26,22 +26,22 @@ pytestmark = pytest.mark.slow
 
 def _bag(tmp_path: Path, imu: ImuIntrinsics | None = None, **effects: Any) -> Path:
     """An 8 s sinusoid with the IMU intrinsics ``imu`` (default: none) and the simulator's
-    named ``effects`` (``SimulationSpec`` keywords)."""
+    named ``effects`` (``SimulationSpec`` keywords, which may also change its length, seed,
+    rates ...)."""
     path = tmp_path / "intrinsics.yaml"
     CalibrationResult(
         imu_intrinsics=imu or ImuIntrinsics(),
         lidar_intrinsics=LidarIntrinsics.nominal(VLP16_ELEVATION),
     ).save(path)
-    spec = SimulationSpec(
-        scenario="sinusoid",
-        lidar="vlp16",
-        duration_s=8.0,
-        seed=41,
-        time_offset_s=0.004,
-        intrinsics_file=path,
-        azimuth_resolution_deg=0.4,
-        **effects,
-    )
+    fields: dict[str, Any] = {
+        "scenario": "sinusoid",
+        "lidar": "vlp16",
+        "duration_s": 8.0,
+        "seed": 41,
+        "time_offset_s": 0.004,
+        "azimuth_resolution_deg": 0.4,
+    }
+    spec = SimulationSpec(intrinsics_file=path, **{**fields, **effects})
     return simulate(spec, tmp_path / "sim").bag_path
 
 
@@ -177,21 +177,15 @@ def test_a_bias_walk_in_pieces_follows_the_walk_better_than_one_drift(tmp_path: 
     (``model.bias_walk_piece_s``) it leaves a smaller gyro chi-square than one linear drift, and
     the result file carries every piece's drift with its sigma. (Over 8 s the walk's shape is
     not determined: the truncated SVD holds its pieces, and says so.)"""
-    path = tmp_path / "intrinsics.yaml"
-    CalibrationResult(lidar_intrinsics=LidarIntrinsics.nominal(VLP16_ELEVATION)).save(path)
-    spec = SimulationSpec(
-        scenario="sinusoid",
-        lidar="vlp16",
+    bag = _bag(
+        tmp_path,
         duration_s=20.0,
         seed=43,
-        time_offset_s=0.004,
-        intrinsics_file=path,
         azimuth_resolution_deg=0.8,
         imu_rate_hz=100.0,
         effects=("gyro_bias_walk",),
         bias_walk_scale=50.0,
     )
-    bag = simulate(spec, tmp_path / "sim").bag_path
     chi2 = {}
     for piece_s in (None, 5.0):
         cfg = {"model": {"imu": ["gyro_bias_walk"], "bias_walk_piece_s": piece_s}}
