@@ -261,6 +261,10 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
         "not_told_apart": {s.effect: list(s.not_told_apart) for s in diag.steps if s.kept},
         # effects kept as one spread across beams (their free numbers did not pay): the spread
         "spread": {s.effect: s.spread for s in diag.steps if s.kept and np.isfinite(s.spread)},
+        # bias walks kept in pieces: how many (and the one linear drift's BIC change)
+        "pieces": {
+            s.effect: [s.pieces, s.linear_delta_bic] for s in diag.steps if s.kept and s.pieces > 1
+        },
         "before": err(diag.base),
         "after": err(diag.final),
         "steps": [
@@ -450,6 +454,7 @@ def main() -> None:
                     ",".join(
                         n
                         + (" [spread]" if n in row.get("spread", {}) else "")
+                        + (f" [{row['pieces'][n][0]} pieces]" if n in row.get("pieces", {}) else "")
                         + "".join(f" (~{a})" for a in row.get("not_told_apart", {}).get(n, []))
                         for n in row["named"]
                     )
