@@ -35,6 +35,15 @@ Parts (all by default; choose with ``--parts``):
   segment's own error, the joint rounds' and the joint result's (after the planes-free
   refinement of the joint problem) against the truth, translation and the mean of the LiDAR
   range offsets (their common mode), with the refinement's time and peak traced memory.
+* ``model`` (not run by default): ``calibrate --segments 0-10,10-20 --model auto`` against the
+  configured (base) model on 20 s walks (``--model-seeds``, a random mounting and time offset,
+  VLP-16 thinned to 2 deg of azimuth) with one effect hidden per seed (``--model-effects``,
+  cycled; ``none`` hides nothing) at ``--model-effect-scale`` times its reference size. Per bag:
+  what each window's diagnosis kept, the effects the joint calibration estimated, and each
+  model's verdict, error and largest error over its sigma. Expected: the hidden effect kept by
+  some window (unless the windows show it too weakly: each diagnosis says how large it would
+  have to be), nothing on a clean walk, the joint error within 0.3 cm / 0.05 deg / 0.1 ms and
+  within 3 of its sigmas.
 
 Examples::
 
@@ -44,6 +53,7 @@ Examples::
         --long-repeat 6 --workdir /tmp/hour
     .venv/bin/python benchmarks/bench_segments.py --parts intrinsics --intrinsics-seeds 3 5
     .venv/bin/python benchmarks/bench_segments.py --parts tilt --tilt-seeds 2811 2812 2813
+    .venv/bin/python benchmarks/bench_segments.py --parts model --model-seeds 4201 4202 4203
     .venv/bin/python benchmarks/bench_segments.py --parts tilt --tilt-seeds 2821 2822 2823 \
         --tilt-lidars os1-64 hdl-32 os1-32 --tilt-joint
 
@@ -472,6 +482,66 @@ def tilt(args: argparse.Namespace, workdir: Path) -> None:
         )
 
 
+def model(args: argparse.Namespace, workdir: Path) -> None:
+    from licalib_cli.config import load_config
+    from licalib_cli.pipeline.joint import calibrate_segments
+    from licalib_cli.truth import Truth
+
+    print(
+        "\n20 s walks, --segments 0-10,10-20: --model auto (each window diagnosed, the joint "
+        "model every effect any window kept) against the configured base model"
+    )
+    print(
+        " seed  hidden                   model   kept (window 1 | window 2)              "
+        "t [mm]  rot [deg]  dt [ms]  err/sigma  verdict  wall [s]"
+    )
+    misses = []
+    for k, seed in enumerate(args.model_seeds):
+        effect = args.model_effects[k % len(args.model_effects)]
+        hidden = () if effect == "none" else (effect,)
+        bag = _simulate(
+            workdir,
+            f"walk20-{seed}-{effect}",
+            scenario="walk",
+            duration_s=20.0,
+            seed=seed,
+            azimuth_resolution_deg=2.0,
+            random_extrinsic=True,
+            random_time_offset=True,
+            effects=hidden,
+            effect_scale=args.model_effect_scale,
+        )
+        truth = Truth.load(bag.parent / "truth.yaml")
+        for auto in (True, False):
+            t = time.perf_counter()
+            run = calibrate_segments(bag, load_config(None), "0-10,10-20", model_auto=auto)
+            wall = time.perf_counter() - t
+            et, er, ec, ratio = _errors(truth, run.result)
+            kept = "-"
+            if run.model is not None:
+                kept = " | ".join(",".join(d.effects_found) or "none" for d in run.model.diagnoses)
+            verdict = run.result.verdict.status
+            print(
+                f" {seed:4d}  {effect:23s}  {'auto' if auto else 'config':6s}  {kept:38s}  "
+                f"{et:6.2f}  {er:9.4f}  {ec:7.3f}  {ratio:9.2f}  {verdict:7s}  {wall:8.1f}",
+                flush=True,
+            )
+            if auto:
+                assert run.model is not None
+                found = set(run.model.effects)
+                if hidden and not set(hidden) <= found:
+                    misses.append(f"{seed}: {effect} not kept (kept {sorted(found)})")
+                if not hidden and found:
+                    misses.append(f"{seed}: clean walk, kept {sorted(found)}")
+                if et > 3.0 or er > 0.05 or ec > 0.1:
+                    misses.append(f"{seed}: joint error {et:.2f} mm / {er:.4f} deg / {ec:.3f} ms")
+                if ratio > 3.0:
+                    misses.append(f"{seed}: joint error {ratio:.2f} of its sigmas")
+    print(f"{len(args.model_seeds)} walks, {len(misses)} misses with --model auto")
+    for m in misses:
+        print("  " + m)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--parts", nargs="+", default=["walk", "planar", "long"])
@@ -490,6 +560,14 @@ def main() -> None:
     p.add_argument("--intrinsics-seeds", type=int, nargs="+", default=[3, 5])
     p.add_argument("--intrinsics-segments", default="0-10,10-20,20-30")
     p.add_argument("--tilt-seeds", type=int, nargs="+", default=[2811, 2812, 2813])
+    p.add_argument("--model-seeds", type=int, nargs="+", default=[4201, 4202, 4203, 4204])
+    p.add_argument(
+        "--model-effects",
+        nargs="+",
+        default=["none", "lidar_range_offset", "lidar_elevation", "gyro_scale"],
+        help="effects hidden, cycled over the seeds (none: a clean walk)",
+    )
+    p.add_argument("--model-effect-scale", type=float, default=3.0)
     p.add_argument("--tilt-lidars", nargs="+", default=["vlp16"], help="cycled over the seeds")
     p.add_argument(
         "--tilt-joint",
@@ -507,6 +585,7 @@ def main() -> None:
                 "long": long_run,
                 "intrinsics": intrinsics,
                 "tilt": tilt,
+                "model": model,
             }
             parts[part](args, workdir)
 
