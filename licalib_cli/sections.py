@@ -662,6 +662,9 @@ class SegmentEstimate(Section):
             translation or rotation axis, in its own sigmas.
         disagrees: above the section's threshold.
         verdict: the segment's own verdict.
+        started_from: the 1-based segment whose estimate this segment's own calibration
+            started from, when its own motion could not give an initial guess (None: it
+            started on its own).
     """
 
     _digits = 9
@@ -679,6 +682,7 @@ class SegmentEstimate(Section):
     disagreement_sigmas: float
     disagrees: bool
     verdict: str
+    started_from: int | None = None
 
 
 @dataclass(frozen=True)

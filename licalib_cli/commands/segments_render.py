@@ -41,6 +41,8 @@ def render_segments(run: JointRun, truth: Truth | None = None) -> Table:
         from licalib_cli.results import matrix_from_rpy_deg
 
         flag = f"{e.disagreement_sigmas:.1f}" + (" DISAGREES" if e.disagrees else "")
+        if e.started_from is not None:
+            flag += f" (started from seg{e.started_from})"
         table.add_row(
             f"{e.start_s:g}-{e.end_s:g} s",
             t_text(np.asarray(e.translation), e.translation_std_m),

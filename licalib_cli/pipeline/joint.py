@@ -50,7 +50,7 @@ from __future__ import annotations
 import itertools
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -59,7 +59,7 @@ import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.consistency.score import EffectScore, combined_score
-from licalib_cli.errors import ConfigError, ExcitationError, LicalibError
+from licalib_cli.errors import ConfigError, ExcitationError
 from licalib_cli.estimation import (
     CalibrationState,
     Planes,
@@ -68,7 +68,7 @@ from licalib_cli.estimation import (
 from licalib_cli.geometry import so3
 from licalib_cli.io.bag import open_bag
 from licalib_cli.io.window import MIN_SEGMENT_S
-from licalib_cli.pipeline import CalibrationRun, calibrate
+from licalib_cli.pipeline import CalibrationRun
 from licalib_cli.pipeline.assemble import extra_terms
 from licalib_cli.pipeline.checks import (
     COVER_P_VALUE,
@@ -88,7 +88,8 @@ from licalib_cli.pipeline.points import points_in_global, solver_points, usable_
 from licalib_cli.pipeline.prior_directions import lever_arm_conflict, on_prior
 from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.pipeline.schedule import cover_truncated
-from licalib_cli.pipeline.segments import _with_range, select_segments
+from licalib_cli.pipeline.segment_runs import calibrate_windows, sigma_size
+from licalib_cli.pipeline.segments import select_segments
 from licalib_cli.pipeline.segments_model import SegmentsModel, model_for_segments
 from licalib_cli.pipeline.settings import lm_params, prior_sd, round_settings
 from licalib_cli.pipeline.unchecked_priors import combined_unchecked_priors, unchecked_text
@@ -376,27 +377,14 @@ def calibrate_segments(
             ", ".join(selection.effects) or "the base model (no effect kept)",
         )
         timings["diagnoses"] = time.perf_counter() - clock
-    runs: list[CalibrationRun] = []
-    kept: list[tuple[float, float]] = []
-    shared_progress = _KeptOpen(progress)
-    for a, b in windows:
-        clock = time.perf_counter()
-        try:
-            run = calibrate(bag, _with_range(cfg, a, b - a), shared_progress)
-        except LicalibError as err:
-            if segments.strip().lower() != "auto" or isinstance(err, ConfigError):
-                raise
-            logger.warning("Segment %.1f-%.1f s left out: %s", a, b, err)
-            continue
-        runs.append(run)
-        kept.append((a, b))
-        timings[f"segment {a:.0f}-{b:.0f} s"] = time.perf_counter() - clock
-    if not runs:
-        msg = "None of the selected segments could be calibrated on its own."
-        raise ExcitationError(msg)
+    alone = calibrate_windows(
+        bag, cfg, windows, _KeptOpen(progress), chosen=segments.strip().lower() == "auto"
+    )
+    runs, kept = list(alone.runs), list(alone.windows)
+    timings.update(alone.timings)
 
     clock = time.perf_counter()
-    best = int(np.argmin([_sigma_size(r) for r in runs]))
+    best = int(np.argmin([sigma_size(r) for r in runs]))
     ref = runs[best].state
     shared = {
         "R_imu_lidar": ref.R_imu_lidar,
@@ -446,7 +434,7 @@ def calibrate_segments(
             states, inputs, report = list(refined.states), list(refined.inputs), refined.report
         timings["joint planes-free"] = time.perf_counter() - clock
     report = cover_truncated(report, runs[best].initial.state, states[best])
-    result = _joint_result(runs, kept, states, report, best, cfg)
+    result = _joint_result(runs, kept, states, report, best, cfg, alone.started_from)
     return JointRun(
         result, tuple(runs), tuple(kept), report, tuple(states), timings, selection, cfg
     )
@@ -558,16 +546,6 @@ def _rig_effects(runs: Sequence[CalibrationRun]) -> frozenset[str]:
     return frozenset(out)
 
 
-def _sigma_size(run: CalibrationRun) -> float:
-    unc = run.result.uncertainty
-    if unc is None:
-        return float("inf")
-    t = np.asarray(unc.translation_std_m) / 0.01
-    r = np.asarray(unc.rotation_std_deg) / np.degrees(1e-3)
-    v = float(np.sum(t**2) + np.sum(r**2))
-    return v if np.isfinite(v) else float("inf")
-
-
 def joint_truncation_reasons(report: SolverReport) -> list[str]:
     """The joint verdict's reasons for the extrinsic directions the segments together do not
     determine: every truncated direction once one of them moves the extrinsic, then, when one
@@ -589,7 +567,9 @@ def _joint_result(
     report: SolverReport,
     best: int,
     cfg: CalibConfig,
+    started_from: Mapping[int, int] | None = None,
 ) -> CalibrationResult:
+    started_from = started_from or {}
     names = report.calibration_names
     std = dict(zip(names, report.std, strict=True))
     # each segment's time offset is on its own LiDAR clock shift; put them on the reference's
@@ -675,6 +655,7 @@ def _joint_result(
                 disagreement_sigmas=round(z, 3),
                 disagrees=bool(disagrees),
                 verdict=status,
+                started_from=started_from[k] + 1 if k in started_from else None,
             )
         )
     if any(e.disagrees for e in entries) and worst == "pass":

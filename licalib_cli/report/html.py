@@ -114,7 +114,8 @@ def _segments(result: CalibrationResult) -> str:
                 f"{1e3 * e.time_offset_s:+.3f} -> {1e3 * e.joint_time_offset_s:+.3f}",
                 _largest_sigma(e.translation_std_m, e.rotation_std_deg),
                 f"{e.disagreement_sigmas:.1f}" + (" (disagrees)" if e.disagrees else ""),
-                e.verdict.upper(),
+                e.verdict.upper()
+                + (f" (started from seg{e.started_from})" if e.started_from else ""),
             ]
         )
     ext, unc = result.extrinsic, result.uncertainty
@@ -152,6 +153,13 @@ def _segments(result: CalibrationResult) -> str:
             f"({ref.start_s:.1f}-{ref.end_s:.1f} s, the window with the smallest sigmas) "
             "calibrated alone."
             if ref is not None
+            else ""
+        )
+        + (
+            " A window marked \"started from\" could not give an initial guess from its own "
+            "motion; its own calibration started from that window's estimate and ran on its "
+            "own data from there."
+            if any(e.started_from for e in seg.segments)
             else ""
         )
         + "</p>",
