@@ -156,7 +156,7 @@ def _segments(result: CalibrationResult) -> str:
             else ""
         )
         + (
-            " A window marked \"started from\" could not give an initial guess from its own "
+            ' A window marked "started from" could not give an initial guess from its own '
             "motion; its own calibration started from that window's estimate and ran on its "
             "own data from there."
             if any(e.started_from for e in seg.segments)
