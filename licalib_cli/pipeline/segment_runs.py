@@ -17,9 +17,10 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -30,9 +31,17 @@ from licalib_cli.pipeline.segments import _with_range
 from licalib_cli.progress import Progress
 from licalib_cli.results import CalibrationResult, rpy_deg_from_matrix
 
-__all__ = ["WindowRuns", "calibrate_windows", "sigma_size", "started_from_result"]
+__all__ = [
+    "WindowRuns",
+    "calibrate_windows",
+    "each_window",
+    "sigma_size",
+    "started_from_result",
+]
 
 logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -78,41 +87,37 @@ def started_from_result(cfg: CalibConfig, result: CalibrationResult) -> CalibCon
     return cfg.model_copy(update={"initialization": init})
 
 
-def calibrate_windows(
-    bag: Path,
-    cfg: CalibConfig,
+def each_window(
     windows: Sequence[tuple[float, float]],
-    progress: Progress,
+    cfg: CalibConfig,
+    run_one: Callable[[float, float, CalibConfig], T],
+    result_of: Callable[[T], CalibrationResult],
+    size_of: Callable[[T], float],
     *,
     chosen: bool,
-) -> WindowRuns:
-    """Calibrate each window alone (see the module's text).
+) -> tuple[dict[int, T], dict[int, int]]:
+    """``run_one(start, end, cfg)`` for every window, a weak one again from the estimate of the
+    best one that started on its own (see the module's text).
 
     Args:
-        bag: the bag.
-        cfg: the configuration (its range is replaced by each window's).
         windows: the windows, seconds after the bag start, in time order.
-        progress: stage progress (kept open across the windows by the caller).
+        cfg: the configuration.
+        run_one: one window's work (a calibration, a diagnosis).
+        result_of: the result of that work whose extrinsic a weak window starts from.
+        size_of: how poorly that work determines the extrinsic (the smallest is the start).
         chosen: the windows were chosen by ``--segments auto`` (a window that fails is left
             out) rather than given (a window that fails stops the calibration).
 
+    Returns:
+        Window index -> its work, for every window kept; window index -> the index of the
+        window it started from.
+
     Raises:
         LicalibError: a given window failed (a weak one: also after starting from another's
-            estimate, or when no window started on its own); ``ExcitationError`` when no
-            window could be calibrated.
+            estimate, or when no window started on its own).
     """
-    done: dict[int, CalibrationRun] = {}
+    done: dict[int, T] = {}
     weak: list[tuple[int, ExcitationError]] = []
-    timings: dict[str, float] = {}
-
-    def run_alone(i: int, window_cfg: CalibConfig) -> CalibrationRun:
-        a, b = windows[i]
-        clock = time.perf_counter()
-        key = f"segment {a:.0f}-{b:.0f} s"
-        try:
-            return calibrate(bag, _with_range(window_cfg, a, b - a), progress)
-        finally:  # a window tried twice counts both tries
-            timings[key] = timings.get(key, 0.0) + time.perf_counter() - clock
 
     def give_up(i: int, err: LicalibError) -> None:
         a, b = windows[i]
@@ -120,9 +125,9 @@ def calibrate_windows(
             raise err
         logger.warning("Segment %.1f-%.1f s left out: %s", a, b, err)
 
-    for i in range(len(windows)):
+    for i, (a, b) in enumerate(windows):
         try:
-            done[i] = run_alone(i, cfg)
+            done[i] = run_one(a, b, cfg)
         except ExcitationError as err:
             weak.append((i, err))
         except LicalibError as err:
@@ -132,7 +137,7 @@ def calibrate_windows(
         if not done:
             give_up(i, failure)
             continue
-        source = min(done, key=lambda j: sigma_size(done[j]))
+        source = min(done, key=lambda j: size_of(done[j]))
         (a, b), (sa, sb) = windows[i], windows[source]
         logger.warning(
             "Segment %.1f-%.1f s cannot start on its own (%s); it starts from the estimate of "
@@ -144,11 +149,48 @@ def calibrate_windows(
             sb,
         )
         try:
-            done[i] = run_alone(i, started_from_result(cfg, done[source].result))
+            done[i] = run_one(a, b, started_from_result(cfg, result_of(done[source])))
         except LicalibError as again:
             give_up(i, again)
             continue
         started[i] = source
+    return done, started
+
+
+def calibrate_windows(
+    bag: Path,
+    cfg: CalibConfig,
+    windows: Sequence[tuple[float, float]],
+    progress: Progress,
+    *,
+    chosen: bool,
+) -> WindowRuns:
+    """Calibrate each window alone (:func:`each_window`).
+
+    Args:
+        bag: the bag.
+        cfg: the configuration (its range is replaced by each window's).
+        windows: the windows, seconds after the bag start, in time order.
+        progress: stage progress (kept open across the windows by the caller).
+        chosen: as for :func:`each_window`.
+
+    Raises:
+        LicalibError: as :func:`each_window`; ``ExcitationError`` when no window could be
+            calibrated.
+    """
+    timings: dict[str, float] = {}
+
+    def run_alone(a: float, b: float, window_cfg: CalibConfig) -> CalibrationRun:
+        clock = time.perf_counter()
+        key = f"segment {a:.0f}-{b:.0f} s"
+        try:
+            return calibrate(bag, _with_range(window_cfg, a, b - a), progress)
+        finally:  # a window tried twice counts both tries
+            timings[key] = timings.get(key, 0.0) + time.perf_counter() - clock
+
+    done, started = each_window(
+        windows, cfg, run_alone, lambda r: r.result, sigma_size, chosen=chosen
+    )
     if not done:
         msg = "None of the selected segments could be calibrated on its own."
         raise ExcitationError(msg)

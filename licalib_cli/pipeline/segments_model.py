@@ -18,6 +18,7 @@ from pathlib import Path
 
 from licalib_cli.config import CalibConfig, LidarSpreadSection
 from licalib_cli.pipeline.diagnose import Diagnosis, _with_effects, diagnose
+from licalib_cli.pipeline.segment_runs import each_window, sigma_size
 from licalib_cli.pipeline.segments import _with_range
 from licalib_cli.progress import Progress
 
@@ -75,14 +76,26 @@ def model_for_segments(
     windows: Sequence[tuple[float, float]],
     progress: Progress | None = None,
 ) -> SegmentsModel:
-    """Diagnose every window of ``bag`` (seconds after its start) and join what they found.
+    """Diagnose every window of ``bag`` (seconds after its start) and join what they found. A
+    window whose motion cannot give the initial guess is diagnosed from the estimate of the
+    best-determined window that could (:func:`~licalib_cli.pipeline.segment_runs.each_window`).
 
     Raises:
         BagError, TopicError, DataError, TimestampError: unreadable input.
         ExcitationError, SolverError: a window cannot be calibrated.
     """
-    diagnoses = tuple(
-        diagnose(bag, _with_range(cfg, a, b - a), progress=progress) for a, b in windows
+
+    def diagnose_one(a: float, b: float, window_cfg: CalibConfig) -> Diagnosis:
+        return diagnose(bag, _with_range(window_cfg, a, b - a), progress=progress)
+
+    done, _ = each_window(
+        windows,
+        cfg,
+        diagnose_one,
+        lambda d: d.final.result,
+        lambda d: sigma_size(d.final),
+        chosen=False,
     )
+    diagnoses = tuple(done[i] for i in sorted(done))
     effects, config = union_config(cfg, diagnoses)
     return SegmentsModel(effects, tuple(windows), diagnoses, config)

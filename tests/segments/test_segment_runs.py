@@ -97,3 +97,28 @@ def test_the_start_from_a_result_keeps_the_rest_of_the_config() -> None:
     assert out.imu.topic == "/imu"
     assert out.initialization.rotation_rpy_deg == pytest.approx([10.0, -20.0, 30.0])
     assert cfg.initialization.rotation_rpy_deg is None  # the input is not changed
+
+
+def test_a_window_diagnosed_for_model_auto_starts_from_the_other_windows_estimate(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from licalib_cli.pipeline import segments_model
+
+    weak = ExcitationError("Rotation excitation is too weak.")
+    starts: list[Any] = []
+
+    def diagnose(bag: Path, cfg: CalibConfig, progress: object = None) -> Any:
+        starts.append(cfg.initialization.rotation_rpy_deg)
+        if cfg.bag.start_s == 10.0 and cfg.initialization.rotation_rpy_deg is None:
+            raise weak
+        found = ("lidar_elevation",) if cfg.bag.start_s == 10.0 else ()
+        return SimpleNamespace(final=_run(0.002, (4.0, 5.0, 6.0)), effects_found=found, config=cfg)
+
+    monkeypatch.setattr(segments_model, "diagnose", diagnose)
+    cfg = load_config(None)
+    out = segments_model.model_for_segments(Path("x.bag"), cfg, WINDOWS[:2])
+    assert starts == [None, None, pytest.approx([4.0, 5.0, 6.0])]
+    assert out.effects == ("lidar_elevation",)
+    # the joint model carries the effects, not the start the weak window was given
+    assert out.config.initialization.rotation_rpy_deg is None
+    assert len(out.diagnoses) == 2
