@@ -482,6 +482,25 @@ def tilt(args: argparse.Namespace, workdir: Path) -> None:
         )
 
 
+def _shown_from(effect: str, truth, diagnoses) -> str:
+    """The hidden effect's size against the size from which each window's diagnosis says its
+    data show it (diagnose's own figure, in its display units)."""
+    from bench_diagnose import injected_rms
+
+    values = {
+        e.name: list(e.values) for e in (truth.simulation.effects if truth.simulation else ())
+    }
+    rms = injected_rms({"injected_all": {effect: values.get(effect, [])}}).get(effect)
+    parts = []
+    for k, diag in enumerate(diagnoses, start=1):
+        shown = next((n for n in diag.not_shown if n.effect == effect), None)
+        if shown is not None:
+            size, unit = shown.detectable
+            parts.append(f"window {k} shows it from {size:.2g} {unit}")
+    injected = f"injected {rms:.2g} RMS" if rms is not None else "injected"
+    return injected + (", " + ", ".join(parts) if parts else "")
+
+
 def model(args: argparse.Namespace, workdir: Path) -> None:
     from licalib_cli.config import load_config
     from licalib_cli.pipeline.joint import calibrate_segments
@@ -530,7 +549,10 @@ def model(args: argparse.Namespace, workdir: Path) -> None:
                 assert run.model is not None
                 found = set(run.model.effects)
                 if hidden and not set(hidden) <= found:
-                    misses.append(f"{seed}: {effect} not kept (kept {sorted(found)})")
+                    misses.append(
+                        f"{seed}: {effect} not kept (kept {sorted(found)}); "
+                        + _shown_from(effect, truth, run.model.diagnoses)
+                    )
                 if not hidden and found:
                     misses.append(f"{seed}: clean walk, kept {sorted(found)}")
                 if et > 3.0 or er > 0.05 or ec > 0.1:
