@@ -19,6 +19,9 @@
    ``s`` that best explains its score (:mod:`licalib_cli.consistency.spread`, set in
    ``model.lidar_spread``), its BIC the refit's sum of squares (the prior's term included)
    plus ``ln det(1 + s^2 I)`` and ``ln n`` for ``s`` (:func:`spread_worth_trying`).
+   A bias walk, tested and first refitted as one linear drift, is refitted once that pays as a
+   bias linear over each of 2, 4 and 8 equal pieces of the segment, each kept while the BIC
+   falls further (:func:`_finer_walk`, ``model.bias_walk_piece_s``).
 4. Repeat until no candidate is significant, or ``max_effects`` were added.
 5. Check backwards: an effect added early may explain nothing that the effects added after it
    do not (an accelerometer misalignment picked first on a bag whose gyro is rotated: once the
