@@ -37,8 +37,10 @@ Parts (all by default; choose with ``--parts``):
   range offsets (their common mode), with the refinement's time and peak traced memory.
 * ``model`` (not run by default): ``calibrate --segments 0-10,10-20 --model auto`` against the
   configured (base) model on 20 s walks (``--model-seeds``, a random mounting and time offset,
-  VLP-16 thinned to 2 deg of azimuth) with one effect hidden per seed (``--model-effects``,
-  cycled; ``none`` hides nothing) at ``--model-effect-scale`` times its reference size. Per bag:
+  the LiDAR thinned to 2 deg of azimuth; ``--model-lidars`` cycled over the seeds with their
+  shipped config, ``--model-scenario`` another motion) with one effect hidden per seed
+  (``--model-effects``, cycled; ``none`` hides nothing) at ``--model-effect-scale`` times its
+  reference size. Per bag:
   what each window's diagnosis kept, the effects the joint calibration estimated, and each
   model's verdict, error and largest error over its sigma. Expected: the hidden effect kept by
   some window (unless the windows show it too weakly: each diagnosis says how large it would
@@ -507,21 +509,25 @@ def model(args: argparse.Namespace, workdir: Path) -> None:
     from licalib_cli.truth import Truth
 
     print(
-        "\n20 s walks, --segments 0-10,10-20: --model auto (each window diagnosed, the joint "
+        f"\n20 s {args.model_scenario}s, --segments 0-10,10-20: --model auto (each window "
+        "diagnosed, the joint "
         "model every effect any window kept) against the configured base model"
     )
     print(
-        " seed  hidden                   model   kept (window 1 | window 2)              "
+        " seed  lidar   hidden                   model   kept (window 1 | window 2)              "
         "t [mm]  rot [deg]  dt [ms]  err/sigma  verdict  wall [s]"
     )
     misses = []
     for k, seed in enumerate(args.model_seeds):
         effect = args.model_effects[k % len(args.model_effects)]
         hidden = () if effect == "none" else (effect,)
+        lidar = args.model_lidars[k % len(args.model_lidars)]
+        scenario = args.model_scenario
         bag = _simulate(
             workdir,
-            f"walk20-{seed}-{effect}",
-            scenario="walk",
+            f"{scenario}20-{seed}-{effect}" + ("" if lidar == "vlp16" else f"-{lidar}"),
+            scenario=scenario,
+            lidar=lidar,
             duration_s=20.0,
             seed=seed,
             azimuth_resolution_deg=2.0,
@@ -533,7 +539,8 @@ def model(args: argparse.Namespace, workdir: Path) -> None:
         truth = Truth.load(bag.parent / "truth.yaml")
         for auto in (True, False):
             t = time.perf_counter()
-            run = calibrate_segments(bag, load_config(None), "0-10,10-20", model_auto=auto)
+            cfg = load_config(_lidar_config(lidar))
+            run = calibrate_segments(bag, cfg, "0-10,10-20", model_auto=auto)
             wall = time.perf_counter() - t
             et, er, ec, ratio = _errors(truth, run.result)
             kept = "-"
@@ -541,7 +548,8 @@ def model(args: argparse.Namespace, workdir: Path) -> None:
                 kept = " | ".join(",".join(d.effects_found) or "none" for d in run.model.diagnoses)
             verdict = run.result.verdict.status
             print(
-                f" {seed:4d}  {effect:23s}  {'auto' if auto else 'config':6s}  {kept:38s}  "
+                f" {seed:4d}  {lidar:6s}  {effect:23s}  {'auto' if auto else 'config':6s}  "
+                f"{kept:38s}  "
                 f"{et:6.2f}  {er:9.4f}  {ec:7.3f}  {ratio:9.2f}  {verdict:7s}  {wall:8.1f}",
                 flush=True,
             )
@@ -559,7 +567,7 @@ def model(args: argparse.Namespace, workdir: Path) -> None:
                     misses.append(f"{seed}: joint error {et:.2f} mm / {er:.4f} deg / {ec:.3f} ms")
                 if ratio > 3.0:
                     misses.append(f"{seed}: joint error {ratio:.2f} of its sigmas")
-    print(f"{len(args.model_seeds)} walks, {len(misses)} misses with --model auto")
+    print(f"{len(args.model_seeds)} bags, {len(misses)} misses with --model auto")
     for m in misses:
         print("  " + m)
 
@@ -590,6 +598,8 @@ def main() -> None:
         help="effects hidden, cycled over the seeds (none: a clean walk)",
     )
     p.add_argument("--model-effect-scale", type=float, default=3.0)
+    p.add_argument("--model-lidars", nargs="+", default=["vlp16"], help="cycled over the seeds")
+    p.add_argument("--model-scenario", default="walk", help="the simulator's motion")
     p.add_argument("--tilt-lidars", nargs="+", default=["vlp16"], help="cycled over the seeds")
     p.add_argument(
         "--tilt-joint",
