@@ -1045,21 +1045,6 @@ def _try_effect(
     return step
 
 
-def _refit_walk(
-    evidence: object,
-    run: CalibrationRun,
-    run_twin: Twin | None,
-    kept: tuple[str, ...],
-    prepared: Prepared,
-    progress: Progress,
-    timer: Timer,
-    rate: float,
-    cfg: CalibConfig,
-) -> DiagnosisStep:
-    """:func:`_try_effect` with the configuration last (for :func:`_finer_walk`)."""
-    return _try_effect(evidence, run, run_twin, kept, prepared, cfg, progress, timer, rate)
-
-
 def _finer_walk(
     step: DiagnosisStep,
     try_with: Callable[[CalibConfig], DiagnosisStep],
@@ -1200,7 +1185,15 @@ def diagnose(
                 step = replace(step, spread=used, spread_delta_bic=shared.delta_bic)
         if step.kept and step.effect in WALKS and cfg.model.bias_walk_piece_s is None:
             refit_in_pieces = partial(
-                _refit_walk, evidence, run, run_twin, kept, prepared, progress, timer, rate
+                _try_effect,
+                evidence,
+                run,
+                run_twin,
+                kept,
+                prepared,
+                progress=progress,
+                timer=timer,
+                rate=rate,
             )
             step, cfg = _finer_walk(step, refit_in_pieces, cfg)
         steps.append(step)

@@ -134,6 +134,15 @@ def test_table_overlapping_windows_and_plot(walk, tmp_path, capsys) -> None:
         assert w in printed
 
 
+def _refused(bag: Path, tmp_path: Path, capsys, *options: str) -> tuple[int, str]:
+    """``calibrate BAG OPTIONS -o r.yaml`` expected to exit before writing: its exit code and
+    standard error."""
+    with pytest.raises(SystemExit) as info:
+        main(["calibrate", str(bag), *options, "-o", str(tmp_path / "r.yaml")])
+    assert not (tmp_path / "r.yaml").exists()
+    return int(info.value.code or 0), capsys.readouterr().err
+
+
 @pytest.mark.parametrize(
     ("segments", "code", "text"),
     [
@@ -145,30 +154,15 @@ def test_table_overlapping_windows_and_plot(walk, tmp_path, capsys) -> None:
 )
 def test_segments_option_errors(walk, tmp_path, capsys, segments, code, text) -> None:
     bag, _, _ = walk
-    with pytest.raises(SystemExit) as info:
-        main(["calibrate", str(bag), "--segments", segments, "-o", str(tmp_path / "r.yaml")])
-    assert info.value.code == code
-    err = capsys.readouterr().err
+    got, err = _refused(bag, tmp_path, capsys, "--segments", segments)
+    assert got == code
     assert text in err and "Traceback" not in err
-    assert not (tmp_path / "r.yaml").exists()
 
 
 def test_segments_with_start_is_refused(walk, tmp_path, capsys) -> None:
     bag, _, _ = walk
-    with pytest.raises(SystemExit) as info:
-        main(
-            [
-                "calibrate",
-                str(bag),
-                "--segments",
-                "auto",
-                "--start",
-                "2",
-                "-o",
-                str(tmp_path / "r.yaml"),
-            ]
-        )
-    assert info.value.code == 6
+    code, _ = _refused(bag, tmp_path, capsys, "--segments", "auto", "--start", "2")
+    assert code == 6
 
 
 def _ply_points(path: Path) -> np.ndarray:
@@ -326,21 +320,7 @@ def test_model_auto_diagnoses_every_window_and_calibrates_them_with_what_they_ke
 
 def test_model_auto_with_intrinsics_is_refused_with_segments_too(walk, tmp_path, capsys) -> None:
     bag, _, _ = walk
-    with pytest.raises(SystemExit) as info:
-        main(
-            [
-                "calibrate",
-                str(bag),
-                "--segments",
-                "6-9,9-12",
-                "--model",
-                "auto",
-                "--intrinsics",
-                "imu",
-                "-o",
-                str(tmp_path / "r.yaml"),
-            ]
-        )
-    assert info.value.code == 6
-    err = capsys.readouterr().err
+    options = ("--segments", "6-9,9-12", "--model", "auto", "--intrinsics", "imu")
+    code, err = _refused(bag, tmp_path, capsys, *options)
+    assert code == 6
     assert "--model auto chooses the intrinsics itself" in err and "Traceback" not in err
