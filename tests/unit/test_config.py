@@ -62,6 +62,8 @@ def test_dump_is_complete():
             "lists 2 beams but num_beams is 16",
         ),
         ("lidar:\n  max_skipped_fraction: 2\n", "'lidar.max_skipped_fraction'"),
+        ("model:\n  bias_walk_piece_s: -1\n", "'model.bias_walk_piece_s'.*greater than 0"),
+        ("model:\n  bias_walk_piece_s: abc\n", "'model.bias_walk_piece_s'.*valid number"),
     ],
 )
 def test_values_a_run_cannot_use_are_refused_at_load_time(tmp_path, text, fragment):
