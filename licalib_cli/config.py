@@ -290,6 +290,21 @@ LidarBlock = Literal[
     "range_offset",
     "point_time",
 ]
+SizedBlock = Literal[
+    "gyro_scale",
+    "gyro_misalignment",
+    "gyro_rotation",
+    "accel_scale",
+    "accel_misalignment",
+    "g_sensitivity",
+    "gyro_bias_walk",
+    "accel_bias_walk",
+    "clock_drift",
+    "point_time",
+]
+"""Blocks whose expected size ``model.expected_size`` may set (the per-beam intrinsics have
+``model.lidar_spread`` instead)."""
+SIZED_BLOCKS: tuple[str, ...] = SizedBlock.__args__  # type: ignore[attr-defined]
 IMU_BLOCKS: tuple[str, ...] = ImuBlock.__args__  # type: ignore[attr-defined]
 LIDAR_BLOCKS: tuple[str, ...] = LidarBlock.__args__  # type: ignore[attr-defined]
 INTRINSIC_PRESETS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
@@ -405,6 +420,15 @@ class ModelSection(_Section):
     """With gyro_bias_walk or accel_bias_walk: the bias is piecewise linear over pieces of about
     this many seconds (the segment cut into equal pieces, one drift per axis and piece); unset:
     one linear drift over the segment. ``diagnose`` sets it when finer pieces pay their BIC."""
+    expected_size: dict[SizedBlock, Annotated[float, Field(gt=0.0)]] = Field(default_factory=dict)
+    """How large each named block (of ``imu``, or ``point_time``) is expected to be, per
+    coordinate in the solver's units: a fraction for scales, rad for misalignments and
+    gyro_rotation, rad/s per m/s^2 for g_sensitivity, rad/s^2 and m/s^3 for a gyro and an
+    accelerometer bias walk's drift (per piece: times ``K^1.5`` for ``K`` pieces), s/s for
+    clock_drift, a fraction of the sweep time for point_time. The truncated SVD holds at nominal
+    every direction the recording determines worse than this (README, ``observability``);
+    unset: the built-in characteristic scale. ``diagnose`` sets it when a block's
+    score test puts it far above the built-in scale and the refit at that scale held it."""
     min_points_per_beam: int = Field(default=200, ge=10)
     """Beams with fewer associated points keep their intrinsics at nominal (and are named)."""
     imu_prior: ImuPriorSection = ImuPriorSection()

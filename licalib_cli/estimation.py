@@ -449,6 +449,9 @@ class FreeParameters:
         lidar_spread: ``(name, sigma)`` per per-beam intrinsic (``dphi`` ... ``drho``) whose
             prior toward nominal has this sigma instead of the weak default
             (``model.lidar_spread``); like ``translation_prior``, part of what the problems add.
+        expected_size: ``(block, size)`` per calibration block (``imu.gyro_scale``,
+            ``imu.gyro_bias_drift``, ...) whose characteristic scale is ``size`` per coordinate
+            instead of :data:`CALIBRATION_SCALES`' (``model.expected_size``).
     """
 
     trajectory: bool = True
@@ -470,6 +473,7 @@ class FreeParameters:
     bias_walk_piece_s: float | None = None
     translation_prior: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     lidar_spread: tuple[tuple[str, float], ...] = ()
+    expected_size: tuple[tuple[str, float], ...] = ()
 
     def imu_block_free(self, block: str) -> bool:
         """Whether IMU intrinsic block ``block`` (e.g. ``imu.gyro_scale``) is estimated."""
@@ -839,9 +843,10 @@ say nothing instead of holding the estimate wherever the rounds left it."""
 
 
 def _scale_of(name: str, free: FreeParameters, size: int = 0) -> F64:
-    """Characteristic scales of calibration block ``name`` (:data:`CALIBRATION_SCALES`, the
-    translation's widened to :data:`PRIOR_SCALE_FACTOR` times its prior's sigma, a bias walk's
-    in ``K`` pieces (``size = 3 K``) ``K^1.5`` times the one drift's).
+    """Characteristic scales of calibration block ``name`` (:data:`CALIBRATION_SCALES` or the
+    block's ``free.expected_size``, the translation's widened to :data:`PRIOR_SCALE_FACTOR`
+    times its prior's sigma, a bias walk's in ``K`` pieces (``size = 3 K``) ``K^1.5`` times the
+    one drift's).
 
     A piece holds ``1/K`` of the samples over ``1/K`` of the time, so the data determine its
     drift ``K^1.5`` times less well than one drift over the segment; with its scale grown alike,
@@ -849,6 +854,9 @@ def _scale_of(name: str, free: FreeParameters, size: int = 0) -> F64:
     scale a gyro walk's pieces over 10 s, each some five of its sigmas from zero, were held).
     """
     scale = np.asarray(CALIBRATION_SCALES[name], dtype=np.float64)
+    expected = dict(free.expected_size)
+    if name in expected:
+        scale = np.full_like(scale, expected[name])
     if name in _DRIFT_BLOCKS and size > 3:
         scale = scale * (size // 3) ** 1.5
     if name == EXT_TRANSLATION and free.translation_prior is not None:

@@ -424,6 +424,8 @@ class ModelInfo(Section):
         lidar_spread: per-beam intrinsics estimated with a configured spread across beams
             (``model.lidar_spread``, the config's keys and units: ``range_scale``,
             ``elevation_deg`` ...); empty when each took the weak default prior.
+        expected_size: blocks estimated at a configured expected size instead of the built-in
+            characteristic scale (``model.expected_size``, its keys and units); empty otherwise.
     """
 
     imu: tuple[str, ...] = ()
@@ -431,6 +433,7 @@ class ModelInfo(Section):
     gauge_beam: int = -1
     held_beams: tuple[int, ...] = ()
     lidar_spread: dict[str, float] = field(default_factory=dict)
+    expected_size: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

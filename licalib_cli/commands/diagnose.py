@@ -107,6 +107,27 @@ def pieces_sentence(s: Any) -> str | None:
     )
 
 
+def size_sentence(s: Any) -> str | None:
+    """How an effect held at its characteristic scale fared refitted expecting the size its
+    score test showed (None when not tried, :mod:`licalib_cli.pipeline.effect_size`)."""
+    from licalib_cli.consistency.power import display_size
+
+    if not math.isfinite(s.expected_size):
+        return None
+    size, unit = display_size(s.effect, s.expected_size)
+    expecting = f"refitted expecting {size:.3g} {unit} per coordinate (model.expected_size)"
+    if s.kept:
+        return (
+            f"{s.effect} was held at nominal by the truncated SVD at its built-in scale and did "
+            f"not pay (BIC {s.held_delta_bic:+.0f}), although its score test put it well above "
+            f"that scale; {expecting}, it was estimated and pays (BIC {s.sized_delta_bic:+.0f})."
+        )
+    return (
+        f"{s.effect}, {expecting} as its score test suggests, did not pay either (BIC "
+        f"{s.sized_delta_bic:+.0f})."
+    )
+
+
 def unpaid_sentence(s: Any) -> str | None:
     """Why a significant effect was not added, and what data would add it (None unless its
     refit did not pay, :attr:`~licalib_cli.pipeline.diagnose.DiagnosisStep.unpaid`)."""
@@ -172,6 +193,9 @@ def diagnosis_dict(diag: Any) -> dict[str, Any]:
                 "spread": _spread_dict(s),
                 "pieces": s.pieces,
                 "linear_delta_bic": _num(s.linear_delta_bic),
+                "expected_size": _num(s.expected_size),
+                "held_delta_bic": _num(s.held_delta_bic),
+                "sized_delta_bic": _num(s.sized_delta_bic),
                 "gap_before": _gap_dict(s.gap_before),
                 "gap_after": _gap_dict(s.gap_after),
                 "gap_shrink": _num(s.shrink, 3),
@@ -385,6 +409,8 @@ def render_diagnosis(diag: Any) -> None:
             out.print(sentence if spread is None else f"{sentence} {spread}")
         elif s.kept and spread is not None:
             out.print(spread)
+        if (sized := size_sentence(s)) is not None:
+            out.print(sized)
         if (pieces := pieces_sentence(s)) is not None:
             out.print(pieces)
     for s in diag.steps:

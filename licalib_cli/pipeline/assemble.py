@@ -98,7 +98,16 @@ def model_info(fit: Fit, cfg: CalibConfig) -> ModelInfo:
         gauge = int(np.argmax(enough)) if np.any(enough) else -1
         held = tuple(int(b) for b in np.flatnonzero(~enough))
     spread = cfg.model.lidar_spread.configured(cfg.model.lidar)
-    return ModelInfo(tuple(cfg.model.imu), tuple(cfg.model.lidar), gauge, held, spread)
+    estimated = {*cfg.model.imu, *cfg.model.lidar}
+    sizes = {str(b): float(v) for b, v in cfg.model.expected_size.items() if b in estimated}
+    return ModelInfo(
+        tuple(cfg.model.imu),
+        tuple(cfg.model.lidar),
+        gauge,
+        held,
+        spread,
+        dict(sorted(sizes.items())),
+    )
 
 
 def extra_terms(state: CalibrationState, cfg: CalibConfig) -> ExtraTerms | None:

@@ -72,6 +72,7 @@ from licalib_cli.pipeline import (
     fit_and_check,
     prepare,
 )
+from licalib_cli.pipeline.effect_size import size_worth_trying, with_expected_size
 from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.settings import free_parameters, lm_params
@@ -263,6 +264,14 @@ class DiagnosisStep:
             :func:`_finer_walk`); the estimate, the gaps and the moves are that refit's.
         linear_delta_bic: with more than one piece, the BIC change of the one-drift refit (the
             pieces' is ``delta_bic``); NaN otherwise.
+        expected_size: when its refit held coordinates its score test put far above their
+            characteristic scale, the size per coordinate (solver units) it was refitted
+            expecting (``model.expected_size``, :mod:`licalib_cli.pipeline.effect_size`); NaN
+            when not tried. Kept so, the estimate, the gaps, the moves and ``delta_bic`` are
+            that refit's.
+        held_delta_bic: with ``expected_size``, the BIC change of the refit at the built-in
+            scale (NaN otherwise).
+        sized_delta_bic: with ``expected_size``, the BIC change of the refit expecting it.
     """
 
     effect: str
@@ -294,6 +303,9 @@ class DiagnosisStep:
     share_after: Gap | None = None
     pieces: int = 1
     linear_delta_bic: float = float("nan")
+    expected_size: float = float("nan")
+    held_delta_bic: float = float("nan")
+    sized_delta_bic: float = float("nan")
 
     @property
     def unpaid(self) -> Unpaid | None:
@@ -566,10 +578,13 @@ def with_spread(cfg: CalibConfig, effect: str, sigma: float) -> CalibConfig:
 
 def final_config(cfg: CalibConfig, kept: tuple[str, ...]) -> CalibConfig:
     """``cfg`` estimating exactly ``kept``, with the spreads of those among them kept as one
-    spread across beams (the others' unset)."""
+    spread across beams and the expected sizes of those among them sized (the others' unset)."""
     out = _with_effects(cfg, kept)
     if not set(kept) & set(WALKS):
         out = with_walk_pieces(out, None)
+    blocks = {CANDIDATES[e][1] for e in kept}
+    sizes = {b: v for b, v in cfg.model.expected_size.items() if b in blocks}
+    out = out.model_copy(update={"model": out.model.model_copy(update={"expected_size": sizes})})
     spread = LidarSpreadSection()
     for effect in kept:
         block = CANDIDATES[effect][1]
@@ -1089,6 +1104,50 @@ def _finer_walk(
     return best, best_cfg
 
 
+def _sized_refit(
+    step: DiagnosisStep,
+    score: EffectScore,
+    try_with: Callable[[CalibConfig], DiagnosisStep],
+    cfg: CalibConfig,
+) -> tuple[DiagnosisStep, CalibConfig]:
+    """An effect whose refit held coordinates its score test puts far above their scale,
+    refitted expecting the size the test shows (:mod:`licalib_cli.pipeline.effect_size`).
+
+    Args:
+        step: the effect's step at the built-in scale (not kept).
+        score: its score test.
+        try_with: config -> the effect's step refitted with that config.
+        cfg: the configuration of the step.
+
+    Returns:
+        The sized refit's step when it pays (``expected_size``, ``held_delta_bic`` and
+        ``sized_delta_bic`` set) and its configuration; else ``step`` with those three set when
+        the sized refit was tried, and ``cfg``.
+    """
+    block = CANDIDATES[step.effect][1]
+    size = size_worth_trying(score, block, bool(step.held), step.p_value < EFFECT_P_VALUE, cfg)
+    if size is None or step.kept:
+        return step, cfg
+    logger.info(
+        "Diagnose: the refit held %s at its characteristic scale although its score test shows "
+        "it larger; refitting it expecting %.3g per coordinate (model.expected_size).",
+        step.effect,
+        size,
+    )
+    sized_cfg = with_expected_size(cfg, block, size)
+    sized = try_with(sized_cfg)
+    out, out_cfg = step, cfg
+    if sized.kept:
+        out = replace(
+            sized, not_told_apart=step.not_told_apart, rival_delta_bic=step.rival_delta_bic
+        )
+        out_cfg = sized_cfg
+    out = replace(
+        out, expected_size=size, held_delta_bic=step.delta_bic, sized_delta_bic=sized.delta_bic
+    )
+    return out, out_cfg
+
+
 def diagnose(
     bag: object,
     cfg: CalibConfig,
@@ -1183,6 +1242,19 @@ def diagnose(
                 spread_log_det[step.effect] = spread.log_det
             else:
                 step = replace(step, spread=used, spread_delta_bic=shared.delta_bic)
+        if not step.kept:
+            refit_sized = partial(
+                _try_effect,
+                evidence,
+                run,
+                run_twin,
+                kept,
+                prepared,
+                progress=progress,
+                timer=timer,
+                rate=rate,
+            )
+            step, cfg = _sized_refit(step, evidence.score, refit_sized, cfg)
         if step.kept and step.effect in WALKS and cfg.model.bias_walk_piece_s is None:
             refit_in_pieces = partial(
                 _try_effect,

@@ -47,7 +47,8 @@ def union_config(
 ) -> tuple[tuple[str, ...], CalibConfig]:
     """The effects any of ``diagnoses`` kept, in the order first kept, and ``cfg`` estimating
     exactly them (the spreads across beams of the first diagnosis that kept each so; a bias walk
-    in the shortest pieces any diagnosis chose)."""
+    in the shortest pieces any diagnosis chose; each block's largest expected size any
+    diagnosis set)."""
     effects: list[str] = []
     for diag in diagnoses:
         effects.extend(e for e in diag.effects_found if e not in effects)
@@ -64,8 +65,17 @@ def union_config(
         for d in diagnoses
         if d.config is not None and d.config.model.bias_walk_piece_s is not None
     ]
+    sizes: dict[str, float] = {}
+    for d in diagnoses:
+        if d.config is not None:
+            for sized, size in d.config.model.expected_size.items():
+                sizes[sized] = max(size, sizes.get(sized, 0.0))
     model = out.model.model_copy(
-        update={"lidar_spread": spread, "bias_walk_piece_s": min(pieces, default=None)}
+        update={
+            "lidar_spread": spread,
+            "bias_walk_piece_s": min(pieces, default=None),
+            "expected_size": sizes,
+        }
     )
     return tuple(effects), out.model_copy(update={"model": model})
 

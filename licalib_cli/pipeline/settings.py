@@ -25,12 +25,16 @@ from licalib_cli.initialization.translation import LeverArmConfig
 from licalib_cli.models.lidar import INTRINSIC_NAMES, nominal_intrinsics_array
 from licalib_cli.odometry import OdometryConfig
 from licalib_cli.residuals import (
+    ACCEL_BIAS_DRIFT,
     ACCEL_SCALE,
     EXT_TRANSLATION,
+    GYRO_BIAS_DRIFT,
     GYRO_G_SENSITIVITY,
     GYRO_ROTATION,
     GYRO_SCALE,
     LIDAR_INTRINSICS,
+    POINT_TIME_SCALE,
+    TIME_DRIFT,
     GaussianPrior,
 )
 from licalib_cli.solver.lm import LMParams
@@ -41,6 +45,7 @@ __all__ = [
     "LIDAR_COLUMNS",
     "LOOSE_BLUR_SHARE",
     "MIN_THICKNESS_M",
+    "SIZED_CALIBRATION_BLOCKS",
     "THICKNESS_PER_RANGE_SIGMA",
     "NoiseLevels",
     "RoundSettings",
@@ -275,7 +280,21 @@ def free_parameters(cfg: CalibConfig, intrinsics: bool) -> FreeParameters:
         time_drift="clock_drift" in m.imu,
         point_time="point_time" in m.lidar,
         bias_walk_piece_s=m.bias_walk_piece_s,
+        expected_size=tuple(
+            (SIZED_CALIBRATION_BLOCKS.get(name, f"imu.{name}"), size)
+            for name, size in sorted(m.expected_size.items())
+        ),
     )
+
+
+SIZED_CALIBRATION_BLOCKS: dict[str, str] = {
+    "g_sensitivity": GYRO_G_SENSITIVITY,
+    "gyro_bias_walk": GYRO_BIAS_DRIFT,
+    "accel_bias_walk": ACCEL_BIAS_DRIFT,
+    "clock_drift": TIME_DRIFT,
+    "point_time": POINT_TIME_SCALE,
+}
+"""``model.expected_size`` names -> calibration blocks, where not ``imu.<name>``."""
 
 
 def translation_prior(

@@ -213,6 +213,46 @@ def test_a_bias_walk_in_pieces_follows_the_walk_better_than_one_drift(tmp_path: 
     assert chi2[5.0] < chi2[None] - 0.01, chi2
 
 
+def test_a_walk_far_above_its_scale_is_refitted_expecting_the_size_its_test_shows(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An 8 s OS1-64 shake whose gyro bias walks at a hundred times the MTi-100's rate: the
+    drift's sigma is above its characteristic scale, so the first refit holds it and gains
+    nothing; refitted expecting the size the score test shows, it is estimated and pays, and
+    the resolved config and the result file say at which size."""
+    spec = SimulationSpec(
+        scenario="shake",
+        lidar="os1-64",
+        duration_s=8.0,
+        seed=42,
+        time_offset_s=0.004,
+        azimuth_resolution_deg=2.0,
+        intrinsics="none",
+        effects=("gyro_bias_walk",),
+        bias_walk_scale=100.0,
+    )
+    bag = simulate(spec, tmp_path / "sim").bag_path
+    config = Path(__file__).resolve().parents[2] / "configs" / "os1-64.yaml"
+    out = tmp_path / "diag"
+    args = [str(bag), "-c", str(config), "--candidates", "gyro_bias_walk", "--json"]
+    code, printed = _diagnose([*args, "-o", str(out)], capsys)
+    assert code == 0
+    data = json.loads(printed)
+    assert data["effects_found"] == ["gyro_bias_walk"]
+    (step,) = data["steps"]
+    assert step["held_delta_bic"] > 0.0 > step["sized_delta_bic"] == step["delta_bic"]
+    assert step["held"] == []
+    size = step["expected_size"]
+    assert size > 1e-5  # above the built-in scale
+    drifts = [v for k, v in step["estimate"].items() if k.startswith("imu.gyro_bias_drift")]
+    sigmas = [v for k, v in step["sigma"].items() if k.startswith("imu.gyro_bias_drift")]
+    assert max(abs(d) for d in drifts) <= size and max(sigmas) < size
+    resolved = yaml.safe_load((out / "calibration.config.yaml").read_text())
+    assert resolved["model"]["expected_size"] == {"gyro_bias_walk": size}
+    result = CalibrationResult.load(out / "calibration.yaml")
+    assert result.model is not None and result.model.expected_size == {"gyro_bias_walk": size}
+
+
 def test_an_accelerometer_scale_the_score_test_finds_is_estimated_in_every_axis(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -1,0 +1,85 @@
+"""An effect's expected size, when its score test puts it far above the built-in one.
+
+The truncated SVD holds at nominal every direction of a block that the recording determines
+worse than the block's characteristic scale (:data:`~licalib_cli.estimation.CALIBRATION_SCALES`):
+the scale says how large the block is expected to be, and a direction known worse than that is
+better left at nominal than estimated from noise. An effect far larger than expected breaks the
+premise: on a 10 s OS1-64 shake whose gyro bias walked at a hundred times the MTi-100's rate
+(a drift of about 1.8e-4 rad/s^2), the score test showed the walk at 256 on 3 degrees of freedom,
+but the drift's sigma (2.2e-5 rad/s^2) was above its scale (1e-5), so the refit held it at zero,
+gained nothing, and the walk was not added.
+
+When a refit held coordinates of an effect whose score test is significant, and the test's
+one-step estimate puts them beyond :data:`SIZE_SIGMAS` of their sigmas and above the scale
+they were held at, the effect is refitted expecting that size (``model.expected_size``: the
+estimate's largest coordinate, rounded up to 1, 2 or 5 times a power of ten). The BIC decides on
+the refit as on any other. The per-beam LiDAR intrinsics are not sized so: their prior across
+beams is ``model.lidar_spread``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from licalib_cli.config import SIZED_BLOCKS, CalibConfig
+from licalib_cli.consistency.score import EffectScore
+from licalib_cli.estimation import CALIBRATION_SCALES
+from licalib_cli.pipeline.settings import SIZED_CALIBRATION_BLOCKS
+
+__all__ = ["SIZE_SIGMAS", "expected_size", "round_up", "size_worth_trying", "with_expected_size"]
+
+SIZE_SIGMAS = 3.0
+"""Only coordinates the score test puts beyond this many of their sigmas set the size."""
+
+
+def round_up(x: float) -> float:
+    """The smallest of 1, 2 or 5 times a power of ten that is at least ``x`` (> 0)."""
+    exponent = math.floor(math.log10(x))
+    for mantissa in (1.0, 2.0, 5.0, 10.0):
+        value = float(f"{mantissa}e{exponent}")
+        if value >= x * (1.0 - 1e-12):
+            return value
+    raise AssertionError("unreachable")  # pragma: no cover - 10 * 10^e > x always
+
+
+def expected_size(cfg: CalibConfig, block: str) -> float:
+    """The size ``model:`` block ``block`` (``gyro_bias_walk``, ...) is expected to have per
+    coordinate: ``model.expected_size``'s, else the built-in characteristic scale."""
+    given = cfg.model.expected_size.get(block)  # type: ignore[call-overload]
+    if given is not None:
+        return float(given)
+    return float(max(CALIBRATION_SCALES[SIZED_CALIBRATION_BLOCKS.get(block, f"imu.{block}")]))
+
+
+def with_expected_size(cfg: CalibConfig, block: str, size: float) -> CalibConfig:
+    """``cfg`` whose ``model.expected_size`` gives ``model:`` block ``block`` the size
+    ``size``."""
+    sizes: dict[str, float] = {str(k): v for k, v in cfg.model.expected_size.items()}
+    sizes[block] = size
+    return cfg.model_copy(update={"model": cfg.model.model_copy(update={"expected_size": sizes})})
+
+
+def size_worth_trying(
+    score: EffectScore, block: str, held: bool, significant: bool, cfg: CalibConfig
+) -> float | None:
+    """The size to refit an effect with (see the module), or None.
+
+    Args:
+        score: the effect's score test on the fit it was tested on.
+        block: its ``model:`` block (``gyro_bias_walk``; per-beam LiDAR blocks are never sized).
+        held: whether its refit held some of its coordinates.
+        significant: whether its score test is significant.
+        cfg: the configuration of the refit.
+    """
+    if not (held and significant) or block not in SIZED_BLOCKS:
+        return None
+    estimate = np.abs(np.asarray(score.estimate, dtype=np.float64))
+    sigma = np.asarray(score.sigma, dtype=np.float64)
+    seen = np.isfinite(sigma) & (estimate > SIZE_SIGMAS * sigma)
+    if not np.any(seen):
+        return None
+    size = round_up(float(np.max(estimate[seen])))
+    # size >= the estimate > SIZE_SIGMAS sigmas: the sized refit determines what set it
+    return size if size > expected_size(cfg, block) else None
