@@ -290,23 +290,12 @@ LidarBlock = Literal[
     "range_offset",
     "point_time",
 ]
-SizedBlock = Literal[
-    "gyro_scale",
-    "gyro_misalignment",
-    "gyro_rotation",
-    "accel_scale",
-    "accel_misalignment",
-    "g_sensitivity",
-    "gyro_bias_walk",
-    "accel_bias_walk",
-    "clock_drift",
-    "point_time",
-]
+SizedBlock = ImuBlock | Literal["point_time"]
 """Blocks whose expected size ``model.expected_size`` may set (the per-beam intrinsics have
 ``model.lidar_spread`` instead)."""
-SIZED_BLOCKS: tuple[str, ...] = SizedBlock.__args__  # type: ignore[attr-defined]
 IMU_BLOCKS: tuple[str, ...] = ImuBlock.__args__  # type: ignore[attr-defined]
 LIDAR_BLOCKS: tuple[str, ...] = LidarBlock.__args__  # type: ignore[attr-defined]
+SIZED_BLOCKS: tuple[str, ...] = (*IMU_BLOCKS, "point_time")
 INTRINSIC_PRESETS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "none": ((), ()),
     "imu": (IMU_BLOCKS[:5], ()),

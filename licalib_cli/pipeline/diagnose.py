@@ -1242,32 +1242,20 @@ def diagnose(
                 spread_log_det[step.effect] = spread.log_det
             else:
                 step = replace(step, spread=used, spread_delta_bic=shared.delta_bic)
-        if not step.kept:
-            refit_sized = partial(
-                _try_effect,
-                evidence,
-                run,
-                run_twin,
-                kept,
-                prepared,
-                progress=progress,
-                timer=timer,
-                rate=rate,
-            )
-            step, cfg = _sized_refit(step, evidence.score, refit_sized, cfg)
+        refit = partial(
+            _try_effect,
+            evidence,
+            run,
+            run_twin,
+            kept,
+            prepared,
+            progress=progress,
+            timer=timer,
+            rate=rate,
+        )
+        step, cfg = _sized_refit(step, evidence.score, refit, cfg)
         if step.kept and step.effect in WALKS and cfg.model.bias_walk_piece_s is None:
-            refit_in_pieces = partial(
-                _try_effect,
-                evidence,
-                run,
-                run_twin,
-                kept,
-                prepared,
-                progress=progress,
-                timer=timer,
-                rate=rate,
-            )
-            step, cfg = _finer_walk(step, refit_in_pieces, cfg)
+            step, cfg = _finer_walk(step, refit, cfg)
         steps.append(step)
         if step.kept:
             kept = (*kept, step.effect)

@@ -4,7 +4,7 @@ scale it was held at."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +15,7 @@ from licalib_cli.config import CalibConfig, load_config
 from licalib_cli.consistency.score import EffectScore
 from licalib_cli.errors import ConfigError
 from licalib_cli.estimation import CALIBRATION_SCALES, parameter_blocks
-from licalib_cli.pipeline.diagnose import DiagnosisStep, Gap, _sized_refit, final_config
+from licalib_cli.pipeline.diagnose import DiagnosisStep, _sized_refit, final_config
 from licalib_cli.pipeline.effect_size import (
     expected_size,
     round_up,
@@ -26,6 +26,7 @@ from licalib_cli.pipeline.segments_model import union_config
 from licalib_cli.pipeline.settings import free_parameters
 from licalib_cli.residuals import GYRO_BIAS_DRIFT, GYRO_SCALE
 from tests.stages.test_bias_walk_pieces import _state
+from tests.stages.test_bias_walk_pieces import _step as walk_step
 
 # 4218's first 10 s: the score test's one-step drift and its sigmas (rad/s^2)
 WALK_ESTIMATE = np.array([-6.1e-5, -1.83e-4, 4.0e-6])
@@ -116,23 +117,8 @@ def test_a_walk_held_at_its_scale_is_sized_from_its_score_test() -> None:
 
 
 def _step(delta_bic: float, held: tuple[str, ...] = (), **kw: Any) -> DiagnosisStep:
-    gap = Gap("gyro", 1.05, 1.0, 0.01)
-    return DiagnosisStep(
-        effect="gyro_bias_walk",
-        statistic=255.7,
-        dof=3,
-        p_value=4e-55,
-        delta_bic=delta_bic,
-        kept=delta_bic < 0.0,
-        estimate={},
-        gap_before=gap,
-        gap_after=gap,
-        moved_translation_m=0.0,
-        moved_rotation_deg=0.0,
-        moved_time_offset_s=0.0,
-        held=held,
-        **kw,
-    )
+    """4218's walk step (at the built-in scale when ``held``)."""
+    return replace(walk_step(delta_bic), statistic=255.7, p_value=4e-55, held=held, **kw)
 
 
 HELD = ("imu.gyro_bias_drift.x", "imu.gyro_bias_drift.y", "imu.gyro_bias_drift.z")
