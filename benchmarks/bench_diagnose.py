@@ -265,6 +265,12 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
         "pieces": {
             s.effect: [s.pieces, s.linear_delta_bic] for s in diag.steps if s.kept and s.pieces > 1
         },
+        # effects refitted expecting the size their score test showed: [size, BIC held, sized]
+        "sized": {
+            s.effect: [s.expected_size, s.held_delta_bic, s.sized_delta_bic]
+            for s in diag.steps
+            if np.isfinite(s.expected_size)
+        },
         "before": err(diag.base),
         "after": err(diag.final),
         "steps": [
@@ -455,6 +461,11 @@ def main() -> None:
                         n
                         + (" [spread]" if n in row.get("spread", {}) else "")
                         + (f" [{row['pieces'][n][0]} pieces]" if n in row.get("pieces", {}) else "")
+                        + (
+                            f" [sized {row['sized'][n][0]:.0e}]"
+                            if n in row.get("sized", {})
+                            else ""
+                        )
                         + "".join(f" (~{a})" for a in row.get("not_told_apart", {}).get(n, []))
                         for n in row["named"]
                     )
