@@ -4,10 +4,10 @@ The truncated SVD holds at nominal every direction of a block that the recording
 worse than the block's characteristic scale (:data:`~licalib_cli.estimation.CALIBRATION_SCALES`):
 the scale says how large the block is expected to be, and a direction known worse than that is
 better left at nominal than estimated from noise. An effect far larger than expected breaks the
-premise: on a 10 s OS1-64 shake whose gyro bias walked at a hundred times the MTi-100's rate
-(a drift of about 1.8e-4 rad/s^2), the score test showed the walk at 256 on 3 degrees of freedom,
-but the drift's sigma (2.2e-5 rad/s^2) was above its scale (1e-5), so the refit held it at zero,
-gained nothing, and the walk was not added.
+premise: on a 10 s OS1-64 shake whose gyro bias walked at a hundred times the MTi-100's rate,
+the score test showed the walk at 256 on 3 degrees of freedom (its one-step drift up to 2.9e-4
+rad/s^2 per axis), but the drift's sigma (2.2e-5 rad/s^2) was above its scale (1e-5), so the
+refit held it at zero, gained nothing, and the walk was not added.
 
 When a refit held coordinates of an effect whose score test is significant, and the test's
 one-step estimate puts them beyond :data:`SIZE_SIGMAS` of their sigmas and above the scale

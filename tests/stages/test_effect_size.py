@@ -29,8 +29,8 @@ from tests.stages.test_bias_walk_pieces import _state
 from tests.stages.test_bias_walk_pieces import _step as walk_step
 
 # 4218's first 10 s: the score test's one-step drift and its sigmas (rad/s^2)
-WALK_ESTIMATE = np.array([-6.1e-5, -1.83e-4, 4.0e-6])
-WALK_SIGMA = np.array([2.2e-5, 2.1e-5, 2.4e-5])
+WALK_ESTIMATE = np.array([1.09e-4, 1.73e-4, -2.86e-4])
+WALK_SIGMA = np.array([2.21e-5, 2.11e-5, 2.23e-5])
 
 
 def _score(estimate: Any = WALK_ESTIMATE, sigma: Any = WALK_SIGMA) -> EffectScore:
@@ -99,13 +99,16 @@ def test_a_bad_expected_size_is_refused_in_one_sentence(
 
 def test_a_walk_held_at_its_scale_is_sized_from_its_score_test() -> None:
     cfg = load_config(None)
-    assert size_worth_trying(_score(), "gyro_bias_walk", True, True, cfg) == pytest.approx(2e-4)
+    assert size_worth_trying(_score(), "gyro_bias_walk", True, True, cfg) == pytest.approx(5e-4)
     # not when nothing was held, the test is not significant, or for per-beam intrinsics
     assert size_worth_trying(_score(), "gyro_bias_walk", False, True, cfg) is None
     assert size_worth_trying(_score(), "gyro_bias_walk", True, False, cfg) is None
     assert size_worth_trying(_score(), "range_offset", True, True, cfg) is None
     # not from coordinates within SIZE_SIGMAS of zero (an estimate the test does not show)
     assert size_worth_trying(_score([5e-5, 6e-5, 0.0]), "gyro_bias_walk", True, True, cfg) is None
+    # the largest coordinate beyond them sets it (here y: 2e-4)
+    mixed = _score([5e-5, 1.73e-4, 0.0])
+    assert size_worth_trying(mixed, "gyro_bias_walk", True, True, cfg) == pytest.approx(2e-4)
     # not when the size would not exceed the scale it was held at
     held_at = with_expected_size(cfg, "gyro_bias_walk", 5e-4)
     assert size_worth_trying(_score(), "gyro_bias_walk", True, True, held_at) is None
@@ -134,13 +137,13 @@ def test_diagnose_refits_a_held_walk_expecting_its_size_and_the_bic_decides() ->
 
     held = _step(28.2, HELD, not_told_apart=("accel_bias_walk",))
     step, out = _sized_refit(held, _score(), pays, cfg)
-    assert [c.model.expected_size for c in tried] == [{"gyro_bias_walk": 2e-4}]
+    assert [c.model.expected_size for c in tried] == [{"gyro_bias_walk": 5e-4}]
     assert step.kept and step.delta_bic == pytest.approx(-220.8)
-    assert step.expected_size == pytest.approx(2e-4)
+    assert step.expected_size == pytest.approx(5e-4)
     assert step.held_delta_bic == pytest.approx(28.2)
     assert step.sized_delta_bic == pytest.approx(-220.8)
     assert step.not_told_apart == ("accel_bias_walk",)  # the pick's comparison stays
-    assert out.model.expected_size == {"gyro_bias_walk": 2e-4}
+    assert out.model.expected_size == {"gyro_bias_walk": 5e-4}
     # a sized refit that does not pay leaves the step and the config as they were
     step, out = _sized_refit(held, _score(), lambda c: _step(12.0), cfg)
     assert not step.kept and step.delta_bic == pytest.approx(28.2) and out is cfg
