@@ -21,7 +21,10 @@
    plus ``ln det(1 + s^2 I)`` and ``ln n`` for ``s`` (:func:`spread_worth_trying`).
    A bias walk, tested and first refitted as one linear drift, is refitted once that pays as a
    bias linear over each of 2, 4 and 8 equal pieces of the segment, each kept while the BIC
-   falls further (:func:`_finer_walk`, ``model.bias_walk_piece_s``).
+   falls further (:mod:`licalib_cli.pipeline.walk_pieces`, ``model.bias_walk_piece_s``).
+   An effect the truncated SVD held at its characteristic scale although its score test shows
+   it far above is refitted expecting that size (:mod:`licalib_cli.pipeline.effect_size`,
+   ``model.expected_size``).
 4. Repeat until no candidate is significant, or ``max_effects`` were added.
 5. Check backwards: an effect added early may explain nothing that the effects added after it
    do not (an accelerometer misalignment picked first on a bag whose gyro is rotated: once the
@@ -49,10 +52,8 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from functools import partial
-
-from scipy import optimize
 
 from licalib_cli.config import CalibConfig, LidarSpreadSection
 from licalib_cli.consistency.distributions import chi2_isf, chi2_sf
@@ -72,11 +73,20 @@ from licalib_cli.pipeline import (
     fit_and_check,
     prepare,
 )
-from licalib_cli.pipeline.effect_size import size_worth_trying, with_expected_size
+from licalib_cli.pipeline.diagnosis_step import (
+    CANDIDATES,
+    COORDINATE_PREFIX,
+    GAP_NOISE_SIGMAS,
+    LIDAR_SUFFIX,
+    DiagnosisStep,
+    Gap,
+)
+from licalib_cli.pipeline.effect_size import sized_refit
 from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.settings import free_parameters, lm_params
 from licalib_cli.pipeline.twin import TWIN_ITERATIONS, Twin, twin_checks
+from licalib_cli.pipeline.walk_pieces import WALKS, finer_walk, with_walk_pieces
 from licalib_cli.progress import NullProgress, Progress
 from licalib_cli.solver.lm import solve
 
@@ -103,252 +113,6 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
-
-CANDIDATES: dict[str, tuple[str, str, str]] = {
-    "gyro_scale": ("imu", "gyro_scale", "gyro"),
-    "gyro_misalignment": ("imu", "gyro_misalignment", "gyro"),
-    "gyro_rotation": ("imu", "gyro_rotation", "gyro"),
-    "accel_scale": ("imu", "accel_scale", "accelerometer"),
-    "accel_misalignment": ("imu", "accel_misalignment", "accelerometer"),
-    "g_sensitivity": ("imu", "g_sensitivity", "gyro"),
-    "gyro_bias_walk": ("imu", "gyro_bias_walk", "gyro"),
-    "accel_bias_walk": ("imu", "accel_bias_walk", "accelerometer"),
-    "imu_clock_drift": ("imu", "clock_drift", "lidar"),
-    "lidar_range_offset": ("lidar", "range_offset", "lidar"),
-    "lidar_range_scale": ("lidar", "range_scale", "lidar"),
-    "lidar_elevation": ("lidar", "elevation", "lidar"),
-    "lidar_azimuth": ("lidar", "azimuth", "lidar"),
-    "lidar_vertical_offset": ("lidar", "vertical_offset", "lidar"),
-    "lidar_horizontal_offset": ("lidar", "horizontal_offset", "lidar"),
-    "lidar_point_time": ("lidar", "point_time", "lidar"),
-}
-"""Candidate effect -> (``model:`` list it joins, its name there, the sensor whose gap it
-closes). The clock drift and the per-point time show in the LiDAR's residuals (points are placed
-at the wrong trajectory time)."""
-
-_COORDINATE_PREFIX = {
-    "gyro_scale": "imu.gyro_scale.",
-    "gyro_misalignment": "imu.gyro_misalignment.",
-    "gyro_rotation": "imu.gyro_rotation.",
-    "accel_scale": "imu.accel_scale.",
-    "accel_misalignment": "imu.accel_misalignment.",
-    "g_sensitivity": "imu.gyro_g_sensitivity.",
-    "gyro_bias_walk": "imu.gyro_bias_drift.",
-    "accel_bias_walk": "imu.accel_bias_drift.",
-    "imu_clock_drift": "ext.time_drift",
-    "lidar_point_time": "lidar.point_time_scale",
-}
-_LIDAR_SUFFIX = {
-    "lidar_range_offset": ".drho",
-    "lidar_range_scale": ".s",
-    "lidar_elevation": ".dphi",
-    "lidar_azimuth": ".dtheta",
-    "lidar_vertical_offset": ".V",
-    "lidar_horizontal_offset": ".H",
-}
-
-
-GAP_NOISE_SIGMAS = 3.0
-"""A gap counts (and its shrink is measured) above this many of its noise sigmas."""
-
-
-@dataclass(frozen=True)
-class Gap:
-    """How far one sensor's residuals are from what a model that explains them leaves.
-
-    Attributes:
-        sensor: ``gyro``, ``accelerometer`` or ``lidar``.
-        chi2_per_sample: residual sum of squares over the noise variance, per residual.
-        expected: the analytic value a model that explains the data leaves (below 1 for the
-            IMU: the trajectory spline absorbs some of its noise).
-        rms: residual RMS in the sensor's unit.
-        map_entropy: mean map entropy of the fit's last round (LiDAR), nats.
-        twin_chi2_per_sample: the same on the fit's twin recordings (NaN without a twin).
-        twin_spread: 1-sigma of that figure (from the twins' spread).
-        twin_rms: the twin's residual RMS.
-        samples: residuals behind ``chi2_per_sample``.
-    """
-
-    sensor: str
-    chi2_per_sample: float
-    expected: float
-    rms: float
-    map_entropy: float = float("nan")
-    twin_chi2_per_sample: float = float("nan")
-    twin_spread: float = float("nan")
-    twin_rms: float = float("nan")
-    samples: int = 0
-
-    @property
-    def sigma(self) -> float:
-        """1-sigma of :attr:`excess` from noise alone: the measured chi-square per sample
-        varies by ``sqrt(2 reference / samples)`` between recordings, the twin's by its spread.
-        """
-        if self.samples <= 0:
-            return float("nan")
-        spread = self.twin_spread if math.isfinite(self.twin_spread) else 0.0
-        return math.sqrt(2.0 * max(self.reference, 0.0) / self.samples + spread**2)
-
-    @property
-    def reference(self) -> float:
-        """What the fitted model itself would leave: the twin's chi-square per sample, or the
-        analytic ``expected`` without a twin."""
-        if math.isfinite(self.twin_chi2_per_sample):
-            return self.twin_chi2_per_sample
-        return self.expected
-
-    @property
-    def reference_source(self) -> str:
-        """``twin`` or ``analytic``."""
-        return "twin" if math.isfinite(self.twin_chi2_per_sample) else "analytic"
-
-    @property
-    def excess(self) -> float:
-        """``chi2_per_sample - reference`` (the gap; about 0 or below when explained)."""
-        return self.chi2_per_sample - self.reference
-
-
-@dataclass(frozen=True)
-class DiagnosisStep:
-    """One candidate tried.
-
-    Attributes:
-        effect: its name (:data:`CANDIDATES`).
-        statistic: score test statistic before it was added (tested against the estimated
-            coordinates only).
-        dof: its degrees of freedom.
-        p_value: the test's p-value.
-        delta_bic: BIC with the effect minus without (negative: the effect is worth it).
-        kept: whether the effect stays in the model.
-        estimate: coordinate name -> (value, 1-sigma) after the refit (``inf``: undetermined).
-        gap_before: the effect's sensor before the refit.
-        gap_after: the same after it.
-        moved_translation_m: how far the refit moved the translation.
-        moved_rotation_deg: ... the rotation.
-        moved_time_offset_s: ... the time offset.
-        not_told_apart: rivals refitted with it that this bag does not tell apart from it (each
-            one's score test with the other freed is not significant): the data show an effect
-            of this kind, not which of them it is.
-        rival_delta_bic: BIC of the effect minus that of its rival on the same data (negative:
-            it fits better; NaN without a rival), see :func:`_rival_delta_bic`.
-        held: the effect's coordinates the refit could not estimate (mostly in directions the
-            data determine worse than their characteristic scale, which the truncated SVD holds
-            near where they started): their sigma is that scale, not a measurement, and the BIC
-            sees no gain from them.
-        before: the fit the effect was tested on.
-        after: the refit with the effect.
-        after_twin: the twin recordings of the refit.
-        dropped_for: the effects added after it that made it redundant (the backward check
-            dropped it: :func:`drop_redundant`); ``kept`` is then False.
-        drop_delta_bic: the BIC with it minus without it on the final fit's data when it was
-            dropped (positive), NaN otherwise.
-        bic_log_n: ``ln n`` of its BIC penalty (``n`` the residuals of its sensor): what each
-            of its coordinates costs; NaN when not computed.
-        rival_named: the rival refitted with it that was picked in its place (empty when it
-            was the pick, or had no rival).
-        final_p_value: its score test's p-value on the final fit when it is not in the final
-            model (NaN otherwise): above :data:`EFFECT_P_VALUE`, the effects added after it
-            explain what it showed.
-        spread: for a per-beam effect whose free numbers did not pay, the spread across beams
-            of its refit as one random effect (:mod:`licalib_cli.consistency.spread`, solver
-            units; NaN when not tried). Kept so, ``delta_bic`` stays that of the free numbers
-            and ``estimate``, the gaps and the moves are the spread's refit's.
-        spread_delta_bic: the BIC change of that refit (one parameter, the spread; NaN when
-            not tried).
-        share_before: when the final model holds other effects too and this step closed less
-            than :data:`SHARE_BELOW` of its sensor's gap, that sensor's gap on the final model
-            refitted without this effect (:func:`share_of`); None otherwise.
-        share_after: ... and on the final fit, against the same twin.
-        pieces: for a bias walk, the number of equal pieces of the segment over which its bias
-            is linear (1: one linear drift; more when finer pieces paid their BIC,
-            :func:`_finer_walk`); the estimate, the gaps and the moves are that refit's.
-        linear_delta_bic: with more than one piece, the BIC change of the one-drift refit (the
-            pieces' is ``delta_bic``); NaN otherwise.
-        expected_size: when its refit held coordinates its score test put far above their
-            characteristic scale, the size per coordinate (solver units) it was refitted
-            expecting (``model.expected_size``, :mod:`licalib_cli.pipeline.effect_size`); NaN
-            when not tried. Kept so, the estimate, the gaps, the moves and ``delta_bic`` are
-            that refit's.
-        held_delta_bic: with ``expected_size``, the BIC change of the refit at the built-in
-            scale (NaN otherwise).
-        sized_delta_bic: with ``expected_size``, the BIC change of the refit expecting it.
-    """
-
-    effect: str
-    statistic: float
-    dof: int
-    p_value: float
-    delta_bic: float
-    kept: bool
-    estimate: dict[str, tuple[float, float]]
-    gap_before: Gap
-    gap_after: Gap
-    moved_translation_m: float
-    moved_rotation_deg: float
-    moved_time_offset_s: float
-    not_told_apart: tuple[str, ...] = ()
-    rival_delta_bic: float = float("nan")
-    held: tuple[str, ...] = ()
-    before: CalibrationRun | None = field(default=None, repr=False, compare=False)
-    after: CalibrationRun | None = field(default=None, repr=False, compare=False)
-    after_twin: Twin | None = field(default=None, repr=False, compare=False)
-    dropped_for: tuple[str, ...] = ()
-    drop_delta_bic: float = float("nan")
-    bic_log_n: float = float("nan")
-    rival_named: str = ""
-    final_p_value: float = float("nan")
-    spread: float = float("nan")
-    spread_delta_bic: float = float("nan")
-    share_before: Gap | None = None
-    share_after: Gap | None = None
-    pieces: int = 1
-    linear_delta_bic: float = float("nan")
-    expected_size: float = float("nan")
-    held_delta_bic: float = float("nan")
-    sized_delta_bic: float = float("nan")
-
-    @property
-    def unpaid(self) -> Unpaid | None:
-        """Why a significant effect was not added (None unless its refit did not pay, it was
-        the pick among its rivals, and the final fit still shows it: a rival picked in its
-        place, or an effect added later, explains its score otherwise)."""
-        if self.kept or self.dropped_for or self.rival_named or not self.delta_bic >= 0.0:
-            return None
-        if self.final_p_value >= EFFECT_P_VALUE:
-            return None
-        return unpaid_effect(
-            self.delta_bic, self.dof, len(self.estimate), self.bic_log_n, self.p_value
-        )
-
-    @property
-    def shrink(self) -> float:
-        """Fraction of the sensor's gap the effect closed (1: all; NaN without a gap, or with
-        one below :data:`GAP_NOISE_SIGMAS` times its noise, which no refit can be seen to
-        close: the score test is the evidence of such an effect)."""
-        return _closed(self.gap_before, self.gap_after)
-
-    @property
-    def share(self) -> float:
-        """Fraction of its sensor's gap that the effect closes with the final model's other
-        effects in (:attr:`share_before` -> :attr:`share_after`, as :attr:`shrink`); NaN when
-        not measured (:data:`SHARE_BELOW`) or without such a gap.
-
-        :attr:`shrink` measures the effect when it was added, against whatever the model then
-        lacked: a per-beam elevation added before a gyro-to-IMU rotation of 4.5 deg closed 15 %
-        of a LiDAR gap that was mostly the rotation's (the trajectory the gyro bent), and the
-        rotation, added next, the rest.
-        """
-        if self.share_before is None or self.share_after is None:
-            return float("nan")
-        return _closed(self.share_before, self.share_after)
-
-
-def _closed(before: Gap, after: Gap) -> float:
-    """Fraction of ``before``'s excess that ``after`` no longer has (NaN when that excess is
-    within :data:`GAP_NOISE_SIGMAS` of its noise)."""
-    if not before.excess > GAP_NOISE_SIGMAS * before.sigma:
-        return float("nan")
-    return 1.0 - max(after.excess, 0.0) / before.excess
 
 
 @dataclass(frozen=True)
@@ -384,83 +148,6 @@ class NotShown:
     def detectable_best(self) -> tuple[float, str]:
         """``detectable_rms_best`` in the unit of :data:`DISPLAY_UNITS`."""
         return display_size(self.effect, self.detectable_rms_best)
-
-
-@dataclass(frozen=True)
-class Unpaid:
-    """A significant effect whose refit did not pay its BIC penalty, in terms a user can act on.
-
-    Attributes:
-        coordinates: its free coordinates (each costs ``log_n`` in the BIC).
-        log_n: ``ln n``, ``n`` the residuals of its sensor.
-        gain: how much the refit lowered the sum of squares (``coordinates * log_n`` minus its
-            BIC change).
-        sigmas_each: how far each coordinate is from nominal on average, in its sigmas (how
-            well the bag shows it): ``sqrt((gain - dof) / dof)``, the refit's gain beyond what
-            fitting noise with ``dof`` directions gives, spread over them.
-        sigmas_to_pay: what a coordinate needs to pay its penalty, ``sqrt(log_n - 1)`` sigmas
-            (its term of the gain is ``1 + (value / sigma)^2``).
-        data_factor: how many times this bag's information about the effect (the points or
-            samples that see it) it needs before it pays (:func:`data_to_pay`); ``inf``: the
-            refit gained nothing beyond noise.
-    """
-
-    coordinates: int
-    log_n: float
-    gain: float
-    sigmas_each: float
-    sigmas_to_pay: float
-    data_factor: float
-
-
-def data_to_pay(gain: float, dof: int, coordinates: int, log_n: float) -> float:
-    """The smallest ``m >= 1`` with ``dof + m (gain - dof) >= coordinates (log_n + ln m)``.
-
-    An effect of fixed size seen by ``m`` times the points or samples: the part of the refit's
-    gain beyond noise (``gain - dof``, the non-centrality) grows ``m`` times, the noise part
-    stays ``dof``, and the BIC penalty grows with ``ln (m n)``. (A longer recording of the same
-    motion gives that only while the points per scan are kept: ``surfels.max_points`` caps a
-    round's points.) ``inf`` when nothing is beyond noise
-    or more than a million times the data would be needed.
-    """
-    signal = gain - dof
-    if signal <= 0.0 or coordinates <= 0:
-        return float("inf")
-
-    def short(m: float) -> float:
-        return dof + m * signal - coordinates * (log_n + math.log(m))
-
-    if short(1.0) >= 0.0:
-        return 1.0
-    # convex in m, least at coordinates / signal: from there on it only grows
-    lo = max(1.0, coordinates / signal)
-    hi = 2.0 * lo
-    while short(hi) < 0.0:
-        hi *= 2.0
-        if hi > 1e6:
-            return float("inf")
-    return float(optimize.brentq(short, lo, hi))
-
-
-def unpaid_effect(
-    delta_bic: float, dof: int, coordinates: int, log_n: float, p_value: float
-) -> Unpaid | None:
-    """:class:`Unpaid` for a significant effect (``p_value`` below
-    :data:`~licalib_cli.pipeline.fitcheck.EFFECT_P_VALUE`) whose refit changed the BIC by
-    ``delta_bic >= 0``; None otherwise or without the penalty's ``log_n``."""
-    if not (delta_bic >= 0.0 and p_value < EFFECT_P_VALUE and math.isfinite(log_n)):
-        return None
-    if coordinates <= 0 or dof <= 0:
-        return None
-    gain = coordinates * log_n - delta_bic
-    return Unpaid(
-        coordinates=coordinates,
-        log_n=log_n,
-        gain=gain,
-        sigmas_each=math.sqrt(max(gain - dof, 0.0) / dof),
-        sigmas_to_pay=math.sqrt(max(log_n - 1.0, 0.0)),
-        data_factor=data_to_pay(gain, dof, coordinates, log_n),
-    )
 
 
 def _not_shown(
@@ -588,30 +275,10 @@ def final_config(cfg: CalibConfig, kept: tuple[str, ...]) -> CalibConfig:
     spread = LidarSpreadSection()
     for effect in kept:
         block = CANDIDATES[effect][1]
-        sigma = cfg.model.lidar_spread.sigma_of(block) if effect in _LIDAR_SUFFIX else None
+        sigma = cfg.model.lidar_spread.sigma_of(block) if effect in LIDAR_SUFFIX else None
         if sigma is not None:
             spread = spread.with_sigma(block, sigma)
     return out.model_copy(update={"model": out.model.model_copy(update={"lidar_spread": spread})})
-
-
-WALKS = ("gyro_bias_walk", "accel_bias_walk")
-"""The effects a bias walk can be estimated for in pieces (:func:`_finer_walk`)."""
-
-WALK_PIECES = (2, 4, 8)
-"""Pieces tried, in turn, for a bias walk once its linear drift paid: each finer model is kept
-while it lowers the BIC further."""
-
-MIN_WALK_PIECE_S = 1.0
-"""No piece shorter than this: the trajectory spline's knots (0.02 s) and a bias both explain
-the gyro's slow residuals, and a piece of a second still holds some 10^2-10^3 IMU samples."""
-
-
-def with_walk_pieces(cfg: CalibConfig, piece_s: float | None) -> CalibConfig:
-    """``cfg`` whose bias walks are piecewise linear over pieces of ``piece_s`` (None: one
-    linear drift)."""
-    return cfg.model_copy(
-        update={"model": cfg.model.model_copy(update={"bias_walk_piece_s": piece_s})}
-    )
 
 
 def spread_worth_trying(step: DiagnosisStep, score: EffectScore) -> SharedSpread | None:
@@ -619,7 +286,7 @@ def spread_worth_trying(step: DiagnosisStep, score: EffectScore) -> SharedSpread
     pay (``step``, the pick of its step) although its score test is significant, and the linear
     model says that one spread would pay (:mod:`licalib_cli.consistency.spread`); None
     otherwise."""
-    if step.kept or step.effect not in _LIDAR_SUFFIX or not step.p_value < EFFECT_P_VALUE:
+    if step.kept or step.effect not in LIDAR_SUFFIX or not step.p_value < EFFECT_P_VALUE:
         return None
     if not math.isfinite(step.bic_log_n):
         return None
@@ -683,9 +350,9 @@ def _sensor_samples(run: CalibrationRun, sensor: str) -> int:
 
 def _of_effect(name: str, effect: str) -> bool:
     """Whether calibration coordinate ``name`` belongs to candidate ``effect``."""
-    if effect in _LIDAR_SUFFIX:
-        return name.startswith("lidar.intrinsics[") and name.endswith(_LIDAR_SUFFIX[effect])
-    prefix = _COORDINATE_PREFIX[effect]
+    if effect in LIDAR_SUFFIX:
+        return name.startswith("lidar.intrinsics[") and name.endswith(LIDAR_SUFFIX[effect])
+    prefix = COORDINATE_PREFIX[effect]
     return name == prefix or name.startswith(prefix)
 
 
@@ -1060,94 +727,6 @@ def _try_effect(
     return step
 
 
-def _finer_walk(
-    step: DiagnosisStep,
-    try_with: Callable[[CalibConfig], DiagnosisStep],
-    cfg: CalibConfig,
-) -> tuple[DiagnosisStep, CalibConfig]:
-    """A kept bias walk refitted in finer pieces (:data:`WALK_PIECES`), each kept while its BIC
-    (against the same model without the walk) is lower than the coarser one's.
-
-    A random walk is far from a line over a 20 s bag: on one such gyro walk the linear drift
-    closed 23 % of the gyro's gap. A continuous piecewise-linear bias follows it the closer the
-    shorter its pieces, and each piece's three drifts pay ``ln n`` each like any coordinate.
-
-    Args:
-        step: the walk's step with one linear drift (kept).
-        try_with: config -> the walk's step refitted with that config.
-        cfg: the configuration of the step.
-
-    Returns:
-        The step to keep (``pieces`` and ``linear_delta_bic`` set when pieces won) and its
-        configuration.
-    """
-    assert step.after is not None
-    span = 2.0 * step.after.state.t_ref_s
-    best, best_cfg = step, cfg
-    for pieces in WALK_PIECES:
-        if span / pieces < MIN_WALK_PIECE_S:
-            break
-        piece_cfg = with_walk_pieces(cfg, span / pieces)
-        finer = try_with(piece_cfg)
-        logger.info(
-            "Diagnose: %s in %d pieces of %.1f s: BIC %+.1f (%s %+.1f).",
-            step.effect,
-            pieces,
-            span / pieces,
-            finer.delta_bic,
-            "one drift" if best is step else f"{best.pieces} pieces",
-            best.delta_bic,
-        )
-        if not (finer.kept and finer.delta_bic < best.delta_bic):
-            break
-        best, best_cfg = replace(finer, pieces=pieces, linear_delta_bic=step.delta_bic), piece_cfg
-    return best, best_cfg
-
-
-def _sized_refit(
-    step: DiagnosisStep,
-    score: EffectScore,
-    try_with: Callable[[CalibConfig], DiagnosisStep],
-    cfg: CalibConfig,
-) -> tuple[DiagnosisStep, CalibConfig]:
-    """An effect whose refit held coordinates its score test puts far above their scale,
-    refitted expecting the size the test shows (:mod:`licalib_cli.pipeline.effect_size`).
-
-    Args:
-        step: the effect's step at the built-in scale (not kept).
-        score: its score test.
-        try_with: config -> the effect's step refitted with that config.
-        cfg: the configuration of the step.
-
-    Returns:
-        The sized refit's step when it pays (``expected_size``, ``held_delta_bic`` and
-        ``sized_delta_bic`` set) and its configuration; else ``step`` with those three set when
-        the sized refit was tried, and ``cfg``.
-    """
-    block = CANDIDATES[step.effect][1]
-    size = size_worth_trying(score, block, bool(step.held), step.p_value < EFFECT_P_VALUE, cfg)
-    if size is None or step.kept:
-        return step, cfg
-    logger.info(
-        "Diagnose: the refit held %s at its characteristic scale although its score test shows "
-        "it larger; refitting it expecting %.3g per coordinate (model.expected_size).",
-        step.effect,
-        size,
-    )
-    sized_cfg = with_expected_size(cfg, block, size)
-    sized = try_with(sized_cfg)
-    out, out_cfg = step, cfg
-    if sized.kept:
-        out = replace(
-            sized, not_told_apart=step.not_told_apart, rival_delta_bic=step.rival_delta_bic
-        )
-        out_cfg = sized_cfg
-    out = replace(
-        out, expected_size=size, held_delta_bic=step.delta_bic, sized_delta_bic=sized.delta_bic
-    )
-    return out, out_cfg
-
-
 def diagnose(
     bag: object,
     cfg: CalibConfig,
@@ -1253,9 +832,9 @@ def diagnose(
             timer=timer,
             rate=rate,
         )
-        step, cfg = _sized_refit(step, evidence.score, refit, cfg)
+        step, cfg = sized_refit(step, evidence.score, refit, cfg)
         if step.kept and step.effect in WALKS and cfg.model.bias_walk_piece_s is None:
-            step, cfg = _finer_walk(step, refit, cfg)
+            step, cfg = finer_walk(step, refit, cfg)
         steps.append(step)
         if step.kept:
             kept = (*kept, step.effect)

@@ -19,16 +19,30 @@ beams is ``model.lidar_spread``.
 
 from __future__ import annotations
 
+import logging
 import math
+from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 
 from licalib_cli.config import SIZED_BLOCKS, CalibConfig
 from licalib_cli.consistency.score import EffectScore
 from licalib_cli.estimation import CALIBRATION_SCALES
+from licalib_cli.pipeline.diagnosis_step import CANDIDATES, DiagnosisStep
+from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE
 from licalib_cli.pipeline.settings import SIZED_CALIBRATION_BLOCKS
 
-__all__ = ["SIZE_SIGMAS", "expected_size", "round_up", "size_worth_trying", "with_expected_size"]
+__all__ = [
+    "SIZE_SIGMAS",
+    "expected_size",
+    "round_up",
+    "size_worth_trying",
+    "sized_refit",
+    "with_expected_size",
+]
+
+logger = logging.getLogger(__name__)
 
 SIZE_SIGMAS = 3.0
 """Only coordinates the score test puts beyond this many of their sigmas set the size."""
@@ -83,3 +97,47 @@ def size_worth_trying(
     size = round_up(float(np.max(estimate[seen])))
     # size >= the estimate > SIZE_SIGMAS sigmas: the sized refit determines what set it
     return size if size > expected_size(cfg, block) else None
+
+
+def sized_refit(
+    step: DiagnosisStep,
+    score: EffectScore,
+    try_with: Callable[[CalibConfig], DiagnosisStep],
+    cfg: CalibConfig,
+) -> tuple[DiagnosisStep, CalibConfig]:
+    """An effect whose refit held coordinates its score test puts far above their scale,
+    refitted expecting the size the test shows (:mod:`licalib_cli.pipeline.effect_size`).
+
+    Args:
+        step: the effect's step at the built-in scale (not kept).
+        score: its score test.
+        try_with: config -> the effect's step refitted with that config.
+        cfg: the configuration of the step.
+
+    Returns:
+        The sized refit's step when it pays (``expected_size``, ``held_delta_bic`` and
+        ``sized_delta_bic`` set) and its configuration; else ``step`` with those three set when
+        the sized refit was tried, and ``cfg``.
+    """
+    block = CANDIDATES[step.effect][1]
+    size = size_worth_trying(score, block, bool(step.held), step.p_value < EFFECT_P_VALUE, cfg)
+    if size is None or step.kept:
+        return step, cfg
+    logger.info(
+        "Diagnose: the refit held %s at its characteristic scale although its score test shows "
+        "it larger; refitting it expecting %.3g per coordinate (model.expected_size).",
+        step.effect,
+        size,
+    )
+    sized_cfg = with_expected_size(cfg, block, size)
+    sized = try_with(sized_cfg)
+    out, out_cfg = step, cfg
+    if sized.kept:
+        out = replace(
+            sized, not_told_apart=step.not_told_apart, rival_delta_bic=step.rival_delta_bic
+        )
+        out_cfg = sized_cfg
+    out = replace(
+        out, expected_size=size, held_delta_bic=step.delta_bic, sized_delta_bic=sized.delta_bic
+    )
+    return out, out_cfg

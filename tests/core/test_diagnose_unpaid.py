@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from licalib_cli.commands.diagnose import diagnosis_dict, unpaid_sentence
-from licalib_cli.pipeline.diagnose import (
+from licalib_cli.pipeline.diagnosis_step import (
     DiagnosisStep,
     Gap,
     data_to_pay,

@@ -147,7 +147,7 @@ def _step(delta_bic: float, t_ref_s: float = 10.0, kept: bool | None = None) -> 
 
 
 def test_diagnose_keeps_finer_pieces_while_they_lower_the_bic() -> None:
-    from licalib_cli.pipeline.diagnose import _finer_walk
+    from licalib_cli.pipeline.walk_pieces import finer_walk
 
     cfg = load_config(None, {"model.imu": ["gyro_bias_walk"]})
     bic = {2: -205.8, 4: -239.6, 8: -192.4}  # the 20 s walk of the benchmark
@@ -157,13 +157,13 @@ def test_diagnose_keeps_finer_pieces_while_they_lower_the_bic() -> None:
         tried.append(c.model.bias_walk_piece_s)
         return _step(bic[round(20.0 / c.model.bias_walk_piece_s)])
 
-    step, out = _finer_walk(_step(-75.6), try_with, cfg)
+    step, out = finer_walk(_step(-75.6), try_with, cfg)
     assert tried == [10.0, 5.0, 2.5]
     assert step.pieces == 4 and step.delta_bic == pytest.approx(-239.6)
     assert step.linear_delta_bic == pytest.approx(-75.6)
     assert out.model.bias_walk_piece_s == pytest.approx(5.0)
     # no gain from pieces: the linear drift stays, its config unchanged
-    step, out = _finer_walk(_step(-75.6), lambda c: _step(-60.0), cfg)
+    step, out = finer_walk(_step(-75.6), lambda c: _step(-60.0), cfg)
     assert step.pieces == 1 and out is cfg
     # pieces of under MIN_WALK_PIECE_S are not tried (a 3 s segment: only halves)
     short: list[float] = []
@@ -172,12 +172,13 @@ def test_diagnose_keeps_finer_pieces_while_they_lower_the_bic() -> None:
         short.append(c.model.bias_walk_piece_s)
         return _step(-100.0 * len(short))
 
-    _finer_walk(_step(-75.6, t_ref_s=1.5), try_short, cfg)
+    finer_walk(_step(-75.6, t_ref_s=1.5), try_short, cfg)
     assert short == [1.5]
 
 
 def test_a_final_model_without_a_walk_has_no_piece_length() -> None:
-    from licalib_cli.pipeline.diagnose import final_config, with_walk_pieces
+    from licalib_cli.pipeline.diagnose import final_config
+    from licalib_cli.pipeline.walk_pieces import with_walk_pieces
 
     cfg = with_walk_pieces(load_config(None), 5.0)
     assert final_config(cfg, ("gyro_bias_walk",)).model.bias_walk_piece_s == 5.0

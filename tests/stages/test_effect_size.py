@@ -15,11 +15,12 @@ from licalib_cli.config import CalibConfig, load_config
 from licalib_cli.consistency.score import EffectScore
 from licalib_cli.errors import ConfigError
 from licalib_cli.estimation import CALIBRATION_SCALES, parameter_blocks
-from licalib_cli.pipeline.diagnose import DiagnosisStep, _sized_refit, final_config
+from licalib_cli.pipeline.diagnose import DiagnosisStep, final_config
 from licalib_cli.pipeline.effect_size import (
     expected_size,
     round_up,
     size_worth_trying,
+    sized_refit,
     with_expected_size,
 )
 from licalib_cli.pipeline.segments_model import union_config
@@ -136,7 +137,7 @@ def test_diagnose_refits_a_held_walk_expecting_its_size_and_the_bic_decides() ->
         return _step(-220.8)
 
     held = _step(28.2, HELD, not_told_apart=("accel_bias_walk",))
-    step, out = _sized_refit(held, _score(), pays, cfg)
+    step, out = sized_refit(held, _score(), pays, cfg)
     assert [c.model.expected_size for c in tried] == [{"gyro_bias_walk": 5e-4}]
     assert step.kept and step.delta_bic == pytest.approx(-220.8)
     assert step.expected_size == pytest.approx(5e-4)
@@ -145,13 +146,13 @@ def test_diagnose_refits_a_held_walk_expecting_its_size_and_the_bic_decides() ->
     assert step.not_told_apart == ("accel_bias_walk",)  # the pick's comparison stays
     assert out.model.expected_size == {"gyro_bias_walk": 5e-4}
     # a sized refit that does not pay leaves the step and the config as they were
-    step, out = _sized_refit(held, _score(), lambda c: _step(12.0), cfg)
+    step, out = sized_refit(held, _score(), lambda c: _step(12.0), cfg)
     assert not step.kept and step.delta_bic == pytest.approx(28.2) and out is cfg
     assert step.sized_delta_bic == pytest.approx(12.0) and step.held == HELD
     # nothing held, or already kept: no refit at all
     for plain in (_step(28.2), _step(-50.0, HELD)):
         tried.clear()
-        step, out = _sized_refit(plain, _score(), pays, cfg)
+        step, out = sized_refit(plain, _score(), pays, cfg)
         assert step is plain and out is cfg and not tried
 
 
