@@ -43,6 +43,7 @@ from licalib_cli.pipeline.fitcheck import (
     effect_evidence,
     sensor_checks,
 )
+from licalib_cli.pipeline.held_effects import held_effect_text, held_effects
 from licalib_cli.pipeline.initialise import SINGLE_AXIS, InitialGuess
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty, map_uncertainty
 from licalib_cli.pipeline.prior_directions import (
@@ -1018,6 +1019,7 @@ def run_checks(
     findings += _prior_conflict(conflict)
     findings += _convergence(fit, cfg, settled_in_sigmas, crawl)
     findings += _observability(report, prior)
+    findings += [Finding("note", held_effect_text(*h), True) for h in held_effects(report, cfg)]
     covered = [e.score.name for e in effects if effect_to_cover(e, raw)]
     without_effects, _ = inflate(raw, sensors, [], split, fit)
     findings += uncertainty_findings(

@@ -83,6 +83,7 @@ from licalib_cli.pipeline.diagnosis_step import (
 )
 from licalib_cli.pipeline.effect_size import sized_refit
 from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
+from licalib_cli.pipeline.held_effects import HELD_WEIGHT
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.settings import free_parameters, lm_params
 from licalib_cli.pipeline.twin import TWIN_ITERATIONS, Twin, twin_checks
@@ -364,11 +365,6 @@ def _estimate(run: CalibrationRun, effect: str) -> dict[str, tuple[float, float]
         for name, value in values.items()
         if _of_effect(name, effect) and name in std
     }
-
-
-HELD_WEIGHT = 0.5
-"""A coordinate counts as held by the truncated SVD when at least this share of it (scaled)
-lies in truncated directions."""
 
 
 def _held(run: CalibrationRun, effect: str) -> tuple[str, ...]:

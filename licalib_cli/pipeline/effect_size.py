@@ -28,10 +28,9 @@ import numpy as np
 
 from licalib_cli.config import SIZED_BLOCKS, CalibConfig
 from licalib_cli.consistency.score import EffectScore
-from licalib_cli.estimation import CALIBRATION_SCALES
 from licalib_cli.pipeline.diagnosis_step import CANDIDATES, DiagnosisStep
 from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE
-from licalib_cli.pipeline.settings import SIZED_CALIBRATION_BLOCKS
+from licalib_cli.pipeline.settings import expected_size
 
 __all__ = [
     "SIZE_SIGMAS",
@@ -56,15 +55,6 @@ def round_up(x: float) -> float:
         if value >= x * (1.0 - 1e-12):
             return value
     raise AssertionError("unreachable")  # pragma: no cover - 10 * 10^e > x always
-
-
-def expected_size(cfg: CalibConfig, block: str) -> float:
-    """The size ``model:`` block ``block`` (``gyro_bias_walk``, ...) is expected to have per
-    coordinate: ``model.expected_size``'s, else the built-in characteristic scale."""
-    given = cfg.model.expected_size.get(block)  # type: ignore[call-overload]
-    if given is not None:
-        return float(given)
-    return float(max(CALIBRATION_SCALES[SIZED_CALIBRATION_BLOCKS.get(block, f"imu.{block}")]))
 
 
 def with_expected_size(cfg: CalibConfig, block: str, size: float) -> CalibConfig:

@@ -14,6 +14,7 @@ import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import (
+    CALIBRATION_SCALES,
     IMU_INTRINSIC_BLOCKS,
     CalibrationState,
     FreeParameters,
@@ -50,6 +51,7 @@ __all__ = [
     "NoiseLevels",
     "RoundSettings",
     "estimates_intrinsics",
+    "expected_size",
     "free_parameters",
     "hand_eye_config",
     "lever_arm_config",
@@ -295,6 +297,15 @@ SIZED_CALIBRATION_BLOCKS: dict[str, str] = {
     "point_time": POINT_TIME_SCALE,
 }
 """``model.expected_size`` names -> calibration blocks, where not ``imu.<name>``."""
+
+
+def expected_size(cfg: CalibConfig, block: str) -> float:
+    """The size ``model:`` block ``block`` (``gyro_bias_walk``, ...) is expected to have per
+    coordinate: ``model.expected_size``'s, else the built-in characteristic scale."""
+    given = cfg.model.expected_size.get(block)  # type: ignore[call-overload]
+    if given is not None:
+        return float(given)
+    return float(max(CALIBRATION_SCALES[SIZED_CALIBRATION_BLOCKS.get(block, f"imu.{block}")]))
 
 
 def translation_prior(

@@ -190,3 +190,41 @@ def test_only_the_sizes_of_the_effects_kept_stay_and_windows_take_the_largest() 
     second = Found(("gyro_bias_walk",), final_config(bigger, ("gyro_bias_walk",)))
     _, out = union_config(load_config(None), [first, Found((), None), second])  # type: ignore[list-item]
     assert out.model.expected_size == {"gyro_bias_walk": 5e-4}
+
+
+def _report(weights: dict[str, float]) -> Any:
+    from types import SimpleNamespace
+
+    return SimpleNamespace(
+        calibration_names=tuple(weights), truncated_weight=np.array(list(weights.values()))
+    )
+
+
+def test_an_effect_of_the_model_the_fit_held_is_said_with_what_to_do() -> None:
+    from licalib_cli.pipeline.held_effects import held_effect_text, held_effects
+
+    cfg = load_config(None, {"model.imu": ["gyro_scale", "gyro_bias_walk", "clock_drift"]})
+    report = _report(
+        {
+            "imu.gyro_scale.x": 0.9,  # an intrinsic held is the observability section's
+            "imu.gyro_bias_drift.x": 0.97,
+            "imu.gyro_bias_drift.y": 0.99,
+            "imu.gyro_bias_drift.z": 0.6,
+            "ext.time_drift": 0.1,  # determined
+        }
+    )
+    assert held_effects(report, cfg) == [("gyro_bias_walk", 1e-5, 3, 3)]
+    text = held_effect_text("gyro_bias_walk", 1e-5, 3, 3)
+    assert text.startswith("gyro_bias_walk is in the model, but this recording determines it")
+    assert "(1e-05 rad/s^2 per number, model.expected_size)" in text
+    assert "licalib diagnose measures its size" in text
+    # a walk in pieces, part of it held, at a configured size
+    sized = with_expected_size(cfg, "gyro_bias_walk", 5e-4)
+    pieces = _report(
+        {f"imu.gyro_bias_drift.{a}_{k}": w for k, w in ((1, 0.2), (2, 0.8)) for a in "xyz"}
+    )
+    assert held_effects(pieces, sized) == [("gyro_bias_walk", 5e-4, 3, 6)]
+    assert "determines 3 of its 6 numbers worse" in held_effect_text("gyro_bias_walk", 5e-4, 3, 6)
+    # nothing held, or no effect in the model: nothing said
+    assert held_effects(_report({"imu.gyro_bias_drift.x": 0.3}), cfg) == []
+    assert held_effects(report, load_config(None, {"model.imu": ["gyro_scale"]})) == []
