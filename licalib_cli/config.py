@@ -290,12 +290,23 @@ LidarBlock = Literal[
     "range_offset",
     "point_time",
 ]
-SizedBlock = ImuBlock | Literal["point_time"]
+SizedBlock = Literal[
+    "gyro_scale",
+    "gyro_misalignment",
+    "gyro_rotation",
+    "accel_scale",
+    "accel_misalignment",
+    "g_sensitivity",
+    "gyro_bias_walk",
+    "accel_bias_walk",
+    "clock_drift",
+    "point_time",
+]
 """Blocks whose expected size ``model.expected_size`` may set (the per-beam intrinsics have
 ``model.lidar_spread`` instead)."""
 IMU_BLOCKS: tuple[str, ...] = ImuBlock.__args__  # type: ignore[attr-defined]
 LIDAR_BLOCKS: tuple[str, ...] = LidarBlock.__args__  # type: ignore[attr-defined]
-SIZED_BLOCKS: tuple[str, ...] = (*IMU_BLOCKS, "point_time")
+SIZED_BLOCKS: tuple[str, ...] = SizedBlock.__args__  # type: ignore[attr-defined]
 INTRINSIC_PRESETS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "none": ((), ()),
     "imu": (IMU_BLOCKS[:5], ()),
@@ -568,7 +579,16 @@ def parse_yaml(text: str, path: Path, what: str) -> Any:
 
 
 def _where(loc: tuple[Any, ...]) -> str:
-    return ".".join(str(x) for x in loc)
+    """A validation error's location as a dotted key: a mapping's key stands for itself (its
+    ``[key]`` marker, and a union member's type tag, left out)."""
+    kept = []
+    for x in loc:
+        if x == "[key]":
+            break
+        if isinstance(x, str) and "[" in x:  # a union member's tag, e.g. ``literal['a','b']``
+            continue
+        kept.append(str(x))
+    return ".".join(kept)
 
 
 def load_config(path: Path | None, overrides: dict[str, Any] | None = None) -> CalibConfig:

@@ -83,7 +83,10 @@ def test_the_expected_size_sets_the_scale_the_truncated_svd_judges_a_block_by() 
     ("text", "fragment"),
     [
         ("model:\n  expected_size:\n    gyro_bias_walk: 0\n", "greater than 0"),
-        ("model:\n  expected_size:\n    range_offset: 0.001\n", "'model.expected_size"),
+        (
+            "model:\n  expected_size:\n    range_offset: 0.001\n",
+            "setting 'model.expected_size.range_offset' in.*'clock_drift' or 'point_time'",
+        ),
         ("model:\n  expected_size:\n    gyro_scale: big\n", "valid number"),
     ],
 )
