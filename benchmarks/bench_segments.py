@@ -563,6 +563,10 @@ def model(args: argparse.Namespace, workdir: Path) -> None:
                     )
                 if not hidden and found:
                     misses.append(f"{seed}: clean walk, kept {sorted(found)}")
+                for w, d in enumerate(run.model.diagnoses, start=1):
+                    extra = sorted(set(d.effects_found) - set(hidden))
+                    if hidden and extra:
+                        misses.append(f"{seed}: window {w} kept {extra}, not hidden")
                 if et > 3.0 or er > 0.05 or ec > 0.1:
                     misses.append(f"{seed}: joint error {et:.2f} mm / {er:.4f} deg / {ec:.3f} ms")
                 if ratio > 3.0:

@@ -81,7 +81,7 @@ from licalib_cli.pipeline.diagnosis_step import (
     DiagnosisStep,
     Gap,
 )
-from licalib_cli.pipeline.effect_size import sized_refit
+from licalib_cli.pipeline.effect_size import sized_refit, with_sizes_of
 from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
 from licalib_cli.pipeline.held_effects import HELD_WEIGHT
 from licalib_cli.pipeline.round import extrinsic_of
@@ -780,18 +780,35 @@ def diagnose(
         picked = [e for e in significant if e.selected]
         best = picked[0] if picked else min(significant, key=lambda e: e.score.p_value)
         rivals = rivals_of(best, options)
-        trials = [
-            _try_effect(e, run, run_twin, kept, prepared, cfg, progress, timer, rate)
-            for e in [best, *rivals]
-        ]
+        # each trial refitted once more expecting the size its test shows when the truncated
+        # SVD held it at its scale (effect_size), before the rivals are compared: a walk held
+        # at its scale on a 10 s window otherwise lost to a gyro scale that paid
+        trials, trial_cfgs = [], {}
         for e in [best, *rivals]:
+            refit = partial(
+                _try_effect,
+                e,
+                run,
+                run_twin,
+                kept,
+                prepared,
+                progress=progress,
+                timer=timer,
+                rate=rate,
+            )
+            trial, trial_cfgs[e.score.name] = sized_refit(refit(cfg), e.score, refit, cfg)
+            trials.append(trial)
             tried.add(e.score.name)
         trials = _compare_rivals(
-            trials, kept, cfg, _sensor_samples(run, trials[0].gap_before.sensor)
+            trials,
+            kept,
+            with_sizes_of(cfg, trial_cfgs.values()),
+            _sensor_samples(run, trials[0].gap_before.sensor),
         )
         step = trials[
             pick_rival([t.delta_bic for t in trials], [t.rival_delta_bic for t in trials])
         ]
+        cfg = trial_cfgs[step.effect]
         for t in trials:
             if t is not step:
                 steps.append(replace(t, kept=False, rival_named=step.effect))
@@ -817,19 +834,18 @@ def diagnose(
                 spread_log_det[step.effect] = spread.log_det
             else:
                 step = replace(step, spread=used, spread_delta_bic=shared.delta_bic)
-        refit = partial(
-            _try_effect,
-            evidence,
-            run,
-            run_twin,
-            kept,
-            prepared,
-            progress=progress,
-            timer=timer,
-            rate=rate,
-        )
-        step, cfg = sized_refit(step, evidence.score, refit, cfg)
         if step.kept and step.effect in WALKS and cfg.model.bias_walk_piece_s is None:
+            refit = partial(
+                _try_effect,
+                evidence,
+                run,
+                run_twin,
+                kept,
+                prepared,
+                progress=progress,
+                timer=timer,
+                rate=rate,
+            )
             step, cfg = finer_walk(step, refit, cfg)
         steps.append(step)
         if step.kept:

@@ -75,5 +75,13 @@ def finer_walk(
         )
         if not (finer.kept and finer.delta_bic < best.delta_bic):
             break
-        best, best_cfg = replace(finer, pieces=pieces, linear_delta_bic=step.delta_bic), piece_cfg
+        best = replace(
+            finer,
+            pieces=pieces,
+            linear_delta_bic=step.delta_bic,
+            expected_size=step.expected_size,  # the size the pieces were refitted at, if any
+            held_delta_bic=step.held_delta_bic,
+            sized_delta_bic=step.sized_delta_bic,
+        )
+        best_cfg = piece_cfg
     return best, best_cfg

@@ -3,6 +3,7 @@ them by, what the result file carries, and how diagnose chooses the pieces by th
 
 from __future__ import annotations
 
+from dataclasses import replace
 from types import SimpleNamespace
 from typing import Any
 
@@ -162,6 +163,11 @@ def test_diagnose_keeps_finer_pieces_while_they_lower_the_bic() -> None:
     assert step.pieces == 4 and step.delta_bic == pytest.approx(-239.6)
     assert step.linear_delta_bic == pytest.approx(-75.6)
     assert out.model.bias_walk_piece_s == pytest.approx(5.0)
+    # a walk refitted at its expected size keeps saying so in pieces
+    sized = replace(_step(-75.6), expected_size=5e-4, held_delta_bic=28.2, sized_delta_bic=-75.6)
+    step, _ = finer_walk(sized, try_with, cfg)
+    assert step.pieces == 4 and step.expected_size == pytest.approx(5e-4)
+    assert (step.held_delta_bic, step.sized_delta_bic) == pytest.approx((28.2, -75.6))
     # no gain from pieces: the linear drift stays, its config unchanged
     step, out = finer_walk(_step(-75.6), lambda c: _step(-60.0), cfg)
     assert step.pieces == 1 and out is cfg

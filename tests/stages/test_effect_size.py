@@ -231,3 +231,18 @@ def test_an_effect_of_the_model_the_fit_held_is_said_with_what_to_do() -> None:
     # nothing held, or no effect in the model: nothing said
     assert held_effects(_report({"imu.gyro_bias_drift.x": 0.3}), cfg) == []
     assert held_effects(report, load_config(None, {"model.imu": ["gyro_scale"]})) == []
+
+
+def test_rivals_are_compared_each_at_the_size_it_was_refitted_at() -> None:
+    from licalib_cli.pipeline.effect_size import with_sizes_of
+
+    cfg = with_expected_size(load_config(None), "accel_scale", 0.02)
+    walk = with_expected_size(cfg, "gyro_bias_walk", 5e-4)
+    rotation = with_expected_size(cfg, "gyro_rotation", 0.05)
+    both = with_sizes_of(cfg, [walk, cfg, rotation])
+    assert both.model.expected_size == {
+        "accel_scale": 0.02,
+        "gyro_bias_walk": 5e-4,
+        "gyro_rotation": 0.05,
+    }
+    assert with_sizes_of(cfg, []) is cfg
