@@ -290,18 +290,7 @@ LidarBlock = Literal[
     "range_offset",
     "point_time",
 ]
-SizedBlock = Literal[
-    "gyro_scale",
-    "gyro_misalignment",
-    "gyro_rotation",
-    "accel_scale",
-    "accel_misalignment",
-    "g_sensitivity",
-    "gyro_bias_walk",
-    "accel_bias_walk",
-    "clock_drift",
-    "point_time",
-]
+SizedBlock = Literal[ImuBlock, "point_time"]  # nested: one literal of ten names
 """Blocks whose expected size ``model.expected_size`` may set (the per-beam intrinsics have
 ``model.lidar_spread`` instead)."""
 IMU_BLOCKS: tuple[str, ...] = ImuBlock.__args__  # type: ignore[attr-defined]

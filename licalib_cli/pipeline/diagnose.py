@@ -723,6 +723,32 @@ def _try_effect(
     return step
 
 
+def _refit_with(
+    evidence: object,
+    *,
+    run: CalibrationRun,
+    run_twin: Twin | None,
+    kept: tuple[str, ...],
+    prepared: Prepared,
+    progress: Progress,
+    timer: Timer,
+    rate: float,
+) -> Callable[[CalibConfig], DiagnosisStep]:
+    """config -> ``evidence``'s effect refitted on ``run`` with that config
+    (:func:`_try_effect`): how the sized refit and the walk's pieces try a configuration."""
+    return partial(
+        _try_effect,
+        evidence,
+        run,
+        run_twin,
+        kept,
+        prepared,
+        progress=progress,
+        timer=timer,
+        rate=rate,
+    )
+
+
 def diagnose(
     bag: object,
     cfg: CalibConfig,
@@ -783,19 +809,19 @@ def diagnose(
         # each trial refitted once more expecting the size its test shows when the truncated
         # SVD held it at its scale (effect_size), before the rivals are compared: a walk held
         # at its scale on a 10 s window otherwise lost to a gyro scale that paid
+        refit_of = partial(
+            _refit_with,
+            run=run,
+            run_twin=run_twin,
+            kept=kept,
+            prepared=prepared,
+            progress=progress,
+            timer=timer,
+            rate=rate,
+        )
         trials, trial_cfgs = [], {}
         for e in [best, *rivals]:
-            refit = partial(
-                _try_effect,
-                e,
-                run,
-                run_twin,
-                kept,
-                prepared,
-                progress=progress,
-                timer=timer,
-                rate=rate,
-            )
+            refit = refit_of(e)
             trial, trial_cfgs[e.score.name] = sized_refit(refit(cfg), e.score, refit, cfg)
             trials.append(trial)
             tried.add(e.score.name)
@@ -835,18 +861,7 @@ def diagnose(
             else:
                 step = replace(step, spread=used, spread_delta_bic=shared.delta_bic)
         if step.kept and step.effect in WALKS and cfg.model.bias_walk_piece_s is None:
-            refit = partial(
-                _try_effect,
-                evidence,
-                run,
-                run_twin,
-                kept,
-                prepared,
-                progress=progress,
-                timer=timer,
-                rate=rate,
-            )
-            step, cfg = finer_walk(step, refit, cfg)
+            step, cfg = finer_walk(step, refit_of(evidence), cfg)
         steps.append(step)
         if step.kept:
             kept = (*kept, step.effect)
