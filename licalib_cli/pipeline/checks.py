@@ -55,7 +55,7 @@ from licalib_cli.pipeline.prior_directions import (
     on_prior,
 )
 from licalib_cli.pipeline.schedule import JITTER_FACTOR, MAX_FINAL_ROUNDS, Change, Fit, within
-from licalib_cli.pipeline.settings import NoiseLevels, prior_sd
+from licalib_cli.pipeline.settings import NoiseLevels, calibration_block, prior_sd
 from licalib_cli.pipeline.split import COORDINATES, SplitResult, split_half
 from licalib_cli.pipeline.unchecked_priors import unchecked_priors, unchecked_text
 from licalib_cli.residuals import ACCEL_MISALIGNMENT, EXT_ROTATION, GYRO_ROTATION
@@ -1094,10 +1094,10 @@ _IMU_SUFFIXES = {
     "accel_misalignment": ("xy", "xz", "yz"),
     "g_sensitivity": tuple(f"{a}{b}" for a in "xyz" for b in "xyz"),
 }
-_DRIFT_NAMES: dict[str, tuple[str, tuple[str, ...]]] = {
-    "gyro_bias_walk": ("imu.gyro_bias_drift", ("x", "y", "z")),
-    "accel_bias_walk": ("imu.accel_bias_drift", ("x", "y", "z")),
-    "clock_drift": ("ext.time_drift", ()),
+_DRIFT_SUFFIXES: dict[str, tuple[str, ...]] = {
+    "gyro_bias_walk": ("x", "y", "z"),
+    "accel_bias_walk": ("x", "y", "z"),
+    "clock_drift": (),
 }
 LIDAR_UNCERTAINTY_KEYS: Mapping[str, tuple[str, str, bool]] = {
     "elevation": ("dphi", "elevation_deg", True),
@@ -1136,22 +1136,22 @@ def intrinsics_uncertainty(
 
     values: dict[str, tuple[float | None, ...]] = {}
     for block in cfg.model.imu:
-        if block in _DRIFT_NAMES:  # drifts (diagnose's bias walks, clock drift)
-            prefix, suffixes = _DRIFT_NAMES[block]
+        prefix = calibration_block(block)
+        if block in _DRIFT_SUFFIXES:  # drifts (diagnose's bias walks, clock drift)
+            suffixes = _DRIFT_SUFFIXES[block]
             names = [f"{prefix}.{s}" for s in suffixes] if suffixes else [prefix]
             pieces = [n for n in report.calibration_names if n.startswith(f"{prefix}.")]
             if suffixes and len(pieces) > len(names):  # a walk in pieces: x_1, y_1, z_1, x_2 ...
                 names = pieces
             values[block] = tuple(get(n) for n in names)
             continue
-        block_name = "imu.gyro_g_sensitivity" if block == "g_sensitivity" else f"imu.{block}"
         key: str = "gyro_rotation_deg" if block == "gyro_rotation" else block
         values[key] = tuple(
-            get(f"{block_name}.{s}", block == "gyro_rotation") for s in _IMU_SUFFIXES[block]
+            get(f"{prefix}.{s}", block == "gyro_rotation") for s in _IMU_SUFFIXES[block]
         )
     for name in cfg.model.lidar:
         if name == "point_time":  # one number for the whole LiDAR
-            values[name] = (get("lidar.point_time_scale"),)
+            values[name] = (get(calibration_block(name)),)
             continue
         col, key, degrees = LIDAR_UNCERTAINTY_KEYS[name]
         values[key] = tuple(get(f"lidar.intrinsics[{b}].{col}", degrees) for b in range(num_beams))

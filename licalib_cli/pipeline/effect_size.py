@@ -37,7 +37,6 @@ from licalib_cli.pipeline.settings import expected_size
 
 __all__ = [
     "SIZE_SIGMAS",
-    "expected_size",
     "round_up",
     "size_worth_trying",
     "sized_refit",

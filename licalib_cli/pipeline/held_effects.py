@@ -13,7 +13,7 @@ This stage says so, and how to estimate it when it is larger than expected.
 from __future__ import annotations
 
 from licalib_cli.config import CalibConfig
-from licalib_cli.pipeline.settings import SIZED_CALIBRATION_BLOCKS, expected_size
+from licalib_cli.pipeline.settings import calibration_block, expected_size
 from licalib_cli.solver.lm import SolverReport
 
 __all__ = ["EFFECT_BLOCKS", "HELD_WEIGHT", "held_effect_text", "held_effects"]
@@ -43,7 +43,7 @@ def held_effects(report: SolverReport, cfg: CalibConfig) -> list[tuple[str, floa
     for block in (*cfg.model.imu, *cfg.model.lidar):
         if block not in EFFECT_BLOCKS:
             continue
-        prefix = SIZED_CALIBRATION_BLOCKS[block]
+        prefix = calibration_block(block)
         mine = [w for n, w in weight.items() if n == prefix or n.startswith(f"{prefix}.")]
         held = sum(w >= HELD_WEIGHT for w in mine)
         if held:

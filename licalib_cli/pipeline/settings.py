@@ -50,6 +50,7 @@ __all__ = [
     "THICKNESS_PER_RANGE_SIGMA",
     "NoiseLevels",
     "RoundSettings",
+    "calibration_block",
     "estimates_intrinsics",
     "expected_size",
     "free_parameters",
@@ -283,8 +284,7 @@ def free_parameters(cfg: CalibConfig, intrinsics: bool) -> FreeParameters:
         point_time="point_time" in m.lidar,
         bias_walk_piece_s=m.bias_walk_piece_s,
         expected_size=tuple(
-            (SIZED_CALIBRATION_BLOCKS.get(name, f"imu.{name}"), size)
-            for name, size in sorted(m.expected_size.items())
+            (calibration_block(name), size) for name, size in sorted(m.expected_size.items())
         ),
     )
 
@@ -296,7 +296,13 @@ SIZED_CALIBRATION_BLOCKS: dict[str, str] = {
     "clock_drift": TIME_DRIFT,
     "point_time": POINT_TIME_SCALE,
 }
-"""``model.expected_size`` names -> calibration blocks, where not ``imu.<name>``."""
+"""``model:`` names -> calibration blocks, where not ``imu.<name>``."""
+
+
+def calibration_block(name: str) -> str:
+    """The calibration block of ``model:`` block ``name`` (an IMU block, a drift effect or
+    ``point_time``): ``imu.gyro_scale``, ``imu.gyro_bias_drift``, ``ext.time_drift`` ..."""
+    return SIZED_CALIBRATION_BLOCKS.get(name, f"imu.{name}")
 
 
 def expected_size(cfg: CalibConfig, block: str) -> float:
@@ -305,7 +311,7 @@ def expected_size(cfg: CalibConfig, block: str) -> float:
     given = cfg.model.expected_size.get(block)  # type: ignore[call-overload]
     if given is not None:
         return float(given)
-    return float(max(CALIBRATION_SCALES[SIZED_CALIBRATION_BLOCKS.get(block, f"imu.{block}")]))
+    return float(max(CALIBRATION_SCALES[calibration_block(block)]))
 
 
 def translation_prior(

@@ -27,12 +27,7 @@ pytestmark = pytest.mark.slow
 def _bag(tmp_path: Path, imu: ImuIntrinsics | None = None, **effects: Any) -> Path:
     """An 8 s sinusoid with the IMU intrinsics ``imu`` (default: none) and the simulator's
     named ``effects`` (``SimulationSpec`` keywords, which may also change its length, seed,
-    rates ...)."""
-    path = tmp_path / "intrinsics.yaml"
-    CalibrationResult(
-        imu_intrinsics=imu or ImuIntrinsics(),
-        lidar_intrinsics=LidarIntrinsics.nominal(VLP16_ELEVATION),
-    ).save(path)
+    rates, LiDAR ...; a LiDAR other than the VLP-16 has no intrinsic errors)."""
     fields: dict[str, Any] = {
         "scenario": "sinusoid",
         "lidar": "vlp16",
@@ -40,9 +35,19 @@ def _bag(tmp_path: Path, imu: ImuIntrinsics | None = None, **effects: Any) -> Pa
         "seed": 41,
         "time_offset_s": 0.004,
         "azimuth_resolution_deg": 0.4,
+        **effects,
     }
-    spec = SimulationSpec(intrinsics_file=path, **{**fields, **effects})
-    return simulate(spec, tmp_path / "sim").bag_path
+    if fields["lidar"] == "vlp16":
+        path = tmp_path / "intrinsics.yaml"
+        CalibrationResult(
+            imu_intrinsics=imu or ImuIntrinsics(),
+            lidar_intrinsics=LidarIntrinsics.nominal(VLP16_ELEVATION),
+        ).save(path)
+        fields["intrinsics_file"] = path
+    else:
+        assert imu is None, "IMU intrinsics are set through the VLP-16's intrinsics file"
+        fields["intrinsics"] = "none"
+    return simulate(SimulationSpec(**fields), tmp_path / "sim").bag_path
 
 
 def _diagnose(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
@@ -54,14 +59,19 @@ def _diagnose(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int,
     return code, capsys.readouterr().out
 
 
+def _diagnose_json(args: list[str], capsys: pytest.CaptureFixture[str]) -> dict[str, Any]:
+    """``licalib diagnose ARGS --json``'s object (it must exit 0)."""
+    code, printed = _diagnose([*args, "--json"], capsys)
+    assert code == 0
+    return dict(json.loads(printed))
+
+
 def test_a_hidden_gyro_scale_is_named_added_and_its_gap_shrinks(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     bag = _bag(tmp_path, ImuIntrinsics(gyro_scale=np.array([1.004, 0.996, 1.003])))
     out = tmp_path / "diag"
-    code, printed = _diagnose([str(bag), "-c", str(CONFIG), "--json", "-o", str(out)], capsys)
-    assert code == 0
-    data = json.loads(printed)
+    data = _diagnose_json([str(bag), "-c", str(CONFIG), "-o", str(out)], capsys)
     assert data["effects_found"][0] == "gyro_scale"
     step = next(s for s in data["steps"] if s["effect"] == "gyro_scale")
     assert step["kept"] and step["delta_bic"] < 0 and step["p_value"] < 1e-6
@@ -146,10 +156,8 @@ def test_a_clock_drift_the_score_test_finds_is_estimated_not_truncated(
     above the drift's characteristic scale, so the BIC saw no gain and nothing was named)."""
     bag = _bag(tmp_path, effects=("imu_clock_drift",), imu_clock_drift_ppm=300.0)
     out = tmp_path / "diag"
-    args = [str(bag), "-c", str(CONFIG), "--candidates", "imu_clock_drift", "--json"]
-    code, printed = _diagnose([*args, "-o", str(out)], capsys)
-    assert code == 0
-    data = json.loads(printed)
+    args = [str(bag), "-c", str(CONFIG), "--candidates", "imu_clock_drift", "-o", str(out)]
+    data = _diagnose_json(args, capsys)
     assert data["effects_found"] == ["imu_clock_drift"]
     (step,) = data["steps"]
     drift, sigma = step["estimate"]["ext.time_drift"], step["sigma"]["ext.time_drift"]
@@ -220,24 +228,19 @@ def test_a_walk_far_above_its_scale_is_refitted_expecting_the_size_its_test_show
     drift's sigma is above its characteristic scale, so the first refit holds it and gains
     nothing; refitted expecting the size the score test shows, it is estimated and pays, and
     the resolved config and the result file say at which size."""
-    spec = SimulationSpec(
+    bag = _bag(
+        tmp_path,
         scenario="shake",
         lidar="os1-64",
-        duration_s=8.0,
         seed=42,
-        time_offset_s=0.004,
         azimuth_resolution_deg=2.0,
-        intrinsics="none",
         effects=("gyro_bias_walk",),
         bias_walk_scale=100.0,
     )
-    bag = simulate(spec, tmp_path / "sim").bag_path
     config = Path(__file__).resolve().parents[2] / "configs" / "os1-64.yaml"
     out = tmp_path / "diag"
-    args = [str(bag), "-c", str(config), "--candidates", "gyro_bias_walk", "--json"]
-    code, printed = _diagnose([*args, "-o", str(out)], capsys)
-    assert code == 0
-    data = json.loads(printed)
+    args = [str(bag), "-c", str(config), "--candidates", "gyro_bias_walk", "-o", str(out)]
+    data = _diagnose_json(args, capsys)
     assert data["effects_found"] == ["gyro_bias_walk"]
     (step,) = data["steps"]
     assert step["held_delta_bic"] > 0.0 > step["sized_delta_bic"] == step["delta_bic"]
@@ -275,9 +278,7 @@ def test_an_accelerometer_scale_the_score_test_finds_is_estimated_in_every_axis(
     bag = simulate(spec, tmp_path / "sim").bag_path
     true = Truth.load(tmp_path / "sim" / "truth.yaml").imu_intrinsics.accel_scale
     assert np.max(np.abs(true - 1.0)) > 4e-3
-    code, printed = _diagnose([str(bag), "--candidates", "accel_scale", "--json"], capsys)
-    assert code == 0
-    data = json.loads(printed)
+    data = _diagnose_json([str(bag), "--candidates", "accel_scale"], capsys)
     assert data["effects_found"] == ["accel_scale"]
     (step,) = data["steps"]
     for a, value_true in zip("xyz", true, strict=True):

@@ -17,14 +17,13 @@ from licalib_cli.errors import ConfigError
 from licalib_cli.estimation import CALIBRATION_SCALES, parameter_blocks
 from licalib_cli.pipeline.diagnose import DiagnosisStep, final_config
 from licalib_cli.pipeline.effect_size import (
-    expected_size,
     round_up,
     size_worth_trying,
     sized_refit,
     with_expected_size,
 )
 from licalib_cli.pipeline.segments_model import union_config
-from licalib_cli.pipeline.settings import free_parameters
+from licalib_cli.pipeline.settings import expected_size, free_parameters
 from licalib_cli.residuals import GYRO_BIAS_DRIFT, GYRO_SCALE
 from tests.stages.test_bias_walk_pieces import _state
 from tests.stages.test_bias_walk_pieces import _step as walk_step
