@@ -15,6 +15,7 @@ from licalib_cli.consistency.patterns import (
 from licalib_cli.consistency.score import (
     EffectScore,
     EffectSelection,
+    explained_shares,
     score_effects,
     select_effects,
 )
@@ -25,6 +26,7 @@ __all__ = [
     "EffectSelection",
     "NoiseEstimate",
     "Pattern",
+    "explained_shares",
     "group_pattern",
     "imu_noise",
     "normalised_chi2",

@@ -33,6 +33,7 @@ __all__ = [
     "EffectScore",
     "EffectSelection",
     "combined_score",
+    "explained_shares",
     "score_effects",
     "select_effects",
 ]
@@ -186,6 +187,76 @@ def score_effects(
                 profiled_information=s_ee_b / vf,
             )
         )
+    return out
+
+
+def explained_shares(
+    S: npt.ArrayLike,
+    b: npt.ArrayLike,
+    base: npt.ArrayLike,
+    groups: Mapping[str, npt.ArrayLike],
+    of: Sequence[str],
+    relative_rank: float = 1e-8,
+) -> dict[str, dict[str, float]]:
+    """How much of each named group's score another group explains: the share
+    ``1 - LM(a | c) / LM(a)`` of group ``a``'s statistic against the estimated coordinates that
+    is gone once group ``c`` is freed as well, for every ``a`` of ``of`` and every other ``c``.
+
+    Were ``c`` the effect in the data, the profiled gradient of ``a`` would be what ``c``'s
+    columns put there, and freeing ``c`` would explain all of ``a``'s score but noise: a share
+    near one says ``c`` can stand in for ``a``, whatever sensors they belong to (a gyro triad
+    rotated against the accelerometer's looks, with the extrinsic rotation re-estimated, much
+    like an accelerometer misalignment). Plain linear algebra on the profiled information of
+    the groups, as :func:`score_effects` (the variance factor cancels in the ratio).
+
+    Args:
+        S, b, base, groups, relative_rank: as for :func:`score_effects`.
+        of: the groups whose scores are explained (those worth asking about: the significant).
+
+    Returns:
+        ``{a: {c: share}}``, each share in ``[0, 1]`` (0 when ``a`` has no score).
+    """
+    s = np.asarray(S, dtype=np.float64)
+    rhs = np.asarray(b, dtype=np.float64)
+    bi = np.asarray(base, dtype=np.intp)
+    idx = {k: np.asarray(v, dtype=np.intp) for k, v in groups.items()}
+    if not idx:
+        return {}
+    # every group's coordinates profiled against the estimated ones, once
+    every = np.concatenate(list(idx.values()))
+    s_bb_inv, _ = _pinv_psd(s[np.ix_(bi, bi)], 1e-12)
+    s_gb = s[np.ix_(every, bi)]
+    info = s[np.ix_(every, every)] - s_gb @ s_bb_inv @ s_gb.T
+    grad = rhs[every] - s_gb @ (s_bb_inv @ rhs[bi])
+    offsets = np.cumsum([0] + [v.size for v in idx.values()])
+    at = {k: np.arange(offsets[i], offsets[i + 1]) for i, k in enumerate(idx)}
+
+    def statistic(a: IntArray, c: IntArray) -> float:
+        # LM of ``a`` with ``c`` freed besides the estimated coordinates
+        i_aa, g_a = info[np.ix_(a, a)], grad[a]
+        if c.size:
+            i_ac = info[np.ix_(a, c)]
+            inv_cc, _ = _pinv_psd(info[np.ix_(c, c)], relative_rank)
+            i_aa = i_aa - i_ac @ inv_cc @ i_ac.T
+            g_a = g_a - i_ac @ (inv_cc @ grad[c])
+        inv, _ = _pinv_psd(i_aa, relative_rank)
+        return float(g_a @ inv @ g_a)
+
+    none = np.zeros(0, dtype=np.intp)
+    out: dict[str, dict[str, float]] = {}
+    for a in of:
+        if a not in at:
+            continue
+        alone = statistic(at[a], none)
+        out[a] = {
+            c: (
+                float(np.clip(1.0 - statistic(at[a], at[c]) / alone, 0.0, 1.0))
+                if alone > 0.0
+                else 0.0
+            )
+            for c in at
+            if c != a
+        }
     return out
 
 

@@ -11,9 +11,10 @@
    effect belongs to: an IMU scale is determined by some 10^4 IMU residuals, not by the 10^5
    LiDAR points that dominate the total (with the total, an IMU effect with three parameters
    needed a cost decrease of 38 where its score test was significant from 26).
-   A close rival (of the same sensor, or one of :data:`ALIKE`) is refitted as well and
-   compared with it on the same data (:func:`_rival_delta_bic`); a pair that neither score
-   test separates is reported as not told apart (:func:`not_told_apart`).
+   A close rival (a candidate that explains most of its score when freed with it, of either
+   sensor: :func:`rivals_of`) is refitted as well and compared with it on the same data
+   (:func:`_rival_delta_bic`); a pair that neither score test separates is reported as not told
+   apart (:func:`not_told_apart`).
    A per-beam effect whose free numbers do not pay (each pays ``ln n``) is refitted once more
    as one random effect across beams: its numbers drawn from ``N(0, s^2)`` with the spread
    ``s`` that best explains its score (:mod:`licalib_cli.consistency.spread`, set in
@@ -614,40 +615,42 @@ RIVAL_FRACTION = 0.3
 of the strongest one's is refitted as well; among those that pay, the lower BIC on the same data
 wins (:func:`pick_rival`)."""
 
+RIVAL_SHARE = 0.5
+"""A candidate that explains at least this share of the leading one's score when freed with it
+(:attr:`~licalib_cli.pipeline.fitcheck.EffectEvidence.explained_by`) can stand in for it, and
+is its rival. Were the candidate the effect in the data, it would explain all of the leader's
+score but noise (a share above 0.9 for any leader that is significant); a candidate of the same
+sensor that explains little of it (an accelerometer scale, 0.14 of a misalignment's score on bag
+1837 of ``bench_diagnose.py --first-seed 1800``) cannot be what the leader stands for, whereas
+one of the other sensor can: there the gyro rotation explained 0.83 of the accelerometer
+misalignment's score (3060 on 3 degrees of freedom, after the elevations); with the extrinsic
+rotation re-estimated, a gyro triad rotated against the accelerometer's looks like an
+accelerometer triad rotated against the gyro's."""
+
 MAX_RIVALS = 1
 
-ALIKE: tuple[frozenset[str], ...] = (frozenset({"gyro_rotation", "accel_misalignment"}),)
-"""Candidates of different sensors that explain the same thing, and so are rivals too: a gyro
-triad rotated against the accelerometer's (``R_wI``) looks, with the extrinsic rotation
-re-estimated, like an accelerometer triad rotated against the gyro's, which its misalignment
-partly mimics. On an OS1-64 sinusoid with a 2.9 deg gyro rotation and per-beam elevations (bag
-1837 of ``bench_diagnose.py --first-seed 1800``) the accelerometer misalignment's score (3100 on
-3 degrees of freedom) led the rotation's after the elevations, so it was added first and the
-rotation after it. In one run the backward check dropped it again (BIC +7.2 without it); in
-another the model holding both, with the extrinsic rotation, did not converge (15 mm / 0.17 deg
-off, FAIL) and the misalignment stayed. Refitted as rivals, the two are compared on the same
-data at one step."""
 
-
-def alike(a: str, b: str) -> bool:
-    """Whether candidates ``a`` and ``b`` are rivals at a step: they close the gap of the same
-    sensor, or they are a pair of :data:`ALIKE`."""
-    return CANDIDATES[a][2] == CANDIDATES[b][2] or frozenset((a, b)) in ALIKE
+def alike(best: EffectEvidence, other: EffectEvidence) -> bool:
+    """Whether ``other`` is a rival of ``best`` at a step: it explains at least
+    :data:`RIVAL_SHARE` of ``best``'s score, whatever sensor it belongs to."""
+    return best.explained_by.get(other.score.name, 0.0) >= RIVAL_SHARE
 
 
 def rivals_of(best: EffectEvidence, options: Sequence[EffectEvidence]) -> list[EffectEvidence]:
     """The rivals refitted with ``best`` at a step: at most :data:`MAX_RIVALS` of ``options``
     :func:`alike` it with a score per degree of freedom (each on its own) at least
-    :data:`RIVAL_FRACTION` of its, the strongest first."""
+    :data:`RIVAL_FRACTION` of its, the one that explains most of ``best``'s score first."""
     per_dof = best.statistic_alone / max(best.score.rank, 1)
     rivals = [
         e
         for e in options
         if e is not best
-        and alike(e.score.name, best.score.name)
+        and alike(best, e)
         and e.statistic_alone / max(e.score.rank, 1) >= RIVAL_FRACTION * per_dof
     ]
-    return sorted(rivals, key=lambda e: -e.statistic_alone)[:MAX_RIVALS]
+    return sorted(
+        rivals, key=lambda e: (-best.explained_by.get(e.score.name, 0.0), -e.statistic_alone)
+    )[:MAX_RIVALS]
 
 
 def _try_effect(
@@ -805,7 +808,25 @@ def diagnose(
         # accelerometer misalignment) is refitted too and the BIC on the same data decides.
         picked = [e for e in significant if e.selected]
         best = picked[0] if picked else min(significant, key=lambda e: e.score.p_value)
+        logger.debug(
+            "Diagnose: shares of %s's score explained by the others: %s",
+            best.score.name,
+            ", ".join(
+                f"{k} {v:.2f}"
+                for k, v in sorted(best.explained_by.items(), key=lambda kv: -kv[1])
+                if v >= 0.05
+            )
+            or "none above 0.05",
+        )
         rivals = rivals_of(best, options)
+        for r in rivals:
+            logger.info(
+                "Diagnose: %s is refitted as a rival of %s: freed with it, it explains %.0f %% "
+                "of its score.",
+                r.score.name,
+                best.score.name,
+                100.0 * best.explained_by.get(r.score.name, 0.0),
+            )
         # each trial refitted once more expecting the size its test shows when the truncated
         # SVD held it at its scale (effect_size), before the rivals are compared: a walk held
         # at its scale on a 10 s window otherwise lost to a gyro scale that paid

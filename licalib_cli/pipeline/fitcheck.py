@@ -17,6 +17,7 @@ Three kinds of evidence, each naming the sensor it concerns:
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -26,12 +27,14 @@ from licalib_cli.config import ImuPriorSection
 from licalib_cli.consistency import (
     EffectScore,
     EffectSelection,
+    explained_shares,
     group_pattern,
     normalised_chi2,
     regression_pattern,
     score_effects,
     select_effects,
 )
+from licalib_cli.consistency.distributions import chi2_sf
 from licalib_cli.estimation import CalibrationState, build_problem, incidence_cosine
 from licalib_cli.pipeline.effect_shift import planes_free_shifts
 from licalib_cli.pipeline.round import RoundInputs, SolvedProblem
@@ -386,6 +389,10 @@ class EffectEvidence:
         joint_p_value: the score test of those blocks together (NaN without a prior).
         refitted: the shift is (per coordinate, the larger of) the step's and a refit's with
             the effect estimated (:mod:`licalib_cli.pipeline.effect_refit`).
+        explained_by: the share of this effect's score (against the estimated coordinates)
+            that each other candidate explains when freed as well
+            (:func:`licalib_cli.consistency.explained_shares`): near one for a candidate that
+            can stand in for it. Only for a significant effect (empty otherwise).
     """
 
     score: EffectScore
@@ -402,6 +409,7 @@ class EffectEvidence:
     joint_prior_var: F64 = field(default_factory=lambda: np.zeros(7))
     joint_prior_shift: F64 = field(default_factory=lambda: np.zeros(7))
     joint_p_value: float = float("nan")
+    explained_by: Mapping[str, float] = field(default_factory=dict)
 
     @property
     def shift(self) -> F64:
@@ -516,6 +524,14 @@ def effect_evidence(
     selection = select_effects(
         sch.S, sch.b, base, groups, EFFECT_P_VALUE, max(variance_factor, 1.0), prior_sigma=prior
     )
+    # which candidates can stand in for a significant one (diagnose's rivals)
+    significant = [
+        s.name
+        for s in (*selection.selected, *selection.remaining)
+        if s.p_value < EFFECT_P_VALUE
+        or chi2_sf(selection.alone.get(s.name, 0.0), max(s.rank, 1)) < EFFECT_P_VALUE
+    ]
+    shares = explained_shares(sch.S, sch.b, base, groups, significant)
     base_names = [names[i] for i in base]
     joint = _joint_prior(sch.S, sch.b, base, groups, prior, variance_factor)
     planes_free = _planes_free(
@@ -575,6 +591,7 @@ def effect_evidence(
                     joint_prior_var=joint_var,
                     joint_prior_shift=joint_shift,
                     joint_p_value=joint_p,
+                    explained_by=shares.get(s.name, {}),
                 )
             )
     logger.debug(

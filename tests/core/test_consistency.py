@@ -369,6 +369,39 @@ def test_forward_selection_keeps_the_true_effect_and_drops_its_echo() -> None:
     assert np.allclose(sel.joint_shift, full[:3] - xb_hat, atol=1e-8)
 
 
+def test_explained_share_is_one_for_the_effect_in_the_data_and_zero_for_an_unrelated_one() -> None:
+    """Group ``a`` echoes ``c`` (the effect in the data); ``d`` is unrelated to both. Freeing
+    ``c`` explains all of ``a``'s score but noise; freeing ``d`` none of it; ``a`` explains only
+    part of ``c``'s (``c`` has a part ``a`` lacks). Each share matches the conditional score
+    test run directly."""
+    from licalib_cli.consistency import explained_shares, score_effects
+
+    rng = np.random.default_rng(12)
+    n = 4000
+    a_b = rng.normal(size=(n, 3))
+    a_c = rng.normal(size=(n, 2))
+    a_a = 0.8 * a_c + 0.6 * rng.normal(size=(n, 2))
+    a_d = rng.normal(size=(n, 1))
+    y = a_b @ np.array([1.0, -2.0, 0.5]) + a_c @ np.array([0.3, -0.2]) + rng.normal(size=n)
+    xb_hat = np.linalg.lstsq(a_b, y, rcond=None)[0]
+    j = np.hstack([a_b, a_a, a_c, a_d])
+    s, b = j.T @ j, -(j.T @ (a_b @ xb_hat - y))
+    groups = {"a": [3, 4], "c": [5, 6], "d": [7]}
+    shares = explained_shares(s, b, [0, 1, 2], groups, ["a", "c"])
+    assert set(shares) == {"a", "c"} and set(shares["a"]) == {"c", "d"}
+    assert shares["a"]["c"] > 0.97
+    assert shares["a"]["d"] < 0.02
+    assert 0.2 < shares["c"]["a"] < 0.9
+    (alone,) = score_effects(s, b, [0, 1, 2], {"a": [3, 4]})
+    (with_d,) = score_effects(s, b, [0, 1, 2, 7], {"a": [3, 4]})
+    assert np.isclose(1.0 - with_d.statistic / alone.statistic, shares["a"]["d"], atol=1e-9)
+    (c_with_a,) = score_effects(s, b, [0, 1, 2, 3, 4], {"c": [5, 6]})
+    (c_alone,) = score_effects(s, b, [0, 1, 2], {"c": [5, 6]})
+    assert np.isclose(1.0 - c_with_a.statistic / c_alone.statistic, shares["c"]["a"], atol=1e-9)
+    assert explained_shares(s, b, [0, 1, 2], {}, ["a"]) == {}
+    assert explained_shares(s, np.zeros_like(b), [0, 1, 2], groups, ["a"])["a"]["c"] == 0.0
+
+
 def test_range_noise_packed_sort_is_the_three_key_sort(monkeypatch: pytest.MonkeyPatch) -> None:
     """The packed (scan, beam, azimuth) key orders the returns as lexsort does: the same sigmas."""
     from licalib_cli.consistency import noise as noise_mod

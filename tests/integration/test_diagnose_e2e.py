@@ -453,40 +453,58 @@ def test_rivals_are_compared_on_the_same_data_and_an_indistinguishable_pair_is_n
     assert not not_told_apart(offset_of_offset_bag, scale_of_offset_bag)
 
 
-def _evidence(name: str, alone: float, rank: int) -> Any:
+def _evidence(
+    name: str, alone: float, rank: int, explained_by: dict[str, float] | None = None
+) -> Any:
     from types import SimpleNamespace
 
     from licalib_cli.consistency import EffectScore
 
     z = np.zeros(rank)
     return SimpleNamespace(
-        score=EffectScore(name, alone, rank, 0.0, z, z, z, z), statistic_alone=alone
+        score=EffectScore(name, alone, rank, 0.0, z, z, z, z),
+        statistic_alone=alone,
+        explained_by=explained_by or {},
     )
 
 
-def test_a_gyro_rotation_and_an_accelerometer_misalignment_are_refitted_as_rivals() -> None:
+def test_a_rival_is_a_candidate_that_explains_most_of_the_leaders_score() -> None:
     """Bag 1837 (OS1-64 sinusoid, 2.9 deg gyro rotation and per-beam elevations): after the
-    elevations the accelerometer misalignment led (3100 on 3 degrees of freedom) and the gyro
-    rotation, weaker, belongs to another sensor; the two explain the same relative rotation of
-    the triads and are refitted together. Rivals of another sensor otherwise are not."""
+    elevations the accelerometer misalignment led (3060 on 3 degrees of freedom); freed with
+    it, the gyro rotation explained 0.83 of its score, the g-sensitivity 0.44 and the
+    accelerometer scale 0.14 (the shares that run measured). The rotation, of the other sensor,
+    is the rival refitted; the accelerometer scale, of the same sensor but explaining little,
+    is not. Among several rivals the one explaining most comes first, and one far weaker per
+    degree of freedom is not refitted."""
     from licalib_cli.pipeline.diagnose import alike, rivals_of
 
-    misalignment = _evidence("accel_misalignment", 3100.0, 3)
-    rotation = _evidence("gyro_rotation", 2000.0, 3)
-    g_sens = _evidence("g_sensitivity", 1200.0, 9)  # the gyro's too, but weaker per dof
-    accel_scale = _evidence("accel_scale", 2900.0, 3)  # the accelerometer's: closer per dof
+    misalignment = _evidence(
+        "accel_misalignment",
+        3060.0,
+        3,
+        {"gyro_rotation": 0.83, "g_sensitivity": 0.44, "accel_scale": 0.14},
+    )
+    rotation = _evidence("gyro_rotation", 2000.0, 3, {"accel_misalignment": 0.9})
+    g_sens = _evidence("g_sensitivity", 1200.0, 9)
+    accel_scale = _evidence("accel_scale", 2900.0, 3)  # stronger than the rotation
     weak = _evidence("accel_bias_walk", 10.0, 3)
-    options = [misalignment, rotation, g_sens, weak]
+    options = [misalignment, rotation, g_sens, accel_scale, weak]
     assert rivals_of(misalignment, options) == [rotation]
     assert rivals_of(rotation, options) == [misalignment]
-    # the strongest rival first, at most one
-    assert rivals_of(misalignment, [*options, accel_scale]) == [accel_scale]
-    # the gyro scale and the accelerometer scale are not rivals, nor the rotation and a scale
-    assert alike("gyro_rotation", "accel_misalignment")
-    assert not alike("gyro_scale", "accel_scale") and not alike("gyro_rotation", "accel_scale")
-    assert rivals_of(_evidence("accel_scale", 100.0, 3), [_evidence("gyro_scale", 90.0, 3)]) == []
+    assert alike(misalignment, rotation)
+    assert not alike(misalignment, accel_scale) and not alike(misalignment, g_sens)
+    assert not alike(rotation, accel_scale)
+    # the one that explains most first, at most one
+    both = _evidence(
+        "lidar_range_offset", 900.0, 16, {"lidar_range_scale": 0.7, "lidar_elevation": 0.95}
+    )
+    scale = _evidence("lidar_range_scale", 800.0, 16)
+    elevation = _evidence("lidar_elevation", 400.0, 16)
+    assert rivals_of(both, [both, scale, elevation]) == [elevation]
     # a rival far weaker per degree of freedom is not refitted
     assert rivals_of(misalignment, [misalignment, _evidence("gyro_rotation", 500.0, 3)]) == []
+    # a leader with no shares (none significant beside it) has none
+    assert rivals_of(_evidence("accel_scale", 100.0, 3), [_evidence("gyro_scale", 90.0, 3)]) == []
 
 
 def test_an_effect_the_later_ones_explain_is_dropped_again() -> None:
