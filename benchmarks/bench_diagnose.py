@@ -177,6 +177,16 @@ def report(rows: list[dict]) -> None:
         print(f"  {e:<26} -> {n:<40} {k}")
     bad = [r for r in rows if judge(r)]
     print(f"{len(rows)} runs, {len(bad)} missing a target")
+    rivals = [(r, v) for r in rows for v in r.get("rivals", [])]
+    if rivals:
+        picked = [(r, v) for r, v in rivals if v[3]]
+        right = sum(v[0] in r["effects"] for r, v in picked)
+        print(
+            f"rivals refitted beside the leader at {len(rivals)} steps of "
+            f"{len({r['seed'] for r, _ in rivals})} runs (shares "
+            f"{min(v[2] for _, v in rivals):.2f}-{max(v[2] for _, v in rivals):.2f}); named in "
+            f"its place at {len(picked)}, the injected effect at {right} of them"
+        )
     with_info = [r for r in rows if "information" in r["after"]]  # older --jsonl rows lack it
     if with_info:
         info = [r["after"]["information"] for r in with_info]
@@ -271,6 +281,11 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
             for s in diag.steps
             if np.isfinite(s.expected_size)
         },
+        # rivals refitted beside a step's leader: [rival, leader, share of the leader's score
+        # it explains, named in its place]
+        "rivals": [
+            [s.effect, s.rival_of, s.rival_share, bool(s.kept)] for s in diag.steps if s.rival_of
+        ],
         "before": err(diag.base),
         "after": err(diag.final),
         "steps": [
@@ -467,6 +482,11 @@ def main() -> None:
                             else ""
                         )
                         + "".join(f" (~{a})" for a in row.get("not_told_apart", {}).get(n, []))
+                        + "".join(
+                            f" [rival of {r[1]}, {r[2]:.2f}]"
+                            for r in row.get("rivals", [])
+                            if r[0] == n and r[3]
+                        )
                         for n in row["named"]
                     )
                     or "none"

@@ -168,6 +168,25 @@ def unpaid_sentence(s: Any) -> str | None:
     )
 
 
+def rival_sentence(s: Any) -> str | None:
+    """The sentence for a kept effect refitted as the rival of the step's leading candidate and
+    picked in its place (None otherwise, or when the bag does not tell them apart)."""
+    if not (s.kept and s.rival_of) or s.not_told_apart:
+        return None
+    share = (
+        f"freed with it, {s.effect} explains {100.0 * s.rival_share:.0f} % of its score"
+        if math.isfinite(s.rival_share)
+        else f"{s.effect} explains most of its score"
+    )
+    better = (
+        f"on the same data its BIC is {-s.rival_delta_bic:.1f} lower"
+        if s.rival_delta_bic < 0.0
+        else f"it pays its BIC ({s.delta_bic:+.1f}) where {s.rival_of} does not"
+    )
+    led = f"{s.effect} was named in place of {s.rival_of}, whose score test led"
+    return f"{led}: {share}, and {better}."
+
+
 def diagnosis_dict(diag: Any) -> dict[str, Any]:
     """The diagnosis as plain data (the JSON and ``diagnosis.yaml`` content)."""
     steps = []
@@ -188,6 +207,8 @@ def diagnosis_dict(diag: Any) -> dict[str, Any]:
                 "sigma": {k: _num(v[1]) for k, v in s.estimate.items()},
                 "held": list(s.held),
                 "rival_named": s.rival_named or None,
+                "rival_of": s.rival_of or None,
+                "rival_share": _num(s.rival_share, 3),
                 "final_p_value": _num(s.final_p_value, 3),
                 "unpaid": _unpaid_dict(s.unpaid),
                 "spread": _spread_dict(s),
@@ -403,6 +424,8 @@ def render_diagnosis(diag: Any) -> None:
                 f"(BIC on the same data {s.rival_delta_bic:+.1f}); it shows an effect of the "
                 "kind, not which one."
             )
+        elif (picked := rival_sentence(s)) is not None:
+            out.print(picked)
     for s in diag.steps:
         sentence, spread = unpaid_sentence(s), spread_sentence(s)
         if sentence is not None:

@@ -844,6 +844,9 @@ def diagnose(
         for e in [best, *rivals]:
             refit = refit_of(e)
             trial, trial_cfgs[e.score.name] = sized_refit(refit(cfg), e.score, refit, cfg)
+            if e is not best:
+                share = best.explained_by.get(e.score.name, float("nan"))
+                trial = replace(trial, rival_of=best.score.name, rival_share=share)
             trials.append(trial)
             tried.add(e.score.name)
         trials = _compare_rivals(

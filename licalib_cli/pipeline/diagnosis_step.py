@@ -196,6 +196,11 @@ class DiagnosisStep:
         held_delta_bic: with ``expected_size``, the BIC change of the refit at the built-in
             scale (NaN otherwise).
         sized_delta_bic: with ``expected_size``, the BIC change of the refit expecting it.
+        rival_of: the step's leading candidate when this one was refitted as its rival (it
+            explains most of the leader's score: :func:`~licalib_cli.pipeline.diagnose.rivals_of`);
+            empty for the leader and a step without rivals.
+        rival_share: with ``rival_of``, the share of the leader's score it explains when freed
+            with it (NaN otherwise).
     """
 
     effect: str
@@ -230,6 +235,8 @@ class DiagnosisStep:
     expected_size: float = float("nan")
     held_delta_bic: float = float("nan")
     sized_delta_bic: float = float("nan")
+    rival_of: str = ""
+    rival_share: float = float("nan")
 
     @property
     def unpaid(self) -> Unpaid | None:

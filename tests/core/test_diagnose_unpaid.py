@@ -287,3 +287,34 @@ def test_a_share_is_measured_for_a_step_that_closed_less_than_half_among_several
     assert not wants_share(closed, pair)  # its own step closed it
     quiet = replace(low, gap_before=replace(low.gap_before, chi2_per_sample=0.975))
     assert math.isnan(quiet.shrink) and not wants_share(quiet, pair)  # no gap to share
+
+
+def test_a_rival_named_in_place_of_the_leader_says_why(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Bag 1837's step: the gyro rotation, refitted as the rival of the accelerometer
+    misalignment (it explained 0.83 of its score), named in its place."""
+    from licalib_cli.commands.diagnose import rival_sentence
+
+    picked = _step(
+        effect="gyro_rotation",
+        kept=True,
+        delta_bic=-157982.0,
+        rival_delta_bic=-32006.0,
+        rival_of="accel_misalignment",
+        rival_share=0.83,
+    )
+    text = rival_sentence(picked) or ""
+    assert text.startswith("gyro_rotation was named in place of accel_misalignment")
+    assert "explains 83 % of its score" in text
+    assert text.endswith("on the same data its BIC is 32006.0 lower.")
+    # the pick by paying where the leader does not
+    paying = replace(picked, rival_delta_bic=4.0, delta_bic=-20.0)
+    assert (rival_sentence(paying) or "").endswith(
+        "it pays its BIC (-20.0) where accel_misalignment does not."
+    )
+    # the leader, a rival not kept, a pair not told apart: nothing to say
+    assert rival_sentence(_step(kept=True, delta_bic=-30.0)) is None
+    assert rival_sentence(replace(picked, kept=False)) is None
+    assert rival_sentence(replace(picked, not_told_apart=("accel_misalignment",))) is None
+    row, leader = _steps_dict(monkeypatch, picked, _step(kept=True, delta_bic=-30.0))
+    assert row["rival_of"] == "accel_misalignment" and row["rival_share"] == pytest.approx(0.83)
+    assert leader["rival_of"] is None and leader["rival_share"] is None

@@ -90,3 +90,55 @@ def test_the_other_benchmarks_refuse_a_rate_that_is_not_positive(bench: Path) ->
     assert out.returncode == 2
     assert "--lidar-rate must be a positive number of samples per second" in out.stderr
     assert "Traceback" not in out.stderr
+
+
+def test_the_diagnose_benchmark_counts_the_rivals_named_in_the_leaders_place(
+    tmp_path: Path,
+) -> None:
+    """``--report`` of two rows: one named the injected gyro rotation in place of the leading
+    accelerometer misalignment, one refitted a rival that was not named."""
+    import json
+
+    def row(seed: int, effects: list[str], named: list[str], rivals: list[list]) -> dict:
+        err = {"translation_mm": 1.0, "rotation_deg": 0.01, "time_offset_ms": 0.01}
+        return {
+            "seed": seed,
+            "effects": effects,
+            "named": named,
+            "scenario": "sinusoid",
+            "lidar": "os1-64",
+            "rivals": rivals,
+            "shrink": {},
+            "before": err,
+            "after": err,
+        }
+
+    rows = [
+        row(
+            1,
+            ["gyro_rotation"],
+            ["gyro_rotation"],
+            [["gyro_rotation", "accel_misalignment", 0.83, True]],
+        ),
+        row(
+            2,
+            ["lidar_range_scale"],
+            ["lidar_range_scale"],
+            [["lidar_range_offset", "lidar_range_scale", 0.91, False]],
+        ),
+        row(3, [], [], []),
+    ]
+    path = tmp_path / "rows.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    out = subprocess.run(
+        [sys.executable, str(DIAGNOSE), "--report", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert out.returncode == 0, out.stderr
+    assert (
+        "rivals refitted beside the leader at 2 steps of 2 runs (shares 0.83-0.91); named in "
+        "its place at 1, the injected effect at 1 of them"
+    ) in out.stdout
