@@ -265,7 +265,9 @@ def calibrate_command(
     if segments is not None:
         from licalib_cli.commands.segments_render import SegmentOutputs, run_segments
 
-        outputs = SegmentOutputs(out, config_out, map_file, map_before, report, plots)
+        outputs = SegmentOutputs(
+            out, config_out, map_file, map_before, report, plots, inputs=tuple(inputs)
+        )
         run_segments(bag, cfg, segments, outputs, reference, model is ModelChoice.AUTO)
         return
     progress = RichProgress()

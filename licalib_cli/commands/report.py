@@ -56,7 +56,7 @@ def report_command(
     """Write the calibration report of a result: one HTML page, plots embedded."""
     from licalib_cli.export import load_result
     from licalib_cli.plots import pyplot
-    from licalib_cli.report import load_report_data, write_report
+    from licalib_cli.report import load_report_data, load_window_report_data, write_report
 
     out = out if out is not None else result_path.with_suffix(".html")
     inputs = [*report_inputs(result_path), ("the truth file", truth)]
@@ -67,14 +67,25 @@ def report_command(
             "truth.yaml?); give the file `licalib calibrate -o` wrote."
         )
         raise ConfigError(msg)
+    if result.segments is not None:
+        from licalib_cli.report import window_report_data_path
+
+        inputs += [
+            (f"the report data of seg{k}", window_report_data_path(result_path, k))
+            for k in range(1, len(result.segments.segments) + 1)
+        ]
     check_not_an_input(out, inputs)
     if result.recording is not None:
         check_not_an_input(out, [("the calibrated bag", Path(result.recording.bag))])
     prepare_output(out, example="report.html")
     pyplot()
     data = load_report_data(result_path, result)
+    windows = load_window_report_data(result_path, result)
     if truth is not None:
-        data = with_truth(data, result, Truth.load(truth))
-    write_report(out, result, data, str(result_path))
+        reference = Truth.load(truth)
+        data = with_truth(data, result, reference)
+        # the windows are of the same bag: the joint result's clock split is theirs
+        windows = tuple(None if w is None else with_truth(w, result, reference) for w in windows)
+    write_report(out, result, data, str(result_path), windows)
     status = result.verdict.status.upper() if result.verdict else "without a verdict"
     logger.info("Wrote the report %s (verdict %s).", out, status)

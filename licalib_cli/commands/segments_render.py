@@ -3,7 +3,7 @@ next to the joint one (the paper's Table segment_mit)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -13,11 +13,12 @@ from rich.table import Table
 from licalib_cli.commands.render import console
 from licalib_cli.config import CalibConfig, dump_config
 from licalib_cli.errors import VerdictFailure
-from licalib_cli.results import rpy_deg_from_matrix, write_text_atomic
+from licalib_cli.results import check_not_an_input, rpy_deg_from_matrix, write_text_atomic
 
 if TYPE_CHECKING:
     from licalib_cli.pipeline.joint import JointRun
     from licalib_cli.pipeline.segments_model import SegmentsModel
+    from licalib_cli.report.data import ReportData
     from licalib_cli.truth import Truth
 
 
@@ -87,9 +88,10 @@ class SegmentOutputs:
             maps are not in one frame (each segment's trajectory starts its own), so they are
             not merged.
         report: ``--report``: the HTML report of the joint result (the joint estimate with each
-            segment's own beside it; the figures that need one fit's data are said to be
-            missing).
+            segment's own beside it, and each window's own fit, motion and map figures).
         plots: ``--plots``: :func:`~licalib_cli.plots.save_segment_plots`.
+        inputs: the files no output may overwrite (label, path), for the report data of the
+            windows, whose number is known only after the selection.
     """
 
     result: Path
@@ -98,6 +100,7 @@ class SegmentOutputs:
     map_before: Path | None = None
     report: Path | None = None
     plots: Path | None = None
+    inputs: tuple[tuple[str, Path | None], ...] = ()
 
 
 def run_segments(
@@ -125,7 +128,9 @@ def run_segments(
         progress.close()
     run.result.save(out)
     # with --model auto, the model the diagnoses arrived at: calibrating with it estimates it
-    write_text_atomic(config_out, dump_config(run.config if run.config is not None else cfg))
+    used = run.config if run.config is not None else cfg
+    config_text = dump_config(used)
+    write_text_atomic(config_out, config_text)
     con = console()
     if run.model is not None:
         _render_model(run.model)
@@ -145,10 +150,11 @@ def run_segments(
     stages = ", ".join(f"{k} {v:.1f} s" for k, v in run.timings.items())
     con.print(f"Stages: {stages}")
     con.print(f"Result: {out}  (resolved config: {config_out})")
+    data, windows = _write_report_data(run, used, outputs, truth, config_text)
     if report is not None:
         from licalib_cli.report import write_report
 
-        write_report(report, run.result, None, str(out))
+        write_report(report, run.result, data, str(out), windows)
         con.print(f"Report: {report}")
     _write_segment_maps(run, cfg, outputs.map_file, outputs.map_before)
     if outputs.plots is not None:
@@ -160,6 +166,55 @@ def run_segments(
         msg = f"The verdict is FAIL; the result in {out} is for inspection only."
         raise VerdictFailure(msg)
     return run
+
+
+def _write_report_data(
+    run: JointRun,
+    cfg: CalibConfig,
+    outputs: SegmentOutputs,
+    truth: Truth | None,
+    config_text: str,
+) -> tuple[ReportData, tuple[ReportData, ...]]:
+    """The report data beside a joint result: ``<stem>.report-data.npz`` with the command line,
+    the config and the truth, and per window ``<stem>.segK.report-data.npz`` with its own fit
+    (:func:`~licalib_cli.report.data.window_report_data_path`), each tied to the joint result.
+    """
+    from licalib_cli.cli import command_line
+    from licalib_cli.report import build_report_data, report_data_path, window_report_data_path
+    from licalib_cli.report.data import ReportData
+
+    out = outputs.result
+    created = run.result.provenance.created_utc if run.result.provenance else ""
+    joint = ReportData(
+        result_created_utc=created, command_line=command_line(), config_text=config_text
+    )
+    if truth is not None:
+        ext = truth.extrinsic_for(run.result)
+        joint = replace(
+            joint, truth_matrix=ext.matrix(), truth_time_offset=np.array([ext.time_offset_s])
+        )
+    paths = [report_data_path(out)]
+    windows = []
+    for k, seg_run in enumerate(run.runs, start=1):
+        assert seg_run.segment is not None
+        data = build_report_data(
+            seg_run,
+            seg_run.segment,
+            cfg,
+            truth=truth.extrinsic_for(seg_run.result) if truth is not None else None,
+            command_line=joint.command_line,
+            config_text=config_text,
+        )
+        path = window_report_data_path(out, k)
+        label = f"The report data of seg{k} that calibrate writes next to the result, {path},"
+        check_not_an_input(path, list(outputs.inputs), label)
+        data = replace(data, result_created_utc=created)
+        data.save(path)
+        windows.append(data)
+        paths.append(path)
+    joint.save(paths[0])
+    console().print("Report data: " + ", ".join(str(p) for p in paths))
+    return joint, tuple(windows)
 
 
 def _render_model(model: SegmentsModel) -> None:

@@ -9,16 +9,24 @@ and, when present, those arrays.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 
-from licalib_cli.report.data import ReportData, build_report_data, report_data_path
+from licalib_cli.report.data import (
+    ReportData,
+    build_report_data,
+    report_data_path,
+    window_report_data_path,
+)
 from licalib_cli.results import CalibrationResult, write_text_atomic
 
 __all__ = [
     "ReportData",
     "build_report_data",
     "load_report_data",
+    "load_window_report_data",
     "report_data_path",
+    "window_report_data_path",
     "write_report",
 ]
 
@@ -32,7 +40,29 @@ def load_report_data(result_path: Path, result: CalibrationResult) -> ReportData
     Raises:
         ConfigError: the sidecar exists but is not report data of this version.
     """
-    path = report_data_path(result_path)
+    return _load_tied(report_data_path(result_path), result_path, result)
+
+
+def load_window_report_data(
+    result_path: Path, result: CalibrationResult
+) -> tuple[ReportData | None, ...]:
+    """For a result of ``calibrate --segments``, each window's report data beside it
+    (:func:`~licalib_cli.report.data.window_report_data_path`; None for a window without,
+    a warning says so); empty for a result of one segment.
+
+    Raises:
+        ConfigError: a sidecar exists but is not report data of this version.
+    """
+    if result.segments is None:
+        return ()
+    return tuple(
+        _load_tied(window_report_data_path(result_path, k), result_path, result)
+        for k in range(1, len(result.segments.segments) + 1)
+    )
+
+
+def _load_tied(path: Path, result_path: Path, result: CalibrationResult) -> ReportData | None:
+    """The report data in ``path`` when it belongs to ``result`` (same creation time)."""
     if not path.is_file():
         logger.warning(
             "%s has no report data (%s), so the report shows what the result file holds; "
@@ -55,13 +85,18 @@ def load_report_data(result_path: Path, result: CalibrationResult) -> ReportData
 
 
 def write_report(
-    path: Path, result: CalibrationResult, data: ReportData | None, source: str
+    path: Path,
+    result: CalibrationResult,
+    data: ReportData | None,
+    source: str,
+    windows: Sequence[ReportData | None] = (),
 ) -> None:
-    """Draw the report of ``result`` and write it to ``path`` atomically.
+    """Draw the report of ``result`` and write it to ``path`` atomically; ``windows``: a joint
+    result's windows' report data (:func:`load_window_report_data`).
 
     Raises:
         ConfigError: matplotlib is not installed.
     """
     from licalib_cli.report.html import render_html
 
-    write_text_atomic(Path(path), render_html(result, data, source))
+    write_text_atomic(Path(path), render_html(result, data, source, windows))

@@ -38,6 +38,11 @@ key                                     content
                                         mean map entropy of both maps
 ======================================  ========================================================
 
+A result of ``calibrate --segments`` has one more sidecar per window,
+``<stem>.segK.report-data.npz``: the same arrays for window K calibrated alone (the joint problem
+spans several windows, each with its own trajectory and map, so its figures are each window's);
+``<stem>.report-data.npz`` then holds only the command line, the config and the truth.
+
 A report drawn from a result without its sidecar shows what the YAML holds and says which
 figures are missing.
 """
@@ -69,6 +74,7 @@ __all__ = [
     "ReportData",
     "build_report_data",
     "report_data_path",
+    "window_report_data_path",
 ]
 
 REPORT_DATA_VERSION = 1
@@ -101,6 +107,13 @@ def report_data_path(result_path: Path) -> Path:
     """``<stem>.report-data.npz`` next to the result file."""
     result_path = Path(result_path)
     return result_path.with_name(result_path.stem + ".report-data.npz")
+
+
+def window_report_data_path(result_path: Path, index: int) -> Path:
+    """``<stem>.seg<index>.report-data.npz`` next to a result of ``calibrate --segments``: the
+    report data of window ``index`` (1-based, ``segK`` as in the result) calibrated alone."""
+    result_path = Path(result_path)
+    return result_path.with_name(f"{result_path.stem}.seg{index}.report-data.npz")
 
 
 def _thin(n: int, at_most: int) -> npt.NDArray[np.intp]:

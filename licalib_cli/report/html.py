@@ -78,9 +78,11 @@ def _table(header: Sequence[str], rows: Sequence[Sequence[str]], cls: str = "") 
 def _missing(what: str, result: CalibrationResult | None = None) -> str:
     if result is not None and result.segments is not None:
         return (
-            f'<p class="missing">{_e(what)} not shown: a calibration over several segments '
-            "has no report data (a window's figures come from calibrating it alone, with "
-            "calibrate --start and --duration).</p>"
+            f'<p class="missing">{_e(what)} not shown for the joint fit: a calibration over '
+            "several segments has no single trajectory and map to draw (each window has its "
+            "own); each window's own fit is drawn below, when its report data "
+            "(&lt;stem&gt;.segK.report-data.npz, written by calibrate --segments) is beside "
+            "the result.</p>"
         )
     return (
         f'<p class="missing">{_e(what)} not shown: the result has no report data '
@@ -151,7 +153,7 @@ def _segments(result: CalibrationResult) -> str:
         + (
             f" The fit and motion sections below describe seg{seg.reference} "
             f"({ref.start_s:.1f}-{ref.end_s:.1f} s, the window with the smallest sigmas) "
-            "calibrated alone."
+            "calibrated alone; each window's own figures follow in a section of its own."
             if ref is not None
             else ""
         )
@@ -376,7 +378,19 @@ def _fit(result: CalibrationResult, data: ReportData | None) -> str:
             f"{100 * fit.point_rms_m:.2f} cm, chi-square per degree of freedom "
             f"{fit.variance_factor:.3g}.</p>"
         )
-    out.append("<h3>Point-to-plane distances before and after</h3>")
+    out += _fit_figures(result, data)
+    out.append("<h3>Checks of the fit</h3>")
+    if result.consistency is not None:
+        out.append(_checks(result.consistency))
+    else:
+        out.append('<p class="missing">The result has no consistency section.</p>')
+    out += _round_figures(result, data)
+    return "\n".join(out)
+
+
+def _fit_figures(result: CalibrationResult, data: ReportData | None) -> list[str]:
+    """The distance histogram and the IMU residuals (or what is missing)."""
+    out = ["<h3>Point-to-plane distances before and after</h3>"]
     if data is not None and data.distances_after_m.size:
         out.append(
             _img(
@@ -398,12 +412,12 @@ def _fit(result: CalibrationResult, data: ReportData | None) -> str:
         )
     else:
         out.append(_missing("The IMU residuals are", result))
-    out.append("<h3>Checks of the fit</h3>")
-    if result.consistency is not None:
-        out.append(_checks(result.consistency))
-    else:
-        out.append('<p class="missing">The result has no consistency section.</p>')
-    out.append("<h3>Convergence per round</h3>")
+    return out
+
+
+def _round_figures(result: CalibrationResult, data: ReportData | None) -> list[str]:
+    """The convergence per round: figure and table (or what is missing)."""
+    out = ["<h3>Convergence per round</h3>"]
     if data is not None and data.round_index.size:
         initial = (
             (data.initial_translation_m, data.initial_rpy_deg, float(data.initial_time_offset_s[0]))
@@ -459,7 +473,7 @@ def _fit(result: CalibrationResult, data: ReportData | None) -> str:
         )
     else:
         out.append(_missing("The per-round convergence is", result))
-    return "\n".join(out)
+    return out
 
 
 def _motion(result: CalibrationResult, data: ReportData | None) -> str:
@@ -470,27 +484,33 @@ def _motion(result: CalibrationResult, data: ReportData | None) -> str:
             f'<p class="note">Segment used: {rec.duration_s:.2f} s, {rec.imu_samples} IMU '
             f"samples on {_e(rec.imu_topic)}, {rec.scans} sweeps on {_e(rec.lidar_topic)}.</p>"
         )
-    if data is not None and data.motion_t_s.size:
-        out.append(
-            _img(
-                figures.motion_png(
-                    data.motion_t_s, data.angular_rate, data.specific_force, data.segments_s
-                ),
-                "angular rate and specific force",
-                "Gyro and accelerometer readings; the shaded span is the segment calibrated. "
-                "Rotation about all three axes makes every extrinsic direction observable.",
-            )
-        )
-    else:
-        out.append(_missing("The motion plot is", result))
+    out.append(_motion_figure(result, data))
     return "\n".join(out)
 
 
+def _motion_figure(result: CalibrationResult, data: ReportData | None) -> str:
+    if data is None or not data.motion_t_s.size:
+        return _missing("The motion plot is", result)
+    return _img(
+        figures.motion_png(
+            data.motion_t_s, data.angular_rate, data.specific_force, data.segments_s
+        ),
+        "angular rate and specific force",
+        "Gyro and accelerometer readings; the shaded span is the segment calibrated. "
+        "Rotation about all three axes makes every extrinsic direction observable.",
+    )
+
+
 def _map(result: CalibrationResult, data: ReportData | None) -> str:
-    out = ["<h2>The map</h2>"]
+    return "\n".join(["<h2>The map</h2>", *_map_views(result, data)])
+
+
+def _map_views(result: CalibrationResult, data: ReportData | None) -> list[str]:
+    """The entropy table and the map views (or what is missing)."""
+    out: list[str] = []
     if data is None or not data.has_map:
         out.append(_missing("The map views are", result))
-        return "\n".join(out)
+        return out
     before, after = data.map_entropy_before, data.map_entropy_after
     out.append(
         '<p class="note">The map built with the initial calibration (left) and with the final '
@@ -526,6 +546,38 @@ def _map(result: CalibrationResult, data: ReportData | None) -> str:
             "Level frame: z up against gravity, origin at the first IMU position.",
         )
     )
+    return out
+
+
+def _windows(result: CalibrationResult, windows: Sequence[ReportData | None]) -> str:
+    """Each window of a joint calibration calibrated alone: its fit, motion and map figures."""
+    seg = result.segments
+    if seg is None or not windows:
+        return ""
+    out = []
+    for k, (entry, data) in enumerate(zip(seg.segments, windows, strict=False), start=1):
+        out.append(
+            f'<h2 id="seg{k}">seg{k} ({entry.start_s:.1f}-{entry.end_s:.1f} s) calibrated '
+            "alone</h2>"
+        )
+        if data is None:
+            out.append(
+                f'<p class="missing">seg{k}\'s figures not shown: its report data '
+                "(&lt;stem&gt;.seg" + str(k) + ".report-data.npz) is not beside the result.</p>"
+            )
+            continue
+        out.append(
+            f'<p class="note">The window on its own data, as the Segments table shows it '
+            f"(verdict {_e(entry.verdict.upper())}): its distances, IMU residuals, rounds, "
+            "motion and map with its initial guess and its own estimate. The joint estimate "
+            "differs from it by the row of the table.</p>"
+        )
+        out += _fit_figures(result, data)
+        out += _round_figures(result, data)
+        out.append("<h3>Motion</h3>")
+        out.append(_motion_figure(result, data))
+        out.append("<h3>Map</h3>")
+        out += _map_views(result, data)
     return "\n".join(out)
 
 
@@ -561,13 +613,20 @@ def _provenance(result: CalibrationResult, data: ReportData | None, source: str)
     return "\n".join(out)
 
 
-def render_html(result: CalibrationResult, data: ReportData | None, source: str = "") -> str:
+def render_html(
+    result: CalibrationResult,
+    data: ReportData | None,
+    source: str = "",
+    windows: Sequence[ReportData | None] = (),
+) -> str:
     """The report page.
 
     Args:
         result: the result file's content.
         data: its report data, or None (the figures that need it are named as missing).
         source: how the page names the result file.
+        windows: for a result of ``calibrate --segments``, each window's report data (its fit
+            calibrated alone; None where missing): a section per window.
 
     Returns:
         The HTML text (UTF-8, self-contained).
@@ -600,6 +659,7 @@ def render_html(result: CalibrationResult, data: ReportData | None, source: str 
         _fit(result, data),
         _motion(result, data),
         _map(result, data),
+        _windows(result, windows),
         _provenance(result, data, source),
     ]
     return (

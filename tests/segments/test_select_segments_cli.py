@@ -207,14 +207,35 @@ def test_calibrate_two_segments_jointly(walk, tmp_path, capsys) -> None:
     )
     printed = capsys.readouterr().out
     assert "joint" in printed and "Verdict:" in printed
-    # The report shows the joint estimate with each window's own beside it, and says which
-    # figures a joint calibration has no data for instead of drawing one window's as the joint's.
+    # The report shows the joint estimate with each window's own beside it, says which
+    # figures the joint fit has none of (no single trajectory and map) instead of drawing one
+    # window's as the joint's, and draws each window's own fit, motion and map in its section.
     page = (tmp_path / "joint.html").read_text()
     assert "<h2>Segments</h2>" in page and "6.0-9.0 s" in page and "9.0-12.0 s" in page
     assert ">seg2<" in page and ">joint<" in page
     assert "(reference)" in page and "calibrated alone" in page
-    assert "a calibration over several segments has no report data" in page
+    assert "not shown for the joint fit" in page
     assert "the result has no report data" not in page
+    windows = page.split('<h2 id="seg1">seg1 (6.0-9.0 s) calibrated alone</h2>')
+    assert len(windows) == 2
+    first, second = windows[1].split('<h2 id="seg2">seg2 (9.0-12.0 s) calibrated alone</h2>')
+    for section in (first, second.split("<h2>Provenance</h2>")[0]):
+        # distances, IMU residuals, rounds, motion, map: five figures, nothing missing
+        assert section.count("<img ") == 5 and 'class="missing"' not in section
+    assert "--segments" in page.split("<h2>Provenance</h2>")[1]  # the command line
+    assert "truth" in page.split("<h2>Segments</h2>")[0].lower()  # the --truth column
+    sidecars = ["joint.report-data.npz", "joint.seg1.report-data.npz", "joint.seg2.report-data.npz"]
+    assert all((tmp_path / n).is_file() for n in sidecars)
+    # licalib report on the joint result draws the same page from the files
+    main(["report", str(out), "-o", str(tmp_path / "again.html")])
+    again = (tmp_path / "again.html").read_text()
+    assert again.count("<img ") == page.count("<img ") and "calibrated alone</h2>" in again
+    # a window without its report data: its section says so, the other's is drawn
+    (tmp_path / "joint.seg2.report-data.npz").unlink()
+    main(["report", str(out), "-o", str(tmp_path / "third.html")])
+    third = (tmp_path / "third.html").read_text()
+    assert "seg2's figures not shown: its report data" in third
+    assert third.count("<img ") == page.count("<img ") - 5
     # The joint spectrum, the windows against the joint estimate, and each window's own fit.
     drawn = sorted(p.name for p in (tmp_path / "plots").iterdir())
     assert drawn == [
