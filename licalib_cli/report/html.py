@@ -567,10 +567,10 @@ def _windows(result: CalibrationResult, windows: Sequence[ReportData | None]) ->
             )
             continue
         out.append(
-            f'<p class="note">The window on its own data, as the Segments table shows it '
-            f"(verdict {_e(entry.verdict.upper())}): its distances, IMU residuals, rounds, "
-            "motion and map with its initial guess and its own estimate. The joint estimate "
-            "differs from it by the row of the table.</p>"
+            f'<p class="note">seg{k} calibrated on its own data (its row of the Segments table, '
+            f"verdict {_e(entry.verdict.upper())}): its point-to-plane distances, IMU residuals, "
+            "rounds, motion, and its map with its initial guess and with its own estimate. The "
+            "joint estimate is the table's last row.</p>"
         )
         out += _fit_figures(result, data)
         out += _round_figures(result, data)
