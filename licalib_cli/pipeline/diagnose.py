@@ -619,7 +619,10 @@ RIVAL_SHARE = 0.5
 """A candidate that explains at least this share of the leading one's score when freed with it
 (:attr:`~licalib_cli.pipeline.fitcheck.EffectEvidence.explained_by`) can stand in for it, and
 is its rival. Were the candidate the effect in the data, it would explain all of the leader's
-score but noise (a share above 0.9 for any leader that is significant); a candidate of the same
+score but noise: what is left is about the leader's degrees of freedom, so the share is about
+``1 - dof / statistic`` (0.88 for a three-coordinate leader at the significance level of
+:data:`EFFECT_P_VALUE`, but 0.48 for a per-beam leader of 64 coordinates there, which this rule
+may then miss; the true rivals seen so far explained 0.79-0.83); a candidate of the same
 sensor that explains little of it (an accelerometer scale, 0.14 of a misalignment's score on bag
 1837 of ``bench_diagnose.py --first-seed 1800``) cannot be what the leader stands for, whereas
 one of the other sensor can: there the gyro rotation explained 0.83 of the accelerometer
