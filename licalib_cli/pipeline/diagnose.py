@@ -616,27 +616,36 @@ of the strongest one's is refitted as well; among those that pay, the lower BIC 
 wins (:func:`pick_rival`)."""
 
 RIVAL_SHARE = 0.5
-"""A candidate that explains at least this share of the leading one's score when freed with it
-(:attr:`~licalib_cli.pipeline.fitcheck.EffectEvidence.explained_by`) can stand in for it, and
-is its rival. Were the candidate the effect in the data, it would explain all of the leader's
-score but noise: what is left is about the leader's degrees of freedom, so the share is about
-``1 - dof / statistic`` (0.88 for a three-coordinate leader at the significance level of
-:data:`EFFECT_P_VALUE`, but 0.48 for a per-beam leader of 64 coordinates there, which this rule
-may then miss; the true rivals seen so far explained 0.79-0.83); a candidate of the same
-sensor that explains little of it (an accelerometer scale, 0.14 of a misalignment's score on bag
-1837 of ``bench_diagnose.py --first-seed 1800``) cannot be what the leader stands for, whereas
-one of the other sensor can: there the gyro rotation explained 0.83 of the accelerometer
-misalignment's score (3060 on 3 degrees of freedom, after the elevations); with the extrinsic
-rotation re-estimated, a gyro triad rotated against the accelerometer's looks like an
-accelerometer triad rotated against the gyro's."""
+"""A candidate that explains at least this fraction of what a stand-in would explain of the
+leading one's score, when freed with it (:attr:`~licalib_cli.pipeline.fitcheck.EffectEvidence.
+explained_by`, :func:`stand_in_share`), can stand in for it and is its rival, whatever sensor it
+belongs to. A candidate of the same sensor that explains little of it (an accelerometer scale,
+0.14 of a misalignment's score on bag 1837 of ``bench_diagnose.py --first-seed 1800``) cannot be
+what the leader stands for, whereas one of the other sensor can: there the gyro rotation
+explained 0.83 of the accelerometer misalignment's score (3060 on 3 degrees of freedom, after
+the elevations); with the extrinsic rotation re-estimated, a gyro triad rotated against the
+accelerometer's looks like an accelerometer triad rotated against the gyro's."""
 
 MAX_RIVALS = 1
 
 
+def stand_in_share(best: EffectEvidence) -> float:
+    """The share of ``best``'s score that the effect in the data would explain were ``best``
+    only its echo: all but what noise leaves, about ``best``'s degrees of freedom, so
+    ``1 - dof / statistic`` (0.88 for three coordinates at the significance level of
+    :data:`EFFECT_P_VALUE`, 0.48 for 64 per-beam coordinates there, near 1 for a strong
+    effect); 1 without a statistic."""
+    statistic = float(best.statistic_alone)
+    if not statistic > 0.0:
+        return 1.0
+    return min(max(1.0 - max(best.score.rank, 1) / statistic, 0.0), 1.0)
+
+
 def alike(best: EffectEvidence, other: EffectEvidence) -> bool:
     """Whether ``other`` is a rival of ``best`` at a step: it explains at least
-    :data:`RIVAL_SHARE` of ``best``'s score, whatever sensor it belongs to."""
-    return best.explained_by.get(other.score.name, 0.0) >= RIVAL_SHARE
+    :data:`RIVAL_SHARE` of what a stand-in would explain of ``best``'s score
+    (:func:`stand_in_share`), whatever sensor it belongs to."""
+    return best.explained_by.get(other.score.name, 0.0) >= RIVAL_SHARE * stand_in_share(best)
 
 
 def rivals_of(best: EffectEvidence, options: Sequence[EffectEvidence]) -> list[EffectEvidence]:

@@ -476,7 +476,7 @@ def test_a_rival_is_a_candidate_that_explains_most_of_the_leaders_score() -> Non
     is the rival refitted; the accelerometer scale, of the same sensor but explaining little,
     is not. Among several rivals the one explaining most comes first, and one far weaker per
     degree of freedom is not refitted."""
-    from licalib_cli.pipeline.diagnose import alike, rivals_of
+    from licalib_cli.pipeline.diagnose import alike, rivals_of, stand_in_share
 
     misalignment = _evidence(
         "accel_misalignment",
@@ -503,6 +503,16 @@ def test_a_rival_is_a_candidate_that_explains_most_of_the_leaders_score() -> Non
     assert rivals_of(both, [both, scale, elevation]) == [elevation]
     # a rival far weaker per degree of freedom is not refitted
     assert rivals_of(misalignment, [misalignment, _evidence("gyro_rotation", 500.0, 3)]) == []
+    # a per-beam leader near its significance level: noise leaves about half of its score
+    # even to the effect in the data, so a candidate explaining 0.3 of it is a rival there
+    weak_leader = _evidence("lidar_range_offset", 130.0, 64, {"lidar_range_scale": 0.3})
+    assert stand_in_share(weak_leader) == pytest.approx(1.0 - 64 / 130)
+    assert rivals_of(weak_leader, [_evidence("lidar_range_scale", 120.0, 64)])
+    assert not alike(_evidence("accel_scale", 3000.0, 3, {"gyro_scale": 0.3}), g_sens)
+    assert not rivals_of(
+        _evidence("accel_scale", 3000.0, 3, {"gyro_scale": 0.3}),
+        [_evidence("gyro_scale", 2900.0, 3)],
+    )
     # a leader with no shares (none significant beside it) has none
     assert rivals_of(_evidence("accel_scale", 100.0, 3), [_evidence("gyro_scale", 90.0, 3)]) == []
 
