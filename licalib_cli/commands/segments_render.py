@@ -180,6 +180,7 @@ def _write_report_data(
     (:func:`~licalib_cli.report.data.window_report_data_path`), each tied to the joint result.
     """
     from licalib_cli.cli import command_line
+    from licalib_cli.commands.report import with_truth
     from licalib_cli.report import build_report_data, report_data_path, window_report_data_path
     from licalib_cli.report.data import ReportData
 
@@ -189,10 +190,7 @@ def _write_report_data(
         result_created_utc=created, command_line=command_line(), config_text=config_text
     )
     if truth is not None:
-        ext = truth.extrinsic_for(run.result)
-        joint = replace(
-            joint, truth_matrix=ext.matrix(), truth_time_offset=np.array([ext.time_offset_s])
-        )
+        joint = with_truth(joint, run.result, truth)
     paths = [report_data_path(out)]
     windows = []
     for k, seg_run in enumerate(run.runs, start=1):
