@@ -236,6 +236,18 @@ def test_calibrate_two_segments_jointly(walk, tmp_path, capsys) -> None:
     third = (tmp_path / "third.html").read_text()
     assert "seg2's figures not shown: its report data" in third
     assert third.count("<img ") == page.count("<img ") - 5
+    # a window's report data is never overwritten, and a damaged one is one sentence
+    from tests.report.test_report_cli import _one_sentence_error, run
+
+    seg1 = tmp_path / "joint.seg1.report-data.npz"
+    kept = seg1.read_bytes()
+    code, _, err = run(["report", str(out), "-o", str(seg1)], capsys)
+    assert "give another output path" in _one_sentence_error(err, code, 6)
+    assert seg1.read_bytes() == kept
+    seg1.write_bytes(b"not a zip")
+    code, _, err = run(["report", str(out), "-o", str(tmp_path / "fourth.html")], capsys)
+    assert "is not a licalib report-data file" in _one_sentence_error(err, code, 6)
+    assert not (tmp_path / "fourth.html").exists()
     # The joint spectrum, the windows against the joint estimate, and each window's own fit.
     drawn = sorted(p.name for p in (tmp_path / "plots").iterdir())
     assert drawn == [
