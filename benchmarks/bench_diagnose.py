@@ -17,16 +17,17 @@ Examples::
     .venv/bin/python benchmarks/bench_diagnose.py --only gyro_scale --list
     .venv/bin/python benchmarks/bench_diagnose.py --jobs 2 --first-seed 500   # new bags
     .venv/bin/python benchmarks/bench_diagnose.py --jobs 2 --imu-rate 100   # a slower IMU
+    .venv/bin/python benchmarks/bench_diagnose.py --jobs 2 --duration 20   # longer bags
 
 Sizes: every effect at ``--scale`` (default 3) times its reference size: the paper's table for
 the intrinsics, 0.1 deg/s/g g-sensitivity, 50 ppm clock drift, bias walks ten times the
 MTi-100's, a 1 % per-point time error (``licalib simulate --effect NAME --effect-scale K``, see
 benchmarks/_effects.py and licalib_cli/simulation/effects.py); the IMU effects of
 :data:`STRONGER` at five times, the bias walks over 20 s (:data:`LONGER`). Bags are 10 s
-otherwise. A case whose effect is not named also prints the size diagnose says the bag would
-need to show it, against the RMS injected. At the end: how many runs end outside 0.3 cm /
-0.05 deg / 0.1 ms, against how many an unbiased estimator with each final fit's solver
-covariance would (``_information.py``).
+otherwise (``--duration``: another length). A case whose effect is not named also prints the
+size diagnose says the bag would need to show it, against the RMS injected. At the end: how
+many runs end outside 0.3 cm / 0.05 deg / 0.1 ms, against how many an unbiased estimator with
+each final fit's solver covariance would (``_information.py``).
 """
 
 from __future__ import annotations
@@ -75,15 +76,18 @@ LONGER: dict[str, float] = {"gyro_bias_walk": 20.0, "accel_bias_walk": 20.0}
 the time and the information about a drift with its cube, so its score test grows with T^2."""
 
 
-def _size_and_length(effects: list[str], scale: float) -> tuple[float, float]:
+def _size_and_length(
+    effects: list[str], scale: float, shortest: float = 10.0
+) -> tuple[float, float]:
     """The multiple of the reference sizes and the bag length of a case (one multiple for all
     its effects: the simulator's ``effect_scale``). A pair with a LiDAR intrinsic stays at
     ``scale``: per-beam range offsets at five times the paper's (5 cm RMS) blur the map until
-    fewer than a hundred points lie on planes and even the base model cannot be fitted."""
+    fewer than a hundred points lie on planes and even the base model cannot be fitted. Bags
+    last ``shortest`` seconds, or :data:`LONGER`'s length for its effects when that is longer."""
     k = max([STRONGER.get(e, scale) for e in effects] or [scale])
     if any(e.startswith("lidar_") and e != "lidar_point_time" for e in effects):
         k = scale
-    return max(k, scale), max([LONGER.get(e, 10.0) for e in effects] or [10.0])
+    return max(k, scale), max([LONGER.get(e, shortest) for e in effects] + [shortest])
 
 
 def injected_rms(row: dict) -> dict[str, float]:
@@ -208,7 +212,7 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
     from licalib_cli.pipeline.diagnose import diagnose
     from licalib_cli.simulation import SimulationSpec, simulate
 
-    scale, duration = _size_and_length(case["effects"], scale)
+    scale, duration = _size_and_length(case["effects"], scale, case.get("duration") or 10.0)
     kwargs = effect_spec_kwargs(
         case["effects"], case["lidar"], case["seed"], workdir, scale=scale, sim_scale=scale
     )
@@ -389,10 +393,18 @@ def main() -> None:
         default=200,
         help="seed of the first case (the others follow); another value gives new bags",
     )
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=10.0,
+        help="length of the bags in s (bias walks: at least 20 s; see LONGER)",
+    )
     p.add_argument("--report", default=None, help="only print the tables of a --jsonl file")
     p.add_argument("--one", default=None, help=argparse.SUPPRESS)
     p.add_argument("--workdir", default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
+    if not args.duration > 0:
+        p.error(f"--duration must be a positive number of seconds, not {args.duration}")
     check_rates(p, args)
     if args.report is not None:
         rows = [json.loads(x) for x in Path(args.report).read_text().splitlines() if x.strip()]
@@ -405,7 +417,13 @@ def main() -> None:
         print(json.dumps(row))
         return
     todo = [
-        {**c, "tilt_deg": args.tilt_deg, "imu_rate": args.imu_rate, "lidar_rate": args.lidar_rate}
+        {
+            **c,
+            "tilt_deg": args.tilt_deg,
+            "imu_rate": args.imu_rate,
+            "lidar_rate": args.lidar_rate,
+            "duration": args.duration,
+        }
         for c in cases(args.first_seed)
         if (
             args.only is None

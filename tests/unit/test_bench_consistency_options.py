@@ -78,6 +78,42 @@ def test_the_diagnose_benchmark_carries_the_sensor_rates_into_every_case() -> No
     assert cases and all(c["imu_rate"] == 200.0 and c["lidar_rate"] is None for c in cases)
 
 
+def test_the_diagnose_benchmark_carries_the_length_of_its_bags_into_every_case() -> None:
+    out = subprocess.run(
+        [sys.executable, str(DIAGNOSE), "--duration", "20", "--only", "clean", "--list"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert out.returncode == 0, out.stderr
+    cases = [ast.literal_eval(line) for line in out.stdout.splitlines() if line.startswith("{")]
+    assert cases and all(c["duration"] == 20.0 for c in cases)
+    refused = subprocess.run(
+        [sys.executable, str(DIAGNOSE), "--duration", "0", "--list"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert refused.returncode == 2
+    assert "--duration must be a positive number of seconds" in refused.stderr
+
+
+def test_a_diagnose_case_lasts_the_length_asked_or_its_effects_longer_one() -> None:
+    sys.path.insert(0, str(DIAGNOSE.parent))
+    try:
+        import bench_diagnose
+    finally:
+        sys.path.remove(str(DIAGNOSE.parent))
+    length = bench_diagnose._size_and_length
+    assert length(["gyro_rotation"], 3.0)[1] == 10.0
+    assert length(["gyro_rotation"], 3.0, 25.0)[1] == 25.0
+    assert length(["gyro_bias_walk"], 3.0, 10.0)[1] == bench_diagnose.LONGER["gyro_bias_walk"]
+    assert length(["gyro_bias_walk", "lidar_point_time"], 3.0, 30.0)[1] == 30.0
+    assert length([], 3.0, 15.0) == (3.0, 15.0)
+
+
 @pytest.mark.parametrize("bench", [DIAGNOSE, INTRINSICS], ids=["diagnose", "intrinsics"])
 def test_the_other_benchmarks_refuse_a_rate_that_is_not_positive(bench: Path) -> None:
     out = subprocess.run(
