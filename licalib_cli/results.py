@@ -567,7 +567,7 @@ def _same_file(a: Path, b: Path) -> bool:
     return a.resolve() == b.resolve()
 
 
-def _input_files(path: Path) -> list[Path]:
+def input_files(path: Path) -> list[Path]:
     """The files an input consists of: itself, or every file in it when it is a folder."""
     if path.is_dir():
         return [p for p in sorted(path.rglob("*")) if p.is_file()]
@@ -593,7 +593,7 @@ def check_not_an_input(
         if given is None:
             continue
         given = Path(given)
-        for file in _input_files(given):
+        for file in input_files(given):
             if _same_file(path, file):
                 which = what if file == given else f"a file of {what} {given}"
                 msg = (

@@ -241,6 +241,10 @@ def calibrate_command(
         inputs,
         {"-o": out, "the resolved config": config_out, "the report data": data_out},
     )
+    if segments is not None:
+        from licalib_cli.commands.segments_render import check_window_outputs
+
+        check_window_outputs(out, inputs)
     reference = Truth.load(truth) if truth is not None else None
     cfg = load_config(
         config,

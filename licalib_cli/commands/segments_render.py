@@ -3,6 +3,8 @@ next to the joint one (the paper's Table segment_mit)."""
 
 from __future__ import annotations
 
+import re
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -13,7 +15,12 @@ from rich.table import Table
 from licalib_cli.commands.render import console
 from licalib_cli.config import CalibConfig, dump_config
 from licalib_cli.errors import VerdictFailure
-from licalib_cli.results import check_not_an_input, rpy_deg_from_matrix, write_text_atomic
+from licalib_cli.results import (
+    check_not_an_input,
+    input_files,
+    rpy_deg_from_matrix,
+    write_text_atomic,
+)
 
 if TYPE_CHECKING:
     from licalib_cli.pipeline.joint import JointRun
@@ -168,6 +175,33 @@ def run_segments(
     return run
 
 
+def _window_label(path: Path, index: int | str) -> str:
+    return f"The report data of seg{index} that calibrate writes next to the result, {path},"
+
+
+def check_window_outputs(out: Path, inputs: Sequence[tuple[str, Path | None]]) -> None:
+    """Refuse, before anything is read, an input that a window's report data of ``calibrate
+    --segments`` would overwrite: any ``<stem>.segK.report-data.npz`` beside the result ``out``
+    (how many windows there are is known only once they are chosen).
+
+    Raises:
+        ConfigError: an input (or a file of an input folder, or what a link points to) bears
+            such a name in the result's folder.
+    """
+    out = Path(out)
+    name = re.compile(re.escape(out.stem) + r"\.seg([1-9][0-9]*)\.report-data\.npz")
+    folder = out.parent.resolve()
+    for _, given in inputs:
+        if given is None:
+            continue
+        for file in input_files(Path(given)):
+            for candidate in (file, file.resolve()):
+                match = name.fullmatch(candidate.name)
+                if match and candidate.parent.resolve() == folder:
+                    path = out.parent / candidate.name
+                    check_not_an_input(path, inputs, _window_label(path, match.group(1)))
+
+
 def _write_report_data(
     run: JointRun,
     cfg: CalibConfig,
@@ -204,8 +238,7 @@ def _write_report_data(
             config_text=config_text,
         )
         path = window_report_data_path(out, k)
-        label = f"The report data of seg{k} that calibrate writes next to the result, {path},"
-        check_not_an_input(path, list(outputs.inputs), label)
+        check_not_an_input(path, list(outputs.inputs), _window_label(path, k))
         data = replace(data, result_created_utc=created)
         data.save(path)
         windows.append(data)

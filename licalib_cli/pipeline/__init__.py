@@ -216,6 +216,7 @@ def fit_and_check(
     timer: Timer,
     *,
     warm: bool = False,
+    rivals: bool = False,
 ) -> CalibrationRun:
     """The rounds from ``start``, the checks and the result file content.
 
@@ -227,12 +228,15 @@ def fit_and_check(
         timer: stage timer (times add up over several fits).
         warm: ``start`` is already a fit: the model's intrinsics are estimated from the first
             round and the association starts less loose.
+        rivals: size which candidates stand in for each significant effect
+            (:attr:`~licalib_cli.pipeline.fitcheck.EffectEvidence.explained_by`; only
+            ``diagnose`` reads them).
     """
     rec, noise, guess = prepared.rec, prepared.noise, prepared.guess
     with timer.stage("optimisation", progress, total=cfg.schedule.max_rounds):
         fit = run_schedule(rec, start, noise, cfg, progress, warm=warm)
     with timer.stage("checks", progress):
-        checks = check(fit, guess, noise, cfg)
+        checks = check(fit, guess, noise, cfg, rivals=rivals)
     fit = replace(fit, solved=None)  # the final problem's Jacobians are not kept with the run
     result = assemble(prepared.bag, rec, guess, fit, checks, cfg)
     return CalibrationRun(

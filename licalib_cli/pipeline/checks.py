@@ -927,9 +927,12 @@ def judge(findings: list[Finding]) -> tuple[VerdictSection, str]:
     return VerdictSection(status, reasons), exit_status
 
 
-def check(fit: Fit, guess: InitialGuess, noise: NoiseLevels, cfg: CalibConfig) -> Checks:
+def check(
+    fit: Fit, guess: InitialGuess, noise: NoiseLevels, cfg: CalibConfig, *, rivals: bool = False
+) -> Checks:
     """The checks stage: gather the evidence on the fit (residuals per sensor, score tests of
-    the fixed effects, the two halves) and judge it (:func:`run_checks`)."""
+    the fixed effects, the two halves) and judge it (:func:`run_checks`). ``rivals``: also
+    which candidates stand in for each significant effect (``effect_evidence``'s)."""
     # All in this process: a forked second process for the map planes' uncertainty was slower
     # (both processes then pay a page copy for every page of the freed heap they write,
     # which ``parallel.memory`` keeps for reuse; on a 10 s OS1-64 bag the checks took 2.2 s
@@ -943,6 +946,7 @@ def check(fit: Fit, guess: InitialGuess, noise: NoiseLevels, cfg: CalibConfig) -
         fit.report.variance_factor,
         cfg.model.imu_prior,
         planes_free_p=COVER_P_VALUE,
+        rivals=rivals,
     )
     split = split_half(fit.state, fit.inputs, cfg, fit.report)
     notes: tuple[str, ...] = ()

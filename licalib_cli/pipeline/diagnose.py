@@ -693,7 +693,7 @@ def _try_effect(
         score.p_value,
     )
     start = replace(prepared.guess, state=run.state)
-    new = fit_and_check(prepared, start, new_cfg, progress, timer, warm=True)
+    new = fit_and_check(prepared, start, new_cfg, progress, timer, warm=True, rivals=True)
     samples = _sensor_samples(run, sensor)
     log_n = math.log(max(samples, 2))
     ((ss, k),) = _bic_terms(new, new_cfg, [(run.state, _with_effects(cfg, kept))])
@@ -797,7 +797,7 @@ def diagnose(
     rate = (len(prepared.rec.imu) - 1) / max(
         float(prepared.rec.imu.t_ns[-1] - prepared.rec.imu.t_ns[0]) * 1e-9, 1e-9
     )
-    run = fit_and_check(prepared, prepared.guess, base_cfg, progress, timer)
+    run = fit_and_check(prepared, prepared.guess, base_cfg, progress, timer, rivals=True)
     with timer.stage("twin", progress):
         run_twin = twin_of(run, cfg)
     base, base_twin = run, run_twin
@@ -908,7 +908,9 @@ def diagnose(
         # the model of ``effects`` but ``effect``, refitted from the current fit's estimate
         rest = tuple(e for e in effects if e != effect)
         start = replace(prepared.guess, state=without_effect(run.state, effect, base.state))
-        return fit_and_check(prepared, start, _with_effects(cfg, rest), progress, timer, warm=True)
+        return fit_and_check(
+            prepared, start, _with_effects(cfg, rest), progress, timer, warm=True, rivals=True
+        )
 
     def refit_without(effects: tuple[str, ...], effect: str) -> None:
         nonlocal run, run_twin

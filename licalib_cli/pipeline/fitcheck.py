@@ -392,7 +392,8 @@ class EffectEvidence:
         explained_by: the share of this effect's score (against the estimated coordinates)
             that each other candidate explains when freed as well
             (:func:`licalib_cli.consistency.explained_shares`): near one for a candidate that
-            can stand in for it. Only for a significant effect (empty otherwise).
+            can stand in for it. Only for a significant effect, and only when asked
+            (``effect_evidence(..., rivals=True)``, as diagnose does; empty otherwise).
     """
 
     score: EffectScore
@@ -434,6 +435,8 @@ def effect_evidence(
     variance_factor: float,
     imu_prior: ImuPriorSection | None = None,
     planes_free_p: float = 0.0,
+    *,
+    rivals: bool = True,
 ) -> list[EffectEvidence]:
     """Score tests of every effect the final round held fixed, with forward selection.
 
@@ -452,6 +455,8 @@ def effect_evidence(
         planes_free_p: the LiDAR effects with a p-value below this get their shift and its
             null spread with the map planes estimated too
             (:mod:`licalib_cli.pipeline.effect_shift`); the others keep the planes-fixed ones.
+        rivals: size, for each significant effect, the share of its score each other
+            candidate explains (:attr:`EffectEvidence.explained_by`); False: left empty.
 
     Returns:
         One entry per fixed group with at least one free coordinate: the selected ones first,
@@ -531,7 +536,7 @@ def effect_evidence(
         if s.p_value < EFFECT_P_VALUE
         or chi2_sf(selection.alone.get(s.name, 0.0), max(s.rank, 1)) < EFFECT_P_VALUE
     ]
-    shares = explained_shares(sch.S, sch.b, base, groups, significant)
+    shares = explained_shares(sch.S, sch.b, base, groups, significant) if rivals else {}
     base_names = [names[i] for i in base]
     joint = _joint_prior(sch.S, sch.b, base, groups, prior, variance_factor)
     planes_free = _planes_free(

@@ -626,6 +626,7 @@ def test_an_effect_of_a_final_model_with_several_gets_its_share_of_its_sensors_g
     from licalib_cli.config import load_config
     from licalib_cli.pipeline import Timer, fit_and_check, prepare
     from licalib_cli.pipeline.diagnose import _gap, _with_effects, share_of, without_effect
+    from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, effect_evidence
     from licalib_cli.progress import NullProgress
 
     bag = _bag(
@@ -640,6 +641,14 @@ def test_an_effect_of_a_final_model_with_several_gets_its_share_of_its_sensors_g
     base_cfg = _with_effects(cfg, ())
     prepared = prepare(bag, base_cfg, progress, timer)
     base = fit_and_check(prepared, prepared.guess, base_cfg, progress, timer)
+    # calibrate's checks do not size the rivals (only diagnose reads them); asked, they do
+    significant = {e.score.name for e in base.effects if e.score.p_value < EFFECT_P_VALUE}
+    assert {"gyro_scale", "accel_scale"} <= significant
+    assert all(not e.explained_by for e in base.effects)
+    sized = effect_evidence(base.state, base.fit.inputs, base.fit.report.variance_factor)
+    shares = {e.score.name: e.explained_by for e in sized if e.score.name in significant}
+    assert shares["gyro_scale"] and shares["accel_scale"]
+    assert all(0.0 <= v <= 1.0 + 1e-9 for s in shares.values() for v in s.values())
     both = _with_effects(cfg, ("gyro_scale", "accel_scale"))
     run = fit_and_check(
         prepared, replace(prepared.guess, state=base.state), both, progress, timer, warm=True

@@ -165,6 +165,33 @@ def test_segments_with_start_is_refused(walk, tmp_path, capsys) -> None:
     assert code == 6
 
 
+@pytest.mark.parametrize("through", ["config", "truth", "link"])
+def test_an_input_a_windows_report_data_would_overwrite_is_refused_before_the_fit(
+    walk, tmp_path, capsys, through
+) -> None:
+    """``r.seg3.report-data.npz`` beside ``-o r.yaml`` is what the third window's report data
+    would be written to: given as an input (or linked to from one), it is refused at once,
+    whatever the windows, and left as it was."""
+    bag, config, _ = walk
+    victim = tmp_path / "r.seg3.report-data.npz"
+    victim.write_text(config.read_text())
+    given = victim
+    if through == "link":
+        given = tmp_path / "linked.yaml"
+        given.symlink_to(victim)
+    option = "--truth" if through == "truth" else "-c"
+    code, err = _refused(bag, tmp_path, capsys, "--segments", "auto", option, str(given))
+    assert code == 6 and "Traceback" not in err
+    text = " ".join(err.split())
+    assert f"The report data of seg3 that calibrate writes next to the result, {victim}" in text
+    assert "give another output path with -o" in text
+    assert victim.read_text() == config.read_text()
+    # beside a result of another name it is no window's report data: accepted
+    from licalib_cli.commands.segments_render import check_window_outputs
+
+    check_window_outputs(tmp_path / "other.yaml", [("the config file", given)])
+
+
 def _ply_points(path: Path) -> np.ndarray:
     """The records of a map file ``calibrate --map`` wrote as PLY."""
     from licalib_cli.io.map_writer import POINT_DTYPE
