@@ -348,6 +348,12 @@ def judge(row: dict) -> list[str]:
         misses.append(f"named {sorted(named)} for {sorted(injected)}")
     rms = injected_rms(row)
     for effect in sorted(injected - named):
+        for step in row.get("steps", []):
+            if step[0] == effect and not step[4]:
+                misses.append(
+                    f"{effect} tried (score {step[1]:.1f} on {step[2]}), BIC change "
+                    f"{step[3]:+.1f}: not kept"
+                )
         shown = row.get("not_shown", {}).get(effect)
         if shown is not None and effect in rms:
             below = "below" if rms[effect] < shown[0] else "above"

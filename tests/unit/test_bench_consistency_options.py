@@ -178,3 +178,28 @@ def test_the_diagnose_benchmark_counts_the_rivals_named_in_the_leaders_place(
         "rivals refitted beside the leader at 2 steps of 2 runs (shares 0.83-0.91); named in "
         "its place at 1, the injected effect at 1 of them"
     ) in out.stdout
+
+
+def test_the_diagnose_benchmark_says_an_injected_effect_was_tried_and_not_kept() -> None:
+    """A row whose injected walk was significant, refitted, and did not pay its BIC: the miss
+    says so, apart from an effect below what the bag shows."""
+    sys.path.insert(0, str(DIAGNOSE.parent))
+    try:
+        import bench_diagnose
+    finally:
+        sys.path.remove(str(DIAGNOSE.parent))
+    err = {"translation_mm": 0.4, "rotation_deg": 0.008, "time_offset_ms": 0.01}
+    row = {
+        "effects": ["accel_bias_walk"],
+        "named": [],
+        "steps": [["accel_bias_walk", 27.7, 3, 9.76, False, -0.07, -0.07, 0.016]],
+        "shrink": {},
+        "before": err,
+        "after": err,
+    }
+    misses = bench_diagnose.judge(row)
+    assert misses[0] == "named [] for ['accel_bias_walk']"
+    assert "accel_bias_walk tried (score 27.7 on 3), BIC change +9.8: not kept" in misses
+    kept = {**row, "named": ["accel_bias_walk"]}
+    kept["steps"] = [[*row["steps"][0][:4], True, *row["steps"][0][5:]]]
+    assert not [m for m in bench_diagnose.judge(kept) if "not kept" in m]
