@@ -94,13 +94,14 @@ class EffectScore:
         return self.shift / np.maximum(self.shift_sigma, 1e-300)
 
 
-def _pinv_psd(a: F64, relative: float) -> tuple[F64, int]:
-    """Pseudo-inverse of a symmetric PSD matrix keeping eigenvalues above ``relative * max``."""
+def _pinv_psd(a: F64, relative: float, floor: float = 0.0) -> tuple[F64, int]:
+    """Pseudo-inverse of a symmetric PSD matrix keeping eigenvalues above ``relative * max``
+    and above ``floor``."""
     if a.size == 0:
         return np.zeros_like(a), 0
     w, v = np.linalg.eigh(0.5 * (a + a.T))
     top = float(w.max()) if w.size else 0.0
-    keep = w > relative * max(top, 1e-300)
+    keep = (w > relative * max(top, 1e-300)) & (w > floor)
     return (v[:, keep] / w[keep]) @ v[:, keep].T, int(keep.sum())
 
 
@@ -112,6 +113,7 @@ def score_effects(
     variance_factor: float = 1.0,
     relative_rank: float = 1e-8,
     prior_sigma: Mapping[str, npt.ArrayLike] | None = None,
+    floors: Mapping[str, float] | None = None,
 ) -> list[EffectScore]:
     """Score tests of several candidate groups against the same estimated coordinates.
 
@@ -136,6 +138,10 @@ def score_effects(
             profiled information and ``f`` the variance factor (at least 1): between nothing
             (a prior far inside what the data determine) and the shift's null variance (a prior
             far wider).
+        floors: name -> profiled information (eigenvalue) at or below which a direction of
+            that group is not tested either (its own units): a direction the recording
+            determines far worse than any plausible size of the effect, where only a misfit
+            from elsewhere can show (default: none).
 
     Returns:
         One :class:`EffectScore` per group, in the order given.
@@ -152,7 +158,8 @@ def score_effects(
         s_eb = s[np.ix_(e, bi)]
         s_ee_b = s[np.ix_(e, e)] - s_eb @ s_bb_inv @ s_eb.T
         g_e = rhs[e] - s_eb @ step_base
-        inv, rank = _pinv_psd(s_ee_b, relative_rank)
+        floor = 0.0 if floors is None else float(floors.get(name, 0.0))
+        inv, rank = _pinv_psd(s_ee_b, relative_rank, floor)
         statistic = float(g_e @ inv @ g_e) / vf
         p_value = float(chi2_sf(statistic, rank)) if rank else 1.0
         d_e = inv @ g_e
@@ -162,7 +169,7 @@ def score_effects(
         w, v = (
             np.linalg.eigh(0.5 * (s_ee_b + s_ee_b.T)) if e.size else (np.zeros(0), np.zeros((0, 0)))
         )
-        weak = w <= relative_rank * max(float(w.max()) if w.size else 0.0, 1e-300)
+        weak = (w <= relative_rank * max(float(w.max()) if w.size else 0.0, 1e-300)) | (w <= floor)
         undetermined = np.sum(v[:, weak] ** 2, axis=1) > 1e-4 if e.size else np.zeros(0, bool)
         sigma_e = np.where(undetermined, np.inf, np.sqrt(np.clip(var_e, 0.0, None)))
         prior = None if prior_sigma is None else prior_sigma.get(name)
@@ -197,6 +204,7 @@ def explained_shares(
     groups: Mapping[str, npt.ArrayLike],
     of: Sequence[str],
     relative_rank: float = 1e-8,
+    floors: Mapping[str, float] | None = None,
 ) -> dict[str, dict[str, float]]:
     """How much of each named group's score another group explains: the share
     ``1 - LM(a | c) / LM(a)`` of group ``a``'s statistic against the estimated coordinates that
@@ -210,7 +218,7 @@ def explained_shares(
     the groups, as :func:`score_effects` (the variance factor cancels in the ratio).
 
     Args:
-        S, b, base, groups, relative_rank: as for :func:`score_effects`.
+        S, b, base, groups, relative_rank, floors: as for :func:`score_effects`.
         of: the groups whose scores are explained (those worth asking about: the significant).
 
     Returns:
@@ -231,29 +239,27 @@ def explained_shares(
     offsets = np.cumsum([0] + [v.size for v in idx.values()])
     at = {k: np.arange(offsets[i], offsets[i + 1]) for i, k in enumerate(idx)}
 
-    def statistic(a: IntArray, c: IntArray) -> float:
+    def floor(name: str | None) -> float:
+        return 0.0 if floors is None or name is None else float(floors.get(name, 0.0))
+
+    def statistic(a: str, c: str | None) -> float:
         # LM of ``a`` with ``c`` freed besides the estimated coordinates
-        i_aa, g_a = info[np.ix_(a, a)], grad[a]
-        if c.size:
-            i_ac = info[np.ix_(a, c)]
-            inv_cc, _ = _pinv_psd(info[np.ix_(c, c)], relative_rank)
+        i_aa, g_a = info[np.ix_(at[a], at[a])], grad[at[a]]
+        if c is not None:
+            i_ac = info[np.ix_(at[a], at[c])]
+            inv_cc, _ = _pinv_psd(info[np.ix_(at[c], at[c])], relative_rank, floor(c))
             i_aa = i_aa - i_ac @ inv_cc @ i_ac.T
-            g_a = g_a - i_ac @ (inv_cc @ grad[c])
-        inv, _ = _pinv_psd(i_aa, relative_rank)
+            g_a = g_a - i_ac @ (inv_cc @ grad[at[c]])
+        inv, _ = _pinv_psd(i_aa, relative_rank, floor(a))
         return float(g_a @ inv @ g_a)
 
-    none = np.zeros(0, dtype=np.intp)
     out: dict[str, dict[str, float]] = {}
     for a in of:
         if a not in at:
             continue
-        alone = statistic(at[a], none)
+        alone = statistic(a, None)
         out[a] = {
-            c: (
-                float(np.clip(1.0 - statistic(at[a], at[c]) / alone, 0.0, 1.0))
-                if alone > 0.0
-                else 0.0
-            )
+            c: (float(np.clip(1.0 - statistic(a, c) / alone, 0.0, 1.0)) if alone > 0.0 else 0.0)
             for c in at
             if c != a
         }
@@ -357,6 +363,7 @@ def select_effects(
     variance_factor: float = 1.0,
     max_effects: int | None = None,
     prior_sigma: Mapping[str, npt.ArrayLike] | None = None,
+    floors: Mapping[str, float] | None = None,
 ) -> EffectSelection:
     """Add the most significant group, re-test the others with it freed, repeat.
 
@@ -366,7 +373,7 @@ def select_effects(
     separates them: only the groups that explain something the selected ones do not are added.
 
     Args:
-        S, b, base, variance_factor, prior_sigma: as for :func:`score_effects`.
+        S, b, base, variance_factor, prior_sigma, floors: as for :func:`score_effects`.
         groups: candidate groups.
         p_value: a group is selected while its conditional p-value is below this.
         max_effects: at most this many groups (default: no limit).
@@ -381,7 +388,9 @@ def select_effects(
     current = list(bi)
     alone: dict[str, float] = {}
     while todo and (max_effects is None or len(chosen) < max_effects):
-        scores = score_effects(S, b, current, todo, variance_factor, prior_sigma=prior_sigma)
+        scores = score_effects(
+            S, b, current, todo, variance_factor, prior_sigma=prior_sigma, floors=floors
+        )
         if not alone:
             alone = {s.name: s.statistic for s in scores}
         best = max(scores, key=lambda s: -chi2_logsf(s.statistic, max(s.rank, 1)))
@@ -408,7 +417,9 @@ def select_effects(
             prior_shift_sigma=r.prior_shift_sigma[pos],
         )
         for r in (
-            score_effects(S, b, current, todo, variance_factor, prior_sigma=prior_sigma)
+            score_effects(
+                S, b, current, todo, variance_factor, prior_sigma=prior_sigma, floors=floors
+            )
             if todo
             else []
         )

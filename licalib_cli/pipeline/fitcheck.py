@@ -95,6 +95,17 @@ show from with all 246 000 points (370 ppm; range offsets 0.42 -> 0.21 mm), whil
 on those 246 000 points)."""
 
 
+UNTESTED_FACTOR = 100.0
+"""A direction of a candidate effect that the recording determines worse than this many times
+the effect's characteristic scale (:data:`~licalib_cli.estimation.CALIBRATION_SCALES`, as the
+truncated SVD uses it) is not tested: no effect of a plausible size can show there, only a
+misfit from elsewhere. On an 8 s planar figure-8 without any effect, the lever arm along the
+one rotation axis held at its initial value (5.8 cm off) showed, with every point, as an
+accelerometer scale at 45 on 3 degrees of freedom, all of it along a direction known to 114 %
+(228 times the 0.5 % scale; one-step estimate 727 %), and the sigmas were enlarged for the
+shift such a scale would cause."""
+
+
 def _every_kth(n: int, at_most: int) -> npt.NDArray[np.intp]:
     """The indices of a regular subset of at most ``at_most`` of ``n`` points."""
     return np.arange(0, n, max(int(np.ceil(n / at_most)), 1), dtype=np.intp)
@@ -532,8 +543,20 @@ def effect_evidence(
         for name, idx in groups.items()
         if imu_prior is not None and imu_prior.sigma_of(name) > 0.0
     }
+    scale = np.asarray(lin.layout.calibration_scale, dtype=np.float64)
+    floors = {
+        name: 1.0 / (UNTESTED_FACTOR * float(np.max(scale[idx]))) ** 2
+        for name, idx in groups.items()
+    }
     selection = select_effects(
-        sch.S, sch.b, base, groups, EFFECT_P_VALUE, max(variance_factor, 1.0), prior_sigma=prior
+        sch.S,
+        sch.b,
+        base,
+        groups,
+        EFFECT_P_VALUE,
+        max(variance_factor, 1.0),
+        prior_sigma=prior,
+        floors=floors,
     )
     # which candidates can stand in for a significant one (diagnose's rivals)
     significant = [
@@ -542,7 +565,9 @@ def effect_evidence(
         if s.p_value < EFFECT_P_VALUE
         or chi2_sf(selection.alone.get(s.name, 0.0), max(s.rank, 1)) < EFFECT_P_VALUE
     ]
-    shares = explained_shares(sch.S, sch.b, base, groups, significant) if rivals else {}
+    shares = (
+        explained_shares(sch.S, sch.b, base, groups, significant, floors=floors) if rivals else {}
+    )
     base_names = [names[i] for i in base]
     joint = _joint_prior(sch.S, sch.b, base, groups, prior, variance_factor)
     planes_free = _planes_free(

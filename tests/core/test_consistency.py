@@ -188,6 +188,36 @@ def test_score_finds_the_effect_and_predicts_the_shift_of_a_linear_problem() -> 
     assert np.all(np.abs(res.estimate - effect) < 4 * res.sigma)
 
 
+def test_a_direction_known_below_the_floor_is_not_tested() -> None:
+    """A group one of whose directions the data hardly determine (its column nearly zero), and
+    a misfit from elsewhere projecting on it: with no floor it alone makes the group
+    significant, with a floor above its information it is left out (one degree of freedom,
+    the estimate and shift along it zero, the sigma infinite); the selection and the shares of
+    explained score take the same floor."""
+    from licalib_cli.consistency import explained_shares, score_effects, select_effects
+
+    rng = np.random.default_rng(11)
+    n = 400
+    a_b = rng.normal(size=(n, 3))
+    a_e = np.column_stack([rng.normal(size=n), 1e-3 * rng.normal(size=n)])
+    misfit = 0.5 * np.sign(a_e[:, 1])  # a model error along the weak column only
+    y = a_b @ np.array([1.0, -2.0, 0.5]) + misfit + rng.normal(size=n)
+    xb = np.linalg.lstsq(a_b, y, rcond=None)[0]
+    j = np.hstack([a_b, a_e])
+    s, b = j.T @ j, -(j.T @ (a_b @ xb - y))
+    (free,) = score_effects(s, b, [0, 1, 2], {"e": [3, 4]})
+    weak = float(np.linalg.eigvalsh(s[3:, 3:])[0])
+    assert free.rank == 2 and free.p_value < 1e-5 and weak < 1.0
+    (held,) = score_effects(s, b, [0, 1, 2], {"e": [3, 4]}, floors={"e": 1.0})
+    assert held.rank == 1 and held.p_value > 1e-3
+    assert abs(held.estimate[1]) < 1e-6 and np.isinf(held.sigma[1]) and held.information.size == 1
+    picked = select_effects(s, b, [0, 1, 2], {"e": [3, 4]}, 1e-5, floors={"e": 1.0})
+    assert not picked.selected
+    assert [e.name for e in select_effects(s, b, [0, 1, 2], {"e": [3, 4]}, 1e-5).selected] == ["e"]
+    shares = explained_shares(s, b, [0, 1, 2], {"e": [3, 4], "f": [4]}, ["e"], floors={"e": 1.0})
+    assert shares["e"]["f"] == pytest.approx(0.0, abs=1e-6)  # e's score lies outside f's column
+
+
 def test_prior_shift_sigma_is_the_extra_spread_of_marginalising_a_prior() -> None:
     """A group held at zero but known only to within a Gaussian prior: the estimated
     coordinates' covariance with the group marginalised is ``S_bb^-1`` plus the prior term,

@@ -95,7 +95,12 @@ def test_planar_motion_reports_the_unobservable_lever_arm(planar_bag, tmp_path, 
         t.startswith("ext.translation along [") and "1.00] in the IMU frame" in t for t in texts
     )
     t_std = result["uncertainty"]["translation_std_m"]
+    # The vertical held at its initial value (5 cm off) leaves a misfit; tested with every point,
+    # it showed as an accelerometer scale along a direction this bag determines to 114 % (45 on
+    # 3 degrees of freedom), whose shift widened these to 5.9 mm: such directions are not tested
     assert t_std[2] == float("inf") and all(s < 0.005 for s in t_std[:2])
+    printed = " ".join(capsys.readouterr().out.split())
+    assert "by the shift estimating accel_scale" not in printed
     ext, ext_true = result["extrinsic"], true["extrinsic"]
     for i in range(2):
         assert abs(ext["translation"][i] - ext_true["translation"][i]) < 0.01
@@ -104,7 +109,7 @@ def test_planar_motion_reports_the_unobservable_lever_arm(planar_bag, tmp_path, 
     for i in range(3):
         assert abs(ext["rotation_rpy_deg"][i] - ext_true["rotation_rpy_deg"][i]) < 0.2
     assert abs(ext["time_offset_s"] - ext_true["time_offset_s"]) < 0.001
-    assert "not observable" in capsys.readouterr().out.lower()
+    assert "not observable" in printed.lower()
 
 
 @pytest.mark.slow
