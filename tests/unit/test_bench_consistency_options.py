@@ -1,5 +1,6 @@
-"""The trust benchmark's ``--duration`` and sensor rates, and the diagnose and intrinsics
-benchmarks' rates: every case carries them, and a bad one is refused."""
+"""The trust benchmark's ``--duration`` and sensor rates, the diagnose benchmark's
+``--duration`` and the intrinsics benchmark's rates: every case carries them, and a bad one is
+refused; the diagnose benchmark's report of rivals and of effects tried and not kept."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import ast
 import subprocess
 import sys
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
@@ -65,47 +67,45 @@ DIAGNOSE = BENCH.parent / "bench_diagnose.py"
 INTRINSICS = BENCH.parent / "bench_intrinsics.py"
 
 
-def test_the_diagnose_benchmark_carries_the_sensor_rates_into_every_case() -> None:
-    out = subprocess.run(
-        [sys.executable, str(DIAGNOSE), "--imu-rate", "200", "--only", "clean", "--list"],
+def _diagnose(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, str(DIAGNOSE), *args],
         capture_output=True,
         text=True,
         timeout=120,
         check=False,
     )
+
+
+def _bench_diagnose() -> ModuleType:
+    """The diagnose benchmark script, imported as a module."""
+    sys.path.insert(0, str(DIAGNOSE.parent))
+    try:
+        import bench_diagnose
+    finally:
+        sys.path.remove(str(DIAGNOSE.parent))
+    return bench_diagnose
+
+
+def test_the_diagnose_benchmark_carries_the_sensor_rates_into_every_case() -> None:
+    out = _diagnose("--imu-rate", "200", "--only", "clean", "--list")
     assert out.returncode == 0, out.stderr
     cases = [ast.literal_eval(line) for line in out.stdout.splitlines() if line.startswith("{")]
     assert cases and all(c["imu_rate"] == 200.0 and c["lidar_rate"] is None for c in cases)
 
 
 def test_the_diagnose_benchmark_carries_the_length_of_its_bags_into_every_case() -> None:
-    out = subprocess.run(
-        [sys.executable, str(DIAGNOSE), "--duration", "20", "--only", "clean", "--list"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
+    out = _diagnose("--duration", "20", "--only", "clean", "--list")
     assert out.returncode == 0, out.stderr
     cases = [ast.literal_eval(line) for line in out.stdout.splitlines() if line.startswith("{")]
     assert cases and all(c["duration"] == 20.0 for c in cases)
-    refused = subprocess.run(
-        [sys.executable, str(DIAGNOSE), "--duration", "0", "--list"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
+    refused = _diagnose("--duration", "0", "--list")
     assert refused.returncode == 2
     assert "--duration must be a positive number of seconds" in refused.stderr
 
 
 def test_a_diagnose_case_lasts_the_length_asked_or_its_effects_longer_one() -> None:
-    sys.path.insert(0, str(DIAGNOSE.parent))
-    try:
-        import bench_diagnose
-    finally:
-        sys.path.remove(str(DIAGNOSE.parent))
+    bench_diagnose = _bench_diagnose()
     length = bench_diagnose._size_and_length
     assert length(["gyro_rotation"], 3.0)[1] == 10.0
     assert length(["gyro_rotation"], 3.0, 25.0)[1] == 25.0
@@ -183,11 +183,7 @@ def test_the_diagnose_benchmark_counts_the_rivals_named_in_the_leaders_place(
 def test_the_diagnose_benchmark_says_an_injected_effect_was_tried_and_not_kept() -> None:
     """A row whose injected walk was significant, refitted, and did not pay its BIC: the miss
     says so, apart from an effect below what the bag shows."""
-    sys.path.insert(0, str(DIAGNOSE.parent))
-    try:
-        import bench_diagnose
-    finally:
-        sys.path.remove(str(DIAGNOSE.parent))
+    bench_diagnose = _bench_diagnose()
     err = {"translation_mm": 0.4, "rotation_deg": 0.008, "time_offset_ms": 0.01}
     row = {
         "effects": ["accel_bias_walk"],
