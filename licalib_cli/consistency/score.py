@@ -39,7 +39,6 @@ __all__ = [
 ]
 
 F64 = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.intp]
 
 
 @dataclass(frozen=True)

@@ -559,15 +559,15 @@ def effect_evidence(
         floors=floors,
     )
     # which candidates can stand in for a significant one (diagnose's rivals)
-    significant = [
-        s.name
-        for s in (*selection.selected, *selection.remaining)
-        if s.p_value < EFFECT_P_VALUE
-        or chi2_sf(selection.alone.get(s.name, 0.0), max(s.rank, 1)) < EFFECT_P_VALUE
-    ]
-    shares = (
-        explained_shares(sch.S, sch.b, base, groups, significant, floors=floors) if rivals else {}
-    )
+    shares = {}
+    if rivals:
+        significant = [
+            s.name
+            for s in (*selection.selected, *selection.remaining)
+            if s.p_value < EFFECT_P_VALUE
+            or chi2_sf(selection.alone.get(s.name, 0.0), max(s.rank, 1)) < EFFECT_P_VALUE
+        ]
+        shares = explained_shares(sch.S, sch.b, base, groups, significant, floors=floors)
     base_names = [names[i] for i in base]
     joint = _joint_prior(sch.S, sch.b, base, groups, prior, variance_factor)
     planes_free = _planes_free(
