@@ -56,7 +56,12 @@ def report_command(
     """Write the calibration report of a result: one HTML page, plots embedded."""
     from licalib_cli.export import load_result
     from licalib_cli.plots import pyplot
-    from licalib_cli.report import load_report_data, load_window_report_data, write_report
+    from licalib_cli.report import (
+        load_report_data,
+        load_window_report_data,
+        window_report_data_paths,
+        write_report,
+    )
 
     out = out if out is not None else result_path.with_suffix(".html")
     inputs = [*report_inputs(result_path), ("the truth file", truth)]
@@ -67,13 +72,10 @@ def report_command(
             "truth.yaml?); give the file `licalib calibrate -o` wrote."
         )
         raise ConfigError(msg)
-    if result.segments is not None:
-        from licalib_cli.report import window_report_data_path
-
-        inputs += [
-            (f"the report data of seg{k}", window_report_data_path(result_path, k))
-            for k in range(1, len(result.segments.segments) + 1)
-        ]
+    inputs += [
+        (f"the report data of seg{k}", path)
+        for k, path in enumerate(window_report_data_paths(result_path, result), start=1)
+    ]
     check_not_an_input(out, inputs)
     if result.recording is not None:
         check_not_an_input(out, [("the calibrated bag", Path(result.recording.bag))])

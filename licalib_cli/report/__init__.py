@@ -27,6 +27,7 @@ __all__ = [
     "load_window_report_data",
     "report_data_path",
     "window_report_data_path",
+    "window_report_data_paths",
     "write_report",
 ]
 
@@ -53,12 +54,20 @@ def load_window_report_data(
     Raises:
         ConfigError: a sidecar exists but is not report data of this version.
     """
+    return tuple(
+        _load_tied(path, result_path, result)
+        for path in window_report_data_paths(result_path, result)
+    )
+
+
+def window_report_data_paths(result_path: Path, result: CalibrationResult) -> tuple[Path, ...]:
+    """The report data of each window beside a result of ``calibrate --segments``, in the
+    order of its segments (:func:`~licalib_cli.report.data.window_report_data_path`); empty for
+    a result of one segment."""
     if result.segments is None:
         return ()
-    return tuple(
-        _load_tied(window_report_data_path(result_path, k), result_path, result)
-        for k in range(1, len(result.segments.segments) + 1)
-    )
+    count = len(result.segments.segments)
+    return tuple(window_report_data_path(result_path, k) for k in range(1, count + 1))
 
 
 def _load_tied(path: Path, result_path: Path, result: CalibrationResult) -> ReportData | None:
