@@ -476,8 +476,9 @@ class ExtraTerms(Section):
     ``imu_intrinsics`` hold at ``reference_ns`` and change by the bias drifts per second.
 
     Attributes:
-        reference_ns: IMU-clock stamp (the segment's middle) at which the time offset and the
-            biases hold, ns.
+        reference_ns: the stamp (the segment's middle) at which the time offset and the biases
+            hold, ns: the time offset of a LiDAR stamp equal to it (the formula above), the
+            biases of an IMU stamp equal to it.
         clock_drift: ``k``, s/s (``1e-6`` = 1 ppm; positive: the IMU clock runs fast).
         gyro_bias_walk: the gyro bias's drift per axis, rad/s^2; with ``bias_walk_pieces``
             one drift per axis and piece (``x, y, z`` of the first piece, then of the second,

@@ -244,8 +244,9 @@ class Truth:
 
         The time offset is put on the calibration's clock split (its
         ``recording.lidar_clock_shift_s``, :meth:`Extrinsic.on_shifted_clock`) and, when the
-        simulated IMU clock drifts, taken at the time the calibration's offset refers to: the
-        stamp of its ``extra_terms.reference_ns`` when it estimated the drift, else the middle
+        simulated IMU clock drifts, taken at the instant the calibration's offset refers to: the
+        instant whose LiDAR time is its ``extra_terms.reference_ns`` when it estimated the
+        drift (``t_imu = t_lidar + time_offset_s + k (t_lidar - reference)``), else the middle
         of its recording (a constant offset fitted to a drifting clock is the mean offset). The
         truth's ``time_offset_s`` holds at the simulation's first sample.
         """
@@ -259,8 +260,10 @@ class Truth:
         else:
             rec = result.recording
             ref_ns = rec.start_ns + round(0.5e9 * rec.duration_s)
-        # IMU stamps run (1 + drift) times true time; the offset grows by drift per true second
-        t_true = (ref_ns - self.simulation.clock.base_time_ns) * 1e-9 / (1.0 + drift)
+        # IMU stamps run (1 + drift) times true time: the instant whose LiDAR time (on the
+        # calibration's axis) is ref_ns came ext.time_offset_s after the first sample, and the
+        # offset grows by drift per true second
+        t_true = (ref_ns - self.simulation.clock.base_time_ns) * 1e-9 + ext.time_offset_s
         return replace(ext, time_offset_s=ext.time_offset_s + drift * t_true)
 
     def to_dict(self) -> dict[str, Any]:

@@ -128,35 +128,42 @@ def test_random_time_offset_conflicts_with_a_given_offset() -> None:
 
 def test_the_true_time_offset_of_a_drifting_clock_is_taken_where_the_result_refers() -> None:
     """``Truth.extrinsic_for`` gives the offset ``t_imu - t_lidar`` of the simulated stamps at
-    the result's reference stamp (a drift the model estimated) or its recording's middle."""
+    the instant whose LiDAR time is the result's reference stamp (a drift the model estimated:
+    ``t_imu = t_lidar + time_offset_s + k (t_lidar - reference)``) or its recording's middle."""
     spec = SimulationSpec(
-        duration_s=10.0, noise_free=True, imu_clock_drift_ppm=400.0, time_offset_s=0.003
+        duration_s=10.0, noise_free=True, imu_clock_drift_ppm=400.0, time_offset_s=0.03
     )
     truth = build_truth(spec, build_setup(spec))
     imu, sampled = generate_imu(spec)
-    k = 3000  # the sample at 7.5 s
 
-    def offset_of_sample(i: int) -> float:
-        """IMU stamp minus the LiDAR stamp of the same instant (t - offset on the LiDAR clock)."""
-        lidar_rel_s = sampled.t_true_s[i] - spec.time_offset_s
-        return (int(imu.t_ns[i]) - spec.base_time_ns) * 1e-9 - lidar_rel_s
+    def offset_at_lidar_stamp(stamp_ns: int) -> float:
+        """IMU stamp minus LiDAR stamp of the instant the LiDAR stamped ``stamp_ns`` (the IMU
+        stamps are linear in true time: interpolated between the simulated samples)."""
+        lidar_rel_s = (stamp_ns - spec.base_time_ns) * 1e-9
+        t_true = lidar_rel_s + spec.time_offset_s
+        imu_rel_s = np.interp(t_true, sampled.t_true_s, (imu.t_ns - spec.base_time_ns) * 1e-9)
+        return float(imu_rel_s - lidar_rel_s)
 
     start = int(imu.t_ns[0])
+    reference = start + 7_500_000_000
     recording = RecordingSection("b", "/imu", "/points", len(imu), 100, 10.0, start, 0.0, 0.0)
     estimated = CalibrationResult(
-        recording=recording, extra_terms=ExtraTerms(reference_ns=int(imu.t_ns[k]))
+        recording=recording, extra_terms=ExtraTerms(reference_ns=reference)
     )
     assert truth.extrinsic_for(estimated).time_offset_s == pytest.approx(
-        offset_of_sample(k), abs=1e-9
+        offset_at_lidar_stamp(reference), abs=1e-9
     )
-    assert offset_of_sample(k) - spec.time_offset_s == pytest.approx(400e-6 * 7.5, rel=1e-3)
+    # the instant the LiDAR stamps 7.5 s came 7.53 s after the first: the offset has grown by
+    # the drift over 7.53 s, which differs from the growth over 7.5 s by more than the tolerance
+    assert offset_at_lidar_stamp(reference) - spec.time_offset_s == pytest.approx(
+        400e-6 * 7.53, rel=1e-6
+    )
     # a constant offset fitted to the whole recording is compared at its middle
-    middle = int(np.searchsorted(imu.t_ns, start + 5_000_000_000))
     constant = CalibrationResult(recording=recording)
     assert truth.extrinsic_for(constant).time_offset_s == pytest.approx(
-        offset_of_sample(middle), abs=1e-8
+        offset_at_lidar_stamp(start + 5_000_000_000), abs=1e-9
     )
     # without a drift nothing but the clock split changes
     steady = spec.with_(imu_clock_drift_ppm=0.0)
     steady_truth = build_truth(steady, build_setup(steady))
-    assert steady_truth.extrinsic_for(estimated).time_offset_s == 0.003
+    assert steady_truth.extrinsic_for(estimated).time_offset_s == 0.03
