@@ -240,7 +240,7 @@ def exportable(result: CalibrationResult, force: bool = False) -> tuple[str, ...
 
     Returns:
         Warnings, one sentence each (a ``warn`` verdict, a forced ``fail``, a LiDAR clock shift
-        folded into the time offset).
+        folded into the time offset, an IMU clock drift the time offset cannot carry).
 
     Raises:
         VerdictFailure: the verdict is ``fail`` and ``force`` is False.
@@ -264,7 +264,25 @@ def exportable(result: CalibrationResult, force: bool = False) -> tuple[str, ...
             f"{s.lidar_clock_shift_s:+.9g} s; it holds only while both clocks keep that relation "
             "(not after a sensor restarts its clock)."
         )
+    drift = _clock_drift(result)
+    if drift is not None:
+        k, reference_ns = drift
+        warnings.append(
+            f"The IMU clock drifts {1e6 * k:+.3g} ppm against the LiDAR's (extra_terms."
+            f"clock_drift): the exported time offset holds at stamp {reference_ns} (the "
+            f"calibrated segment's middle) and moves {1e3 * 60.0 * k:+.3g} ms per minute, which a "
+            "constant offset cannot follow; sync the clocks (PTP, or the driver's time "
+            "synchronisation) or restamp the IMU before using it."
+        )
     return tuple(warnings)
+
+
+def _clock_drift(result: CalibrationResult) -> tuple[float, int] | None:
+    """``(k, reference_ns)`` of a clock drift the calibration estimated, else None."""
+    extra = result.extra_terms
+    if extra is None or extra.clock_drift is None:
+        return None
+    return float(extra.clock_drift), int(extra.reference_ns)
 
 
 def resolve_frames(
@@ -386,6 +404,13 @@ def _time_lines(result: CalibrationResult, marker: str = "#") -> list[str]:
             f"{marker}   = recording.lidar_clock_shift_s {_num(s.lidar_clock_shift_s)} s + "
             f"time_offset_s {_num(dt)} s; the clock shift holds only while both clocks keep "
             "that relation"
+        )
+    drift = _clock_drift(result)
+    if drift is not None:
+        k, reference_ns = drift
+        lines.append(
+            f"{marker}   at LiDAR stamp {reference_ns} ns only: the IMU clock drifts "
+            f"(t_imu - t_lidar grows by {_num(k)} s per s, extra_terms.clock_drift)"
         )
     return lines
 

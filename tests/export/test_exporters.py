@@ -34,7 +34,13 @@ from licalib_cli.export import (
     to_urdf,
 )
 from licalib_cli.results import CalibrationResult, Extrinsic
-from licalib_cli.sections import Provenance, RecordingSection, Uncertainty, VerdictSection
+from licalib_cli.sections import (
+    ExtraTerms,
+    Provenance,
+    RecordingSection,
+    Uncertainty,
+    VerdictSection,
+)
 
 TOL = 1e-9
 
@@ -430,6 +436,25 @@ def test_clock_shift_is_named_in_a_warning_and_in_the_files() -> None:
     assert "-3.5 s" in warning
     for text in (to_fast_lio(result), to_kalibr(result), to_lio_sam(result)):
         assert "recording.lidar_clock_shift_s -3.5 s + time_offset_s -0.0042 s" in text
+
+
+def test_a_clock_drift_is_named_in_a_warning_and_beside_the_offset_it_moves() -> None:
+    """A calibration that estimated an IMU clock drift exports the time offset at its reference
+    stamp; the warning and the files say so and how fast the offset moves."""
+    reference = 1700000005000000000
+    result = replace(
+        _result(CASES["general"]),
+        extra_terms=ExtraTerms(reference_ns=reference, clock_drift=2.5e-4),
+    )
+    (warning,) = exportable(result)
+    assert "+250 ppm" in warning and "+15 ms per minute" in warning and str(reference) in warning
+    for text in (to_fast_lio(result), to_kalibr(result)):
+        assert f"at LiDAR stamp {reference} ns only" in text
+        assert "0.00025 s per s" in text
+        yaml.safe_load(text)  # the note is a comment
+    # the offset written is the offset at the reference stamp
+    assert yaml.safe_load(to_kalibr(result))["lidar0"]["timeshift_lidar_imu"] == 0.005
+    assert exportable(_result(CASES["general"])) == ()
 
 
 def test_options_a_target_does_not_take_are_refused() -> None:
