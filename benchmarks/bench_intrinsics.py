@@ -78,7 +78,7 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
     from licalib_cli.config import INTRINSIC_PRESETS, load_config
     from licalib_cli.geometry import so3
     from licalib_cli.pipeline import calibrate
-    from licalib_cli.pipeline.checks import LIDAR_UNCERTAINTY_KEYS
+    from licalib_cli.pipeline.intrinsic_sigmas import LIDAR_UNCERTAINTY_KEYS
     from licalib_cli.simulation import SimulationSpec, simulate
 
     spec = SimulationSpec(

@@ -264,7 +264,7 @@ class EffectCheck(Section):
             the statistic of an effect not selected is conditional on the selected ones).
         material: selected and moving the extrinsic by more than its sigma.
         covered: the reported sigmas include its shift (material, or hinted at: p below
-            ``checks.COVER_P_VALUE``) and the spread its estimate would add.
+            ``inflation.COVER_P_VALUE``) and the spread its estimate would add.
         refitted: the shift was measured by refitting with the effect estimated (an effect
             the data show beyond doubt), not only predicted from one linear step.
     """

@@ -19,11 +19,8 @@ sentence); the verdict is the worst severity. A check that could not be computed
 The reported sigmas start from the solver's, each times its factor for the map planes' own
 uncertainty (:mod:`licalib_cli.pipeline.map_uncertainty`: the solver holds the planes fixed,
 although they were fitted to the same points), and are inflated so that they cover what the
-checks found: by the root of the largest chi-square per sample of the sensors, by half the
-disagreement of the two halves, by the shift a fixed effect would cause (a material one, or one
-the data hint at: :data:`COVER_P_VALUE`; for a LiDAR effect computed with the map planes
-estimated too, :mod:`licalib_cli.pipeline.effect_shift`) and the spread its estimate would add,
-and by the last round's change when the rounds only settled to within their jitter.
+checks found (:mod:`licalib_cli.pipeline.inflation`); the intrinsics' sigmas come from
+:mod:`licalib_cli.pipeline.intrinsic_sigmas`.
 """
 
 from __future__ import annotations
@@ -38,13 +35,22 @@ from licalib_cli.config import CalibConfig, ChecksSection
 from licalib_cli.pipeline.crawl import Crawl, crawl_at_cap
 from licalib_cli.pipeline.fitcheck import (
     CHI2_QUIET,
-    EFFECT_P_VALUE,
     EffectEvidence,
     effect_evidence,
     sensor_checks,
 )
 from licalib_cli.pipeline.held_effects import held_effect_text, held_effects
+from licalib_cli.pipeline.inflation import (
+    COVER_P_VALUE,
+    effect_is_material,
+    effect_to_cover,
+    inflate,
+    largest_prior,
+    split_floor,
+    with_change,
+)
 from licalib_cli.pipeline.initialise import SINGLE_AXIS, InitialGuess
+from licalib_cli.pipeline.intrinsic_sigmas import intrinsics_uncertainty
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty, map_uncertainty
 from licalib_cli.pipeline.prior_directions import (
     OnPrior,
@@ -55,9 +61,8 @@ from licalib_cli.pipeline.prior_directions import (
     on_prior,
 )
 from licalib_cli.pipeline.schedule import JITTER_FACTOR, MAX_FINAL_ROUNDS, Change, Fit, within
-from licalib_cli.pipeline.settings import NoiseLevels, calibration_block, prior_sd
+from licalib_cli.pipeline.settings import NoiseLevels, prior_sd
 from licalib_cli.pipeline.split import COORDINATES, SplitResult, split_half
-from licalib_cli.pipeline.unchecked_priors import unchecked_priors, unchecked_text
 from licalib_cli.residuals import ACCEL_MISALIGNMENT, EXT_ROTATION, GYRO_ROTATION
 from licalib_cli.results import vec3
 from licalib_cli.sections import (
@@ -88,10 +93,8 @@ __all__ = [
     "check",
     "correlated_with",
     "entangled_intrinsics",
-    "intrinsics_uncertainty",
     "judge",
     "observability_of",
-    "prior_variance",
     "raw_uncertainty",
     "rejudge",
     "run_checks",
@@ -103,13 +106,6 @@ F64 = npt.NDArray[np.float64]
 SPLIT_HALF_P = 1e-3
 """The halves disagree when the chi-square of their difference (with their combined covariance)
 has a p-value below this."""
-
-COVER_P_VALUE = 1e-3
-"""The sigmas also cover the shift of a fixed effect the data hint at: one with a score test
-below this p-value, though not significant at :data:`~licalib_cli.pipeline.fitcheck.
-EFFECT_P_VALUE` (the stricter level that names an effect; a sigma enlarged by a false alarm costs
-less than a misnamed effect). On clean data about one run in 60 enlarges a sigma this way
-(16 effects tested)."""
 
 _SEVERITY = {"note": 0, "warn": 1, "fail": 2}
 
@@ -661,58 +657,6 @@ def _size(value: float, unit: str) -> str:
     return f"{value:.2g} {unit}"
 
 
-def effect_is_material(e: EffectEvidence, raw_sigma: F64) -> bool:
-    """Selected (significant beyond the stronger effects) and moving some extrinsic coordinate
-    by more than its sigma."""
-    return e.selected and e.score.p_value < EFFECT_P_VALUE and _moves_extrinsic(e, raw_sigma)
-
-
-def effect_to_cover(e: EffectEvidence, raw_sigma: F64) -> bool:
-    """Hinted at (p below :data:`COVER_P_VALUE`, which every material effect is) and moving
-    some extrinsic coordinate by more than its sigma: the sigmas cover its shift."""
-    return e.score.p_value < COVER_P_VALUE and _moves_extrinsic(e, raw_sigma)
-
-
-def _largest_prior(effects: Sequence[EffectEvidence], raw_sigma: F64) -> str | None:
-    """The IMU block whose prior (``model.imu_prior``) adds most to the sigmas; None when no
-    prior adds anything."""
-    held = [e for e in effects if not effect_to_cover(e, raw_sigma)]
-    finite = np.isfinite(raw_sigma) & (raw_sigma > 0.0)
-    size = [float(np.max(np.where(finite, e.prior_std / raw_sigma, 0.0))) for e in held]
-    if not size or max(size) <= 0.0:
-        return None
-    return held[int(np.argmax(size))].score.name
-
-
-def prior_variance(effects: Sequence[EffectEvidence], raw_sigma: F64) -> F64:
-    """(7,) variance the IMU priors add to the sigmas (``model.imu_prior``): an effect the data
-    do not show is still only known to within its prior (an IMU's factory calibration), and its
-    posterior spread moves the estimate too; a covered effect adds its shift instead.
-
-    Per coordinate, the larger of the blocks' spreads summed one by one and what they add held
-    at zero all together (:attr:`~licalib_cli.pipeline.fitcheck.EffectEvidence.
-    joint_prior_var`), with, when the data hint at the blocks together (their joint score test
-    below :data:`COVER_P_VALUE`), the move to their joint posterior mean: each alone moved the
-    roll of a sinusoid with the simulator's random IMU intrinsics (each 1-2 times its prior) by
-    at most 0.02 deg, together by 0.048 deg (joint score 225 on 15), three of its sigmas."""
-    out = np.zeros(7)
-    joint = np.zeros(7)
-    for e in effects:
-        held = np.asarray(e.joint_prior_var, dtype=np.float64)
-        if e.joint_p_value < COVER_P_VALUE:
-            held = held + np.asarray(e.joint_prior_shift, dtype=np.float64) ** 2
-        joint = np.maximum(joint, held)
-        if not effect_to_cover(e, raw_sigma):
-            out += e.prior_std**2
-    return np.maximum(out, joint)
-
-
-def _moves_extrinsic(e: EffectEvidence, raw_sigma: F64) -> bool:
-    """Estimating the effect would move some extrinsic coordinate by more than its sigma."""
-    ratio = np.abs(e.shift) / np.where(np.isfinite(raw_sigma), raw_sigma, np.inf)
-    return bool(np.nanmax(ratio) > 1.0)
-
-
 def _effects(effects: list[EffectEvidence], raw_sigma: F64) -> list[Finding]:
     """One finding per sensor whose data show material effects the model holds fixed."""
     out = []
@@ -805,104 +749,13 @@ def _map(fit: Fit, report: SolverReport) -> list[Finding]:
     return out
 
 
-# ------------------------------------------------------------------------ inflation, verdict
-
-
-def inflate(
-    raw: F64,
-    sensors: tuple[SensorCheck, ...],
-    effects: list[EffectEvidence],
-    split: SplitResult,
-    fit: Fit,
-) -> tuple[F64, tuple[str, ...]]:
-    """The sigmas to report: the solver's, enlarged to cover what the checks found.
-
-    Returns:
-        ``(sigma (7,), reasons)`` with one sentence per enlargement applied.
-    """
-    sigma = raw.copy()
-    why: list[str] = []
-    chi = max((s.chi2_per_sample for s in sensors), default=1.0)
-    if chi > 1.0:
-        sigma = sigma * np.sqrt(chi)
-        worst = max(sensors, key=lambda s: s.chi2_per_sample)
-        why.append(
-            f"times {np.sqrt(chi):.2f}, the root of the {worst.sensor} residuals' chi-square "
-            "per sample"
-        )
-    if split.ran:
-        grown = np.maximum(sigma, split_floor(split))
-        if np.any(grown > sigma * (1 + 1e-9)):
-            why.append(
-                "at least half the difference between the two halves of the segment beyond "
-                "its expected spread"
-            )
-        sigma = grown
-    for e in effects:
-        # Held fixed, the effect biases the estimate by about its shift; freed, the estimate
-        # would move by the shift and its sigma grow by shift_std. Both are added, so that
-        # sigma covers the estimate either way (3 sigma covers |shift| + 3 times the sigma the
-        # estimate would have with the effect free, once |shift| is at least 0.75 of it).
-        if effect_to_cover(e, raw):
-            sigma = np.sqrt(sigma**2 + e.shift**2 + e.shift_std**2)
-            hint = (
-                ""
-                if effect_is_material(e, raw)
-                else f", which the data hint at ({p_is(e.score.p_value, 1)})"
-            )
-            if e.refitted:
-                why.append(f"by the move of a refit with {e.score.name} estimated")
-            else:
-                why.append(f"by the shift estimating {e.score.name} would cause{hint}")
-    prior_var = prior_variance(effects, raw)
-    if np.any(prior_var > 0.0):
-        grown = np.sqrt(sigma**2 + prior_var)
-        finite = np.isfinite(sigma) & (sigma > 0.0)
-        factor = float(np.max(grown[finite] / sigma[finite])) if np.any(finite) else 1.0
-        held = [e for e in effects if not effect_to_cover(e, raw)]
-        why.append(
-            "by the IMU intrinsics held fixed, each known to within model.imu_prior "
-            f"(times up to {factor:.2f}; most from {_largest_prior(effects, raw)})"
-            + unchecked_text(unchecked_priors(held, grown))
-        )
-        sigma = grown
-    if fit.jitter:
-        sigma = _with_change(sigma, fit.last_change)
-        why.append("by the last round's change (the rounds settled only to within it)")
-    return sigma, tuple(why)
-
-
-def split_floor(split: SplitResult) -> F64:
-    """(7,) the least sigma the two halves' difference ``d`` supports: half its excess over
-    the spread ``sigma_d`` it has without any change between the halves,
-    ``0.5 sqrt(max(d^2 - sigma_d^2, 0))``; zero where the halves do not both determine the
-    coordinate.
-
-    Each half's estimate errs by a common part (the whole segment's error) and its own; a
-    difference within its expected spread says nothing the solver's sigma does not already
-    hold, while one beyond it is a change over the recording the whole estimate averages, of
-    which half stays as its error. :func:`inflate` applies it whether or not the halves disagree
-    as a whole (``p < SPLIT_HALF_P``): halves that agree can still differ beyond their spread in
-    one coordinate, and that excess is what covers an effect the model lacks and the data do
-    not show (an accelerometer scale below what a shake shows moved t_z 3.4 sigma with it
-    left out).
-    """
-    d, sd = np.asarray(split.difference), np.asarray(split.sigma)
-    known = np.isfinite(sd)
-    excess = np.where(known, d**2 - np.where(known, sd, 0.0) ** 2, 0.0)
-    return 0.5 * np.sqrt(np.maximum(excess, 0.0))
-
-
 def _prior_conflict(conflict: PriorConflict | None) -> list[Finding]:
     if conflict is None or not conflict.disagrees:
         return []
     return [Finding("warn", conflict.text)]
 
 
-def _with_change(sigma: F64, c: Change) -> F64:
-    """The (7,) sigmas with a round's change of the extrinsic added in quadrature."""
-    jitter = np.array([c.translation_m] * 3 + [np.radians(c.rotation_deg)] * 3 + [c.time_offset_s])
-    return np.sqrt(sigma**2 + jitter**2)
+# ------------------------------------------------------------------------ verdict
 
 
 def judge(findings: list[Finding]) -> tuple[VerdictSection, str]:
@@ -1000,7 +853,7 @@ def run_checks(
     crawl = crawl_at_cap([r.extrinsic for r in fit.rounds], sigma) if at_cap else None
     settled_in_sigmas = at_cap and crawl is None and within_sigmas(fit.last_change, sigma)
     if settled_in_sigmas:
-        sigma = _with_change(sigma, fit.last_change)
+        sigma = with_change(sigma, fit.last_change)
         why = (*why, "by the last round's change (the rounds settled only to within it)")
     worst = max((planes.of(n) for n in _EXTRINSIC_NAMES), default=1.0) if planes else 1.0
     if planes is not None and worst > 1.005:
@@ -1031,7 +884,7 @@ def run_checks(
         without_effects,
         cfg.checks,
         covered,
-        _largest_prior(effects, raw),
+        largest_prior(effects, raw),
         entangled_intrinsics(report, sigma[:3]),
         resting,
         split,
@@ -1088,78 +941,6 @@ def rejudge(
         checks.notes,
         checks.planes,
     )
-
-
-_IMU_SUFFIXES = {
-    "gyro_scale": ("x", "y", "z"),
-    "gyro_misalignment": ("xy", "xz", "yz"),
-    "gyro_rotation": ("rx", "ry", "rz"),
-    "accel_scale": ("x", "y", "z"),
-    "accel_misalignment": ("xy", "xz", "yz"),
-    "g_sensitivity": tuple(f"{a}{b}" for a in "xyz" for b in "xyz"),
-}
-_DRIFT_SUFFIXES: dict[str, tuple[str, ...]] = {
-    "gyro_bias_walk": ("x", "y", "z"),
-    "accel_bias_walk": ("x", "y", "z"),
-    "clock_drift": (),
-}
-LIDAR_UNCERTAINTY_KEYS: Mapping[str, tuple[str, str, bool]] = {
-    "elevation": ("dphi", "elevation_deg", True),
-    "azimuth": ("dtheta", "azimuth_deg", True),
-    "vertical_offset": ("V", "vertical_offset_m", False),
-    "horizontal_offset": ("H", "horizontal_offset_m", False),
-    "range_scale": ("s", "range_scale", False),
-    "range_offset": ("drho", "range_offset_m", False),
-}
-"""Each ``model.lidar`` block: its column in the solver's ``lidar.intrinsics[b].<column>``
-names, its key in the result's ``intrinsics_uncertainty``, and whether that key is in degrees
-(the solver's coordinate in radians)."""
-
-
-def intrinsics_uncertainty(
-    report: SolverReport,
-    cfg: CalibConfig,
-    factor: float,
-    num_beams: int,
-    planes: MapUncertainty | None = None,
-) -> IntrinsicsUncertainty | None:
-    """1-sigma of every intrinsic the model estimates (``None`` for held or unobservable ones),
-    enlarged by ``factor`` (the root of the largest chi-square per sample) and, with ``planes``,
-    by each coordinate's factor for the map planes' own uncertainty."""
-    if not (cfg.model.imu or cfg.model.lidar):
-        return None
-    std = dict(zip(report.calibration_names, report.std, strict=True))
-    weight = dict(zip(report.calibration_names, report.truncated_weight, strict=True))
-
-    def get(name: str, degrees: bool = False) -> float | None:
-        v = std.get(name)
-        if v is None or not np.isfinite(v) or weight.get(name, 0.0) > 0.5:
-            return None  # held, or not determined by the data (kept near nominal)
-        grow = factor * (planes.of(name) if planes is not None else 1.0)
-        return float(np.degrees(v) if degrees else v) * grow
-
-    values: dict[str, tuple[float | None, ...]] = {}
-    for block in cfg.model.imu:
-        prefix = calibration_block(block)
-        if block in _DRIFT_SUFFIXES:  # drifts (diagnose's bias walks, clock drift)
-            suffixes = _DRIFT_SUFFIXES[block]
-            names = [f"{prefix}.{s}" for s in suffixes] if suffixes else [prefix]
-            pieces = [n for n in report.calibration_names if n.startswith(f"{prefix}.")]
-            if suffixes and len(pieces) > len(names):  # a walk in pieces: x_1, y_1, z_1, x_2 ...
-                names = pieces
-            values[block] = tuple(get(n) for n in names)
-            continue
-        key: str = "gyro_rotation_deg" if block == "gyro_rotation" else block
-        values[key] = tuple(
-            get(f"{prefix}.{s}", block == "gyro_rotation") for s in _IMU_SUFFIXES[block]
-        )
-    for name in cfg.model.lidar:
-        if name == "point_time":  # one number for the whole LiDAR
-            values[name] = (get(calibration_block(name)),)
-            continue
-        col, key, degrees = LIDAR_UNCERTAINTY_KEYS[name]
-        values[key] = tuple(get(f"lidar.intrinsics[{b}].{col}", degrees) for b in range(num_beams))
-    return IntrinsicsUncertainty(values)
 
 
 def _effect_section(e: EffectEvidence, raw: F64) -> EffectCheck:

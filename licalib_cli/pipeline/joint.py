@@ -71,16 +71,14 @@ from licalib_cli.io.window import MIN_SEGMENT_S
 from licalib_cli.pipeline import CalibrationRun
 from licalib_cli.pipeline.assemble import extra_terms
 from licalib_cli.pipeline.checks import (
-    COVER_P_VALUE,
     Finding,
     accelerometer_frame_advice,
-    effect_to_cover,
     entangled_intrinsics,
     extrinsic_truncated,
-    intrinsics_uncertainty,
-    prior_variance,
     uncertainty_findings,
 )
+from licalib_cli.pipeline.inflation import COVER_P_VALUE, effect_to_cover, prior_variance
+from licalib_cli.pipeline.intrinsic_sigmas import intrinsics_uncertainty
 from licalib_cli.pipeline.joint_planes import refine_segments_with_planes
 from licalib_cli.pipeline.joint_problem import joint_problem, segment_values
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty

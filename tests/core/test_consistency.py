@@ -286,10 +286,10 @@ def test_blocks_held_together_can_move_the_estimate_beyond_each_alone() -> None:
     spread carried into the estimate is small), held at zero while both are off: the estimate's
     error exceeds their spreads summed one by one, and the joint group's move to its posterior
     mean covers it. The checks take the larger of the two, the move only when the joint score
-    test is significant (``fitcheck._joint_prior``, ``checks.prior_variance``)."""
+    test is significant (``fitcheck._joint_prior``, ``inflation.prior_variance``)."""
     from licalib_cli.consistency import score_effects
-    from licalib_cli.pipeline.checks import prior_variance
     from licalib_cli.pipeline.fitcheck import EffectEvidence, _joint_prior
+    from licalib_cli.pipeline.inflation import prior_variance
 
     rng = np.random.default_rng(11)
     n = 2000

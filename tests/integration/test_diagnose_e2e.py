@@ -393,8 +393,8 @@ def test_the_sigmas_of_every_candidate_block_go_into_the_result() -> None:
     """A model with a drift or the per-point time (as diagnose builds it) reports their sigmas
     in ``intrinsics_uncertainty`` instead of failing."""
     from licalib_cli.config import load_config
-    from licalib_cli.pipeline.checks import intrinsics_uncertainty
     from licalib_cli.pipeline.diagnose import CANDIDATES, _with_effects
+    from licalib_cli.pipeline.intrinsic_sigmas import intrinsics_uncertainty
 
     cfg = _with_effects(load_config(CONFIG), tuple(CANDIDATES))
     names = [

@@ -100,7 +100,7 @@ def test_the_blocks_of_a_walk_in_pieces() -> None:
 
 def test_the_result_carries_every_piece_and_its_sigma() -> None:
     from licalib_cli.pipeline.assemble import extra_terms
-    from licalib_cli.pipeline.checks import intrinsics_uncertainty
+    from licalib_cli.pipeline.intrinsic_sigmas import intrinsics_uncertainty
     from licalib_cli.results import CalibrationResult
 
     cfg = load_config(None, {"model.imu": ["gyro_bias_walk"], "model.bias_walk_piece_s": 10.0})

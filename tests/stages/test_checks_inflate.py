@@ -1,4 +1,4 @@
-"""Which fixed effects the reported sigmas cover (``licalib_cli.pipeline.checks.inflate``).
+"""Which fixed effects the reported sigmas cover (``licalib_cli.pipeline.inflation.inflate``).
 
 An effect the fit holds fixed biases the extrinsic by about the shift estimating it would cause.
 A significant one (the stricter level that names effects) that moves the extrinsic beyond its
@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from held_effects import imu_effect
 
-from licalib_cli.pipeline.checks import COVER_P_VALUE, effect_to_cover, inflate
 from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
+from licalib_cli.pipeline.inflation import COVER_P_VALUE, effect_to_cover, inflate
 from licalib_cli.sections import EffectCheck
 
 RAW = np.array([1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4, 1e-5])

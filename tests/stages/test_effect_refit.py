@@ -18,7 +18,7 @@ import pytest
 from licalib_cli.config import CalibConfig
 from licalib_cli.consistency.score import EffectScore
 from licalib_cli.geometry import so3
-from licalib_cli.pipeline.checks import _effects, inflate
+from licalib_cli.pipeline.checks import _effects
 from licalib_cli.pipeline.diagnose import with_effect
 from licalib_cli.pipeline.effect_refit import (
     REFIT_STATISTIC_PER_DOF,
@@ -27,6 +27,7 @@ from licalib_cli.pipeline.effect_refit import (
     with_move,
 )
 from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
+from licalib_cli.pipeline.inflation import inflate
 from licalib_cli.pipeline.round import extrinsic_of
 
 RAW = np.array([1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4, 1e-5])

@@ -7,12 +7,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from licalib_cli.pipeline.checks import (
-    SPLIT_HALF_P,
-    _split,
-    _split_section,
-    inflate,
-)
+from licalib_cli.pipeline.checks import SPLIT_HALF_P, _split, _split_section
+from licalib_cli.pipeline.inflation import inflate
 from licalib_cli.pipeline.split import COORDINATES, compare_halves
 from licalib_cli.sections import Consistency, SplitHalf
 

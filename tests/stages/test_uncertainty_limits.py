@@ -141,7 +141,7 @@ def test_a_sigma_held_over_the_limit_by_the_halves_says_so() -> None:
     """A clean OS1-64 sinusoid warned for a time offset of 0.298 ms: the halves differed by 0.70
     ms (1.9 of their combined sigmas) and half the excess over that spread stayed in the sigma.
     The finding says where it comes from; a floor below the limit is not named."""
-    from licalib_cli.pipeline.checks import split_floor
+    from licalib_cli.pipeline.inflation import split_floor
     from licalib_cli.pipeline.split import SplitResult
 
     limits = CalibConfig().checks

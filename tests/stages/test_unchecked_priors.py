@@ -13,8 +13,8 @@ from held_effects import imu_effect
 
 from licalib_cli.consistency.distributions import chi2_isf
 from licalib_cli.consistency.power import detectable_rms
-from licalib_cli.pipeline.checks import COVER_P_VALUE, inflate
 from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
+from licalib_cli.pipeline.inflation import COVER_P_VALUE, inflate
 from licalib_cli.pipeline.unchecked_priors import (
     HIDDEN_SHIFT,
     UNCHECKED_FACTOR,
