@@ -36,6 +36,7 @@ import numpy as np
 from licalib_cli.config import CalibConfig
 from licalib_cli.errors import ConfigError, ExcitationError, LicalibError, TopicError
 from licalib_cli.io.bag import CLOUD_TYPE, IMU_TYPE, open_bag, select_topic
+from licalib_cli.io.clock_rate import ClockRate, streams_clock_rate
 from licalib_cli.io.findings import Finding
 from licalib_cli.io.imu_stream import ImuRead, read_imu_stream
 from licalib_cli.io.ouster import FactoryExtrinsic, cloud_frame, read_factory_extrinsic
@@ -397,6 +398,8 @@ class BagReport:
         imu: the IMU stream, or None when no IMU topic could be chosen.
         lidar: the LiDAR stream, or None when no LiDAR topic could be chosen.
         clock_offset_s: coarse ``t_imu - t_lidar`` clock difference, s (None: unknown).
+        clock_rate: how fast the IMU's stamps run against the LiDAR's (None: unknown; see
+            :mod:`licalib_cli.io.clock_rate`).
         problems: findings, fatal ones first (in the reader's order).
         notes: informative remarks (detected units, layout overrides).
         factory_extrinsic: the factory ``T_imu_lidar`` of an Ouster sensor, from the
@@ -417,6 +420,7 @@ class BagReport:
     problems: tuple[Finding, ...]
     notes: tuple[str, ...] = ()
     factory_extrinsic: FactoryExtrinsic | None = None
+    clock_rate: ClockRate | None = None
 
     @property
     def duration_s(self) -> float:
@@ -445,6 +449,7 @@ class BagReport:
 
     def to_dict(self) -> dict[str, Any]:
         """The report as plain JSON-serialisable data (``licalib info --json``)."""
+        rate = self.clock_rate
         imu = None
         if self.imu is not None:
             i = self.imu
@@ -524,6 +529,8 @@ class BagReport:
             "clock_offset_s": None
             if self.clock_offset_s is None
             else _round(self.clock_offset_s, 6),
+            "clock_rate_ppm": None if rate is None else _round(1e6 * rate.rate, 3),
+            "clock_rate_sigma_ppm": None if rate is None else _round(1e6 * rate.sigma, 3),
             "usable": self.usable,
             "exit_code": self.exit_code,
             "problems": [
@@ -742,6 +749,11 @@ def inspect_bag(path: Path, cfg: CalibConfig, *, min_span_s: float = MIN_SEGMENT
     clock = None
     if lidar_read is not None and lidar_read.clock_offset_ns is not None:
         clock = lidar_read.clock_offset_ns / _NS
+    rate = None
+    if imu_read is not None and lidar_read is not None:
+        rate = streams_clock_rate(imu_read, lidar_read)
+        if rate is not None and rate.material:
+            findings.append(Finding(rate.text("clock_drift" in cfg.model.imu), False))
     findings.sort(key=lambda p: not p.fatal)
     for p in findings:
         logger.debug("finding: %s", p.message)
@@ -756,6 +768,7 @@ def inspect_bag(path: Path, cfg: CalibConfig, *, min_span_s: float = MIN_SEGMENT
         imu=imu,
         lidar=lidar,
         clock_offset_s=clock,
+        clock_rate=rate,
         problems=tuple(findings),
         notes=tuple(notes),
         factory_extrinsic=factory,
@@ -778,6 +791,8 @@ def error_report(path: Path | str | None, message: str, exit_code: int) -> dict[
         "imu": None,
         "lidar": None,
         "clock_offset_s": None,
+        "clock_rate_ppm": None,
+        "clock_rate_sigma_ppm": None,
         "usable": False,
         "exit_code": code,
         "problems": [{"severity": "error", "message": message, "exit_code": code}],

@@ -13,6 +13,7 @@ import numpy as np
 import numpy.typing as npt
 
 if TYPE_CHECKING:
+    from licalib_cli.io.clock_rate import ClockRate
     from licalib_cli.io.cloud_layout import CloudLayout
     from licalib_cli.io.imu_units import ImuUnits
     from licalib_cli.io.ouster import FactoryExtrinsic
@@ -100,6 +101,9 @@ class Recording:
         scans_skipped: clouds of the segment skipped as unusable (empty, corrupt, ...).
         factory_extrinsic: the sensor's factory extrinsic when the bag carries one (Ouster
             metadata), for the frame the clouds are in; None otherwise.
+        clock_rate: how fast the IMU's stamps run against the LiDAR's, from each topic's
+            stamps against the record times (:mod:`licalib_cli.io.clock_rate`); None when a
+            topic has too few messages or no record times.
     """
 
     imu: ImuSamples
@@ -118,6 +122,7 @@ class Recording:
     imu_samples_dropped: int = 0
     scans_skipped: int = 0
     factory_extrinsic: FactoryExtrinsic | None = None
+    clock_rate: ClockRate | None = None
 
     @property
     def clock_offset_s(self) -> float:

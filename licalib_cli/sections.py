@@ -587,6 +587,13 @@ class RecordingSection(Section):
     0.5 s mean direction; :func:`licalib_cli.inspection.gravity_turn_deg`): tens of degrees
     tell the accelerometer's frame from the extrinsic rotation when the IMU intrinsics are
     estimated. None in results written before it was recorded."""
+    clock_rate_ppm: float | None = None
+    """How fast the IMU's stamps ran against the LiDAR's, measured from each topic's stamps
+    against the recorder's record times before calibrating, ppm (positive: the IMU's fast, as
+    ``extra_terms.clock_drift``; :mod:`licalib_cli.io.clock_rate`). None when unknown (too few
+    messages, or results written before it was recorded)."""
+    clock_rate_sigma_ppm: float | None = None
+    """Its 1-sigma, ppm."""
 
 
 @dataclass(frozen=True)

@@ -215,6 +215,13 @@ def render_report(report: BagReport) -> None:
             f"Clock difference IMU - LiDAR (coarse, from record times): "
             f"{round(report.clock_offset_s, 6) + 0.0:+.6f} s"
         )
+    if report.clock_rate is not None:
+        r = report.clock_rate
+        out.print(
+            f"Clock rate IMU - LiDAR (stamps against record times): {1e6 * r.rate:+.1f} +/- "
+            f"{1e6 * r.sigma:.1f} ppm, t_imu - t_lidar moving {1e3 * r.moves_s:.3f} ms over "
+            f"{r.span_s:.0f} s"
+        )
     if report.factory_extrinsic is not None:
         f = report.factory_extrinsic
         from licalib_cli.inspection import factory_extrinsic_dict

@@ -53,6 +53,7 @@ def bag_fingerprint(path: Path) -> str:
 def recording_section(bag: Path, rec: Recording) -> RecordingSection:
     """What data the calibration used (the sensors' frame ids read from the bag)."""
     frames = frame_ids(bag, (rec.imu_topic, rec.lidar_topic))
+    rate = rec.clock_rate
     return RecordingSection(
         bag=str(bag),
         imu_topic=rec.imu_topic,
@@ -70,6 +71,8 @@ def recording_section(bag: Path, rec: Recording) -> RecordingSection:
         imu_frame=frames.get(rec.imu_topic, ""),
         lidar_frame=frames.get(rec.lidar_topic, ""),
         gravity_turn_deg=_rounded(gravity_turn_deg(rec.imu.t_ns, rec.imu.accel), 3),
+        clock_rate_ppm=None if rate is None else round(1e6 * rate.rate, 3),
+        clock_rate_sigma_ppm=None if rate is None else round(1e6 * rate.sigma, 3),
     )
 
 
