@@ -157,10 +157,18 @@ def clock_rate(
     lidar_records_ns: npt.ArrayLike,
 ) -> ClockRate | None:
     """The IMU clock's rate against the LiDAR's over the record time both topics cover (see the
-    module's description); None when either topic has too few messages there."""
+    module's description); None when either topic has too few messages there, or when every
+    record time of both topics is its message's stamp (a bag rewritten with the stamps as record
+    times: they tell nothing about the clocks)."""
     ir = np.asarray(imu_records_ns, dtype=np.int64)
     lr = np.asarray(lidar_records_ns, dtype=np.int64)
     if ir.size == 0 or lr.size == 0:
+        return None
+    copied = [
+        np.array_equal(np.asarray(st, dtype=np.int64), rec)
+        for st, rec in ((imu_stamps_ns, ir), (lidar_stamps_ns, lr))
+    ]
+    if all(copied):
         return None
     span = (max(int(ir.min()), int(lr.min())), min(int(ir.max()), int(lr.max())))
     imu = stamp_rate(imu_stamps_ns, ir, span)

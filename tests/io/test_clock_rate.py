@@ -65,10 +65,17 @@ def test_the_recorders_own_rate_cancels_between_the_topics(rng: np.random.Genera
     assert rate.moves_s == pytest.approx(abs(rate.rate) * rate.span_s)
 
 
-def test_too_few_messages_give_no_rate() -> None:
+def test_too_few_messages_or_copied_record_times_give_no_rate() -> None:
     stamps = np.arange(5, dtype=np.int64) * NS
     assert stamp_rate(stamps, stamps, (0, 4 * NS)) is None
     assert clock_rate(stamps, stamps, [], []) is None
+    # a bag rewritten with each message's stamp as its record time: nothing to measure (one
+    # topic recorded at its stamps, as the simulator's IMU, still measures)
+    imu = np.arange(400, dtype=np.int64) * (NS // 40)
+    lidar = np.arange(100, dtype=np.int64) * (NS // 10)
+    assert clock_rate(imu, imu, lidar, lidar) is None
+    rate = clock_rate(imu, imu, lidar, lidar + NS // 10)
+    assert rate is not None and rate.rate == 0.0 and not rate.material
 
 
 def test_a_rate_is_told_only_when_significant_and_material() -> None:
