@@ -236,7 +236,7 @@ def fit_and_check(
     with timer.stage("optimisation", progress, total=cfg.schedule.max_rounds):
         fit = run_schedule(rec, start, noise, cfg, progress, warm=warm)
     with timer.stage("checks", progress):
-        checks = check(fit, guess, noise, cfg, rivals=rivals)
+        checks = check(fit, guess, noise, cfg, rivals=rivals, clock_rate=rec.clock_rate)
     fit = replace(fit, solved=None)  # the final problem's Jacobians are not kept with the run
     result = assemble(prepared.bag, rec, guess, fit, checks, cfg)
     return CalibrationRun(

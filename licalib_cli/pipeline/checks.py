@@ -32,6 +32,7 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig, ChecksSection
+from licalib_cli.io.clock_rate import MATERIAL_MOVE_S, SIGNIFICANT_SIGMAS, ClockRate
 from licalib_cli.pipeline.crawl import Crawl, crawl_at_cap
 from licalib_cli.pipeline.fitcheck import (
     CHI2_QUIET,
@@ -63,7 +64,7 @@ from licalib_cli.pipeline.prior_directions import (
 from licalib_cli.pipeline.schedule import JITTER_FACTOR, MAX_FINAL_ROUNDS, Change, Fit, within
 from licalib_cli.pipeline.settings import NoiseLevels, prior_sd
 from licalib_cli.pipeline.split import COORDINATES, SplitResult, split_half
-from licalib_cli.residuals import ACCEL_MISALIGNMENT, EXT_ROTATION, GYRO_ROTATION
+from licalib_cli.residuals import ACCEL_MISALIGNMENT, EXT_ROTATION, GYRO_ROTATION, TIME_DRIFT
 from licalib_cli.results import vec3
 from licalib_cli.sections import (
     SPLIT_LABELS,
@@ -92,6 +93,7 @@ __all__ = [
     "accelerometer_frame_partners",
     "check",
     "correlated_with",
+    "drift_against_stamps",
     "entangled_intrinsics",
     "judge",
     "observability_of",
@@ -781,11 +783,19 @@ def judge(findings: list[Finding]) -> tuple[VerdictSection, str]:
 
 
 def check(
-    fit: Fit, guess: InitialGuess, noise: NoiseLevels, cfg: CalibConfig, *, rivals: bool = False
+    fit: Fit,
+    guess: InitialGuess,
+    noise: NoiseLevels,
+    cfg: CalibConfig,
+    *,
+    rivals: bool = False,
+    clock_rate: ClockRate | None = None,
 ) -> Checks:
     """The checks stage: gather the evidence on the fit (residuals per sensor, score tests of
     the fixed effects, the two halves) and judge it (:func:`run_checks`). ``rivals``: also
-    which candidates stand in for each significant effect (``effect_evidence``'s)."""
+    which candidates stand in for each significant effect (``effect_evidence``'s).
+    ``clock_rate``: the rate of the IMU's stamps against the LiDAR's measured from the record
+    times (:mod:`licalib_cli.io.clock_rate`), which an estimated clock drift must match."""
     # All in this process: a forked second process for the map planes' uncertainty was slower
     # (both processes then pay a page copy for every page of the freed heap they write,
     # which ``parallel.memory`` keeps for reuse; on a 10 s OS1-64 bag the checks took 2.2 s
@@ -813,7 +823,32 @@ def check(
             "The rig turned about one axis only; the rotation about it rests on the "
             f"accelerations, and the translation along it {along}.",
         )
+    if clock_rate is not None and TIME_DRIFT in fit.report.calibration_names:
+        k, sd = fit.state.time_drift, fit.report.std_of(TIME_DRIFT)
+        differs = drift_against_stamps(k, sd, clock_rate)
+        notes = (*notes, differs) if differs else notes
     return run_checks(fit, sensors, effects, split, cfg, notes, planes)
+
+
+def drift_against_stamps(k: float, sd: float, rate: ClockRate) -> str | None:
+    """A sentence when the estimated clock drift ``k`` (1-sigma ``sd``, s/s) differs from the
+    rate the stamps show against the record times by more than :data:`~licalib_cli.io.
+    clock_rate.SIGNIFICANT_SIGMAS` of their combined sigma and by at least
+    :data:`~licalib_cli.io.clock_rate.MATERIAL_MOVE_S` over the segment; else None. Both
+    measure the same stamps' relation, so a drift that differs stands in for something else."""
+    if not (np.isfinite(k) and np.isfinite(sd)):
+        return None
+    gap = abs(k - rate.rate)
+    z = gap / max(float(np.hypot(sd, rate.sigma)), 1e-300)
+    if z <= SIGNIFICANT_SIGMAS or gap * rate.span_s < MATERIAL_MOVE_S:
+        return None
+    return (
+        f"The clock drift estimated, {1e6 * k:+.1f} +/- {1e6 * sd:.1f} ppm, differs from the "
+        f"rate of the sensors' stamps against the record times, {1e6 * rate.rate:+.1f} +/- "
+        f"{1e6 * rate.sigma:.1f} ppm, by {z:.0f} sigmas: the drift stands in for something the "
+        "model lacks (licalib diagnose names it), or the recorder's delays changed over the "
+        "recording."
+    )
 
 
 def run_checks(

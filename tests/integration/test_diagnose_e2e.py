@@ -178,6 +178,11 @@ def test_a_clock_drift_the_score_test_finds_is_estimated_not_truncated(
     assert true_offset - 0.004 == pytest.approx(300e-6 * 4.0, rel=0.02)
     std = result.uncertainty.time_offset_std_s if result.uncertainty else 0.0
     assert abs(result.extrinsic.time_offset_s - true_offset) < 3 * std
+    # the stamps against the record times show the same rate before the fit, and the estimate
+    # agrees with it (no finding that the drift stands in for something else)
+    assert result.recording.clock_rate_ppm == pytest.approx(300.0, abs=1.0)
+    reasons = result.verdict.reasons if result.verdict else ()
+    assert not any("differs from the rate of the sensors' stamps" in r for r in reasons)
 
 
 def test_a_bias_walk_in_pieces_follows_the_walk_better_than_one_drift(tmp_path: Path) -> None:

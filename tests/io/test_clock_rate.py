@@ -19,6 +19,7 @@ from licalib_cli.io.clock_rate import (
 )
 from licalib_cli.io.reader import read_segment
 from licalib_cli.pipeline.assemble import recording_section
+from licalib_cli.pipeline.checks import drift_against_stamps
 from licalib_cli.simulation import SimulationSpec, simulate
 
 NS = 1_000_000_000
@@ -130,3 +131,19 @@ def test_info_reports_the_clock_rate(bags: dict[str, Path]) -> None:
     assert any("ppm against the LiDAR's" in p["message"] for p in d["problems"])
     assert all(p["severity"] == "warning" for p in d["problems"])
     assert report.usable
+
+
+def test_an_estimated_drift_that_differs_from_the_stamps_rate_is_said() -> None:
+    """The fit's clock drift and the stamps' rate measure the same relation: a difference
+    beyond five combined sigmas that moves the offset by 0.1 ms or more over the segment says
+    the drift stands in for something else."""
+    stamps = ClockRate(rate=250e-6, sigma=2e-6, span_s=20.0)
+    assert drift_against_stamps(251.9e-6, 1.2e-6, stamps) is None  # 3428: 0.8 sigmas
+    said = drift_against_stamps(300e-6, 1.2e-6, stamps)
+    assert said is not None and "+300.0 +/- 1.2 ppm" in said and "21 sigmas" in said
+    # beyond its sigmas but moving the offset by under 0.1 ms over the segment
+    exact = ClockRate(rate=250e-6, sigma=0.1e-6, span_s=20.0)
+    assert drift_against_stamps(254e-6, 0.1e-6, exact) is None  # 28 sigmas, 0.08 ms
+    assert drift_against_stamps(256e-6, 0.1e-6, exact) is not None  # 0.12 ms
+    # a drift the data did not determine
+    assert drift_against_stamps(300e-6, float("inf"), stamps) is None
