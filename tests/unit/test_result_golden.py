@@ -94,6 +94,8 @@ def _result() -> CalibrationResult:
             imu_frame="imu_link",
             lidar_frame="velodyne",
             gravity_turn_deg=27.365,
+            clock_rate_ppm=-12.5,
+            clock_rate_sigma_ppm=0.8,
         ),
         provenance=Provenance(
             "0.1.0", "0123456789abcdef", "2026-11-24T07:00:00Z", "fedcba9876543210"
