@@ -70,6 +70,9 @@ class BagRow:
             axes.
         time_offset_std_s: 1-sigma of the time offset.
         lidar_clock_shift_s: whole-recording LiDAR clock shift applied before calibrating.
+        clock_rate_ppm: how fast the IMU's stamps ran against the LiDAR's, from the bag's
+            stamps against its record times (``recording.clock_rate_ppm``; a rig whose clocks
+            are not synchronised shows tens of ppm).
         calibration_s: wall seconds of the calibration (of the run that made the result).
         attempts: tries this run (0 when the result was up to date).
         differs: whether it disagrees with the rig's other bags beyond their sigmas.
@@ -100,6 +103,7 @@ class BagRow:
     rot_z_std_deg: float = math.nan
     time_offset_std_s: float = math.nan
     lidar_clock_shift_s: float = math.nan
+    clock_rate_ppm: float = math.nan
     calibration_s: float = math.nan
     attempts: int = 0
     differs: bool = False
@@ -156,8 +160,13 @@ def bag_row(
         rot_z_std_deg=float(r_std[2]),
         time_offset_std_s=float(unc.time_offset_std_s) if unc else math.nan,
         lidar_clock_shift_s=float(rec.lidar_clock_shift_s) if rec else math.nan,
+        clock_rate_ppm=_or_nan(rec.clock_rate_ppm if rec else None),
         **extra,
     )
+
+
+def _or_nan(value: float | None) -> float:
+    return math.nan if value is None else float(value)
 
 
 def _utc(stamp_ns: int) -> str:

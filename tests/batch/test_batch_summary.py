@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -154,3 +155,19 @@ def test_summary_csv_columns_and_cells() -> None:
     _, rigs = rig_rows([row, failed])
     rig_table = list(csv.DictReader(io.StringIO(summary_csv(rigs, RigRow))))
     assert rig_table[0]["failed"] == "1" and rig_table[0]["differing"] == ""
+
+
+def test_a_bags_clock_rate_is_in_its_row() -> None:
+    """The rate the bag's stamps showed against its record times goes into the summary, so
+    that a rig whose clocks are not synchronised stands out; unknown is empty."""
+    result = _result((0.3, 0.15, 0.05))
+    assert result.recording is not None
+    drifting = replace(
+        result, recording=replace(result.recording, clock_rate_ppm=-48.25, clock_rate_sigma_ppm=2)
+    )
+    row = bag_row("r", "b1", "calibrated", drifting)
+    assert row.clock_rate_ppm == -48.25
+    assert math.isnan(bag_row("r", "b2", "calibrated", result).clock_rate_ppm)
+    csv = summary_csv([row], BagRow).splitlines()
+    column = csv[0].split(",").index("clock_rate_ppm")
+    assert csv[1].split(",")[column] == "-48.25"
