@@ -138,6 +138,8 @@ class SimulatedClock(Section):
         time_offset_drawn: whether it was drawn from the seed.
         lidar_clock_offset_s: how far the LiDAR clock runs ahead of the IMU clock, s.
         relation: the relation above, in words.
+        record_delay_ms: mean transport delay added to the record times, ms (0: each message
+            recorded at its true time).
     """
 
     base_time_ns: int
@@ -145,6 +147,7 @@ class SimulatedClock(Section):
     time_offset_drawn: bool
     lidar_clock_offset_s: float
     relation: str
+    record_delay_ms: float = 0.0
 
 
 @dataclass(frozen=True)

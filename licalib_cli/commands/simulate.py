@@ -197,6 +197,15 @@ def simulate_command(
             rich_help_panel=_CALIB,
         ),
     ] = 0.0,
+    record_delay: Annotated[
+        float,
+        typer.Option(
+            "--record-delay-ms",
+            help="Mean transport delay of the messages, ms: record times are the true times "
+            "plus exponential delays, in order per topic (default 0: recorded at the true time).",
+            rich_help_panel=_CALIB,
+        ),
+    ] = 0.0,
     intrinsics: Annotated[
         IntrinsicsMode,
         typer.Option(
@@ -346,6 +355,7 @@ def simulate_command(
         time_offset_s=time_offset,
         random_time_offset=random_time_offset,
         lidar_clock_offset_s=lidar_clock_offset,
+        record_delay_ms=record_delay,
         intrinsics=intrinsics,
         intrinsics_scale=intrinsics_scale,
         intrinsics_file=intrinsics_file,

@@ -78,6 +78,7 @@ class Stream(IntEnum):
     IMU_NOISE = 5
     LIDAR_NOISE = 6
     EFFECTS = 7
+    RECORD_DELAY = 8
 
 
 def rng_for(seed: int, stream: Stream, *extra: int) -> np.random.Generator:

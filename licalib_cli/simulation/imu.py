@@ -53,6 +53,17 @@ class ImuTruth:
     accel_noise_sigma: float
 
 
+def _recorded(spec: SimulationSpec, t_true: F64) -> npt.NDArray[np.int64]:
+    """Record times of the samples: their true times plus the transport delays
+    (``spec.record_delay_ms``), in order (a sample never overtakes the one before)."""
+    record = spec.base_time_ns + np.round(t_true * 1e9).astype(np.int64)
+    if spec.record_delay_ms <= 0.0:
+        return record
+    rng = rng_for(spec.resolved_noise_seed, Stream.RECORD_DELAY, 0)
+    delay = np.round(rng.exponential(spec.record_delay_ms * 1e6, t_true.shape[0]))
+    return np.maximum.accumulate(record + delay.astype(np.int64))
+
+
 def imu_sample_times(spec: SimulationSpec) -> tuple[npt.NDArray[np.int64], F64]:
     """Stamps relative to the base time (int64 ns) and true times (s) of every IMU sample."""
     n = int(np.floor(spec.resolved_duration_s * spec.imu_rate_hz + 1e-9)) + 1
@@ -105,7 +116,7 @@ def generate_imu(
     )
     truth = ImuTruth(
         t_true_s=t_true,
-        record_ns=spec.base_time_ns + np.round(t_true * 1e9).astype(np.int64),
+        record_ns=_recorded(spec, t_true),
         omega=state.angular_velocity,
         specific_force=accel_true,
         gyro_bias=setup.imu_intrinsics.gyro_bias + walk_g,

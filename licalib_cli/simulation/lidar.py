@@ -172,6 +172,11 @@ def _scan(
         sweep_stamp_rel = sweep_start_ns + int(t_rel.max())
     stamp_ns = spec.base_time_ns + sweep_stamp_rel + offset_ns
     record_ns = spec.base_time_ns + sweep_start_ns + int(t_rel.max())
+    if spec.record_delay_ms > 0.0:  # in order: at most half a period, so no cloud overtakes
+        delay = rng_for(spec.resolved_noise_seed, Stream.RECORD_DELAY, 1, k).exponential(
+            spec.record_delay_ms * 1e6
+        )
+        record_ns += round(min(delay, 0.5e9 / spec.lidar_rate_hz))
 
     points = np.zeros(t_rel.shape[0], dtype=model.dtype)
     if model.organized:

@@ -14,7 +14,8 @@ file (schema v1: ``extrinsic``, ``imu_intrinsics``, ``lidar_intrinsics``) and th
             gyro_bias_mean, accel_bias_mean, ..., gyro_bias_walk_scale, accel_bias_walk_scale}
       lidar: {model, topic, frame_id, rate_hz, num_beams, num_scans, stamp, range_noise_m, ...,
               point_time_error}
-      clock: {base_time_ns, time_offset_s, time_offset_drawn, lidar_clock_offset_s, relation}
+      clock: {base_time_ns, time_offset_s, time_offset_drawn, lidar_clock_offset_s, relation,
+              record_delay_ms}
       bag: {format, path}
       command_line: "licalib simulate ..."
       licalib_version: "0.1.0"
@@ -254,6 +255,7 @@ def build_truth(
             time_offset_drawn=spec.random_time_offset,
             lidar_clock_offset_s=float(setup.lidar_clock_offset_ns * 1e-9),
             relation="t_imu = t_lidar - lidar_clock_offset_s + time_offset_s",
+            record_delay_ms=float(spec.record_delay_ms),
         ),
         random_extrinsic=spec.random_extrinsic,
         bag=tr.SimulatedBag(

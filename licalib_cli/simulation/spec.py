@@ -116,6 +116,8 @@ EFFECT_POINT_TIME_ERROR = EFFECT_SIZES[Effect.LIDAR_POINT_TIME].size
 """Per-point time error of the ``lidar_point_time`` effect (fraction of the time in the sweep)."""
 MAX_TILT_DEG = 60.0
 """Largest ``tilt_deg`` (the rig stays upright enough for the room's floor and walls)."""
+MAX_RECORD_DELAY_MS = 20.0
+"""Largest ``record_delay_ms`` (a recorder further behind would reorder the topics' messages)."""
 RANDOM_TIME_OFFSET_MAX_S = 0.05
 """``random_time_offset`` draws the time offset uniformly in +-this, s."""
 
@@ -149,6 +151,10 @@ class SimulationSpec:
         random_time_offset: draw ``time_offset_s`` uniformly within +-50 ms from the seed
             instead (``time_offset_s`` must then stay 0).
         lidar_clock_offset_s: whole-bag shift of the LiDAR clock (LiDAR minus IMU), s.
+        record_delay_ms: mean transport delay of the messages, ms: each message's record time
+            is its true time (the end of its sweep for a cloud) plus an exponential delay of
+            this mean, in order per topic (no message overtakes the one before; a cloud's
+            delay at most half the sweep period); 0: recorded at the true time.
         intrinsics: ideal sensors or random intrinsics.
         intrinsics_scale: multiplies every standard deviation of the random intrinsics.
         intrinsics_file: result/truth YAML whose ``imu_intrinsics``/``lidar_intrinsics`` are used.
@@ -203,6 +209,7 @@ class SimulationSpec:
     time_offset_s: float = 0.0
     random_time_offset: bool = False
     lidar_clock_offset_s: float = 0.0
+    record_delay_ms: float = 0.0
     intrinsics: IntrinsicsMode = IntrinsicsMode.RANDOM
     intrinsics_scale: float = 1.0
     intrinsics_file: Path | None = None
@@ -304,6 +311,11 @@ class SimulationSpec:
             (
                 abs(self.resolved_imu_clock_drift_ppm) < 1e4,
                 "--imu-clock-drift-ppm must be below 10000 in magnitude.",
+            ),
+            (
+                0.0 <= self.record_delay_ms <= MAX_RECORD_DELAY_MS,
+                f"--record-delay-ms {self.record_delay_ms} must be in [0, "
+                f"{MAX_RECORD_DELAY_MS:g}] ms.",
             ),
             (self.gravity > 0, "gravity must be positive."),
             (

@@ -8,8 +8,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from licalib_cli.config import load_config
+from licalib_cli.errors import ConfigError
 from licalib_cli.inspection import inspect_bag
 from licalib_cli.io.clock_rate import (
     MATERIAL_MOVE_S,
@@ -94,10 +96,27 @@ def test_a_rate_is_told_only_when_significant_and_material() -> None:
 def bags(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("clock_rate")
     out = {}
-    for name, ppm in (("drift", 200.0), ("clean", 0.0)):
-        spec = SimulationSpec(duration_s=4.0, seed=3, imu_clock_drift_ppm=ppm)
+    for name, ppm, delay_ms in (("drift", 200.0, 0.0), ("clean", 0.0, 0.0), ("late", 300.0, 0.2)):
+        spec = SimulationSpec(
+            duration_s=6.0 if delay_ms else 4.0,
+            seed=3,
+            imu_clock_drift_ppm=ppm,
+            record_delay_ms=delay_ms,
+        )
         out[name] = simulate(spec, root / name, force=True).bag_path
     return out
+
+
+def test_transport_delays_leave_the_rate_within_its_sigma(bags: dict[str, Path]) -> None:
+    """``simulate --record-delay-ms``: record times late by exponential delays (0.2 ms mean),
+    in order per topic; the rate is still found, within its sigma, and told."""
+    rec = read_segment(bags["late"], load_config(None, {}))
+    rate = rec.clock_rate
+    assert rate is not None and 0.0 < rate.sigma < 30e-6
+    assert abs(rate.rate - 300e-6) < 3 * rate.sigma + 1e-6
+    assert rate.material and any("ppm against the LiDAR's" in w for w in rec.warnings)
+    truth = yaml.safe_load((bags["late"].parent / "truth.yaml").read_text())
+    assert truth["simulation"]["clock"]["record_delay_ms"] == 0.2
 
 
 def test_the_reader_tells_a_drifting_imu_clock_and_the_result_keeps_it(
@@ -147,3 +166,9 @@ def test_an_estimated_drift_that_differs_from_the_stamps_rate_is_said() -> None:
     assert drift_against_stamps(256e-6, 0.1e-6, exact) is not None  # 0.12 ms
     # a drift the data did not determine
     assert drift_against_stamps(300e-6, float("inf"), stamps) is None
+
+
+@pytest.mark.parametrize("delay_ms", [-1.0, 50.0])
+def test_a_record_delay_outside_its_range_is_refused(delay_ms: float) -> None:
+    with pytest.raises(ConfigError, match="--record-delay-ms"):
+        SimulationSpec(record_delay_ms=delay_ms)
