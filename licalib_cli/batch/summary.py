@@ -71,8 +71,8 @@ class BagRow:
         time_offset_std_s: 1-sigma of the time offset.
         lidar_clock_shift_s: whole-recording LiDAR clock shift applied before calibrating.
         clock_rate_ppm: how fast the IMU's stamps ran against the LiDAR's, from the bag's
-            stamps against its record times (``recording.clock_rate_ppm``; a rig whose clocks
-            are not synchronised shows tens of ppm).
+            stamps against its record times (``recording.clock_rate_ppm``; away from zero where
+            the sensors' clocks are not synchronised).
         calibration_s: wall seconds of the calibration (of the run that made the result).
         attempts: tries this run (0 when the result was up to date).
         differs: whether it disagrees with the rig's other bags beyond their sigmas.
