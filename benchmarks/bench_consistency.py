@@ -32,6 +32,7 @@ Examples::
     .venv/bin/python benchmarks/bench_consistency.py --imu-rate 100 --lidar-rate 20  # other rates
     .venv/bin/python benchmarks/bench_consistency.py --scenarios figure8 --duration 20  # planar
     .venv/bin/python benchmarks/bench_consistency.py --scenarios figure8 --lever-arm-prior 0.01
+    .venv/bin/python benchmarks/bench_consistency.py --only clean --record-delay-ms 2  # late
 
 Each run happens in a fresh subprocess; rows print as they finish (JSON with ``--json``). At the
 end: how many clean runs end outside 0.3 cm / 0.05 deg / 0.1 ms, against how many an unbiased
@@ -172,6 +173,7 @@ def one_run(case: dict, workdir: Path) -> dict:
         intrinsics=case["intrinsics"],
         **({"mounting": case["mounting"]} if "mounting" in case else {}),
         **tilt_spec_kwargs(case),
+        record_delay_ms=case.get("record_delay_ms", 0.0),
         **kwargs,
     )
     t0 = time.perf_counter()
@@ -351,6 +353,13 @@ def main() -> None:
         "figure-8 the translation error then counts the vertical too",
     )
     add_tilt_option(p)
+    p.add_argument(
+        "--record-delay-ms",
+        type=float,
+        default=0.0,
+        help="record every message late by exponential transport delays of this mean, ms "
+        "(simulate --record-delay-ms); default none",
+    )
     p.add_argument("--list", action="store_true", help="print the cases and exit")
     p.add_argument("--jobs", type=int, default=1, help="runs at a time")
     p.add_argument("--json", default=None, help="also write the rows to this JSON file")
@@ -377,6 +386,7 @@ def main() -> None:
             "lidar_rate": args.lidar_rate,
             "duration": args.duration,
             "tilt_deg": args.tilt_deg,
+            **({"record_delay_ms": args.record_delay_ms} if args.record_delay_ms else {}),
             **({"lever_arm_prior": args.lever_arm_prior} if args.lever_arm_prior else {}),
         }
         for c in cases(args.first_seed, tuple(args.lidars), tuple(args.scenarios))

@@ -47,6 +47,15 @@ def test_every_listed_case_carries_the_sensor_rates() -> None:
     assert cases and all(c["imu_rate"] == 100.0 and c["lidar_rate"] == 20.0 for c in cases)
 
 
+def test_every_listed_case_carries_the_record_delay_and_none_by_default() -> None:
+    out = _run("--record-delay-ms", "2", "--only", "clean")
+    assert out.returncode == 0, out.stderr
+    cases = [ast.literal_eval(line) for line in out.stdout.splitlines() if line.startswith("{")]
+    assert cases and all(c["record_delay_ms"] == 2.0 for c in cases)
+    plain = _run("--only", "clean")
+    assert all("record_delay_ms" not in line for line in plain.stdout.splitlines())
+
+
 def test_the_default_rates_are_left_to_the_simulator() -> None:
     out = _run("--only", "clean")
     assert out.returncode == 0, out.stderr
