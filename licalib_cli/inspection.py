@@ -36,7 +36,7 @@ import numpy as np
 from licalib_cli.config import CalibConfig
 from licalib_cli.errors import ConfigError, ExcitationError, LicalibError, TopicError
 from licalib_cli.io.bag import CLOUD_TYPE, IMU_TYPE, open_bag, select_topic
-from licalib_cli.io.clock_rate import ClockRate, streams_clock_rate
+from licalib_cli.io.clock_rate import ClockRate, rate_warning, streams_clock_rate
 from licalib_cli.io.findings import Finding
 from licalib_cli.io.imu_stream import ImuRead, read_imu_stream
 from licalib_cli.io.ouster import FactoryExtrinsic, cloud_frame, read_factory_extrinsic
@@ -752,8 +752,9 @@ def inspect_bag(path: Path, cfg: CalibConfig, *, min_span_s: float = MIN_SEGMENT
     rate = None
     if imu_read is not None and lidar_read is not None:
         rate = streams_clock_rate(imu_read, lidar_read)
-        if rate is not None and rate.material:
-            findings.append(Finding(rate.text("clock_drift" in cfg.model.imu), False))
+        told = rate_warning(rate, cfg)
+        if told is not None:
+            findings.append(Finding(told, False))
     findings.sort(key=lambda p: not p.fatal)
     for p in findings:
         logger.debug("finding: %s", p.message)

@@ -26,6 +26,7 @@ import numpy as np
 import numpy.typing as npt
 
 if TYPE_CHECKING:
+    from licalib_cli.config import CalibConfig
     from licalib_cli.io.imu_stream import ImuRead
     from licalib_cli.io.scan_stream import LidarRead
 
@@ -37,6 +38,7 @@ __all__ = [
     "SIGNIFICANT_SIGMAS",
     "ClockRate",
     "clock_rate",
+    "rate_warning",
     "stamp_rate",
     "streams_clock_rate",
 ]
@@ -188,3 +190,11 @@ def streams_clock_rate(imu: ImuRead, lidar: LidarRead) -> ClockRate | None:
     if imu.raw.record_ns is None:
         return None
     return clock_rate(imu.raw.t_ns, imu.raw.record_ns, lidar.tally.stamps, lidar.tally.records)
+
+
+def rate_warning(rate: ClockRate | None, cfg: CalibConfig) -> str | None:
+    """The sentence ``licalib info`` and the reader tell about a material rate (its advice
+    depending on whether ``model.imu`` estimates ``clock_drift``); None otherwise."""
+    if rate is None or not rate.material:
+        return None
+    return rate.text("clock_drift" in cfg.model.imu)

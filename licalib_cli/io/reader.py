@@ -75,7 +75,7 @@ from pathlib import Path
 from licalib_cli.config import CalibConfig
 from licalib_cli.errors import ExcitationError, TimestampError
 from licalib_cli.io.bag import CLOUD_TYPE, IMU_TYPE, open_bag, select_topic
-from licalib_cli.io.clock_rate import streams_clock_rate
+from licalib_cli.io.clock_rate import rate_warning, streams_clock_rate
 from licalib_cli.io.cloud_layout import ScanTally, detect_layout
 from licalib_cli.io.findings import Finding, raise_fatal
 from licalib_cli.io.imu_stream import ImuRead, read_imu_stream
@@ -195,8 +195,9 @@ def read_segment(path: Path, cfg: CalibConfig, *, min_span_s: float = MIN_SEGMEN
     assert layout is not None and units is not None and lidar.clock_offset_ns is not None
     warnings = [f.message for f in findings] + units.messages() + list(layout.time.notes)
     rate = streams_clock_rate(imu, lidar)
-    if rate is not None and rate.material:
-        warnings.append(rate.text("clock_drift" in cfg.model.imu))
+    told = rate_warning(rate, cfg)
+    if told is not None:
+        warnings.append(told)
     if cfg.bag.duration_s is None and window.stop_ns is not None:
         warnings.append(
             f"The bag lasts {(bag_end - bag_start) / _NS:.0f} s; only {cfg.bag.max_duration_s:g} "
