@@ -371,6 +371,13 @@ def main() -> None:
     args = p.parse_args()
     if not args.duration > 0:
         p.error(f"--duration must be a positive number of seconds, not {args.duration}")
+    from licalib_cli.simulation.spec import MAX_RECORD_DELAY_MS
+
+    if not 0.0 <= args.record_delay_ms <= MAX_RECORD_DELAY_MS:
+        p.error(
+            f"--record-delay-ms must be in [0, {MAX_RECORD_DELAY_MS:g}] ms, "
+            f"not {args.record_delay_ms}"
+        )
     check_rates(p, args)
     if args.one is not None:
         print(json.dumps(one_run(json.loads(args.one), Path(args.workdir))))

@@ -56,6 +56,14 @@ def test_every_listed_case_carries_the_record_delay_and_none_by_default() -> Non
     assert all("record_delay_ms" not in line for line in plain.stdout.splitlines())
 
 
+@pytest.mark.parametrize("value", ["-1", "50", "nan"])
+def test_a_record_delay_outside_its_range_is_refused(value: str) -> None:
+    out = _run("--record-delay-ms", value)
+    assert out.returncode == 2
+    assert "--record-delay-ms must be in [0, 20] ms" in out.stderr
+    assert "Traceback" not in out.stderr
+
+
 def test_the_default_rates_are_left_to_the_simulator() -> None:
     out = _run("--only", "clean")
     assert out.returncode == 0, out.stderr
