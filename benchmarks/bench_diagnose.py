@@ -1,7 +1,8 @@
 """Does ``licalib diagnose`` name the effect hidden in a bag, close its gap, and fix the extrinsic?
 
 Cases: each candidate the simulator can hide, alone, on shaking and sinusoid motion (VLP-16 and
-OS1-64 in turn), four pairs, and clean controls. Per run it prints the effects injected and the
+OS1-64 in turn), pairs (five of unrelated effects, five of rivals: effects that explain most of
+each other's score test), and clean controls. Per run it prints the effects injected and the
 effects named, the gap shrink of each named effect's sensor, the extrinsic error before and after
 and the wall time; at the end a confusion table (injected against named).
 
@@ -57,6 +58,12 @@ PAIRS = [
     ("accel_scale", "lidar_horizontal_offset"),
     ("gyro_misalignment", "imu_clock_drift"),
     ("gyro_bias_walk", "lidar_point_time"),
+    # rivals: each explains most of the other's score test, and both are there
+    ("lidar_elevation", "lidar_vertical_offset"),
+    ("lidar_azimuth", "lidar_horizontal_offset"),
+    ("lidar_range_offset", "lidar_range_scale"),
+    ("gyro_rotation", "accel_misalignment"),
+    ("gyro_misalignment", "g_sensitivity"),
 ]
 
 

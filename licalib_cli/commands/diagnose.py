@@ -187,6 +187,23 @@ def rival_sentence(s: Any) -> str | None:
     return f"{led}: {share}, and {better}."
 
 
+def retried_sentence(s: Any) -> str | None:
+    """The sentence for a rival tried again once the effect it lost to was kept (None for any
+    other step)."""
+    if not s.retried_after:
+        return None
+    first = s.retried_after
+    outcome = (
+        f"it paid too (BIC {s.delta_bic:+.1f}): both are in the model"
+        if s.kept
+        else f"it did not pay (BIC {s.delta_bic:+.1f})"
+    )
+    return (
+        f"{s.effect} lost to {first} as its rival, and was tried again with {first} in: its "
+        f"score test was still {s.statistic:.1f} on {s.dof} degrees of freedom; {outcome}."
+    )
+
+
 def diagnosis_dict(diag: Any) -> dict[str, Any]:
     """The diagnosis as plain data (the JSON and ``diagnosis.yaml`` content)."""
     steps = []
@@ -209,6 +226,7 @@ def diagnosis_dict(diag: Any) -> dict[str, Any]:
                 "rival_named": s.rival_named or None,
                 "rival_of": s.rival_of or None,
                 "rival_share": _num(s.rival_share, 3),
+                "retried_after": s.retried_after or None,
                 "final_p_value": _num(s.final_p_value, 3),
                 "unpaid": _unpaid_dict(s.unpaid),
                 "spread": _spread_dict(s),
@@ -426,6 +444,8 @@ def render_diagnosis(diag: Any) -> None:
             )
         elif (picked := rival_sentence(s)) is not None:
             out.print(picked)
+        if (again := retried_sentence(s)) is not None:
+            out.print(again)
     for s in diag.steps:
         sentence, spread = unpaid_sentence(s), spread_sentence(s)
         if sentence is not None:

@@ -201,6 +201,9 @@ class DiagnosisStep:
             empty for the leader and a step without rivals.
         rival_share: with ``rival_of``, the share of the leader's score it explains when freed
             with it (NaN otherwise).
+        retried_after: the effect this one lost to as its rival at an earlier step, when it
+            was tried again once that effect was kept (its test then conditional on it:
+            :class:`~licalib_cli.pipeline.diagnose.CandidatePool`); empty otherwise.
     """
 
     effect: str
@@ -237,6 +240,7 @@ class DiagnosisStep:
     sized_delta_bic: float = float("nan")
     rival_of: str = ""
     rival_share: float = float("nan")
+    retried_after: str = ""
 
     @property
     def unpaid(self) -> Unpaid | None:

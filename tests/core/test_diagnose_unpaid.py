@@ -318,3 +318,32 @@ def test_a_rival_named_in_place_of_the_leader_says_why(monkeypatch: pytest.Monke
     row, leader = _steps_dict(monkeypatch, picked, _step(kept=True, delta_bic=-30.0))
     assert row["rival_of"] == "accel_misalignment" and row["rival_share"] == pytest.approx(0.83)
     assert leader["rival_of"] is None and leader["rival_share"] is None
+
+
+def test_a_rival_tried_again_with_its_winner_in_says_so(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The paper's case on a 15 s VLP-16 sinusoid: the vertical offsets lost to the elevations
+    as their rival, and with the elevations in their score test was still 1767.6 on 15."""
+    from licalib_cli.commands.diagnose import retried_sentence
+
+    lost = _step(effect="lidar_vertical_offset", rival_of="lidar_elevation", delta_bic=-47955.4)
+    lost = replace(lost, rival_named="lidar_elevation")
+    again = _step(
+        effect="lidar_vertical_offset",
+        statistic=1767.6,
+        dof=15,
+        kept=True,
+        delta_bic=-758.6,
+        retried_after="lidar_elevation",
+    )
+    text = retried_sentence(again) or ""
+    assert text.startswith(
+        "lidar_vertical_offset lost to lidar_elevation as its rival, and was tried again with "
+        "lidar_elevation in: its score test was still 1767.6 on 15 degrees of freedom"
+    )
+    assert text.endswith("it paid too (BIC -758.6): both are in the model.")
+    unpaid = retried_sentence(replace(again, kept=False, delta_bic=12.0)) or ""
+    assert unpaid.endswith("it did not pay (BIC +12.0).")
+    assert retried_sentence(lost) is None
+    first, second = _steps_dict(monkeypatch, lost, again)
+    assert first["retried_after"] is None and first["rival_named"] == "lidar_elevation"
+    assert second["retried_after"] == "lidar_elevation" and second["kept"]

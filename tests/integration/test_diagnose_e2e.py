@@ -670,3 +670,76 @@ def test_an_effect_of_a_final_model_with_several_gets_its_share_of_its_sensors_g
     assert 0.7 * reopened < before.excess < 1.3 * reopened
     assert max(after.excess, 0.0) < 0.2 * before.excess  # in, it closes it
     assert after.chi2_per_sample == _gap(run, "gyro", cfg, rate, None).chi2_per_sample
+
+
+def _scored(name: str, statistic: float, rank: int, p_value: float) -> Any:
+    from types import SimpleNamespace
+
+    from licalib_cli.consistency import EffectScore
+
+    z = np.zeros(rank)
+    return SimpleNamespace(score=EffectScore(name, statistic, rank, p_value, z, z, z, z))
+
+
+def test_a_rival_that_lost_to_an_effect_kept_is_offered_once_more() -> None:
+    """On the paper's case (every intrinsic off) the elevations won against the vertical
+    offsets; with the elevations in, the offsets' test was still 1748 on 15 degrees of freedom.
+    A candidate tried before is not offered again, unless it is a rival that lost to an effect
+    kept: it stays on offer while significant given the winner, once; one the data do not
+    determine (rank 0) or not allowed is never offered."""
+    from licalib_cli.pipeline.diagnose import CandidatePool
+
+    def names(found: list[Any]) -> list[str]:
+        return [e.score.name for e in found]
+
+    pool = CandidatePool(("lidar_elevation", "lidar_vertical_offset", "gyro_scale", "accel_scale"))
+    base = [
+        _scored("lidar_elevation", 49495.5, 15, 0.0),
+        _scored("lidar_vertical_offset", 47613.0, 15, 0.0),
+        _scored("gyro_scale", 3.1, 3, 0.38),
+        _scored("accel_scale", 347.4, 3, 1e-70),
+        _scored("lidar_point_time", 1e4, 1, 0.0),  # not allowed
+        _scored("lidar_azimuth", 0.0, 0, 1.0),  # not determined
+    ]
+    options, significant = pool.offered(base)
+    assert names(options) == [
+        "lidar_elevation",
+        "lidar_vertical_offset",
+        "gyro_scale",
+        "accel_scale",
+    ]
+    assert names(significant) == ["lidar_elevation", "lidar_vertical_offset", "accel_scale"]
+    assert pool.refitting("lidar_elevation") is None
+    assert pool.refitting("lidar_vertical_offset") is None
+    pool.decided(["lidar_vertical_offset"], "lidar_elevation", kept=True)
+    # with the elevations in: the offsets still show, and are offered
+    with_elevation = [
+        _scored("lidar_vertical_offset", 1748.3, 15, 0.0),
+        _scored("gyro_scale", 3.1, 3, 0.38),
+        _scored("accel_scale", 340.0, 3, 1e-70),
+    ]
+    options, significant = pool.offered(with_elevation)
+    assert names(significant) == ["lidar_vertical_offset", "accel_scale"]
+    # the accelerometer scale is tried first: the offsets keep their chance while they show
+    assert pool.refitting("accel_scale") is None
+    pool.decided([], "accel_scale", kept=True)
+    options, significant = pool.offered(with_elevation[:2])
+    assert names(significant) == ["lidar_vertical_offset"]
+    assert pool.refitting("lidar_vertical_offset") == "lidar_elevation"
+    # tried twice: never again, even when it lost once more to an effect kept
+    pool.decided(["lidar_vertical_offset"], "gyro_scale", kept=True)
+    assert pool.offered(with_elevation)[0] == [with_elevation[1]]
+
+    # a rival that only echoed its winner is not significant given it, and leaves the pool
+    echo = CandidatePool(("lidar_elevation", "lidar_vertical_offset"))
+    echo.refitting("lidar_elevation")
+    echo.refitting("lidar_vertical_offset")
+    echo.decided(["lidar_vertical_offset"], "lidar_elevation", kept=True)
+    assert echo.offered([_scored("lidar_vertical_offset", 20.0, 15, 0.2)])[1] == []
+    assert echo.offered([_scored("lidar_vertical_offset", 1748.3, 15, 0.0)])[0] == []
+    # a rival that lost to an effect not kept (neither paid) gets no second chance
+    unpaid = CandidatePool(("lidar_elevation", "lidar_vertical_offset"))
+    unpaid.refitting("lidar_elevation")
+    unpaid.refitting("lidar_vertical_offset")
+    unpaid.decided(["lidar_vertical_offset"], "lidar_elevation", kept=False)
+    assert unpaid.offered([_scored("lidar_vertical_offset", 1748.3, 15, 0.0)])[0] == []
