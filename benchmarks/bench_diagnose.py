@@ -336,6 +336,13 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
             for e in (out.truth.simulation.effects if out.truth.simulation else ())
             if e.name in case["effects"]
         },
+        # an effect tried and not added: its score test's p-value on the final fit (with the
+        # effects added in; at or above the significance level they explain what it showed)
+        "final_p": {
+            s.effect: s.final_p_value
+            for s in diag.steps
+            if not s.kept and s.effect not in diag.effects_found
+        },
         # the size diagnose says this bag would need to show each candidate it did not add
         "not_shown": {n.effect: [*n.detectable, n.detectable_best[0]] for n in diag.not_shown},
         "scale": scale,
@@ -361,6 +368,15 @@ def judge(row: dict) -> list[str]:
                     f"{effect} tried (score {step[1]:.1f} on {step[2]}), BIC change "
                     f"{step[3]:+.1f}: not kept"
                 )
+        final_p = row.get("final_p", {}).get(effect)
+        if final_p is not None:
+            from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE
+
+            given = "not significant" if final_p >= EFFECT_P_VALUE else "still significant"
+            misses.append(
+                f"{effect}'s test on the final fit, with the effects named in: p = {final_p:.2g} "
+                f"({given})"
+            )
         shown = row.get("not_shown", {}).get(effect)
         if shown is not None and effect in rms:
             below = "below" if rms[effect] < shown[0] else "above"
