@@ -945,7 +945,6 @@ def diagnose(
         for t in trials:
             if t is not step:
                 steps.append(replace(t, kept=False, rival_named=step.effect))
-        pool.decided([t.effect for t in trials if t is not step], step.effect, step.kept)
         evidence = next(e for e in [best, *rivals] if e.score.name == step.effect)
         spread = spread_worth_trying(step, evidence.score)
         if spread is not None:
@@ -971,6 +970,8 @@ def diagnose(
                 step = replace(step, spread=used, spread_delta_bic=shared.delta_bic)
         if step.kept and step.effect in WALKS and cfg.model.bias_walk_piece_s is None:
             step, cfg = finer_walk(step, refit_of(evidence), cfg)
+        losers = [t.effect for t in trials if t.effect != step.effect]
+        pool.decided(losers, step.effect, step.kept)
         steps.append(step)
         if step.kept:
             kept = (*kept, step.effect)
