@@ -167,6 +167,8 @@ def report(rows: list[dict]) -> None:
     """The confusion table (each injected effect against what was named for it: itself, or
     nothing; each effect named but not injected against "(none injected)") and the count of
     runs missing a target."""
+    from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE
+
     confusion: Counter = Counter()
     for r in rows:
         injected, named = set(r["effects"]), named_for(r)
@@ -174,7 +176,12 @@ def report(rows: list[dict]) -> None:
         for e in sorted(injected) or ["(clean)"]:
             shown = r.get("not_shown", {}).get(e)
             quiet = shown is not None and e in rms and rms[e] < shown[0]
-            label = "(not named, below what the bag shows)" if quiet else "(not named)"
+            final_p = r.get("final_p", {}).get(e)
+            label = "(not named)"
+            if quiet:
+                label = "(not named, below what the bag shows)"
+            elif final_p is not None and final_p >= EFFECT_P_VALUE:
+                label = "(not named, not shown given the effects named)"
             alike = [
                 n for n in r["named"] if n != e and e in r.get("not_told_apart", {}).get(n, [])
             ]
