@@ -1,0 +1,140 @@
+"""The forward selection gives a rival that lost to an effect kept a second chance: the loop of
+:func:`licalib_cli.pipeline.diagnose.diagnose` with every fit replaced by a scripted one."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+
+import licalib_cli.pipeline.diagnose as dg
+from licalib_cli.config import load_config
+from licalib_cli.consistency import EffectScore
+from licalib_cli.pipeline.diagnosis_step import DiagnosisStep, Gap
+
+
+def _evidence(name: str, statistic: float, p: float, explained_by: dict[str, float]) -> Any:
+    z = np.zeros(15)
+    return SimpleNamespace(
+        score=EffectScore(name, statistic, 15, p, z, z, z, z),
+        statistic_alone=statistic,
+        explained_by=explained_by,
+        selected=False,
+    )
+
+
+def _run(*effects: Any) -> Any:
+    return SimpleNamespace(effects=list(effects))
+
+
+def _step(effect: str, delta_bic: float, rival_bic: float, after: Any) -> DiagnosisStep:
+    gap = Gap("lidar", 1.2, 1.0, 0.01)
+    return DiagnosisStep(
+        effect=effect,
+        statistic=1.0,
+        dof=15,
+        p_value=0.0,
+        delta_bic=delta_bic,
+        kept=delta_bic < 0.0,
+        estimate={},
+        gap_before=gap,
+        gap_after=gap,
+        moved_translation_m=0.0,
+        moved_rotation_deg=0.0,
+        moved_time_offset_s=0.0,
+        rival_delta_bic=rival_bic,
+        after=after,
+    )
+
+
+class _Imu:
+    t_ns = np.array([0, 10_000_000_000])
+
+    def __len__(self) -> int:
+        return 2
+
+
+def _diagnose(monkeypatch: pytest.MonkeyPatch, base: Any, refits: dict[str, Any]) -> Any:
+    """``diagnose`` on scripted fits: ``refits[name](run)`` is the step of refitting ``name``
+    on ``run``."""
+    monkeypatch.setattr(
+        dg, "prepare", lambda *a, **k: SimpleNamespace(rec=SimpleNamespace(imu=_Imu()), guess=None)
+    )
+    monkeypatch.setattr(dg, "fit_and_check", lambda *a, **k: base)
+    monkeypatch.setattr(dg, "twin_of", lambda run, cfg: None)
+
+    def refit_with(evidence: Any, *, run: Any, **_: Any) -> Any:
+        return lambda cfg: refits[evidence.score.name](run)
+
+    monkeypatch.setattr(dg, "_refit_with", refit_with)
+    monkeypatch.setattr(dg, "sized_refit", lambda step, score, refit, cfg: (step, cfg))
+    monkeypatch.setattr(dg, "with_sizes_of", lambda cfg, others: cfg)
+    monkeypatch.setattr(dg, "_compare_rivals", lambda trials, kept, cfg, samples: trials)
+    monkeypatch.setattr(dg, "_sensor_samples", lambda run, sensor: 1000)
+    monkeypatch.setattr(dg, "drop_redundant", lambda kept, deltas, refit: [])
+    monkeypatch.setattr(dg, "_not_shown", lambda run, allowed, found: ())
+    return dg.diagnose("bag.bag", load_config(None))
+
+
+ELEVATION, OFFSET = "lidar_elevation", "lidar_vertical_offset"
+
+
+def test_a_rival_the_fit_with_its_winner_still_shows_is_refitted_and_kept(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The paper's case: the elevations win against the vertical offsets (their rival, 0.93 of
+    the elevations' score), and with the elevations in the offsets still show (1748 on 15)."""
+    done = _run()
+    with_elevation = _run(_evidence(OFFSET, 1748.3, 0.0, {}))
+    base = _run(
+        _evidence(ELEVATION, 49495.5, 0.0, {OFFSET: 0.93}),
+        _evidence(OFFSET, 47613.0, 0.0, {ELEVATION: 0.9}),
+    )
+    refits = {
+        ELEVATION: lambda run: _step(ELEVATION, -53206.7, -1143.5, with_elevation),
+        OFFSET: lambda run: (
+            _step(OFFSET, -47955.4, 1143.5, _run())
+            if run is base
+            else _step(OFFSET, -758.6, float("nan"), done)
+        ),
+    }
+    diag = _diagnose(monkeypatch, base, refits)
+    assert diag.effects_found == (ELEVATION, OFFSET)
+    assert [(s.effect, s.kept, s.rival_named, s.retried_after) for s in diag.steps] == [
+        (OFFSET, False, ELEVATION, ""),
+        (ELEVATION, True, "", ""),
+        (OFFSET, True, "", ELEVATION),
+    ]
+    assert diag.final is done
+
+
+def test_a_rival_that_only_echoed_its_winner_is_not_refitted_again(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """With the elevations in, the offsets' test is that of noise: no second refit; nor when
+    the winner was not kept."""
+    with_elevation = _run(_evidence(OFFSET, 14.0, 0.45, {}))
+    base = _run(
+        _evidence(ELEVATION, 49495.5, 0.0, {OFFSET: 0.93}),
+        _evidence(OFFSET, 47613.0, 0.0, {ELEVATION: 0.9}),
+    )
+    calls: list[str] = []
+
+    def refit(name: str, delta: float, rival_bic: float) -> Any:
+        def run_it(run: Any) -> DiagnosisStep:
+            calls.append(name)
+            return _step(name, delta, rival_bic, with_elevation)
+
+        return run_it
+
+    refits = {ELEVATION: refit(ELEVATION, -53206.7, -1.0), OFFSET: refit(OFFSET, -47955.4, 1.0)}
+    diag = _diagnose(monkeypatch, base, refits)
+    assert diag.effects_found == (ELEVATION,) and calls == [ELEVATION, OFFSET]
+
+    calls.clear()
+    unpaid = {ELEVATION: refit(ELEVATION, 30.0, -1.0), OFFSET: refit(OFFSET, 40.0, 1.0)}
+    diag = _diagnose(monkeypatch, base, unpaid)
+    assert diag.effects_found == () and calls == [ELEVATION, OFFSET]
+    assert [s.kept for s in diag.steps] == [False, False]
