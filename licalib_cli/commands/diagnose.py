@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -378,20 +379,13 @@ def _residual_table(title: str, run: Any, twin: Any) -> Table:
     return table
 
 
-def render_diagnosis(diag: Any) -> None:
-    """The residuals against the twin, the steps as a table, then the effects kept and the
-    final verdict."""
-    out = console()
-    out.print(
-        _residual_table(
-            "Base model: residuals measured and on its twin recording",
-            diag.base,
-            diag.base_twin,
-        )
-    )
+def steps_table(steps: Sequence[Any]) -> Table:
+    """The diagnosis steps as a table, one row per effect tried (a rival tried again has two)."""
     table = Table(title="Effects the base model lacks, strongest first")
+    # a narrow console folds the names rather than cut them: lidar_range_scale and
+    # lidar_range_offset both end "lidar_ra..." at 80 columns
+    table.add_column("effect", overflow="fold")
     for name in (
-        "effect",
         "score (dof)",
         "p",
         "BIC change",
@@ -400,7 +394,7 @@ def render_diagnosis(diag: Any) -> None:
         "kept",
     ):
         table.add_column(name)
-    for s in diag.steps:
+    for s in steps:
         table.add_row(
             s.effect,
             f"{s.statistic:.0f} ({s.dof})",
@@ -413,6 +407,21 @@ def render_diagnosis(diag: Any) -> None:
             f"{1e3 * s.moved_time_offset_s:.3f} ms",
             "yes" if s.kept else ("dropped" if s.dropped_for else "no"),
         )
+    return table
+
+
+def render_diagnosis(diag: Any) -> None:
+    """The residuals against the twin, the steps as a table, then the effects kept and the
+    final verdict."""
+    out = console()
+    out.print(
+        _residual_table(
+            "Base model: residuals measured and on its twin recording",
+            diag.base,
+            diag.base_twin,
+        )
+    )
+    table = steps_table(diag.steps)
     if diag.steps:
         out.print(table)
     if diag.effects_found:

@@ -347,3 +347,23 @@ def test_a_rival_tried_again_with_its_winner_in_says_so(monkeypatch: pytest.Monk
     first, second = _steps_dict(monkeypatch, lost, again)
     assert first["retried_after"] is None and first["rival_named"] == "lidar_elevation"
     assert second["retried_after"] == "lidar_elevation" and second["kept"]
+
+
+def test_the_steps_table_keeps_every_effect_name_whole_at_80_columns() -> None:
+    """A range scale and a range offset both read "lidar_ra..." when the table cut the names
+    to fit an 80-column console; folded, each name is whole once the cell's lines are joined."""
+    from rich.console import Console
+
+    from licalib_cli.commands.diagnose import steps_table
+
+    names = ["lidar_range_scale", "lidar_range_offset", "lidar_horizontal_offset"]
+    rows = [_step(effect=n, statistic=78694.0, dof=16, delta_bic=-212068.0) for n in names]
+    out = Console(width=80, record=True, color_system=None)
+    out.print(steps_table(rows))
+    text = out.export_text()
+    assert "…" not in text
+    first_cells = [line.split("│")[1].strip() for line in text.splitlines() if line.startswith("│")]
+    joined = "".join(first_cells)
+    for n in names:
+        assert n in joined
+    assert joined.index(names[0]) < joined.index(names[1]) < joined.index(names[2])
