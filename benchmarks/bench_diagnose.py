@@ -26,7 +26,10 @@ MTi-100's, a 1 % per-point time error (``licalib simulate --effect NAME --effect
 benchmarks/_effects.py and licalib_cli/simulation/effects.py); the IMU effects of
 :data:`STRONGER` at five times, the bias walks over 20 s (:data:`LONGER`). Bags are 10 s
 otherwise (``--duration``: another length). A case whose effect is not named also prints the
-size diagnose says the bag would need to show it, against the RMS injected. At the end: how
+size diagnose says the bag would need to show it, against the RMS injected, or, when it was
+tried (a rival that lost, or a refit that did not pay), its test on the final fit: not
+significant there, the effects named explain what it showed (the confusion table says "not
+shown given the effects named"). At the end: how
 many runs end outside 0.3 cm / 0.05 deg / 0.1 ms, against how many an unbiased estimator with
 each final fit's solver covariance would (``_information.py``).
 """
