@@ -35,6 +35,7 @@ from licalib_cli.config import CalibConfig, ChecksSection
 from licalib_cli.io.clock_rate import MATERIAL_MOVE_S, SIGNIFICANT_SIGMAS, ClockRate
 from licalib_cli.pipeline.crawl import Crawl, crawl_at_cap
 from licalib_cli.pipeline.fitcheck import (
+    CANDIDATES,
     CHI2_QUIET,
     EffectEvidence,
     effect_evidence,
@@ -497,6 +498,16 @@ def _resting_advice(sigma_m: F64, limit_m: float, resting: Sequence[OnPrior]) ->
     )
 
 
+def model_entries(effects: Sequence[str]) -> str:
+    """The ``model:`` entries that estimate candidate ``effects``, e.g. ``model.lidar:
+    [range_scale]`` (one list per sensor, in the order the effects come)."""
+    lists: dict[str, list[str]] = {}
+    for name in effects:
+        sensor, block = CANDIDATES[name][:2]
+        lists.setdefault(sensor, []).append(block)
+    return ", ".join(f"model.{sensor}: [{', '.join(blocks)}]" for sensor, blocks in lists.items())
+
+
 def uncertainty_findings(
     sigma: F64,
     without_effects: F64,
@@ -526,8 +537,9 @@ def uncertainty_findings(
     sources = []
     if covered:
         sources.append(
-            f"the effects the model holds fixed ({', '.join(covered)}); licalib diagnose (or "
-            "calibrate --model auto) adds those the data support"
+            f"the effects the model holds fixed ({', '.join(covered)}); estimate them "
+            f"({model_entries(covered)} in the config) where the data support them, which "
+            "licalib diagnose (or calibrate --model auto) tests"
         )
     if prior is not None:
         sources.append(

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from scipy import optimize
 
 from licalib_cli.pipeline import CalibrationRun
-from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE
+from licalib_cli.pipeline.fitcheck import CANDIDATES, EFFECT_P_VALUE
 from licalib_cli.pipeline.twin import Twin
 
 __all__ = [
@@ -25,28 +25,6 @@ __all__ = [
     "data_to_pay",
     "unpaid_effect",
 ]
-
-CANDIDATES: dict[str, tuple[str, str, str]] = {
-    "gyro_scale": ("imu", "gyro_scale", "gyro"),
-    "gyro_misalignment": ("imu", "gyro_misalignment", "gyro"),
-    "gyro_rotation": ("imu", "gyro_rotation", "gyro"),
-    "accel_scale": ("imu", "accel_scale", "accelerometer"),
-    "accel_misalignment": ("imu", "accel_misalignment", "accelerometer"),
-    "g_sensitivity": ("imu", "g_sensitivity", "gyro"),
-    "gyro_bias_walk": ("imu", "gyro_bias_walk", "gyro"),
-    "accel_bias_walk": ("imu", "accel_bias_walk", "accelerometer"),
-    "imu_clock_drift": ("imu", "clock_drift", "lidar"),
-    "lidar_range_offset": ("lidar", "range_offset", "lidar"),
-    "lidar_range_scale": ("lidar", "range_scale", "lidar"),
-    "lidar_elevation": ("lidar", "elevation", "lidar"),
-    "lidar_azimuth": ("lidar", "azimuth", "lidar"),
-    "lidar_vertical_offset": ("lidar", "vertical_offset", "lidar"),
-    "lidar_horizontal_offset": ("lidar", "horizontal_offset", "lidar"),
-    "lidar_point_time": ("lidar", "point_time", "lidar"),
-}
-"""Candidate effect -> (``model:`` list it joins, its name there, the sensor whose gap it
-closes). The clock drift and the per-point time show in the LiDAR's residuals (points are placed
-at the wrong trajectory time)."""
 
 COORDINATE_PREFIX = {
     "gyro_scale": "imu.gyro_scale.",

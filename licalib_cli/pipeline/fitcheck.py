@@ -45,6 +45,7 @@ from licalib_cli.solver.problem import Evaluation, Linearization, Problem
 from licalib_cli.solver.schur import schur_complement
 
 __all__ = [
+    "CANDIDATES",
     "CHI2_EXCESS",
     "CHI2_QUIET",
     "EFFECT_P_VALUE",
@@ -110,6 +111,28 @@ def _every_kth(n: int, at_most: int) -> npt.NDArray[np.intp]:
     """The indices of a regular subset of at most ``at_most`` of ``n`` points."""
     return np.arange(0, n, max(int(np.ceil(n / at_most)), 1), dtype=np.intp)
 
+
+CANDIDATES: dict[str, tuple[str, str, str]] = {
+    "gyro_scale": ("imu", "gyro_scale", "gyro"),
+    "gyro_misalignment": ("imu", "gyro_misalignment", "gyro"),
+    "gyro_rotation": ("imu", "gyro_rotation", "gyro"),
+    "accel_scale": ("imu", "accel_scale", "accelerometer"),
+    "accel_misalignment": ("imu", "accel_misalignment", "accelerometer"),
+    "g_sensitivity": ("imu", "g_sensitivity", "gyro"),
+    "gyro_bias_walk": ("imu", "gyro_bias_walk", "gyro"),
+    "accel_bias_walk": ("imu", "accel_bias_walk", "accelerometer"),
+    "imu_clock_drift": ("imu", "clock_drift", "lidar"),
+    "lidar_range_offset": ("lidar", "range_offset", "lidar"),
+    "lidar_range_scale": ("lidar", "range_scale", "lidar"),
+    "lidar_elevation": ("lidar", "elevation", "lidar"),
+    "lidar_azimuth": ("lidar", "azimuth", "lidar"),
+    "lidar_vertical_offset": ("lidar", "vertical_offset", "lidar"),
+    "lidar_horizontal_offset": ("lidar", "horizontal_offset", "lidar"),
+    "lidar_point_time": ("lidar", "point_time", "lidar"),
+}
+"""Candidate effect -> (``model:`` list it joins, its name there, the sensor whose gap it
+closes). The clock drift and the per-point time show in the LiDAR's residuals (points are placed
+at the wrong trajectory time)."""
 
 _LIDAR_EFFECTS = {
     "dphi": "lidar_elevation",

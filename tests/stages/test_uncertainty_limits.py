@@ -59,6 +59,7 @@ def test_a_sigma_over_the_limit_by_the_imu_priors_names_them_not_the_motion() ->
     assert "more rotation" not in finding.text
     (both,) = uncertainty_findings(sigma, without, limits, ["accel_scale"], "gyro_rotation")
     assert "(accel_scale)" in both.text and "(most from gyro_rotation)" in both.text
+    assert "estimate them (model.imu: [accel_scale] in the config)" in both.text
     (motion,) = uncertainty_findings(sigma, sigma, limits, prior="gyro_rotation")
     assert "more rotation" in motion.text
     # about what the data determine: a joint over segments judges its own sigmas instead
@@ -168,3 +169,31 @@ def test_a_sigma_held_over_the_limit_by_the_halves_says_so() -> None:
     # halves not compared (a segment too short to split): nothing either
     (finding,) = uncertainty_findings(sigma, sigma, limits, halves=SplitResult(ran=False))
     assert "halves" not in finding.text
+
+
+def test_the_model_entries_that_estimate_held_effects_are_named() -> None:
+    """The paper's case under calibrate --model auto: the per-beam range scales, held and
+    hinted at, made the translation sigma 11.8 mm; the finding pointed to --model auto, the
+    very command run. It names the config entries that estimate them instead."""
+    from licalib_cli.pipeline.checks import model_entries
+
+    assert model_entries(["lidar_range_scale"]) == "model.lidar: [range_scale]"
+    assert (
+        model_entries(
+            ["lidar_vertical_offset", "gyro_scale", "lidar_point_time", "imu_clock_drift"]
+        )
+        == "model.lidar: [vertical_offset, point_time], model.imu: [gyro_scale, clock_drift]"
+    )
+    sigma = _sigma(11.8, 0.01, 0.05)
+    (finding,) = uncertainty_findings(
+        sigma, _sigma(1.4, 0.01, 0.05), CalibConfig().checks, ["lidar_range_scale"]
+    )
+    assert "estimate them (model.lidar: [range_scale] in the config)" in finding.text
+    # every candidate's entry is one the config accepts
+    from licalib_cli.pipeline.fitcheck import CANDIDATES
+
+    lists: dict[str, list[str]] = {}
+    for sensor, block, _ in CANDIDATES.values():
+        lists.setdefault(sensor, []).append(block)
+    cfg = CalibConfig.model_validate({"model": lists})
+    assert len(cfg.model.imu) + len(cfg.model.lidar) == len(CANDIDATES)
