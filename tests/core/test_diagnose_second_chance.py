@@ -8,11 +8,12 @@ from typing import Any
 
 import numpy as np
 import pytest
+from diagnosis_steps import diagnosis_step
 
 import licalib_cli.pipeline.diagnose as dg
 from licalib_cli.config import load_config
 from licalib_cli.consistency import EffectScore
-from licalib_cli.pipeline.diagnosis_step import DiagnosisStep, Gap
+from licalib_cli.pipeline.diagnosis_step import DiagnosisStep
 
 
 def _evidence(name: str, statistic: float, p: float, explained_by: dict[str, float]) -> Any:
@@ -30,20 +31,13 @@ def _run(*effects: Any) -> Any:
 
 
 def _step(effect: str, delta_bic: float, rival_bic: float, after: Any) -> DiagnosisStep:
-    gap = Gap("lidar", 1.2, 1.0, 0.01)
-    return DiagnosisStep(
+    return diagnosis_step(
         effect=effect,
-        statistic=1.0,
         dof=15,
         p_value=0.0,
         delta_bic=delta_bic,
         kept=delta_bic < 0.0,
         estimate={},
-        gap_before=gap,
-        gap_after=gap,
-        moved_translation_m=0.0,
-        moved_rotation_deg=0.0,
-        moved_time_offset_s=0.0,
         rival_delta_bic=rival_bic,
         after=after,
     )

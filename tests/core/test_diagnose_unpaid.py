@@ -8,6 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from diagnosis_steps import diagnosis_step
 
 from licalib_cli.commands.diagnose import diagnosis_dict, unpaid_sentence
 from licalib_cli.pipeline.diagnosis_step import (
@@ -64,24 +65,7 @@ def test_data_to_pay_edges() -> None:
 
 
 def _step(**kw: object) -> DiagnosisStep:
-    gap = Gap("lidar", 1.02, 1.0, 0.008)
-    values: dict[str, object] = {
-        "effect": "lidar_range_scale",
-        "statistic": 192.5,
-        "dof": 64,
-        "p_value": 9e-15,
-        "delta_bic": 600.0,
-        "kept": False,
-        "estimate": {f"lidar.intrinsics[{i}].s": (1.0, 1e-4) for i in range(64)},
-        "gap_before": gap,
-        "gap_after": gap,
-        "moved_translation_m": 8e-4,
-        "moved_rotation_deg": 0.004,
-        "moved_time_offset_s": 2e-5,
-        "bic_log_n": 12.0,
-    }
-    values.update(kw)
-    return DiagnosisStep(**values)  # type: ignore[arg-type]
+    return diagnosis_step(**kw)
 
 
 def test_a_significant_effect_that_did_not_pay_is_explained() -> None:
