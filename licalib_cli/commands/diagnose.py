@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from licalib_cli.commands.options import (
@@ -503,7 +504,7 @@ def render_diagnosis(diag: Any) -> None:
         f"[bold {colour[v1]}]{v1.upper()}[/]"
     )
     for reason in diag.final.verdict.reasons:
-        out.print(f"  - {reason}")
+        out.print(f"  - {escape(reason)}")
 
 
 def diagnose_command(

@@ -13,7 +13,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from licalib_cli.results import CalibrationResult, estimate_rows
-from licalib_cli.sections import Consistency
+from licalib_cli.sections import Consistency, VerdictSection
 from licalib_cli.truth import Truth
 
 if TYPE_CHECKING:
@@ -99,6 +99,16 @@ def unobservable_lines(texts: tuple[str, ...] | list[str]) -> list[str]:
     ]
 
 
+def verdict_lines(verdict: VerdictSection) -> list[str]:
+    """The verdict and its reasons as console lines (the reasons are plain text: a bracketed
+    word in them, such as ``model.lidar: [range_scale]``, is not markup)."""
+    colour = {"pass": "green", "warn": "yellow", "fail": "red"}[verdict.status]
+    return [
+        f"Verdict: [bold {colour}]{verdict.status.upper()}[/]",
+        *(f"  - {escape(reason)}" for reason in verdict.reasons),
+    ]
+
+
 def render_run(run: CalibrationRun, truth: Truth | None) -> None:
     """Print the estimate table, the checks, the observability findings, the verdict and the
     stage timings."""
@@ -128,18 +138,15 @@ def render_run(run: CalibrationRun, truth: Truth | None) -> None:
     if r.consistency is not None:
         out.print(render_checks(r.consistency))
         for why in r.consistency.inflation:
-            out.print(f"Sigmas enlarged {why}.")
+            out.print(f"Sigmas enlarged {escape(why)}.")
     if r.observability is not None:
         for text in unobservable_lines(r.observability.unobservable):
             out.print(f"[yellow]Not observable:[/] {escape(text)}")
     for finding in run.checks.findings:
         if finding.severity == "note":
-            out.print(f"Note: {finding.text}")
-    verdict = run.checks.verdict
-    colour = {"pass": "green", "warn": "yellow", "fail": "red"}[verdict.status]
-    out.print(f"Verdict: [bold {colour}]{verdict.status.upper()}[/]")
-    for reason in verdict.reasons:
-        out.print(f"  - {reason}")
+            out.print(f"Note: {escape(finding.text)}")
+    for line in verdict_lines(run.checks.verdict):
+        out.print(line)
     total = sum(run.timings.values())
     out.print(
         "Stages: "

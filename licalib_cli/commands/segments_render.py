@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from rich.markup import escape
 from rich.table import Table
 
 from licalib_cli.commands.render import console
@@ -152,7 +153,7 @@ def run_segments(
     verdict = run.result.verdict
     assert verdict is not None
     for reason in verdict.reasons:
-        con.print(f"- {reason}")
+        con.print(f"- {escape(reason)}")
     con.print(f"Verdict: {verdict.status.upper()}")
     stages = ", ".join(f"{k} {v:.1f} s" for k, v in run.timings.items())
     con.print(f"Stages: {stages}")
