@@ -13,15 +13,24 @@ from diagnosis_steps import diagnosis_step
 import licalib_cli.pipeline.diagnose as dg
 from licalib_cli.config import load_config
 from licalib_cli.consistency import EffectScore
+from licalib_cli.pipeline.diagnose import CandidatePool
 from licalib_cli.pipeline.diagnosis_step import DiagnosisStep
 
 
-def _evidence(name: str, statistic: float, p: float, explained_by: dict[str, float]) -> Any:
-    z = np.zeros(15)
+def _evidence(
+    name: str,
+    statistic: float,
+    p: float,
+    explained_by: dict[str, float] | None = None,
+    rank: int = 15,
+) -> Any:
+    """A candidate's evidence: its score test (``rank`` degrees of freedom) alone, and the
+    shares of its score the others explain."""
+    z = np.zeros(rank)
     return SimpleNamespace(
-        score=EffectScore(name, statistic, 15, p, z, z, z, z),
+        score=EffectScore(name, statistic, rank, p, z, z, z, z),
         statistic_alone=statistic,
-        explained_by=explained_by,
+        explained_by=explained_by or {},
         selected=False,
     )
 
@@ -132,3 +141,66 @@ def test_a_rival_that_only_echoed_its_winner_is_not_refitted_again(
     diag = _diagnose(monkeypatch, base, unpaid)
     assert diag.effects_found == () and calls == [ELEVATION, OFFSET]
     assert [s.kept for s in diag.steps] == [False, False]
+
+
+def test_a_rival_that_lost_to_an_effect_kept_is_offered_once_more() -> None:
+    """On the paper's case (every intrinsic off) the elevations won against the vertical
+    offsets; with the elevations in, the offsets' test was still 1748 on 15 degrees of freedom.
+    A candidate tried before is not offered again, unless it is a rival that lost to an effect
+    kept: it stays on offer while significant given the winner, once; one the data do not
+    determine (rank 0) or not allowed is never offered."""
+
+    def names(found: list[Any]) -> list[str]:
+        return [e.score.name for e in found]
+
+    pool = CandidatePool(("lidar_elevation", "lidar_vertical_offset", "gyro_scale", "accel_scale"))
+    base = [
+        _evidence("lidar_elevation", 49495.5, 0.0),
+        _evidence("lidar_vertical_offset", 47613.0, 0.0),
+        _evidence("gyro_scale", 3.1, 0.38, rank=3),
+        _evidence("accel_scale", 347.4, 1e-70, rank=3),
+        _evidence("lidar_point_time", 1e4, 0.0, rank=1),  # not allowed
+        _evidence("lidar_azimuth", 0.0, 1.0, rank=0),  # not determined
+    ]
+    options, significant = pool.offered(base)
+    assert names(options) == [
+        "lidar_elevation",
+        "lidar_vertical_offset",
+        "gyro_scale",
+        "accel_scale",
+    ]
+    assert names(significant) == ["lidar_elevation", "lidar_vertical_offset", "accel_scale"]
+    assert pool.refitting("lidar_elevation") is None
+    assert pool.refitting("lidar_vertical_offset") is None
+    pool.decided(["lidar_vertical_offset"], "lidar_elevation", kept=True)
+    # with the elevations in: the offsets still show, and are offered
+    with_elevation = [
+        _evidence("lidar_vertical_offset", 1748.3, 0.0),
+        _evidence("gyro_scale", 3.1, 0.38, rank=3),
+        _evidence("accel_scale", 340.0, 1e-70, rank=3),
+    ]
+    options, significant = pool.offered(with_elevation)
+    assert names(significant) == ["lidar_vertical_offset", "accel_scale"]
+    # the accelerometer scale is tried first: the offsets keep their chance while they show
+    assert pool.refitting("accel_scale") is None
+    pool.decided([], "accel_scale", kept=True)
+    options, significant = pool.offered(with_elevation[:2])
+    assert names(significant) == ["lidar_vertical_offset"]
+    assert pool.refitting("lidar_vertical_offset") == "lidar_elevation"
+    # tried twice: never again, even when it lost once more to an effect kept
+    pool.decided(["lidar_vertical_offset"], "gyro_scale", kept=True)
+    assert pool.offered(with_elevation)[0] == [with_elevation[1]]
+
+    # a rival that only echoed its winner is not significant given it, and leaves the pool
+    echo = CandidatePool(("lidar_elevation", "lidar_vertical_offset"))
+    echo.refitting("lidar_elevation")
+    echo.refitting("lidar_vertical_offset")
+    echo.decided(["lidar_vertical_offset"], "lidar_elevation", kept=True)
+    assert echo.offered([_evidence("lidar_vertical_offset", 20.0, 0.2)])[1] == []
+    assert echo.offered([_evidence("lidar_vertical_offset", 1748.3, 0.0)])[0] == []
+    # a rival that lost to an effect not kept (neither paid) gets no second chance
+    unpaid = CandidatePool(("lidar_elevation", "lidar_vertical_offset"))
+    unpaid.refitting("lidar_elevation")
+    unpaid.refitting("lidar_vertical_offset")
+    unpaid.decided(["lidar_vertical_offset"], "lidar_elevation", kept=False)
+    assert unpaid.offered([_evidence("lidar_vertical_offset", 1748.3, 0.0)])[0] == []
