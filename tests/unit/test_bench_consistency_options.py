@@ -25,10 +25,15 @@ def _run(*args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+def _listed(out: subprocess.CompletedProcess[str]) -> list[dict]:
+    """The cases a ``--list`` run printed (it must have succeeded)."""
+    assert out.returncode == 0, out.stderr
+    return [ast.literal_eval(line) for line in out.stdout.splitlines() if line.startswith("{")]
+
+
 def test_every_listed_case_carries_the_duration() -> None:
     out = _run("--duration", "15", "--only", "clean")
-    assert out.returncode == 0, out.stderr
-    cases = [ast.literal_eval(line) for line in out.stdout.splitlines() if line.startswith("{")]
+    cases = _listed(out)
     assert cases and all(c["duration"] == 15.0 for c in cases)
 
 
@@ -42,15 +47,13 @@ def test_a_duration_that_is_not_a_positive_number_of_seconds_is_refused(value: s
 
 def test_every_listed_case_carries_the_sensor_rates() -> None:
     out = _run("--imu-rate", "100", "--lidar-rate", "20", "--only", "clean")
-    assert out.returncode == 0, out.stderr
-    cases = [ast.literal_eval(line) for line in out.stdout.splitlines() if line.startswith("{")]
+    cases = _listed(out)
     assert cases and all(c["imu_rate"] == 100.0 and c["lidar_rate"] == 20.0 for c in cases)
 
 
 def test_every_listed_case_carries_the_record_delay_and_none_by_default() -> None:
     out = _run("--record-delay-ms", "2", "--only", "clean")
-    assert out.returncode == 0, out.stderr
-    cases = [ast.literal_eval(line) for line in out.stdout.splitlines() if line.startswith("{")]
+    cases = _listed(out)
     assert cases and all(c["record_delay_ms"] == 2.0 for c in cases)
     plain = _run("--only", "clean")
     assert all("record_delay_ms" not in line for line in plain.stdout.splitlines())
@@ -66,8 +69,7 @@ def test_a_record_delay_outside_its_range_is_refused(value: str) -> None:
 
 def test_the_default_rates_are_left_to_the_simulator() -> None:
     out = _run("--only", "clean")
-    assert out.returncode == 0, out.stderr
-    cases = [ast.literal_eval(line) for line in out.stdout.splitlines() if line.startswith("{")]
+    cases = _listed(out)
     assert cases and all(c["imu_rate"] is None and c["lidar_rate"] is None for c in cases)
 
 
@@ -106,15 +108,13 @@ def _bench_diagnose() -> ModuleType:
 
 def test_the_diagnose_benchmark_carries_the_sensor_rates_into_every_case() -> None:
     out = _diagnose("--imu-rate", "200", "--only", "clean", "--list")
-    assert out.returncode == 0, out.stderr
-    cases = [ast.literal_eval(line) for line in out.stdout.splitlines() if line.startswith("{")]
+    cases = _listed(out)
     assert cases and all(c["imu_rate"] == 200.0 and c["lidar_rate"] is None for c in cases)
 
 
 def test_the_diagnose_benchmark_carries_the_length_of_its_bags_into_every_case() -> None:
     out = _diagnose("--duration", "20", "--only", "clean", "--list")
-    assert out.returncode == 0, out.stderr
-    cases = [ast.literal_eval(line) for line in out.stdout.splitlines() if line.startswith("{")]
+    cases = _listed(out)
     assert cases and all(c["duration"] == 20.0 for c in cases)
     refused = _diagnose("--duration", "0", "--list")
     assert refused.returncode == 2
