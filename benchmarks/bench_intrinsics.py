@@ -172,7 +172,7 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
             k[1] += 1
 
     est_imu, true_imu = res.imu_intrinsics, out.truth.imu_intrinsics
-    imu_err = {}
+    imu_err, imu_signed = {}, {}
     for block in imu_blocks:
         if block == "gyro_rotation":
             e = np.degrees(
@@ -189,7 +189,12 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
         tally(e, sig, key)
         determined = [abs(x) for x, s in zip(e.reshape(-1), sig, strict=True) if s is not None]
         imu_err[key] = max(determined) if determined else None
+        imu_signed[key] = [
+            None if s is None else float(x) for x, s in zip(e.reshape(-1), sig, strict=True)
+        ]
     row["imu_max_error"] = imu_err
+    # per coordinate, signed (None where the result gives no sigma): the paper's statistic
+    row["imu_error"] = imu_signed
     lidar_mae, lidar_mean, lidar_expected = {}, {}, {}
     lidar_solver_mae, lidar_solver_z = {}, {}
     solver_sd = dict(zip(report.calibration_names, report.std, strict=True))
@@ -239,6 +244,48 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
     row["within_3_sigma"] = [within, total]
     row["within_3_sigma_by_kind"] = per_kind
     return row
+
+
+PAPER_IMU_ERROR = {
+    "gyro_scale": 5e-4,
+    "accel_scale": 5e-4,
+    "gyro_misalignment": 1e-3,
+    "accel_misalignment": 1e-3,
+    "gyro_rotation_deg": 0.015,
+}
+"""The issue's bounds on the paper's Table simu_imu_intrinsic statistic: per coordinate, the
+mean of the estimates over the Monte Carlo seeds minus the truth."""
+
+
+def paper_imu_lines(rows: list[dict]) -> list[str]:
+    """The paper's IMU statistic over the seeds: per coordinate the mean signed error (its
+    Table simu_imu_intrinsic's "Error": the seeds there share one truth, here each draws its
+    own, so the mean of estimate minus truth) and the scatter of the errors (its +-), over the
+    seeds whose result determines that coordinate; then the largest mean per block against its
+    bound. The worst single seed (``IMU max error`` above) is the stricter figure."""
+    import numpy as np
+
+    out = []
+    keys = [k for k in PAPER_IMU_ERROR if any(k in r.get("imu_error", {}) for r in rows)]
+    for key in keys:
+        per_seed = [r["imu_error"][key] for r in rows if key in r.get("imu_error", {})]
+        cols = list(zip(*per_seed, strict=True))
+        means, spreads = [], []
+        for col in cols:
+            vals = np.array([v for v in col if v is not None], dtype=float)
+            means.append(float(vals.mean()) if vals.size else float("nan"))
+            spreads.append(float(vals.std()) if vals.size > 1 else float("nan"))
+        worst = float(np.nanmax(np.abs(means))) if np.any(np.isfinite(means)) else float("nan")
+        bound = PAPER_IMU_ERROR[key]
+        out.append(
+            f"IMU {key} (paper's statistic): mean error over the seeds "
+            + " ".join(f"{m:+.2g}" if np.isfinite(m) else "-" for m in means)
+            + " (scatter "
+            + " ".join(f"{s:.2g}" if np.isfinite(s) else "-" for s in spreads)
+            + f"); largest {worst:.2g} against {bound:g}: "
+            + ("within" if worst <= bound else "beyond")
+        )
+    return out
 
 
 def main() -> None:
@@ -345,6 +392,8 @@ def main() -> None:
             f"with the map planes' own uncertainty: expected mean |t| {exp_p:.3f} mm; "
             f"RMS of translation error / sigma {np.sqrt(np.mean(z_planes**2)):.2f}"
         )
+        for line in paper_imu_lines(rows):
+            print(line)
         w = sum(r["within_3_sigma"][0] for r in rows)
         n = sum(r["within_3_sigma"][1] for r in rows)
         print(f"within 3 sigma: {w}/{n} ({100 * w / max(n, 1):.1f} %)")
