@@ -142,7 +142,7 @@ def _refit_unmistakable(
     a refit with it estimated (:mod:`licalib_cli.pipeline.effect_refit`); ``run`` itself when
     there is none, or when the rounds did not converge (a refit would go on where they stopped,
     and its move would be theirs as much as the effect's)."""
-    from licalib_cli.pipeline.diagnose import with_effect  # diagnose builds on this module
+    from licalib_cli.pipeline.effect_models import with_effect  # builds on this module
 
     if not cfg.checks.refit_effects or run.checks.exit_status == "not converged":
         return run

@@ -12,9 +12,10 @@
    LiDAR points that dominate the total (with the total, an IMU effect with three parameters
    needed a cost decrease of 38 where its score test was significant from 26).
    A close rival (a candidate that explains most of its score when freed with it, of either
-   sensor: :func:`rivals_of`) is refitted as well and compared with it on the same data
-   (:func:`_rival_delta_bic`); a pair that neither score test separates is reported as not told
-   apart (:func:`not_told_apart`).
+   sensor: :func:`~.rivals.rivals_of`) is refitted as well and compared with it on the same
+   data (:func:`~.rivals.rival_delta_bic`); a pair that neither score test separates is reported
+   as not told apart (:func:`~.rivals.not_told_apart`). A rival that lost to an effect kept is
+   offered once more while the data still show it (:class:`~.rivals.CandidatePool`).
    A per-beam effect whose free numbers do not pay (each pays ``ln n``) is refitted once more
    as one random effect across beams: its numbers drawn from ``N(0, s^2)`` with the spread
    ``s`` that best explains its score (:mod:`licalib_cli.consistency.spread`, set in
@@ -32,7 +33,7 @@
    gyro rotation is in, the misalignment gains a sum of squares of 0.9 for its three
    parameters). Each kept effect but the last is taken out on the final fit's data (reset to
    its starting value, the rest re-solved); when the BIC is lower without it, it is dropped,
-   the model refitted without it, and the check repeated (:func:`drop_redundant`).
+   the model refitted without it, and the check repeated (:func:`~.backward.drop_redundant`).
 6. For every candidate not added, say how large it would have to be for this bag to show it
    (:class:`NotShown`): "not found" is then a statement about the data, not about the sensor.
 
@@ -52,8 +53,8 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from functools import partial
 
 from licalib_cli.config import CalibConfig, LidarSpreadSection
@@ -66,7 +67,7 @@ from licalib_cli.consistency.power import (
 )
 from licalib_cli.consistency.score import EffectScore
 from licalib_cli.consistency.spread import SharedSpread, shared_spread
-from licalib_cli.estimation import CalibrationState, intrinsic_coordinates
+from licalib_cli.estimation import intrinsic_coordinates
 from licalib_cli.pipeline import (
     CalibrationRun,
     Prepared,
@@ -74,45 +75,48 @@ from licalib_cli.pipeline import (
     fit_and_check,
     prepare,
 )
+from licalib_cli.pipeline.backward import deltas_without, drop_redundant
 from licalib_cli.pipeline.diagnosis_step import (
     CANDIDATES,
-    COORDINATE_PREFIX,
     GAP_NOISE_SIGMAS,
     LIDAR_SUFFIX,
     DiagnosisStep,
     Gap,
 )
+from licalib_cli.pipeline.effect_models import (
+    bic_terms,
+    final_config,
+    of_effect,
+    sensor_samples,
+    with_effects,
+    with_spread,
+    without_effect,
+)
 from licalib_cli.pipeline.effect_size import sized_refit, with_sizes_of
-from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
+from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE
 from licalib_cli.pipeline.held_effects import HELD_WEIGHT
+from licalib_cli.pipeline.rivals import CandidatePool, compare_rivals, pick_rival, rivals_of
 from licalib_cli.pipeline.round import extrinsic_of
-from licalib_cli.pipeline.settings import free_parameters, lm_params
+from licalib_cli.pipeline.settings import lm_params
 from licalib_cli.pipeline.twin import TWIN_ITERATIONS, Twin, twin_checks
-from licalib_cli.pipeline.walk_pieces import WALKS, finer_walk, with_walk_pieces
+from licalib_cli.pipeline.walk_pieces import WALKS, finer_walk
 from licalib_cli.progress import NullProgress, Progress
-from licalib_cli.solver.lm import solve
 
 __all__ = [
     "CANDIDATES",
     "DETECTION_POWER",
     "DISPLAY_UNITS",
     "GAP_NOISE_SIGMAS",
-    "CandidatePool",
     "Diagnosis",
     "DiagnosisStep",
     "Gap",
     "NotShown",
-    "alike",
     "detectable_rms",
     "diagnose",
-    "drop_redundant",
-    "final_config",
-    "rivals_of",
+    "share_of",
     "spread_worth_trying",
     "twin_of",
-    "with_effect",
-    "with_spread",
-    "without_effect",
+    "wants_share",
 ]
 
 logger = logging.getLogger(__name__)
@@ -249,41 +253,6 @@ def twin_of(run: CalibrationRun, cfg: CalibConfig) -> Twin | None:
     )
 
 
-def _with_effects(cfg: CalibConfig, effects: tuple[str, ...]) -> CalibConfig:
-    """``cfg`` whose ``model:`` section lists exactly ``effects`` (on top of nothing)."""
-    imu = [CANDIDATES[e][1] for e in effects if CANDIDATES[e][0] == "imu"]
-    lidar = [CANDIDATES[e][1] for e in effects if CANDIDATES[e][0] == "lidar"]
-    return cfg.model_copy(
-        update={"model": cfg.model.model_copy(update={"imu": imu, "lidar": lidar})}
-    )
-
-
-def with_spread(cfg: CalibConfig, effect: str, sigma: float) -> CalibConfig:
-    """``cfg`` whose ``model.lidar_spread`` gives per-beam ``effect`` the spread ``sigma``
-    (solver units)."""
-    block = CANDIDATES[effect][1]
-    spread = cfg.model.lidar_spread.with_sigma(block, sigma)
-    return cfg.model_copy(update={"model": cfg.model.model_copy(update={"lidar_spread": spread})})
-
-
-def final_config(cfg: CalibConfig, kept: tuple[str, ...]) -> CalibConfig:
-    """``cfg`` estimating exactly ``kept``, with the spreads of those among them kept as one
-    spread across beams and the expected sizes of those among them sized (the others' unset)."""
-    out = _with_effects(cfg, kept)
-    if not set(kept) & set(WALKS):
-        out = with_walk_pieces(out, None)
-    blocks = {CANDIDATES[e][1] for e in kept}
-    sizes = {b: v for b, v in cfg.model.expected_size.items() if b in blocks}
-    out = out.model_copy(update={"model": out.model.model_copy(update={"expected_size": sizes})})
-    spread = LidarSpreadSection()
-    for effect in kept:
-        block = CANDIDATES[effect][1]
-        sigma = cfg.model.lidar_spread.sigma_of(block) if effect in LIDAR_SUFFIX else None
-        if sigma is not None:
-            spread = spread.with_sigma(block, sigma)
-    return out.model_copy(update={"model": out.model.model_copy(update={"lidar_spread": spread})})
-
-
 def spread_worth_trying(step: DiagnosisStep, score: EffectScore) -> SharedSpread | None:
     """The spread across beams to refit a per-beam effect with, when its free numbers did not
     pay (``step``, the pick of its step) although its score test is significant, and the linear
@@ -299,73 +268,13 @@ def spread_worth_trying(step: DiagnosisStep, score: EffectScore) -> SharedSpread
     return spread
 
 
-def with_effect(cfg: CalibConfig, effect: str) -> CalibConfig:
-    """``cfg`` whose ``model:`` section estimates ``effect`` too."""
-    sensor, block = CANDIDATES[effect][:2]
-    current = list(getattr(cfg.model, sensor))
-    if block in current:
-        return cfg
-    update = {sensor: [*current, block]}
-    return cfg.model_copy(update={"model": cfg.model.model_copy(update=update)})
-
-
-def _sum_of_squares(run: CalibrationRun, cfg: CalibConfig, refit: bool) -> tuple[float, int, int]:
-    """``(sum r^2, residuals, free parameters)`` of ``run``'s model on ``run``'s final data.
-
-    With ``refit``, the model of ``cfg`` is first re-solved (a few iterations) on that data.
-    """
-    free = free_parameters(cfg, bool(cfg.model.imu or cfg.model.lidar))
-    problem = run.fit.inputs.problem(run.state, free=free)
-    if refit:
-        report = solve(problem, lm_params(cfg, max_iterations=4))
-        cost = report.final_cost
-        n_res, n_free = report.num_residuals, report.num_parameters
-    else:
-        ev = problem.evaluate(jacobians=False)
-        cost, n_res = ev.cost, ev.num_residuals
-        n_free = problem.layout().num_free
-    return 2.0 * cost, n_res, n_free
-
-
-def _bic_terms(
-    fit: CalibrationRun,
-    fit_cfg: CalibConfig,
-    others: Sequence[tuple[CalibrationState, CalibConfig]],
-) -> list[tuple[float, int]]:
-    """``(sum r^2, free parameters)`` of ``fit``'s model (``fit_cfg``) minus those of each other
-    model, all on ``fit``'s final data. Each other model is given as its starting estimate and
-    its configuration, and is re-solved from that estimate (a few iterations,
-    :func:`_sum_of_squares`)."""
-    ss, _, k = _sum_of_squares(fit, fit_cfg, refit=False)
-    out = []
-    for state, other_cfg in others:
-        ss_other, _, k_other = _sum_of_squares(replace(fit, state=state), other_cfg, refit=True)
-        out.append((ss - ss_other, k - k_other))
-    return out
-
-
-def _sensor_samples(run: CalibrationRun, sensor: str) -> int:
-    """Residuals of ``sensor`` in ``run``'s final round (the ``n`` of an effect's BIC penalty)."""
-    consistency = run.result.consistency
-    assert consistency is not None
-    return int(next(c.samples for c in consistency.sensors if c.sensor == sensor))
-
-
-def _of_effect(name: str, effect: str) -> bool:
-    """Whether calibration coordinate ``name`` belongs to candidate ``effect``."""
-    if effect in LIDAR_SUFFIX:
-        return name.startswith("lidar.intrinsics[") and name.endswith(LIDAR_SUFFIX[effect])
-    prefix = COORDINATE_PREFIX[effect]
-    return name == prefix or name.startswith(prefix)
-
-
 def _estimate(run: CalibrationRun, effect: str) -> dict[str, tuple[float, float]]:
     values = intrinsic_coordinates(run.state)
     std = dict(zip(run.solver.calibration_names, run.solver.std, strict=True))
     return {
         name: (float(value), float(std[name]))
         for name, value in values.items()
-        if _of_effect(name, effect) and name in std
+        if of_effect(name, effect) and name in std
     }
 
 
@@ -377,122 +286,8 @@ def _held(run: CalibrationRun, effect: str) -> tuple[str, ...]:
     return tuple(
         name
         for name, w in zip(report.calibration_names, report.truncated_weight, strict=True)
-        if w >= HELD_WEIGHT and _of_effect(name, effect)
+        if w >= HELD_WEIGHT and of_effect(name, effect)
     )
-
-
-def _rival_delta_bic(
-    a: DiagnosisStep, b: DiagnosisStep, kept: tuple[str, ...], cfg: CalibConfig, samples: int
-) -> float:
-    """BIC of ``b``'s model minus ``a``'s, both on the same data.
-
-    Each refit ends on its own data: its final association of points to surfels and its map
-    (the planes estimated with the effect). Between two refits these differ by a few hundred
-    points and by planes adapted to each effect, and the base model re-solved on them leaves
-    sums of squares that differ by far more than the rivals do: on a shaking OS1-64 bag with
-    150 ppm per-beam range scales, the base left 239 more on the range offset's data than on
-    the range scale's, which alone made the offset's BIC change 234 lower, while on either
-    refit's data the two effects left sums of squares within 12 of each other. Each model is
-    therefore re-solved on the other's data (a few iterations from its own estimate, as the
-    base model is) and the differences on the two data sets are averaged, so that neither
-    keeps the advantage of the map that was built with it.
-    """
-    assert a.after is not None and b.after is not None
-    cfg_a = _with_effects(cfg, (*kept, a.effect))
-    cfg_b = _with_effects(cfg, (*kept, b.effect))
-    ss_a, _, k_a = _sum_of_squares(a.after, cfg_a, refit=False)
-    ss_b, _, k_b = _sum_of_squares(b.after, cfg_b, refit=False)
-    ss_b_on_a, _, _ = _sum_of_squares(replace(a.after, state=b.after.state), cfg_b, refit=True)
-    ss_a_on_b, _, _ = _sum_of_squares(replace(b.after, state=a.after.state), cfg_a, refit=True)
-    logger.info(
-        "Diagnose: %s against %s on the same data: sum of squares %+.1f on the data of %s, "
-        "%+.1f on those of %s.",
-        b.effect,
-        a.effect,
-        ss_b_on_a - ss_a,
-        a.effect,
-        ss_b - ss_a_on_b,
-        b.effect,
-    )
-    return 0.5 * ((ss_b_on_a - ss_a) + (ss_b - ss_a_on_b)) + (k_b - k_a) * math.log(max(samples, 2))
-
-
-_IMU_FIELDS = {
-    "gyro_scale": "gyro_scale",
-    "gyro_misalignment": "gyro_misalignment",
-    "gyro_rotation": "gyro_rotation",
-    "accel_scale": "accel_scale",
-    "accel_misalignment": "accel_misalignment",
-    "g_sensitivity": "gyro_g_sensitivity",
-}
-_STATE_FIELDS = {
-    "gyro_bias_walk": "gyro_bias_drift",
-    "accel_bias_walk": "accel_bias_drift",
-    "imu_clock_drift": "time_drift",
-    "lidar_point_time": "point_time_scale",
-}
-_LIDAR_FIELDS = {
-    "lidar_range_offset": "range_offset",
-    "lidar_range_scale": "range_scale",
-    "lidar_elevation": "elevation_correction",
-    "lidar_azimuth": "azimuth_correction",
-    "lidar_vertical_offset": "vertical_offset",
-    "lidar_horizontal_offset": "horizontal_offset",
-}
-
-
-def without_effect(
-    state: CalibrationState, effect: str, start: CalibrationState
-) -> CalibrationState:
-    """``state`` with ``effect``'s parameters back at their values in ``start`` (the base fit,
-    which does not estimate them); everything else as in ``state``."""
-    if effect in _IMU_FIELDS:
-        name = _IMU_FIELDS[effect]
-        return replace(
-            state,
-            imu_intrinsics=state.imu_intrinsics.with_(
-                **{name: getattr(start.imu_intrinsics, name)}
-            ),
-        )
-    if effect in _STATE_FIELDS:
-        name = _STATE_FIELDS[effect]
-        return replace(state, **{name: getattr(start, name)})
-    name = _LIDAR_FIELDS[effect]
-    return replace(
-        state,
-        lidar_intrinsics=state.lidar_intrinsics.with_(
-            **{name: getattr(start.lidar_intrinsics, name)}
-        ),
-    )
-
-
-def _deltas_without(
-    run: CalibrationRun,
-    kept: tuple[str, ...],
-    effects: tuple[str, ...],
-    start: CalibrationState,
-    cfg: CalibConfig,
-    spread_log_det: Mapping[str, float] | None = None,
-) -> dict[str, float]:
-    """Per effect of ``effects``: the BIC of ``run``'s model (the effects ``kept``) minus that of
-    the model without it, both on ``run``'s final data; the latter re-solved from ``run``'s
-    estimate with the effect back at its value in ``start``. Positive: the others explain what
-    it did. An effect kept as one spread across beams (``spread_log_det``: its ``ln det(1 +
-    s^2 I)``) costs that and ``ln n`` instead of ``ln n`` per coordinate."""
-    spread_log_det = spread_log_det or {}
-    others = [
-        (without_effect(run.state, e, start), _with_effects(cfg, tuple(x for x in kept if x != e)))
-        for e in effects
-    ]
-    terms = _bic_terms(run, _with_effects(cfg, kept), others)
-    deltas = {}
-    for e, (ss, k) in zip(effects, terms, strict=True):
-        log_n = math.log(max(_sensor_samples(run, CANDIDATES[e][2]), 2))
-        penalty = log_n + spread_log_det[e] if e in spread_log_det else k * log_n
-        deltas[e] = ss + penalty
-    for effect, delta in deltas.items():
-        logger.info("Diagnose: %s with the others in: BIC %+.1f against without it.", effect, delta)
-    return deltas
 
 
 SHARE_BELOW = 0.5
@@ -528,206 +323,6 @@ def share_of(
     return _gap(without, sensor, cfg, imu_rate_hz, twin), _gap(run, sensor, cfg, imu_rate_hz, twin)
 
 
-def drop_redundant(
-    kept: tuple[str, ...],
-    deltas_without: Callable[[tuple[str, ...], tuple[str, ...]], dict[str, float]],
-    refit_without: Callable[[tuple[str, ...], str], None],
-) -> list[tuple[str, tuple[str, ...], float]]:
-    """The backward check of the forward selection (module docstring, step 5).
-
-    Every kept effect but the last added (which paid with all the others in) is taken out in
-    turn: ``deltas_without(kept, effects)`` gives, per effect of ``effects``, the BIC with it
-    minus without it. The one whose
-    removal lowers the BIC most is dropped (``refit_without(kept, effect)`` refits the model
-    without it) and the check repeats on the effects left, until no removal pays.
-
-    Returns:
-        Per effect dropped, in order: its name, the effects added after it that remain (what
-        explains it), and its BIC change.
-    """
-    dropped: list[tuple[str, tuple[str, ...], float]] = []
-    while len(kept) >= 2:
-        deltas = deltas_without(kept, kept[:-1])
-        effect = max(deltas, key=lambda e: deltas[e])
-        if not deltas[effect] > 0.0:
-            break
-        refit_without(kept, effect)
-        later = kept[kept.index(effect) + 1 :]
-        kept = tuple(e for e in kept if e != effect)
-        dropped.append((effect, later, deltas[effect]))
-    return dropped
-
-
-def not_told_apart(a: DiagnosisStep, b: DiagnosisStep) -> bool:
-    """Whether the data show nothing that one of two refitted rivals explains and the other
-    does not: the score test of each on the refit with the other is not significant.
-
-    Such a pair is one effect as far as the bag can tell (a per-beam range scale and a range
-    offset in a room seen at ranges spread by a few tens of percent around their mean: a scale
-    of 150 ppm differs from an offset by 0.1 mm over that spread), and naming one of them would
-    state more than the data do. A pair missing either test counts as told apart.
-    """
-
-    def conditional_p(fit: CalibrationRun | None, name: str) -> float:
-        if fit is None:
-            return 0.0
-        return next((float(e.score.p_value) for e in fit.effects if e.score.name == name), 0.0)
-
-    return (
-        conditional_p(a.after, b.effect) >= EFFECT_P_VALUE
-        and conditional_p(b.after, a.effect) >= EFFECT_P_VALUE
-    )
-
-
-def _compare_rivals(
-    trials: list[DiagnosisStep], kept: tuple[str, ...], cfg: CalibConfig, samples: int
-) -> list[DiagnosisStep]:
-    """The trials of one step with :attr:`DiagnosisStep.rival_delta_bic` (each one's BIC minus
-    the lowest of the others', on the same data, through the first) and
-    :attr:`DiagnosisStep.not_told_apart` filled in; a single trial unchanged."""
-    if len(trials) < 2:
-        return trials
-    relative = [0.0] + [_rival_delta_bic(trials[0], t, kept, cfg, samples) for t in trials[1:]]
-    out = []
-    for i, t in enumerate(trials):
-        others = [r for j, r in enumerate(relative) if j != i]
-        apart = tuple(u.effect for u in trials if u is not t and not_told_apart(t, u))
-        out.append(replace(t, rival_delta_bic=relative[i] - min(others), not_told_apart=apart))
-    return out
-
-
-def pick_rival(delta_bic: Sequence[float], rival_bic: Sequence[float]) -> int:
-    """Index of the trial to name among rivals refitted at one step.
-
-    ``delta_bic``: each trial's BIC change against the model without it (on its own data);
-    ``rival_bic``: each trial's BIC on the same data relative to the others'
-    (:attr:`DiagnosisStep.rival_delta_bic`). Among the trials that pay, the one with the
-    lowest BIC on the same data; when none pays, the same among all (it is then not kept). The
-    BIC changes against the base model decide whether an effect of the kind is worth adding,
-    the comparison on the same data which one: the former differ between the rivals mostly
-    through their data (see :func:`_rival_delta_bic`).
-    """
-    paying = [i for i, d in enumerate(delta_bic) if d < 0.0] or list(range(len(delta_bic)))
-    return min(paying, key=lambda i: rival_bic[i])
-
-
-RIVAL_FRACTION = 0.3
-"""A rival candidate (:func:`alike`) whose score per degree of freedom is at least this fraction
-of the strongest one's is refitted as well; among those that pay, the lower BIC on the same data
-wins (:func:`pick_rival`)."""
-
-RIVAL_SHARE = 0.5
-"""A candidate that explains at least this fraction of what a stand-in would explain of the
-leading one's score, when freed with it (:attr:`~licalib_cli.pipeline.fitcheck.EffectEvidence.
-explained_by`, :func:`stand_in_share`), can stand in for it and is its rival, whatever sensor it
-belongs to. A candidate of the same sensor that explains little of it (an accelerometer scale,
-0.14 of a misalignment's score on bag 1837 of ``bench_diagnose.py --first-seed 1800``) cannot be
-what the leader stands for, whereas one of the other sensor can: there the gyro rotation
-explained 0.83 of the accelerometer misalignment's score (3060 on 3 degrees of freedom, after
-the elevations); with the extrinsic rotation re-estimated, a gyro triad rotated against the
-accelerometer's looks like an accelerometer triad rotated against the gyro's."""
-
-MAX_RIVALS = 1
-
-
-def stand_in_share(best: EffectEvidence) -> float:
-    """The share of ``best``'s score that the effect in the data would explain were ``best``
-    only its echo: all but what noise leaves, about ``best``'s degrees of freedom, so
-    ``1 - dof / statistic`` (0.88 for three coordinates at the significance level of
-    :data:`EFFECT_P_VALUE`, 0.48 for 64 per-beam coordinates there, near 1 for a strong
-    effect); 1 without a statistic."""
-    statistic = float(best.statistic_alone)
-    if not statistic > 0.0:
-        return 1.0
-    return min(max(1.0 - max(best.score.rank, 1) / statistic, 0.0), 1.0)
-
-
-def alike(best: EffectEvidence, other: EffectEvidence) -> bool:
-    """Whether ``other`` is a rival of ``best`` at a step: it explains at least
-    :data:`RIVAL_SHARE` of what a stand-in would explain of ``best``'s score
-    (:func:`stand_in_share`), whatever sensor it belongs to."""
-    return best.explained_by.get(other.score.name, 0.0) >= RIVAL_SHARE * stand_in_share(best)
-
-
-def rivals_of(best: EffectEvidence, options: Sequence[EffectEvidence]) -> list[EffectEvidence]:
-    """The rivals refitted with ``best`` at a step: at most :data:`MAX_RIVALS` of ``options``
-    :func:`alike` it with a score per degree of freedom (each on its own) at least
-    :data:`RIVAL_FRACTION` of its, the one that explains most of ``best``'s score first."""
-    per_dof = best.statistic_alone / max(best.score.rank, 1)
-    rivals = [
-        e
-        for e in options
-        if e is not best
-        and alike(best, e)
-        and e.statistic_alone / max(e.score.rank, 1) >= RIVAL_FRACTION * per_dof
-    ]
-    return sorted(
-        rivals, key=lambda e: (-best.explained_by.get(e.score.name, 0.0), -e.statistic_alone)
-    )[:MAX_RIVALS]
-
-
-@dataclass
-class CandidatePool:
-    """Which candidates a step of the forward selection may try.
-
-    A candidate is tried once; a rival that lost to an effect kept (:func:`pick_rival`) gets
-    one more chance. It was compared with the model without that effect; once that is in, the
-    question is a different one: whether the rival is there as well. On the paper's case
-    (every intrinsic of both sensors off; a 15 s VLP-16 sinusoid) the elevations won against
-    the vertical offsets and the azimuths against the horizontal offsets, the offsets were
-    never tried again, and with everything else in their score tests were still 1748 and 4299
-    on 15 degrees of freedom (the verdict WARN, 12.7 mm of translation sigma from the effects
-    held). Such a rival stays on offer while its test, now conditional on the winner, is
-    significant: a rival that only echoed the winner is not, and leaves the pool.
-
-    Attributes:
-        allowed: the candidates considered at all.
-        tried: those refitted so far.
-        second_chance: rivals that lost to an effect kept, each with that effect.
-        retried: rivals given a second chance (at most one each).
-    """
-
-    allowed: tuple[str, ...]
-    tried: set[str] = field(default_factory=set)
-    second_chance: dict[str, str] = field(default_factory=dict)
-    retried: set[str] = field(default_factory=set)
-
-    def offered(
-        self, effects: Sequence[EffectEvidence], p_value: float = EFFECT_P_VALUE
-    ) -> tuple[list[EffectEvidence], list[EffectEvidence]]:
-        """The candidates of a fit's ``effects`` a step may try (allowed, determined by the
-        data, not tried or given a second chance) and those of them significant at
-        ``p_value``. A rival given a second chance that is not significant leaves the pool."""
-        options = [
-            e
-            for e in effects
-            if e.score.name in self.allowed
-            and e.score.rank > 0
-            and (e.score.name not in self.tried or e.score.name in self.second_chance)
-        ]
-        significant = [e for e in options if e.score.p_value < p_value]
-        shown = {e.score.name for e in significant}
-        for name in [n for n in self.second_chance if n not in shown]:
-            del self.second_chance[name]  # with its winner in, the data no longer show it
-        return options, significant
-
-    def refitting(self, name: str) -> str | None:
-        """Record that ``name`` is refitted; the effect it lost to when this is its second
-        chance, else None."""
-        self.tried.add(name)
-        return self.second_chance.pop(name, None)
-
-    def decided(self, losers: Sequence[str], winner: str, kept: bool) -> None:
-        """A step's rivals ``losers`` lost to ``winner``; when it was kept, each not retried
-        before gets a second chance."""
-        if not kept:
-            return
-        for name in losers:
-            if name not in self.retried:
-                self.second_chance[name] = winner
-                self.retried.add(name)
-
-
 def _try_effect(
     evidence: object,
     run: CalibrationRun,
@@ -747,7 +342,7 @@ def _try_effect(
     score = evidence.score  # type: ignore[attr-defined]
     name = score.name
     sensor = CANDIDATES[name][2]
-    new_cfg = _with_effects(cfg, (*kept, name))
+    new_cfg = with_effects(cfg, (*kept, name))
     logger.info(
         "Diagnose: trying %s (score %.1f on %d degrees of freedom, p = %.2g).",
         name,
@@ -757,9 +352,9 @@ def _try_effect(
     )
     start = replace(prepared.guess, state=run.state)
     new = fit_and_check(prepared, start, new_cfg, progress, timer, warm=True, rivals=True)
-    samples = _sensor_samples(run, sensor)
+    samples = sensor_samples(run, sensor)
     log_n = math.log(max(samples, 2))
-    ((ss, k),) = _bic_terms(new, new_cfg, [(run.state, _with_effects(cfg, kept))])
+    ((ss, k),) = bic_terms(new, new_cfg, [(run.state, with_effects(cfg, kept))])
     delta_bic = ss + (k * log_n if spread is None else log_n + spread.log_det)
     moved = extrinsic_of(new.state).error_to(extrinsic_of(run.state))
     new_twin = twin_of(new, cfg)
@@ -855,7 +450,7 @@ def diagnose(
     cfg = cfg.model_copy(
         update={"model": cfg.model.model_copy(update={"lidar_spread": LidarSpreadSection()})}
     )
-    base_cfg = _with_effects(cfg, ())
+    base_cfg = with_effects(cfg, ())
     prepared: Prepared = prepare(Path(str(bag)), base_cfg, progress, timer)
     rate = (len(prepared.rec.imu) - 1) / max(
         float(prepared.rec.imu.t_ns[-1] - prepared.rec.imu.t_ns[0]) * 1e-9, 1e-9
@@ -932,11 +527,11 @@ def diagnose(
             if lost_to is not None:
                 trial = replace(trial, retried_after=lost_to)
             trials.append(trial)
-        trials = _compare_rivals(
+        trials = compare_rivals(
             trials,
             kept,
             with_sizes_of(cfg, trial_cfgs.values()),
-            _sensor_samples(run, trials[0].gap_before.sensor),
+            sensor_samples(run, trials[0].gap_before.sensor),
         )
         step = trials[
             pick_rival([t.delta_bic for t in trials], [t.rival_delta_bic for t in trials])
@@ -983,7 +578,7 @@ def diagnose(
         rest = tuple(e for e in effects if e != effect)
         start = replace(prepared.guess, state=without_effect(run.state, effect, base.state))
         return fit_and_check(
-            prepared, start, _with_effects(cfg, rest), progress, timer, warm=True, rivals=True
+            prepared, start, with_effects(cfg, rest), progress, timer, warm=True, rivals=True
         )
 
     def refit_without(effects: tuple[str, ...], effect: str) -> None:
@@ -997,7 +592,7 @@ def diagnose(
 
     dropped = drop_redundant(
         kept,
-        lambda effects, tested: _deltas_without(
+        lambda effects, tested: deltas_without(
             run, effects, tested, base.state, cfg, spread_log_det
         ),
         refit_without,

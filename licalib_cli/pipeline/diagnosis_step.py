@@ -131,7 +131,7 @@ class DiagnosisStep:
             of this kind, not which of them it is.
         rival_delta_bic: BIC of the effect minus that of its rival on the same data (negative:
             it fits better; NaN without a rival), see
-            :func:`~licalib_cli.pipeline.diagnose._rival_delta_bic`.
+            :func:`~licalib_cli.pipeline.rivals.rival_delta_bic`.
         held: the effect's coordinates the refit could not estimate (mostly in directions the
             data determine worse than their characteristic scale, which the truncated SVD holds
             near where they started): their sigma is that scale, not a measurement, and the BIC
@@ -175,13 +175,13 @@ class DiagnosisStep:
             scale (NaN otherwise).
         sized_delta_bic: with ``expected_size``, the BIC change of the refit expecting it.
         rival_of: the step's leading candidate when this one was refitted as its rival (it
-            explains most of the leader's score: :func:`~licalib_cli.pipeline.diagnose.rivals_of`);
+            explains most of the leader's score: :func:`~licalib_cli.pipeline.rivals.rivals_of`);
             empty for the leader and a step without rivals.
         rival_share: with ``rival_of``, the share of the leader's score it explains when freed
             with it (NaN otherwise).
         retried_after: the effect this one lost to as its rival at an earlier step, when it
             was tried again once that effect was kept (its test then conditional on it:
-            :class:`~licalib_cli.pipeline.diagnose.CandidatePool`); empty otherwise.
+            :class:`~licalib_cli.pipeline.rivals.CandidatePool`); empty otherwise.
     """
 
     effect: str

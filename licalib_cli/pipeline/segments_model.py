@@ -17,7 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from licalib_cli.config import CalibConfig, LidarSpreadSection
-from licalib_cli.pipeline.diagnose import Diagnosis, _with_effects, diagnose
+from licalib_cli.pipeline.diagnose import Diagnosis, diagnose
+from licalib_cli.pipeline.effect_models import with_effects
 from licalib_cli.pipeline.segment_runs import each_window, sigma_size
 from licalib_cli.pipeline.segments import _with_range
 from licalib_cli.progress import Progress
@@ -52,7 +53,7 @@ def union_config(
     effects: list[str] = []
     for diag in diagnoses:
         effects.extend(e for e in diag.effects_found if e not in effects)
-    out = _with_effects(cfg, tuple(effects))
+    out = with_effects(cfg, tuple(effects))
     spread = LidarSpreadSection()
     for block in out.model.lidar:
         for diag in diagnoses:

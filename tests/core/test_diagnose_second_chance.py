@@ -13,8 +13,8 @@ from diagnosis_steps import diagnosis_step
 import licalib_cli.pipeline.diagnose as dg
 from licalib_cli.config import load_config
 from licalib_cli.consistency import EffectScore
-from licalib_cli.pipeline.diagnose import CandidatePool
 from licalib_cli.pipeline.diagnosis_step import DiagnosisStep
+from licalib_cli.pipeline.rivals import CandidatePool
 
 
 def _evidence(
@@ -74,8 +74,8 @@ def _diagnose(monkeypatch: pytest.MonkeyPatch, base: Any, refits: dict[str, Any]
     monkeypatch.setattr(dg, "_refit_with", refit_with)
     monkeypatch.setattr(dg, "sized_refit", lambda step, score, refit, cfg: (step, cfg))
     monkeypatch.setattr(dg, "with_sizes_of", lambda cfg, others: cfg)
-    monkeypatch.setattr(dg, "_compare_rivals", lambda trials, kept, cfg, samples: trials)
-    monkeypatch.setattr(dg, "_sensor_samples", lambda run, sensor: 1000)
+    monkeypatch.setattr(dg, "compare_rivals", lambda trials, kept, cfg, samples: trials)
+    monkeypatch.setattr(dg, "sensor_samples", lambda run, sensor: 1000)
     monkeypatch.setattr(dg, "drop_redundant", lambda kept, deltas, refit: [])
     monkeypatch.setattr(dg, "_not_shown", lambda run, allowed, found: ())
     return dg.diagnose("bag.bag", load_config(None))

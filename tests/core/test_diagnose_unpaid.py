@@ -184,7 +184,7 @@ def test_a_per_beam_effect_that_did_not_pay_is_tried_as_one_spread() -> None:
 
 def test_the_final_config_keeps_the_spreads_of_the_effects_kept() -> None:
     from licalib_cli.config import CalibConfig
-    from licalib_cli.pipeline.diagnose import final_config, with_spread
+    from licalib_cli.pipeline.effect_models import final_config, with_spread
 
     cfg = with_spread(CalibConfig(), "lidar_range_scale", 1.2e-4)
     cfg = with_spread(cfg, "lidar_elevation", math.radians(0.01))

@@ -398,10 +398,11 @@ def test_the_sigmas_of_every_candidate_block_go_into_the_result() -> None:
     """A model with a drift or the per-point time (as diagnose builds it) reports their sigmas
     in ``intrinsics_uncertainty`` instead of failing."""
     from licalib_cli.config import load_config
-    from licalib_cli.pipeline.diagnose import CANDIDATES, _with_effects
+    from licalib_cli.pipeline.diagnose import CANDIDATES
+    from licalib_cli.pipeline.effect_models import with_effects
     from licalib_cli.pipeline.intrinsic_sigmas import intrinsics_uncertainty
 
-    cfg = _with_effects(load_config(CONFIG), tuple(CANDIDATES))
+    cfg = with_effects(load_config(CONFIG), tuple(CANDIDATES))
     names = [
         *(f"imu.gyro_bias_drift.{a}" for a in "xyz"),
         *(f"imu.accel_bias_drift.{a}" for a in "xyz"),
@@ -442,7 +443,7 @@ def test_rivals_are_compared_on_the_same_data_and_an_indistinguishable_pair_is_n
     refit's BIC change against the base was measured on its own data, the offset's 234 lower
     only because the base model left 239 more on the offset's data; on the same data the scale
     fitted better by 2.4, and neither showed anything given the other (p 0.89 and 0.99)."""
-    from licalib_cli.pipeline.diagnose import not_told_apart, pick_rival
+    from licalib_cli.pipeline.rivals import not_told_apart, pick_rival
 
     offset = _trial("lidar_range_offset", -57.2, {"lidar_range_scale": 0.89})
     scale = _trial("lidar_range_scale", -20.0, {"lidar_range_offset": 0.99})
@@ -481,7 +482,7 @@ def test_a_rival_is_a_candidate_that_explains_most_of_the_leaders_score() -> Non
     is the rival refitted; the accelerometer scale, of the same sensor but explaining little,
     is not. Among several rivals the one explaining most comes first, and one far weaker per
     degree of freedom is not refitted."""
-    from licalib_cli.pipeline.diagnose import alike, rivals_of, stand_in_share
+    from licalib_cli.pipeline.rivals import alike, rivals_of, stand_in_share
 
     misalignment = _evidence(
         "accel_misalignment",
@@ -526,7 +527,7 @@ def test_an_effect_the_later_ones_explain_is_dropped_again() -> None:
     """The backward check: on a VLP-16 sinusoid with a rotated gyro the forward selection added
     an accelerometer misalignment and scale before the gyro rotation; with the rotation in, the
     two gained sums of squares of 0.9 and 0 for three parameters each (BIC +27 and +246)."""
-    from licalib_cli.pipeline.diagnose import drop_redundant
+    from licalib_cli.pipeline.backward import drop_redundant
 
     bic = {
         ("accel_misalignment", "accel_scale", "gyro_rotation"): {
@@ -568,7 +569,7 @@ def test_an_effect_taken_out_is_back_at_its_starting_value_and_nothing_else_move
     effect: str,
 ) -> None:
     from licalib_cli.estimation import intrinsic_coordinates
-    from licalib_cli.pipeline.diagnose import _of_effect, without_effect
+    from licalib_cli.pipeline.effect_models import of_effect, without_effect
     from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
 
     knots = UniformKnots(0.0, 0.1, 8)
@@ -613,10 +614,10 @@ def test_an_effect_taken_out_is_back_at_its_starting_value_and_nothing_else_move
     out = without_effect(fitted, effect, start)
     before, after, nominal = (intrinsic_coordinates(s) for s in (fitted, out, start))
     for name, value in after.items():
-        expected = nominal[name] if _of_effect(name, effect) else before[name]
+        expected = nominal[name] if of_effect(name, effect) else before[name]
         assert value == pytest.approx(expected), name
     # the effect had moved (the test would pass on a no-op otherwise)
-    assert any(before[n] != nominal[n] for n in before if _of_effect(n, effect))
+    assert any(before[n] != nominal[n] for n in before if of_effect(n, effect))
     assert out.so3_spline is fitted.so3_spline
 
 
@@ -630,7 +631,8 @@ def test_an_effect_of_a_final_model_with_several_gets_its_share_of_its_sensors_g
 
     from licalib_cli.config import load_config
     from licalib_cli.pipeline import Timer, fit_and_check, prepare
-    from licalib_cli.pipeline.diagnose import _gap, _with_effects, share_of, without_effect
+    from licalib_cli.pipeline.diagnose import _gap, share_of
+    from licalib_cli.pipeline.effect_models import with_effects, without_effect
     from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, effect_evidence
     from licalib_cli.progress import NullProgress
 
@@ -643,7 +645,7 @@ def test_an_effect_of_a_final_model_with_several_gets_its_share_of_its_sensors_g
     )
     cfg = load_config(CONFIG)
     progress, timer = NullProgress(), Timer()
-    base_cfg = _with_effects(cfg, ())
+    base_cfg = with_effects(cfg, ())
     prepared = prepare(bag, base_cfg, progress, timer)
     base = fit_and_check(prepared, prepared.guess, base_cfg, progress, timer)
     # calibrate's checks do not size the rivals (only diagnose reads them); asked, they do
@@ -654,12 +656,12 @@ def test_an_effect_of_a_final_model_with_several_gets_its_share_of_its_sensors_g
     shares = {e.score.name: e.explained_by for e in sized if e.score.name in significant}
     assert shares["gyro_scale"] and shares["accel_scale"]
     assert all(0.0 <= v <= 1.0 + 1e-9 for s in shares.values() for v in s.values())
-    both = _with_effects(cfg, ("gyro_scale", "accel_scale"))
+    both = with_effects(cfg, ("gyro_scale", "accel_scale"))
     run = fit_and_check(
         prepared, replace(prepared.guess, state=base.state), both, progress, timer, warm=True
     )
     start = replace(prepared.guess, state=without_effect(run.state, "gyro_scale", base.state))
-    rest = _with_effects(cfg, ("accel_scale",))
+    rest = with_effects(cfg, ("accel_scale",))
     without = fit_and_check(prepared, start, rest, progress, timer, warm=True)
     rate = 400.0
     before, after = share_of(run, without, "gyro_scale", cfg, rate, None)

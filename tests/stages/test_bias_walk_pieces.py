@@ -183,7 +183,7 @@ def test_diagnose_keeps_finer_pieces_while_they_lower_the_bic() -> None:
 
 
 def test_a_final_model_without_a_walk_has_no_piece_length() -> None:
-    from licalib_cli.pipeline.diagnose import final_config
+    from licalib_cli.pipeline.effect_models import final_config
     from licalib_cli.pipeline.walk_pieces import with_walk_pieces
 
     cfg = with_walk_pieces(load_config(None), 5.0)

@@ -19,7 +19,7 @@ from licalib_cli.config import CalibConfig
 from licalib_cli.consistency.score import EffectScore
 from licalib_cli.geometry import so3
 from licalib_cli.pipeline.checks import _effects
-from licalib_cli.pipeline.diagnose import with_effect
+from licalib_cli.pipeline.effect_models import with_effect
 from licalib_cli.pipeline.effect_refit import (
     REFIT_STATISTIC_PER_DOF,
     refit_shifts,

@@ -15,7 +15,8 @@ from licalib_cli.config import CalibConfig, load_config
 from licalib_cli.consistency.score import EffectScore
 from licalib_cli.errors import ConfigError
 from licalib_cli.estimation import CALIBRATION_SCALES, parameter_blocks
-from licalib_cli.pipeline.diagnose import DiagnosisStep, final_config
+from licalib_cli.pipeline.diagnose import DiagnosisStep
+from licalib_cli.pipeline.effect_models import final_config
 from licalib_cli.pipeline.effect_size import (
     round_up,
     size_worth_trying,
