@@ -16,6 +16,7 @@ from licalib_cli.consistency.score import (
     EffectScore,
     EffectSelection,
     explained_shares,
+    measured_shift,
     score_effects,
     select_effects,
 )
@@ -29,6 +30,7 @@ __all__ = [
     "explained_shares",
     "group_pattern",
     "imu_noise",
+    "measured_shift",
     "normalised_chi2",
     "range_noise",
     "regression_pattern",

@@ -694,6 +694,18 @@ def _effects(effects: list[EffectEvidence], raw_sigma: F64) -> list[Finding]:
         )
         others = ", ".join(e.score.name for e in material[1:])
         also = f" (and beyond it: {others})" if others else ""
+        if top.measured:
+            out.append(
+                Finding(
+                    "warn",
+                    f"The IMU's stamps drift against the LiDAR's by "
+                    f"{1e6 * top.measured_value:+.1f} ppm (their record times), a clock drift "
+                    f"the model holds fixed{also}; held fixed at that rate it moves the "
+                    f"extrinsic by about {shift}, beyond its sigma. Add clock_drift to "
+                    "model.imu, or synchronise the sensors' clocks and re-record.",
+                )
+            )
+            continue
         out.append(
             Finding(
                 "warn",
@@ -815,6 +827,14 @@ def check(
     # final round took them; the two halves are estimated one per block thread.
     planes = map_uncertainty(fit.state, fit.inputs, fit.report, fit.solved)
     sensors = sensor_checks(fit.state, fit.inputs, noise, fit.solved)
+    # a clock drift the stamps show and the model holds fixed: its shift at the measured rate
+    measured = (
+        {"imu_clock_drift": (clock_rate.rate, clock_rate.sigma)}
+        if clock_rate is not None
+        and clock_rate.material
+        and TIME_DRIFT not in fit.report.calibration_names
+        else None
+    )
     effects = effect_evidence(
         fit.state,
         fit.inputs,
@@ -822,6 +842,7 @@ def check(
         cfg.model.imu_prior,
         planes_free_p=COVER_P_VALUE,
         rivals=rivals,
+        measured=measured,
     )
     split = split_half(fit.state, fit.inputs, cfg, fit.report)
     notes: tuple[str, ...] = ()

@@ -29,6 +29,7 @@ from licalib_cli.consistency import (
     EffectSelection,
     explained_shares,
     group_pattern,
+    measured_shift,
     normalised_chi2,
     regression_pattern,
     score_effects,
@@ -429,6 +430,11 @@ class EffectEvidence:
         joint_p_value: the score test of those blocks together (NaN without a prior).
         refitted: the shift is (per coordinate, the larger of) the step's and a refit's with
             the effect estimated (:mod:`licalib_cli.pipeline.effect_refit`).
+        measured: the effect's size is measured apart from the fit (the IMU clock's rate
+            against the LiDAR's, from the stamps against the record times): the shift and its
+            spread are those of holding it at zero given that measurement
+            (:func:`~licalib_cli.consistency.measured_shift`), whatever the score test says;
+            ``measured_value`` is the measurement (own units, NaN when not measured).
         explained_by: the share of this effect's score (against the estimated coordinates)
             that each other candidate explains when freed as well
             (:func:`licalib_cli.consistency.explained_shares`): near one for a candidate that
@@ -451,6 +457,8 @@ class EffectEvidence:
     joint_prior_shift: F64 = field(default_factory=lambda: np.zeros(7))
     joint_p_value: float = float("nan")
     explained_by: Mapping[str, float] = field(default_factory=dict)
+    measured: bool = False
+    measured_value: float = float("nan")
 
     @property
     def shift(self) -> F64:
@@ -477,6 +485,7 @@ def effect_evidence(
     planes_free_p: float = 0.0,
     *,
     rivals: bool = True,
+    measured: Mapping[str, tuple[float, float]] | None = None,
 ) -> list[EffectEvidence]:
     """Score tests of every effect the final round held fixed, with forward selection.
 
@@ -497,6 +506,9 @@ def effect_evidence(
             (:mod:`licalib_cli.pipeline.effect_shift`); the others keep the planes-fixed ones.
         rivals: size, for each significant effect, the share of its score each other
             candidate explains (:attr:`EffectEvidence.explained_by`); False: left empty.
+        measured: effect name -> ``(value, sigma)`` of a one-coordinate effect held fixed
+            whose size is measured apart from the fit (own units): its shift is that of
+            holding it at zero given the measurement (:attr:`EffectEvidence.measured`).
 
     Returns:
         One entry per fixed group with at least one free coordinate: the selected ones first,
@@ -607,6 +619,15 @@ def effect_evidence(
         max(variance_factor, 1.0),
     )
 
+    # effects whose size is measured apart from the fit: the shift of holding them at zero
+    sized = {
+        name: measured_shift(
+            sch.S, sch.b, base, groups[name], value, sigma, max(variance_factor, 1.0)
+        )
+        for name, (value, sigma) in (measured or {}).items()
+        if name in groups and len(groups[name]) == 1 and sigma > 0.0
+    }
+
     def pick(prefix: str, shift: F64) -> F64:
         return np.array([s for n, s in zip(base_names, shift, strict=True) if n.startswith(prefix)])
 
@@ -630,7 +651,9 @@ def effect_evidence(
     out = []
     for sel, scores in ((True, selection.selected), (False, selection.remaining)):
         for s in scores:
-            shift, shift_sigma = planes_free.get(s.name, (s.shift, s.shift_sigma))
+            shift, shift_sigma = sized.get(
+                s.name, planes_free.get(s.name, (s.shift, s.shift_sigma))
+            )
             t = pick("ext.translation", shift)
             r = pick("ext.rotation", shift)
             c = pick("ext.time_offset", shift)
@@ -651,6 +674,10 @@ def effect_evidence(
                     joint_prior_shift=joint_shift,
                     joint_p_value=joint_p,
                     explained_by=shares.get(s.name, {}),
+                    measured=s.name in sized,
+                    measured_value=(
+                        float((measured or {})[s.name][0]) if s.name in sized else float("nan")
+                    ),
                 )
             )
     logger.debug(

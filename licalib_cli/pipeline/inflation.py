@@ -46,15 +46,18 @@ less than a misnamed effect). On clean data about one run in 60 enlarges a sigma
 
 
 def effect_is_material(e: EffectEvidence, raw_sigma: F64) -> bool:
-    """Selected (significant beyond the stronger effects) and moving some extrinsic coordinate
-    by more than its sigma."""
-    return e.selected and e.score.p_value < EFFECT_P_VALUE and moves_extrinsic(e, raw_sigma)
+    """Selected (significant beyond the stronger effects), or measured apart from the fit
+    (:attr:`~licalib_cli.pipeline.fitcheck.EffectEvidence.measured`), and moving some extrinsic
+    coordinate by more than its sigma."""
+    shown = e.measured or (e.selected and e.score.p_value < EFFECT_P_VALUE)
+    return shown and moves_extrinsic(e, raw_sigma)
 
 
 def effect_to_cover(e: EffectEvidence, raw_sigma: F64) -> bool:
-    """Hinted at (p below :data:`COVER_P_VALUE`, which every material effect is) and moving
-    some extrinsic coordinate by more than its sigma: the sigmas cover its shift."""
-    return e.score.p_value < COVER_P_VALUE and moves_extrinsic(e, raw_sigma)
+    """Hinted at (p below :data:`COVER_P_VALUE`, which every material effect is) or measured
+    apart from the fit, and moving some extrinsic coordinate by more than its sigma: the sigmas
+    cover its shift."""
+    return (e.measured or e.score.p_value < COVER_P_VALUE) and moves_extrinsic(e, raw_sigma)
 
 
 def largest_prior(effects: Sequence[EffectEvidence], raw_sigma: F64) -> str | None:
@@ -141,6 +144,8 @@ def inflate(
             )
             if e.refitted:
                 why.append(f"by the move of a refit with {e.score.name} estimated")
+            elif e.measured:
+                why.append(f"by the shift of {e.score.name} held at zero, at its measured size")
             else:
                 why.append(f"by the shift estimating {e.score.name} would cause{hint}")
     prior_var = prior_variance(effects, raw)

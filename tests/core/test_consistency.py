@@ -469,3 +469,35 @@ def test_range_noise_is_not_inflated_by_returns_across_edges() -> None:
         np.concatenate(scan), np.zeros(n_az * n_scans), np.concatenate(azs), np.concatenate(rho), 1
     )
     assert abs(est.sigma[0] / sigma - 1.0) < 0.015
+
+
+def test_a_measured_effect_moves_the_estimate_to_where_its_measurement_puts_it() -> None:
+    """A group whose size is measured apart from the fit (an IMU clock's rate from its stamps):
+    measured sharply, the shift is that of the least-squares fit with the group held at the
+    measured value; measured vaguely, the data's own (the score test's shift); in between, the
+    two combined by their information."""
+    from licalib_cli.consistency import measured_shift, score_effects
+
+    rng = np.random.default_rng(12)
+    effect = np.array([0.3])
+    n = 400
+    a_b = rng.normal(size=(n, 3))
+    a_e = rng.normal(size=(n, 1)) + 0.5 * a_b[:, :1]
+    y = a_b @ np.array([1.0, -2.0, 0.5]) + a_e @ effect + rng.normal(size=n)
+    xb_hat = np.linalg.lstsq(a_b, y, rcond=None)[0]
+    j = np.hstack([a_b, a_e])
+    s, b = j.T @ j, -(j.T @ (a_b @ xb_hat - y))
+    value = 0.45
+    sharp, sharp_sd = measured_shift(s, b, [0, 1, 2], [3], [value], [1e-9])
+    held = np.linalg.lstsq(a_b, y - a_e[:, 0] * value, rcond=None)[0]
+    np.testing.assert_allclose(sharp, held - xb_hat, atol=1e-7)
+    assert np.all(sharp_sd < 1e-6)
+    vague, vague_sd = measured_shift(s, b, [0, 1, 2], [3], [value], [1e9])
+    (res,) = score_effects(s, b, [0, 1, 2], {"e": [3]})
+    np.testing.assert_allclose(vague, res.shift, atol=1e-9)
+    np.testing.assert_allclose(vague_sd, res.shift_sigma, rtol=1e-6)
+    # a measurement as sharp as the data: the mean of the two estimates
+    info = s[3, 3] - s[3, :3] @ np.linalg.solve(s[:3, :3], s[:3, 3])
+    both, _ = measured_shift(s, b, [0, 1, 2], [3], [value], [info**-0.5])
+    per_unit = -np.linalg.solve(s[:3, :3], s[:3, 3])
+    np.testing.assert_allclose(both, per_unit * 0.5 * (res.estimate[0] + value), atol=1e-9)

@@ -165,3 +165,32 @@ def test_an_uncertain_translation_names_the_effects_that_made_it_so() -> None:
     assert "more rotation" in uncertainty_findings(sigma, RAW, limits, [])[0].text
     # within the limits: nothing
     assert uncertainty_findings(RAW, RAW, limits, ["lidar_range_offset"]) == []
+
+
+def test_a_clock_drift_the_stamps_measure_is_covered_and_told_whatever_its_score() -> None:
+    """The IMU's stamps drift against the LiDAR's (record times) and the model holds the drift
+    fixed: its score test may show nothing (with the IMU scales free, a drift looks like a
+    scale), but its measured size moves the extrinsic: covered, material, and told with the
+    rate and the advice; the same shift unmeasured and unshown is neither."""
+    from dataclasses import replace
+
+    from licalib_cli.pipeline.checks import _effects
+    from licalib_cli.pipeline.inflation import effect_is_material
+
+    quiet = replace(
+        imu_effect("imu_clock_drift", p_value=0.3, statistic=1.0, rank=1),
+        shift_translation_m=np.array([3e-3, 0.0, 0.0]),
+    )
+    measured = replace(quiet, measured=True, measured_value=50e-6)
+    assert not effect_to_cover(quiet, RAW) and not effect_is_material(quiet, RAW)
+    assert effect_to_cover(measured, RAW) and effect_is_material(measured, RAW)
+    sigma, why = run([measured])
+    assert sigma[0] == pytest.approx(np.hypot(1e-3, 3e-3))
+    assert why == ("by the shift of imu_clock_drift held at zero, at its measured size",)
+    (finding,) = _effects([measured], RAW)
+    assert finding.severity == "warn"
+    assert "+50.0 ppm" in finding.text and "Add clock_drift to model.imu" in finding.text
+    assert "3.0 mm" in finding.text
+    # measured but moving the extrinsic less than its sigma: nothing to cover or tell
+    small = replace(measured, shift_translation_m=np.array([0.5e-3, 0.0, 0.0]))
+    assert not effect_to_cover(small, RAW) and _effects([small], RAW) == []
