@@ -843,6 +843,7 @@ def check(
         planes_free_p=COVER_P_VALUE,
         rivals=rivals,
         measured=measured,
+        hint_p=COVER_P_VALUE,
     )
     split = split_half(fit.state, fit.inputs, cfg, fit.report)
     notes: tuple[str, ...] = ()

@@ -57,6 +57,7 @@ __all__ = [
     "effect_evidence",
     "residual_table",
     "sensor_checks",
+    "with_measured",
 ]
 
 logger = logging.getLogger(__name__)
@@ -486,6 +487,7 @@ def effect_evidence(
     *,
     rivals: bool = True,
     measured: Mapping[str, tuple[float, float]] | None = None,
+    hint_p: float = 0.0,
 ) -> list[EffectEvidence]:
     """Score tests of every effect the final round held fixed, with forward selection.
 
@@ -508,7 +510,9 @@ def effect_evidence(
             candidate explains (:attr:`EffectEvidence.explained_by`); False: left empty.
         measured: effect name -> ``(value, sigma)`` of a one-coordinate effect held fixed
             whose size is measured apart from the fit (own units): its shift is that of
-            holding it at zero given the measurement (:attr:`EffectEvidence.measured`).
+            holding it at zero given the measurement (:attr:`EffectEvidence.measured`); when
+            its score test is below ``hint_p`` as well, per coordinate the larger of that and
+            the data's own shift (the sigmas covered that shift before the measurement came).
 
     Returns:
         One entry per fixed group with at least one free coordinate: the selected ones first,
@@ -651,9 +655,11 @@ def effect_evidence(
     out = []
     for sel, scores in ((True, selection.selected), (False, selection.remaining)):
         for s in scores:
-            shift, shift_sigma = sized.get(
-                s.name, planes_free.get(s.name, (s.shift, s.shift_sigma))
-            )
+            shift, shift_sigma = planes_free.get(s.name, (s.shift, s.shift_sigma))
+            if s.name in sized:
+                shift, shift_sigma = with_measured(
+                    (shift, shift_sigma), sized[s.name], hinted=s.p_value < hint_p
+                )
             t = pick("ext.translation", shift)
             r = pick("ext.rotation", shift)
             c = pick("ext.time_offset", shift)
@@ -686,6 +692,22 @@ def effect_evidence(
         ", ".join(f"{e.score.name} {e.score.statistic:.1f} (dof {e.score.rank})" for e in out),
     )
     return out
+
+
+def with_measured(
+    data: tuple[F64, F64], measured: tuple[F64, F64], *, hinted: bool
+) -> tuple[F64, F64]:
+    """The shift (and its spread) of an effect held fixed whose size is measured apart from the
+    fit: the measurement's (:func:`~licalib_cli.consistency.measured_shift`); when the data
+    hint at the effect too, per coordinate the larger of that and the data's own shift (and the
+    larger spread), which the sigmas covered before the measurement came."""
+    (shift, spread), (at_measured, measured_spread) = data, measured
+    if not hinted:
+        return at_measured, measured_spread
+    return (
+        np.where(np.abs(shift) > np.abs(at_measured), shift, at_measured),
+        np.maximum(spread, measured_spread),
+    )
 
 
 def _joint_prior(

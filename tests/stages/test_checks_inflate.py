@@ -194,3 +194,19 @@ def test_a_clock_drift_the_stamps_measure_is_covered_and_told_whatever_its_score
     # measured but moving the extrinsic less than its sigma: nothing to cover or tell
     small = replace(measured, shift_translation_m=np.array([0.5e-3, 0.0, 0.0]))
     assert not effect_to_cover(small, RAW) and _effects([small], RAW) == []
+
+
+def test_a_measured_effect_the_data_hint_at_keeps_the_larger_shift() -> None:
+    """Measured apart from the fit, an effect's shift is its measurement's; when the data hint
+    at it too, each coordinate keeps the larger of that and the data's own shift (the sigmas
+    covered the data's before), and the larger spread."""
+    from licalib_cli.pipeline.fitcheck import with_measured
+
+    data = (np.array([3.0, -0.5, 0.0]), np.array([0.2, 0.2, 0.2]))
+    measured = (np.array([1.0, -2.0, 0.1]), np.array([0.1, 0.3, 0.1]))
+    shift, spread = with_measured(data, measured, hinted=False)
+    np.testing.assert_array_equal(shift, measured[0])
+    np.testing.assert_array_equal(spread, measured[1])
+    shift, spread = with_measured(data, measured, hinted=True)
+    np.testing.assert_array_equal(shift, [3.0, -2.0, 0.1])
+    np.testing.assert_array_equal(spread, [0.2, 0.3, 0.2])
