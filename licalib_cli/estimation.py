@@ -452,6 +452,10 @@ class FreeParameters:
         expected_size: ``(block, size)`` per calibration block (``imu.gyro_scale``,
             ``imu.gyro_bias_drift``, ...) whose characteristic scale is ``size`` per coordinate
             instead of :data:`CALIBRATION_SCALES`' (``model.expected_size``).
+        time_drift_prior: ``(mean, sigma)`` (s/s) of the clock drift measured apart from the
+            data the problems fit (the IMU's stamps against the LiDAR's, from the record
+            times), a Gaussian prior on ``ext.time_drift`` when it is estimated; None: none.
+            Like ``translation_prior``, part of what the problems add.
     """
 
     trajectory: bool = True
@@ -474,6 +478,7 @@ class FreeParameters:
     translation_prior: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     lidar_spread: tuple[tuple[str, float], ...] = ()
     expected_size: tuple[tuple[str, float], ...] = ()
+    time_drift_prior: tuple[float, float] | None = None
 
     def imu_block_free(self, block: str) -> bool:
         """Whether IMU intrinsic block ``block`` (e.g. ``imu.gyro_scale``) is estimated."""

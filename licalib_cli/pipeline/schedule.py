@@ -60,6 +60,7 @@ from licalib_cli.pipeline.settings import (
     estimates_intrinsics,
     prior_sd,
     round_settings,
+    with_clock_rate,
 )
 from licalib_cli.progress import Progress
 from licalib_cli.residuals import EXT_ROTATION, EXT_TRANSLATION, GYRO_ROTATION, TIME_OFFSET
@@ -534,7 +535,10 @@ def run_schedule(
                 state,
                 sample,
                 imu,
-                round_settings(cfg, noise, max_dist, intrinsics_on, provisional=dense_after),
+                with_clock_rate(
+                    round_settings(cfg, noise, max_dist, intrinsics_on, provisional=dense_after),
+                    rec.clock_rate,
+                ),
                 index,
                 mapped,
             )
@@ -683,7 +687,10 @@ def run_schedule(
                 state,
                 dense,
                 imu,
-                round_settings(cfg, noise, base, intrinsics_on, evaluate_only=True),
+                with_clock_rate(
+                    round_settings(cfg, noise, base, intrinsics_on, evaluate_only=True),
+                    rec.clock_rate,
+                ),
                 len(rounds) + 1,
             )
             state, summary, report, inputs = done.state, done.summary, done.report, done.inputs

@@ -7,7 +7,8 @@ CalibConfig`; this module is the only place that reads the config tree for them.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
@@ -41,6 +42,9 @@ from licalib_cli.residuals import (
 from licalib_cli.solver.lm import LMParams
 from licalib_cli.surfels import SurfelConfig
 
+if TYPE_CHECKING:
+    from licalib_cli.io.clock_rate import ClockRate
+
 __all__ = [
     "IMU_INTRINSIC_NAMES",
     "LIDAR_COLUMNS",
@@ -63,6 +67,7 @@ __all__ = [
     "spline_margin_s",
     "surfel_config",
     "time_offset_config",
+    "with_clock_rate",
 ]
 
 F64 = npt.NDArray[np.float64]
@@ -370,8 +375,9 @@ rounds and barely move well-observed ones."""
 
 
 def model_priors(state: CalibrationState, free: FreeParameters) -> list[GaussianPrior]:
-    """Weak priors toward nominal on every estimated intrinsic block, and the configured prior
-    on the extrinsic translation (``free.translation_prior``)."""
+    """Weak priors toward nominal on every estimated intrinsic block, the configured prior on
+    the extrinsic translation (``free.translation_prior``), and the clock drift the stamps
+    measure on an estimated drift (``free.time_drift_prior``)."""
     out = translation_priors(free)
     for block in IMU_INTRINSIC_BLOCKS:
         if not free.imu_block_free(block):
@@ -397,6 +403,9 @@ def model_priors(state: CalibrationState, free: FreeParameters) -> list[Gaussian
             columns[INTRINSIC_NAMES.index(name)] = spread
         sigma = np.broadcast_to(columns, nominal.shape)
         out.append(GaussianPrior(LIDAR_INTRINSICS, nominal, sigma))
+    if free.time_drift and free.time_drift_prior is not None:
+        mean, sd = free.time_drift_prior
+        out.append(GaussianPrior(TIME_DRIFT, np.array([mean]), sd))
     return out
 
 
@@ -429,6 +438,17 @@ class RoundSettings:
     solver: LMParams
     free: FreeParameters
     margin_s: float
+
+
+def with_clock_rate(settings: RoundSettings, rate: ClockRate | None) -> RoundSettings:
+    """``settings`` whose estimated clock drift (if any) gets the rate the stamps show against
+    the record times as a prior (``FreeParameters.time_drift_prior``): both measure how fast
+    the IMU's stamps run against the LiDAR's, and free IMU scales take up most of a drift the
+    data alone must tell (a 50 ppm drift on an 8 s sinusoid came out 10.9 +/- 32.3 ppm)."""
+    if rate is None or not settings.free.time_drift or not rate.sigma > 0.0:
+        return settings
+    free = replace(settings.free, time_drift_prior=(float(rate.rate), float(rate.sigma)))
+    return replace(settings, free=free)
 
 
 PROVISIONAL_COST_TOLERANCE = 0.1

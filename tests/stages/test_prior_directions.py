@@ -236,3 +236,30 @@ def test_the_data_estimate_is_as_uncertain_as_the_checks_found_the_result():
     sigma = np.array([1e-3, 2e-3, 3e-3])
     np.testing.assert_allclose(at_solver.covered(sigma), np.hypot(sigma, at_solver.pull_m))
     np.testing.assert_array_equal(wider.covered(sigma), sigma)
+
+
+def test_an_estimated_clock_drift_gets_the_stamps_rate_as_its_prior() -> None:
+    """The rate of the IMU's stamps against the LiDAR's (record times) measures the clock drift
+    the model estimates: the rounds' settings carry it, and the problems add it as a prior on
+    ``ext.time_drift``; a model that holds the drift, or a rate unknown, adds nothing."""
+    from licalib_cli.io.clock_rate import ClockRate
+    from licalib_cli.pipeline.settings import NoiseLevels, round_settings, with_clock_rate
+    from licalib_cli.residuals import TIME_DRIFT
+
+    gyro, accel = np.full(3, 1e-3), np.full(3, 1e-2)
+    noise = NoiseLevels(
+        gyro, accel, 0.01, "config", "config", "config", np.full(16, 0.01), gyro, accel, 0.01
+    )
+    cfg = load_config(None, {"model.imu": ["clock_drift"]})
+    rate = ClockRate(rate=50e-6, sigma=2e-6, span_s=10.0)
+    drifting = with_clock_rate(round_settings(cfg, noise, 0.03, True), rate)
+    assert drifting.free.time_drift_prior == (50e-6, 2e-6)
+    state = CalibrationState.__new__(CalibrationState)  # model_priors reads no state for it
+    (prior,) = [p for p in model_priors(state, drifting.free) if p.block == TIME_DRIFT]
+    assert np.allclose(prior.mean, 50e-6) and np.allclose(1.0 / prior.inv_sigma, 2e-6)
+    held = round_settings(load_config(None, {}), noise, 0.03, True)
+    assert with_clock_rate(held, rate) is held
+    assert with_clock_rate(drifting, None).free.time_drift_prior == (50e-6, 2e-6)
+    fresh = round_settings(cfg, noise, 0.03, True)
+    assert with_clock_rate(fresh, None) is fresh
+    assert not any(p.block == TIME_DRIFT for p in model_priors(state, fresh.free))
