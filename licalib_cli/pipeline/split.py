@@ -215,8 +215,9 @@ def half_problem(
     half_imu = ImuData(imu.t_s[in_imu], imu.gyro[in_imu], imu.accel[in_imu])
     half_lidar = lid.subset(picked)
     free = held_free(inputs.free) if free is None else free
-    # each half is the data's own estimate: without the translation's prior (and its scale)
-    free = replace(free, translation_prior=None)
+    # each half is the data's own estimate: without the translation's prior (and its scale),
+    # nor the clock drift's from the stamps
+    free = replace(free, translation_prior=None, time_drift_prior=None)
     problem = build_problem(sub, half_imu, half_lidar, inputs.planes, inputs.noise, free)
     return sub, problem
 
