@@ -211,7 +211,7 @@ def _schedule(
             "model": {"lidar": ["range_offset"] if lidar else []},
         }
     )
-    rec = SimpleNamespace(scans=(), imu=None)
+    rec = SimpleNamespace(scans=(), imu=None, clock_rate=None)
     guess = SimpleNamespace(state=_State("guess", 0.0), nominal_elevation=None)
     warm = lidar if warm is None else warm
     run.fit = schedule.run_schedule(rec, guess, None, cfg, NullProgress(), warm=warm)  # type: ignore[arg-type]
