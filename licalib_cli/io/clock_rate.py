@@ -98,7 +98,10 @@ class ClockRate:
             f"{self.span_s:.0f} s segment t_imu - t_lidar moves by {1e3 * self.moves_s:.2f} ms"
         )
         if estimated:
-            return head + "; the model estimates it (model.imu: clock_drift)."
+            return (
+                head + "; the model estimates it (model.imu: clock_drift), with this rate as "
+                "its prior."
+            )
         return (
             head + ", which one time offset cannot follow. Add clock_drift to model.imu (licalib "
             "diagnose tests for it), or synchronise the sensors' clocks (PTP, the driver's time "

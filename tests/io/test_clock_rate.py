@@ -89,7 +89,7 @@ def test_a_rate_is_told_only_when_significant_and_material() -> None:
     assert not small.material and not noisy.material and told.material
     assert "-50.0 +/- 1.0 ppm" in told.text(False) and "0.50 ms" in told.text(False)
     assert "Add clock_drift to model.imu" in told.text(False)
-    assert "the model estimates it" in told.text(True)
+    assert "the model estimates it" in told.text(True) and "as its prior" in told.text(True)
 
 
 @pytest.fixture(scope="module")
