@@ -827,12 +827,11 @@ def check(
     # final round took them; the two halves are estimated one per block thread.
     planes = map_uncertainty(fit.state, fit.inputs, fit.report, fit.solved)
     sensors = sensor_checks(fit.state, fit.inputs, noise, fit.solved)
-    # a clock drift the stamps show and the model holds fixed: its shift at the measured rate
+    # a clock drift the model holds fixed is known to within the stamps' rate; one they show
+    # moves the extrinsic by its shift at that rate
     measured = (
-        {"imu_clock_drift": (clock_rate.rate, clock_rate.sigma)}
-        if clock_rate is not None
-        and clock_rate.material
-        and TIME_DRIFT not in fit.report.calibration_names
+        {"imu_clock_drift": (clock_rate.rate, clock_rate.sigma, clock_rate.material)}
+        if clock_rate is not None and TIME_DRIFT not in fit.report.calibration_names
         else None
     )
     effects = effect_evidence(

@@ -415,8 +415,9 @@ class EffectEvidence:
             (before any other effect was selected).
         shift_std: (7,) standard deviation of the shift when the effect is truly zero (in the
             order of :attr:`shift`).
-        prior_std: (7,) what the effect, known only to within its prior (``model.imu_prior``),
-            adds to the sigmas of the extrinsic and time offset (zeros without a prior).
+        prior_std: (7,) what the effect, known only to within its prior (``model.imu_prior``;
+            for the IMU clock drift, the stamps' rate against the record times), adds to the
+            sigmas of the extrinsic and time offset (zeros without a prior).
         prior_sigma: that prior's sigma per coordinate, in the effect's solver coordinates (0:
             none).
         joint_prior_var: (7,) the variance every IMU block with a prior adds to the estimate
@@ -486,7 +487,7 @@ def effect_evidence(
     planes_free_p: float = 0.0,
     *,
     rivals: bool = True,
-    measured: Mapping[str, tuple[float, float]] | None = None,
+    measured: Mapping[str, tuple[float, float, bool]] | None = None,
     hint_p: float = 0.0,
 ) -> list[EffectEvidence]:
     """Score tests of every effect the final round held fixed, with forward selection.
@@ -508,11 +509,14 @@ def effect_evidence(
             (:mod:`licalib_cli.pipeline.effect_shift`); the others keep the planes-fixed ones.
         rivals: size, for each significant effect, the share of its score each other
             candidate explains (:attr:`EffectEvidence.explained_by`); False: left empty.
-        measured: effect name -> ``(value, sigma)`` of a one-coordinate effect held fixed
-            whose size is measured apart from the fit (own units): its shift is that of
-            holding it at zero given the measurement (:attr:`EffectEvidence.measured`); when
-            its score test is below ``hint_p`` as well, per coordinate the larger of that and
-            the data's own shift (the sigmas covered that shift before the measurement came).
+        measured: effect name -> ``(value, sigma, shown)`` of a one-coordinate effect held
+            fixed whose size is measured apart from the fit (own units). Its
+            :attr:`EffectEvidence.prior_std` is the spread of its size given the data and the
+            measurement, carried into the extrinsic: the effect is known only so well. When the
+            measurement shows it (``shown``), its shift is that of holding it at zero given the
+            measurement (:attr:`EffectEvidence.measured`); when its score test is below
+            ``hint_p`` as well, per coordinate the larger of that and the data's own shift (the
+            sigmas covered that shift before the measurement came).
 
     Returns:
         One entry per fixed group with at least one free coordinate: the selected ones first,
@@ -628,9 +632,10 @@ def effect_evidence(
         name: measured_shift(
             sch.S, sch.b, base, groups[name], value, sigma, max(variance_factor, 1.0)
         )
-        for name, (value, sigma) in (measured or {}).items()
+        for name, (value, sigma, _) in (measured or {}).items()
         if name in groups and len(groups[name]) == 1 and sigma > 0.0
     }
+    shown = {name for name in sized if (measured or {})[name][2]}
 
     def pick(prefix: str, shift: F64) -> F64:
         return np.array([s for n, s in zip(base_names, shift, strict=True) if n.startswith(prefix)])
@@ -656,7 +661,10 @@ def effect_evidence(
     for sel, scores in ((True, selection.selected), (False, selection.remaining)):
         for s in scores:
             shift, shift_sigma = planes_free.get(s.name, (s.shift, s.shift_sigma))
-            if s.name in sized:
+            prior_std = pick_extrinsic(s.prior_shift_sigma)
+            if s.name in sized:  # known only to within its measurement and the data
+                prior_std = pick_extrinsic(sized[s.name][1])
+            if s.name in shown:
                 shift, shift_sigma = with_measured(
                     (shift, shift_sigma), sized[s.name], hinted=s.p_value < hint_p
                 )
@@ -674,15 +682,15 @@ def effect_evidence(
                     shift_time_offset_s=float(c[0]) if c.size else 0.0,
                     statistic_alone=float(selection.alone.get(s.name, s.statistic)),
                     shift_std=pick_extrinsic(shift_sigma),
-                    prior_std=pick_extrinsic(s.prior_shift_sigma),
+                    prior_std=prior_std,
                     prior_sigma=float(prior[s.name][0]) if s.name in prior else 0.0,
                     joint_prior_var=joint_var,
                     joint_prior_shift=joint_shift,
                     joint_p_value=joint_p,
                     explained_by=shares.get(s.name, {}),
-                    measured=s.name in sized,
+                    measured=s.name in shown,
                     measured_value=(
-                        float((measured or {})[s.name][0]) if s.name in sized else float("nan")
+                        float((measured or {})[s.name][0]) if s.name in shown else float("nan")
                     ),
                 )
             )

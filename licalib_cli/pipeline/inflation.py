@@ -73,8 +73,9 @@ def largest_prior(effects: Sequence[EffectEvidence], raw_sigma: F64) -> str | No
 
 def prior_variance(effects: Sequence[EffectEvidence], raw_sigma: F64) -> F64:
     """(7,) variance the IMU priors add to the sigmas (``model.imu_prior``): an effect the data
-    do not show is still only known to within its prior (an IMU's factory calibration), and its
-    posterior spread moves the estimate too; a covered effect adds its shift instead.
+    do not show is still only known to within its prior (an IMU's factory calibration; the clock
+    drift, the rate of the stamps against the record times), and its posterior spread moves the
+    estimate too; a covered effect adds its shift instead.
 
     Per coordinate, the larger of the blocks' spreads summed one by one and what they add held
     at zero all together (:attr:`~licalib_cli.pipeline.fitcheck.EffectEvidence.
@@ -154,9 +155,15 @@ def inflate(
         finite = np.isfinite(sigma) & (sigma > 0.0)
         factor = float(np.max(grown[finite] / sigma[finite])) if np.any(finite) else 1.0
         held = [e for e in effects if not effect_to_cover(e, raw)]
+        most = largest_prior(effects, raw)
+        known = (
+            ", known to within the rate of its stamps against the record times"
+            if most == "imu_clock_drift"
+            else ""
+        )
         why.append(
             "by the IMU intrinsics held fixed, each known to within model.imu_prior "
-            f"(times up to {factor:.2f}; most from {largest_prior(effects, raw)})"
+            f"(times up to {factor:.2f}; most from {most}{known})"
             + unchecked_text(unchecked_priors(held, grown))
         )
         sigma = grown
