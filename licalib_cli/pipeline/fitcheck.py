@@ -432,11 +432,12 @@ class EffectEvidence:
         joint_p_value: the score test of those blocks together (NaN without a prior).
         refitted: the shift is (per coordinate, the larger of) the step's and a refit's with
             the effect estimated (:mod:`licalib_cli.pipeline.effect_refit`).
-        measured: the effect's size is measured apart from the fit (the IMU clock's rate
-            against the LiDAR's, from the stamps against the record times): the shift and its
-            spread are those of holding it at zero given that measurement
-            (:func:`~licalib_cli.consistency.measured_shift`), whatever the score test says;
-            ``measured_value`` is the measurement (own units, NaN when not measured).
+        measured: the effect's size is measured apart from the fit and the measurement shows
+            it (the IMU clock's rate against the LiDAR's, from the stamps against the record
+            times, a material one): the shift and its spread are those of holding it at zero
+            given that measurement (:func:`~licalib_cli.consistency.measured_shift`), whatever
+            the score test says; ``measured_value`` is the measurement (own units; NaN
+            otherwise). A measurement that does not show it still bounds it: ``prior_std``.
         explained_by: the share of this effect's score (against the estimated coordinates)
             that each other candidate explains when freed as well
             (:func:`licalib_cli.consistency.explained_shares`): near one for a candidate that
