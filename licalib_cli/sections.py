@@ -262,11 +262,14 @@ class EffectCheck(Section):
         shift_time_offset_s: how the time offset would move.
         selected: added by the forward selection (significant beyond the stronger effects;
             the statistic of an effect not selected is conditional on the selected ones).
-        material: selected and moving the extrinsic by more than its sigma.
+        material: selected (or measured) and moving the extrinsic by more than its sigma.
         covered: the reported sigmas include its shift (material, or hinted at: p below
             ``inflation.COVER_P_VALUE``) and the spread its estimate would add.
         refitted: the shift was measured by refitting with the effect estimated (an effect
             the data show beyond doubt), not only predicted from one linear step.
+        measured: the shift is that of holding the effect at zero at a size measured apart
+            from the fit, whatever its score test says (the IMU clock drift, at the rate of the
+            stamps against the record times when that rate is material).
     """
 
     _digits = 6
@@ -283,6 +286,7 @@ class EffectCheck(Section):
     material: bool = False
     covered: bool = False
     refitted: bool = False
+    measured: bool = False
 
 
 @dataclass(frozen=True)

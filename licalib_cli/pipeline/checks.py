@@ -1025,6 +1025,7 @@ def _effect_section(e: EffectEvidence, raw: F64) -> EffectCheck:
         material=effect_is_material(e, raw),
         covered=effect_to_cover(e, raw),
         refitted=e.refitted,
+        measured=e.measured,
     )
 
 
