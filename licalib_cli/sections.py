@@ -377,8 +377,13 @@ class Consistency(Section):
         material = [e for e in self.effects if e.material]
         if material:
             worst = max(material, key=lambda e: e.statistic)
+            size = (
+                "its size from the stamps"
+                if worst.measured
+                else f"score {worst.statistic:.0f} (dof {worst.dof})"
+            )
             figure = (
-                f"{worst.name}: score {worst.statistic:.0f} (dof {worst.dof}), moves "
+                f"{worst.name}: {size}, moves "
                 f"{1e3 * float(np.linalg.norm(worst.shift_translation_m)):.1f} mm / "
                 f"{float(np.linalg.norm(worst.shift_rotation_deg)):.3f} deg"
             )

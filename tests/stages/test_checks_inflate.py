@@ -210,3 +210,21 @@ def test_a_measured_effect_the_data_hint_at_keeps_the_larger_shift() -> None:
     shift, spread = with_measured(data, measured, hinted=True)
     np.testing.assert_array_equal(shift, [3.0, -2.0, 0.1])
     np.testing.assert_array_equal(spread, [0.2, 0.3, 0.2])
+
+
+def test_the_checks_table_says_a_measured_drift_got_its_size_from_the_stamps() -> None:
+    """A clock drift whose shift comes from the stamps' rate has an unremarkable score test; the
+    table says where its size came from instead of printing that score."""
+    from dataclasses import replace
+
+    from licalib_cli.sections import Consistency
+
+    drift = replace(
+        _effect_check("imu_clock_drift", 0.3, True, statistic=1.0), material=True, measured=True
+    )
+    row = next(r for r in Consistency(effects=(drift,)).rows() if r[0] == "effects held fixed")
+    assert row[1] == "imu_clock_drift: its size from the stamps, moves 1.0 mm / 0.000 deg"
+    assert row[2] == "imu_clock_drift" and row[3]
+    scored = replace(drift, measured=False)
+    row = next(r for r in Consistency(effects=(scored,)).rows() if r[0] == "effects held fixed")
+    assert row[1].startswith("imu_clock_drift: score 1 (dof 3)")
