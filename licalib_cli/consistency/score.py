@@ -155,9 +155,7 @@ def score_effects(
     out = []
     for name, idx in groups.items():
         e = np.asarray(idx, dtype=np.intp)
-        s_eb = s[np.ix_(e, bi)]
-        s_ee_b = s[np.ix_(e, e)] - s_eb @ s_bb_inv @ s_eb.T
-        g_e = rhs[e] - s_eb @ step_base
+        s_eb, s_ee_b, g_e = _profiled(s, rhs, bi, e, s_bb_inv, step_base)
         floor = 0.0 if floors is None else float(floors.get(name, 0.0))
         inv, rank = _pinv_psd(s_ee_b, relative_rank, floor)
         statistic = float(g_e @ inv @ g_e) / vf
@@ -235,16 +233,22 @@ def measured_shift(
     e = np.asarray(idx, dtype=np.intp)
     vf = max(float(variance_factor), 1.0)
     s_bb_inv, _ = _pinv_psd(s[np.ix_(bi, bi)], 1e-12)
-    s_eb = s[np.ix_(e, bi)]
-    info = (s[np.ix_(e, e)] - s_eb @ s_bb_inv @ s_eb.T) / vf
-    grad = (rhs[e] - s_eb @ (s_bb_inv @ rhs[bi])) / vf
-    measured_info = 1.0 / np.broadcast_to(np.asarray(sigma, dtype=np.float64), (e.size,)) ** 2
-    post = np.linalg.inv(info + np.diag(measured_info))
-    post = 0.5 * (post + post.T)
-    mean = post @ (grad + measured_info * np.broadcast_to(value, (e.size,)))
+    s_eb, s_ee_b, g_e = _profiled(s, rhs, bi, e, s_bb_inv, s_bb_inv @ rhs[bi])
     a = s_bb_inv @ s_eb.T
-    spread = np.einsum("ij,jk,ik->i", a, post, a)
-    return -a @ mean, np.sqrt(np.clip(spread, 0.0, None))
+    sd = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (e.size,))
+    return (
+        _prior_shift(a, s_ee_b / vf, g_e / vf, sd, bi.size, mean=value),
+        _prior_shift_sigma(a, s_ee_b / vf, sd, bi.size),
+    )
+
+
+def _profiled(
+    s: F64, rhs: F64, bi: npt.NDArray[np.intp], e: npt.NDArray[np.intp], s_bb_inv: F64, step: F64
+) -> tuple[F64, F64, F64]:
+    """A group's coupling to the estimated coordinates ``S_eb``, its information with them
+    profiled out ``S_ee - S_eb S_bb^-1 S_be`` and its gradient after their step ``step``."""
+    s_eb = s[np.ix_(e, bi)]
+    return s_eb, s[np.ix_(e, e)] - s_eb @ s_bb_inv @ s_eb.T, rhs[e] - s_eb @ step
 
 
 def explained_shares(
@@ -371,16 +375,24 @@ def _prior_shift_sigma(
 
 
 def _prior_shift(
-    shift_map: F64, information: F64, gradient: F64, prior: npt.ArrayLike | None, m: int
+    shift_map: F64,
+    information: F64,
+    gradient: F64,
+    prior: npt.ArrayLike | None,
+    m: int,
+    mean: npt.ArrayLike = 0.0,
 ) -> F64:
-    """(m,) ``-A (I + P^-1)^-1 g`` over the coordinates with a positive prior standard
-    deviation: the shift of the estimated coordinates with the group at its posterior mean
-    (see :func:`score_effects`); zeros without any prior."""
+    """(m,) ``-A (I + P^-1)^-1 (g + P^-1 mean)`` over the coordinates with a positive prior
+    standard deviation: the shift of the estimated coordinates with the group at its posterior
+    mean, the prior ``N(mean, P)`` (zero-mean by default: see :func:`score_effects`; a
+    measurement: :func:`measured_shift`); zeros without any prior."""
     found = _posterior(information, prior)
     if found is None:
         return np.zeros(m)
     on, post = found
-    return -shift_map[:, on] @ (post @ gradient[on])
+    p = np.broadcast_to(np.asarray(prior, dtype=np.float64), (information.shape[0],))
+    mu = np.broadcast_to(np.asarray(mean, dtype=np.float64), (information.shape[0],))
+    return -shift_map[:, on] @ (post @ (gradient[on] + mu[on] / p[on] ** 2))
 
 
 @dataclass(frozen=True)
