@@ -13,7 +13,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from licalib_cli.commands.render import console, console_err
+from licalib_cli.commands.render import VERDICT_COLOURS, console, console_err
 from licalib_cli.errors import BatchIncomplete
 
 if TYPE_CHECKING:
@@ -106,7 +106,7 @@ def _bags_table(report: Any) -> Table:
         table.add_column(name)
     for name in ("t (mm)", "1-sigma (mm)", "rpy (deg)", "1-sigma (deg)", "dt (ms)", "time (s)"):
         table.add_column(name, justify="right", no_wrap=True)
-    colour = {"pass": "green", "warn": "yellow", "fail": "red"}
+    colour = VERDICT_COLOURS
     for b in report.bags:
         if b.verdict:
             status = f"[{colour[b.verdict]}]{b.verdict.upper()}[/]"

@@ -11,7 +11,6 @@ from pathlib import Path
 from typing import Any
 
 import typer
-from rich.markup import escape
 from rich.table import Table
 
 from licalib_cli.commands.options import (
@@ -24,7 +23,7 @@ from licalib_cli.commands.options import (
     StartOption,
     input_overrides,
 )
-from licalib_cli.commands.render import console
+from licalib_cli.commands.render import VERDICT_COLOURS, console, reason_lines
 from licalib_cli.config import dump_config, load_config
 from licalib_cli.errors import ConfigError
 from licalib_cli.results import (
@@ -497,14 +496,14 @@ def render_diagnosis(diag: Any) -> None:
                 f"{best:.2g} {unit}" if math.isfinite(best) else "-",
             )
         out.print(quiet)
-    colour = {"pass": "green", "warn": "yellow", "fail": "red"}
+    colour = VERDICT_COLOURS
     v0, v1 = diag.base.verdict.status, diag.final.verdict.status
     out.print(
         f"Verdict: base model [{colour[v0]}]{v0.upper()}[/], with the effects "
         f"[bold {colour[v1]}]{v1.upper()}[/]"
     )
-    for reason in diag.final.verdict.reasons:
-        out.print(f"  - {escape(reason)}")
+    for line in reason_lines(diag.final.verdict.reasons):
+        out.print(line)
 
 
 def diagnose_command(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 from collections import Counter
+from collections.abc import Sequence
 from functools import cache
 from typing import TYPE_CHECKING
 
@@ -99,14 +100,20 @@ def unobservable_lines(texts: tuple[str, ...] | list[str]) -> list[str]:
     ]
 
 
+VERDICT_COLOURS = {"pass": "green", "warn": "yellow", "fail": "red"}
+"""The console colour of each verdict."""
+
+
+def reason_lines(reasons: Sequence[str]) -> list[str]:
+    """A verdict's reasons as console lines (plain text: a bracketed word in them, such as
+    ``model.lidar: [range_scale]``, is not markup)."""
+    return [f"  - {escape(reason)}" for reason in reasons]
+
+
 def verdict_lines(verdict: VerdictSection) -> list[str]:
-    """The verdict and its reasons as console lines (the reasons are plain text: a bracketed
-    word in them, such as ``model.lidar: [range_scale]``, is not markup)."""
-    colour = {"pass": "green", "warn": "yellow", "fail": "red"}[verdict.status]
-    return [
-        f"Verdict: [bold {colour}]{verdict.status.upper()}[/]",
-        *(f"  - {escape(reason)}" for reason in verdict.reasons),
-    ]
+    """The verdict and its reasons as console lines."""
+    colour = VERDICT_COLOURS[verdict.status]
+    return [f"Verdict: [bold {colour}]{verdict.status.upper()}[/]", *reason_lines(verdict.reasons)]
 
 
 def render_run(run: CalibrationRun, truth: Truth | None) -> None:
