@@ -5,6 +5,7 @@ sigmas' reason says so."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -67,6 +68,27 @@ def test_a_prior_the_recording_cannot_check_is_named_with_the_size_it_would_need
     assert text.startswith(", which this recording cannot check: it would show accel_scale only")
     assert f"{1e6 * size:.2g} ppm RMS (prior 1e+03)" in text
     assert text.endswith("the sigmas hold while the IMU is within those priors")
+
+
+def test_the_hidden_shift_scales_the_reach_not_the_posterior_spread() -> None:
+    """An effect as large as the recording can hide moves the estimate by its whole shift map
+    (the reach), not by the prior's spread given the data, which the data narrow: with a reach
+    of 0.8 of a sigma per prior sigma and a posterior spread of 0.35, the hidden shift is the
+    reach's; an effect without a reach keeps the spread's."""
+    info = [3e5, 1e6, 1e7]
+    size = weakest(info)
+    e = replace(held(info, 0.35), prior_reach=np.array([0.0, 0.0, 0.8e-3, 0.0, 0.0, 0.0, 0.0]))
+    (u,) = unchecked_priors([e], RAW)
+    assert u.hidden_shift == pytest.approx(0.8 * size / 1e-3)
+    (old,) = unchecked_priors([held(info, 0.35)], RAW)
+    assert old.hidden_shift == pytest.approx(0.35 * size / 1e-3)
+    # below a sigma by its spread, beyond it by its reach: named
+    small = HIDDEN_SHIFT / (size / 1e-3) / 2
+    reach = replace(
+        held(info, small), prior_reach=np.array([0.0, 0.0, 4 * small * 1e-3, 0, 0, 0, 0])
+    )
+    assert unchecked_priors([held(info, small)], RAW) == []
+    assert [u.effect for u in unchecked_priors([reach], RAW)] == ["accel_scale"]
 
 
 def test_priors_the_recording_checks_or_that_cannot_hide_an_error_are_not_named() -> None:
