@@ -690,11 +690,7 @@ def effect_evidence(
                     shift_std=pick_extrinsic(shift_sigma),
                     prior_std=prior_std,
                     prior_sigma=float(prior[s.name][0]) if s.name in prior else 0.0,
-                    prior_reach=(
-                        pick_extrinsic(s.prior_reach_sigma)
-                        if s.prior_reach_sigma.size == len(base_names)
-                        else np.zeros(7)
-                    ),
+                    prior_reach=pick_extrinsic(s.prior_reach_sigma),
                     joint_prior_var=joint_var,
                     joint_prior_shift=joint_shift,
                     joint_p_value=joint_p,

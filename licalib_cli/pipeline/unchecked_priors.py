@@ -73,7 +73,7 @@ def unchecked_priors(held: Sequence[EffectEvidence], sigma: F64) -> list[Uncheck
     the reported ``sigma`` (:data:`HIDDEN_SHIFT`), the one that could hide most first.
 
     An effect held at zero moves the estimate by its full shift map: one drawn from the prior
-    by ``prior_reach`` (``prior_std`` where that is not known), one as large as the recording
+    by ``prior_reach``, one as large as the recording
     can hide by about that times ``detectable / prior``. The prior's spread in the sigmas
     (``prior_std``, the posterior's of data and prior) is smaller where the data carry some
     information: on a 10 s VLP-16 shake with the gyro-to-IMU rotation estimated, an
@@ -87,7 +87,7 @@ def unchecked_priors(held: Sequence[EffectEvidence], sigma: F64) -> list[Uncheck
         u = _unchecked(
             e.score.name,
             e.prior_sigma,
-            _reach(e),
+            e.prior_reach,
             e.score.information,
             int(e.score.estimate.size),
             int(e.score.rank),
@@ -122,7 +122,7 @@ def combined_unchecked_priors(
         u = _unchecked(
             name,
             min(e.prior_sigma for e in effects),
-            np.min([_reach(e) for e in effects], axis=0),
+            np.min([e.prior_reach for e in effects], axis=0),
             kept,
             int(info.shape[0]),
             int(kept.size),
@@ -131,13 +131,6 @@ def combined_unchecked_priors(
         if u is not None:
             out.append(u)
     return sorted(out, key=lambda u: -u.hidden_shift)
-
-
-def _reach(e: EffectEvidence) -> F64:
-    """How far an effect drawn from its prior moves the extrinsic and time offset when held at
-    zero: ``prior_reach``, or the prior's spread in the sigmas where the reach is not known."""
-    reach = np.asarray(e.prior_reach, dtype=np.float64)
-    return reach if np.any(reach > 0.0) else np.asarray(e.prior_std, dtype=np.float64)
 
 
 def _unchecked(

@@ -74,7 +74,7 @@ def test_the_hidden_shift_scales_the_reach_not_the_posterior_spread() -> None:
     """An effect as large as the recording can hide moves the estimate by its whole shift map
     (the reach), not by the prior's spread given the data, which the data narrow: with a reach
     of 0.8 of a sigma per prior sigma and a posterior spread of 0.35, the hidden shift is the
-    reach's; an effect without a reach keeps the spread's."""
+    reach's (where the data say nothing of the effect, the two agree)."""
     info = [3e5, 1e6, 1e7]
     size = weakest(info)
     e = replace(held(info, 0.35), prior_reach=np.array([0.0, 0.0, 0.8e-3, 0.0, 0.0, 0.0, 0.0]))
