@@ -483,6 +483,7 @@ def select_effects(
                 shift=best.shift[pos],
                 shift_sigma=best.shift_sigma[pos],
                 prior_shift_sigma=best.prior_shift_sigma[pos],
+                prior_reach_sigma=best.prior_reach_sigma[pos],
             )
         )
         chosen_idx.append(todo.pop(best.name))
@@ -494,6 +495,7 @@ def select_effects(
             shift=r.shift[pos],
             shift_sigma=r.shift_sigma[pos],
             prior_shift_sigma=r.prior_shift_sigma[pos],
+            prior_reach_sigma=r.prior_reach_sigma[pos],
         )
         for r in (
             score_effects(

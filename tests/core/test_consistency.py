@@ -284,6 +284,25 @@ def test_prior_reach_is_the_shift_of_a_prior_drawn_group_held_at_zero() -> None:
     assert np.all(no_prior.prior_reach_sigma == 0.0)
 
 
+def test_the_selection_keeps_each_reach_on_the_estimated_coordinates() -> None:
+    """Once an effect is selected the others are scored with it freed too; their reach (and the
+    selected one's) is kept on the estimated coordinates, as the shifts are: the conditional
+    score's first three entries."""
+    from licalib_cli.consistency import score_effects, select_effects
+
+    rng = np.random.default_rng(9)
+    s, b, *_ = _linear_problem(rng, np.array([3.0, 0.0]))
+    prior = {"one": np.array([0.1]), "two": np.array([0.2])}
+    picked = select_effects(s, b, [0, 1, 2], {"one": [3], "two": [4]}, 1e-5, prior_sigma=prior)
+    assert [e.name for e in picked.selected] == ["one"]
+    (two,) = picked.remaining
+    (given,) = score_effects(s, b, [0, 1, 2, 3], {"two": [4]}, prior_sigma=prior)
+    np.testing.assert_allclose(two.prior_reach_sigma, given.prior_reach_sigma[:3])
+    (one,) = score_effects(s, b, [0, 1, 2], {"one": [3]}, prior_sigma=prior)
+    np.testing.assert_allclose(picked.selected[0].prior_reach_sigma, one.prior_reach_sigma)
+    assert np.all(two.prior_reach_sigma > 0.0)
+
+
 def test_prior_shift_is_the_move_to_the_posterior_mean_of_the_group() -> None:
     """The estimated coordinates' move when the group, held at zero, is solved with them under
     its Gaussian prior (the MAP of the joint model): what holding it at zero biases them by, as
