@@ -237,6 +237,11 @@ def one_run(case: dict, workdir: Path) -> dict:
         # what enlarged the sigmas, and the fixed effects whose shifts they cover
         inflation=list(res.consistency.inflation) if res.consistency else [],
         covered=[e.name for e in res.consistency.effects if e.covered] if res.consistency else [],
+        # the IMU priors this recording cannot check, with the shift each could hide
+        unchecked=(
+            [u.to_dict() for u in res.consistency.unchecked_priors] if res.consistency else []
+        ),
+        reasons=list(run.verdict.reasons),
         # the split-half check: its outcome, p-value and the coordinates it compared
         split=(
             {
@@ -449,6 +454,19 @@ def main() -> None:
     )
     for r in bad:
         print(f"  miss: seed {r['seed']} {r['name']}: {judge(r)}")
+    prior_only = [
+        r
+        for r in rows
+        if r["verdict"] == "warn"
+        and r.get("reasons")
+        and all(x.startswith("The extrinsic rests on the IMU") for x in r["reasons"])
+    ]
+    if prior_only:
+        worst = max(r["max_error_over_sigma"] for r in prior_only)
+        print(
+            f"WARN only for an IMU prior the recording cannot check: {len(prior_only)} (seeds "
+            f"{', '.join(str(r['seed']) for r in prior_only)}; errors up to {worst:.2f} sigmas)"
+        )
     clean = [r for r in rows if r["name"] == "clean" and "information" in r]
     if clean:
         outside = sum(outside_limits(r) for r in clean)

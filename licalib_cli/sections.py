@@ -56,6 +56,7 @@ __all__ = [
     "SensorCheck",
     "SplitHalf",
     "Uncertainty",
+    "UncheckedPriorCheck",
     "VerdictSection",
     "p_is",
     "p_text",
@@ -345,6 +346,34 @@ SPLIT_LABELS = {
 
 
 @dataclass(frozen=True)
+class UncheckedPriorCheck(Section):
+    """An IMU block held fixed whose prior (``model.imu_prior``) the recording cannot check: it
+    would name the block's effect only from several times the prior.
+
+    Attributes:
+        name: the block (``accel_scale``, ...).
+        unit: the unit of ``prior`` and ``detectable`` (``ppm``, ``deg``, ...).
+        prior: the prior's sigma per coordinate.
+        detectable: the RMS per coordinate from which the recording names the effect nine
+            times in ten (``inf``: some direction of it not at all).
+        coordinate: the coordinate an effect of that size moves most (``t_x`` ... ``yaw``,
+            ``time offset``).
+        hidden_shift_sigmas: how far it moves that coordinate, in its reported sigmas.
+        warns: far enough for the verdict to warn (at least 2 sigmas).
+    """
+
+    _digits = 4
+
+    name: str
+    unit: str
+    prior: float
+    detectable: float
+    coordinate: str
+    hidden_shift_sigmas: float
+    warns: bool = False
+
+
+@dataclass(frozen=True)
 class Consistency(Section):
     """Whether the fitted model explains the data (the fit checks).
 
@@ -354,12 +383,16 @@ class Consistency(Section):
         split_half: the two halves compared.
         inflation: how the reported sigmas were enlarged, one sentence each (empty: as
             computed).
+        unchecked_priors: the IMU blocks held fixed whose priors the recording cannot check
+            and whose error could move the extrinsic by more than its sigma unseen, the one
+            that could move it most first.
     """
 
     sensors: tuple[SensorCheck, ...] = ()
     effects: tuple[EffectCheck, ...] = ()
     split_half: SplitHalf = field(default_factory=lambda: SplitHalf("not run"))
     inflation: tuple[str, ...] = ()
+    unchecked_priors: tuple[UncheckedPriorCheck, ...] = ()
 
     def rows(self) -> list[tuple[str, str, str, bool]]:
         """One row per fit check, as the console table and the report show them:
@@ -411,6 +444,21 @@ class Consistency(Section):
                 figure += f"; {compared}"
             agree = sh.status == "agree"
             out.append(("split halves", figure, "agree" if agree else "disagree", not agree))
+        if self.unchecked_priors:
+            u = self.unchecked_priors[0]
+            shown = (
+                f"{u.name} shows from {u.detectable:.2g} {u.unit} (prior {u.prior:.2g})"
+                if math.isfinite(u.detectable)
+                else f"{u.name} not in every direction (prior {u.prior:.2g} {u.unit})"
+            )
+            more = len(self.unchecked_priors) - 1
+            figure = shown + (f"; {more} more" if more else "")
+            outcome = (
+                f"unchecked: could move {u.coordinate} {u.hidden_shift_sigmas:.1f} sigma"
+                if math.isfinite(u.hidden_shift_sigmas)
+                else f"unchecked: could move {u.coordinate} unseen"
+            )
+            out.append(("IMU priors", figure, outcome, u.warns))
         return out
 
 

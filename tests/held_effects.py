@@ -21,14 +21,12 @@ def imu_effect(
     shift_std: np.ndarray | None = None,
     prior_std: np.ndarray | None = None,
     prior_sigma: float = 0.0,
-    prior_reach: np.ndarray | None = None,
     information: Sequence[float] | None = None,
 ) -> EffectEvidence:
     """A three-coordinate IMU effect: its test (``p_value``, ``statistic``; ``information``
     the eigenvalues along the directions the data determine, ``rank`` their number by default,
     and the profiled information diagonal in them) and what it does to the (7,) extrinsic
-    (``shift``, ``shift_std``, ``prior_std``; zeros by default; ``prior_reach`` that of a prior
-    the data say nothing about, ``prior_std``, by default)."""
+    (``shift``, ``shift_std``, ``prior_std``; zeros by default)."""
     zeros = np.zeros(7)
     info = np.zeros(0) if information is None else np.asarray(information, dtype=np.float64)
     score = EffectScore(
@@ -57,5 +55,4 @@ def imu_effect(
         shift_std=zeros if shift_std is None else shift_std,
         prior_std=spread,
         prior_sigma=prior_sigma,
-        prior_reach=spread if prior_reach is None else prior_reach,
     )

@@ -16,7 +16,13 @@ from scipy import optimize
 
 from licalib_cli.consistency.distributions import ncx2_sf
 
-__all__ = ["DETECTION_POWER", "DISPLAY_UNITS", "detectable_rms", "display_size"]
+__all__ = [
+    "DETECTION_POWER",
+    "DISPLAY_UNITS",
+    "detectable_noncentrality",
+    "detectable_rms",
+    "display_size",
+]
 
 DISPLAY_UNITS: dict[str, tuple[float, str]] = {
     "gyro_scale": (1e6, "ppm"),
@@ -43,6 +49,24 @@ DETECTION_POWER = 0.9
 """``not_shown`` sizes are those an effect needs to be named at least this often."""
 
 
+def detectable_noncentrality(
+    statistic_threshold: float, rank: int, power: float = DETECTION_POWER
+) -> float:
+    """The non-centrality ``d^T I d`` at which the score statistic (``rank`` degrees of
+    freedom) exceeds ``statistic_threshold`` with probability ``power``: an effect ``d`` inside
+    that ellipsoid may hide in the recording."""
+
+    def shortfall(nc: float) -> float:
+        return ncx2_sf(statistic_threshold, rank, nc) - power
+
+    if shortfall(0.0) >= 0.0:
+        return 0.0
+    hi = max(statistic_threshold, 1.0)
+    while shortfall(hi) < 0.0:
+        hi *= 2.0
+    return float(optimize.brentq(shortfall, 0.0, hi))
+
+
 def detectable_rms(
     statistic_threshold: float,
     coordinates: int,
@@ -61,15 +85,7 @@ def detectable_rms(
     info = info[info > 0.0]
     if coordinates <= 0 or info.size == 0:
         return float("inf"), float("inf")
-    rank = info.size
-
-    def shortfall(nc: float) -> float:
-        return ncx2_sf(statistic_threshold, rank, nc) - power
-
-    hi = max(statistic_threshold, 1.0)
-    while shortfall(hi) < 0.0:
-        hi *= 2.0
-    needed = float(optimize.brentq(shortfall, 0.0, hi)) if shortfall(0.0) < 0.0 else 0.0
+    needed = detectable_noncentrality(statistic_threshold, info.size, power)
     per_coordinate = needed / coordinates
     return math.sqrt(per_coordinate / float(info.min())), math.sqrt(
         per_coordinate / float(info.max())

@@ -72,11 +72,6 @@ class EffectScore:
         prior_shift: (m,) the change of the estimated coordinates if the group, held at zero,
             were at its posterior mean (data and prior): what holding it at zero biases them by,
             as far as the data and the prior tell; zeros without a prior.
-        prior_reach_sigma: (m,) standard deviation of the change of the estimated coordinates
-            that an effect drawn from the prior alone causes when held at zero: ``A P A^T``,
-            before the data narrow it (``prior_shift_sigma`` is the posterior's, smaller where
-            the data carry some information); what an effect the recording does not show moves
-            the estimate by, per prior sigma. Zeros without a prior.
     """
 
     name: str
@@ -92,7 +87,6 @@ class EffectScore:
     gradient: F64 = field(default_factory=lambda: np.zeros(0))
     profiled_information: F64 = field(default_factory=lambda: np.zeros((0, 0)))
     prior_shift: F64 = field(default_factory=lambda: np.zeros(0))
-    prior_reach_sigma: F64 = field(default_factory=lambda: np.zeros(0))
 
     @property
     def shift_z(self) -> F64:
@@ -196,7 +190,6 @@ def score_effects(
                 ),
                 gradient=g_e / vf,
                 profiled_information=s_ee_b / vf,
-                prior_reach_sigma=_prior_reach_sigma(s_bb_inv @ s_eb.T, prior, bi.size),
             )
         )
     return out
@@ -381,16 +374,6 @@ def _prior_shift_sigma(
     return np.sqrt(np.clip(np.einsum("ij,jk,ik->i", a, post, a), 0.0, None))
 
 
-def _prior_reach_sigma(shift_map: F64, prior: npt.ArrayLike | None, m: int) -> F64:
-    """(m,) root of the diagonal of ``A P A^T``: the spread a group drawn from its prior moves
-    the estimated coordinates by when held at zero, the data's information left out (see
-    :attr:`EffectScore.prior_reach_sigma`); zeros without any prior."""
-    if prior is None:
-        return np.zeros(m)
-    p = np.broadcast_to(np.asarray(prior, dtype=np.float64), (shift_map.shape[1],))
-    return np.sqrt(np.einsum("ij,j->i", shift_map**2, p**2))
-
-
 def _prior_shift(
     shift_map: F64,
     information: F64,
@@ -483,7 +466,6 @@ def select_effects(
                 shift=best.shift[pos],
                 shift_sigma=best.shift_sigma[pos],
                 prior_shift_sigma=best.prior_shift_sigma[pos],
-                prior_reach_sigma=best.prior_reach_sigma[pos],
             )
         )
         chosen_idx.append(todo.pop(best.name))
@@ -495,7 +477,6 @@ def select_effects(
             shift=r.shift[pos],
             shift_sigma=r.shift_sigma[pos],
             prior_shift_sigma=r.prior_shift_sigma[pos],
-            prior_reach_sigma=r.prior_reach_sigma[pos],
         )
         for r in (
             score_effects(

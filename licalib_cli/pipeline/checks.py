@@ -65,6 +65,11 @@ from licalib_cli.pipeline.prior_directions import (
 from licalib_cli.pipeline.schedule import JITTER_FACTOR, MAX_FINAL_ROUNDS, Change, Fit, within
 from licalib_cli.pipeline.settings import NoiseLevels, prior_sd
 from licalib_cli.pipeline.split import COORDINATES, SplitResult, split_half
+from licalib_cli.pipeline.unchecked_priors import (
+    unchecked_priors,
+    unchecked_sections,
+    unchecked_warning,
+)
 from licalib_cli.residuals import ACCEL_MISALIGNMENT, EXT_ROTATION, GYRO_ROTATION, TIME_DRIFT
 from licalib_cli.results import vec3
 from licalib_cli.sections import (
@@ -961,6 +966,12 @@ def run_checks(
     findings += _effects(effects, raw)
     findings += _split(split)
     findings += _map(fit, report)
+    # an IMU block held fixed whose prior the recording cannot check, and whose error of the
+    # size it cannot show would move the extrinsic beyond its sigmas
+    unchecked = unchecked_priors([e for e in effects if not effect_to_cover(e, raw)], sigma)
+    warning = unchecked_warning(unchecked)
+    if warning is not None:
+        findings.append(Finding("warn", warning, True))
     verdict, exit_status = judge(findings)
     chi = max((c.chi2_per_sample for c in sensors), default=1.0)
     intrinsics = intrinsics_uncertainty(
@@ -971,6 +982,7 @@ def run_checks(
         effects=tuple(_effect_section(e, raw) for e in effects),
         split_half=_split_section(split),
         inflation=why,
+        unchecked_priors=unchecked_sections(unchecked),
     )
     return Checks(
         verdict=verdict,

@@ -420,10 +420,6 @@ class EffectEvidence:
             sigmas of the extrinsic and time offset (zeros without a prior).
         prior_sigma: that prior's sigma per coordinate, in the effect's solver coordinates (0:
             none).
-        prior_reach: (7,) how far an effect drawn from that prior moves the extrinsic and time
-            offset when held at zero, before the data narrow it (the score's
-            ``prior_reach_sigma``): an effect the recording does not show moves them by this
-            per prior sigma (:mod:`licalib_cli.pipeline.unchecked_priors`).
         joint_prior_var: (7,) the variance every IMU block with a prior adds to the estimate
             when all of them are held at zero together: the spread of their joint posterior
             (data and priors) carried into it (the same array on each IMU block with a prior;
@@ -460,7 +456,6 @@ class EffectEvidence:
     prior_std: F64 = field(default_factory=lambda: np.zeros(7))
     refitted: bool = False
     prior_sigma: float = 0.0
-    prior_reach: F64 = field(default_factory=lambda: np.zeros(7))
     joint_prior_var: F64 = field(default_factory=lambda: np.zeros(7))
     joint_prior_shift: F64 = field(default_factory=lambda: np.zeros(7))
     joint_p_value: float = float("nan")
@@ -690,7 +685,6 @@ def effect_evidence(
                     shift_std=pick_extrinsic(shift_sigma),
                     prior_std=prior_std,
                     prior_sigma=float(prior[s.name][0]) if s.name in prior else 0.0,
-                    prior_reach=pick_extrinsic(s.prior_reach_sigma),
                     joint_prior_var=joint_var,
                     joint_prior_shift=joint_shift,
                     joint_p_value=joint_p,

@@ -90,7 +90,11 @@ from licalib_cli.pipeline.segment_runs import calibrate_windows, sigma_size
 from licalib_cli.pipeline.segments import select_segments
 from licalib_cli.pipeline.segments_model import SegmentsModel, model_for_segments
 from licalib_cli.pipeline.settings import lm_params, prior_sd, round_settings
-from licalib_cli.pipeline.unchecked_priors import combined_unchecked_priors, unchecked_text
+from licalib_cli.pipeline.unchecked_priors import (
+    combined_unchecked_priors,
+    unchecked_text,
+    unchecked_warning,
+)
 from licalib_cli.progress import NullProgress, Progress
 from licalib_cli.residuals import (
     EXT_ROTATION,
@@ -695,12 +699,17 @@ def _joint_result(
             [e for e in r.checks.effects if not effect_to_cover(e, r.checks.raw_sigma)]
             for r in runs
         ]
+        unchecked = combined_unchecked_priors(held, sigma)
         reasons.append(
             "Joint sigmas include the IMU intrinsics held fixed (model.imu_prior) as the "
             "best-determined segment's do: an IMU error moves every segment alike"
-            + unchecked_text(combined_unchecked_priors(held, sigma))
+            + unchecked_text(unchecked)
             + "."
         )
+        warning = unchecked_warning(unchecked)
+        if warning is not None:
+            worst = "warn" if worst == "pass" else worst
+            reasons.insert(0, f"Joint estimate: {warning}")
     base = runs[best].result
     section = SegmentsSection(
         reference=best + 1,

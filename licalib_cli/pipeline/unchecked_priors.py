@@ -20,16 +20,25 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.consistency.distributions import chi2_isf
-from licalib_cli.consistency.power import detectable_rms, display_size
+from licalib_cli.consistency.power import (
+    detectable_noncentrality,
+    detectable_rms,
+    display_size,
+)
+from licalib_cli.pipeline.crawl import COORDINATES
 from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
+from licalib_cli.sections import UncheckedPriorCheck
 
 __all__ = [
     "HIDDEN_SHIFT",
     "UNCHECKED_FACTOR",
+    "UNCHECKED_WARN",
     "UncheckedPrior",
     "combined_unchecked_priors",
     "unchecked_priors",
+    "unchecked_sections",
     "unchecked_text",
+    "unchecked_warning",
 ]
 
 F64 = npt.NDArray[np.float64]
@@ -45,6 +54,15 @@ HIDDEN_SHIFT = 1.0
 coordinate of the extrinsic or time offset by at least this many of its reported sigmas are
 listed (the others cannot hide an error that matters)."""
 
+UNCHECKED_WARN = 3.0
+"""An unchecked prior whose hidden shift is at least this many sigmas makes the verdict warn:
+an effect the recording cannot show could then by itself leave the estimate beyond the three
+sigmas a PASS promises, with every check passing. On the diagnose benchmark's seed 4144 (a
+10 s VLP-16 shake hardly tilted, the gyro-to-IMU rotation estimated) the accelerometer
+misalignment's hidden shift is 4.4 sigmas (roll), and a misalignment of 1.5 times its prior,
+below what the recording shows, left the pitch 3.3 of its sigmas off under a PASS (1.2 without
+it)."""
+
 
 @dataclass(frozen=True)
 class UncheckedPrior:
@@ -59,12 +77,15 @@ class UncheckedPrior:
         hidden_shift: how far an effect of that size would move the extrinsic or time offset,
             in their reported sigmas (the largest over the coordinates; ``inf`` with
             ``detectable``).
+        coordinate: the coordinate it moves most (0-6: t_x, t_y, t_z, rotation about the
+            LiDAR's x, y, z, time offset).
     """
 
     effect: str
     prior: float
     detectable: float
     hidden_shift: float
+    coordinate: int = 0
 
 
 def unchecked_priors(held: Sequence[EffectEvidence], sigma: F64) -> list[UncheckedPrior]:
@@ -72,22 +93,25 @@ def unchecked_priors(held: Sequence[EffectEvidence], sigma: F64) -> list[Uncheck
     the recording cannot check (:data:`UNCHECKED_FACTOR`) and that could hide an error beyond
     the reported ``sigma`` (:data:`HIDDEN_SHIFT`), the one that could hide most first.
 
-    An effect held at zero moves the estimate by its full shift map: one drawn from the prior
-    by ``prior_reach``, one as large as the recording
-    can hide by about that times ``detectable / prior``. The prior's spread in the sigmas
-    (``prior_std``, the posterior's of data and prior) is smaller where the data carry some
-    information: on a 10 s VLP-16 shake with the gyro-to-IMU rotation estimated, an
-    accelerometer misalignment the recording names from 3.3 times its prior had a posterior
-    spread of two thirds of its reach (0.53 against 0.78 of a sigma per prior sigma), and the
-    hidden shift it gave (1.74 sigmas) fell short of what a misalignment of 1.5 times the prior
-    did (2.1 sigmas; the diagnose benchmark's seed 4144).
+    An effect ``d`` held at zero moves the estimate by ``A d`` (its shift map) and shows in the
+    score test nine times in ten once ``d^T I d`` reaches the non-centrality ``c`` of
+    :func:`~licalib_cli.consistency.power.detectable_noncentrality`. Over the effects inside
+    that ellipsoid, the largest move of coordinate ``i`` is ``sqrt(c a_i^T I^-1 a_i)``: the
+    root of ``c`` times the spread the effect's estimate would add to that coordinate
+    (``shift_std``), whatever the prior. The prior's reach (``A P A^T``) times the detectable
+    RMS along the worst direction does not give it: it counts directions the recording
+    determines well as if they hid as much as the worst, and leaves out that an effect of that
+    RMS is ``sqrt(3)`` times as long. On the sample it named a gyro misalignment that could
+    hide 2.6 sigmas (0.5 here) and on the diagnose benchmark's seed 4144 an accelerometer
+    misalignment that could hide 2.6 (4.4 here: 1.5 times the prior, below what that recording
+    shows, moved the pitch by about 2.1 of its sigmas).
     """
     out = []
     for e in held:
         u = _unchecked(
             e.score.name,
             e.prior_sigma,
-            e.prior_reach,
+            e.shift_std,
             e.score.information,
             int(e.score.estimate.size),
             int(e.score.rank),
@@ -103,10 +127,11 @@ def combined_unchecked_priors(
 ) -> list[UncheckedPrior]:
     """:func:`unchecked_priors` for several segments of one recording calibrated together, with
     ``sigma`` the joint sigmas: an effect of the rig shows in their information summed (as the
-    combined score test, :func:`~licalib_cli.consistency.score.combined_score`), and its prior
-    moves the joint estimate as much as in the best-determined segment (the smallest
-    ``prior_std``). ``segments`` holds each segment's held effects that its sigmas do not cover
-    by their shift; an effect missing from one is left out."""
+    combined score test, :func:`~licalib_cli.consistency.score.combined_score`), and the spread
+    its estimate would add to the joint estimate is at most the best-determined segment's (the
+    smallest ``shift_std``: the summed information narrows it further). ``segments`` holds each
+    segment's held effects that its sigmas do not cover by their shift; an effect missing from
+    one is left out."""
     by_name: dict[str, list[EffectEvidence]] = {}
     for held in segments:
         for e in held:
@@ -122,7 +147,7 @@ def combined_unchecked_priors(
         u = _unchecked(
             name,
             min(e.prior_sigma for e in effects),
-            np.min([e.prior_reach for e in effects], axis=0),
+            np.min([e.shift_std for e in effects], axis=0),
             kept,
             int(info.shape[0]),
             int(kept.size),
@@ -136,7 +161,7 @@ def combined_unchecked_priors(
 def _unchecked(
     name: str,
     prior_sigma: float,
-    reach: F64,
+    shift_std: F64,
     information: npt.ArrayLike,
     coordinates: int,
     rank: int,
@@ -145,23 +170,25 @@ def _unchecked(
     finite = np.isfinite(sigma) & (sigma > 0.0)
     if prior_sigma <= 0.0 or not np.any(finite):
         return None
+    spread = np.where(finite, np.asarray(shift_std, dtype=np.float64), 0.0)
+    shares = spread / np.where(finite, sigma, 1.0)
+    coordinate = int(np.argmax(shares))
+    threshold = chi2_isf(EFFECT_P_VALUE, max(rank, 1))
     if rank < coordinates:
-        detectable = float("inf")
+        detectable, hidden = float("inf"), float("inf")
     else:
-        threshold = chi2_isf(EFFECT_P_VALUE, max(rank, 1))
         detectable, _ = detectable_rms(threshold, coordinates, information)
-    share = float(np.max(np.asarray(reach)[finite] / sigma[finite]))
-    hidden = share * detectable / prior_sigma if share > 0.0 else 0.0
+        hidden = float(np.sqrt(detectable_noncentrality(threshold, rank)) * shares[coordinate])
     logger.debug(
-        "prior of %s: %.3g, named from %.3g, reach %.2f of a sigma, hidden shift %.2f",
+        "prior of %s: %.3g, named from %.3g, hidden shift %.2f sigmas of %s",
         name,
         prior_sigma,
         detectable,
-        share,
         hidden,
+        COORDINATES[coordinate],
     )
     if detectable > UNCHECKED_FACTOR * prior_sigma and hidden >= HIDDEN_SHIFT:
-        return UncheckedPrior(name, prior_sigma, detectable, hidden)
+        return UncheckedPrior(name, prior_sigma, detectable, hidden, coordinate)
     return None
 
 
@@ -182,3 +209,74 @@ def unchecked_text(items: Sequence[UncheckedPrior]) -> str:
         f", which this recording cannot check: it would show {listed}; the sigmas hold while "
         "the IMU is within those priors"
     )
+
+
+MODEL_NAMES = {"imu_clock_drift": "clock_drift"}
+"""An effect's name in ``model.imu`` where it differs from the score test's."""
+
+_ADVICE = {
+    "gyro_scale": "turned faster about every axis",
+    "gyro_misalignment": "turned faster about every axis",
+    "gyro_rotation": "tilted by tens of degrees about both horizontal axes",
+    "accel_scale": "tilted by tens of degrees about both horizontal axes and accelerated "
+    "along every axis",
+    "accel_misalignment": "tilted by tens of degrees about both horizontal axes",
+    "g_sensitivity": "turned and accelerated along every axis",
+}
+"""How a recording shows each IMU block (what the advice of :func:`unchecked_warning` asks)."""
+
+
+def unchecked_warning(items: Sequence[UncheckedPrior]) -> str | None:
+    """The verdict's warning when some of ``items`` (:func:`unchecked_priors`, in that order)
+    could hide a shift of at least :data:`UNCHECKED_WARN` sigmas; None otherwise."""
+    warned = [u for u in items if u.hidden_shift >= UNCHECKED_WARN]
+    if not warned:
+        return None
+    u = warned[0]
+    prior, unit = display_size(u.effect, u.prior)
+    where = COORDINATES[u.coordinate]
+    if np.isfinite(u.detectable):
+        size, _ = display_size(u.effect, u.detectable)
+        shown = (
+            f"it would show {u.effect} only from {size:.2g} {unit} RMS, and an effect it "
+            f"cannot show would move {where} by up to {u.hidden_shift:.1f} of its sigmas"
+        )
+    else:
+        shown = f"it does not show {u.effect} in every direction, and that direction moves {where}"
+    names = [MODEL_NAMES.get(w.effect, w.effect) for w in warned]
+    listed = names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+    them = "them" if len(names) > 1 else "it"
+    of = f" for {u.effect}" if len(names) > 1 else ""
+    how = _ADVICE.get(u.effect)
+    record = f"Record with the rig {how}, or estimate {them}" if how else f"Estimate {them}"
+    if u.effect == "imu_clock_drift":
+        return (
+            f"The extrinsic rests on the IMU clock's rate, which this recording cannot check: "
+            f"{shown}. Add clock_drift to model.imu, or synchronise the clocks."
+        )
+    return (
+        f"The extrinsic rests on the IMU's own calibration of {listed} (model.imu_prior{of}: "
+        f"{prior:.2g} {unit}), which this recording cannot check: {shown}. "
+        f"{record} (model.imu: [{', '.join(names)}]), which replaces the prior by what the "
+        "data say."
+    )
+
+
+def unchecked_sections(items: Sequence[UncheckedPrior]) -> tuple[UncheckedPriorCheck, ...]:
+    """``items`` as the result file's ``consistency.unchecked_priors``."""
+    out = []
+    for u in items:
+        prior, unit = display_size(u.effect, u.prior)
+        size, _ = display_size(u.effect, u.detectable)
+        out.append(
+            UncheckedPriorCheck(
+                name=u.effect,
+                unit=unit,
+                prior=prior,
+                detectable=size,
+                coordinate=COORDINATES[u.coordinate],
+                hidden_shift_sigmas=u.hidden_shift,
+                warns=bool(u.hidden_shift >= UNCHECKED_WARN),
+            )
+        )
+    return tuple(out)

@@ -254,40 +254,10 @@ def test_prior_shift_sigma_is_the_extra_spread_of_marginalising_a_prior() -> Non
     np.testing.assert_allclose(half.prior_shift_sigma, np.sqrt(extra), rtol=1e-9)
 
 
-def test_prior_reach_is_the_shift_of_a_prior_drawn_group_held_at_zero() -> None:
-    """An effect drawn from its prior and held at zero moves the estimated coordinates by its
-    whole shift map ``A = S_bb^-1 S_be``: the reach is ``sqrt(diag(A P A^T))``, whatever the
-    data say of the group; the prior's posterior spread (``prior_shift_sigma``) is smaller
-    wherever the data carry some information, and equal to it only when they carry none."""
-    from licalib_cli.consistency import score_effects
-
-    rng = np.random.default_rng(8)
-    s, b, *_ = _linear_problem(rng, np.zeros(2))
-    base, e = [0, 1, 2], [3, 4]
-    prior = np.array([0.05, 0.2])
-    (res,) = score_effects(s, b, base, {"e": e}, prior_sigma={"e": prior})
-    a = np.linalg.solve(s[np.ix_(base, base)], s[np.ix_(base, e)])
-    np.testing.assert_allclose(res.prior_reach_sigma, np.sqrt(np.diag(a @ np.diag(prior**2) @ a.T)))
-    # Monte Carlo: the fit with the group held at zero when the data hold a drawn effect
-    draws = rng.normal(size=(4000, 2)) * prior
-    moved = -(a @ draws.T).T  # the estimated coordinates' error from the held effect
-    np.testing.assert_allclose(moved.std(axis=0), res.prior_reach_sigma, rtol=0.05)
-    assert np.all(res.prior_shift_sigma < res.prior_reach_sigma)
-    # data that say nothing of the group: the posterior is the prior, the two agree
-    blind = s.copy()
-    blind[np.ix_(e, e)] *= 1e-9
-    blind[np.ix_(e, base)] *= 1e-9**0.5
-    blind[np.ix_(base, e)] *= 1e-9**0.5
-    (none,) = score_effects(blind, b, base, {"e": e}, prior_sigma={"e": prior})
-    np.testing.assert_allclose(none.prior_shift_sigma, none.prior_reach_sigma, rtol=1e-6)
-    (no_prior,) = score_effects(s, b, base, {"e": e})
-    assert np.all(no_prior.prior_reach_sigma == 0.0)
-
-
-def test_the_selection_keeps_each_reach_on_the_estimated_coordinates() -> None:
-    """Once an effect is selected the others are scored with it freed too; their reach (and the
-    selected one's) is kept on the estimated coordinates, as the shifts are: the conditional
-    score's first three entries."""
+def test_the_selection_keeps_each_spread_on_the_estimated_coordinates() -> None:
+    """Once an effect is selected the others are scored with it freed too; the spread their
+    estimates would add (and the selected one's) is kept on the estimated coordinates, as the
+    shifts are: the conditional score's first three entries."""
     from licalib_cli.consistency import score_effects, select_effects
 
     rng = np.random.default_rng(9)
@@ -297,10 +267,11 @@ def test_the_selection_keeps_each_reach_on_the_estimated_coordinates() -> None:
     assert [e.name for e in picked.selected] == ["one"]
     (two,) = picked.remaining
     (given,) = score_effects(s, b, [0, 1, 2, 3], {"two": [4]}, prior_sigma=prior)
-    np.testing.assert_allclose(two.prior_reach_sigma, given.prior_reach_sigma[:3])
+    np.testing.assert_allclose(two.shift_sigma, given.shift_sigma[:3])
+    np.testing.assert_allclose(two.prior_shift_sigma, given.prior_shift_sigma[:3])
     (one,) = score_effects(s, b, [0, 1, 2], {"one": [3]}, prior_sigma=prior)
-    np.testing.assert_allclose(picked.selected[0].prior_reach_sigma, one.prior_reach_sigma)
-    assert np.all(two.prior_reach_sigma > 0.0)
+    np.testing.assert_allclose(picked.selected[0].shift_sigma, one.shift_sigma)
+    assert np.all(two.shift_sigma > 0.0)
 
 
 def test_prior_shift_is_the_move_to_the_posterior_mean_of_the_group() -> None:

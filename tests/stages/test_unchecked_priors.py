@@ -1,11 +1,10 @@
 """IMU priors a recording cannot check (``licalib_cli.pipeline.unchecked_priors``): the sigmas
 hold while the IMU is within ``model.imu_prior``; when the recording would name an effect only
-at several times its prior and such an effect would move the extrinsic beyond its sigma, the
-sigmas' reason says so."""
+at several times its prior and an effect it cannot show would move the extrinsic beyond its
+sigma, the sigmas' reason says so, and from two sigmas the verdict warns."""
 
 from __future__ import annotations
 
-from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -13,23 +12,29 @@ import pytest
 from held_effects import imu_effect
 
 from licalib_cli.consistency.distributions import chi2_isf
-from licalib_cli.consistency.power import detectable_rms
+from licalib_cli.consistency.power import detectable_noncentrality, detectable_rms
+from licalib_cli.pipeline.crawl import COORDINATES
 from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
 from licalib_cli.pipeline.inflation import COVER_P_VALUE, inflate
 from licalib_cli.pipeline.unchecked_priors import (
     HIDDEN_SHIFT,
     UNCHECKED_FACTOR,
+    UNCHECKED_WARN,
     combined_unchecked_priors,
     unchecked_priors,
+    unchecked_sections,
     unchecked_text,
+    unchecked_warning,
 )
+from licalib_cli.sections import Consistency, UncheckedPriorCheck
 
 RAW = np.array([1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4, 1e-5])
+INFO = [3e5, 1e6, 1e7]  # names the effect from about 8.6 times a prior of 1e-3
 
 
 def held(
     information: list[float],
-    prior_z_mm: float,
+    spread_z: float,
     *,
     name: str = "accel_scale",
     prior: float = 1e-3,
@@ -38,15 +43,18 @@ def held(
     shift_z_mm: float = 0.0,
 ) -> EffectEvidence:
     """An IMU effect of three coordinates the data do not show (p = 0.3 by default), known to
-    within ``prior`` per coordinate, whose prior spread adds ``prior_z_mm`` to the sigma of t_z
-    (and whose shift moves t_z by ``shift_z_mm``)."""
+    within ``prior`` per coordinate, whose estimate would add ``spread_z`` of t_z's sigma
+    (``RAW``) to t_z (its ``shift_std``; its prior spread the same), and whose shift moves t_z
+    by ``shift_z_mm``."""
+    spread = np.array([0.0, 0.0, 1e-3 * spread_z, 0.0, 0.0, 0.0, 0.0])
     return imu_effect(
         name,
         p_value=p_value,
         statistic=3.0,
         rank=rank,
         shift=np.array([0.0, 0.0, 1e-3 * shift_z_mm, 0.0, 0.0, 0.0, 0.0]),
-        prior_std=np.array([0.0, 0.0, 1e-3 * prior_z_mm, 0.0, 0.0, 0.0, 0.0]),
+        shift_std=spread,
+        prior_std=spread,
         prior_sigma=prior,
         information=information,
     )
@@ -56,50 +64,59 @@ def weakest(information: list[float]) -> float:
     return detectable_rms(chi2_isf(EFFECT_P_VALUE, len(information)), 3, information)[0]
 
 
+def root_c(rank: int = 3) -> float:
+    """The root of the non-centrality the score test names an effect from, nine times in ten."""
+    return float(np.sqrt(detectable_noncentrality(chi2_isf(EFFECT_P_VALUE, rank), rank)))
+
+
 def test_a_prior_the_recording_cannot_check_is_named_with_the_size_it_would_need() -> None:
-    info = [3e5, 1e6, 1e7]
-    e = held(info, 0.35)
-    size = weakest(info)
+    size = weakest(INFO)
     assert UNCHECKED_FACTOR * 1e-3 < size < 1e-2
-    (u,) = unchecked_priors([e], RAW)
+    (u,) = unchecked_priors([held(INFO, 0.35)], RAW)
     assert u.effect == "accel_scale" and u.detectable == pytest.approx(size)
-    assert u.hidden_shift == pytest.approx(0.35 * size / 1e-3)
+    assert u.hidden_shift == pytest.approx(0.35 * root_c())
     text = unchecked_text([u])
     assert text.startswith(", which this recording cannot check: it would show accel_scale only")
     assert f"{1e6 * size:.2g} ppm RMS (prior 1e+03)" in text
     assert text.endswith("the sigmas hold while the IMU is within those priors")
 
 
-def test_the_hidden_shift_scales_the_reach_not_the_posterior_spread() -> None:
-    """An effect as large as the recording can hide moves the estimate by its whole shift map
-    (the reach), not by the prior's spread given the data, which the data narrow: with a reach
-    of 0.8 of a sigma per prior sigma and a posterior spread of 0.35, the hidden shift is the
-    reach's (where the data say nothing of the effect, the two agree)."""
-    info = [3e5, 1e6, 1e7]
-    size = weakest(info)
-    e = replace(held(info, 0.35), prior_reach=np.array([0.0, 0.0, 0.8e-3, 0.0, 0.0, 0.0, 0.0]))
-    (u,) = unchecked_priors([e], RAW)
-    assert u.hidden_shift == pytest.approx(0.8 * size / 1e-3)
-    (old,) = unchecked_priors([held(info, 0.35)], RAW)
-    assert old.hidden_shift == pytest.approx(0.35 * size / 1e-3)
-    # below a sigma by its spread, beyond it by its reach: named
-    small = HIDDEN_SHIFT / (size / 1e-3) / 2
-    reach = replace(
-        held(info, small), prior_reach=np.array([0.0, 0.0, 4 * small * 1e-3, 0, 0, 0, 0])
+def test_the_hidden_shift_is_the_largest_move_of_an_effect_the_recording_cannot_show() -> None:
+    """Over every effect ``d`` inside the ellipsoid ``d^T I d = c`` the score test names nine
+    times in ten, the largest move of a coordinate: not the prior's reach times the detectable
+    RMS along the worst direction, which is too small where the move lies along that direction
+    (an effect of that RMS is sqrt(3) times as long) and too large where it lies along a
+    direction the recording determines well."""
+    rng = np.random.default_rng(5)
+    info = np.array([2e5, 3e6, 4e7])
+    shift_map = rng.normal(size=(7, 3)) * RAW[:, None] * 1e3  # per unit effect
+    spread = np.sqrt(np.einsum("ij,j,ij->i", shift_map, 1.0 / info, shift_map))
+    e = imu_effect(
+        p_value=0.3,
+        statistic=3.0,
+        shift_std=spread,
+        prior_std=spread,
+        prior_sigma=1e-3,
+        information=list(info),
     )
-    assert unchecked_priors([held(info, small)], RAW) == []
-    assert [u.effect for u in unchecked_priors([reach], RAW)] == ["accel_scale"]
+    (u,) = unchecked_priors([e], RAW)
+    # effects on the ellipsoid's surface, in every direction
+    d = rng.normal(size=(200_000, 3))
+    d *= root_c() / np.sqrt(np.einsum("ij,j,ij->i", d, info, d))[:, None]
+    moved = np.abs(d @ shift_map.T) / RAW
+    assert moved.max() == pytest.approx(u.hidden_shift, rel=0.02)
+    assert moved.max() <= u.hidden_shift * (1 + 1e-9)
+    assert int(np.argmax(moved.max(axis=0))) == u.coordinate
 
 
 def test_priors_the_recording_checks_or_that_cannot_hide_an_error_are_not_named() -> None:
     checked = [3e7, 1e8, 1e9]  # named from about 0.7 of its prior
     assert weakest(checked) < UNCHECKED_FACTOR * 1e-3
     assert unchecked_priors([held(checked, 0.9)], RAW) == []
-    # unchecked, but even at the size it would need it moves t_z by less than its sigma
-    info = [3e5, 1e6, 1e7]
-    small = HIDDEN_SHIFT / (weakest(info) / 1e-3) / 2
-    assert unchecked_priors([held(info, small)], RAW) == []
-    assert unchecked_priors([held(info, 0.35, prior=0.0)], RAW) == []  # no prior: known exactly
+    # unchecked, but even the largest effect it cannot show moves t_z by less than its sigma
+    small = HIDDEN_SHIFT / root_c() / 2
+    assert unchecked_priors([held(INFO, small)], RAW) == []
+    assert unchecked_priors([held(INFO, 0.35, prior=0.0)], RAW) == []  # no prior: known exactly
 
 
 def test_an_effect_with_an_undetermined_direction_is_never_checked() -> None:
@@ -110,9 +127,8 @@ def test_an_effect_with_an_undetermined_direction_is_never_checked() -> None:
 
 
 def test_the_order_is_by_the_error_each_could_hide_and_the_list_reads_as_a_sentence() -> None:
-    info = [3e5, 1e6, 1e7]
-    a = held(info, 0.35)
-    b = held(info, 0.7, name="accel_misalignment")
+    a = held(INFO, 0.35)
+    b = held(INFO, 0.7, name="accel_misalignment")
     names = [u.effect for u in unchecked_priors([a, b], RAW)]
     assert names == ["accel_misalignment", "accel_scale"]
     text = unchecked_text(unchecked_priors([a, b], RAW))
@@ -127,23 +143,23 @@ def test_the_sigmas_reason_carries_it() -> None:
         )
         return next(w for w in why if "model.imu_prior" in w)
 
-    assert "cannot check" in reason([held([3e5, 1e6, 1e7], 0.35)])
+    assert "cannot check" in reason([held(INFO, 0.35)])
     assert "cannot check" not in reason([held([3e7, 1e8, 1e9], 0.9)])
     # an effect the data hint at is covered by its shift, not by its prior: not listed
-    hinted = held([3e5, 1e6, 1e7], 0.35, p_value=0.5 * COVER_P_VALUE, shift_z_mm=3.0)
+    hinted = held(INFO, 0.35, p_value=0.5 * COVER_P_VALUE, shift_z_mm=3.0)
     _, why = inflate(RAW, (), [hinted], SimpleNamespace(ran=False), SimpleNamespace(jitter=False))
     assert not any("cannot check" in w for w in why)
 
 
 def test_segments_calibrated_together_check_a_prior_with_their_information_summed() -> None:
     """The joint result's line: the segments' profiled informations add up (as their combined
-    score test), and the prior moves the joint estimate as in the best-determined segment."""
-    info = [3e5, 1e6, 1e7]
-    one = [held(info, 0.35)]
-    (u,) = combined_unchecked_priors([one, [held(info, 0.3)]], RAW)
-    twice = detectable_rms(chi2_isf(EFFECT_P_VALUE, 3), 3, [2 * x for x in info])[0]
-    assert u.detectable == pytest.approx(twice) and twice < weakest(info)
-    assert u.hidden_shift == pytest.approx(0.3 * twice / 1e-3)
+    score test), and the spread the effect would add is at most the best-determined
+    segment's."""
+    one = [held(INFO, 0.35)]
+    (u,) = combined_unchecked_priors([one, [held(INFO, 0.3)]], RAW)
+    twice = detectable_rms(chi2_isf(EFFECT_P_VALUE, 3), 3, [2 * x for x in INFO])[0]
+    assert u.detectable == pytest.approx(twice) and twice < weakest(INFO)
+    assert u.hidden_shift == pytest.approx(0.3 * root_c())
     # forty segments name it from below three times its prior: checked together
     assert combined_unchecked_priors([one] * 40, RAW) == []
     # an effect one segment does not test is left out
@@ -152,3 +168,59 @@ def test_segments_calibrated_together_check_a_prior_with_their_information_summe
     flat = held([1e6, 1e7], 0.3, name="gyro_rotation", prior=np.radians(0.05), rank=2)
     (g,) = combined_unchecked_priors([[flat], [flat]], RAW)
     assert np.isinf(g.detectable)
+
+
+def test_a_prior_that_could_hide_two_sigmas_makes_the_verdict_warn_and_says_what_to_record() -> (
+    None
+):
+    """Below :data:`UNCHECKED_WARN` the sigmas' line names the prior; from it the verdict
+    warns, naming the block, the size the recording would need, the coordinate it moves and
+    how to record or model it."""
+    size = weakest(INFO)
+    below = held(INFO, 0.9 * UNCHECKED_WARN / root_c(), name="accel_misalignment")
+    (u,) = unchecked_priors([below], RAW)
+    assert HIDDEN_SHIFT <= u.hidden_shift < UNCHECKED_WARN
+    assert unchecked_warning([u]) is None
+    over = held(INFO, 1.1 * UNCHECKED_WARN / root_c(), name="accel_misalignment")
+    (u,) = unchecked_priors([over], RAW)
+    assert u.hidden_shift >= UNCHECKED_WARN and COORDINATES[u.coordinate] == "t_z"
+    text = unchecked_warning([u])
+    assert text is not None
+    assert text.startswith("The extrinsic rests on the IMU's own calibration of accel_misalignment")
+    assert f"only from {np.degrees(size):.2g} deg RMS" in text
+    assert f"an effect it cannot show would move t_z by up to {u.hidden_shift:.1f}" in text
+    assert "tilted by tens of degrees" in text and "(model.imu: [accel_misalignment])" in text
+    (section,) = unchecked_sections([u])
+    assert section.warns and section.coordinate == "t_z" and section.unit == "deg"
+    assert section.detectable == pytest.approx(np.degrees(size))
+
+
+def test_every_block_that_could_hide_two_sigmas_is_named_the_worst_with_its_figures() -> None:
+    step = UNCHECKED_WARN / root_c()
+    items = unchecked_priors(
+        [held(INFO, 1.2 * step), held(INFO, 2.0 * step, name="gyro_scale"), held(INFO, 0.6 * step)],
+        RAW,
+    )
+    text = unchecked_warning(items)
+    assert text is not None and "calibration of gyro_scale and accel_scale" in text
+    assert "turned faster about every axis" in text
+    assert "(model.imu: [gyro_scale, accel_scale])" in text
+    # a direction the recording does not determine at all hides any size
+    flat = held([1e6, 1e7], 0.1, name="gyro_rotation", prior=np.radians(0.05), rank=2)
+    text = unchecked_warning(unchecked_priors([flat], RAW))
+    assert text is not None and "does not show gyro_rotation in every direction" in text
+
+
+def test_the_result_file_and_the_checks_table_carry_the_unchecked_priors() -> None:
+    step = UNCHECKED_WARN / root_c()
+    sections = unchecked_sections(
+        unchecked_priors([held(INFO, 1.5 * step), held(INFO, 0.7 * step, name="gyro_scale")], RAW)
+    )
+    c = Consistency(unchecked_priors=sections)
+    assert Consistency.from_dict(c.to_dict()).unchecked_priors == tuple(
+        UncheckedPriorCheck.from_dict(s.to_dict()) for s in sections
+    )
+    (row,) = [r for r in c.rows() if r[0] == "IMU priors"]
+    assert row[1].startswith("accel_scale shows from") and row[1].endswith("; 1 more")
+    assert row[2] == f"unchecked: could move t_z {1.5 * UNCHECKED_WARN:.1f} sigma" and row[3]
+    assert not [r for r in Consistency().rows() if r[0] == "IMU priors"]

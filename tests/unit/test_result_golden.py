@@ -19,6 +19,7 @@ from licalib_cli.sections import (
     SensorCheck,
     SplitHalf,
     Uncertainty,
+    UncheckedPriorCheck,
     VerdictSection,
 )
 
@@ -70,6 +71,17 @@ def _result() -> CalibrationResult:
                 compared=COORDINATES,
             ),
             inflation=(),
+            unchecked_priors=(
+                UncheckedPriorCheck(
+                    name="accel_misalignment",
+                    unit="deg",
+                    prior=0.0573,
+                    detectable=0.19,
+                    coordinate="roll",
+                    hidden_shift_sigmas=4.43,
+                    warns=True,
+                ),
+            ),
         ),
         initialization=InitializationSection(
             "hand-eye",
