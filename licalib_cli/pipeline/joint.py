@@ -91,7 +91,9 @@ from licalib_cli.pipeline.segments import select_segments
 from licalib_cli.pipeline.segments_model import SegmentsModel, model_for_segments
 from licalib_cli.pipeline.settings import lm_params, prior_sd, round_settings
 from licalib_cli.pipeline.unchecked_priors import (
+    UncheckedPrior,
     combined_unchecked_priors,
+    unchecked_sections,
     unchecked_text,
     unchecked_warning,
 )
@@ -694,6 +696,7 @@ def _joint_result(
             "held fixed that a segment's checks cover (by that segment's share of the "
             "information where the segments together do not show the effect)."
         )
+    unchecked: list[UncheckedPrior] = []
     if np.any(prior > 0.0):
         held = [
             [e for e in r.checks.effects if not effect_to_cover(e, r.checks.raw_sigma)]
@@ -736,4 +739,10 @@ def _joint_result(
         verdict=VerdictSection(worst, tuple(reasons)),
         segments=section,
         extra_terms=extra_terms(ref, cfg),
+        # the priors the segments together cannot check, as the joint verdict judged them
+        consistency=(
+            replace(base.consistency, unchecked_priors=unchecked_sections(unchecked))
+            if base.consistency is not None
+            else None
+        ),
     )

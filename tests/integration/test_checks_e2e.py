@@ -347,6 +347,23 @@ def test_a_prior_a_shake_cannot_check_warns_and_tilting_the_rig_checks_it(tmp_pa
     assert flat["verdict"]["status"] == "warn"
     (said,) = [r for r in flat["verdict"]["reasons"] if r.startswith("The extrinsic rests on")]
     assert "accel_misalignment" in said and "tilted by tens of degrees" in said
+    # two 5 s segments calibrated together: the joint verdict judges the prior from their
+    # information summed, and the result file carries the joint figures it quotes
+    bag = tmp_path / "flat" / "sim"
+    cfg = tmp_path / "flat" / "config.yaml"
+    out = tmp_path / "flat" / "joint.yaml"
+    args = ["calibrate", str(next(bag.glob("*.bag"))), "-c", str(cfg), "-o", str(out)]
+    try:
+        main([*args, "--segments", "0-5,5-10"])
+    except SystemExit as err:  # a warning is not an error: exit code 0
+        assert not err.code, err.code
+    joint = yaml.safe_load(out.read_text())
+    (first, *_) = joint["consistency"]["unchecked_priors"]
+    assert first["name"] == "accel_misalignment" and first["warns"], first
+    assert joint["verdict"]["status"] == "warn"
+    (said,) = [r for r in joint["verdict"]["reasons"] if "rests on the IMU" in r]
+    assert said.startswith("Joint estimate: The extrinsic rests on the IMU's own calibration")
+    assert f"only from {first['detectable']:.2g} deg RMS" in said
     tilted, _, _ = _calibrate(
         tmp_path / "tilted",
         _spec(scenario="shake", duration_s=10.0, seed=4144, tilt_deg=30.0),
