@@ -359,7 +359,7 @@ class UncheckedPriorCheck(Section):
         coordinate: the coordinate an effect of that size moves most (``t_x`` ... ``yaw``,
             ``time offset``).
         hidden_shift_sigmas: how far it moves that coordinate, in its reported sigmas.
-        warns: far enough for the verdict to warn (at least 2 sigmas).
+        warns: far enough for the verdict to warn (at least 3 sigmas).
     """
 
     _digits = 4
