@@ -14,7 +14,10 @@ sentence); the verdict is the worst severity. A check that could not be computed
 * fixed effects: an effect the model holds fixed that the data show and that would move the
   extrinsic by more than its sigma (``warn``);
 * split-half: the two halves of the segment disagree beyond their sigmas (``warn``);
-* map: few points on planar surfaces (``warn``), a very poor overall fit (``fail``).
+* map: few points on planar surfaces (``warn``), a very poor overall fit (``fail``);
+* unchecked priors: an IMU block held fixed whose prior the recording cannot check, and whose
+  effect below what it shows could move the extrinsic by three of its sigmas (``warn``;
+  :mod:`licalib_cli.pipeline.unchecked_priors`).
 
 The reported sigmas start from the solver's, each times its factor for the map planes' own
 uncertainty (:mod:`licalib_cli.pipeline.map_uncertainty`: the solver holds the planes fixed,
