@@ -214,6 +214,9 @@ def unchecked_text(items: Sequence[UncheckedPrior]) -> str:
 MODEL_NAMES = {"imu_clock_drift": "clock_drift"}
 """An effect's name in ``model.imu`` where it differs from the score test's."""
 
+PRIOR_KEYS = {"gyro_rotation": "gyro_rotation_deg"}
+"""An effect's key in ``model.imu_prior`` where it differs from its name."""
+
 _ADVICE = {
     "gyro_scale": "turned faster about every axis",
     "gyro_misalignment": "turned faster about every axis",
@@ -254,11 +257,14 @@ def unchecked_warning(items: Sequence[UncheckedPrior]) -> str | None:
             f"The extrinsic rests on the IMU clock's rate, which this recording cannot check: "
             f"{shown}. Add clock_drift to model.imu, or synchronise the clocks."
         )
+    keys = [PRIOR_KEYS.get(w.effect, w.effect) for w in warned]
+    zero = " and ".join(f"model.imu_prior.{k}" for k in keys)
     return (
         f"The extrinsic rests on the IMU's own calibration of {listed} (model.imu_prior{of}: "
         f"{prior:.2g} {unit}), which this recording cannot check: {shown}. "
         f"{record} (model.imu: [{', '.join(names)}]), which replaces the prior by what the "
-        "data say."
+        f"data say; if the IMU's own calibration is known to keep {them} well below that, "
+        f"set {zero} to 0 and the result assumes {them} exact."
     )
 
 

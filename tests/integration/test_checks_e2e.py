@@ -333,14 +333,15 @@ def test_a_prior_a_shake_cannot_check_warns_and_tilting_the_rig_checks_it(tmp_pa
     accelerometer's frame: on a shake hardly tilted the recording cannot check the
     accelerometer misalignment's prior, and an error it cannot show would move the rotation
     beyond three of its sigmas, so the verdict warns and says to tilt the rig (the diagnose
-    benchmark's seed 4144 passed 3.3 sigmas off that way). The same shake tilted by 30 degrees
-    checks the prior: no warning."""
+    benchmark's seed 4144 passed 3.3 sigmas off that way); calibrated as two segments, the
+    joint verdict says the same. With the prior set to 0 (an IMU known to be that well
+    calibrated) the result assumes it exact and does not warn; the same shake tilted by 30
+    degrees checks the prior: no warning."""
     model = {"imu": ["gyro_rotation"]}
     (tmp_path / "flat").mkdir()
     (tmp_path / "tilted").mkdir()
-    flat, _, _ = _calibrate(
-        tmp_path / "flat", _spec(scenario="shake", duration_s=10.0, seed=4144), {"model": model}
-    )
+    shake = simulate(_spec(scenario="shake", duration_s=10.0, seed=4144), tmp_path / "shake")
+    flat, _, _ = _calibrate(tmp_path / "flat", shake, {"model": model})
     (first, *_) = flat["consistency"]["unchecked_priors"]
     assert first["name"] == "accel_misalignment" and first["warns"], first
     assert first["hidden_shift_sigmas"] >= 3.0 and first["coordinate"] in ("roll", "pitch", "yaw")
@@ -349,10 +350,9 @@ def test_a_prior_a_shake_cannot_check_warns_and_tilting_the_rig_checks_it(tmp_pa
     assert "accel_misalignment" in said and "tilted by tens of degrees" in said
     # two 5 s segments calibrated together: the joint verdict judges the prior from their
     # information summed, and the result file carries the joint figures it quotes
-    bag = tmp_path / "flat" / "sim"
     cfg = tmp_path / "flat" / "config.yaml"
     out = tmp_path / "flat" / "joint.yaml"
-    args = ["calibrate", str(next(bag.glob("*.bag"))), "-c", str(cfg), "-o", str(out)]
+    args = ["calibrate", str(shake.bag_path), "-c", str(cfg), "-o", str(out)]
     try:
         main([*args, "--segments", "0-5,5-10"])
     except SystemExit as err:  # a warning is not an error: exit code 0
@@ -364,6 +364,13 @@ def test_a_prior_a_shake_cannot_check_warns_and_tilting_the_rig_checks_it(tmp_pa
     (said,) = [r for r in joint["verdict"]["reasons"] if "rests on the IMU" in r]
     assert said.startswith("Joint estimate: The extrinsic rests on the IMU's own calibration")
     assert f"only from {first['detectable']:.2g} deg RMS" in said
+    # a user who knows the IMU's own calibration holds it: the prior set to 0, assumed exact
+    (tmp_path / "exact").mkdir()
+    exact, _, _ = _calibrate(
+        tmp_path / "exact", shake, {"model": {**model, "imu_prior": {"accel_misalignment": 0.0}}}
+    )
+    assert "accel_misalignment" not in [u["name"] for u in exact["consistency"]["unchecked_priors"]]
+    assert not any("accel_misalignment" in r for r in exact["verdict"]["reasons"])
     tilted, _, _ = _calibrate(
         tmp_path / "tilted",
         _spec(scenario="shake", duration_s=10.0, seed=4144, tilt_deg=30.0),

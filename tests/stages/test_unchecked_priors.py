@@ -190,6 +190,9 @@ def test_a_prior_that_could_hide_two_sigmas_makes_the_verdict_warn_and_says_what
     assert f"only from {np.degrees(size):.2g} deg RMS" in text
     assert f"an effect it cannot show would move t_z by up to {u.hidden_shift:.1f}" in text
     assert "tilted by tens of degrees" in text and "(model.imu: [accel_misalignment])" in text
+    assert text.endswith(
+        "set model.imu_prior.accel_misalignment to 0 and the result assumes it exact."
+    )
     (section,) = unchecked_sections([u])
     assert section.warns and section.coordinate == "t_z" and section.unit == "deg"
     assert section.detectable == pytest.approx(np.degrees(size))
@@ -205,10 +208,13 @@ def test_every_block_that_could_hide_two_sigmas_is_named_the_worst_with_its_figu
     assert text is not None and "calibration of gyro_scale and accel_scale" in text
     assert "turned faster about every axis" in text
     assert "(model.imu: [gyro_scale, accel_scale])" in text
+    assert "set model.imu_prior.gyro_scale and model.imu_prior.accel_scale to 0" in text
+    assert text.endswith("the result assumes them exact.")
     # a direction the recording does not determine at all hides any size
     flat = held([1e6, 1e7], 0.1, name="gyro_rotation", prior=np.radians(0.05), rank=2)
     text = unchecked_warning(unchecked_priors([flat], RAW))
     assert text is not None and "does not show gyro_rotation in every direction" in text
+    assert "set model.imu_prior.gyro_rotation_deg to 0" in text
 
 
 def test_the_result_file_and_the_checks_table_carry_the_unchecked_priors() -> None:
