@@ -458,8 +458,8 @@ def main() -> None:
         r
         for r in rows
         if r["verdict"] == "warn"
-        and r.get("reasons")
-        and all(x.startswith("The extrinsic rests on the IMU") for x in r["reasons"])
+        and len(r.get("reasons", [])) == 1
+        and any(u["warns"] for u in r.get("unchecked", []))
     ]
     if prior_only:
         worst = max(r["max_error_over_sigma"] for r in prior_only)

@@ -44,7 +44,6 @@ def imu_effect(
         ),
     )
     moved = zeros if shift is None else np.asarray(shift, dtype=np.float64)
-    spread = zeros if prior_std is None else prior_std
     return EffectEvidence(
         score=score,
         sensor="imu",
@@ -53,6 +52,6 @@ def imu_effect(
         shift_rotation_rad=moved[3:6],
         shift_time_offset_s=float(moved[6]),
         shift_std=zeros if shift_std is None else shift_std,
-        prior_std=spread,
+        prior_std=zeros if prior_std is None else prior_std,
         prior_sigma=prior_sigma,
     )

@@ -87,6 +87,11 @@ class UncheckedPrior:
     hidden_shift: float
     coordinate: int = 0
 
+    @property
+    def warns(self) -> bool:
+        """Hidden far enough for the verdict to warn (:data:`UNCHECKED_WARN`)."""
+        return self.hidden_shift >= UNCHECKED_WARN
+
 
 def unchecked_priors(held: Sequence[EffectEvidence], sigma: F64) -> list[UncheckedPrior]:
     """The priors among ``held`` (IMU effects held fixed and not covered by their shift) that
@@ -232,7 +237,7 @@ _ADVICE = {
 def unchecked_warning(items: Sequence[UncheckedPrior]) -> str | None:
     """The verdict's warning when some of ``items`` (:func:`unchecked_priors`, in that order)
     could hide a shift of at least :data:`UNCHECKED_WARN` sigmas; None otherwise."""
-    warned = [u for u in items if u.hidden_shift >= UNCHECKED_WARN]
+    warned = [u for u in items if u.warns]
     if not warned:
         return None
     u = warned[0]
@@ -246,17 +251,17 @@ def unchecked_warning(items: Sequence[UncheckedPrior]) -> str | None:
         )
     else:
         shown = f"it does not show {u.effect} in every direction, and that direction moves {where}"
+    if u.effect == "imu_clock_drift":
+        return (
+            f"The extrinsic rests on the IMU clock's rate, which this recording cannot check: "
+            f"{shown}. Add clock_drift to model.imu, or synchronise the clocks."
+        )
     names = [MODEL_NAMES.get(w.effect, w.effect) for w in warned]
     listed = names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
     them = "them" if len(names) > 1 else "it"
     of = f" for {u.effect}" if len(names) > 1 else ""
     how = _ADVICE.get(u.effect)
     record = f"Record with the rig {how}, or estimate {them}" if how else f"Estimate {them}"
-    if u.effect == "imu_clock_drift":
-        return (
-            f"The extrinsic rests on the IMU clock's rate, which this recording cannot check: "
-            f"{shown}. Add clock_drift to model.imu, or synchronise the clocks."
-        )
     keys = [PRIOR_KEYS.get(w.effect, w.effect) for w in warned]
     zero = " and ".join(f"model.imu_prior.{k}" for k in keys)
     return (
@@ -282,7 +287,7 @@ def unchecked_sections(items: Sequence[UncheckedPrior]) -> tuple[UncheckedPriorC
                 detectable=size,
                 coordinate=COORDINATES[u.coordinate],
                 hidden_shift_sigmas=u.hidden_shift,
-                warns=bool(u.hidden_shift >= UNCHECKED_WARN),
+                warns=u.warns,
             )
         )
     return tuple(out)
