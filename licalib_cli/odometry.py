@@ -81,7 +81,10 @@ class OdometryConfig:
         min_range: points closer than this are dropped, metres.
         deskew: motion-compensate each scan with kiss-icp's constant-velocity model.
         max_points_per_voxel: kiss-icp local-map density.
-        max_threads: threads kiss-icp may use; 0 lets it decide.
+        max_threads: threads kiss-icp may use; 0 lets it decide. One by default: its
+            registration sums in a parallel reduction whose order varies from run to run, so
+            with more threads the poses differ in their last bits between runs of the same
+            bag, and a calibration is no longer reproducible (see :func:`_open3d`).
     """
 
     voxel_size: float | None = None
@@ -89,7 +92,7 @@ class OdometryConfig:
     min_range: float = 0.5
     deskew: bool = True
     max_points_per_voxel: int = 20
-    max_threads: int = 0
+    max_threads: int = 1
 
 
 @dataclass(frozen=True)
@@ -150,16 +153,23 @@ class _DeferredViewer(ModuleType):
 
 
 def _open3d() -> ModuleType:
-    """open3d, imported without loading its plotly viewer.
+    """open3d, imported without loading its plotly viewer, limited to one thread.
 
     ``import open3d`` imports its plotly viewer, and dash and plotly with it: half of its
     0.5 s import, none of it used here. The viewer's functions stay callable and import it on
     their first call (:class:`_DeferredViewer`).
+
+    One thread, so that a calibration is reproducible: open3d's ICP sums its normal equations
+    in a parallel reduction whose order varies from run to run, and the last bits it changes
+    grew, through the registrations and the rounds' associations, into a different result on
+    the same bag and configuration (a 30 s VLP-16 shake: 150 or 261 map planes, the time
+    offset 5.5 or 1.2 of its sigmas off).
     """
     if "open3d" not in sys.modules:
         sys.modules.setdefault(_PLOTLY_VIEWER, _DeferredViewer(_PLOTLY_VIEWER))
     import open3d
 
+    open3d.utility.set_max_threads(1)
     return open3d
 
 
