@@ -39,7 +39,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -53,6 +52,7 @@ from _effects import INTRINSIC_EFFECTS, SIMULATOR_EFFECTS
 from _information import information_bound, outside_limits
 from _motion import add_tilt_option, tilt_spec_kwargs
 from _rates import add_rate_options, check_rates, rate_spec_kwargs
+from _runner import run_cases
 
 SINGLE = [*INTRINSIC_EFFECTS, *SIMULATOR_EFFECTS]
 PAIRS = [
@@ -478,86 +478,63 @@ def main() -> None:
         return
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        running: list[tuple[subprocess.Popen, dict]] = []
-        queue = list(todo)
-        while queue or running:
-            while queue and len(running) < args.jobs:
-                c = queue.pop(0)
-                cmd = [
-                    sys.executable,
-                    __file__,
-                    "--one",
-                    json.dumps(c),
-                    "--workdir",
-                    tmp,
-                    "--scale",
-                    str(args.scale),
-                ]
-                running.append(
-                    (
-                        subprocess.Popen(
-                            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-                        ),
-                        c,
-                    )
-                )
-            time.sleep(0.5)
-            for proc, c in list(running):
-                if proc.poll() is None:
-                    continue
-                running.remove((proc, c))
-                out, err = proc.communicate()
-                try:
-                    row = json.loads(out.strip().splitlines()[-1])
-                except (IndexError, json.JSONDecodeError):
-                    last = (err.strip().splitlines() or ["?"])[-1]
-                    print(f"seed {c['seed']} {c['effects']}: FAILED {last}", flush=True)
-                    continue
-                rows.append(row)
-                if args.jsonl:
-                    with Path(args.jsonl).open("a") as f:
-                        f.write(json.dumps(row) + "\n")
-                b, a = row["before"], row["after"]
-                misses = judge(row)
-                from licalib_cli.sections import p_is
 
-                evidence = " ".join(
-                    f"{k} score {v[0]:.1f} ({v[1]}) {p_is(v[2], 1)}"
-                    for k, v in row["evidence"].items()
-                )
-                if evidence:
-                    misses = [*misses, evidence] if misses else misses
-                injected = ",".join(row["effects"]) or "none"
-                named = (
-                    ",".join(
-                        n
-                        + (" [spread]" if n in row.get("spread", {}) else "")
-                        + (f" [{row['pieces'][n][0]} pieces]" if n in row.get("pieces", {}) else "")
-                        + (
-                            f" [sized {row['sized'][n][0]:.0e}]"
-                            if n in row.get("sized", {})
-                            else ""
-                        )
-                        + "".join(f" (~{a})" for a in row.get("not_told_apart", {}).get(n, []))
-                        + "".join(
-                            f" [rival of {r[1]}, {r[2]:.2f}]"
-                            for r in row.get("rivals", [])
-                            if r[0] == n and r[3]
-                        )
-                        for n in row["named"]
+        def command(c: dict) -> list[str]:
+            return [
+                sys.executable,
+                __file__,
+                "--one",
+                json.dumps(c),
+                "--workdir",
+                tmp,
+                "--scale",
+                str(args.scale),
+            ]
+
+        for c, row, error in run_cases(todo, command, args.jobs):
+            if row is None:
+                print(f"seed {c['seed']} {c['effects']}: FAILED {error}", flush=True)
+                continue
+            rows.append(row)
+            if args.jsonl:
+                with Path(args.jsonl).open("a") as f:
+                    f.write(json.dumps(row) + "\n")
+            b, a = row["before"], row["after"]
+            misses = judge(row)
+            from licalib_cli.sections import p_is
+
+            evidence = " ".join(
+                f"{k} score {v[0]:.1f} ({v[1]}) {p_is(v[2], 1)}" for k, v in row["evidence"].items()
+            )
+            if evidence:
+                misses = [*misses, evidence] if misses else misses
+            injected = ",".join(row["effects"]) or "none"
+            named = (
+                ",".join(
+                    n
+                    + (" [spread]" if n in row.get("spread", {}) else "")
+                    + (f" [{row['pieces'][n][0]} pieces]" if n in row.get("pieces", {}) else "")
+                    + (f" [sized {row['sized'][n][0]:.0e}]" if n in row.get("sized", {}) else "")
+                    + "".join(f" (~{a})" for a in row.get("not_told_apart", {}).get(n, []))
+                    + "".join(
+                        f" [rival of {r[1]}, {r[2]:.2f}]"
+                        for r in row.get("rivals", [])
+                        if r[0] == n and r[3]
                     )
-                    or "none"
+                    for n in row["named"]
                 )
-                print(
-                    f"{row['seed']} {row['scenario']:<8} {row['lidar']:<6} injected {injected:<40} "
-                    f"named {named:<40} before {b['translation_mm']:.1f} mm "
-                    f"{b['rotation_deg']:.3f} deg -> after {a['translation_mm']:.1f} mm "
-                    f"{a['rotation_deg']:.3f} deg {a['time_offset_ms']:.3f} ms "
-                    f"{row['verdict_after']} (at most "
-                    f"{a.get('max_error_over_sigma', float('nan')):.1f} sigma) "
-                    f"{row['seconds']:.0f} s  {'ok' if not misses else '; '.join(misses)}",
-                    flush=True,
-                )
+                or "none"
+            )
+            print(
+                f"{row['seed']} {row['scenario']:<8} {row['lidar']:<6} injected {injected:<40} "
+                f"named {named:<40} before {b['translation_mm']:.1f} mm "
+                f"{b['rotation_deg']:.3f} deg -> after {a['translation_mm']:.1f} mm "
+                f"{a['rotation_deg']:.3f} deg {a['time_offset_ms']:.3f} ms "
+                f"{row['verdict_after']} (at most "
+                f"{a.get('max_error_over_sigma', float('nan')):.1f} sigma) "
+                f"{row['seconds']:.0f} s  {'ok' if not misses else '; '.join(misses)}",
+                flush=True,
+            )
     report(rows)
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))

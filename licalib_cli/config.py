@@ -394,6 +394,43 @@ class LidarSpreadSection(_Section):
         return self.model_copy(update={block: float(f"{sigma:.3g}")})
 
 
+class LidarPriorSection(_Section):
+    """How well the LiDAR's own calibration is known for what the model holds fixed (one sigma
+    per beam and block): the residual error of its factory calibration, and of the per-point
+    times the driver writes.
+
+    0 (the default) treats a block as exact: the sigmas then rest on it, and the checks say
+    when an error of it this recording cannot show could move the extrinsic or time offset by
+    three of their sigmas (README, "How far to trust the result"). Set, a block enters the
+    reported sigmas as the IMU's priors do (``model.imu_prior``), and the verdict warns when the
+    recording cannot check it. Blocks the model estimates (``model.lidar``) are not affected.
+    """
+
+    elevation_deg: float = Field(default=0.0, ge=0.0, le=10.0)
+    """Elevation error per beam, degrees."""
+    azimuth_deg: float = Field(default=0.0, ge=0.0, le=10.0)
+    """Azimuth error per beam, degrees."""
+    vertical_offset: float = Field(default=0.0, ge=0.0, le=1.0)
+    """Vertical offset error per beam, m."""
+    horizontal_offset: float = Field(default=0.0, ge=0.0, le=1.0)
+    """Horizontal offset error per beam, m."""
+    range_scale: float = Field(default=0.0, ge=0.0, le=0.1)
+    """Range scale error per beam, as a fraction (1e-4 = 100 ppm)."""
+    range_offset: float = Field(default=0.0, ge=0.0, le=1.0)
+    """Range offset error per beam, m."""
+    point_time: float = Field(default=0.0, ge=0.0, le=0.1)
+    """Error of the per-point times within a sweep, as a fraction of the sweep time (1e-3: a
+    point at the sweep's end stamped 0.1 % of the sweep off)."""
+
+    def sigma_of(self, effect: str) -> float:
+        """Prior sigma of a LiDAR effect by its check name (``lidar_azimuth``, ...; the angles
+        in radians); 0 for an effect without a prior here."""
+        block = effect.removeprefix("lidar_")
+        if block in ("elevation", "azimuth"):
+            return math.radians(getattr(self, f"{block}_deg"))
+        return float(getattr(self, block, 0.0)) if effect.startswith("lidar_") else 0.0
+
+
 class ModelSection(_Section):
     """Which intrinsics the calibration estimates; the others stay at their nominal values (and
     the checks test whether the data show them)."""
@@ -430,6 +467,16 @@ class ModelSection(_Section):
     lidar_spread: LidarSpreadSection = LidarSpreadSection()
     """The spread across beams of each per-beam intrinsic estimated (its prior); unset: a weak
     prior."""
+    lidar_prior: LidarPriorSection = LidarPriorSection()
+    """How well the LiDAR intrinsics held fixed (and the per-point times) are known; 0: taken
+    as exact."""
+
+    def held_prior(self, effect: str) -> float:
+        """Prior sigma of a held effect by its check name, from ``imu_prior`` or
+        ``lidar_prior`` (solver units); 0: no prior, taken as exact."""
+        if effect.startswith("lidar_"):
+            return self.lidar_prior.sigma_of(effect)
+        return self.imu_prior.sigma_of(effect)
 
 
 class ChecksSection(_Section):

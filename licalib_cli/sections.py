@@ -29,6 +29,7 @@ section            content
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any, TypeVar
 
@@ -347,13 +348,15 @@ SPLIT_LABELS = {
 
 @dataclass(frozen=True)
 class UncheckedPriorCheck(Section):
-    """An IMU block held fixed whose prior (``model.imu_prior``) the recording cannot check: it
-    would name the block's effect only from several times the prior.
+    """A block held fixed whose prior (``model.imu_prior``, ``model.lidar_prior``) the
+    recording cannot check: it would name the block's effect only from several times the prior.
+    With ``prior`` 0, an effect held fixed without a prior, taken as exact, that could move a
+    coordinate by at least three of its sigmas unseen (listed, never warns).
 
     Attributes:
-        name: the block (``accel_scale``, ...).
+        name: the block (``accel_scale``, ``lidar_azimuth``, ...).
         unit: the unit of ``prior`` and ``detectable`` (``ppm``, ``deg``, ...).
-        prior: the prior's sigma per coordinate.
+        prior: the prior's sigma per coordinate (0: none, taken as exact).
         detectable: the RMS per coordinate from which the recording names the effect nine
             times in ten (``inf``: some direction of it not at all).
         coordinate: the coordinate an effect of that size moves most (``t_x`` ... ``yaw``,
@@ -383,9 +386,10 @@ class Consistency(Section):
         split_half: the two halves compared.
         inflation: how the reported sigmas were enlarged, one sentence each (empty: as
             computed).
-        unchecked_priors: the IMU blocks held fixed whose priors the recording cannot check
-            and whose error could move the extrinsic by more than its sigma unseen, the one
-            that could move it most first.
+        unchecked_priors: the blocks held fixed whose priors the recording cannot check and
+            whose error could move the extrinsic by more than its sigma unseen, and those taken
+            as exact (prior 0) whose error could move it by three sigmas unseen, the one that
+            could move it most first.
     """
 
     sensors: tuple[SensorCheck, ...] = ()
@@ -444,22 +448,36 @@ class Consistency(Section):
                 figure += f"; {compared}"
             agree = sh.status == "agree"
             out.append(("split halves", figure, "agree" if agree else "disagree", not agree))
-        if self.unchecked_priors:
-            u = self.unchecked_priors[0]
+        priors = [u for u in self.unchecked_priors if u.prior > 0.0]
+        assumed = [u for u in self.unchecked_priors if u.prior <= 0.0]
+        for items, label, state in (
+            (priors, _priors_label(priors), "unchecked"),
+            (assumed, "taken as exact", "assumed"),
+        ):
+            if not items:
+                continue
+            u = items[0]
+            of = f" (prior {u.prior:.2g})" if u.prior > 0.0 else ""
             shown = (
-                f"{u.name} shows from {u.detectable:.2g} {u.unit} (prior {u.prior:.2g})"
+                f"{u.name} shows from {u.detectable:.2g} {u.unit}{of}"
                 if math.isfinite(u.detectable)
-                else f"{u.name} not in every direction (prior {u.prior:.2g} {u.unit})"
+                else f"{u.name} not in every direction{of}"
             )
-            more = len(self.unchecked_priors) - 1
+            more = len(items) - 1
             figure = shown + (f"; {more} more" if more else "")
             outcome = (
-                f"unchecked: could move {u.coordinate} {u.hidden_shift_sigmas:.1f} sigma"
+                f"{state}: could move {u.coordinate} {u.hidden_shift_sigmas:.1f} sigma"
                 if math.isfinite(u.hidden_shift_sigmas)
-                else f"unchecked: could move {u.coordinate} unseen"
+                else f"{state}: could move {u.coordinate} unseen"
             )
-            out.append(("IMU priors", figure, outcome, u.warns))
+            out.append((label, figure, outcome, u.warns))
         return out
+
+
+def _priors_label(items: Sequence[UncheckedPriorCheck]) -> str:
+    """``IMU priors``, ``LiDAR priors`` or ``priors``: whose priors ``items`` are."""
+    lidar = {u.name.startswith("lidar_") for u in items}
+    return "priors" if len(lidar) > 1 else ("LiDAR priors" if lidar == {True} else "IMU priors")
 
 
 def _noise_text(s: SensorCheck) -> str:

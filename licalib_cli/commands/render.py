@@ -110,10 +110,16 @@ def reason_lines(reasons: Sequence[str]) -> list[str]:
     return [f"  - {escape(reason)}" for reason in reasons]
 
 
-def verdict_lines(verdict: VerdictSection) -> list[str]:
-    """The verdict and its reasons as console lines."""
+def verdict_lines(verdict: VerdictSection, assumed: Sequence[str] = ()) -> list[str]:
+    """The verdict and its reasons as console lines; ``assumed``: the effects the result takes
+    as exact though the recording cannot check them (the checks' ``taken as exact`` row), named
+    beside a verdict that is not a failure."""
     colour = VERDICT_COLOURS[verdict.status]
-    return [f"Verdict: [bold {colour}]{verdict.status.upper()}[/]", *reason_lines(verdict.reasons)]
+    head = f"Verdict: [bold {colour}]{verdict.status.upper()}[/]"
+    if assumed and verdict.status != "fail":
+        names = ", ".join(assumed)
+        head += f" (assumes {escape(names)} exact: see the checks' row 'taken as exact')"
+    return [head, *reason_lines(verdict.reasons)]
 
 
 def render_run(run: CalibrationRun, truth: Truth | None) -> None:
@@ -152,7 +158,12 @@ def render_run(run: CalibrationRun, truth: Truth | None) -> None:
     for finding in run.checks.findings:
         if finding.severity == "note":
             out.print(f"Note: {escape(finding.text)}")
-    for line in verdict_lines(run.checks.verdict):
+    assumed = (
+        [u.name for u in r.consistency.unchecked_priors if u.prior <= 0.0]
+        if r.consistency is not None
+        else []
+    )
+    for line in verdict_lines(run.checks.verdict, assumed):
         out.print(line)
     total = sum(run.timings.values())
     out.print(

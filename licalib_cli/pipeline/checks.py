@@ -15,9 +15,10 @@ sentence); the verdict is the worst severity. A check that could not be computed
   extrinsic by more than its sigma (``warn``);
 * split-half: the two halves of the segment disagree beyond their sigmas (``warn``);
 * map: few points on planar surfaces (``warn``), a very poor overall fit (``fail``);
-* unchecked priors: an IMU block held fixed whose prior the recording cannot check, and whose
-  effect below what it shows could move the extrinsic by three of its sigmas (``warn``;
-  :mod:`licalib_cli.pipeline.unchecked_priors`).
+* unchecked priors: a block held fixed whose prior (IMU, or LiDAR when set) the recording
+  cannot check, and whose effect below what it shows could move the extrinsic by three of its
+  sigmas (``warn``); an effect held fixed without a prior that could do the same (``note``: the
+  result takes it as exact; :mod:`licalib_cli.pipeline.unchecked_priors`).
 
 The reported sigmas start from the solver's, each times its factor for the map planes' own
 uncertainty (:mod:`licalib_cli.pipeline.map_uncertainty`: the solver holds the planes fixed,
@@ -69,6 +70,8 @@ from licalib_cli.pipeline.schedule import JITTER_FACTOR, MAX_FINAL_ROUNDS, Chang
 from licalib_cli.pipeline.settings import NoiseLevels, prior_sd
 from licalib_cli.pipeline.split import COORDINATES, SplitResult, split_half
 from licalib_cli.pipeline.unchecked_priors import (
+    assumed_note,
+    prior_owner,
     unchecked_priors,
     unchecked_sections,
     unchecked_warning,
@@ -550,9 +553,12 @@ def uncertainty_findings(
             "licalib diagnose (or calibrate --model auto) tests"
         )
     if prior is not None:
+        what, where = prior_owner([prior])
+        sensor = "LiDAR" if prior.startswith("lidar_") else "IMU"
+        flag = "lidar" if sensor == "LiDAR" else "imu"
         sources.append(
-            f"the IMU intrinsics held fixed, known only to within model.imu_prior (most from "
-            f"{prior}); estimate them (--intrinsics imu) or set your IMU's calibration accuracy "
+            f"the {what} held fixed, known only to within {where} (most from {prior}); "
+            f"estimate them (--intrinsics {flag}) or set your {sensor}'s calibration accuracy "
             "there"
         )
 
@@ -846,7 +852,7 @@ def check(
         fit.state,
         fit.inputs,
         fit.report.variance_factor,
-        cfg.model.imu_prior,
+        cfg.model,
         planes_free_p=COVER_P_VALUE,
         rivals=rivals,
         measured=measured,
@@ -975,6 +981,10 @@ def run_checks(
     warning = unchecked_warning(unchecked)
     if warning is not None:
         findings.append(Finding("warn", warning, True))
+    # an effect taken as exact whose error the recording cannot show could do the same
+    assumed = assumed_note(unchecked)
+    if assumed is not None:
+        findings.append(Finding("note", assumed, True))
     verdict, exit_status = judge(findings)
     chi = max((c.chi2_per_sample for c in sensors), default=1.0)
     intrinsics = intrinsics_uncertainty(

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import numpy.typing as npt
 
-from licalib_cli.config import ImuPriorSection
+from licalib_cli.config import ModelSection
 from licalib_cli.consistency import (
     EffectScore,
     EffectSelection,
@@ -415,14 +415,15 @@ class EffectEvidence:
             (before any other effect was selected).
         shift_std: (7,) standard deviation of the shift when the effect is truly zero (in the
             order of :attr:`shift`).
-        prior_std: (7,) what the effect, known only to within its prior (``model.imu_prior``;
-            for the IMU clock drift, the stamps' rate against the record times), adds to the
-            sigmas of the extrinsic and time offset (zeros without a prior).
+        prior_std: (7,) what the effect, known only to within its prior (``model.imu_prior``,
+            ``model.lidar_prior``; for the IMU clock drift, the stamps' rate against the record
+            times), adds to the sigmas of the extrinsic and time offset (zeros without a
+            prior).
         prior_sigma: that prior's sigma per coordinate, in the effect's solver coordinates (0:
             none).
-        joint_prior_var: (7,) the variance every IMU block with a prior adds to the estimate
+        joint_prior_var: (7,) the variance every block with a prior adds to the estimate
             when all of them are held at zero together: the spread of their joint posterior
-            (data and priors) carried into it (the same array on each IMU block with a prior;
+            (data and priors) carried into it (the same array on each block with a prior;
             zeros on the others). Blocks correlated with each other and with the extrinsic (the
             accelerometer's scale and misalignment with the gyro rotation) can move it together
             well beyond what each does alone.
@@ -484,7 +485,7 @@ def effect_evidence(
     state: CalibrationState,
     inputs: RoundInputs,
     variance_factor: float,
-    imu_prior: ImuPriorSection | None = None,
+    priors: ModelSection | None = None,
     planes_free_p: float = 0.0,
     *,
     rivals: bool = True,
@@ -503,7 +504,8 @@ def effect_evidence(
         state: the final estimate.
         inputs: the final round's problem inputs.
         variance_factor: the fit's a-posteriori variance factor (clamped below at 1).
-        imu_prior: how well the IMU intrinsics held fixed are known, for
+        priors: the model whose ``imu_prior`` and ``lidar_prior`` say how well the
+            intrinsics held fixed are known, for
             :attr:`EffectEvidence.prior_std` (none: known exactly).
         planes_free_p: the LiDAR effects with a p-value below this get their shift and its
             null spread with the map planes estimated too
@@ -544,7 +546,7 @@ def effect_evidence(
     # lost power.
     weighted = replace(inputs.noise, min_incidence_cos=MIN_INCIDENCE_COS, incidence_floor=True)
     # the translation's prior as in the rounds (it bounds the shifts along what the data leave
-    # to it); the intrinsics' weak priors stay out (the IMU's are model.imu_prior's part)
+    # to it); the intrinsics' weak priors stay out (the held ones' are the model's priors')
     problem = build_problem(
         state,
         inputs.imu,
@@ -583,9 +585,9 @@ def effect_evidence(
         else:
             groups.setdefault(effect, []).append(i)
     prior = {
-        name: np.full(len(idx), imu_prior.sigma_of(name))
+        name: np.full(len(idx), priors.held_prior(name))
         for name, idx in groups.items()
-        if imu_prior is not None and imu_prior.sigma_of(name) > 0.0
+        if priors is not None and priors.held_prior(name) > 0.0
     }
     scale = np.asarray(lin.layout.calibration_scale, dtype=np.float64)
     floors = {

@@ -20,7 +20,7 @@ import numpy.typing as npt
 from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
 from licalib_cli.pipeline.schedule import Change, Fit
 from licalib_cli.pipeline.split import SplitResult
-from licalib_cli.pipeline.unchecked_priors import unchecked_priors, unchecked_text
+from licalib_cli.pipeline.unchecked_priors import prior_owner, unchecked_priors, unchecked_text
 from licalib_cli.sections import SensorCheck, p_is
 
 __all__ = [
@@ -61,8 +61,8 @@ def effect_to_cover(e: EffectEvidence, raw_sigma: F64) -> bool:
 
 
 def largest_prior(effects: Sequence[EffectEvidence], raw_sigma: F64) -> str | None:
-    """The IMU block whose prior (``model.imu_prior``) adds most to the sigmas; None when no
-    prior adds anything."""
+    """The block whose prior (``model.imu_prior``, ``model.lidar_prior``) adds most to the
+    sigmas; None when no prior adds anything."""
     held = [e for e in effects if not effect_to_cover(e, raw_sigma)]
     finite = np.isfinite(raw_sigma) & (raw_sigma > 0.0)
     size = [float(np.max(np.where(finite, e.prior_std / raw_sigma, 0.0))) for e in held]
@@ -72,10 +72,10 @@ def largest_prior(effects: Sequence[EffectEvidence], raw_sigma: F64) -> str | No
 
 
 def prior_variance(effects: Sequence[EffectEvidence], raw_sigma: F64) -> F64:
-    """(7,) variance the IMU priors add to the sigmas (``model.imu_prior``): an effect the data
-    do not show is still only known to within its prior (an IMU's factory calibration; the clock
-    drift, the rate of the stamps against the record times), and its posterior spread moves the
-    estimate too; a covered effect adds its shift instead.
+    """(7,) variance the priors add to the sigmas (``model.imu_prior``, ``model.lidar_prior``):
+    an effect the data do not show is still only known to within its prior (a sensor's factory
+    calibration; the clock drift, the rate of the stamps against the record times), and its
+    posterior spread moves the estimate too; a covered effect adds its shift instead.
 
     Per coordinate, the larger of the blocks' spreads summed one by one and what they add held
     at zero all together (:attr:`~licalib_cli.pipeline.fitcheck.EffectEvidence.
@@ -161,8 +161,9 @@ def inflate(
             if most == "imu_clock_drift"
             else ""
         )
+        what, where = prior_owner([e.score.name for e in effects if e.prior_sigma > 0.0])
         why.append(
-            "by the IMU intrinsics held fixed, each known to within model.imu_prior "
+            f"by the {what} held fixed, each known to within {where} "
             f"(times up to {factor:.2f}; most from {most}{known})"
             + unchecked_text(unchecked_priors(held, grown))
         )

@@ -93,6 +93,7 @@ from licalib_cli.pipeline.settings import lm_params, prior_sd, round_settings
 from licalib_cli.pipeline.unchecked_priors import (
     UncheckedPrior,
     combined_unchecked_priors,
+    prior_owner,
     unchecked_sections,
     unchecked_text,
     unchecked_warning,
@@ -696,16 +697,15 @@ def _joint_result(
             "held fixed that a segment's checks cover (by that segment's share of the "
             "information where the segments together do not show the effect)."
         )
-    unchecked: list[UncheckedPrior] = []
+    held = [
+        [e for e in r.checks.effects if not effect_to_cover(e, r.checks.raw_sigma)] for r in runs
+    ]
+    unchecked: list[UncheckedPrior] = combined_unchecked_priors(held, sigma)
     if np.any(prior > 0.0):
-        held = [
-            [e for e in r.checks.effects if not effect_to_cover(e, r.checks.raw_sigma)]
-            for r in runs
-        ]
-        unchecked = combined_unchecked_priors(held, sigma)
+        what, where = prior_owner([e.score.name for e in held[best] if e.prior_sigma > 0.0])
         reasons.append(
-            "Joint sigmas include the IMU intrinsics held fixed (model.imu_prior) as the "
-            "best-determined segment's do: an IMU error moves every segment alike"
+            f"Joint sigmas include the {what} held fixed ({where}) as the best-determined "
+            "segment's do: a sensor's calibration error moves every segment alike"
             + unchecked_text(unchecked)
             + "."
         )
@@ -713,6 +713,8 @@ def _joint_result(
         if warning is not None:
             worst = "warn" if worst == "pass" else worst
             reasons.insert(0, f"Joint estimate: {warning}")
+    # the effects taken as exact that could hide as much are in the checks table's row
+    # (consistency.unchecked_priors): a note, not a reason of the verdict
     base = runs[best].result
     section = SegmentsSection(
         reference=best + 1,

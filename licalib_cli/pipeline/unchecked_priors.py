@@ -1,13 +1,20 @@
-"""IMU priors a recording cannot check.
+"""Priors a recording cannot check, and effects it takes as exact.
 
 The sigmas of the extrinsic include the spread of every IMU intrinsic the model holds fixed,
 known to within its prior (``model.imu_prior``: the residual error of the IMU's factory
-calibration). They cover the error while the IMU is within that prior; whether it is, the data
-can tell only for an effect large enough to show in the score test. When the recording would
+calibration; ``model.lidar_prior`` likewise for the LiDAR's, when set). They cover the error
+while the IMU is within that prior; whether it is, the data can tell only for an effect large
+enough to show in the score test. When the recording would
 name an effect only at several times its prior, it cannot check the prior, and a worse IMU
 moves the extrinsic beyond its sigma unseen: a 10 s OS1-64 shake with accelerometer scale
 errors of -4400 / -2900 / +700 ppm (the default prior 1000 ppm; this bag names the effect from
 6600 ppm) passed 3.2 of its sigmas off in t_z. The checks say so beside the sigmas.
+
+An effect held fixed without a prior (a LiDAR's factory calibration unless ``model.lidar_prior``
+says otherwise, a bias walk, g-sensitivity) is taken as exact, and no recording can check that;
+when an error of it this recording cannot show could move a coordinate by three of its sigmas,
+the checks say the result assumes it (:func:`assumed_note`): on 30 s trust bags a per-point
+time error below 0.075-0.15 % of the sweep time could move the time offset by 4.4-7.6 sigmas.
 """
 
 from __future__ import annotations
@@ -34,7 +41,9 @@ __all__ = [
     "UNCHECKED_FACTOR",
     "UNCHECKED_WARN",
     "UncheckedPrior",
+    "assumed_note",
     "combined_unchecked_priors",
+    "prior_owner",
     "unchecked_priors",
     "unchecked_sections",
     "unchecked_text",
@@ -66,11 +75,12 @@ it)."""
 
 @dataclass(frozen=True)
 class UncheckedPrior:
-    """An IMU effect held fixed whose prior this recording cannot check.
+    """An effect held fixed whose prior this recording cannot check, or (prior 0) which the
+    model takes as exact.
 
     Attributes:
-        effect: its name (``accel_scale``, ...).
-        prior: the prior's sigma per coordinate, solver units.
+        effect: its name (``accel_scale``, ``lidar_azimuth``, ...).
+        prior: the prior's sigma per coordinate, solver units (0: none, taken as exact).
         detectable: the RMS per coordinate from which the recording names the effect nine times
             in ten along the direction it determines worst, solver units; ``inf`` when some
             direction of it is not determined at all.
@@ -89,14 +99,23 @@ class UncheckedPrior:
 
     @property
     def warns(self) -> bool:
-        """Hidden far enough for the verdict to warn (:data:`UNCHECKED_WARN`)."""
-        return self.hidden_shift >= UNCHECKED_WARN
+        """A prior hidden far enough for the verdict to warn (:data:`UNCHECKED_WARN`); an
+        effect taken as exact never warns (nothing says how large it may be), its note says
+        what the result assumes."""
+        return self.prior > 0.0 and self.hidden_shift >= UNCHECKED_WARN
+
+    @property
+    def assumed(self) -> bool:
+        """Taken as exact: no prior."""
+        return self.prior <= 0.0
 
 
 def unchecked_priors(held: Sequence[EffectEvidence], sigma: F64) -> list[UncheckedPrior]:
-    """The priors among ``held`` (IMU effects held fixed and not covered by their shift) that
-    the recording cannot check (:data:`UNCHECKED_FACTOR`) and that could hide an error beyond
-    the reported ``sigma`` (:data:`HIDDEN_SHIFT`), the one that could hide most first.
+    """The priors among ``held`` (effects held fixed and not covered by their shift) that the
+    recording cannot check (:data:`UNCHECKED_FACTOR`) and that could hide an error beyond the
+    reported ``sigma`` (:data:`HIDDEN_SHIFT`), and the effects without a prior (taken as exact;
+    not those whose size is measured apart from the fit) that could hide one of
+    :data:`UNCHECKED_WARN` sigmas; the one that could hide most first.
 
     An effect ``d`` held at zero moves the estimate by ``A d`` (its shift map) and shows in the
     score test nine times in ten once ``d^T I d`` reaches the non-centrality ``c`` of
@@ -113,6 +132,8 @@ def unchecked_priors(held: Sequence[EffectEvidence], sigma: F64) -> list[Uncheck
     """
     out = []
     for e in held:
+        if e.prior_sigma <= 0.0 and np.any(np.asarray(e.prior_std) > 0.0):
+            continue  # measured apart from the fit: known so well, not assumed
         u = _unchecked(
             e.score.name,
             e.prior_sigma,
@@ -140,6 +161,8 @@ def combined_unchecked_priors(
     by_name: dict[str, list[EffectEvidence]] = {}
     for held in segments:
         for e in held:
+            if e.prior_sigma <= 0.0 and np.any(np.asarray(e.prior_std) > 0.0):
+                continue  # measured apart from the fit
             by_name.setdefault(e.score.name, []).append(e)
     out = []
     for name, effects in by_name.items():
@@ -173,7 +196,7 @@ def _unchecked(
     sigma: F64,
 ) -> UncheckedPrior | None:
     finite = np.isfinite(sigma) & (sigma > 0.0)
-    if prior_sigma <= 0.0 or not np.any(finite):
+    if not np.any(finite):
         return None
     spread = np.where(finite, np.asarray(shift_std, dtype=np.float64), 0.0)
     shares = spread / np.where(finite, sigma, 1.0)
@@ -192,13 +215,19 @@ def _unchecked(
         hidden,
         COORDINATES[coordinate],
     )
-    if detectable > UNCHECKED_FACTOR * prior_sigma and hidden >= HIDDEN_SHIFT:
-        return UncheckedPrior(name, prior_sigma, detectable, hidden, coordinate)
-    return None
+    if prior_sigma <= 0.0:
+        listed = hidden >= UNCHECKED_WARN
+    else:
+        listed = detectable > UNCHECKED_FACTOR * prior_sigma and hidden >= HIDDEN_SHIFT
+    if not listed:
+        return None
+    return UncheckedPrior(name, max(prior_sigma, 0.0), detectable, hidden, coordinate)
 
 
 def unchecked_text(items: Sequence[UncheckedPrior]) -> str:
-    """``, which this recording cannot check: ...`` for the sigmas' reason; empty without any."""
+    """``, which this recording cannot check: ...`` for the sigmas' reason; empty without any
+    prior among ``items``."""
+    items = [u for u in items if not u.assumed]
     if not items:
         return ""
     parts = []
@@ -209,18 +238,40 @@ def unchecked_text(items: Sequence[UncheckedPrior]) -> str:
             parts.append(f"{u.effect} only from {size:.2g} {unit} RMS (prior {prior:.2g})")
         else:
             parts.append(f"{u.effect} not in every direction (prior {prior:.2g} {unit})")
-    listed = parts[0] if len(parts) == 1 else ", ".join(parts[:-1]) + " and " + parts[-1]
+    listed = _listed(parts)
     return (
         f", which this recording cannot check: it would show {listed}; the sigmas hold while "
-        "the IMU is within those priors"
+        f"the {_sensors(items)} within those priors"
     )
 
 
+def prior_owner(effects: Sequence[str]) -> tuple[str, str]:
+    """What the priors of ``effects`` (check names) are of, and where they are set: ``("IMU
+    intrinsics", "model.imu_prior")``, the LiDAR's, or both."""
+    lidar = any(e.startswith("lidar_") for e in effects)
+    imu = any(not e.startswith("lidar_") for e in effects) or not effects
+    if lidar and imu:
+        return "IMU and LiDAR intrinsics", "model.imu_prior and model.lidar_prior"
+    if lidar:
+        return "LiDAR intrinsics", "model.lidar_prior"
+    return "IMU intrinsics", "model.imu_prior"
+
+
+def _listed(parts: Sequence[str]) -> str:
+    return parts[0] if len(parts) == 1 else ", ".join(parts[:-1]) + " and " + parts[-1]
+
+
+def _sensors(items: Sequence[UncheckedPrior]) -> str:
+    owner, _ = prior_owner([u.effect for u in items])
+    return {"IMU intrinsics": "IMU is", "LiDAR intrinsics": "LiDAR is"}.get(owner, "sensors are")
+
+
 MODEL_NAMES = {"imu_clock_drift": "clock_drift"}
-"""An effect's name in ``model.imu`` where it differs from the score test's."""
+"""An effect's name in ``model.imu`` where it differs from the score test's (the LiDAR's drop
+their ``lidar_`` prefix in ``model.lidar``)."""
 
 PRIOR_KEYS = {"gyro_rotation": "gyro_rotation_deg"}
-"""An effect's key in ``model.imu_prior`` where it differs from its name."""
+"""An IMU effect's key in ``model.imu_prior`` where it differs from its name."""
 
 _ADVICE = {
     "gyro_scale": "turned faster about every axis",
@@ -233,43 +284,117 @@ _ADVICE = {
 }
 """How a recording shows each IMU block (what the advice of :func:`unchecked_warning` asks)."""
 
+_NO_PRIOR = ("gyro_bias_walk", "accel_bias_walk", "imu_clock_drift")
+"""Effects without a prior key: the model estimates them or takes them as absent."""
 
-def unchecked_warning(items: Sequence[UncheckedPrior]) -> str | None:
-    """The verdict's warning when some of ``items`` (:func:`unchecked_priors`, in that order)
-    could hide a shift of at least :data:`UNCHECKED_WARN` sigmas; None otherwise."""
-    warned = [u for u in items if u.warns]
-    if not warned:
-        return None
-    u = warned[0]
-    prior, unit = display_size(u.effect, u.prior)
+
+def _model_entries(effects: Sequence[str]) -> str:
+    imu = [MODEL_NAMES.get(e, e) for e in effects if not e.startswith("lidar_")]
+    lidar = [e.removeprefix("lidar_") for e in effects if e.startswith("lidar_")]
+    lists = ([f"model.imu: [{', '.join(imu)}]"] if imu else []) + (
+        [f"model.lidar: [{', '.join(lidar)}]"] if lidar else []
+    )
+    return " and ".join(lists)
+
+
+def _prior_key(effect: str) -> str:
+    """``model.imu_prior.accel_scale``, ``model.lidar_prior.azimuth_deg``, ...."""
+    if effect.startswith("lidar_"):
+        block = effect.removeprefix("lidar_")
+        key = f"{block}_deg" if block in ("elevation", "azimuth") else block
+        return f"model.lidar_prior.{key}"
+    return f"model.imu_prior.{PRIOR_KEYS.get(effect, effect)}"
+
+
+def _reach(u: UncheckedPrior) -> str:
+    """``it would show X only from D unit RMS, and an effect it cannot show would move C by
+    up to H of its sigmas``."""
     where = COORDINATES[u.coordinate]
+    _, unit = display_size(u.effect, 0.0)
     if np.isfinite(u.detectable):
         size, _ = display_size(u.effect, u.detectable)
-        shown = (
+        return (
             f"it would show {u.effect} only from {size:.2g} {unit} RMS, and an effect it "
             f"cannot show would move {where} by up to {u.hidden_shift:.1f} of its sigmas"
         )
-    else:
-        shown = f"it does not show {u.effect} in every direction, and that direction moves {where}"
+    return f"it does not show {u.effect} in every direction, and that direction moves {where}"
+
+
+def unchecked_warning(items: Sequence[UncheckedPrior]) -> str | None:
+    """The verdict's warning when some of ``items`` (:func:`unchecked_priors`, in that order)
+    could hide a shift of at least :data:`UNCHECKED_WARN` sigmas; None otherwise. One sentence
+    group per sensor, the sensor of the one that could hide most first."""
+    warned = [u for u in items if u.warns]
+    if not warned:
+        return None
+    lidar = [u for u in warned if u.effect.startswith("lidar_")]
+    imu = [u for u in warned if not u.effect.startswith("lidar_")]
+    groups = [g for g in ((imu, lidar) if warned[0] in imu else (lidar, imu)) if g]
+    return " ".join(_warning(g) for g in groups)
+
+
+def _warning(warned: Sequence[UncheckedPrior]) -> str:
+    u = warned[0]
+    prior, unit = display_size(u.effect, u.prior)
+    shown = _reach(u)
     if u.effect == "imu_clock_drift":
         return (
             f"The extrinsic rests on the IMU clock's rate, which this recording cannot check: "
             f"{shown}. Add clock_drift to model.imu, or synchronise the clocks."
         )
-    names = [MODEL_NAMES.get(w.effect, w.effect) for w in warned]
-    listed = names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+    names = [w.effect for w in warned]
+    listed = _listed(names)
     them = "them" if len(names) > 1 else "it"
+    lidar = u.effect.startswith("lidar_")
+    whose = "the LiDAR's factory calibration" if lidar else "the IMU's own calibration"
+    subject, known = f"{whose} of {listed}", f"{whose} is known to keep {them} well below that"
+    if names == ["lidar_point_time"]:
+        subject = "the per-point times of the LiDAR's driver (lidar_point_time)"
+        known = "the driver's per-point times are known to be well within that"
+    _, section = prior_owner(names)
     of = f" for {u.effect}" if len(names) > 1 else ""
-    how = _ADVICE.get(u.effect)
+    how = None if lidar else _ADVICE.get(u.effect)
     record = f"Record with the rig {how}, or estimate {them}" if how else f"Estimate {them}"
-    keys = [PRIOR_KEYS.get(w.effect, w.effect) for w in warned]
-    zero = " and ".join(f"model.imu_prior.{k}" for k in keys)
+    zero = " and ".join(_prior_key(n) for n in names)
     return (
-        f"The extrinsic rests on the IMU's own calibration of {listed} (model.imu_prior{of}: "
-        f"{prior:.2g} {unit}), which this recording cannot check: {shown}. "
-        f"{record} (model.imu: [{', '.join(names)}]), which replaces the prior by what the "
-        f"data say; if the IMU's own calibration is known to keep {them} well below that, "
-        f"set {zero} to 0 and the result assumes {them} exact."
+        f"The extrinsic rests on {subject} ({section}{of}: {prior:.2g} {unit}), which this "
+        f"recording cannot check: {shown}. {record} ({_model_entries(names)}), which replaces "
+        f"the prior by what the data say; if {known}, set {zero} to 0 and the result assumes "
+        f"{them} exact."
+    )
+
+
+def assumed_note(items: Sequence[UncheckedPrior]) -> str | None:
+    """The checks' note on the effects among ``items`` the result takes as exact though an
+    error of them this recording cannot show could move a coordinate by
+    :data:`UNCHECKED_WARN` of its sigmas; None without any. A note, not a warning: nothing
+    says how large such an error is; set its prior and the sigmas and the verdict judge it."""
+    assumed = [u for u in items if u.assumed]
+    if not assumed:
+        return None
+    parts = []
+    for u in assumed:
+        where = COORDINATES[u.coordinate]
+        if np.isfinite(u.detectable):
+            size, unit = display_size(u.effect, u.detectable)
+            parts.append(
+                f"{u.effect} (an error below {size:.2g} {unit} RMS could move {where} by up "
+                f"to {u.hidden_shift:.1f} of its sigmas)"
+            )
+        else:
+            parts.append(f"{u.effect} (not shown in every direction; it moves {where})")
+    names = [u.effect for u in assumed]
+    keyed = [n for n in names if n not in _NO_PRIOR]
+    give = (
+        f", or give its size per coordinate in {' or '.join(_prior_key(n) for n in keyed)}, "
+        "which puts it in the sigmas and lets the verdict judge it"
+        if keyed
+        else ""
+    )
+    return (
+        f"The result takes as exact what the model holds fixed without a prior and this "
+        f"recording cannot show: {_listed(parts)}. Where one may be that large, estimate it "
+        f"({_model_entries(names)}){give}."
     )
 
 

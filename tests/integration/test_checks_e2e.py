@@ -365,12 +365,21 @@ def test_a_prior_a_shake_cannot_check_warns_and_tilting_the_rig_checks_it(tmp_pa
     assert said.startswith("Joint estimate: The extrinsic rests on the IMU's own calibration")
     assert f"only from {first['detectable']:.2g} deg RMS" in said
     # a user who knows the IMU's own calibration holds it: the prior set to 0, assumed exact
+    # (no warning; the result says what it assumes); and a LiDAR whose driver's per-point
+    # times are known to 0.01 % of the sweep: that prior in the sigmas, which this shake
+    # cannot check either
     (tmp_path / "exact").mkdir()
-    exact, _, _ = _calibrate(
-        tmp_path / "exact", shake, {"model": {**model, "imu_prior": {"accel_misalignment": 0.0}}}
-    )
-    assert "accel_misalignment" not in [u["name"] for u in exact["consistency"]["unchecked_priors"]]
+    priors = {"imu_prior": {"accel_misalignment": 0.0}, "lidar_prior": {"point_time": 1e-4}}
+    exact, _, _ = _calibrate(tmp_path / "exact", shake, {"model": {**model, **priors}})
+    listed = {u["name"]: u for u in exact["consistency"]["unchecked_priors"]}
+    assumed = listed["accel_misalignment"]
+    assert assumed["prior"] == 0.0 and not assumed["warns"] and assumed["hidden_shift_sigmas"] >= 3
     assert not any("accel_misalignment" in r for r in exact["verdict"]["reasons"])
+    point = listed["lidar_point_time"]
+    assert point["prior"] == pytest.approx(0.01) and point["detectable"] > 0.03, point
+    (why,) = [w for w in exact["consistency"]["inflation"] if "model.lidar_prior" in w]
+    assert why.startswith("by the IMU and LiDAR intrinsics held fixed")
+    assert "it would show lidar_point_time only from" in why
     tilted, _, _ = _calibrate(
         tmp_path / "tilted",
         _spec(scenario="shake", duration_s=10.0, seed=4144, tilt_deg=30.0),

@@ -1,10 +1,13 @@
-"""IMU priors a recording cannot check (``licalib_cli.pipeline.unchecked_priors``): the sigmas
-hold while the IMU is within ``model.imu_prior``; when the recording would name an effect only
-at several times its prior and an effect it cannot show would move the extrinsic beyond its
-sigma, the sigmas' reason says so, and from two sigmas the verdict warns."""
+"""Priors a recording cannot check (``licalib_cli.pipeline.unchecked_priors``): the sigmas hold
+while the IMU is within ``model.imu_prior`` (the LiDAR within ``model.lidar_prior``); when the
+recording would name an effect only at several times its prior and an effect it cannot show
+would move the extrinsic beyond its sigma, the sigmas' reason says so, and from three sigmas the
+verdict warns. An effect held without a prior, taken as exact, that could hide three sigmas is
+said in a note."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -20,6 +23,7 @@ from licalib_cli.pipeline.unchecked_priors import (
     HIDDEN_SHIFT,
     UNCHECKED_FACTOR,
     UNCHECKED_WARN,
+    assumed_note,
     combined_unchecked_priors,
     unchecked_priors,
     unchecked_sections,
@@ -44,8 +48,8 @@ def held(
 ) -> EffectEvidence:
     """An IMU effect of three coordinates the data do not show (p = 0.3 by default), known to
     within ``prior`` per coordinate, whose estimate would add ``spread_z`` of t_z's sigma
-    (``RAW``) to t_z (its ``shift_std``; its prior spread the same), and whose shift moves t_z
-    by ``shift_z_mm``."""
+    (``RAW``) to t_z (its ``shift_std``; its prior spread the same, none without a prior), and
+    whose shift moves t_z by ``shift_z_mm``."""
     spread = np.array([0.0, 0.0, 1e-3 * spread_z, 0.0, 0.0, 0.0, 0.0])
     return imu_effect(
         name,
@@ -54,7 +58,7 @@ def held(
         rank=rank,
         shift=np.array([0.0, 0.0, 1e-3 * shift_z_mm, 0.0, 0.0, 0.0, 0.0]),
         shift_std=spread,
-        prior_std=spread,
+        prior_std=spread if prior > 0.0 else np.zeros(7),
         prior_sigma=prior,
         information=information,
     )
@@ -116,7 +120,8 @@ def test_priors_the_recording_checks_or_that_cannot_hide_an_error_are_not_named(
     # unchecked, but even the largest effect it cannot show moves t_z by less than its sigma
     small = HIDDEN_SHIFT / root_c() / 2
     assert unchecked_priors([held(INFO, small)], RAW) == []
-    assert unchecked_priors([held(INFO, 0.35, prior=0.0)], RAW) == []  # no prior: known exactly
+    # no prior: taken as exact, listed only from what could break a PASS
+    assert unchecked_priors([held(INFO, 0.35, prior=0.0)], RAW) == []
 
 
 def test_an_effect_with_an_undetermined_direction_is_never_checked() -> None:
@@ -230,3 +235,90 @@ def test_the_result_file_and_the_checks_table_carry_the_unchecked_priors() -> No
     assert row[1].startswith("accel_scale shows from") and row[1].endswith("; 1 more")
     assert row[2] == f"unchecked: could move t_z {1.5 * UNCHECKED_WARN:.1f} sigma" and row[3]
     assert not [r for r in Consistency().rows() if r[0] == "IMU priors"]
+
+
+def test_an_effect_taken_as_exact_is_noted_from_three_sigmas_and_never_warns() -> None:
+    """Without a prior nothing says how large the effect may be: from what could break a PASS
+    (:data:`UNCHECKED_WARN` sigmas) the checks note that the result assumes it, with the size
+    the recording would need and how to estimate it or give its size; the verdict stays."""
+    step = UNCHECKED_WARN / root_c()
+    below = held(INFO, 0.95 * step, name="lidar_point_time", prior=0.0)
+    assert unchecked_priors([below], RAW) == []
+    over = held(INFO, 1.4 * step, name="lidar_point_time", prior=0.0)
+    (u,) = unchecked_priors([over], RAW)
+    assert u.assumed and not u.warns and u.hidden_shift == pytest.approx(1.4 * UNCHECKED_WARN)
+    assert unchecked_warning([u]) is None and unchecked_text([u]) == ""
+    note = assumed_note([u])
+    assert note is not None
+    size = 100 * weakest(INFO)
+    assert (
+        f"lidar_point_time (an error below {size:.2g} % of the sweep time RMS could move t_z"
+        in (note)
+    )
+    assert "(model.lidar: [point_time])" in note and "model.lidar_prior.point_time" in note
+    # a bias walk has no prior to give: only estimating it is offered
+    walk = unchecked_priors([held(INFO, 1.4 * step, name="gyro_bias_walk", prior=0.0)], RAW)
+    text = assumed_note(walk)
+    assert text is not None and text.endswith("estimate it (model.imu: [gyro_bias_walk]).")
+    # a size measured apart from the fit (the clock's rate from the record times) is known
+    measured = held(INFO, 1.4 * step, name="imu_clock_drift", prior=0.0)
+    measured = replace(measured, prior_std=np.full(7, 1e-4))
+    assert unchecked_priors([measured], RAW) == []
+    assert combined_unchecked_priors([[measured]], RAW) == []
+    assert assumed_note([]) is None
+    # the table's own row, apart from the priors', and the result file
+    c = Consistency(unchecked_priors=unchecked_sections([u]))
+    (row,) = [r for r in c.rows() if r[0] == "taken as exact"]
+    assert row[1] == f"lidar_point_time shows from {size:.2g} % of the sweep time"
+    assert row[2] == f"assumed: could move t_z {1.4 * UNCHECKED_WARN:.1f} sigma" and not row[3]
+    (back,) = Consistency.from_dict(c.to_dict()).unchecked_priors
+    assert back.prior == 0.0 and not back.warns and back.name == "lidar_point_time"
+
+
+def test_a_lidar_prior_the_recording_cannot_check_warns_with_the_lidar_s_remedy() -> None:
+    """``model.lidar_prior`` works as the IMU's: the same rule, the LiDAR's words, and with both
+    sensors' priors warning, one sentence group each, the one that could hide most first."""
+    step = UNCHECKED_WARN / root_c()
+    azimuth = held(INFO, 2.0 * step, name="lidar_azimuth", prior=np.radians(0.001))
+    (u,) = unchecked_priors([azimuth], RAW)
+    text = unchecked_warning([u])
+    assert text is not None
+    assert text.startswith(
+        "The extrinsic rests on the LiDAR's factory calibration of lidar_azimuth "
+        "(model.lidar_prior: 0.001 deg), which this recording cannot check"
+    )
+    assert "Estimate it (model.lidar: [azimuth])" in text
+    assert text.endswith("set model.lidar_prior.azimuth_deg to 0 and the result assumes it exact.")
+    point = held(INFO, 1.5 * step, name="lidar_point_time", prior=2e-4)
+    text = unchecked_warning(unchecked_priors([point], RAW))
+    assert text is not None and text.startswith(
+        "The extrinsic rests on the per-point times of the LiDAR's driver (lidar_point_time) "
+        "(model.lidar_prior: 0.02 % of the sweep time)"
+    )
+    both = unchecked_priors([held(INFO, 1.2 * step), azimuth], RAW)
+    text = unchecked_warning(both)
+    assert text is not None
+    lidar_at, imu_at = text.index("LiDAR's factory"), text.index("IMU's own calibration")
+    assert lidar_at < imu_at and "(model.imu: [accel_scale])" in text[imu_at:]
+    rows = Consistency(unchecked_priors=unchecked_sections(both)).rows()
+    assert [r[0] for r in rows] == ["split halves", "priors"]
+    rows = Consistency(unchecked_priors=unchecked_sections([u])).rows()
+    assert rows[-1][0] == "LiDAR priors" and rows[-1][3]
+    assert "the sigmas hold while the LiDAR is within those priors" in unchecked_text([u])
+    assert "the sensors are within those priors" in unchecked_text(both)
+
+
+def test_the_sigmas_reason_names_whose_priors_they_are() -> None:
+    def reason(effects: list[EffectEvidence]) -> str:
+        _, why = inflate(
+            RAW, (), effects, SimpleNamespace(ran=False), SimpleNamespace(jitter=False)
+        )
+        return next(w for w in why if "held fixed, each known" in w)
+
+    lidar = held(INFO, 0.35, name="lidar_range_offset", prior=1e-3)
+    assert reason([lidar]).startswith(
+        "by the LiDAR intrinsics held fixed, each known to within model.lidar_prior"
+    )
+    assert "IMU and LiDAR intrinsics held fixed, each known to within model.imu_prior and " in (
+        reason([lidar, held(INFO, 0.35)])
+    )

@@ -133,6 +133,32 @@ def test_imu_prior_defaults_units_and_limits(tmp_path):
         load_config(path)
 
 
+def test_lidar_prior_defaults_to_exact_and_takes_the_lidar_s_units(tmp_path):
+    """``model.lidar_prior``: 0 (taken as exact) by default; degrees for the angles; the
+    model's ``held_prior`` asks the prior of each sensor's effects by the checks' names."""
+    import math
+
+    model = load_config(None).model
+    assert all(model.held_prior(f"lidar_{b}") == 0.0 for b in ("azimuth", "point_time"))
+    assert model.held_prior("accel_scale") == 1e-3  # the IMU's
+    path = tmp_path / "c.yaml"
+    path.write_text(
+        "model:\n  lidar_prior:\n    azimuth_deg: 0.01\n    range_offset: 0.002\n"
+        "    point_time: 1.0e-3\n"
+    )
+    model = load_config(path).model
+    assert model.held_prior("lidar_azimuth") == pytest.approx(math.radians(0.01))
+    assert model.held_prior("lidar_range_offset") == 0.002
+    assert model.held_prior("lidar_point_time") == 1e-3
+    assert model.held_prior("lidar_elevation") == 0.0 and model.held_prior("g_sensitivity") == 0.0
+    path.write_text("model:\n  lidar_prior:\n    range_offset: -0.001\n")
+    with pytest.raises(ConfigError, match="range_offset"):
+        load_config(path)
+    path.write_text("model:\n  lidar_prior:\n    azimuth: 0.01\n")  # the key is azimuth_deg
+    with pytest.raises(ConfigError, match="azimuth"):
+        load_config(path)
+
+
 def test_lidar_spread_units_limits_and_the_priors_it_sets(tmp_path):
     """``model.lidar_spread``: unset by default (the weak prior); degrees for the angles; set,
     the prior of that per-beam intrinsic, and only while the model estimates it."""
