@@ -39,10 +39,10 @@ from licalib_cli.config import CalibConfig, ChecksSection
 from licalib_cli.io.clock_rate import MATERIAL_MOVE_S, SIGNIFICANT_SIGMAS, ClockRate
 from licalib_cli.pipeline.crawl import Crawl, crawl_at_cap
 from licalib_cli.pipeline.fitcheck import (
-    CANDIDATES,
     CHI2_QUIET,
     EffectEvidence,
     effect_evidence,
+    model_entries,
     sensor_checks,
 )
 from licalib_cli.pipeline.held_effects import held_effect_text, held_effects
@@ -509,16 +509,6 @@ def _resting_advice(sigma_m: F64, limit_m: float, resting: Sequence[OnPrior]) ->
     )
 
 
-def model_entries(effects: Sequence[str]) -> str:
-    """The ``model:`` entries that estimate candidate ``effects``, e.g. ``model.lidar:
-    [range_scale]`` (one list per sensor, in the order the effects come)."""
-    lists: dict[str, list[str]] = {}
-    for name in effects:
-        sensor, block = CANDIDATES[name][:2]
-        lists.setdefault(sensor, []).append(block)
-    return ", ".join(f"model.{sensor}: [{', '.join(blocks)}]" for sensor, blocks in lists.items())
-
-
 def uncertainty_findings(
     sigma: F64,
     without_effects: F64,
@@ -725,8 +715,10 @@ def _effects(effects: list[EffectEvidence], raw_sigma: F64) -> list[Finding]:
                 "warn",
                 f"The {label} data show an effect the model holds fixed, {top.score.name} "
                 f"(score test {top.score.statistic:.0f} on {top.score.rank} degrees of "
-                f"freedom){also}; {moves} {shift}, beyond its sigma. Calibrate the {label} "
-                "intrinsics too, or treat the extrinsic as off by at least that.",
+                f"freedom){also}; {moves} {shift}, beyond its sigma. Estimate "
+                f"{'them' if others else 'it'} ({model_entries([e.score.name for e in material])}"
+                " in the config; licalib diagnose tests which effects the data support), or "
+                "treat the extrinsic as off by at least that.",
             )
         )
     return out

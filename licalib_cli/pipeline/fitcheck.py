@@ -17,7 +17,7 @@ Three kinds of evidence, each naming the sensor it concerns:
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -55,6 +55,7 @@ __all__ = [
     "ResidualTable",
     "beam_sigma",
     "effect_evidence",
+    "model_entries",
     "residual_table",
     "sensor_checks",
     "with_measured",
@@ -135,6 +136,17 @@ CANDIDATES: dict[str, tuple[str, str, str]] = {
 """Candidate effect -> (``model:`` list it joins, its name there, the sensor whose gap it
 closes). The clock drift and the per-point time show in the LiDAR's residuals (points are placed
 at the wrong trajectory time)."""
+
+
+def model_entries(effects: Sequence[str]) -> str:
+    """The ``model:`` entries that estimate candidate ``effects``, e.g. ``model.lidar:
+    [range_scale]`` (one list per sensor, in the order the effects come)."""
+    lists: dict[str, list[str]] = {}
+    for name in effects:
+        sensor, block = CANDIDATES[name][:2]
+        lists.setdefault(sensor, []).append(block)
+    return ", ".join(f"model.{sensor}: [{', '.join(blocks)}]" for sensor, blocks in lists.items())
+
 
 _LIDAR_EFFECTS = {
     "dphi": "lidar_elevation",

@@ -33,7 +33,7 @@ from licalib_cli.consistency.power import (
     display_size,
 )
 from licalib_cli.pipeline.crawl import COORDINATES
-from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
+from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence, model_entries
 from licalib_cli.sections import UncheckedPriorCheck
 
 __all__ = [
@@ -288,15 +288,6 @@ _NO_PRIOR = ("gyro_bias_walk", "accel_bias_walk", "imu_clock_drift")
 """Effects without a prior key: the model estimates them or takes them as absent."""
 
 
-def _model_entries(effects: Sequence[str]) -> str:
-    imu = [MODEL_NAMES.get(e, e) for e in effects if not e.startswith("lidar_")]
-    lidar = [e.removeprefix("lidar_") for e in effects if e.startswith("lidar_")]
-    lists = ([f"model.imu: [{', '.join(imu)}]"] if imu else []) + (
-        [f"model.lidar: [{', '.join(lidar)}]"] if lidar else []
-    )
-    return " and ".join(lists)
-
-
 def _prior_key(effect: str) -> str:
     """``model.imu_prior.accel_scale``, ``model.lidar_prior.azimuth_deg``, ...."""
     if effect.startswith("lidar_"):
@@ -358,7 +349,7 @@ def _warning(warned: Sequence[UncheckedPrior]) -> str:
     zero = " and ".join(_prior_key(n) for n in names)
     return (
         f"The extrinsic rests on {subject} ({section}{of}: {prior:.2g} {unit}), which this "
-        f"recording cannot check: {shown}. {record} ({_model_entries(names)}), which replaces "
+        f"recording cannot check: {shown}. {record} ({model_entries(names)}), which replaces "
         f"the prior by what the data say; if {known}, set {zero} to 0 and the result assumes "
         f"{them} exact."
     )
@@ -394,7 +385,7 @@ def assumed_note(items: Sequence[UncheckedPrior]) -> str | None:
     return (
         f"The result takes as exact what the model holds fixed without a prior and this "
         f"recording cannot show: {_listed(parts)}. Where one may be that large, estimate it "
-        f"({_model_entries(names)}){give}."
+        f"({model_entries(names)}){give}."
     )
 
 

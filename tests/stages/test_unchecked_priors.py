@@ -322,3 +322,29 @@ def test_the_sigmas_reason_names_whose_priors_they_are() -> None:
     assert "IMU and LiDAR intrinsics held fixed, each known to within model.imu_prior and " in (
         reason([lidar, held(INFO, 0.35)])
     )
+
+
+def test_an_effect_the_data_show_names_the_model_entry_that_estimates_it() -> None:
+    """The warning of an effect held fixed that the data show says how to estimate it, by its
+    entry in the ``model:`` section: a per-point time error is not among ``--intrinsics
+    lidar``'s blocks, so "calibrate the LiDAR intrinsics too" sent users the wrong way."""
+    from licalib_cli.pipeline.checks import _effects
+
+    shown = replace(
+        imu_effect(
+            "lidar_point_time",
+            p_value=1e-12,
+            statistic=81.0,
+            rank=1,
+            selected=True,
+            shift=np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 3e-5]),
+        ),
+        sensor="lidar",
+    )
+    (finding,) = _effects([shown], RAW)
+    assert finding.severity == "warn" and finding.text.startswith(
+        "The LiDAR data show an effect the model holds fixed, lidar_point_time"
+    )
+    assert "Estimate it (model.lidar: [point_time] in the config; licalib diagnose" in (
+        finding.text
+    )
