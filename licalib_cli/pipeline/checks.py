@@ -35,7 +35,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import numpy.typing as npt
 
-from licalib_cli.config import CalibConfig, ChecksSection
+from licalib_cli.config import INTRINSIC_PRESETS, CalibConfig, ChecksSection
 from licalib_cli.io.clock_rate import MATERIAL_MOVE_S, SIGNIFICANT_SIGMAS, ClockRate
 from licalib_cli.pipeline.crawl import Crawl, crawl_at_cap
 from licalib_cli.pipeline.fitcheck import (
@@ -120,6 +120,9 @@ F64 = npt.NDArray[np.float64]
 SPLIT_HALF_P = 1e-3
 """The halves disagree when the chi-square of their difference (with their combined covariance)
 has a p-value below this."""
+
+IMU_PRESET = frozenset(INTRINSIC_PRESETS["imu"][0])
+"""The IMU blocks ``--intrinsics imu`` estimates (the advice for a prior among them)."""
 
 _SEVERITY = {"note": 0, "warn": 1, "fail": 2}
 
@@ -545,11 +548,12 @@ def uncertainty_findings(
     if prior is not None:
         what, where = prior_owner([prior])
         sensor = "LiDAR" if prior.startswith("lidar_") else "IMU"
-        flag = "lidar" if sensor == "LiDAR" else "imu"
+        # --intrinsics imu estimates the IMU blocks but g-sensitivity; the LiDAR's point_time
+        # is no intrinsic of --intrinsics lidar: its model entry then
+        how = "--intrinsics imu" if prior in IMU_PRESET else model_entries([prior])
         sources.append(
             f"the {what} held fixed, known only to within {where} (most from {prior}); "
-            f"estimate them (--intrinsics {flag}) or set your {sensor}'s calibration accuracy "
-            "there"
+            f"estimate them ({how}) or set your {sensor}'s calibration accuracy there"
         )
 
     def cause(over_without_effects: bool, advice: str) -> str:

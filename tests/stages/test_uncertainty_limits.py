@@ -62,6 +62,12 @@ def test_a_sigma_over_the_limit_by_the_imu_priors_names_them_not_the_motion() ->
     assert "estimate them (model.imu: [accel_scale] in the config)" in both.text
     (motion,) = uncertainty_findings(sigma, sigma, limits, prior="gyro_rotation")
     assert "more rotation" in motion.text
+    assert "estimate them (--intrinsics imu) or set your IMU's" in finding.text
+    # a LiDAR prior (model.lidar_prior) named as such, with the entry that estimates it:
+    # the per-point times are no intrinsic of --intrinsics lidar
+    (lidar,) = uncertainty_findings(sigma, without, limits, prior="lidar_point_time")
+    assert "the LiDAR intrinsics held fixed, known only to within model.lidar_prior" in lidar.text
+    assert "estimate them (model.lidar: [point_time]) or set your LiDAR's" in lidar.text
     # about what the data determine: a joint over segments judges its own sigmas instead
     assert finding.information and both.information and motion.information
 
