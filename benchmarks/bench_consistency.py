@@ -246,7 +246,8 @@ def one_run(case: dict, workdir: Path) -> dict:
         # what enlarged the sigmas, and the fixed effects whose shifts they cover
         inflation=list(res.consistency.inflation) if res.consistency else [],
         covered=[e.name for e in res.consistency.effects if e.covered] if res.consistency else [],
-        # the IMU priors this recording cannot check, with the shift each could hide
+        # the priors this recording cannot check (and the effects taken as exact that could
+        # hide three sigmas), with the shift each could hide
         unchecked=(
             [u.to_dict() for u in res.consistency.unchecked_priors] if res.consistency else []
         ),
@@ -455,8 +456,17 @@ def main() -> None:
     if prior_only:
         worst = max(r["max_error_over_sigma"] for r in prior_only)
         print(
-            f"WARN only for an IMU prior the recording cannot check: {len(prior_only)} (seeds "
+            f"WARN only for a prior the recording cannot check: {len(prior_only)} (seeds "
             f"{', '.join(str(r['seed']) for r in prior_only)}; errors up to {worst:.2f} sigmas)"
+        )
+    # PASSes whose note says they take as exact an effect that could hide three sigmas
+    assumed = [r for r in passes if any(not u["prior"] for u in r.get("unchecked", []))]
+    if assumed:
+        worst = max(r["max_error_over_sigma"] for r in assumed)
+        names = sorted({u["name"] for r in assumed for u in r["unchecked"] if not u["prior"]})
+        print(
+            f"PASS taking as exact an effect that could hide 3 sigmas: {len(assumed)} of "
+            f"{len(passes)} ({', '.join(names)}; errors up to {worst:.2f} sigmas)"
         )
     clean = [r for r in rows if r["name"] == "clean" and "information" in r]
     if clean:
