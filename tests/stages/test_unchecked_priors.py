@@ -348,3 +348,15 @@ def test_an_effect_the_data_show_names_the_model_entry_that_estimates_it() -> No
     assert "Estimate it (model.lidar: [point_time] in the config; licalib diagnose" in (
         finding.text
     )
+
+
+def test_segments_together_list_what_they_take_as_exact_from_their_information_summed() -> None:
+    """The joint result's list: an effect without a prior is listed as taken as exact when it
+    could hide three of the joint sigmas (the spread its estimate would add, at most the
+    best-determined segment's); below that it is not listed."""
+    step = UNCHECKED_WARN / root_c()
+    one = [held(INFO, 1.5 * step, name="lidar_point_time", prior=0.0)]
+    (u,) = combined_unchecked_priors([one, one], RAW)
+    assert u.assumed and not u.warns and u.hidden_shift == pytest.approx(1.5 * UNCHECKED_WARN)
+    small = [held(INFO, 0.9 * step, name="lidar_point_time", prior=0.0)]
+    assert combined_unchecked_priors([small, small], RAW) == []
