@@ -641,9 +641,23 @@ def render_html(
         "fail": "Do not use this result; it is shown for inspection only.",
     }.get(status, "The result carries no verdict.")
     items = "".join(f"<li>{_e(r)}</li>" for r in reasons)
+    # what the result takes as exact though the recording cannot check it (a note beside the
+    # verdict, as the console prints it)
+    assumed = (
+        [u.name for u in result.consistency.unchecked_priors if u.prior <= 0.0]
+        if result.consistency is not None and status != "fail"
+        else []
+    )
+    assumes = (
+        f"<div>It assumes {_e(', '.join(assumed))} exact, which this recording cannot check "
+        "(the fit checks' row 'taken as exact').</div>"
+        if assumed
+        else ""
+    )
     verdict_html = (
         f'<section class="verdict {cls}" id="verdict"><div class="status">Verdict: '
         f"{_e(status.upper())}</div><div>{_e(meaning)}</div>"
+        + assumes
         + (f"<ul>{items}</ul>" if items else "")
         + "</section>"
     )

@@ -111,6 +111,26 @@ def test_verdict_comes_first_and_fail_is_marked(tmp_path, capsys):
     assert "The calibration did not converge." in page
 
 
+def test_a_pass_that_takes_an_effect_as_exact_says_so_beside_the_verdict() -> None:
+    """As the console's verdict line: the effects listed with prior 0 in
+    ``consistency.unchecked_priors`` (taken as exact, could hide three sigmas) are named under
+    a PASS or a WARN, not under a FAIL (which needs no qualification)."""
+    from licalib_cli.sections import Consistency, UncheckedPriorCheck
+
+    assumed = UncheckedPriorCheck(
+        "lidar_point_time", "% of the sweep time", 0.0, 0.093, "time offset", 6.6
+    )
+    prior = UncheckedPriorCheck("accel_scale", "ppm", 1000.0, 6600.0, "t_z", 2.0)
+    base = CalibrationResult(
+        extrinsic=Extrinsic(np.eye(3), np.zeros(3), 0.0),
+        consistency=Consistency(unchecked_priors=(assumed, prior)),
+    )
+    page = render_html(replace(base, verdict=VerdictSection("pass", ())), None)
+    said = "It assumes lidar_point_time exact, which this recording cannot check"
+    assert said in page and "accel_scale exact" not in page
+    assert said not in render_html(replace(base, verdict=VerdictSection("fail", ("x",))), None)
+
+
 def full_data() -> ReportData:
     """Report data with every figure's arrays (synthetic)."""
     rng = np.random.default_rng(0)
