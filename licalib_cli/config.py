@@ -342,6 +342,17 @@ class ImuPriorSection(_Section):
         return float(getattr(self, effect, 0.0))
 
 
+LIDAR_ANGLES = ("elevation", "azimuth")
+"""The per-beam blocks given in degrees in ``model.lidar_spread`` and ``model.lidar_prior``
+(their keys end in ``_deg``); the model's units are radians."""
+
+
+def lidar_key(block: str) -> str:
+    """The key of per-beam block ``block`` in ``model.lidar_spread`` and ``model.lidar_prior``:
+    ``elevation_deg``, ``azimuth_deg``, or the block's own name."""
+    return f"{block}_deg" if block in LIDAR_ANGLES else block
+
+
 class LidarSpreadSection(_Section):
     """How far each beam's intrinsics are expected to lie from nominal (one sigma, the spread
     across beams): the prior of the per-beam intrinsics the model estimates (``model.lidar``).
@@ -369,18 +380,17 @@ class LidarSpreadSection(_Section):
     def sigma_of(self, block: str) -> float | None:
         """The spread of ``model.lidar`` block ``block`` in the model's units (radians for the
         angles); None when unset."""
-        if block in ("elevation", "azimuth"):
-            deg = getattr(self, f"{block}_deg")
-            return None if deg is None else math.radians(deg)
-        value = getattr(self, block, None)
-        return None if value is None else float(value)
+        value = getattr(self, lidar_key(block), None)
+        if value is None:
+            return None
+        return math.radians(value) if block in LIDAR_ANGLES else float(value)
 
     def configured(self, blocks: Sequence[str]) -> dict[str, float]:
         """The spreads set among ``model.lidar`` blocks ``blocks``, by their keys here (in this
         section's units)."""
         out = {}
         for block in blocks:
-            key = f"{block}_deg" if block in ("elevation", "azimuth") else block
+            key = lidar_key(block)
             value = getattr(self, key, None)
             if value is not None:
                 out[key] = float(value)
@@ -389,9 +399,8 @@ class LidarSpreadSection(_Section):
     def with_sigma(self, block: str, sigma: float) -> LidarSpreadSection:
         """A copy with ``block``'s spread set to ``sigma`` (the model's units), kept to three
         significant digits in this section's units (as a config file would give it)."""
-        if block in ("elevation", "azimuth"):
-            return self.model_copy(update={f"{block}_deg": float(f"{math.degrees(sigma):.3g}")})
-        return self.model_copy(update={block: float(f"{sigma:.3g}")})
+        value = math.degrees(sigma) if block in LIDAR_ANGLES else sigma
+        return self.model_copy(update={lidar_key(block): float(f"{value:.3g}")})
 
 
 class LidarPriorSection(_Section):
@@ -425,10 +434,11 @@ class LidarPriorSection(_Section):
     def sigma_of(self, effect: str) -> float:
         """Prior sigma of a LiDAR effect by its check name (``lidar_azimuth``, ...; the angles
         in radians); 0 for an effect without a prior here."""
+        if not effect.startswith("lidar_"):
+            return 0.0
         block = effect.removeprefix("lidar_")
-        if block in ("elevation", "azimuth"):
-            return math.radians(getattr(self, f"{block}_deg"))
-        return float(getattr(self, block, 0.0)) if effect.startswith("lidar_") else 0.0
+        value = float(getattr(self, lidar_key(block), 0.0))
+        return math.radians(value) if block in LIDAR_ANGLES else value
 
 
 class ModelSection(_Section):

@@ -375,6 +375,11 @@ class UncheckedPriorCheck(Section):
     hidden_shift_sigmas: float
     warns: bool = False
 
+    @property
+    def assumed(self) -> bool:
+        """Taken as exact: held without a prior (``prior`` 0)."""
+        return self.prior <= 0.0
+
 
 @dataclass(frozen=True)
 class Consistency(Section):
@@ -397,6 +402,12 @@ class Consistency(Section):
     split_half: SplitHalf = field(default_factory=lambda: SplitHalf("not run"))
     inflation: tuple[str, ...] = ()
     unchecked_priors: tuple[UncheckedPriorCheck, ...] = ()
+
+    @property
+    def assumed_exact(self) -> tuple[str, ...]:
+        """The effects the result takes as exact though the recording cannot check them (the
+        ``unchecked_priors`` without a prior), as the verdict names them."""
+        return tuple(u.name for u in self.unchecked_priors if u.assumed)
 
     def rows(self) -> list[tuple[str, str, str, bool]]:
         """One row per fit check, as the console table and the report show them:
@@ -448,8 +459,8 @@ class Consistency(Section):
                 figure += f"; {compared}"
             agree = sh.status == "agree"
             out.append(("split halves", figure, "agree" if agree else "disagree", not agree))
-        priors = [u for u in self.unchecked_priors if u.prior > 0.0]
-        assumed = [u for u in self.unchecked_priors if u.prior <= 0.0]
+        priors = [u for u in self.unchecked_priors if not u.assumed]
+        assumed = [u for u in self.unchecked_priors if u.assumed]
         for items, label, state in (
             (priors, _priors_label(priors), "unchecked"),
             (assumed, "taken as exact", "assumed"),
@@ -457,7 +468,7 @@ class Consistency(Section):
             if not items:
                 continue
             u = items[0]
-            of = f" (prior {u.prior:.2g})" if u.prior > 0.0 else ""
+            of = "" if u.assumed else f" (prior {u.prior:.2g})"
             shown = (
                 f"{u.name} shows from {u.detectable:.2g} {u.unit}{of}"
                 if math.isfinite(u.detectable)

@@ -158,11 +158,7 @@ def render_run(run: CalibrationRun, truth: Truth | None) -> None:
     for finding in run.checks.findings:
         if finding.severity == "note":
             out.print(f"Note: {escape(finding.text)}")
-    assumed = (
-        [u.name for u in r.consistency.unchecked_priors if u.prior <= 0.0]
-        if r.consistency is not None
-        else []
-    )
+    assumed = r.consistency.assumed_exact if r.consistency is not None else ()
     for line in verdict_lines(run.checks.verdict, assumed):
         out.print(line)
     total = sum(run.timings.values())

@@ -53,6 +53,7 @@ from licalib_cli.pipeline.inflation import (
     inflate,
     largest_prior,
     split_floor,
+    uncovered,
     with_change,
 )
 from licalib_cli.pipeline.initialise import SINGLE_AXIS, InitialGuess
@@ -973,7 +974,7 @@ def run_checks(
     findings += _map(fit, report)
     # an IMU block held fixed whose prior the recording cannot check, and whose error of the
     # size it cannot show would move the extrinsic beyond its sigmas
-    unchecked = unchecked_priors([e for e in effects if not effect_to_cover(e, raw)], sigma)
+    unchecked = unchecked_priors(uncovered(effects, raw), sigma)
     warning = unchecked_warning(unchecked)
     if warning is not None:
         findings.append(Finding("warn", warning, True))

@@ -32,6 +32,7 @@ __all__ = [
     "moves_extrinsic",
     "prior_variance",
     "split_floor",
+    "uncovered",
     "with_change",
 ]
 
@@ -60,10 +61,16 @@ def effect_to_cover(e: EffectEvidence, raw_sigma: F64) -> bool:
     return (e.measured or e.score.p_value < COVER_P_VALUE) and moves_extrinsic(e, raw_sigma)
 
 
+def uncovered(effects: Sequence[EffectEvidence], raw_sigma: F64) -> list[EffectEvidence]:
+    """The ``effects`` whose shift the sigmas do not cover (:func:`effect_to_cover`): held
+    fixed, known only to within their priors, or taken as exact."""
+    return [e for e in effects if not effect_to_cover(e, raw_sigma)]
+
+
 def largest_prior(effects: Sequence[EffectEvidence], raw_sigma: F64) -> str | None:
     """The block whose prior (``model.imu_prior``, ``model.lidar_prior``) adds most to the
     sigmas; None when no prior adds anything."""
-    held = [e for e in effects if not effect_to_cover(e, raw_sigma)]
+    held = uncovered(effects, raw_sigma)
     finite = np.isfinite(raw_sigma) & (raw_sigma > 0.0)
     size = [float(np.max(np.where(finite, e.prior_std / raw_sigma, 0.0))) for e in held]
     if not size or max(size) <= 0.0:
@@ -154,7 +161,6 @@ def inflate(
         grown = np.sqrt(sigma**2 + prior_var)
         finite = np.isfinite(sigma) & (sigma > 0.0)
         factor = float(np.max(grown[finite] / sigma[finite])) if np.any(finite) else 1.0
-        held = [e for e in effects if not effect_to_cover(e, raw)]
         most = largest_prior(effects, raw)
         known = (
             ", known to within the rate of its stamps against the record times"
@@ -165,7 +171,7 @@ def inflate(
         why.append(
             f"by the {what} held fixed, each known to within {where} "
             f"(times up to {factor:.2f}; most from {most}{known})"
-            + unchecked_text(unchecked_priors(held, grown))
+            + unchecked_text(unchecked_priors(uncovered(effects, raw), grown))
         )
         sigma = grown
     if fit.jitter:

@@ -77,7 +77,12 @@ from licalib_cli.pipeline.checks import (
     extrinsic_truncated,
     uncertainty_findings,
 )
-from licalib_cli.pipeline.inflation import COVER_P_VALUE, effect_to_cover, prior_variance
+from licalib_cli.pipeline.inflation import (
+    COVER_P_VALUE,
+    effect_to_cover,
+    prior_variance,
+    uncovered,
+)
 from licalib_cli.pipeline.intrinsic_sigmas import intrinsics_uncertainty
 from licalib_cli.pipeline.joint_planes import refine_segments_with_planes
 from licalib_cli.pipeline.joint_problem import joint_problem, segment_values
@@ -697,9 +702,7 @@ def _joint_result(
             "held fixed that a segment's checks cover (by that segment's share of the "
             "information where the segments together do not show the effect)."
         )
-    held = [
-        [e for e in r.checks.effects if not effect_to_cover(e, r.checks.raw_sigma)] for r in runs
-    ]
+    held = [uncovered(r.checks.effects, r.checks.raw_sigma) for r in runs]
     unchecked: list[UncheckedPrior] = combined_unchecked_priors(held, sigma)
     if np.any(prior > 0.0):
         what, where = prior_owner([e.score.name for e in held[best] if e.prior_sigma > 0.0])

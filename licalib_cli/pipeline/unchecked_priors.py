@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from licalib_cli.config import lidar_key
 from licalib_cli.consistency.distributions import chi2_isf
 from licalib_cli.consistency.power import (
     detectable_noncentrality,
@@ -132,8 +133,8 @@ def unchecked_priors(held: Sequence[EffectEvidence], sigma: F64) -> list[Uncheck
     """
     out = []
     for e in held:
-        if e.prior_sigma <= 0.0 and np.any(np.asarray(e.prior_std) > 0.0):
-            continue  # measured apart from the fit: known so well, not assumed
+        if _sized_apart(e):
+            continue
         u = _unchecked(
             e.score.name,
             e.prior_sigma,
@@ -161,8 +162,8 @@ def combined_unchecked_priors(
     by_name: dict[str, list[EffectEvidence]] = {}
     for held in segments:
         for e in held:
-            if e.prior_sigma <= 0.0 and np.any(np.asarray(e.prior_std) > 0.0):
-                continue  # measured apart from the fit
+            if _sized_apart(e):
+                continue
             by_name.setdefault(e.score.name, []).append(e)
     out = []
     for name, effects in by_name.items():
@@ -184,6 +185,12 @@ def combined_unchecked_priors(
         if u is not None:
             out.append(u)
     return sorted(out, key=lambda u: -u.hidden_shift)
+
+
+def _sized_apart(e: EffectEvidence) -> bool:
+    """Without a prior but known to within a measurement apart from the fit (the clock drift
+    from the stamps against the record times): bounded, so neither unchecked nor assumed."""
+    return e.prior_sigma <= 0.0 and bool(np.any(np.asarray(e.prior_std) > 0.0))
 
 
 def _unchecked(
@@ -291,9 +298,7 @@ _NO_PRIOR = ("gyro_bias_walk", "accel_bias_walk", "imu_clock_drift")
 def _prior_key(effect: str) -> str:
     """``model.imu_prior.accel_scale``, ``model.lidar_prior.azimuth_deg``, ...."""
     if effect.startswith("lidar_"):
-        block = effect.removeprefix("lidar_")
-        key = f"{block}_deg" if block in ("elevation", "azimuth") else block
-        return f"model.lidar_prior.{key}"
+        return f"model.lidar_prior.{lidar_key(effect.removeprefix('lidar_'))}"
     return f"model.imu_prior.{PRIOR_KEYS.get(effect, effect)}"
 
 

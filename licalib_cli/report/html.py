@@ -644,9 +644,9 @@ def render_html(
     # what the result takes as exact though the recording cannot check it (a note beside the
     # verdict, as the console prints it)
     assumed = (
-        [u.name for u in result.consistency.unchecked_priors if u.prior <= 0.0]
+        result.consistency.assumed_exact
         if result.consistency is not None and status != "fail"
-        else []
+        else ()
     )
     assumes = (
         f"<div>It assumes {_e(', '.join(assumed))} exact, which this recording cannot check "
