@@ -336,9 +336,9 @@ def simulate(
     bag_path = default_bag_path(out_dir, spec.fmt)
     truth_path = out_dir / "truth.yaml"
     _check_overwrite(bag_path, force)
+    setup = build_setup(spec)  # an option it refuses leaves no folder behind
     create_folder(out_dir, "The output", "give a folder path")
 
-    setup = build_setup(spec)
     imu, imu_truth = generate_imu(spec, setup)
     truth = build_truth(spec, setup, imu_truth, bag_path)
     truth_text = truth.to_yaml()  # fail early, before any bag is written

@@ -125,6 +125,20 @@ def test_a_rate_the_lidar_cannot_spin_at_is_a_clear_error(
     assert not (tmp_path / "sim").exists()
 
 
+def test_a_lever_arm_too_long_for_the_room_is_a_clear_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The simulator keeps the rig inside its room (``ground_truth.inside_room``); a lever arm
+    no shift can fit is refused in one sentence, exit 6, and no output folder is left."""
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", str(tmp_path / "sim"), "--translation", "0", "0", "12"])
+    assert exc.value.code == ConfigError.exit_code
+    err = capsys.readouterr().err
+    assert "does not fit in the simulated room; use a shorter lever arm (--translation)" in err
+    assert "Traceback" not in err
+    assert not (tmp_path / "sim").exists()
+
+
 def test_registered_in_the_licalib_app(tmp_path: Path) -> None:
     try:
         from licalib_cli import cli
