@@ -222,20 +222,26 @@ class World:
                 best_id = np.where(closer, 6 + 6 * b + qi, best_id).astype(np.int32)
         return best, best_id
 
-    def clearance(self, points: F64) -> F64:
+    def clearance(self, points: F64, *, room: bool = True) -> F64:
         """Distance of points to the nearest surface (negative inside a box or outside the room).
 
         Exact: signed distance to the room walls and the boxes, unsigned distance to the
         quadrilaterals. Used to check free space and as an independent ray-marching reference.
+        Like every distance it changes by at most as much as the points move.
 
         Args:
             points: (N, 3) in ``{W}``.
+            room: count the room's walls, floor and ceiling; False: only the objects inside
+                (``inf`` for an empty room).
 
         Returns:
             (N,) metres.
         """
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        out = np.minimum(p - self.room_min, self.room_max - p).min(axis=1)
+        if room:
+            out = np.minimum(p - self.room_min, self.room_max - p).min(axis=1)
+        else:
+            out = np.full(p.shape[0], np.inf)
         if self.num_boxes:
             local = np.einsum("nbi,bij->nbj", p[:, None, :] - self.box_center, self.box_rotation)
             q = np.abs(local) - self.box_half

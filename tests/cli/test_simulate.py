@@ -128,7 +128,7 @@ def test_a_rate_the_lidar_cannot_spin_at_is_a_clear_error(
 def test_a_lever_arm_too_long_for_the_room_is_a_clear_error(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """The simulator keeps the rig inside its room (``ground_truth.inside_room``); a lever arm
+    """The simulator keeps the rig inside its room (``ground_truth.in_free_space``); a lever arm
     no shift can fit is refused in one sentence, exit 6, and no output folder is left."""
     with pytest.raises(SystemExit) as exc:
         main(["simulate", str(tmp_path / "sim"), "--translation", "0", "0", "12"])
