@@ -19,9 +19,9 @@ from licalib_cli.initialization import (
     estimate_rotation_extrinsic,
     estimate_time_offset,
 )
-from licalib_cli.initialization.rotation import GyroIntegrator, lidar_rotation_at
+from licalib_cli.initialization.rotation import GyroIntegrator, RotationAt, lidar_rotation_at
 from licalib_cli.io.reader import read_segment
-from licalib_cli.measurements import ImuSamples, LidarScan
+from licalib_cli.measurements import ImuSamples, LidarScan, Recording
 from licalib_cli.odometry import (
     OdometryConfig,
     PoseSeries,
@@ -32,7 +32,7 @@ from licalib_cli.odometry import (
     run_odometry,
 )
 from licalib_cli.parallel import threads as thr
-from licalib_cli.simulation.ground_truth import build_setup
+from licalib_cli.simulation.ground_truth import SimulationSetup, build_setup
 from licalib_cli.simulation.simulate import simulate
 from licalib_cli.simulation.spec import IntrinsicsMode, Scenario, SimulationSpec
 
@@ -349,6 +349,19 @@ def test_refinement_with_gyro_on_simulated_shake(
         refine_odometry(rec.scans[1:], None, cfg, rotation_at=rotation_at, prepared=prepared)
 
 
+def _with_gyro_prior(
+    spec: SimulationSpec, tmp_path: Path
+) -> tuple[Recording, SimulationSetup, RotationAt]:
+    """The simulated recording, its truth, and the gyro's LiDAR rotation through a rotation
+    extrinsic 1 deg off (what a first hand-eye round gives)."""
+    rec = read_segment(simulate(spec, tmp_path).bag_path, load_config(None))
+    setup = build_setup(spec)
+    r_off = Rotation.from_rotvec(np.radians(1.0) * np.array([0.6, 0.0, 0.8]))
+    r_guess = (r_off * Rotation.from_matrix(setup.extrinsic.rotation)).as_matrix()
+    rotation_at = lidar_rotation_at(GyroIntegrator.from_imu(rec.imu), r_guess, spec.time_offset_s)
+    return rec, setup, rotation_at
+
+
 @pytest.mark.slow
 def test_gyro_aided_refinement_follows_a_long_lever_arm(tmp_path: Path) -> None:
     """Hand-held shaking of an OS1-64 1.8 m from its IMU (the mounting of the trust benchmark's
@@ -370,12 +383,8 @@ def test_gyro_aided_refinement_follows_a_long_lever_arm(tmp_path: Path) -> None:
         translation=(-1.28, -0.70, 1.02),
         time_offset_s=-0.021,
     )
-    rec = read_segment(simulate(spec, tmp_path).bag_path, load_config(None))
-    setup = build_setup(spec)
+    rec, setup, rotation_at = _with_gyro_prior(spec, tmp_path)
     cfg = OdometryConfig(max_range=60.0)
-    r_off = Rotation.from_rotvec(np.radians(1.0) * np.array([0.6, 0.0, 0.8]))
-    r_guess = (r_off * Rotation.from_matrix(setup.extrinsic.rotation)).as_matrix()
-    rotation_at = lidar_rotation_at(GyroIntegrator.from_imu(rec.imu), r_guess, spec.time_offset_s)
     prepared = prepare_sweeps(rec.scans, cfg)
     for passes in (1, 2):
         poses = refine_odometry(
@@ -412,11 +421,7 @@ def test_gyro_aided_odometry_predicts_a_lidar_swinging_about_the_imu(tmp_path: P
         translation=(-0.74, -1.56, -0.57),
         time_offset_s=-0.011,
     )
-    rec = read_segment(simulate(spec, tmp_path).bag_path, load_config(None))
-    setup = build_setup(spec)
-    r_off = Rotation.from_rotvec(np.radians(1.0) * np.array([0.6, 0.0, 0.8]))
-    r_guess = (r_off * Rotation.from_matrix(setup.extrinsic.rotation)).as_matrix()
-    rotation_at = lidar_rotation_at(GyroIntegrator.from_imu(rec.imu), r_guess, spec.time_offset_s)
+    rec, setup, rotation_at = _with_gyro_prior(spec, tmp_path)
     cfg = OdometryConfig(max_range=60.0)
     poses = refine_odometry(rec.scans, None, cfg, RefineConfig(passes=1), rotation_at=rotation_at)
     t = (poses.t_ns - spec.base_time_ns) * 1e-9 + spec.time_offset_s
