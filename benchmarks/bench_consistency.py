@@ -32,6 +32,7 @@ Examples::
     .venv/bin/python benchmarks/bench_consistency.py --imu-rate 100 --lidar-rate 20  # other rates
     .venv/bin/python benchmarks/bench_consistency.py --scenarios figure8 --duration 20  # planar
     .venv/bin/python benchmarks/bench_consistency.py --scenarios figure8 --lever-arm-prior 0.01
+    .venv/bin/python benchmarks/bench_consistency.py --scenarios walk --duration 20  # walking
     .venv/bin/python benchmarks/bench_consistency.py --only clean --record-delay-ms 2  # late
 
 Each run happens in a fresh subprocess; rows print as they finish (JSON with ``--json``). At the
@@ -57,7 +58,7 @@ TRANSLATION_LIMIT_M = 0.01
 TIME_LIMIT_S = 1e-4
 
 
-SCENARIOS = ("shake", "sinusoid", "figure8")
+SCENARIOS = ("shake", "sinusoid", "figure8", "walk")
 MOUNTINGS = ("A", "B", "C")
 
 
@@ -356,7 +357,8 @@ def main() -> None:
         default=["shake", "sinusoid"],
         choices=SCENARIOS,
         help="motions the cases cycle through (default: shake sinusoid; figure8: the paper's "
-        "planar figure-8, mountings A, B, C in turn)",
+        "planar figure-8, mountings A, B, C in turn; walk: hand-held walking with shaking "
+        "bursts, as users record)",
     )
     p.add_argument(
         "--lever-arm-prior",
