@@ -957,7 +957,8 @@ def refine_odometry(
         scans: the K scans given to :func:`run_odometry`, in time order.
         poses: kiss-icp poses of those scans (:func:`run_odometry`), or None with
             ``rotation_at``: the gyro alone predicts (rotation from ``rotation_at``, the
-            translation of the first motion zero, then constant velocity).
+            translation of the first motion zero, then that of a LiDAR turning about an IMU of
+            constant velocity).
         cfg: odometry settings (the range filter is shared with kiss-icp).
         refine: refinement settings; defaults when None.
         rotation_at: optional ``R_w_lidar(t)`` (e.g. the gyro with a rotation extrinsic, see
