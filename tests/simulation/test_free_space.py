@@ -125,3 +125,29 @@ def test_the_shortest_clear_move_is_taken_and_none_when_the_search_cannot_clear(
     assert move is not None and move[0] <= 0.0
     assert 0.3 < np.linalg.norm(move) <= 0.8 + 1e-9
     assert box.clearance(points + move, room=False).min() >= ROOM_MARGIN_M
+
+
+def test_a_rig_no_move_can_clear_of_the_objects_is_refused_in_one_sentence() -> None:
+    """A room filled by one box but for its margins: no move within the search keeps the rig
+    out of it, and the simulator says so, naming the lever arm and the fix."""
+    spec = _spec((0.5, 0.0, 0.0), duration_s=2.0)
+    setup = build_setup(spec)
+    room = default_world()
+    filled = World(
+        room_min=room.room_min,
+        room_max=room.room_max,
+        box_center=(0.5 * (room.room_min + room.room_max))[None],
+        box_rotation=np.eye(3)[None],
+        box_half=(0.5 * (room.room_max - room.room_min) - 0.3)[None],
+        quad_vertices=np.zeros((0, 4, 3)),
+    )
+    with pytest.raises(
+        ConfigError,
+        match=r"^The rig's motion with the lever arm \[0\.5, 0\.0, "
+        r"0\.0\] m passes through the simulated room's objects wherever it is "
+        r"moved within 1 m; use a shorter lever arm \(--translation\) or another "
+        r"seed\.$",
+    ):
+        ground_truth.in_free_space(setup.motion, setup.extrinsic, filled, spec.duration_s)
+    # the same motion in the real room is already clear: returned as it is
+    assert ground_truth.in_free_space(setup.motion, setup.extrinsic, room, 2.0) is setup.motion
