@@ -736,7 +736,8 @@ def _registration_pass(
             if sweeps[i].rot_to_end is not None:
                 # The rotation is the gyro's: the LiDAR turns about the IMU, whose own
                 # velocity is the one held constant.
-                pivot.add(out[i - 3 : i] if i >= 3 else out[:0])
+                if i >= 3:
+                    pivot.add(out[i - 3 : i])
                 guess[:3, 3] = pivot.predict(out[i - 2 : i], guess[:3, :3], t_ns[i - 2 : i + 1])
         else:
             guess = seed_rel[0]
