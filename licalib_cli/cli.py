@@ -205,6 +205,25 @@ def _info_json(args: list[str], message: str, code: int) -> None:
         _broken_pipe()
 
 
+_GLOBAL_FLAGS = frozenset({"--debug", "--verbose", "--quiet", "-q"})
+"""The root's flags (:func:`_root`) that take no value; ``-v`` also as a cluster (``-vv``)."""
+
+
+def _is_global_flag(arg: str) -> bool:
+    return arg in _GLOBAL_FLAGS or (len(arg) > 1 and arg[0] == "-" and set(arg[1:]) == {"v"})
+
+
+def _global_options_first(args: list[str]) -> list[str]:
+    """The global flags moved before the command, where click reads them, so that
+    ``licalib calibrate BAG -v`` means ``licalib -v calibrate BAG`` instead of failing on an
+    unknown option (no command has an option of these names). Arguments after ``--`` stay
+    where they are; the order of everything else is kept."""
+    end = args.index("--") if "--" in args else len(args)
+    flags = [a for a in args[:end] if _is_global_flag(a)]
+    rest = [a for a in args[:end] if not _is_global_flag(a)]
+    return flags + rest + args[end:]
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point.
 
@@ -214,7 +233,7 @@ def main(argv: list[str] | None = None) -> None:
     Ctrl-C and 1, quietly, when standard output is closed early. Numeric RuntimeWarnings are
     not shown unless ``--debug``.
     """
-    args = list(argv) if argv is not None else sys.argv[1:]
+    args = _global_options_first(list(argv) if argv is not None else sys.argv[1:])
     _state["args"] = tuple(args)
     debug = "--debug" in args
     keep_freed_memory()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import subprocess
 import sys
 from pathlib import Path
@@ -10,7 +11,7 @@ import pytest
 
 from licalib_cli import cli
 from licalib_cli.cli import main
-from licalib_cli.errors import ConfigError
+from licalib_cli.errors import BagError, ConfigError, LicalibError
 
 LICALIB = Path(sys.executable).parent / "licalib"
 
@@ -107,3 +108,52 @@ def test_installed_command(tmp_path: Path) -> None:
     )
     assert res.returncode == 6, res.stderr
     assert res.stderr.strip().splitlines()[-1] == "Error: No such option: --bogus."
+
+
+def test_global_options_are_read_after_the_command_too() -> None:
+    """``-v``, ``-q`` and ``--debug`` may follow the command; nothing after ``--`` moves."""
+    argv = ["calibrate", "b.bag", "-vv", "-o", "out.yaml", "--debug", "--", "-q"]
+    assert cli._global_options_first(argv) == [
+        "-vv",
+        "--debug",
+        "calibrate",
+        "b.bag",
+        "-o",
+        "out.yaml",
+        "--",
+        "-q",
+    ]
+    assert cli._global_options_first(["-v", "info", "b.bag"]) == ["-v", "info", "b.bag"]
+    assert cli._global_options_first(["simulate", "OUT", "--rpy-deg", "-5", "0", "90"]) == [
+        "simulate",
+        "OUT",
+        "--rpy-deg",
+        "-5",
+        "0",
+        "90",
+    ]
+
+
+def test_debug_after_the_command_shows_the_traceback(tmp_path: Path) -> None:
+    """``licalib info BAG --debug`` re-raises the error as ``licalib --debug info BAG`` does,
+    instead of refusing ``--debug`` as an unknown option of ``info``."""
+    missing = str(tmp_path / "missing.bag")
+    with pytest.raises(LicalibError):
+        main(["info", missing, "--debug"])
+    with pytest.raises(SystemExit) as exc:
+        main(["info", missing])
+    assert exc.value.code == BagError.exit_code
+
+
+def test_verbosity_after_the_command(capsys: pytest.CaptureFixture[str]) -> None:
+    logger = logging.getLogger("licalib_cli")
+    before = logger.level
+    try:
+        code, _out, err = _run(["config", "dump", "-vv"], capsys)
+        assert code == 0, err
+        assert logger.level == logging.DEBUG
+        code, _out, err = _run(["config", "dump", "-q"], capsys)
+        assert code == 0, err
+        assert logger.level == logging.WARNING
+    finally:
+        logger.setLevel(before)
