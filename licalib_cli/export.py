@@ -46,7 +46,9 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shlex
+from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
@@ -228,6 +230,22 @@ def load_result(path: Path, purpose: str = "export") -> CalibrationResult:
     return result
 
 
+_SENTENCE_END = re.compile(r"(?<=[a-z0-9)\]])\. (?=[A-Z])")
+
+
+def _brief_reasons(reasons: Sequence[str]) -> str:
+    """The verdict's reasons for a one-line message: the first reason's first sentence and how
+    many more there are (the result file's ``verdict.reasons`` and ``licalib report`` list them
+    all; an exported file's header keeps them all)."""
+    if not reasons:
+        return "no reason recorded"
+    first = _SENTENCE_END.split(reasons[0].strip(), maxsplit=1)[0].rstrip(".")
+    if len(reasons) == 1:
+        return first
+    more = len(reasons) - 1
+    return f"{first}; and {more} more reason{'s' if more > 1 else ''} in the result's verdict"
+
+
 _UNREAD = object()
 
 
@@ -246,7 +264,7 @@ def exportable(result: CalibrationResult, force: bool = False) -> tuple[str, ...
         VerdictFailure: the verdict is ``fail`` and ``force`` is False.
     """
     s = _sections(result)
-    why = "; ".join(s.reasons) or "no reason recorded"
+    why = _brief_reasons(s.reasons)
     warnings: list[str] = []
     if s.verdict == "fail" and not force:
         msg = (
@@ -386,8 +404,8 @@ def _header(result: CalibrationResult, target: str, marker: str = "#") -> list[s
     if s.provenance:
         lines.append(f"{marker} ({s.provenance})")
     if s.verdict is not None:
-        why = f" ({'; '.join(s.reasons)})" if s.reasons else ""
-        lines.append(f"{marker} verdict: {s.verdict}{why}")
+        lines.append(f"{marker} verdict: {s.verdict}" + (", because:" if s.reasons else ""))
+        lines.extend(f"{marker}   - {reason}" for reason in s.reasons)
     return lines
 
 

@@ -474,3 +474,25 @@ def test_numbers_are_plain_decimals() -> None:
     mapping = yaml.safe_load(text)["mapping"]
     assert mapping["extrinsic_R"] == [1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, -1.0]
     assert mapping["extrinsic_T"] == [1e-5, 0.0, 2.5e-7]
+
+
+def test_a_long_verdict_is_one_line_on_screen_and_one_line_per_reason_in_the_file() -> None:
+    reasons = (
+        "Translation is uncertain (1-sigma up to 5.98 mm). It comes from the effects held fixed.",
+        "The LiDAR residuals depend on the beam (20 % of their variance, 6.0 mm).",
+        "The IMU data show an effect the model holds fixed, gyro_rotation.",
+    )
+    result = _result(CASES["general"], "warn", reasons)
+    (warning,) = exportable(result)
+    assert warning == (
+        "The result's verdict is warn: Translation is uncertain (1-sigma up to 5.98 mm); "
+        "and 2 more reasons in the result's verdict."
+    )
+    lines = to_fast_lio(result).splitlines()
+    at = lines.index("# verdict: warn, because:")
+    assert lines[at + 1 : at + 4] == [f"#   - {r}" for r in reasons]
+    (warning,) = exportable(_result(CASES["general"], "warn", reasons[1:2]))
+    assert warning == f"The result's verdict is warn: {reasons[1]}"
+    with pytest.raises(VerdictFailure) as err:
+        exportable(_result(CASES["general"], "fail", reasons))
+    assert "It comes from" not in str(err.value) and "2 more reasons" in str(err.value)
