@@ -239,11 +239,14 @@ def _brief_reasons(reasons: Sequence[str]) -> str:
     all; an exported file's header keeps them all)."""
     if not reasons:
         return "no reason recorded"
-    first = _SENTENCE_END.split(reasons[0].strip(), maxsplit=1)[0].rstrip(".")
-    if len(reasons) == 1:
-        return first
+    sentences = _SENTENCE_END.split(reasons[0].strip(), maxsplit=1)
+    first = sentences[0].rstrip(".")
     more = len(reasons) - 1
-    return f"{first}; and {more} more reason{'s' if more > 1 else ''} in the result's verdict"
+    if more:
+        return f"{first}; and {more} more reason{'s' if more > 1 else ''} in the result's verdict"
+    if len(sentences) > 1:
+        return f"{first}; more in the result's verdict"
+    return first
 
 
 _UNREAD = object()

@@ -493,6 +493,11 @@ def test_a_long_verdict_is_one_line_on_screen_and_one_line_per_reason_in_the_fil
     assert lines[at + 1 : at + 4] == [f"#   - {r}" for r in reasons]
     (warning,) = exportable(_result(CASES["general"], "warn", reasons[1:2]))
     assert warning == f"The result's verdict is warn: {reasons[1]}"
+    (warning,) = exportable(_result(CASES["general"], "warn", reasons[:1]))
+    assert warning == (
+        "The result's verdict is warn: Translation is uncertain (1-sigma up to 5.98 mm); "
+        "more in the result's verdict."
+    )
     with pytest.raises(VerdictFailure) as err:
         exportable(_result(CASES["general"], "fail", reasons))
     assert "It comes from" not in str(err.value) and "2 more reasons" in str(err.value)
