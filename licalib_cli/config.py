@@ -229,8 +229,14 @@ class SurfelSection(_Section):
     corner, a step) and biases the translation by millimetres. A cell with any point farther
     than 6 x this from its plane holds a second surface too (a few returns of it hardly thicken
     the cell) and is left to the finer cells."""
-    max_distance_m: float = Field(default=0.03, gt=0.0)
-    """Points further from their surfel's plane are not associated."""
+    max_distance_m: float | None = Field(default=None, gt=0.0)
+    """Points further from their surfel's plane are not associated (in the rounds that have
+    settled; the first rounds reach further). Unset: 3 cm, or twice the range noise where that
+    is more (the larger of the configured ``noise.range_sigma_m`` and the noise measured in the
+    bag). A distance under twice the noise keeps only the returns nearest their planes, which
+    pulls the fit towards its own map and hides the noise from the residual check: with 4 cm of
+    range noise, 3 cm left clean sinusoids 10-40 mm off under PASS verdicts
+    (benchmarks/RESULTS.md, forty-ninth stop); such a configured distance is warned about."""
     points_per_scan: int = Field(default=1000, ge=50)
     """Points kept per scan for the optimisation (uniformly over the sweep)."""
     max_points: int = Field(default=600_000, ge=1000)

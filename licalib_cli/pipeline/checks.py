@@ -68,7 +68,7 @@ from licalib_cli.pipeline.prior_directions import (
     on_prior,
 )
 from licalib_cli.pipeline.schedule import JITTER_FACTOR, MAX_FINAL_ROUNDS, Change, Fit, within
-from licalib_cli.pipeline.settings import NoiseLevels, prior_sd
+from licalib_cli.pipeline.settings import NoiseLevels, narrow_association, prior_sd
 from licalib_cli.pipeline.split import COORDINATES, SplitResult, split_half
 from licalib_cli.pipeline.unchecked_priors import (
     assumed_note,
@@ -867,6 +867,9 @@ def check(
             "The rig turned about one axis only; the rotation about it rests on the "
             f"accelerations, and the translation along it {along}.",
         )
+    narrow = narrow_association(cfg, noise)
+    if narrow is not None:
+        notes = (*notes, narrow)
     if clock_rate is not None and TIME_DRIFT in fit.report.calibration_names:
         k, sd = fit.state.time_drift, fit.report.std_of(TIME_DRIFT)
         differs = drift_against_stamps(k, sd, clock_rate)

@@ -94,7 +94,12 @@ from licalib_cli.pipeline.schedule import cover_truncated
 from licalib_cli.pipeline.segment_runs import calibrate_windows, sigma_size
 from licalib_cli.pipeline.segments import select_segments
 from licalib_cli.pipeline.segments_model import SegmentsModel, model_for_segments
-from licalib_cli.pipeline.settings import lm_params, prior_sd, round_settings
+from licalib_cli.pipeline.settings import (
+    association_distance,
+    lm_params,
+    prior_sd,
+    round_settings,
+)
 from licalib_cli.pipeline.unchecked_priors import (
     UncheckedPrior,
     combined_unchecked_priors,
@@ -200,7 +205,10 @@ def _reassociate(
 ) -> RoundInputs:
     """The segment's points associated afresh with a map built from ``state``."""
     settings = round_settings(
-        cfg, run.noise, cfg.surfels.max_distance_m, bool(cfg.model.imu or cfg.model.lidar)
+        cfg,
+        run.noise,
+        association_distance(cfg, run.noise),
+        bool(cfg.model.imu or cfg.model.lidar),
     )
     pts = usable_points(state, data.points, settings.margin_s)
     p_g = points_in_global(state, pts)

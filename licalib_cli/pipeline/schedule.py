@@ -57,6 +57,7 @@ from licalib_cli.pipeline.round import (
 )
 from licalib_cli.pipeline.settings import (
     NoiseLevels,
+    association_distance,
     estimates_intrinsics,
     prior_sd,
     round_settings,
@@ -503,7 +504,7 @@ def run_schedule(
     sample = sample_points(rec.scans, phi, points_per_scan(cfg, len(rec.scans)), cfg)
     probe = sample.subset(np.arange(0, len(sample), max(1, len(sample) // _PROBE_POINTS)))
     imu = ImuData.from_samples(rec.imu, state.t0_ns)
-    base = cfg.surfels.max_distance_m
+    base = association_distance(cfg, noise)
     max_dist = base * (INTRINSICS_FACTOR if warm else COARSE_FACTOR)
     rounds: list[RoundSummary] = []
     report: SolverReport | None = None

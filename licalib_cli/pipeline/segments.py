@@ -79,6 +79,7 @@ from licalib_cli.pipeline.read import read
 from licalib_cli.pipeline.settings import (
     IMU_INTRINSIC_NAMES,
     NoiseLevels,
+    association_distance,
     free_parameters,
     noise_model,
     spline_margin_s,
@@ -904,7 +905,7 @@ def select_segments(
     )
 
     clock = time.perf_counter()
-    scfg = surfel_config(cfg, est.noise, 3.0 * cfg.surfels.max_distance_m)
+    scfg = surfel_config(cfg, est.noise, 3.0 * association_distance(cfg, est.noise))
     gen = np.random.default_rng(0)
     pending: deque[SweepPlanes] = deque()
     scores: list[WindowScore] = []

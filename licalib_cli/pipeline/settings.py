@@ -46,6 +46,8 @@ if TYPE_CHECKING:
     from licalib_cli.io.clock_rate import ClockRate
 
 __all__ = [
+    "DEFAULT_MAX_DISTANCE_M",
+    "DISTANCE_PER_RANGE_SIGMA",
     "IMU_INTRINSIC_NAMES",
     "LIDAR_COLUMNS",
     "LOOSE_BLUR_SHARE",
@@ -54,6 +56,7 @@ __all__ = [
     "THICKNESS_PER_RANGE_SIGMA",
     "NoiseLevels",
     "RoundSettings",
+    "association_distance",
     "calibration_block",
     "estimates_intrinsics",
     "expected_size",
@@ -61,8 +64,10 @@ __all__ = [
     "hand_eye_config",
     "lever_arm_config",
     "lm_params",
+    "narrow_association",
     "noise_model",
     "odometry_config",
+    "range_noise_in_data",
     "round_settings",
     "spline_margin_s",
     "surfel_config",
@@ -71,6 +76,48 @@ __all__ = [
 ]
 
 F64 = npt.NDArray[np.float64]
+
+DEFAULT_MAX_DISTANCE_M = 0.03
+"""The association distance of the settled rounds when ``surfels.max_distance_m`` is unset, for
+a LiDAR of at most 1.5 cm range noise (:func:`association_distance`)."""
+
+DISTANCE_PER_RANGE_SIGMA = 2.0
+"""An unset ``surfels.max_distance_m`` is at least this many range-noise sigmas: the 3 cm of
+the default at the 1.5 cm of the simulator's default noise. At 0.75 sigma (3 cm for 4 cm of
+noise) clean sinusoids ended 10-40 mm off under PASS verdicts; 1.5, 2 and 3 sigmas all brought
+the same bags within 2 of their sigmas (benchmarks/RESULTS.md, forty-ninth stop)."""
+
+
+def range_noise_in_data(noise: NoiseLevels) -> float:
+    """The range noise the points carry: the larger of the weighting sigma (configured or
+    measured) and the noise measured in the bag, where measured."""
+    measured = noise.range_measured_m
+    return max(noise.range_sigma_m, measured) if np.isfinite(measured) else noise.range_sigma_m
+
+
+def association_distance(cfg: CalibConfig, noise: NoiseLevels) -> float:
+    """``surfels.max_distance_m``, or where unset the larger of :data:`DEFAULT_MAX_DISTANCE_M`
+    and :data:`DISTANCE_PER_RANGE_SIGMA` times :func:`range_noise_in_data`, m."""
+    if cfg.surfels.max_distance_m is not None:
+        return float(cfg.surfels.max_distance_m)
+    return max(DEFAULT_MAX_DISTANCE_M, DISTANCE_PER_RANGE_SIGMA * range_noise_in_data(noise))
+
+
+def narrow_association(cfg: CalibConfig, noise: NoiseLevels) -> str | None:
+    """A sentence when a configured ``surfels.max_distance_m`` is under
+    :data:`DISTANCE_PER_RANGE_SIGMA` times the range noise in the data; else None."""
+    configured = cfg.surfels.max_distance_m
+    sigma = range_noise_in_data(noise)
+    if configured is None or configured >= DISTANCE_PER_RANGE_SIGMA * sigma:
+        return None
+    return (
+        f"surfels.max_distance_m = {100 * configured:.1f} cm is under twice the LiDAR's range "
+        f"noise ({100 * sigma:.1f} cm): the association kept only the returns nearest their "
+        "planes, which pulls the fit towards its own map and hides the noise from the residual "
+        f"check; raise it to at least {100 * DISTANCE_PER_RANGE_SIGMA * sigma:.1f} cm, or leave "
+        "it unset so that it follows the noise."
+    )
+
 
 THICKNESS_PER_RANGE_SIGMA = 1.5
 """Default ``surfels.max_thickness_m`` in units of the range noise: range noise alone gives an
@@ -177,13 +224,14 @@ def surfel_config(cfg: CalibConfig, noise: NoiseLevels, max_distance_m: float) -
     :data:`SECOND_SURFACE_FACTOR` thickness limits from its plane is left to the finer cells.
     """
     s = cfg.surfels
+    base = association_distance(cfg, noise)
     if s.max_thickness_m is not None:
-        limit = s.max_thickness_m * max_distance_m / s.max_distance_m
+        limit = s.max_thickness_m * max_distance_m / base
     else:
         thickness = max(THICKNESS_PER_RANGE_SIGMA * noise.range_sigma_m, MIN_THICKNESS_M)
         limit = max(
-            thickness * max_distance_m / s.max_distance_m,
-            LOOSE_BLUR_SHARE * (max_distance_m - s.max_distance_m),
+            thickness * max_distance_m / base,
+            LOOSE_BLUR_SHARE * (max_distance_m - base),
         )
     return SurfelConfig(
         cell_sizes=tuple(s.cell_sizes_m),
@@ -493,7 +541,7 @@ def round_settings(
     its starting estimate without a solver step: the planes-free steps then take over from that
     linearisation (the denser final round, :mod:`schedule`)."""
     tolerance = PROVISIONAL_COST_TOLERANCE if provisional else 0.0
-    coarse = max_distance_m > cfg.surfels.max_distance_m
+    coarse = max_distance_m > association_distance(cfg, noise)
     return RoundSettings(
         surfels=surfel_config(cfg, noise, max_distance_m),
         weights=noise_model(cfg, noise),

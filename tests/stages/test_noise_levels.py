@@ -7,7 +7,13 @@ import pytest
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import NoiseModel
-from licalib_cli.pipeline.settings import NoiseLevels, noise_model
+from licalib_cli.pipeline.settings import (
+    NoiseLevels,
+    association_distance,
+    narrow_association,
+    noise_model,
+    surfel_config,
+)
 
 
 def _levels(per_beam: np.ndarray, measured: float, configured: float = 0.01) -> NoiseLevels:
@@ -41,7 +47,7 @@ def test_the_default_thickness_cut_has_a_floor_for_nearly_noise_free_ranges() ->
     from licalib_cli.pipeline.settings import MIN_THICKNESS_M, surfel_config
 
     cfg = CalibConfig()
-    base = cfg.surfels.max_distance_m
+    base = association_distance(cfg, _levels(np.full(4, 0.01), measured=0.01, configured=0.01))
     quiet = _levels(np.full(4, 1e-4), measured=1e-4, configured=1e-4)
     assert surfel_config(cfg, quiet, base).max_thickness_m == MIN_THICKNESS_M == 0.005
     noisy = _levels(np.full(4, 0.01), measured=0.01, configured=0.01)
@@ -57,7 +63,7 @@ def test_a_loose_association_allows_surfels_as_thick_as_half_its_looseness() -> 
     from licalib_cli.pipeline.settings import LOOSE_BLUR_SHARE, MIN_THICKNESS_M, surfel_config
 
     cfg = CalibConfig()
-    base = cfg.surfels.max_distance_m
+    base = association_distance(cfg, _levels(np.full(4, 0.01), measured=0.01, configured=0.01))
     quiet = _levels(np.full(4, 1e-4), measured=1e-4, configured=1e-4)
     assert surfel_config(cfg, quiet, 3 * base).max_thickness_m == pytest.approx(
         LOOSE_BLUR_SHARE * 2 * base
@@ -77,10 +83,39 @@ def test_the_second_surface_limit_follows_the_thickness_cut() -> None:
     from licalib_cli.pipeline.settings import SECOND_SURFACE_FACTOR, surfel_config
 
     cfg = CalibConfig()
-    base = cfg.surfels.max_distance_m
+    base = association_distance(cfg, _levels(np.full(4, 0.01), measured=0.01, configured=0.01))
     noisy = _levels(np.full(4, 0.01), measured=0.01, configured=0.01)
     for distance in (base, 4 * base):
         sc = surfel_config(cfg, noisy, distance)
         assert sc.max_thickness_m is not None and sc.max_point_distance_m is not None
         assert sc.max_point_distance_m == pytest.approx(SECOND_SURFACE_FACTOR * sc.max_thickness_m)
     assert surfel_config(cfg, noisy, 4 * base).max_point_distance_m == pytest.approx(0.36)
+
+
+def test_the_default_association_distance_follows_the_range_noise_in_the_data() -> None:
+    """3 cm up to 1.5 cm of noise, twice the noise beyond; the noise measured in the bag counts
+    where it exceeds the configured weighting sigma; a configured distance stays."""
+    cfg = CalibConfig()
+    assert association_distance(cfg, _levels(np.full(4, 0.01), 0.01, 0.01)) == 0.03
+    assert association_distance(cfg, _levels(np.full(4, 0.015), 0.015, 0.01)) == 0.03
+    assert association_distance(cfg, _levels(np.full(4, 0.04), 0.04, 0.01)) == pytest.approx(0.08)
+    assert association_distance(cfg, _levels(np.full(4, 0.01), 0.01, 0.05)) == pytest.approx(0.1)
+    nothing = _levels(np.full(4, np.nan), float("nan"), 0.02)
+    assert association_distance(cfg, nothing) == pytest.approx(0.04)
+    noisy = _levels(np.full(4, 0.04), 0.04, 0.01)
+    # the settled rounds' surfels of the noisy LiDAR: the thickness cut scales as before
+    assert surfel_config(cfg, noisy, 0.08).max_distance_m == pytest.approx(0.08)
+    assert surfel_config(cfg, noisy, 0.08).max_thickness_m == pytest.approx(0.015)
+    set_cfg = CalibConfig.model_validate({"surfels": {"max_distance_m": 0.03}})
+    assert association_distance(set_cfg, noisy) == 0.03
+
+
+def test_a_configured_association_distance_under_twice_the_noise_is_warned_about() -> None:
+    set_cfg = CalibConfig.model_validate({"surfels": {"max_distance_m": 0.03}})
+    noisy = _levels(np.full(4, 0.04), 0.04, 0.01)
+    text = narrow_association(set_cfg, noisy)
+    assert text is not None
+    assert text.startswith("surfels.max_distance_m = 3.0 cm is under twice the LiDAR's range ")
+    assert "(4.0 cm)" in text and "at least 8.0 cm" in text and "leave it unset" in text
+    assert narrow_association(set_cfg, _levels(np.full(4, 0.015), 0.015, 0.01)) is None
+    assert narrow_association(CalibConfig(), noisy) is None

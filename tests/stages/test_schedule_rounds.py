@@ -204,6 +204,7 @@ def _schedule(
     )
     monkeypatch.setattr(schedule, "refined_summary", lambda summary, refined: summary)
     monkeypatch.setattr(schedule, "ImuData", SimpleNamespace(from_samples=lambda *a: None))
+    monkeypatch.setattr(schedule, "association_distance", lambda cfg, noise: 0.03)
     cfg = CalibConfig.model_validate(
         {
             "schedule": {"max_rounds": 12, "translation_tolerance_m": 1e-5},
