@@ -225,7 +225,8 @@ class SurfelSection(_Section):
     """Plane-likeness P = 2 (l1 - l0) / (l0 + l1 + l2) a cell needs to become a surfel."""
     max_thickness_m: float | None = Field(default=None, gt=0.0)
     """Cells whose points spread more than this off their plane (RMS) are not surfels; unset:
-    1.5 x noise.range_sigma_m, at least 5 mm. A thicker cell usually straddles two surfaces (a
+    1.5 x the range noise (the larger of noise.range_sigma_m and the noise measured in the bag),
+    at least 5 mm. A thicker cell usually straddles two surfaces (a
     corner, a step) and biases the translation by millimetres. A cell with any point farther
     than 6 x this from its plane holds a second surface too (a few returns of it hardly thicken
     the cell) and is left to the finer cells."""

@@ -228,7 +228,7 @@ def surfel_config(cfg: CalibConfig, noise: NoiseLevels, max_distance_m: float) -
     if s.max_thickness_m is not None:
         limit = s.max_thickness_m * max_distance_m / base
     else:
-        thickness = max(THICKNESS_PER_RANGE_SIGMA * noise.range_sigma_m, MIN_THICKNESS_M)
+        thickness = max(THICKNESS_PER_RANGE_SIGMA * range_noise_in_data(noise), MIN_THICKNESS_M)
         limit = max(
             thickness * max_distance_m / base,
             LOOSE_BLUR_SHARE * (max_distance_m - base),
