@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["norms"]
+__all__ = ["cross_rows", "norms"]
 
 
 def norms(v: npt.ArrayLike) -> npt.NDArray[np.float64]:
@@ -22,3 +22,15 @@ def norms(v: npt.ArrayLike) -> npt.NDArray[np.float64]:
     """
     a = np.asarray(v, dtype=np.float64)
     return np.sqrt(np.einsum("ij,ij->i", a, a))
+
+
+def cross_rows(a: npt.NDArray[np.float64], b: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """Row-wise ``a x b`` of (N, 3) arrays (several times faster than ``np.cross``)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    np.multiply(a[:, 1], b[:, 2], out=out[:, 0])
+    out[:, 0] -= a[:, 2] * b[:, 1]
+    np.multiply(a[:, 2], b[:, 0], out=out[:, 1])
+    out[:, 1] -= a[:, 0] * b[:, 2]
+    np.multiply(a[:, 0], b[:, 1], out=out[:, 2])
+    out[:, 2] -= a[:, 1] * b[:, 0]
+    return out

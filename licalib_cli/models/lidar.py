@@ -30,6 +30,7 @@ from enum import IntEnum
 import numpy as np
 import numpy.typing as npt
 
+from licalib_cli.geometry.vectors import cross_rows
 from licalib_cli.models.intrinsics import LidarIntrinsics
 
 __all__ = [
@@ -387,8 +388,8 @@ def point_to_plane(
     distance = np.einsum("ni,ni->n", n_imu, p_imu) + np.einsum("ni,ni->n", normal, position)
     distance += d
     # d/d eps of n^T R Exp(eps) p_I = -n_I^T hat(p_I) = (p_I x n_I)^T
-    d_rotation = _cross(p_imu, n_imu)
-    d_ext_rotation = _cross(p_lidar, n_lidar)
+    d_rotation = cross_rows(p_imu, n_imu)
+    d_ext_rotation = cross_rows(p_lidar, n_lidar)
     d_time = None
     if angular_velocity is not None and velocity is not None:
         # n_I . (w x p_I) = w . (p_I x n_I)
@@ -404,15 +405,3 @@ def point_to_plane(
         d_point=n_lidar,
         d_time=d_time,
     )
-
-
-def _cross(a: F64, b: F64) -> F64:
-    """Row-wise ``a x b`` of (N, 3) arrays (several times faster than ``np.cross``)."""
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
-    np.multiply(a[:, 1], b[:, 2], out=out[:, 0])
-    out[:, 0] -= a[:, 2] * b[:, 1]
-    np.multiply(a[:, 2], b[:, 0], out=out[:, 1])
-    out[:, 1] -= a[:, 0] * b[:, 2]
-    np.multiply(a[:, 0], b[:, 1], out=out[:, 2])
-    out[:, 2] -= a[:, 1] * b[:, 0]
-    return out

@@ -46,16 +46,18 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import fields
+from dataclasses import fields, replace
 
 import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.geometry.so3 import quat_to_matrix
+from licalib_cli.geometry.vectors import cross_rows
 from licalib_cli.models.lidar import (
     NUM_BEAM_INTRINSICS,
     BeamIntrinsic,
     LidarPointTerms,
+    PointToPlaneGeometry,
     lidar_point_terms,
     nominal_intrinsics_array,
     point_to_plane,
@@ -102,6 +104,7 @@ class PointToPlaneResidual:
         t_ref_s: float = 0.0,
         sweep_start_s: npt.ArrayLike | None = None,
         intrinsics_at_predicted_range: bool = True,
+        motion_at_predicted_range: bool = True,
         whitening_range_scale: npt.ArrayLike | None = None,
         name: str = "lidar.point_to_plane",
     ) -> None:
@@ -130,6 +133,8 @@ class PointToPlaneResidual:
                 the range the model predicts (where the point's ray meets its plane) instead of
                 the measured range (see the module docstring); False gives the exact
                 derivatives of the residual.
+            motion_at_predicted_range: the same for the derivatives w.r.t. the trajectory's
+                and the extrinsic's rotation and the time (they depend on the point too).
             whitening_range_scale: (B,) range scales ``s0`` of the whitening (see the module
                 docstring); None for ones.
             name: residual block name.
@@ -177,6 +182,7 @@ class PointToPlaneResidual:
             else self.t_s - np.ascontiguousarray(sweep_start_s, dtype=np.float64).reshape(n)
         )
         self.intrinsics_at_predicted_range = bool(intrinsics_at_predicted_range)
+        self.motion_at_predicted_range = bool(motion_at_predicted_range)
         b = self.nominal_elevation.shape[0]
         self.whitening_range_scale = (
             np.ones(b)
@@ -278,6 +284,7 @@ class PointToPlaneResidual:
         d_time = np.empty(n) if want_time else None
         d_point = np.empty((n, 3)) if want_intr else None
         shift = np.zeros(n) if want_intr and self.intrinsics_at_predicted_range else None
+        motion_shift = jacobians and self.motion_at_predicted_range
 
         def block(sl: slice) -> None:
             """Points ``sl``: splines, geometry and whitened derivatives, written into their
@@ -303,6 +310,13 @@ class PointToPlaneResidual:
             assert rot_ev.rotation_vjp is not None and elements is not None
             assert j_so3 is not None and j_r3 is not None
             wc = wb[:, None]
+            if motion_shift or shift is not None:
+                ray, along = _rays(terms, sl, geo.d_point)
+                moved = _predicted_range_shift(along, geo.distance, 1.0 / wb)
+                if shift is not None:
+                    shift[sl] = moved
+                if motion_shift:
+                    geo = _at_predicted_range(geo, ray, moved, r_il, rot_ev.angular_velocity)
             np.add(rot_ev.index[:, None], _OFFSETS, out=elements[sl])
             j_so3[sl, 0] = rot_ev.rotation_vjp(geo.d_rotation * wc)
             # outer products of the weighted blending weights and the normals (einsum is about
@@ -317,8 +331,6 @@ class PointToPlaneResidual:
                 np.multiply(geo.d_time, wb, out=d_time[sl])
             if d_point is not None:
                 np.multiply(geo.d_point, wc, out=d_point[sl])
-            if shift is not None:
-                shift[sl] = _predicted_range_shift(terms, sl, geo.d_point, geo.distance, 1.0 / wb)
 
         # Blocks of the spline evaluations' size, each from the splines to its whitened
         # derivatives while its arrays are in cache, shared by the threads of
@@ -363,21 +375,42 @@ _MIN_RAY_COSINE = 0.25
 _MAX_SHIFT_SIGMAS = 3.0
 
 
-def _predicted_range_shift(
-    terms: LidarPointTerms, sl: slice, n_lidar: F64, distance: F64, sigma_m: F64
-) -> F64:
+def _rays(terms: LidarPointTerms, sl: slice, n_lidar: F64) -> tuple[F64, F64]:
+    """(n, 3) unit rays ``u`` of the points ``sl`` in ``{L}`` and (n,) ``n_L . u``."""
+    cp = terms.cos_phi[sl]
+    ray = np.empty((cp.shape[0], 3))
+    np.multiply(cp, terms.cos_theta[sl], out=ray[:, 0])
+    np.multiply(cp, terms.sin_theta[sl], out=ray[:, 1])
+    ray[:, 2] = terms.sin_phi[sl]
+    return ray, np.einsum("ni,ni->n", ray, n_lidar)
+
+
+def _predicted_range_shift(along: F64, distance: F64, sigma_m: F64) -> F64:
     """(n,) metres from each measured corrected range to where its ray meets its plane.
 
-    The distance changes by ``n_L . u`` per metre of range along the ray ``u``, so the model
-    predicts the range ``rho_bar - distance / (n_L . u)``. Rays within about 15 deg of their
-    plane keep the measured range; the shift is clipped to ``_MAX_SHIFT_SIGMAS`` noise sigmas
-    ``sigma_m`` (m).
+    The distance changes by ``along = n_L . u`` per metre of range along the ray ``u``, so the
+    model predicts the range ``rho_bar - distance / (n_L . u)``. Rays within about 15 deg of
+    their plane keep the measured range; the shift is clipped to ``_MAX_SHIFT_SIGMAS`` noise
+    sigmas ``sigma_m`` (m).
     """
-    cp = terms.cos_phi[sl]
-    along = (
-        cp * (n_lidar[:, 0] * terms.cos_theta[sl] + n_lidar[:, 1] * terms.sin_theta[sl])
-        + n_lidar[:, 2] * terms.sin_phi[sl]
-    )
     steep = np.abs(along) >= _MIN_RAY_COSINE
     limit = _MAX_SHIFT_SIGMAS * sigma_m
     return np.where(steep, np.clip(-distance / np.where(steep, along, 1.0), -limit, limit), 0.0)
+
+
+def _at_predicted_range(
+    geo: PointToPlaneGeometry, ray: F64, moved: F64, r_il: F64, angular_velocity: F64 | None
+) -> PointToPlaneGeometry:
+    """``geo`` with the derivatives that depend on the point (the trajectory's and the
+    extrinsic's rotation, the time) taken at the point moved ``moved`` metres along its ray
+    ``ray`` (``{L}``): they are linear in the point, so each gains ``moved`` times its value
+    for the ray. The distance and the other derivatives stay."""
+    step = moved[:, None]
+    ray_imu = ray @ r_il.T
+    along_rotation = cross_rows(ray_imu, geo.d_ext_translation)  # u_I x n_I
+    d_rotation = geo.d_rotation + step * along_rotation
+    d_ext_rotation = geo.d_ext_rotation + step * cross_rows(ray, geo.d_point)
+    d_time = geo.d_time
+    if d_time is not None and angular_velocity is not None:
+        d_time = d_time + moved * np.einsum("ni,ni->n", angular_velocity, along_rotation)
+    return replace(geo, d_rotation=d_rotation, d_ext_rotation=d_ext_rotation, d_time=d_time)
