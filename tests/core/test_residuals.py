@@ -271,28 +271,35 @@ def _intrinsics_jacobian(res: PointToPlaneResidual, params: Mapping[str, np.ndar
     return _analytic(ev, LIDAR_INTRINSICS, params[LIDAR_INTRINSICS].size)
 
 
+def _noisy_block(
+    pts: dict[str, np.ndarray], rho: np.ndarray, offset: np.ndarray, **flags: bool
+) -> PointToPlaneResidual:
+    """The block of ``pts`` with ranges ``rho`` and plane offsets ``offset`` (2 cm of noise,
+    three beams), ``flags`` the ``*_at_predicted_range`` choices."""
+    return PointToPlaneResidual(
+        KNOTS,
+        pts["t"],
+        pts["beam"],
+        rho,
+        pts["theta"],
+        pts["normal"],
+        offset,
+        0.02,
+        np.deg2rad([-10.0, 0.0, 10.0]),
+        **flags,
+    )
+
+
 def test_point_to_plane_intrinsics_derivatives_at_the_predicted_range() -> None:
     """With range noise, the intrinsics' derivatives are those of the noise-free point (where
     the ray meets its plane); on the plane they are the exact derivatives."""
     rng = np.random.default_rng(40)
     params = _random_params(rng)
     pts = _points(rng, 40)
-    nominal = np.deg2rad([-10.0, 0.0, 10.0])
     sigma = 0.02
 
     def block(rho: np.ndarray, offset: np.ndarray, at_predicted: bool) -> PointToPlaneResidual:
-        return PointToPlaneResidual(
-            KNOTS,
-            pts["t"],
-            pts["beam"],
-            rho,
-            pts["theta"],
-            pts["normal"],
-            offset,
-            sigma,
-            nominal,
-            intrinsics_at_predicted_range=at_predicted,
-        )
+        return _noisy_block(pts, rho, offset, intrinsics_at_predicted_range=at_predicted)
 
     # planes through the noise-free points: zero residuals
     offset = pts["offset"] - block(pts["rho"], pts["offset"], False).distances(params)
@@ -328,23 +335,11 @@ def test_point_to_plane_motion_derivatives_at_the_predicted_range() -> None:
     rng = np.random.default_rng(41)
     params = _random_params(rng)
     pts = _points(rng, 40)
-    nominal = np.deg2rad([-10.0, 0.0, 10.0])
     sigma = 0.02
     blocks = {TRAJ_SO3: params[TRAJ_SO3].size, EXT_ROTATION: 3, TIME_OFFSET: 1}
 
     def block(rho: np.ndarray, offset: np.ndarray, at_predicted: bool) -> PointToPlaneResidual:
-        return PointToPlaneResidual(
-            KNOTS,
-            pts["t"],
-            pts["beam"],
-            rho,
-            pts["theta"],
-            pts["normal"],
-            offset,
-            sigma,
-            nominal,
-            motion_at_predicted_range=at_predicted,
-        )
+        return _noisy_block(pts, rho, offset, motion_at_predicted_range=at_predicted)
 
     def jacobian(res: PointToPlaneResidual) -> np.ndarray:
         ev = res.evaluate(params, jacobians=True)
