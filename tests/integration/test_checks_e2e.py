@@ -184,6 +184,22 @@ def test_a_wrong_noise_setting_shows_as_a_misfit_of_that_sensor(
     )
 
 
+def test_an_association_distance_under_twice_the_range_noise_makes_the_verdict_warn(
+    tmp_path: Path, clean_sim: SimulationOutput
+) -> None:
+    """A configured ``surfels.max_distance_m`` that keeps only the returns nearest their planes
+    (1.5 cm against about 1.5 cm of range noise) biases the fit without the residual check
+    seeing it: the verdict says so and what to set."""
+    result, _, code = _calibrate(tmp_path, clean_sim, {"surfels": {"max_distance_m": 0.015}})
+    assert code == 0
+    assert result["verdict"]["status"] == "warn"
+    assert any(
+        r.startswith("surfels.max_distance_m = 1.5 cm is under twice the LiDAR's range noise")
+        and "leave it unset" in r
+        for r in result["verdict"]["reasons"]
+    )
+
+
 def test_per_beam_range_offsets_show_as_a_beam_pattern_and_a_lidar_effect(tmp_path: Path) -> None:
     rng = np.random.default_rng(3)
     offsets = np.concatenate([[0.0], rng.normal(0.0, 0.01, 15)])
