@@ -25,6 +25,7 @@ Examples::
     .venv/bin/python benchmarks/bench_consistency.py --jobs 2        # two runs at a time
     .venv/bin/python benchmarks/bench_consistency.py --first-seed 300  # the same cases, new bags
     .venv/bin/python benchmarks/bench_consistency.py --model lidar     # LiDAR intrinsics estimated
+    .venv/bin/python benchmarks/bench_consistency.py --exact-model  # no effect added by the data
     .venv/bin/python benchmarks/bench_consistency.py --only clean --imu-noise-scale 10  # poor IMU
     .venv/bin/python benchmarks/bench_consistency.py --only clean --range-noise 0.002  # quiet LiDAR
     .venv/bin/python benchmarks/bench_consistency.py --only clean --lidars hdl-32 os1-32 os1-128
@@ -247,6 +248,8 @@ def one_run(case: dict, workdir: Path) -> dict:
         # what enlarged the sigmas, and the fixed effects whose shifts they cover
         inflation=list(res.consistency.inflation) if res.consistency else [],
         covered=[e.name for e in res.consistency.effects if e.covered] if res.consistency else [],
+        # the effects calibrate estimated because the data showed them beyond doubt
+        added=[a.effect for a in res.model.added] if res.model is not None else [],
         # the priors this recording cannot check (and the effects taken as exact that could
         # hide three sigmas), with the shift each could hide
         unchecked=(
@@ -317,6 +320,7 @@ def _line(row: dict) -> str:
         f"|t| {row['translation_mm']:7.2f} mm  r {row['rotation_deg']:7.4f} deg  "
         f"dt {row['time_offset_ms']:6.3f} ms  max err/sigma {row['max_error_over_sigma']:6.2f}  "
         f"{row['verdict'].upper():4}  {row['calibrate_s']:5.1f} s  {judge(row)}{unobservable}"
+        + (f"  added {'+'.join(row['added'])}" if row.get("added") else "")
     )
 
 
@@ -335,6 +339,12 @@ def main() -> None:
         default="none",
         choices=["none", "imu", "lidar", "all"],
         help="intrinsics the calibration estimates (calibrate --intrinsics); default none",
+    )
+    p.add_argument(
+        "--exact-model",
+        action="store_true",
+        help="estimate exactly --model's blocks (calibrate --model config): no effect added "
+        "because the data show it beyond doubt",
     )
     add_noise_options(p)
     add_rate_options(p)
@@ -412,6 +422,11 @@ def main() -> None:
             "tilt_deg": args.tilt_deg,
             **({"record_delay_ms": args.record_delay_ms} if args.record_delay_ms else {}),
             **({"lever_arm_prior": args.lever_arm_prior} if args.lever_arm_prior else {}),
+            **(
+                {"overrides": {**c.get("overrides", {}), "model.add_evident_effects": False}}
+                if args.exact_model
+                else {}
+            ),
         }
         for c in cases(args.first_seed, tuple(args.lidars), tuple(args.scenarios))
         if (args.only is None or args.only in c["name"])

@@ -478,6 +478,12 @@ class ModelSection(_Section):
     score test puts it far above the built-in scale and the refit at that scale held it."""
     min_points_per_beam: int = Field(default=200, ge=10)
     """Beams with fewer associated points keep their intrinsics at nominal (and are named)."""
+    add_evident_effects: bool = True
+    """``calibrate`` estimates too the effects the data show beyond doubt (score tests of at
+    least 100 per degree of freedom; all such in one refit, two refits at most) when estimating
+    them pays its BIC, and says so; the resolved config and the result's ``model.added`` name
+    them. False (``calibrate --model config``): exactly the blocks above, such an effect only
+    widening the sigmas and warning."""
     imu_prior: ImuPriorSection = ImuPriorSection()
     """How well the IMU intrinsics held fixed are known (their sigmas enter the reported
     sigmas)."""

@@ -39,6 +39,7 @@ from licalib_cli.filetypes import FileValueError, field_types, joined, typed
 
 __all__ = [
     "SPLIT_LABELS",
+    "AddedEffect",
     "Consistency",
     "EffectCheck",
     "ExtraTerms",
@@ -499,6 +500,34 @@ def _noise_text(s: SensorCheck) -> str:
 
 
 @dataclass(frozen=True)
+class AddedEffect(Section):
+    """An effect ``calibrate`` estimated because the data showed it beyond doubt.
+
+    Attributes:
+        effect: its candidate name (``gyro_scale``, ``lidar_range_offset`` ...).
+        statistic: its score test on the fit without it.
+        dof: the test's degrees of freedom.
+        delta_bic: the BIC change of the refit that added it (negative: it paid).
+        moved_translation_m: how far that refit moved the translation.
+        moved_rotation_deg: ... the rotation.
+        moved_time_offset_s: ... the time offset (signed).
+        refit: which refit added it (1, 2): effects added together share its BIC change and
+            move.
+    """
+
+    _digits = 6
+
+    effect: str
+    statistic: float
+    dof: int
+    delta_bic: float
+    moved_translation_m: float
+    moved_rotation_deg: float
+    moved_time_offset_s: float
+    refit: int = 1
+
+
+@dataclass(frozen=True)
 class ModelInfo(Section):
     """Which intrinsics were estimated.
 
@@ -512,6 +541,8 @@ class ModelInfo(Section):
             ``elevation_deg`` ...); empty when each took the weak default prior.
         expected_size: blocks estimated at a configured expected size instead of the built-in
             characteristic scale (``model.expected_size``, its keys and units); empty otherwise.
+        added: the effects estimated beyond the config's model because the data showed them
+            beyond doubt (``model.add_evident_effects``), in the order added.
     """
 
     imu: tuple[str, ...] = ()
@@ -520,6 +551,7 @@ class ModelInfo(Section):
     held_beams: tuple[int, ...] = ()
     lidar_spread: dict[str, float] = field(default_factory=dict)
     expected_size: dict[str, float] = field(default_factory=dict)
+    added: tuple[AddedEffect, ...] = ()
 
 
 @dataclass(frozen=True)

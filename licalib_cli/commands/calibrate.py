@@ -41,8 +41,18 @@ _MODEL = "Model"
 class ModelChoice(str, Enum):
     """``--model`` choices."""
 
+    EVIDENT = "evident"
     CONFIG = "config"
     AUTO = "auto"
+
+
+def evident_override(model: ModelChoice | None) -> dict[str, bool]:
+    """Config override of ``--model`` (none: the config's ``model.add_evident_effects``)."""
+    if model is ModelChoice.EVIDENT:
+        return {"model.add_evident_effects": True}
+    if model is ModelChoice.CONFIG:
+        return {"model.add_evident_effects": False}
+    return {}
 
 
 class RichProgress:
@@ -168,12 +178,13 @@ def calibrate_command(
         "`licalib select-segments`) or START-END,... in seconds, e.g. 60-75,105-120.",
         rich_help_panel=_IO,
     ),
-    model: ModelChoice = typer.Option(
-        ModelChoice.CONFIG,
+    model: ModelChoice | None = typer.Option(
+        None,
         "--model",
-        help="config: estimate what the config's model section (or --intrinsics) says; auto: "
-        "start from the base model and add the effects the data show (as `licalib diagnose`; "
-        "with --segments, what any window shows).",
+        help="evident (the default, model.add_evident_effects): the config's model section (or "
+        "--intrinsics), plus any effect the data show beyond doubt; config: exactly that "
+        "section; auto: start from the base model and add the effects the data show (as "
+        "`licalib diagnose`; with --segments, what any window shows).",
         rich_help_panel=_MODEL,
     ),
     intrinsics: Intrinsics | None = typer.Option(
@@ -251,6 +262,7 @@ def calibrate_command(
         {
             **input_overrides(imu_topic, lidar_topic, start, duration),
             **intrinsics_overrides(intrinsics),
+            **evident_override(model),
         },
     )
     if model is ModelChoice.AUTO and intrinsics is not None:
@@ -292,8 +304,11 @@ def calibrate_command(
         render_diagnosis(diagnosis)
     run.result.save(out)
     # With --model auto, the model the diagnosis arrived at: calibrating with it estimates it.
+    # With effects added because the data showed them, the model they arrived at.
     config_text = dump_config(
-        diagnosis.config if diagnosis is not None and diagnosis.config is not None else cfg
+        diagnosis.config
+        if diagnosis is not None and diagnosis.config is not None
+        else run.config or cfg
     )
     write_text_atomic(config_out, config_text)
     render_run(run, reference)

@@ -8,7 +8,8 @@ Data flow (method.md sections 5-8), one module per stage::
                             complement, truncated SVD), coarse to fine, until it settles
         --fitcheck/split--> residuals per sensor, score tests of fixed effects, split halves
         --checks----------> verdict, inflated sigmas, observability
-        --effect_refit----> an effect the data show beyond doubt refitted; checks judge again
+        --evident---------> an effect the data show beyond doubt estimated when it pays its BIC
+        --effect_refit----> one left fixed refitted to measure its shift; checks judge again
         --assemble--------> CalibrationResult (schema v1 with typed sections)
 
 Frames and time: ``{G}`` is the IMU frame at the first IMU sample of the segment (``t0_ns``),
@@ -72,6 +73,8 @@ class CalibrationRun:
         effects: the score tests of the effects the fit held fixed (selected ones first).
         segment: the segment's measurements (for the report and the map files), or None.
         stage_times: wall and CPU seconds per stage, in order (the same stages as ``timings``).
+        config: the configuration of the model estimated when ``calibrate`` added effects the
+            data show beyond doubt (:mod:`~licalib_cli.pipeline.evident`); None: the one given.
     """
 
     result: CalibrationResult
@@ -85,6 +88,7 @@ class CalibrationRun:
     effects: tuple[EffectEvidence, ...] = ()
     segment: Recording | None = None
     stage_times: dict[str, StageTime] = field(default_factory=dict)
+    config: CalibConfig | None = None
 
     @property
     def rounds(self) -> tuple[RoundSummary, ...]:
@@ -130,24 +134,42 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
     timer = Timer()
     prepared = prepare(Path(bag), cfg, progress, timer)
     run = fit_and_check(prepared, prepared.guess, cfg, progress, timer)
-    run = _refit_unmistakable(prepared, run, cfg, progress, timer)
+    if cfg.model.add_evident_effects:
+        from licalib_cli.pipeline.evident import add_evident, with_added  # builds on this module
+
+        evident = add_evident(prepared, run, cfg, progress, timer)
+        run = _refit_unmistakable(
+            prepared, evident.run, evident.cfg, progress, timer, evident.declined
+        )
+        if evident.added:
+            run = replace(with_added(run, evident.added), config=evident.cfg)
+    else:
+        run = _refit_unmistakable(prepared, run, cfg, progress, timer)
     progress.close()
     return run
 
 
 def _refit_unmistakable(
-    prepared: Prepared, run: CalibrationRun, cfg: CalibConfig, progress: Progress, timer: Timer
+    prepared: Prepared,
+    run: CalibrationRun,
+    cfg: CalibConfig,
+    progress: Progress,
+    timer: Timer,
+    known: tuple[str, CalibrationState] | None = None,
 ) -> CalibrationRun:
     """``run`` judged again with the shift of an effect the data show beyond doubt measured by
     a refit with it estimated (:mod:`licalib_cli.pipeline.effect_refit`); ``run`` itself when
     there is none, or when the rounds did not converge (a refit would go on where they stopped,
-    and its move would be theirs as much as the effect's)."""
+    and its move would be theirs as much as the effect's). ``known``: an effect already
+    refitted from ``run`` and that refit's estimate (taken instead of refitting again)."""
     from licalib_cli.pipeline.effect_models import with_effect  # builds on this module
 
     if not cfg.checks.refit_effects or run.checks.exit_status == "not converged":
         return run
 
     def refit(effect: str) -> CalibrationState | None:
+        if known is not None and known[0] == effect:
+            return known[1]
         start = replace(prepared.guess, state=run.state)
         try:
             with timer.stage("refit", progress, total=cfg.schedule.max_rounds):

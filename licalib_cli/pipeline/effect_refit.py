@@ -33,7 +33,13 @@ from licalib_cli.estimation import CalibrationState
 from licalib_cli.pipeline.fitcheck import EffectEvidence
 from licalib_cli.pipeline.round import extrinsic_of
 
-__all__ = ["REFIT_STATISTIC_PER_DOF", "refit_shifts", "unmistakable", "with_move"]
+__all__ = [
+    "REFIT_STATISTIC_PER_DOF",
+    "refit_shifts",
+    "unmistakable",
+    "unmistakable_ones",
+    "with_move",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -46,9 +52,9 @@ a statistic of 100 on one degree of freedom has a probability below 1e-20; the t
 effects at the paper's sizes score from a few to a few thousand per degree of freedom."""
 
 
-def unmistakable(effects: Sequence[EffectEvidence]) -> EffectEvidence | None:
-    """The effect to refit with: the forward selection added it, and its score per degree of
-    freedom is at least :data:`REFIT_STATISTIC_PER_DOF` (the largest such); None when none is."""
+def unmistakable_ones(effects: Sequence[EffectEvidence]) -> list[EffectEvidence]:
+    """The effects the forward selection added whose score per degree of freedom is at least
+    :data:`REFIT_STATISTIC_PER_DOF`, the largest per degree of freedom first."""
     strong = [
         e
         for e in effects
@@ -56,7 +62,12 @@ def unmistakable(effects: Sequence[EffectEvidence]) -> EffectEvidence | None:
         and e.score.rank > 0
         and e.score.statistic >= REFIT_STATISTIC_PER_DOF * e.score.rank
     ]
-    return max(strong, key=lambda e: e.score.statistic / e.score.rank, default=None)
+    return sorted(strong, key=lambda e: -e.score.statistic / e.score.rank)
+
+
+def unmistakable(effects: Sequence[EffectEvidence]) -> EffectEvidence | None:
+    """The effect to refit with: the first of :func:`unmistakable_ones`; None when none is."""
+    return next(iter(unmistakable_ones(effects)), None)
 
 
 def with_move(e: EffectEvidence, move: F64) -> EffectEvidence:

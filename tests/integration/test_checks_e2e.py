@@ -59,16 +59,23 @@ def clean_sim(tmp_path_factory: pytest.TempPathFactory) -> SimulationOutput:
     return simulate(_spec(), tmp_path_factory.mktemp("clean") / "sim")
 
 
-NO_REFIT = {"checks": {"refit_effects": False}}
+EXACT_MODEL = {"model": {"add_evident_effects": False}}
+"""The configured model only (``calibrate --model config``): an effect the data show beyond
+doubt is refitted to measure its shift, not added."""
+NO_REFIT = {"checks": {"refit_effects": False}, **EXACT_MODEL}
 """For the tests of what the checks find: the refit of an effect the data show beyond doubt
-(tested on its own below) only widens the sigmas, and costs an optimisation."""
+(tested on its own below) only widens the sigmas, and costs an optimisation; adding it (also
+below) would leave nothing to find."""
 
 
 def _calibrate(
-    tmp_path: Path, spec: SimulationSpec | SimulationOutput, config_extra: dict | None = None
+    tmp_path: Path,
+    spec: SimulationSpec | SimulationOutput,
+    config_extra: dict | None = None,
+    args: tuple[str, ...] = (),
 ) -> tuple[dict, str, int]:
-    """Calibrate a bag through the command line: ``spec`` is simulated into ``tmp_path / "sim"``
-    first, unless it is an already simulated bag."""
+    """Calibrate a bag through the command line (with ``args`` too): ``spec`` is simulated into
+    ``tmp_path / "sim"`` first, unless it is an already simulated bag."""
     sim = spec if isinstance(spec, SimulationOutput) else simulate(spec, tmp_path / "sim")
     cfg_path = CONFIG
     if config_extra:
@@ -80,7 +87,7 @@ def _calibrate(
     out = tmp_path / "result.yaml"
     code = 0
     try:
-        main(["calibrate", str(sim.bag_path), "-c", str(cfg_path), "-o", str(out)])
+        main(["calibrate", str(sim.bag_path), "-c", str(cfg_path), "-o", str(out), *args])
     except SystemExit as err:
         code = int(err.code or 0)
     return yaml.safe_load(out.read_text()), str(sim.bag_path), code
@@ -228,7 +235,7 @@ def test_the_shift_of_a_range_offset_is_computed_with_the_planes_free(tmp_path: 
     offsets = np.concatenate([[0.0], rng.normal(0.0, 0.02, 15)])
     lidar = LidarIntrinsics.nominal(VLP16_ELEVATION).with_(range_offset=offsets)
     spec = _spec(scenario="shake", seed=3, intrinsics_file=_intrinsics_file(tmp_path, lidar=lidar))
-    result, _, _ = _calibrate(tmp_path, spec)
+    result, _, _ = _calibrate(tmp_path, spec, args=("--model", "config"))  # as EXACT_MODEL
     truth = yaml.safe_load((tmp_path / "sim" / "truth.yaml").read_text())
     error = np.asarray(result["extrinsic"]["translation"]) - np.asarray(
         truth["extrinsic"]["translation"]
@@ -247,6 +254,42 @@ def test_the_shift_of_a_range_offset_is_computed_with_the_planes_free(tmp_path: 
     sigma = np.asarray(result["uncertainty"]["translation_std_m"])
     assert np.all(np.abs(error) < 3.0 * sigma)
     assert result["verdict"]["status"] == "warn"
+    assert result["model"]["lidar"] == [] and result["model"]["added"] == []
+
+
+def test_an_effect_the_data_show_beyond_doubt_is_estimated_and_said(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # The bag of the test above (per-beam range offsets of 2 cm on a shake, t_z about 16 mm off
+    # with the configured model). By default calibrate estimates them: the estimate lands near
+    # the truth, the result and the resolved config name them, and a note says what was added.
+    rng = np.random.default_rng(3)
+    offsets = np.concatenate([[0.0], rng.normal(0.0, 0.02, 15)])
+    lidar = LidarIntrinsics.nominal(VLP16_ELEVATION).with_(range_offset=offsets)
+    spec = _spec(scenario="shake", seed=3, intrinsics_file=_intrinsics_file(tmp_path, lidar=lidar))
+    result, _, code = _calibrate(tmp_path, spec)
+    printed = " ".join(capsys.readouterr().out.split())
+    truth = yaml.safe_load((tmp_path / "sim" / "truth.yaml").read_text())
+    error = np.asarray(result["extrinsic"]["translation"]) - np.asarray(
+        truth["extrinsic"]["translation"]
+    )
+    assert np.linalg.norm(error) < 0.003
+    sigma = np.asarray(result["uncertainty"]["translation_std_m"])
+    assert np.all(np.abs(error) < 3.0 * sigma)
+    assert code == 0 and result["verdict"]["status"] in ("pass", "warn")
+    assert not any("lidar_range_offset" in r for r in result["verdict"]["reasons"])
+    (added,) = result["model"]["added"]
+    assert added["effect"] == "lidar_range_offset" and added["delta_bic"] < 0
+    assert added["statistic"] > 100 * added["dof"]
+    assert added["moved_translation_m"] > 0.008  # it took the estimate most of the way
+    assert result["model"]["lidar"] == ["range_offset"]
+    estimated = np.asarray(result["lidar_intrinsics"]["range_offset_m"])
+    assert np.abs((estimated - estimated[0]) - (offsets - offsets[0])).max() < 0.003
+    resolved = yaml.safe_load((tmp_path / "result.config.yaml").read_text())
+    assert resolved["model"]["lidar"] == ["range_offset"]
+    assert "Note: The data showed lidar_range_offset (score test" in printed
+    assert "beyond doubt; it was estimated (BIC -" in printed
+    assert "calibrate --model config keeps to the config's model" in printed
 
 
 def test_a_gyro_to_imu_rotation_is_found_by_its_score_test(tmp_path: Path) -> None:

@@ -1,0 +1,258 @@
+"""Effects the data show beyond doubt, estimated (``licalib_cli.pipeline.evident``).
+
+The stage refits with every unmistakable effect estimated, keeps the refit when it pays its BIC
+(else tries the strongest alone), and goes on from the refit's checks; a refit that does not pay
+(or does not converge) ends the search and hands its estimate to the shift measurement. The fits
+here are stand-ins: the stage's own decisions are what is tested (the end-to-end run on a
+simulated bag is in ``tests/integration/test_checks_e2e.py``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from licalib_cli.config import load_config
+from licalib_cli.consistency.score import EffectScore
+from licalib_cli.geometry import so3
+from licalib_cli.pipeline import evident
+from licalib_cli.pipeline.checks import Finding
+from licalib_cli.pipeline.effect_refit import REFIT_STATISTIC_PER_DOF
+from licalib_cli.pipeline.fitcheck import EffectEvidence
+from licalib_cli.sections import AddedEffect, ModelInfo
+
+
+def _evidence(name: str, per_dof: float, rank: int = 3) -> EffectEvidence:
+    score = EffectScore(
+        name=name,
+        statistic=per_dof * rank,
+        rank=rank,
+        p_value=0.0,
+        estimate=np.zeros(rank),
+        sigma=np.ones(rank),
+        shift=np.zeros(7),
+        shift_sigma=np.zeros(7),
+    )
+    return EffectEvidence(
+        score=score,
+        sensor="lidar" if name.startswith("lidar") else "imu",
+        selected=True,
+        shift_translation_m=np.zeros(3),
+        shift_rotation_rad=np.zeros(3),
+        shift_time_offset_s=0.0,
+    )
+
+
+def _state(tz: float) -> SimpleNamespace:
+    return SimpleNamespace(
+        t_imu_lidar=np.array([0.1, 0.2, tz]), R_imu_lidar=so3.exp(np.zeros(3)), time_offset_s=0.0
+    )
+
+
+@dataclass
+class _Run:
+    """A stand-in for a calibration run: its estimate and the effects its checks show."""
+
+    tz: float
+    effects: tuple[EffectEvidence, ...] = ()
+    status: str = "ok"
+    label: str = ""
+    result: SimpleNamespace = field(
+        default_factory=lambda: SimpleNamespace(model=ModelInfo(("gyro_scale",)))
+    )
+
+    @property
+    def state(self) -> SimpleNamespace:
+        return _state(self.tz)
+
+    @property
+    def checks(self) -> SimpleNamespace:
+        return SimpleNamespace(
+            effects=self.effects, exit_status=self.status, findings=(Finding("warn", "w"),)
+        )
+
+
+class _Refits:
+    """The refits the stage asks for, answered from a table: the model's blocks (IMU then
+    LiDAR, as listed) -> (run, BIC)."""
+
+    def __init__(self, table: dict[tuple[str, ...], tuple[_Run, float]]) -> None:
+        self.table = table
+        self.asked: list[tuple[str, ...]] = []
+
+    def install(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        def fit_and_check(prepared, start, cfg, progress, timer, *, warm):  # type: ignore[no-untyped-def]
+            assert warm
+            blocks = (*cfg.model.imu, *cfg.model.lidar)
+            self.asked.append(blocks)
+            return self.table[blocks][0]
+
+        def bic_terms(new, new_cfg, others):  # type: ignore[no-untyped-def]
+            blocks = (*new_cfg.model.imu, *new_cfg.model.lidar)
+            return [(self.table[blocks][1], 0)]
+
+        monkeypatch.setattr(evident, "fit_and_check", fit_and_check)
+        monkeypatch.setattr(evident, "bic_terms", bic_terms)
+        monkeypatch.setattr(evident, "sensor_samples", lambda run, sensor: 1000)
+
+
+@dataclass(frozen=True)
+class _Guess:
+    state: object = None
+
+
+PREPARED = SimpleNamespace(guess=_Guess())
+STRONG = 3.0 * REFIT_STATISTIC_PER_DOF
+
+
+def _add(run: _Run, cfg_model: dict | None = None) -> evident.Evident:
+    cfg = load_config(None, cfg_model or {})
+    return evident.add_evident(PREPARED, run, cfg, None, None)  # type: ignore[arg-type]
+
+
+def test_the_unmistakable_effects_are_added_together_and_the_search_goes_on(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    base = _Run(
+        0.30,
+        (
+            _evidence("gyro_scale", 0.5 * REFIT_STATISTIC_PER_DOF),
+            _evidence("lidar_elevation", 1.5 * REFIT_STATISTIC_PER_DOF, rank=15),
+            _evidence("lidar_range_offset", STRONG, rank=16),
+        ),
+    )
+    with_lidar = _Run(0.31, (_evidence("accel_misalignment", STRONG),))
+    with_all = _Run(0.312, (_evidence("gyro_scale", 2.0),))
+    refits = _Refits(
+        {
+            ("range_offset", "elevation"): (with_lidar, -500.0),
+            ("accel_misalignment", "range_offset", "elevation"): (with_all, -40.0),
+        }
+    )
+    refits.install(monkeypatch)
+    out = _add(base)
+    assert refits.asked == [
+        ("range_offset", "elevation"),
+        ("accel_misalignment", "range_offset", "elevation"),
+    ]
+    assert out.run is with_all and out.declined is None
+    assert [(a.effect, a.refit) for a in out.added] == [
+        ("lidar_range_offset", 1),
+        ("lidar_elevation", 1),
+        ("accel_misalignment", 2),
+    ]
+    assert out.cfg.model.lidar == ["range_offset", "elevation"]
+    assert out.cfg.model.imu == ["accel_misalignment"]
+    first = out.added[0]
+    assert first.statistic == pytest.approx(16 * STRONG) and first.dof == 16
+    assert first.delta_bic == pytest.approx(-500.0) == out.added[1].delta_bic
+    assert first.moved_translation_m == pytest.approx(0.01)
+    assert out.added[2].moved_translation_m == pytest.approx(0.002)
+
+
+def test_when_the_group_does_not_pay_the_strongest_alone_is_tried(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    base = _Run(
+        0.30, (_evidence("accel_scale", 2 * STRONG), _evidence("lidar_range_offset", STRONG, 16))
+    )
+    alone = _Run(0.32)
+    refits = _Refits(
+        {
+            ("accel_scale", "range_offset"): (_Run(0.33), +5.0),
+            ("accel_scale",): (alone, -60.0),
+        }
+    )
+    refits.install(monkeypatch)
+    out = _add(base)
+    assert refits.asked == [("accel_scale", "range_offset"), ("accel_scale",)]
+    assert out.run is alone and [a.effect for a in out.added] == ["accel_scale"]
+
+
+def test_a_refit_that_does_not_pay_is_declined_and_its_estimate_kept_for_the_shift(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    base = _Run(0.30, (_evidence("lidar_range_offset", STRONG, rank=15),))
+    refit = _Run(0.33)
+    _Refits({("range_offset",): (refit, +12.0)}).install(monkeypatch)
+    out = _add(base)
+    assert out.run is base and out.added == () and out.cfg.model.lidar == []
+    assert out.declined is not None and out.declined[0] == "lidar_range_offset"
+    assert out.declined[1].t_imu_lidar[2] == pytest.approx(0.33)
+
+
+def test_a_refit_that_does_not_converge_is_declined(monkeypatch: pytest.MonkeyPatch) -> None:
+    base = _Run(0.30, (_evidence("accel_scale", STRONG),))
+    _Refits({("accel_scale",): (_Run(0.31, status="not converged"), -900.0)}).install(monkeypatch)
+    out = _add(base)
+    assert out.run is base and out.added == () and out.declined is not None
+
+
+def test_nothing_is_tried_without_an_unmistakable_effect_or_without_convergence(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    refits = _Refits({})
+    refits.install(monkeypatch)
+    weak = _Run(0.30, (_evidence("gyro_scale", 0.9 * REFIT_STATISTIC_PER_DOF),))
+    assert _add(weak).run is weak
+    stuck = _Run(0.30, (_evidence("gyro_scale", STRONG),), status="not converged")
+    assert _add(stuck).run is stuck
+    assert refits.asked == []
+
+
+def test_at_most_max_passes_refits_add_effects(monkeypatch: pytest.MonkeyPatch) -> None:
+    chain = ["gyro_scale", "accel_scale", "gyro_misalignment"]
+    runs = {
+        name: _Run(0.30 + 0.01 * (k + 1), tuple(_evidence(n, STRONG) for n in chain[k + 1 : k + 2]))
+        for k, name in enumerate(chain)
+    }
+    refits = _Refits({tuple(chain[: k + 1]): (runs[n], -100.0) for k, n in enumerate(chain)})
+    refits.install(monkeypatch)
+    base = _Run(0.30, (_evidence("gyro_scale", STRONG),))
+    out = _add(base)
+    assert len(refits.asked) == evident.MAX_PASSES == len(out.added)
+    assert [a.effect for a in out.added] == chain[: evident.MAX_PASSES]
+
+
+@dataclass(frozen=True)
+class _Result:
+    model: ModelInfo
+
+
+@dataclass(frozen=True)
+class _Checks:
+    findings: tuple[Finding, ...]
+
+
+@dataclass(frozen=True)
+class _Finished:
+    result: _Result
+    checks: _Checks
+
+
+def test_the_result_names_what_was_added_and_the_findings_note_it() -> None:
+    added = (
+        AddedEffect("lidar_range_offset", 35716.5, 16, -909137.0, 0.0132, 0.0291, 7.7e-5),
+        AddedEffect("lidar_elevation", 2400.0, 15, -909137.0, 0.0132, 0.0291, 7.7e-5),
+        AddedEffect("accel_scale", 900.0, 3, -80.0, 0.0021, 0.001, -1e-6, refit=2),
+    )
+    run = _Finished(_Result(ModelInfo((), ("range_offset",))), _Checks((Finding("warn", "w"),)))
+    out = evident.with_added(run, added)  # type: ignore[arg-type]
+    assert out.result.model.added == added
+    first, second, kept = out.checks.findings
+    assert first.severity == second.severity == "note" and kept.text == "w"
+    assert first.text.startswith(
+        "The data showed lidar_range_offset (score test 35716 on 16 degrees of freedom) and "
+        "lidar_elevation (score test 2400 on 15 degrees of freedom) beyond doubt; they were "
+        "estimated (BIC -909137), which moved the extrinsic by 13.20 mm / 0.0291 deg / 0.077 ms."
+    )
+    assert second.text.startswith(
+        "The data showed accel_scale (score test 900 on 3 degrees of freedom) beyond doubt; it "
+        "was estimated (BIC -80), which moved the extrinsic by 2.10 mm"
+    )
+    d = ModelInfo((), ("range_offset",), added=added).to_dict()
+    assert d["added"][0]["effect"] == "lidar_range_offset"
+    assert ModelInfo.from_dict(d).added == added
