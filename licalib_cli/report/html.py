@@ -254,6 +254,20 @@ def _intrinsics(result: CalibrationResult) -> str:
         return ""
     sig = result.intrinsics_uncertainty.values if result.intrinsics_uncertainty else {}
     out = ["<h3>Intrinsics estimated as well</h3>"]
+    if model.added:
+        out.append(
+            "<p>Added to the configured model because the data showed them beyond doubt: "
+            + "; ".join(
+                _e(
+                    f"{a.effect} (score test {a.statistic:.0f} on {a.dof} degrees of freedom; "
+                    f"its refit's BIC {a.delta_bic:+.0f}, extrinsic moved "
+                    f"{1e3 * a.moved_translation_m:.2f} mm / {a.moved_rotation_deg:.4f} deg / "
+                    f"{1e3 * abs(a.moved_time_offset_s):.3f} ms)"
+                )
+                for a in model.added
+            )
+            + ".</p>"
+        )
     rows = []
     k = result.imu_intrinsics
     for name in model.imu:

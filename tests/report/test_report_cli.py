@@ -355,7 +355,7 @@ def test_calibrate_refuses_bad_report_and_map_paths_before_reading(tmp_path, cap
 
 def test_estimated_intrinsics_are_tabled_with_their_sigmas(tmp_path):
     from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
-    from licalib_cli.sections import IntrinsicsUncertainty, ModelInfo
+    from licalib_cli.sections import AddedEffect, IntrinsicsUncertainty, ModelInfo
 
     base = write_result(tmp_path / "calib.yaml")
     lidar = LidarIntrinsics.nominal(np.radians([-15.0, 15.0]))
@@ -388,6 +388,14 @@ def test_estimated_intrinsics_are_tabled_with_their_sigmas(tmp_path):
     saved = tmp_path / "spread.yaml"
     replace(result, model=spread).save(saved)
     assert CalibrationResult.load(saved).model.lidar_spread == {"range_offset": 0.0021}
+    assert "beyond doubt" not in page
+    added = AddedEffect("lidar_range_offset", 35716.5, 16, -909137.0, 0.0132, 0.0291, 7.7e-5)
+    page = render_html(replace(result, model=replace(spread, added=(added,))), None, "calib.yaml")
+    assert (
+        "Added to the configured model because the data showed them beyond doubt: "
+        "lidar_range_offset (score test 35716 on 16 degrees of freedom; its refit&#x27;s BIC "
+        "-909137, extrinsic moved 13.20 mm / 0.0291 deg / 0.077 ms)." in page
+    )
 
 
 def test_truth_given_to_report_is_shown_beside_the_estimate(tmp_path, capsys):
