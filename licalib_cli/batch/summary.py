@@ -73,6 +73,9 @@ class BagRow:
         clock_rate_ppm: how fast the IMU's stamps ran against the LiDAR's, from the bag's
             stamps against its record times (``recording.clock_rate_ppm``; away from zero where
             the sensors' clocks are not synchronised).
+        added_effects: the effects calibrate estimated beyond the config's model because the
+            data showed them beyond doubt (``model.added``), joined by ``+``; a rig whose bags
+            keep showing one has a sensor to look at.
         calibration_s: wall seconds of the calibration (of the run that made the result).
         attempts: tries this run (0 when the result was up to date).
         differs: whether it disagrees with the rig's other bags beyond their sigmas.
@@ -104,6 +107,7 @@ class BagRow:
     time_offset_std_s: float = math.nan
     lidar_clock_shift_s: float = math.nan
     clock_rate_ppm: float = math.nan
+    added_effects: str = ""
     calibration_s: float = math.nan
     attempts: int = 0
     differs: bool = False
@@ -161,6 +165,9 @@ def bag_row(
         time_offset_std_s=float(unc.time_offset_std_s) if unc else math.nan,
         lidar_clock_shift_s=float(rec.lidar_clock_shift_s) if rec else math.nan,
         clock_rate_ppm=_or_nan(rec.clock_rate_ppm if rec else None),
+        added_effects="+".join(a.effect for a in calibration.model.added)
+        if calibration.model
+        else "",
         **extra,
     )
 

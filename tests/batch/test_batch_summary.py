@@ -22,7 +22,13 @@ from licalib_cli.batch.summary import (
     summary_csv,
 )
 from licalib_cli.results import CalibrationResult, Extrinsic, matrix_from_rpy_deg
-from licalib_cli.sections import RecordingSection, Uncertainty, VerdictSection
+from licalib_cli.sections import (
+    AddedEffect,
+    ModelInfo,
+    RecordingSection,
+    Uncertainty,
+    VerdictSection,
+)
 
 
 def _result(
@@ -171,3 +177,20 @@ def test_a_bags_clock_rate_is_in_its_row() -> None:
     csv = summary_csv([row], BagRow).splitlines()
     column = csv[0].split(",").index("clock_rate_ppm")
     assert csv[1].split(",")[column] == "-48.25"
+
+
+def test_the_effects_calibrate_added_are_in_the_bags_row() -> None:
+    """Which effects the data showed beyond doubt, so that a rig whose bags keep needing one
+    stands out; none is an empty cell."""
+    result = _result((0.3, 0.15, 0.05))
+    assert bag_row("r", "b1", "calibrated", result).added_effects == ""
+    added = tuple(
+        AddedEffect(name, 900.0, 16, -800.0, 0.01, 0.02, 1e-5)
+        for name in ("lidar_range_offset", "lidar_elevation")
+    )
+    shown = replace(result, model=ModelInfo((), ("range_offset", "elevation"), added=added))
+    row = bag_row("r", "b2", "calibrated", shown)
+    assert row.added_effects == "lidar_range_offset+lidar_elevation"
+    csv = summary_csv([row], BagRow).splitlines()
+    column = csv[0].split(",").index("added_effects")
+    assert csv[1].split(",")[column] == "lidar_range_offset+lidar_elevation"
