@@ -141,8 +141,10 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
         run = _refit_unmistakable(
             prepared, evident.run, evident.cfg, progress, timer, evident.declined
         )
+        if evident.added or evident.notes:
+            run = with_added(run, evident.added, evident.notes)
         if evident.added:
-            run = replace(with_added(run, evident.added), config=evident.cfg)
+            run = replace(run, config=evident.cfg)
     else:
         run = _refit_unmistakable(prepared, run, cfg, progress, timer)
     progress.close()

@@ -62,14 +62,18 @@ class Evident:
         cfg: that model's configuration.
         added: the effects added, in order (those of one refit share its BIC change and move).
         declined: the strongest effect refitted but not added (the refit did not pay its BIC or
-            did not converge) and that refit's estimate, which measures how far it moves the
-            extrinsic; None when every refit was kept or none was tried.
+            did not converge, or it failed where the fit without it did not) and that refit's
+            estimate, which measures how far it moves the extrinsic; None when every refit was
+            kept or none was tried.
+        notes: why an effect shown beyond doubt was not added, when the user would otherwise
+            be told to estimate it (its refit's verdict failed).
     """
 
     run: CalibrationRun
     cfg: CalibConfig
     added: tuple[AddedEffect, ...] = ()
     declined: tuple[str, CalibrationState] | None = None
+    notes: tuple[str, ...] = ()
 
 
 def added_note(added: Sequence[AddedEffect]) -> str:
@@ -130,12 +134,17 @@ def add_evident(
             if outcome is None:  # the refit failed: the effects stay held
                 return Evident(run, cfg, tuple(added))
             new, new_cfg, delta_bic = outcome
-            if new.checks.exit_status != "not converged" and delta_bic < 0.0:
+            # an effect that takes away what the data determine (a gyro rotation beside the
+            # extrinsic rotation on a shake that hardly tilted) is not added: the fit without it
+            # stands, its shift in the sigmas
+            lost = new.checks.exit_status == "fail" and run.checks.exit_status == "ok"
+            if new.checks.exit_status not in ("not converged", "fail") and delta_bic < 0.0:
                 kept = (group, new, new_cfg, delta_bic)
                 break
             last = (group[0].score.name, new.state)
         if kept is None:
-            return Evident(run, cfg, tuple(added), last)
+            notes = (_failed_note(group, new),) if lost else ()
+            return Evident(run, cfg, tuple(added), last, notes)
         group, new, new_cfg, delta_bic = kept
         move = extrinsic_of(run.state).moved_to(extrinsic_of(new.state))
         added += [
@@ -205,13 +214,31 @@ def _refit(
     return new, new_cfg, delta_bic
 
 
-def with_added(run: CalibrationRun, added: tuple[AddedEffect, ...]) -> CalibrationRun:
-    """``run`` whose result names ``added`` and whose findings note each (after the last
-    stage that assembles the result again)."""
+def _failed_note(group: Sequence[EffectEvidence], refit: CalibrationRun) -> str:
+    """Why the effects of ``group`` stay held: estimating them made the verdict fail."""
+    names = ", ".join(e.score.name for e in group)
+    reasons = refit.checks.verdict.reasons
+    why = reasons[0].split(": ")[0].rstrip(".") if reasons else "The verdict failed"
+    why = why[:1].lower() + why[1:]
+    return (
+        f"The data show {names} beyond doubt, but estimating "
+        f"{'it' if len(group) == 1 else 'them'} failed the calibration ({why}); "
+        f"{'it stays' if len(group) == 1 else 'they stay'} held fixed, "
+        "the shift in the sigmas."
+    )
+
+
+def with_added(
+    run: CalibrationRun, added: tuple[AddedEffect, ...], notes: tuple[str, ...] = ()
+) -> CalibrationRun:
+    """``run`` whose result names ``added`` and whose findings note each, and ``notes`` (after
+    the last stage that assembles the result again)."""
     result = run.result
-    assert result.model is not None
-    result = replace(result, model=replace(result.model, added=added))
+    if added:
+        assert result.model is not None
+        result = replace(result, model=replace(result.model, added=added))
     refits = sorted({a.refit for a in added})
-    notes = tuple(Finding("note", added_note([a for a in added if a.refit == k])) for k in refits)
-    checks = replace(run.checks, findings=(*notes, *run.checks.findings))
+    found = tuple(Finding("note", added_note([a for a in added if a.refit == k])) for k in refits)
+    found += tuple(Finding("note", n) for n in notes)
+    checks = replace(run.checks, findings=(*found, *run.checks.findings))
     return replace(run, result=result, checks=checks)

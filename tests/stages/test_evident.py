@@ -9,7 +9,7 @@ simulated bag is in ``tests/integration/test_checks_e2e.py``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -59,7 +59,7 @@ class _Run:
     tz: float
     effects: tuple[EffectEvidence, ...] = ()
     status: str = "ok"
-    label: str = ""
+    reasons: tuple[str, ...] = ()
     result: SimpleNamespace = field(
         default_factory=lambda: SimpleNamespace(model=ModelInfo(("gyro_scale",)))
     )
@@ -71,7 +71,10 @@ class _Run:
     @property
     def checks(self) -> SimpleNamespace:
         return SimpleNamespace(
-            effects=self.effects, exit_status=self.status, findings=(Finding("warn", "w"),)
+            effects=self.effects,
+            exit_status=self.status,
+            findings=(Finding("warn", "w"),),
+            verdict=SimpleNamespace(reasons=self.reasons),
         )
 
 
@@ -189,6 +192,28 @@ def test_a_refit_that_does_not_converge_is_declined(monkeypatch: pytest.MonkeyPa
     _Refits({("accel_scale",): (_Run(0.31, status="not converged"), -900.0)}).install(monkeypatch)
     out = _add(base)
     assert out.run is base and out.added == () and out.declined is not None
+
+
+def test_an_effect_whose_refit_fails_where_the_fit_without_it_did_not_stays_held(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # a gyro rotation beside the extrinsic rotation on a shake that hardly tilted: estimated,
+    # the extrinsic rotation is no longer determined
+    base = _Run(0.30, (_evidence("gyro_rotation", STRONG),))
+    reasons = ("The data determine only 1 of the 7 extrinsic coordinates: each of the others ...",)
+    failed = _Run(0.301, status="fail", reasons=reasons)
+    _Refits({("gyro_rotation",): (failed, -900.0)}).install(monkeypatch)
+    out = _add(base)
+    assert out.run is base and out.added == () and out.cfg.model.imu == []
+    assert out.declined is not None and out.declined[0] == "gyro_rotation"
+    assert out.notes == (
+        "The data show gyro_rotation beyond doubt, but estimating it failed the calibration "
+        "(the data determine only 1 of the 7 extrinsic coordinates); it stays held fixed, the "
+        "shift in the sigmas.",
+    )
+    # a fit that failed already may take a refit that fails too: neither is kept, nothing said
+    out = _add(replace(base, status="fail"))
+    assert out.added == () and out.notes == ()
 
 
 def test_nothing_is_tried_without_an_unmistakable_effect_or_without_convergence(
