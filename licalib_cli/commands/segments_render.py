@@ -150,6 +150,18 @@ def run_segments(
             f"rotation {err['rotation_deg']:.4f} deg, time offset "
             f"{1e3 * err['time_offset_s']:.3f} ms"
         )
+    model = run.result.model
+    if model is not None and model.added:
+        a = model.added[0]
+        con.print(
+            "Note: a segment showed "
+            + " and ".join(f"{e.effect} ({e.statistic:.0f} on {e.dof} dof)" for e in model.added)
+            + f" beyond doubt; every segment estimated {'it' if len(model.added) == 1 else 'them'}"
+            f" (BIC {a.delta_bic:+.0f}; a segment's extrinsic moved up to "
+            f"{1e3 * a.moved_translation_m:.2f} mm). The resolved config estimates "
+            f"{'it' if len(model.added) == 1 else 'them'}; --model config keeps to the config's "
+            "model."
+        )
     verdict = run.result.verdict
     assert verdict is not None
     for reason in verdict.reasons:

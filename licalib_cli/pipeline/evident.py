@@ -43,7 +43,15 @@ from licalib_cli.pipeline.timing import Timer
 from licalib_cli.progress import Progress
 from licalib_cli.sections import AddedEffect
 
-__all__ = ["MAX_PASSES", "Evident", "add_evident", "added_note", "with_added"]
+__all__ = [
+    "MAX_PASSES",
+    "Evident",
+    "add_evident",
+    "added_note",
+    "bic_change",
+    "estimating",
+    "with_added",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -193,18 +201,14 @@ def _refit(
         ),
         "it" if len(group) == 1 else "them",
     )
-    new_cfg = cfg
-    for name in names:
-        new_cfg = with_effect(new_cfg, name)
+    new_cfg = estimating(cfg, names)
     start = replace(prepared.guess, state=run.state)
     try:
         new = fit_and_check(prepared, start, new_cfg, progress, timer, warm=True)
-        ((ss, k),) = bic_terms(new, new_cfg, [(run.state, cfg)])
+        delta_bic = bic_change(new, new_cfg, run, cfg, names)
     except LicalibError as exc:
         logger.warning("The refit with %s failed (%s); held fixed.", ", ".join(names), exc)
         return None
-    samples = max(sensor_samples(run, CANDIDATES[name][2]) for name in names)
-    delta_bic = float(ss + k * math.log(max(samples, 2)))
     logger.info(
         "Estimating %s: BIC %+.1f%s.",
         ", ".join(names),
@@ -212,6 +216,28 @@ def _refit(
         "" if new.checks.exit_status != "not converged" else ", the rounds did not converge",
     )
     return new, new_cfg, delta_bic
+
+
+def estimating(cfg: CalibConfig, effects: Sequence[str]) -> CalibConfig:
+    """``cfg`` whose ``model:`` section estimates ``effects`` too."""
+    for name in effects:
+        cfg = with_effect(cfg, name)
+    return cfg
+
+
+def bic_change(
+    new: CalibrationRun,
+    new_cfg: CalibConfig,
+    run: CalibrationRun,
+    cfg: CalibConfig,
+    effects: Sequence[str],
+) -> float:
+    """The BIC change from ``run`` (model ``cfg``) to ``new`` (``new_cfg``, estimating
+    ``effects`` too) on ``new``'s data: the drop in the sum of squares plus ``ln n`` per
+    parameter added, ``n`` the largest sample count of the effects' sensors."""
+    ((ss, k),) = bic_terms(new, new_cfg, [(run.state, cfg)])
+    samples = max(sensor_samples(run, CANDIDATES[name][2]) for name in effects)
+    return float(ss + k * math.log(max(samples, 2)))
 
 
 def _failed_note(group: Sequence[EffectEvidence], refit: CalibrationRun) -> str:

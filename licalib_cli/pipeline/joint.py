@@ -93,6 +93,7 @@ from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.pipeline.schedule import cover_truncated
 from licalib_cli.pipeline.segment_runs import calibrate_windows, sigma_size
 from licalib_cli.pipeline.segments import select_segments
+from licalib_cli.pipeline.segments_evident import add_evident_to_windows
 from licalib_cli.pipeline.segments_model import SegmentsModel, model_for_segments
 from licalib_cli.pipeline.settings import (
     association_distance,
@@ -116,6 +117,7 @@ from licalib_cli.residuals import (
 )
 from licalib_cli.results import CalibrationResult, Extrinsic, rpy_deg_from_matrix, vec3
 from licalib_cli.sections import (
+    AddedEffect,
     Observability,
     SegmentEstimate,
     SegmentsSection,
@@ -400,6 +402,13 @@ def calibrate_segments(
     )
     runs, kept = list(alone.runs), list(alone.windows)
     timings.update(alone.timings)
+    added: tuple[AddedEffect, ...] = ()
+    if selection is None and cfg.model.add_evident_effects:
+        clock = time.perf_counter()
+        evident = add_evident_to_windows(bag, runs, kept, cfg, _KeptOpen(progress))
+        if evident is not None:
+            runs, cfg, added = list(evident.runs), evident.cfg, evident.added
+            timings["effects shown beyond doubt"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
     best = int(np.argmin([sigma_size(r) for r in runs]))
@@ -453,6 +462,8 @@ def calibrate_segments(
         timings["joint planes-free"] = time.perf_counter() - clock
     report = cover_truncated(report, runs[best].initial.state, states[best])
     result = _joint_result(runs, kept, states, report, best, cfg, alone.started_from)
+    if added and result.model is not None:
+        result = replace(result, model=replace(result.model, added=added))
     return JointRun(
         result, tuple(runs), tuple(kept), report, tuple(states), timings, selection, cfg
     )

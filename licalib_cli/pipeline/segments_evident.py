@@ -1,0 +1,138 @@
+"""Effects a window shows beyond doubt, estimated in every window (``calibrate --segments``).
+
+The joint problem of several segments estimates one model, so its windows are first calibrated
+with exactly the configured one (:mod:`~licalib_cli.pipeline.segment_runs`). An effect any of
+them shows beyond doubt (a score test of at least
+:data:`~licalib_cli.pipeline.effect_refit.REFIT_STATISTIC_PER_DOF` per degree of freedom, picked
+by its forward selection) is a property of the sensors, not of a window: as for one segment
+(:mod:`~licalib_cli.pipeline.evident`), every window is then refitted from its own estimate with
+all such effects estimated, and the refits are kept when together they pay their BIC (the sum
+of the windows' changes), every one converged and none failed where its fit without them did
+not. The joint calibration then estimates that model.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from licalib_cli.config import CalibConfig
+from licalib_cli.errors import LicalibError
+from licalib_cli.pipeline import CalibrationRun, Prepared, fit_and_check
+from licalib_cli.pipeline.effect_models import with_effect
+from licalib_cli.pipeline.effect_refit import unmistakable_ones
+from licalib_cli.pipeline.evident import bic_change, estimating
+from licalib_cli.pipeline.round import extrinsic_of
+from licalib_cli.pipeline.segments import _with_range
+from licalib_cli.pipeline.timing import Timer
+from licalib_cli.progress import Progress
+from licalib_cli.sections import AddedEffect
+
+__all__ = ["WindowsEvident", "add_evident_to_windows"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class WindowsEvident:
+    """The windows refitted with the effects added.
+
+    Attributes:
+        runs: each window's calibration of the model with them, in the windows' order.
+        cfg: that model's configuration (the bag's range as given).
+        added: the effects added: each with the largest score per degree of freedom a window
+            showed, the windows' summed BIC change and the largest move of a window's extrinsic.
+    """
+
+    runs: tuple[CalibrationRun, ...]
+    cfg: CalibConfig
+    added: tuple[AddedEffect, ...]
+
+
+def add_evident_to_windows(
+    bag: Path,
+    runs: Sequence[CalibrationRun],
+    windows: Sequence[tuple[float, float]],
+    cfg: CalibConfig,
+    progress: Progress,
+) -> WindowsEvident | None:
+    """Refit every window with the effects any of them shows beyond doubt (module docstring);
+    None when none does, or when the refits are not kept (the windows' fits then stand)."""
+    strongest: dict[str, tuple[float, int]] = {}
+    for run in runs:
+        if run.checks.exit_status == "not converged":
+            continue
+        for e in unmistakable_ones(run.checks.effects):
+            name, stat, dof = e.score.name, float(e.score.statistic), int(e.score.rank)
+            if with_effect(cfg, name) is cfg:
+                continue
+            if name not in strongest or stat / dof > strongest[name][0] / strongest[name][1]:
+                strongest[name] = (stat, dof)
+    if not strongest:
+        return None
+    names = tuple(strongest)
+    new_cfg = estimating(cfg, names)
+    logger.info(
+        "Shown beyond doubt by a segment: %s; refitting every segment with %s estimated.",
+        ", ".join(names),
+        "it" if len(names) == 1 else "them",
+    )
+    timer = Timer()
+    new_runs, delta_bic, moves = [], 0.0, []
+    for run, (a, b) in zip(runs, windows, strict=True):
+        assert run.segment is not None
+        prepared = Prepared(bag, run.segment, run.noise, run.initial)
+        window_cfg = _with_range(new_cfg, a, b - a)
+        try:
+            new = fit_and_check(
+                prepared,
+                replace(run.initial, state=run.state),
+                window_cfg,
+                progress,
+                timer,
+                warm=True,
+            )
+            change = bic_change(new, window_cfg, run, _with_range(cfg, a, b - a), names)
+        except LicalibError as exc:
+            logger.warning("The refit of segment %.0f-%.0f s failed (%s).", a, b, exc)
+            return None
+        lost = new.checks.exit_status == "fail" and run.checks.exit_status == "ok"
+        if new.checks.exit_status == "not converged" or lost:
+            logger.info(
+                "Segment %.0f-%.0f s %s with %s estimated: the segments keep the configured model.",
+                a,
+                b,
+                "did not converge" if not lost else "failed",
+                ", ".join(names),
+            )
+            return None
+        delta_bic += change
+        moves.append(extrinsic_of(run.state).moved_to(extrinsic_of(new.state)))
+        new_runs.append(new)
+    if not delta_bic < 0.0:
+        logger.info("Estimating %s does not pay (BIC %+.1f).", ", ".join(names), delta_bic)
+        return None
+    largest = max(moves, key=lambda m: float(np.linalg.norm(m[:3])))
+    added = tuple(
+        AddedEffect(
+            effect=name,
+            statistic=stat,
+            dof=dof,
+            delta_bic=delta_bic,
+            moved_translation_m=float(np.linalg.norm(largest[:3])),
+            moved_rotation_deg=float(np.degrees(np.linalg.norm(largest[3:6]))),
+            moved_time_offset_s=float(largest[6]),
+        )
+        for name, (stat, dof) in strongest.items()
+    )
+    logger.info(
+        "%s estimated in every segment (BIC %+.1f); a segment's extrinsic moved up to %.2f mm.",
+        ", ".join(names),
+        delta_bic,
+        1e3 * float(np.linalg.norm(largest[:3])),
+    )
+    return WindowsEvident(tuple(new_runs), new_cfg, added)
