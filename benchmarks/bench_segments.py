@@ -37,14 +37,14 @@ Parts (all by default; choose with ``--parts``):
   range offsets (their common mode), with the refinement's time and peak traced memory.
 * ``model`` (not run by default): ``calibrate --segments 0-10,10-20 --model auto`` against the
   default (``evident``: the configured model and what a window shows beyond doubt) and the
-  configured model alone (``config``), ``--model-modes`` choosing among them, on 20 s walks (``--model-seeds``, a random mounting and time offset,
-  the LiDAR thinned to 2 deg of azimuth; ``--model-lidars`` cycled over the seeds with their
-  shipped config, ``--model-scenario`` another motion) with one effect hidden per seed
-  (``--model-effects``, cycled; ``none`` hides nothing) at ``--model-effect-scale`` times its
-  reference size. Per bag:
-  what each window's diagnosis kept, the effects the joint calibration estimated, and each
-  model's verdict, error and largest error over its sigma. Expected: the hidden effect kept by
-  some window (unless the windows show it too weakly: each diagnosis says how large it would
+  configured model alone (``config``), ``--model-modes`` choosing among them, on 20 s walks
+  (``--model-seeds``, a random mounting and time offset, the LiDAR thinned to 2 deg of azimuth;
+  ``--model-lidars`` cycled over the seeds with their shipped config, ``--model-scenario``
+  another motion) with one effect hidden per seed (``--model-effects``, cycled; ``none`` hides
+  nothing) at ``--model-effect-scale`` times its reference size. Per bag: what each window's
+  diagnosis kept (or what ``evident`` added), the effects the joint calibration estimated, and
+  each model's verdict, error and largest error over its sigma. Expected: the hidden effect kept
+  by some window (unless the windows show it too weakly: each diagnosis says how large it would
   have to be), nothing on a clean walk, the joint error within 0.3 cm / 0.05 deg / 0.1 ms and
   within 3 of its sigmas.
 
