@@ -515,6 +515,13 @@ class ChecksSection(_Section):
     """Rotation, degrees (per LiDAR axis)."""
     max_time_offset_sigma_s: float = Field(default=0.0002, gt=0.0, le=10.0)
     """Time offset, s."""
+    range_noise_draws: int = Field(default=2, ge=0, le=20)
+    """On a LiDAR whose range noise is at least ``range_noise_draws_from_m``: refit this many
+    times from the estimate with as much range noise again added, and take the spread of those
+    refits as a floor of the sigmas (``pipeline/noise_draws.py``). 0: off."""
+    range_noise_draws_from_m: float = Field(default=0.025, gt=0.0, le=1.0)
+    """The range noise (m, the one the fit is weighted with) from which the draws run: at 4 cm
+    the estimate scattered about twice as far as the linearised sigmas said."""
     refit_effects: bool = True
     """Refit once with the strongest effect the data show beyond doubt (a score of 100 per
     degree of freedom) to measure how far it moves the extrinsic, instead of trusting the

@@ -141,14 +141,50 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
         run = _refit_unmistakable(
             prepared, evident.run, evident.cfg, progress, timer, evident.declined
         )
+        run = _noise_spread(prepared, run, evident.cfg, progress, timer)
         if evident.added or evident.notes:
             run = with_added(run, evident.added, evident.notes)
         if evident.added:
             run = replace(run, config=evident.cfg)
     else:
         run = _refit_unmistakable(prepared, run, cfg, progress, timer)
+        run = _noise_spread(prepared, run, cfg, progress, timer)
     progress.close()
     return run
+
+
+def _noise_spread(
+    prepared: Prepared, run: CalibrationRun, cfg: CalibConfig, progress: Progress, timer: Timer
+) -> CalibrationRun:
+    """``run`` judged again with its sigmas at least the spread of refits with more range noise
+    (:mod:`licalib_cli.pipeline.noise_draws`); ``run`` itself below the noise that asks for
+    them, or when its rounds did not converge."""
+    from licalib_cli.pipeline.noise_draws import range_noise_spread, spread_text
+    from licalib_cli.pipeline.settings import range_noise_in_data
+
+    checks = cfg.checks
+    if (
+        checks.range_noise_draws == 0
+        or not range_noise_in_data(prepared.noise) >= checks.range_noise_draws_from_m
+        or run.checks.exit_status == "not converged"
+        or run.checks.split is None
+    ):
+        return run
+    with timer.stage("noise draws", progress):
+        spread = range_noise_spread(prepared.rec, prepared.guess, run.state, prepared.noise, cfg)
+    if spread is None:
+        return run
+    text = spread_text(prepared.noise, checks.range_noise_draws)
+    judged = rejudge(run.fit, run.checks, run.checks.effects, cfg, (spread, text))
+    result = assemble(prepared.bag, prepared.rec, prepared.guess, run.fit, judged, cfg)
+    return replace(
+        run,
+        result=result,
+        checks=judged,
+        effects=judged.effects,
+        timings=timer.timings,
+        stage_times=dict(timer.stages),
+    )
 
 
 def _refit_unmistakable(

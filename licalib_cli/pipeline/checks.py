@@ -513,6 +513,9 @@ def _resting_advice(sigma_m: F64, limit_m: float, resting: Sequence[OnPrior]) ->
     )
 
 
+_MORE_ROTATION = " Record with more rotation about all axes (and a quieter IMU)."
+
+
 def uncertainty_findings(
     sigma: F64,
     without_effects: F64,
@@ -522,8 +525,13 @@ def uncertainty_findings(
     entangled: Entangled | None = None,
     resting: Sequence[OnPrior] = (),
     halves: SplitResult | None = None,
+    noisy: F64 | None = None,
 ) -> list[Finding]:
     """Sigmas above the ``checks`` limits (5 mm / 0.1 deg / 0.2 ms by default).
+
+    ``noisy``: (7,) the spread of refits with more range noise
+    (:mod:`~licalib_cli.pipeline.noise_draws`); a coordinate whose spread alone exceeds its
+    limit is said to be held there by the LiDAR's range noise.
 
     ``without_effects`` are the sigmas without what the ``covered`` effects (held fixed, shown
     by the data) and the IMU priors (``prior``: the block that adds most, None when none do)
@@ -562,6 +570,16 @@ def uncertainty_findings(
             return f" It comes from {'; and from '.join(sources)}."
         return advice
 
+    def noise_advice(lo: int, hi: int, limit: float, advice: str) -> str:
+        """``advice``, or the range noise's when the refits' spread alone exceeds ``limit``."""
+        if noisy is None or not np.nanmax(noisy[lo:hi]) > limit:
+            return advice
+        return (
+            " The LiDAR's range noise holds it there: refits with as much noise again scatter "
+            "that far. A longer recording (or --segments over more of the bag), or a LiDAR with "
+            "less range noise, narrows it."
+        )
+
     floor = split_floor(halves) if halves is not None and halves.ran else np.zeros(7)
 
     def from_halves(k: int, limit: float) -> str:
@@ -591,7 +609,7 @@ def uncertainty_findings(
                 f"above checks.max_translation_sigma_m = {1e3 * t_max:g} mm)."
                 + cause(
                     bool(np.any(t0[np.isfinite(t0)] > t_max)),
-                    " Record with more rotation about all axes (and a quieter IMU).",
+                    noise_advice(0, 3, t_max, _MORE_ROTATION),
                 )
                 + from_halves(worst(0, 3), t_max)
                 + _entangled_advice(entangled)
@@ -606,7 +624,10 @@ def uncertainty_findings(
                 "warn",
                 f"Rotation is uncertain (1-sigma up to {finite_r.max():.3g} deg, above "
                 f"checks.max_rotation_sigma_deg = {r_max:g} deg)."
-                + cause(bool(np.any(r0[np.isfinite(r0)] > r_max)), "")
+                + cause(
+                    bool(np.any(r0[np.isfinite(r0)] > r_max)),
+                    noise_advice(3, 6, np.radians(r_max), ""),
+                )
                 + from_halves(worst(3, 6), np.radians(r_max)),
             )
         )
@@ -616,7 +637,7 @@ def uncertainty_findings(
                 "warn",
                 f"Time offset is uncertain (1-sigma {1e3 * c:.3g} ms, above "
                 f"checks.max_time_offset_sigma_s = {1e3 * c_max:g} ms)."
-                + cause(bool(without_effects[6] > c_max), "")
+                + cause(bool(without_effects[6] > c_max), noise_advice(6, 7, c_max, ""))
                 + from_halves(6, c_max),
             )
         )
@@ -906,6 +927,7 @@ def run_checks(
     cfg: CalibConfig,
     notes: tuple[str, ...] = (),
     planes: MapUncertainty | None = None,
+    spread: tuple[F64, str] | None = None,
 ) -> Checks:
     """Every check on the fit, the inflated sigmas and the verdict.
 
@@ -919,6 +941,8 @@ def run_checks(
         notes: warnings of earlier stages (one sentence each), e.g. single-axis motion.
         planes: the sigma factors of the map planes' own uncertainty
             (:func:`~licalib_cli.pipeline.map_uncertainty.map_uncertainty`); None: not applied.
+        spread: (7,) a floor of the sigmas measured by refits with more noise, and the
+            sentence that says so (:mod:`~licalib_cli.pipeline.noise_draws`); None: none.
 
     Returns:
         The checks' outcome.
@@ -944,6 +968,13 @@ def run_checks(
             "same points (solver sigmas hold them fixed)",
             *why,
         )
+    if spread is not None:
+        floor, text = spread
+        grown = np.maximum(sigma, floor)
+        if np.any(grown > sigma * (1 + 1e-9)):
+            ratio = float(np.nanmax(np.where(sigma > 0, grown / sigma, 1.0)))
+            why = (*why, f"{text} (times up to {ratio:.2f})")
+        sigma = grown
     prior = prior_sd(cfg)
     resting = on_prior(report, prior)
     # the data's own estimate as uncertain as the checks found the result
@@ -961,6 +992,8 @@ def run_checks(
     findings += [Finding("note", held_effect_text(*h), True) for h in held_effects(report, cfg)]
     covered = [e.score.name for e in effects if effect_to_cover(e, raw)]
     without_effects, _ = inflate(raw, sensors, [], split, fit)
+    if spread is not None:  # the noise's spread is no effect held fixed
+        without_effects = np.maximum(without_effects, spread[0])
     findings += uncertainty_findings(
         sigma,
         without_effects,
@@ -970,6 +1003,7 @@ def run_checks(
         entangled_intrinsics(report, sigma[:3]),
         resting,
         split,
+        spread[0] if spread is not None else None,
     )
     findings += _sensors(sensors)
     findings += _effects(effects, raw)
@@ -1018,10 +1052,15 @@ def run_checks(
 
 
 def rejudge(
-    fit: Fit, checks: Checks, effects: Sequence[EffectEvidence], cfg: CalibConfig
+    fit: Fit,
+    checks: Checks,
+    effects: Sequence[EffectEvidence],
+    cfg: CalibConfig,
+    spread: tuple[F64, str] | None = None,
 ) -> Checks:
     """The checks again on the same evidence, with the effects' tests replaced by ``effects``
-    (their shifts measured another way, :mod:`licalib_cli.pipeline.effect_refit`)."""
+    (their shifts measured another way, :mod:`licalib_cli.pipeline.effect_refit`) and the
+    sigmas at least ``spread`` (:func:`run_checks`)."""
     if checks.split is None:
         msg = "the checks kept no split-half comparison to judge again"
         raise ValueError(msg)
@@ -1033,6 +1072,7 @@ def rejudge(
         cfg,
         checks.notes,
         checks.planes,
+        spread,
     )
 
 

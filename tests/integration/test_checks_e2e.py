@@ -292,6 +292,27 @@ def test_an_effect_the_data_show_beyond_doubt_is_estimated_and_said(
     assert "calibrate --model config keeps to the config's model" in printed
 
 
+def test_a_noisy_lidar_has_its_sigmas_floored_by_refits_with_more_noise(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # 3 cm of range noise (the draws run from 2.5 cm): two refits with as much noise again, their
+    # spread a floor of the sigmas, said in the inflation and timed as its own stage
+    result, _, code = _calibrate(tmp_path, _spec(range_noise_m=0.03, duration_s=6.0))
+    printed = " ".join(capsys.readouterr().out.split())
+    assert code == 0
+    inflation = result["consistency"]["inflation"]
+    assert any(
+        w.startswith("to the spread of 2 refits with as much range noise again") for w in inflation
+    )
+    assert "noise draws" in printed
+    truth = yaml.safe_load((tmp_path / "sim" / "truth.yaml").read_text())
+    error = np.asarray(result["extrinsic"]["translation"]) - np.asarray(
+        truth["extrinsic"]["translation"]
+    )
+    sigma = np.asarray(result["uncertainty"]["translation_std_m"])
+    assert np.all(np.abs(error) < 3.0 * sigma)
+
+
 def test_a_gyro_to_imu_rotation_is_found_by_its_score_test(tmp_path: Path) -> None:
     q = Rotation.from_euler("xyz", [0.6, -0.5, 0.6], degrees=True).as_quat()
     spec = _spec(intrinsics_file=_intrinsics_file(tmp_path, imu=ImuIntrinsics(gyro_rotation=q)))
