@@ -10,6 +10,7 @@ Data flow (method.md sections 5-8), one module per stage::
         --checks----------> verdict, inflated sigmas, observability
         --evident---------> an effect the data show beyond doubt estimated when it pays its BIC
         --effect_refit----> one left fixed refitted to measure its shift; checks judge again
+        --noise_draws-----> on a noisy LiDAR, refits with more range noise floor the sigmas
         --assemble--------> CalibrationResult (schema v1 with typed sections)
 
 Frames and time: ``{G}`` is the IMU frame at the first IMU sample of the segment (``t0_ns``),
@@ -134,21 +135,19 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
     timer = Timer()
     prepared = prepare(Path(bag), cfg, progress, timer)
     run = fit_and_check(prepared, prepared.guess, cfg, progress, timer)
-    if cfg.model.add_evident_effects:
-        from licalib_cli.pipeline.evident import add_evident, with_added  # builds on this module
+    from licalib_cli.pipeline.evident import Evident, add_evident, with_added  # builds on this
 
-        evident = add_evident(prepared, run, cfg, progress, timer)
-        run = _refit_unmistakable(
-            prepared, evident.run, evident.cfg, progress, timer, evident.declined
-        )
-        run = _noise_spread(prepared, run, evident.cfg, progress, timer)
-        if evident.added or evident.notes:
-            run = with_added(run, evident.added, evident.notes)
-        if evident.added:
-            run = replace(run, config=evident.cfg)
-    else:
-        run = _refit_unmistakable(prepared, run, cfg, progress, timer)
-        run = _noise_spread(prepared, run, cfg, progress, timer)
+    evident = (
+        add_evident(prepared, run, cfg, progress, timer)
+        if cfg.model.add_evident_effects
+        else Evident(run, cfg)
+    )
+    run = _refit_unmistakable(prepared, evident.run, evident.cfg, progress, timer, evident.declined)
+    run = _noise_spread(prepared, run, evident.cfg, progress, timer)
+    if evident.added or evident.notes:
+        run = with_added(run, evident.added, evident.notes)
+    if evident.added:
+        run = replace(run, config=evident.cfg)
     progress.close()
     return run
 
