@@ -52,6 +52,7 @@ __all__ = [
     "Timer",
     "calibrate",
     "fit_and_check",
+    "noise_spread",
     "prepare",
 ]
 
@@ -143,7 +144,7 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
         else Evident(run, cfg)
     )
     run = _refit_unmistakable(prepared, evident.run, evident.cfg, progress, timer, evident.declined)
-    run = _noise_spread(prepared, run, evident.cfg, progress, timer)
+    run = noise_spread(prepared, run, evident.cfg, progress, timer)
     if evident.added or evident.notes:
         run = with_added(run, evident.added, evident.notes)
     if evident.added:
@@ -152,7 +153,7 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
     return run
 
 
-def _noise_spread(
+def noise_spread(
     prepared: Prepared, run: CalibrationRun, cfg: CalibConfig, progress: Progress, timer: Timer
 ) -> CalibrationRun:
     """``run`` judged again with its sigmas at least the spread of refits with more range noise

@@ -73,6 +73,7 @@ from licalib_cli.pipeline import (
     Prepared,
     Timer,
     fit_and_check,
+    noise_spread,
     prepare,
 )
 from licalib_cli.pipeline.backward import deltas_without, drop_redundant
@@ -616,6 +617,8 @@ def diagnose(
                 before.excess,
                 after.excess,
             )
+    # a noisy LiDAR's sigmas floored by refits with more noise, as calibrate's
+    run = noise_spread(prepared, run, final_config(cfg, kept), progress, timer)
     progress.close()
     final_p = {e.score.name: float(e.score.p_value) for e in run.effects}
     steps = [
