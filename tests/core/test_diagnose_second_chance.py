@@ -78,6 +78,7 @@ def _diagnose(monkeypatch: pytest.MonkeyPatch, base: Any, refits: dict[str, Any]
     monkeypatch.setattr(dg, "sensor_samples", lambda run, sensor: 1000)
     monkeypatch.setattr(dg, "drop_redundant", lambda kept, deltas, refit: [])
     monkeypatch.setattr(dg, "_not_shown", lambda run, allowed, found: ())
+    monkeypatch.setattr(dg, "noise_spread", lambda prepared, run, cfg, progress, timer: run)
     return dg.diagnose("bag.bag", load_config(None))
 
 
