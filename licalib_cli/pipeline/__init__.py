@@ -159,13 +159,10 @@ def noise_spread(
     """``run`` judged again with its sigmas at least the spread of refits with more range noise
     (:mod:`licalib_cli.pipeline.noise_draws`); ``run`` itself below the noise that asks for
     them, or when its rounds did not converge."""
-    from licalib_cli.pipeline.noise_draws import range_noise_spread, spread_text
-    from licalib_cli.pipeline.settings import range_noise_in_data
+    from licalib_cli.pipeline.noise_draws import draws_due, range_noise_spread, spread_text
 
-    checks = cfg.checks
     if (
-        checks.range_noise_draws == 0
-        or not range_noise_in_data(prepared.noise) >= checks.range_noise_draws_from_m
+        not draws_due(prepared.noise, cfg)
         or run.checks.exit_status == "not converged"
         or run.checks.split is None
     ):
@@ -174,14 +171,22 @@ def noise_spread(
         spread = range_noise_spread(prepared.rec, prepared.guess, run.state, prepared.noise, cfg)
     if spread is None:
         return run
-    text = spread_text(prepared.noise, checks.range_noise_draws)
+    text = spread_text(prepared.noise, cfg.checks.range_noise_draws)
     judged = rejudge(run.fit, run.checks, run.checks.effects, cfg, (spread, text))
-    result = assemble(prepared.bag, prepared.rec, prepared.guess, run.fit, judged, cfg)
+    return _judged_again(prepared, run, judged, cfg, timer)
+
+
+def _judged_again(
+    prepared: Prepared, run: CalibrationRun, checks: Checks, cfg: CalibConfig, timer: Timer
+) -> CalibrationRun:
+    """``run`` with the checks judged again on its fit, its result assembled from them and the
+    stage times so far."""
+    result = assemble(prepared.bag, prepared.rec, prepared.guess, run.fit, checks, cfg)
     return replace(
         run,
         result=result,
-        checks=judged,
-        effects=judged.effects,
+        checks=checks,
+        effects=checks.effects,
         timings=timer.timings,
         stage_times=dict(timer.stages),
     )
@@ -227,16 +232,7 @@ def _refit_unmistakable(
     effects = refit_shifts(run.checks.effects, run.state, refit)
     if effects is None:
         return run
-    checks = rejudge(run.fit, run.checks, effects, cfg)
-    result = assemble(prepared.bag, prepared.rec, prepared.guess, run.fit, checks, cfg)
-    return replace(
-        run,
-        result=result,
-        checks=checks,
-        effects=checks.effects,
-        timings=timer.timings,
-        stage_times=dict(timer.stages),
-    )
+    return _judged_again(prepared, run, rejudge(run.fit, run.checks, effects, cfg), cfg, timer)
 
 
 @dataclass(frozen=True)

@@ -47,6 +47,7 @@ __all__ = [
     "MAX_PASSES",
     "Evident",
     "add_evident",
+    "addable",
     "added_note",
     "bic_change",
     "estimating",
@@ -128,11 +129,7 @@ def add_evident(
     added: list[AddedEffect] = []
     passes = 0
     while passes < MAX_PASSES and run.checks.exit_status != "not converged":
-        strong = [
-            e
-            for e in unmistakable_ones(run.checks.effects)
-            if with_effect(cfg, e.score.name) is not cfg  # else held by the truncated SVD
-        ]
+        strong = addable(run.checks.effects, cfg)
         if not strong:
             break
         tries = [strong, strong[:1]] if len(strong) > 1 else [strong]
@@ -179,6 +176,13 @@ def add_evident(
         run, cfg = new, new_cfg
         passes += 1
     return Evident(run, cfg, tuple(added))
+
+
+def addable(effects: Sequence[EffectEvidence], cfg: CalibConfig) -> list[EffectEvidence]:
+    """The effects shown beyond doubt (:func:`~licalib_cli.pipeline.effect_refit.
+    unmistakable_ones`, the strongest per degree of freedom first) whose blocks ``cfg`` does
+    not estimate yet (an estimated one shows only where the truncated SVD held it)."""
+    return [e for e in unmistakable_ones(effects) if with_effect(cfg, e.score.name) is not cfg]
 
 
 def _refit(

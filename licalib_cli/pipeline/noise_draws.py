@@ -37,7 +37,7 @@ from licalib_cli.pipeline.schedule import run_schedule
 from licalib_cli.pipeline.settings import NoiseLevels, range_noise_in_data
 from licalib_cli.progress import NullProgress
 
-__all__ = ["noisier", "range_noise_spread", "spread_text"]
+__all__ = ["draws_due", "noisier", "range_noise_spread", "spread_text"]
 
 logger = logging.getLogger(__name__)
 
@@ -55,6 +55,15 @@ def noisier(rec: Recording, sigma_m: float, seed: int) -> Recording:
     return replace(rec, scans=tuple(scans))
 
 
+def draws_due(noise: NoiseLevels, cfg: CalibConfig) -> bool:
+    """Whether the draws run: they are on and the range noise in the data (the larger of the
+    configured and the measured) is at least ``checks.range_noise_draws_from_m``."""
+    checks = cfg.checks
+    return checks.range_noise_draws > 0 and (
+        range_noise_in_data(noise) >= checks.range_noise_draws_from_m
+    )
+
+
 def range_noise_spread(
     rec: Recording,
     guess: InitialGuess,
@@ -66,10 +75,10 @@ def range_noise_spread(
     axes, time offset s) over the refits with as much range noise again (module docstring);
     None when the range noise is below ``checks.range_noise_draws_from_m``, the draws are off, or
     a refit failed."""
+    if not draws_due(noise, cfg):
+        return None
     draws = cfg.checks.range_noise_draws
     sigma = range_noise_in_data(noise)
-    if draws == 0 or not sigma >= cfg.checks.range_noise_draws_from_m:
-        return None
     root2 = float(np.sqrt(2.0))
     doubled = replace(
         noise,

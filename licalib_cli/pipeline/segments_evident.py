@@ -23,9 +23,7 @@ import numpy as np
 from licalib_cli.config import CalibConfig
 from licalib_cli.errors import LicalibError
 from licalib_cli.pipeline import CalibrationRun, Prepared, fit_and_check
-from licalib_cli.pipeline.effect_models import with_effect
-from licalib_cli.pipeline.effect_refit import unmistakable_ones
-from licalib_cli.pipeline.evident import bic_change, estimating
+from licalib_cli.pipeline.evident import addable, bic_change, estimating
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.segments import _with_range
 from licalib_cli.pipeline.timing import Timer
@@ -66,10 +64,8 @@ def add_evident_to_windows(
     for run in runs:
         if run.checks.exit_status == "not converged":
             continue
-        for e in unmistakable_ones(run.checks.effects):
+        for e in addable(run.checks.effects, cfg):
             name, stat, dof = e.score.name, float(e.score.statistic), int(e.score.rank)
-            if with_effect(cfg, name) is cfg:
-                continue
             if name not in strongest or stat / dof > strongest[name][0] / strongest[name][1]:
                 strongest[name] = (stat, dof)
     if not strongest:
