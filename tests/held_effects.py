@@ -1,4 +1,4 @@
-"""Test factory: an IMU effect the checks hold fixed (``EffectEvidence`` with its score test)."""
+"""Test factories: an effect the checks hold fixed (``EffectEvidence`` with its score test)."""
 
 from __future__ import annotations
 
@@ -54,4 +54,29 @@ def imu_effect(
         shift_std=zeros if shift_std is None else shift_std,
         prior_std=zeros if prior_std is None else prior_std,
         prior_sigma=prior_sigma,
+    )
+
+
+def scored_effect(
+    name: str, per_dof: float, *, rank: int = 3, selected: bool = True, shift_z_mm: float = 3.0
+) -> EffectEvidence:
+    """An effect (IMU, or LiDAR by its name) scoring ``per_dof`` per degree of freedom (p = 0
+    above 10, else 0.5) whose step moves t_z by ``shift_z_mm``."""
+    score = EffectScore(
+        name=name,
+        statistic=per_dof * rank,
+        rank=rank,
+        p_value=0.0 if per_dof > 10 else 0.5,
+        estimate=np.zeros(rank),
+        sigma=np.ones(rank),
+        shift=np.zeros(7),
+        shift_sigma=np.zeros(7),
+    )
+    return EffectEvidence(
+        score=score,
+        sensor="lidar" if name.startswith("lidar") else "imu",
+        selected=selected,
+        shift_translation_m=np.array([0.0, 0.0, 1e-3 * shift_z_mm]),
+        shift_rotation_rad=np.zeros(3),
+        shift_time_offset_s=0.0,
     )

@@ -336,6 +336,9 @@ def test_undecodable_imu_message_is_counted_in_the_result(tmp_path: Path) -> Non
         (["-c", "{tmp}/cos0.yaml"], "Invalid setting 'noise.min_incidence_cos'"),
         (["-c", "{tmp}/cos2.yaml"], "Invalid setting 'noise.min_incidence_cos'"),
         (["-c", "{tmp}/refit.yaml"], "Invalid setting 'checks.refit_effects'"),
+        (["-c", "{tmp}/evident.yaml"], "Invalid setting 'model.add_evident_effects'"),
+        (["-c", "{tmp}/draws.yaml"], "Invalid setting 'checks.range_noise_draws'"),
+        (["-c", "{tmp}/draws_from.yaml"], "Invalid setting 'checks.range_noise_draws_from_m'"),
     ],
 )
 def test_bad_options_and_configs_exit_6(
@@ -349,6 +352,9 @@ def test_bad_options_and_configs_exit_6(
     (tmp_path / "cos0.yaml").write_text("noise:\n  min_incidence_cos: 0\n")
     (tmp_path / "cos2.yaml").write_text("noise:\n  min_incidence_cos: 1.5\n")
     (tmp_path / "refit.yaml").write_text("checks:\n  refit_effects: maybe\n")
+    (tmp_path / "evident.yaml").write_text("model:\n  add_evident_effects: sometimes\n")
+    (tmp_path / "draws.yaml").write_text("checks:\n  range_noise_draws: -1\n")
+    (tmp_path / "draws_from.yaml").write_text("checks:\n  range_noise_draws_from_m: 0\n")
     options = [o.format(tmp=tmp_path) for o in options]
     code, out, err = run(["info", str(bag), "--json", *options], capsys)
     data = json.loads(out)

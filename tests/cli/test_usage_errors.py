@@ -51,6 +51,11 @@ def _check_usage_error(code: int, out: str, err: str, usage: str, message: str) 
             "licalib select-segments",
             "'some' is not one of 'none', 'imu', 'lidar', 'all'",
         ),
+        (
+            ["calibrate", "x.bag", "--model", "bogus"],
+            "licalib calibrate",
+            "'bogus' is not one of 'evident', 'config', 'auto'",
+        ),
         (["frobnicate"], "licalib [OPTIONS] COMMAND", "No such command 'frobnicate'"),
     ],
     ids=[
@@ -60,6 +65,7 @@ def _check_usage_error(code: int, out: str, err: str, usage: str, message: str) 
         "bad-number",
         "bad-effect",
         "bad-intrinsics",
+        "bad-model",
         "bad-command",
     ],
 )

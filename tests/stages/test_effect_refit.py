@@ -14,9 +14,9 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from held_effects import scored_effect as evidence
 
 from licalib_cli.config import CalibConfig
-from licalib_cli.consistency.score import EffectScore
 from licalib_cli.geometry import so3
 from licalib_cli.pipeline.checks import _effects
 from licalib_cli.pipeline.effect_models import with_effect
@@ -26,36 +26,11 @@ from licalib_cli.pipeline.effect_refit import (
     unmistakable,
     with_move,
 )
-from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
+from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE
 from licalib_cli.pipeline.inflation import inflate
 from licalib_cli.pipeline.round import extrinsic_of
 
 RAW = np.array([1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4, 1e-5])
-
-
-def evidence(
-    name: str, per_dof: float, *, rank: int = 3, selected: bool = True, shift_z_mm: float = 3.0
-) -> EffectEvidence:
-    """An effect scoring ``per_dof`` per degree of freedom whose step moves t_z by
-    ``shift_z_mm``."""
-    score = EffectScore(
-        name=name,
-        statistic=per_dof * rank,
-        rank=rank,
-        p_value=0.0 if per_dof > 10 else 0.5,
-        estimate=np.zeros(rank),
-        sigma=np.ones(rank),
-        shift=np.zeros(7),
-        shift_sigma=np.zeros(7),
-    )
-    return EffectEvidence(
-        score=score,
-        sensor="lidar" if name.startswith("lidar") else "imu",
-        selected=selected,
-        shift_translation_m=np.array([0.0, 0.0, 1e-3 * shift_z_mm]),
-        shift_rotation_rad=np.zeros(3),
-        shift_time_offset_s=0.0,
-    )
 
 
 def state(t: list[float], rpy_deg: list[float], dt: float) -> SimpleNamespace:

@@ -14,9 +14,9 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from held_effects import scored_effect
 
 from licalib_cli.config import load_config
-from licalib_cli.consistency.score import EffectScore
 from licalib_cli.geometry import so3
 from licalib_cli.pipeline import evident
 from licalib_cli.pipeline.checks import Finding
@@ -26,24 +26,7 @@ from licalib_cli.sections import AddedEffect, ModelInfo
 
 
 def _evidence(name: str, per_dof: float, rank: int = 3) -> EffectEvidence:
-    score = EffectScore(
-        name=name,
-        statistic=per_dof * rank,
-        rank=rank,
-        p_value=0.0,
-        estimate=np.zeros(rank),
-        sigma=np.ones(rank),
-        shift=np.zeros(7),
-        shift_sigma=np.zeros(7),
-    )
-    return EffectEvidence(
-        score=score,
-        sensor="lidar" if name.startswith("lidar") else "imu",
-        selected=True,
-        shift_translation_m=np.zeros(3),
-        shift_rotation_rad=np.zeros(3),
-        shift_time_offset_s=0.0,
-    )
+    return scored_effect(name, per_dof, rank=rank, shift_z_mm=0.0)
 
 
 def _state(tz: float) -> SimpleNamespace:
