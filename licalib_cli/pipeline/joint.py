@@ -406,7 +406,7 @@ def calibrate_segments(
     if selection is None and cfg.model.add_evident_effects:
         clock = time.perf_counter()
         evident = add_evident_to_windows(bag, runs, kept, cfg, _KeptOpen(progress))
-        if evident is not None:
+        if evident is not None:  # refits tried: their time counts whether kept or not
             runs, cfg, added = list(evident.runs), evident.cfg, evident.added
             timings["effects shown beyond doubt"] = time.perf_counter() - clock
 

@@ -4,7 +4,8 @@ The joint problem of several segments estimates one model, so its windows are fi
 with exactly the configured one (:mod:`~licalib_cli.pipeline.segment_runs`). An effect any of
 them shows beyond doubt (a score test of at least
 :data:`~licalib_cli.pipeline.effect_refit.REFIT_STATISTIC_PER_DOF` per degree of freedom, picked
-by its forward selection) is a property of the sensors, not of a window: as for one segment
+by its forward selection; a window whose rounds did not converge counts too, such an effect
+often being why) is a property of the sensors, not of a window: as for one segment
 (:mod:`~licalib_cli.pipeline.evident`), every window is then refitted from its own estimate with
 all such effects estimated, and the refits are kept when together they pay their BIC (the sum
 of the windows' changes), every one converged and none failed where its fit without them did
@@ -43,7 +44,8 @@ class WindowsEvident:
         runs: each window's calibration of the model with them, in the windows' order.
         cfg: that model's configuration (the bag's range as given).
         added: the effects added: each with the largest score per degree of freedom a window
-            showed, the windows' summed BIC change and the largest move of a window's extrinsic.
+            showed, the windows' summed BIC change and the largest move of a window's extrinsic;
+            empty when the refits were not kept.
     """
 
     runs: tuple[CalibrationRun, ...]
@@ -59,11 +61,10 @@ def add_evident_to_windows(
     progress: Progress,
 ) -> WindowsEvident | None:
     """Refit every window with the effects any of them shows beyond doubt (module docstring);
-    None when none does, or when the refits are not kept (the windows' fits then stand)."""
+    None when none does. When the refits are not kept the windows' fits stand: ``runs`` and
+    ``cfg`` as given, nothing added."""
     strongest: dict[str, tuple[float, int]] = {}
     for run in runs:
-        if run.checks.exit_status == "not converged":
-            continue
         for e in addable(run.checks.effects, cfg):
             name, stat, dof = e.score.name, float(e.score.statistic), int(e.score.rank)
             if name not in strongest or stat / dof > strongest[name][0] / strongest[name][1]:
@@ -95,7 +96,7 @@ def add_evident_to_windows(
             change = bic_change(new, window_cfg, run, _with_range(cfg, a, b - a), names)
         except LicalibError as exc:
             logger.warning("The refit of segment %.0f-%.0f s failed (%s).", a, b, exc)
-            return None
+            return WindowsEvident(tuple(runs), cfg, ())
         lost = new.checks.exit_status == "fail" and run.checks.exit_status == "ok"
         if new.checks.exit_status == "not converged" or lost:
             logger.info(
@@ -105,13 +106,13 @@ def add_evident_to_windows(
                 "did not converge" if not lost else "failed",
                 ", ".join(names),
             )
-            return None
+            return WindowsEvident(tuple(runs), cfg, ())
         delta_bic += change
         moves.append(extrinsic_of(run.state).moved_to(extrinsic_of(new.state)))
         new_runs.append(new)
     if not delta_bic < 0.0:
         logger.info("Estimating %s does not pay (BIC %+.1f).", ", ".join(names), delta_bic)
-        return None
+        return WindowsEvident(tuple(runs), cfg, ())
     largest = max(moves, key=lambda m: float(np.linalg.norm(m[:3])))
     added = tuple(
         AddedEffect(

@@ -2,7 +2,8 @@
 
 The stage refits with every unmistakable effect estimated, keeps the refit when it pays its BIC
 (else tries the strongest alone), and goes on from the refit's checks; a refit that does not pay
-(or does not converge) ends the search and hands its estimate to the shift measurement. The fits
+(or does not converge) ends the search and hands its estimate to the shift measurement; a fit
+whose rounds did not converge is refitted too. The fits
 here are stand-ins: the stage's own decisions are what is tested (the end-to-end run on a
 simulated bag is in ``tests/integration/test_checks_e2e.py``).
 """
@@ -199,16 +200,43 @@ def test_an_effect_whose_refit_fails_where_the_fit_without_it_did_not_stays_held
     assert out.added == () and out.notes == ()
 
 
-def test_nothing_is_tried_without_an_unmistakable_effect_or_without_convergence(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
+def test_nothing_is_tried_without_an_unmistakable_effect(monkeypatch: pytest.MonkeyPatch) -> None:
     refits = _Refits({})
     refits.install(monkeypatch)
     weak = _Run(0.30, (_evidence("gyro_scale", 0.9 * REFIT_STATISTIC_PER_DOF),))
     assert _add(weak).run is weak
-    stuck = _Run(0.30, (_evidence("gyro_scale", STRONG),), status="not converged")
-    assert _add(stuck).run is stuck
+    assert _add(weak, {"model.add_evident_effects": True}).added == ()
     assert refits.asked == []
+
+
+def test_a_fit_that_did_not_converge_is_refitted_and_the_note_says_the_effects_let_it_settle(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # unmodelled per-beam intrinsics blur the map and keep the rounds moving
+    stuck = _Run(
+        0.20,
+        (_evidence("lidar_range_offset", STRONG, 32), _evidence("gyro_rotation", STRONG)),
+        status="not converged",
+    )
+    settled = _Run(0.30)
+    _Refits({("gyro_rotation", "range_offset"): (settled, -4e5)}).install(monkeypatch)
+    out = _add(stuck)
+    assert out.run is settled
+    assert [a.effect for a in out.added] == ["lidar_range_offset", "gyro_rotation"]
+    assert out.added[0].moved_translation_m == pytest.approx(0.1)
+    assert out.notes == (
+        "Without lidar_range_offset, gyro_rotation the rounds did not converge (the model lacked "
+        "what the data show, which pulled the estimate one way and another); with them estimated "
+        "they converged.",
+    )
+    # still stuck with them: neither is kept, the fit stays as it was and nothing is noted
+    again = _Run(0.25, status="not converged")
+    _Refits(
+        {("gyro_rotation", "range_offset"): (again, -4e5), ("range_offset",): (again, -3e5)}
+    ).install(monkeypatch)
+    out = _add(stuck)
+    assert out.run is stuck and out.added == () and out.notes == ()
+    assert out.declined is not None and out.declined[0] == "lidar_range_offset"
 
 
 def test_at_most_max_passes_refits_add_effects(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -1,0 +1,109 @@
+"""The windows of ``calibrate --segments`` refitted with what one of them shows beyond doubt
+(``licalib_cli.pipeline.segments_evident``): the decisions, on stand-in fits (the end-to-end run
+on a simulated bag is ``test_joint_evident_e2e.py``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from held_effects import scored_effect
+
+from licalib_cli.config import load_config
+from licalib_cli.geometry import so3
+from licalib_cli.pipeline import segments_evident
+from licalib_cli.pipeline.effect_refit import REFIT_STATISTIC_PER_DOF
+
+STRONG = 3.0 * REFIT_STATISTIC_PER_DOF
+
+
+@dataclass(frozen=True)
+class _Initial:
+    state: object = None
+
+
+@dataclass
+class _Window:
+    """A stand-in for a window's calibration: its estimate, status and what its checks show."""
+
+    tz: float
+    status: str = "ok"
+    effects: tuple = ()
+    segment: object = "segment"
+    noise: object = "noise"
+    initial: _Initial = _Initial()
+
+    @property
+    def state(self) -> SimpleNamespace:
+        return SimpleNamespace(
+            t_imu_lidar=np.array([0.1, 0.2, self.tz]),
+            R_imu_lidar=so3.exp(np.zeros(3)),
+            time_offset_s=0.0,
+        )
+
+    @property
+    def checks(self) -> SimpleNamespace:
+        return SimpleNamespace(effects=self.effects, exit_status=self.status)
+
+
+def _install(
+    monkeypatch: pytest.MonkeyPatch, refits: dict[float, _Window], bic: float = -50.0
+) -> list[tuple[float, tuple[str, ...]]]:
+    """Refits answered by window start; returns what was asked (start, LiDAR blocks)."""
+    asked: list[tuple[float, tuple[str, ...]]] = []
+
+    def fit_and_check(prepared, start, cfg, progress, timer, *, warm):  # type: ignore[no-untyped-def]
+        assert warm
+        asked.append((cfg.bag.start_s, tuple(cfg.model.lidar)))
+        return refits[cfg.bag.start_s]
+
+    monkeypatch.setattr(segments_evident, "fit_and_check", fit_and_check)
+    monkeypatch.setattr(segments_evident, "bic_change", lambda *args: bic)
+    return asked
+
+
+def _add(windows: list[_Window]) -> segments_evident.WindowsEvident | None:
+    spans = [(5.0 * k, 5.0 * (k + 1)) for k in range(len(windows))]
+    return segments_evident.add_evident_to_windows(
+        Path("bag"),
+        windows,  # type: ignore[arg-type]
+        spans,
+        load_config(None),
+        None,  # type: ignore[arg-type]
+    )
+
+
+def test_a_window_that_did_not_converge_counts_and_every_window_is_refitted(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    offsets = scored_effect("lidar_range_offset", STRONG, rank=15, shift_z_mm=0.0)
+    windows = [_Window(0.30), _Window(0.20, "not converged", (offsets,))]
+    asked = _install(monkeypatch, {0.0: _Window(0.301), 5.0: _Window(0.302)})
+    out = _add(windows)
+    assert asked == [(0.0, ("range_offset",)), (5.0, ("range_offset",))]
+    assert out is not None and out.cfg.model.lidar == ["range_offset"]
+    assert [r.tz for r in out.runs] == [0.301, 0.302]
+    (added,) = out.added
+    assert added.effect == "lidar_range_offset" and added.delta_bic == pytest.approx(-100.0)
+    assert added.moved_translation_m == pytest.approx(0.102)
+
+
+def test_the_windows_keep_the_configured_model_when_a_refit_does_not_converge_or_pay(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    offsets = scored_effect("lidar_range_offset", STRONG, rank=15, shift_z_mm=0.0)
+    windows = [_Window(0.30, effects=(offsets,)), _Window(0.20, "not converged")]
+    for refits, bic in (
+        ({0.0: _Window(0.301), 5.0: _Window(0.25, "not converged")}, -50.0),
+        ({0.0: _Window(0.301), 5.0: _Window(0.302)}, +10.0),
+    ):
+        _install(monkeypatch, refits, bic)
+        out = _add(windows)
+        assert out is not None and out.added == () and out.cfg.model.lidar == []
+        assert list(out.runs) == windows
+    weak = scored_effect("lidar_range_offset", 0.5 * REFIT_STATISTIC_PER_DOF, rank=15)
+    asked = _install(monkeypatch, {})
+    assert _add([_Window(0.30, effects=(weak,))]) is None and asked == []
