@@ -7,11 +7,12 @@ ten of its sigmas from zero, probability below 1e-20 on data without it) is no l
 of model selection: holding it fixed biases the extrinsic, and the checks can only widen the
 sigmas and warn. This stage refits the segment from the final estimate with every such effect
 estimated too (as ``diagnose`` tries an effect) and keeps the refit when it pays its BIC on the
-refit's data (else it tries the strongest alone); then again on the refit's checks, up to
-:data:`MAX_PASSES` refits. A LiDAR with errors in several of its per-beam intrinsics shows them
-all at once, and adding one per refit took three refits (70-110 s on 10 s bags) to add three
-of them. Each effect added is named in the result (``model.added``) and the verdict's notes,
-with how far its refit moved the extrinsic.
+refit's data, converges and does not fail where the fit without them did not (else it tries
+those of the strongest's sensor, then the strongest alone); then again on the refit's checks,
+up to :data:`MAX_PASSES` refits. A LiDAR with errors in several of its per-beam intrinsics
+shows them all at once, and adding one per refit took three refits (70-110 s on 10 s bags) to
+add three of them. Each effect added is named in the result (``model.added``) and the
+verdict's notes, with how far its refit moved the extrinsic.
 
 A fit whose rounds did not converge is tried too: an effect the model lacks (per-beam intrinsics
 of a LiDAR, a gyro-to-IMU rotation) blurs the map and pulls the rounds one way and another, and
@@ -119,8 +120,9 @@ def add_evident(
 ) -> Evident:
     """Estimate the effects ``run``'s checks show beyond doubt.
 
-    Every such effect of the checks' forward selection is added in one refit (when that does
-    not pay its BIC, the strongest alone is tried); then the same on the refit's checks, up to
+    Every such effect of the checks' forward selection is added in one refit (when that is not
+    kept, those of the strongest's sensor are tried, then the strongest alone); then the same on
+    the refit's checks, up to
     :data:`MAX_PASSES` refits kept.
 
     Args:
@@ -140,7 +142,7 @@ def add_evident(
         strong = addable(run.checks.effects, cfg)
         if not strong:
             break
-        tries = [strong, strong[:1]] if len(strong) > 1 else [strong]
+        tries = _groups(strong)
         kept = None
         for group in tries:
             outcome = _refit(prepared, run, cfg, group, progress, timer)
@@ -188,6 +190,17 @@ def add_evident(
     return Evident(run, cfg, tuple(added), notes=(_settled_note(added),) if stuck and added else ())
 
 
+def _groups(strong: Sequence[EffectEvidence]) -> list[list[EffectEvidence]]:
+    """The groups of ``strong`` (strongest first) to refit with, in turn, until one is kept:
+    all of them; those of the strongest's sensor (an IMU effect that the recording cannot tell
+    from the extrinsic rotation, such as a gyro-to-IMU rotation on a shake that hardly tilted,
+    would otherwise keep a LiDAR's per-beam errors out with it); the strongest alone."""
+    own = [e for e in strong if e.sensor == strong[0].sensor]
+    tries = [list(strong), own, list(strong[:1])]
+    names = [[e.score.name for e in g] for g in tries]
+    return [g for k, g in enumerate(tries) if names[k] not in names[:k]]
+
+
 def addable(effects: Sequence[EffectEvidence], cfg: CalibConfig) -> list[EffectEvidence]:
     """The effects shown beyond doubt (:func:`~licalib_cli.pipeline.effect_refit.
     unmistakable_ones`, the strongest per degree of freedom first) whose blocks ``cfg`` does
@@ -223,11 +236,15 @@ def _refit(
     except LicalibError as exc:
         logger.warning("The refit with %s failed (%s); held fixed.", ", ".join(names), exc)
         return None
+    reasons = new.checks.verdict.reasons
     logger.info(
         "Estimating %s: BIC %+.1f%s.",
         ", ".join(names),
         delta_bic,
-        "" if new.checks.exit_status != "not converged" else ", the rounds did not converge",
+        {
+            "not converged": ", the rounds did not converge",
+            "fail": f", the verdict failed ({reasons[0] if reasons else 'no reason given'})",
+        }.get(new.checks.exit_status, ""),
     )
     return new, new_cfg, delta_bic
 

@@ -9,7 +9,8 @@ often being why) is a property of the sensors, not of a window: as for one segme
 (:mod:`~licalib_cli.pipeline.evident`), every window is then refitted from its own estimate with
 all such effects estimated, and the refits are kept when together they pay their BIC (the sum
 of the windows' changes), every one converged and none failed where its fit without them did
-not. The joint calibration then estimates that model.
+not; else those of the strongest effect's sensor are tried. The joint calibration then
+estimates that model.
 """
 
 from __future__ import annotations
@@ -61,17 +62,53 @@ def add_evident_to_windows(
     progress: Progress,
 ) -> WindowsEvident | None:
     """Refit every window with the effects any of them shows beyond doubt (module docstring);
-    None when none does. When the refits are not kept the windows' fits stand: ``runs`` and
-    ``cfg`` as given, nothing added."""
-    strongest: dict[str, tuple[float, int]] = {}
+    None when none does. When the refits with all of them are not kept, those of the strongest's
+    sensor are tried (as for one segment, :func:`~licalib_cli.pipeline.evident.add_evident`).
+    When neither is kept the windows' fits stand: ``runs`` and ``cfg`` as given, nothing
+    added."""
+    strongest: dict[str, tuple[float, int, str]] = {}
     for run in runs:
         for e in addable(run.checks.effects, cfg):
             name, stat, dof = e.score.name, float(e.score.statistic), int(e.score.rank)
             if name not in strongest or stat / dof > strongest[name][0] / strongest[name][1]:
-                strongest[name] = (stat, dof)
+                strongest[name] = (stat, dof, e.sensor)
     if not strongest:
         return None
-    names = tuple(strongest)
+    ranked = sorted(strongest, key=lambda n: -strongest[n][0] / strongest[n][1])
+    own = [n for n in ranked if strongest[n][2] == strongest[ranked[0]][2]]
+    for names in (ranked, own) if own != ranked else (ranked,):
+        kept = _refit_windows(bag, runs, windows, cfg, names, progress)
+        if kept is None:
+            continue
+        new_runs, new_cfg, delta_bic, largest = kept
+        added = tuple(
+            AddedEffect(
+                effect=name,
+                statistic=strongest[name][0],
+                dof=strongest[name][1],
+                delta_bic=delta_bic,
+                moved_translation_m=float(np.linalg.norm(largest[:3])),
+                moved_rotation_deg=float(np.degrees(np.linalg.norm(largest[3:6]))),
+                moved_time_offset_s=float(largest[6]),
+            )
+            for name in names
+        )
+        return WindowsEvident(tuple(new_runs), new_cfg, added)
+    return WindowsEvident(tuple(runs), cfg, ())
+
+
+def _refit_windows(
+    bag: Path,
+    runs: Sequence[CalibrationRun],
+    windows: Sequence[tuple[float, float]],
+    cfg: CalibConfig,
+    names: Sequence[str],
+    progress: Progress,
+) -> tuple[list[CalibrationRun], CalibConfig, float, np.ndarray] | None:
+    """Every window refitted from its estimate with ``names`` estimated too: the refits, their
+    configuration, the summed BIC change and the largest move of a window's extrinsic; None
+    when a refit failed, did not converge or failed the verdict where the window's fit did not,
+    or when together they do not pay."""
     new_cfg = estimating(cfg, names)
     logger.info(
         "Shown beyond doubt by a segment: %s; refitting every segment with %s estimated.",
@@ -96,40 +133,28 @@ def add_evident_to_windows(
             change = bic_change(new, window_cfg, run, _with_range(cfg, a, b - a), names)
         except LicalibError as exc:
             logger.warning("The refit of segment %.0f-%.0f s failed (%s).", a, b, exc)
-            return WindowsEvident(tuple(runs), cfg, ())
+            return None
         lost = new.checks.exit_status == "fail" and run.checks.exit_status == "ok"
         if new.checks.exit_status == "not converged" or lost:
             logger.info(
-                "Segment %.0f-%.0f s %s with %s estimated: the segments keep the configured model.",
+                "Segment %.0f-%.0f s %s with %s estimated.",
                 a,
                 b,
                 "did not converge" if not lost else "failed",
                 ", ".join(names),
             )
-            return WindowsEvident(tuple(runs), cfg, ())
+            return None
         delta_bic += change
         moves.append(extrinsic_of(run.state).moved_to(extrinsic_of(new.state)))
         new_runs.append(new)
     if not delta_bic < 0.0:
         logger.info("Estimating %s does not pay (BIC %+.1f).", ", ".join(names), delta_bic)
-        return WindowsEvident(tuple(runs), cfg, ())
+        return None
     largest = max(moves, key=lambda m: float(np.linalg.norm(m[:3])))
-    added = tuple(
-        AddedEffect(
-            effect=name,
-            statistic=stat,
-            dof=dof,
-            delta_bic=delta_bic,
-            moved_translation_m=float(np.linalg.norm(largest[:3])),
-            moved_rotation_deg=float(np.degrees(np.linalg.norm(largest[3:6]))),
-            moved_time_offset_s=float(largest[6]),
-        )
-        for name, (stat, dof) in strongest.items()
-    )
     logger.info(
         "%s estimated in every segment (BIC %+.1f); a segment's extrinsic moved up to %.2f mm.",
         ", ".join(names),
         delta_bic,
         1e3 * float(np.linalg.norm(largest[:3])),
     )
-    return WindowsEvident(tuple(new_runs), new_cfg, added)
+    return new_runs, new_cfg, delta_bic, largest

@@ -50,15 +50,17 @@ class _Window:
 
 
 def _install(
-    monkeypatch: pytest.MonkeyPatch, refits: dict[float, _Window], bic: float = -50.0
+    monkeypatch: pytest.MonkeyPatch, refits: dict, bic: float = -50.0
 ) -> list[tuple[float, tuple[str, ...]]]:
-    """Refits answered by window start; returns what was asked (start, LiDAR blocks)."""
+    """Refits answered by window start (or by (start, IMU blocks)); returns what was asked
+    (start, IMU and LiDAR blocks)."""
     asked: list[tuple[float, tuple[str, ...]]] = []
 
     def fit_and_check(prepared, start, cfg, progress, timer, *, warm):  # type: ignore[no-untyped-def]
         assert warm
-        asked.append((cfg.bag.start_s, tuple(cfg.model.lidar)))
-        return refits[cfg.bag.start_s]
+        asked.append((cfg.bag.start_s, (*cfg.model.imu, *cfg.model.lidar)))
+        key = (cfg.bag.start_s, tuple(cfg.model.imu))
+        return refits[key] if key in refits else refits[cfg.bag.start_s]
 
     monkeypatch.setattr(segments_evident, "fit_and_check", fit_and_check)
     monkeypatch.setattr(segments_evident, "bic_change", lambda *args: bic)
@@ -83,7 +85,7 @@ def test_a_window_that_did_not_converge_counts_and_every_window_is_refitted(
     windows = [_Window(0.30), _Window(0.20, "not converged", (offsets,))]
     asked = _install(monkeypatch, {0.0: _Window(0.301), 5.0: _Window(0.302)})
     out = _add(windows)
-    assert asked == [(0.0, ("range_offset",)), (5.0, ("range_offset",))]
+    assert asked == [(0.0, ("range_offset",)), (5.0, ("range_offset",))]  # one group
     assert out is not None and out.cfg.model.lidar == ["range_offset"]
     assert [r.tz for r in out.runs] == [0.301, 0.302]
     (added,) = out.added
@@ -107,3 +109,28 @@ def test_the_windows_keep_the_configured_model_when_a_refit_does_not_converge_or
     weak = scored_effect("lidar_range_offset", 0.5 * REFIT_STATISTIC_PER_DOF, rank=15)
     asked = _install(monkeypatch, {})
     assert _add([_Window(0.30, effects=(weak,))]) is None and asked == []
+
+
+def test_when_every_effect_together_fails_a_window_the_strongest_sensors_are_tried(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # a gyro-to-IMU rotation that one window (a shake) cannot tell from the extrinsic rotation
+    offsets = scored_effect("lidar_range_offset", 2 * STRONG, rank=15, shift_z_mm=0.0)
+    rotation = scored_effect("gyro_rotation", STRONG, shift_z_mm=0.0)
+    windows = [_Window(0.30, effects=(rotation,)), _Window(0.30, effects=(offsets,))]
+    asked = _install(
+        monkeypatch,
+        {
+            (0.0, ("gyro_rotation",)): _Window(0.31, "fail"),
+            0.0: _Window(0.301),
+            5.0: _Window(0.302),
+        },
+    )
+    out = _add(windows)
+    assert asked == [
+        (0.0, ("gyro_rotation", "range_offset")),
+        (0.0, ("range_offset",)),
+        (5.0, ("range_offset",)),
+    ]
+    assert out is not None and [a.effect for a in out.added] == ["lidar_range_offset"]
+    assert out.cfg.model.imu == [] and out.cfg.model.lidar == ["range_offset"]

@@ -1,9 +1,9 @@
 """Effects the data show beyond doubt, estimated (``licalib_cli.pipeline.evident``).
 
 The stage refits with every unmistakable effect estimated, keeps the refit when it pays its BIC
-(else tries the strongest alone), and goes on from the refit's checks; a refit that does not pay
-(or does not converge) ends the search and hands its estimate to the shift measurement; a fit
-whose rounds did not converge is refitted too. The fits
+(else tries those of the strongest's sensor, then the strongest alone), and goes on from the
+refit's checks; a refit that does not pay (or does not converge) ends the search and hands its
+estimate to the shift measurement; a fit whose rounds did not converge is refitted too. The fits
 here are stand-ins: the stage's own decisions are what is tested (the end-to-end run on a
 simulated bag is in ``tests/integration/test_checks_e2e.py``).
 """
@@ -157,6 +157,48 @@ def test_when_the_group_does_not_pay_the_strongest_alone_is_tried(
     out = _add(base)
     assert refits.asked == [("accel_scale", "range_offset"), ("accel_scale",)]
     assert out.run is alone and [a.effect for a in out.added] == ["accel_scale"]
+
+
+def test_a_group_that_fails_is_followed_by_the_strongest_sensors_effects_together(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # a gyro-to-IMU rotation on a shake that hardly tilted leaves the extrinsic rotation
+    # undetermined: the per-beam errors shown with it are refitted without it
+    base = _Run(
+        0.30,
+        (
+            _evidence("lidar_range_offset", 4 * STRONG, rank=16),
+            _evidence("gyro_rotation", 2 * STRONG),
+            _evidence("lidar_elevation", STRONG, rank=15),
+        ),
+    )
+    failed = _Run(0.31, status="fail", reasons=("The data determine only 1 of the 7 ...",))
+    lidar = _Run(0.32)
+    refits = _Refits(
+        {
+            ("gyro_rotation", "range_offset", "elevation"): (failed, -9e4),
+            ("range_offset", "elevation"): (lidar, -8e4),
+        }
+    )
+    refits.install(monkeypatch)
+    out = _add(base)
+    assert refits.asked == [
+        ("gyro_rotation", "range_offset", "elevation"),
+        ("range_offset", "elevation"),
+    ]
+    assert out.run is lidar
+    assert [a.effect for a in out.added] == ["lidar_range_offset", "lidar_elevation"]
+    # the strongest's sensor shows nothing else: its group is the strongest alone, tried once
+    only = _Run(
+        0.30, (_evidence("accel_scale", 2 * STRONG), _evidence("lidar_azimuth", STRONG, 15))
+    )
+    refits = _Refits(
+        {("accel_scale", "azimuth"): (failed, -9e4), ("accel_scale",): (_Run(0.31), +3.0)}
+    )
+    refits.install(monkeypatch)
+    out = _add(only)
+    assert refits.asked == [("accel_scale", "azimuth"), ("accel_scale",)]
+    assert out.added == () and out.declined is not None and out.declined[0] == "accel_scale"
 
 
 def test_a_refit_that_does_not_pay_is_declined_and_its_estimate_kept_for_the_shift(
