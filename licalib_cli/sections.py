@@ -182,12 +182,14 @@ class Uncertainty(Section):
 
 @dataclass(frozen=True)
 class Observability(Section):
-    """Spectrum of the scaled calibration information and the truncated directions."""
+    """Spectrum of the scaled calibration information, the truncated directions and the
+    weakly determined ones (below the threshold, estimated, their sigma reported)."""
 
     scaling: str
     threshold: float
     singular_values: tuple[float, ...]
     unobservable: tuple[str, ...] = ()
+    weakly_determined: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -468,7 +470,8 @@ class Consistency(Section):
         ):
             if not items:
                 continue
-            u = items[0]
+            # as the result file holds it: a report made from the file says the same
+            u = UncheckedPriorCheck.from_dict(items[0].to_dict())
             of = "" if u.assumed else f" (prior {u.prior:.2g})"
             shown = (
                 f"{u.name} shows from {u.detectable:.2g} {u.unit}{of}"

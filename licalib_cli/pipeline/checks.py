@@ -211,6 +211,7 @@ def observability_of(report: SolverReport, resting: Sequence[OnPrior] = ()) -> O
         threshold=float(report.tsvd_threshold),
         singular_values=tuple(float(f"{s:.6g}") for s in report.singular_values),
         unobservable=tuple(d.text for d in report.truncated) + tuple(r.text for r in resting),
+        weakly_determined=tuple(d.text for d in report.weak),
     )
 
 
@@ -343,11 +344,17 @@ def extrinsic_truncated(
     """The truncated directions of ``report`` that move the extrinsic, and the blocks of
     :data:`ACCELEROMETER_FRAME_BLOCKS` any of them turns with the extrinsic rotation
     (:func:`accelerometer_frame_partners`), in that mapping's order."""
-    directions = tuple(
-        d for d in report.truncated if any(b.startswith("ext.") for b, _ in d.blocks)
-    )
-    found = {b for d in directions for b in accelerometer_frame_partners(report, d)}
-    return directions, tuple(b for b in ACCELEROMETER_FRAME_BLOCKS if b in found)
+    return _moving_extrinsic(report, report.truncated)
+
+
+def _moving_extrinsic(
+    report: SolverReport, directions: Sequence[DirectionDescription]
+) -> tuple[tuple[DirectionDescription, ...], tuple[str, ...]]:
+    """Those of ``directions`` that move the extrinsic, and the blocks of
+    :data:`ACCELEROMETER_FRAME_BLOCKS` any of them turns with the extrinsic rotation."""
+    moving = tuple(d for d in directions if any(b.startswith("ext.") for b, _ in d.blocks))
+    found = {b for d in moving for b in accelerometer_frame_partners(report, d)}
+    return moving, tuple(b for b in ACCELEROMETER_FRAME_BLOCKS if b in found)
 
 
 def _blocks_said(partners: Sequence[str], which: int = 0) -> str:
@@ -392,6 +399,28 @@ def _observability(report: SolverReport, prior: Mapping[str, float]) -> list[Fin
                 "measurement (initialization.translation_m, rotation_rpy_deg, time_offset_s).",
             )
         )
+    weak, weak_partners = _moving_extrinsic(report, report.weak)
+    if weak:
+        # estimated, its sigma reported: but from information below the threshold, where a
+        # linearisation says less, so never a PASS
+        out.extend(
+            Finding(
+                "warn",
+                f"Weakly determined by this data: {d.text}; its sigmas rest on little information.",
+            )
+            for d in weak
+        )
+        if not ext_truncated:
+            out.append(
+                Finding(
+                    "warn",
+                    accelerometer_frame_advice(weak_partners)
+                    if weak_partners
+                    else "Record with rotation about more axes, or set what is weakly "
+                    "determined from a measurement (initialization.translation_m, "
+                    "rotation_rpy_deg, time_offset_s).",
+                )
+            )
     ext = [n for n in report.calibration_names if n.startswith("ext.")]
     n_observable = int(np.count_nonzero(data_determined(report, prior, ext))) if ext else 0
     if ext and n_observable < (len(ext) + 1) // 2:

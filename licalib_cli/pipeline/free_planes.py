@@ -540,6 +540,8 @@ def planes_free_steps_from(
             gauge_hold(layout),
             tsvd_threshold=lm.tsvd_threshold if lm.use_tsvd else 0.0,
             tsvd_relative=lm.tsvd_relative,
+            weak_floor=lm.weak_floor,
+            bounded_blocks=lm.bounded_blocks,
         )
         last_step[:] = [(lin, step)]
 

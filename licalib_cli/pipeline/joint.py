@@ -699,9 +699,15 @@ def _joint_result(
         reasons.append(f"Joint estimate: {finding.text}")
     truncated = tuple(d.text for d in report.truncated)
     not_observable = joint_truncation_reasons(report)
-    if not_observable:
+    weak = [
+        f"Weakly determined by the segments together: {d.text}; its sigmas rest on little "
+        "information."
+        for d in report.weak
+        if any(b.startswith("ext.") for b, _ in d.blocks)
+    ]
+    if not_observable or weak:
         worst = "warn" if worst == "pass" else worst
-        reasons += not_observable
+        reasons += not_observable + weak
     reasons += [f"Rests on the prior (joint estimate): {r.text}." for r in resting]
     if np.any(own_grow > 1.005) or np.any(scatter > 1.005):
         reasons.append(
@@ -759,6 +765,7 @@ def _joint_result(
             threshold=float(report.tsvd_threshold),
             singular_values=tuple(float(s) for s in report.singular_values),
             unobservable=truncated + tuple(r.text for r in resting),
+            weakly_determined=tuple(d.text for d in report.weak),
         ),
         verdict=VerdictSection(worst, tuple(reasons)),
         segments=section,

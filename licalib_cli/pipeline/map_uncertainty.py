@@ -122,12 +122,16 @@ def map_uncertainty(
 
 
 def _sigma_ratio(s_plain: F64, s_marg: F64, scale: F64, report: SolverReport) -> F64:
-    """Per coordinate ``sigma_marg / sigma_plain`` within the solver's kept directions."""
+    """Per coordinate ``sigma_marg / sigma_plain`` within the solver's kept directions (those
+    above the threshold and its weakly determined ones)."""
     d = np.asarray(scale, dtype=np.float64)
     plain_d = d[:, None] * s_plain * d[None, :]
     marg_d = d[:, None] * s_marg * d[None, :]
     vals, vecs = np.linalg.eigh(0.5 * (plain_d + plain_d.T))
     keep = vals > max(float(report.tsvd_threshold), 1e-12 * max(float(vals.max(initial=0.0)), 1.0))
+    if report.weak:  # the same linearisation: each weak direction is one of these vectors
+        weak = np.stack([w.vector for w in report.weak], axis=1)
+        keep |= np.max(np.abs(vecs.T @ weak), axis=1) > 0.9
     out = np.ones(d.shape[0])
     if not np.any(keep):
         return out

@@ -17,7 +17,9 @@ Each iteration solves the damped normal equations ``(H + lambda diag(D)) dx = -g
    damped system restricted to them: ``dx_c = D U_l (U_l^T (S_d + lambda D_c') U_l)^-1 U_l^T D
    b``, which is the paper's ``sum_{i<=l} u_i^T b u_i / s_i`` at ``lambda = 0``. The
    calibration step has no component along truncated directions (in the scaled metric): those
-   stay at their current value.
+   stay at their current value. A direction below the threshold but at least
+   ``LMParams.weak_floor`` of it and made mostly of the extrinsic is weakly determined: kept,
+   its standard deviation reported (:func:`weak_mask`).
 4. Back-substitute the trajectory step, retract every block, and accept the step when the actual
    cost reduction is at least ``1e-3`` of the reduction predicted by the quadratic model; update
    ``lambda`` as in Nielsen (1999).
@@ -49,9 +51,11 @@ from licalib_cli.solver.observability import (
     DirectionDescription,
     InformationSummary,
     describe_direction,
+    mostly_free,
     summarize_information,
     truncation_mask,
     undamped_schur_system,
+    weak_directions,
 )
 from licalib_cli.solver.problem import Evaluation, Linearization, Problem
 from licalib_cli.solver.schur import schur_complement
@@ -64,10 +68,12 @@ __all__ = [
     "SolverReport",
     "Step",
     "compute_step",
+    "kept_mask",
     "observable_basis",
     "observable_coordinates",
     "solve",
     "solve_with_linearization",
+    "weak_mask",
     "widen_along_truncated",
 ]
 
@@ -78,6 +84,12 @@ logger = logging.getLogger(__name__)
 NOT_OBSERVABLE_WEIGHT = 1e-4
 """A coordinate whose squared components over the truncated directions sum to at least this is
 reported as not observable."""
+
+_WEAK_VERDICT = (
+    "weakly determined by the data (singular value {:.2f}, below the threshold: one standard "
+    "deviation of {:.1f} characteristic scales along it, which the sigmas include)"
+)
+"""How a weakly determined direction is described (``LMParams.weak_floor``)."""
 
 _MOVED_VERDICT = (
     "not determined by the data (held in the last step); the fit moved the estimate {:.1f} "
@@ -115,14 +127,11 @@ class LMParams:
         tsvd_threshold: ``epsilon`` on the singular values of the scaled Schur complement
             ``S_d``; absolute by default (1.0 = standard deviation of one characteristic scale).
         tsvd_relative: Interpret ``tsvd_threshold`` as a fraction of the largest singular value.
-        release_sigmas: A direction below the threshold is still stepped along when the data
-            pull the estimate along it by at least this many of its own standard deviations
-            (``|u . b| / sqrt(s)`` in scaled coordinates): the estimate then sits far from
-            where the data put it, and holding it there costs more than the direction's weak
-            information (0 never releases). The report still names it as truncated.
-        release_floor: ... and only when its singular value is at least this fraction of the
-            threshold (a direction the data hardly see is never released) and it lies mostly
-            outside ``bounded_blocks``.
+        weak_floor: A direction below the threshold whose singular value is at least this
+            fraction of it and which lies mostly outside ``bounded_blocks`` (the extrinsic, the
+            time offset) is weakly determined: estimated like the others, its standard deviation
+            (1 to ``1 / sqrt(weak_floor)`` characteristic scales) in the sigmas, and named in
+            the report's ``weak`` (0: every direction below the threshold is truncated).
         bounded_blocks: Prefixes of calibration blocks whose coordinates are known a priori to
             within their characteristic scale (the intrinsics): a truncated direction made
             mostly of them adds that much uncertainty to the coordinates it touches instead of
@@ -143,8 +152,7 @@ class LMParams:
     use_tsvd: bool = True
     tsvd_threshold: float = 1.0
     tsvd_relative: bool = False
-    release_sigmas: float = 5.0
-    release_floor: float = 0.1
+    weak_floor: float = 0.1
     bounded_blocks: tuple[str, ...] = (
         "imu.gyro_",
         "imu.accel_scale",
@@ -227,6 +235,8 @@ class SolverReport:
             pseudo-inverse of the undamped Schur complement (zero along truncated directions).
         truncated_weight: (Nc,) share of each coordinate (scaled) lying in truncated
             directions: near 1 for a coordinate the data do not determine at all.
+        weak: Weakly determined directions (below the threshold, estimated, their standard
+            deviation in the sigmas: ``LMParams.weak_floor``), weakest first.
     """
 
     status: Literal["converged", "max_iterations", "failed"]
@@ -249,6 +259,7 @@ class SolverReport:
     elapsed_s: float
     covariance: F64 = field(default_factory=lambda: np.zeros((0, 0)))
     truncated_weight: F64 = field(default_factory=lambda: np.zeros(0))
+    weak: tuple[DirectionDescription, ...] = ()
 
     @property
     def converged(self) -> bool:
@@ -280,30 +291,12 @@ def _damping_diagonal(diag: F64, params: LMParams) -> F64:
     return np.clip(diag, params.min_diagonal, params.max_diagonal)
 
 
-def observable_basis(
-    information: InformationSummary, params: LMParams, gradient: F64 | None = None
-) -> F64:
-    """Directions the TSVD keeps, decided on the undamped information.
-
-    With ``gradient`` (the undamped reduced right-hand side ``b``, own units) a direction below
-    the threshold is kept too when the data pull the estimate along it by at least
-    ``params.release_sigmas`` of its standard deviations, its singular value at least
-    ``params.release_floor`` of the threshold, and it is made mostly of coordinates outside
-    ``params.bounded_blocks`` (the extrinsic, the time offset). Holding such a direction keeps
-    the estimate far from where the data put it: on a 10 s OS1-64 shake with a gyro-to-IMU
-    rotation of 4.5 deg estimated, the extrinsic rotation along its weakest direction (singular
-    value 0.3-0.8, one standard deviation 1.1-1.9 characteristic scales) was held some 54 scales
-    from where the data put it (3.1 deg off); released (the data pulled 25-38 of its standard
-    deviations), it ended 0.20 deg off. A direction of the intrinsics is not released: they
-    start at their nominal values, known to their characteristic scale, and a pull far beyond
-    that came from what the model lacked (a 10 s OS1-64 shake with per-beam horizontal offsets:
-    the beams' common offset, pulled 5.8 standard deviations in the refit that added them, then
-    0.050 deg off in the extrinsic rotation instead of 0.012).
+def observable_basis(information: InformationSummary, params: LMParams) -> F64:
+    """Directions the TSVD keeps (:func:`kept_mask`), decided on the undamped information.
 
     Args:
         information: Undamped scaled calibration information (:func:`undamped_schur`).
-        params: Solver settings (TSVD threshold, release).
-        gradient: (Nc,) undamped reduced right-hand side, or None (no release).
+        params: Solver settings (TSVD threshold, weak floor).
 
     Returns:
         (Nc, l) orthonormal columns in scaled coordinates: the singular vectors kept (all
@@ -311,39 +304,50 @@ def observable_basis(
     """
     if not params.use_tsvd:
         return np.eye(information.singular_values.size)
-    s, u = information.singular_values, information.singular_vectors
-    keep = truncation_mask(s, params.tsvd_threshold, relative=params.tsvd_relative)
-    if gradient is not None and params.release_sigmas > 0.0 and not np.all(keep):
-        weak = ~keep & truncation_mask(s, params.release_floor * _absolute_threshold(s, params))
-        # intrinsics start at their nominal values, known a priori to their characteristic
-        # scale: a pull far beyond that is the model's error, not their information
-        weak &= _mostly_free(u, information.owners, params.bounded_blocks)
-        pull = np.abs(u.T @ (information.scale * gradient)) / np.sqrt(np.maximum(s, 1e-300))
-        released = weak & (pull >= params.release_sigmas)
-        for i in np.flatnonzero(released):
-            logger.debug(
-                "released along a direction below the threshold (singular value %.3g): the data "
-                "pull the estimate %.1f of its standard deviations along it",
-                s[i],
-                pull[i],
-            )
-        keep = keep | released
-    return u[:, keep]
+    return information.singular_vectors[:, kept_mask(information, params)]
+
+
+def kept_mask(information: InformationSummary, params: LMParams) -> npt.NDArray[np.bool_]:
+    """(Nc,) which singular directions of ``information`` the TSVD keeps: those above the
+    threshold, and the weakly determined ones (:func:`weak_mask`)."""
+    s = information.singular_values
+    return truncation_mask(s, params.tsvd_threshold, relative=params.tsvd_relative) | weak_mask(
+        information, params
+    )
+
+
+def weak_mask(information: InformationSummary, params: LMParams) -> npt.NDArray[np.bool_]:
+    """(Nc,) the weakly determined singular directions of ``information``: below the threshold,
+    at least ``params.weak_floor`` of it, made mostly of coordinates outside
+    ``params.bounded_blocks`` (the extrinsic, the time offset).
+
+    Such a direction is estimated and its standard deviation (1 to ``1 / sqrt(weak_floor)``
+    characteristic scales) reported. Held, it kept the estimate where the fit left it: on a
+    10 s OS1-64 shake with the simulator's intrinsic errors and the gyro-to-IMU rotation
+    estimated, the extrinsic rotation along the direction it trades with that rotation had a
+    singular value of 0.77; held, the result failed as not determined (and without the gyro
+    rotation it was 25 mm / 0.96 deg off); estimated, 3.6 mm / 0.066 deg off within 1.7 of its
+    sigmas. A direction of the intrinsics is truncated below the threshold: they start at their
+    nominal values, known to their characteristic scale, and a pull far beyond that came from
+    what the model lacked (a 10 s OS1-64 shake with per-beam horizontal offsets: the beams'
+    common offset, pulled 5.8 standard deviations in the refit that added them, then 0.050 deg
+    off in the extrinsic rotation instead of 0.012).
+    """
+    s = information.singular_values
+    return weak_directions(
+        s,
+        information.singular_vectors,
+        information.owners,
+        _absolute_threshold(s, params),
+        floor=params.weak_floor if params.use_tsvd else 0.0,
+        bounded_blocks=params.bounded_blocks,
+    )
 
 
 def _absolute_threshold(singular_values: F64, params: LMParams) -> float:
     """``params.tsvd_threshold`` in singular-value units (times the largest when relative)."""
     s = singular_values
     return params.tsvd_threshold * (float(s[0]) if params.tsvd_relative and s.size else 1.0)
-
-
-def _mostly_free(
-    directions: F64, owners: Sequence[str], bounded_blocks: Sequence[str]
-) -> npt.NDArray[np.bool_]:
-    """(k,) whether each unit direction (columns of ``directions``, scaled coordinates) is made
-    mostly of coordinates outside ``bounded_blocks`` (the extrinsic, the time offset)."""
-    bounded = np.array([any(o.startswith(p) for p in bounded_blocks) for o in owners], dtype=bool)
-    return np.asarray(np.sum(directions[bounded] ** 2, axis=0) < 0.5)
 
 
 def _undamped_information(lin: Linearization) -> InformationSummary:
@@ -370,8 +374,8 @@ def _kept_basis(
     """The undamped information (None without the TSVD) and the directions a step may take."""
     if not params.use_tsvd:
         return None, None
-    info, b = _undamped(lin)
-    return info, observable_basis(info, params, b)
+    info, _ = _undamped(lin)
+    return info, observable_basis(info, params)
 
 
 def compute_step(
@@ -578,7 +582,20 @@ def _report(
 ) -> SolverReport:
     layout = lin.layout
     s, u = info.singular_values, info.singular_vectors
-    keep = truncation_mask(s, params.tsvd_threshold, relative=params.tsvd_relative)
+    keep = (
+        kept_mask(info, params)
+        if params.use_tsvd
+        else truncation_mask(s, params.tsvd_threshold, relative=params.tsvd_relative)
+    )
+    weak = tuple(
+        describe_direction(
+            u[:, i],
+            layout.calibration_names,
+            layout.calibration_owner,
+            verdict=_WEAK_VERDICT.format(s[i], 1.0 / math.sqrt(s[i])),
+        )
+        for i in np.flatnonzero(weak_mask(info, params))[::-1]
+    )
     verdict = (
         "unobservable, not estimated (stays near its initial value)"
         if params.use_tsvd
@@ -631,6 +648,7 @@ def _report(
         elapsed_s=time.perf_counter() - start,
         covariance=covariance,
         truncated_weight=np.sum(trunc**2, axis=1) if trunc.size else np.zeros(len(owners)),
+        weak=weak,
     )
 
 
@@ -657,7 +675,7 @@ def observable_coordinates(
     """
     if truncated.size == 0:
         return np.ones(len(owners), dtype=bool), np.zeros(0, dtype=bool)
-    free = _mostly_free(truncated, owners, bounded_blocks)
+    free = mostly_free(truncated, owners, bounded_blocks)
     weight = np.sum(truncated[:, free] ** 2, axis=1)
     return weight < NOT_OBSERVABLE_WEIGHT, free
 

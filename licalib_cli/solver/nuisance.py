@@ -51,7 +51,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from licalib_cli.parallel.threads import map_blocks
-from licalib_cli.solver.observability import truncation_mask
+from licalib_cli.solver.observability import truncation_mask, weak_directions
 from licalib_cli.solver.problem import Evaluation, Layout, Linearization, Problem
 from licalib_cli.solver.schur import _BandedCholesky, _sparse_lu_solver, _trajectory_diagonal
 
@@ -503,6 +503,8 @@ def segmented_nuisance_step(
     *,
     tsvd_threshold: float = 1.0,
     tsvd_relative: bool = False,
+    weak_floor: float = 0.0,
+    bounded_blocks: Sequence[str] = (),
 ) -> NuisanceStep:
     """The Gauss-Newton step over trajectory, calibration and nuisance, segment by segment.
 
@@ -524,6 +526,9 @@ def segmented_nuisance_step(
             coordinates.
         tsvd_threshold: Smallest scaled information of a calibration direction that moves.
         tsvd_relative: ``tsvd_threshold`` is relative to the largest.
+        weak_floor, bounded_blocks: below the threshold, a weakly determined direction moves
+            too (:func:`~licalib_cli.solver.observability.weak_directions`, the solver's
+            ``LMParams.weak_floor``); 0: none.
 
     Returns:
         The step; ``dp`` holds every segment's groups in turn.
@@ -546,7 +551,17 @@ def segmented_nuisance_step(
         scale = np.asarray(lin.layout.calibration_scale, dtype=np.float64)
         s_d = scale[:, None] * s_c * scale[None, :]
         vals, vecs = np.linalg.eigh(0.5 * (s_d + s_d.T))
-        keep = truncation_mask(np.clip(vals, 0.0, None), tsvd_threshold, relative=tsvd_relative)
+        vals = np.clip(vals, 0.0, None)
+        keep = truncation_mask(vals, tsvd_threshold, relative=tsvd_relative)
+        absolute = tsvd_threshold * (float(vals.max(initial=0.0)) if tsvd_relative else 1.0)
+        keep |= weak_directions(
+            vals,
+            vecs,
+            lin.layout.calibration_owner,
+            absolute,
+            floor=weak_floor,
+            bounded_blocks=bounded_blocks,
+        )
         num_truncated = int(nc - np.count_nonzero(keep))
         u = vecs[:, keep]
         dc = scale * (u @ ((u.T @ (scale * b_c)) / vals[keep]))
@@ -581,6 +596,8 @@ def nuisance_step(
     *,
     tsvd_threshold: float = 1.0,
     tsvd_relative: bool = False,
+    weak_floor: float = 0.0,
+    bounded_blocks: Sequence[str] = (),
 ) -> NuisanceStep:
     """The Gauss-Newton step over trajectory, calibration and nuisance.
 
@@ -597,6 +614,7 @@ def nuisance_step(
         hold: Trajectory coordinates (reduced indices) held fixed: the shared gauge.
         tsvd_threshold: Smallest scaled information of a calibration direction that moves.
         tsvd_relative: ``tsvd_threshold`` is relative to the largest.
+        weak_floor, bounded_blocks: as :func:`segmented_nuisance_step`.
 
     Returns:
         The step.
@@ -607,5 +625,10 @@ def nuisance_step(
     held = np.unique(np.asarray(hold, dtype=np.intp).reshape(-1))
     whole = NuisanceSegment(np.arange(lin.layout.num_trajectory), terms, held)
     return segmented_nuisance_step(
-        lin, [whole], tsvd_threshold=tsvd_threshold, tsvd_relative=tsvd_relative
+        lin,
+        [whole],
+        tsvd_threshold=tsvd_threshold,
+        tsvd_relative=tsvd_relative,
+        weak_floor=weak_floor,
+        bounded_blocks=bounded_blocks,
     )

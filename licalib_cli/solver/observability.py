@@ -39,11 +39,13 @@ __all__ = [
     "calibration_information",
     "describe_direction",
     "marginal_information",
+    "mostly_free",
     "summarize_information",
     "summed_information",
     "truncation_mask",
     "undamped_schur",
     "undamped_schur_system",
+    "weak_directions",
 ]
 
 F64 = npt.NDArray[np.float64]
@@ -153,6 +155,35 @@ def describe_direction(
             parts.append(f"{b} ({', '.join(f'{names[i]} {v[i]:+.2f}' for i in listed)})")
     text = f"{' + '.join(parts)}: {verdict}" if verdict else " + ".join(parts)
     return DirectionDescription(v, components, tuple(ranked), text)
+
+
+def mostly_free(
+    directions: F64, owners: Sequence[str], bounded_blocks: Sequence[str]
+) -> npt.NDArray[np.bool_]:
+    """(k,) whether each unit direction (columns of ``directions``, scaled coordinates) is made
+    mostly of coordinates outside ``bounded_blocks`` (the extrinsic, the time offset)."""
+    bounded = np.array([any(o.startswith(p) for p in bounded_blocks) for o in owners], dtype=bool)
+    return np.asarray(np.sum(directions[bounded] ** 2, axis=0) < 0.5)
+
+
+def weak_directions(
+    singular_values: npt.ArrayLike,
+    vectors: F64,
+    owners: Sequence[str],
+    threshold: float,
+    *,
+    floor: float,
+    bounded_blocks: Sequence[str],
+) -> npt.NDArray[np.bool_]:
+    """Which singular directions are weakly determined: below ``threshold`` (absolute), at
+    least ``floor`` of it, made mostly of coordinates outside ``bounded_blocks``
+    (:func:`mostly_free`). The solver estimates them and reports their standard deviation
+    (``LMParams.weak_floor``); all False when ``floor`` is 0."""
+    s = np.asarray(singular_values, dtype=np.float64)
+    if floor <= 0.0 or s.size == 0:
+        return np.zeros(s.size, dtype=bool)
+    weak = ~truncation_mask(s, threshold) & truncation_mask(s, floor * threshold)
+    return weak & mostly_free(vectors, owners, bounded_blocks)
 
 
 def truncation_mask(

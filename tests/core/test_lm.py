@@ -9,7 +9,7 @@ residuals), and through a sensor with an unknown rotation (so3), translation and
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
@@ -463,7 +463,7 @@ class WeakResidual:
 
 def _weak_problem(pull_sigmas: float, sigma: float = np.sqrt(2.0)) -> Problem:
     """``weak`` (scale 1) with information 1 / sigma^2 (0.5: below the threshold of 1, above
-    its release floor), its measurement ``pull_sigmas`` standard deviations from the start."""
+    its weak floor), its measurement ``pull_sigmas`` standard deviations from the start."""
     n = 5
     pr = Problem()
     pr.add_parameter_block(ParameterBlock("chain", np.zeros((n, 1))))
@@ -472,27 +472,29 @@ def _weak_problem(pull_sigmas: float, sigma: float = np.sqrt(2.0)) -> Problem:
     return pr
 
 
-def test_a_weak_direction_far_from_where_the_data_put_it_is_released() -> None:
-    """Below the threshold but seen by the data: held when the data pull it by less than
-    ``release_sigmas`` of its standard deviations, stepped along (and still reported as
-    truncated) when they pull it by more; a direction under the release floor is always held."""
+def test_a_weak_direction_is_estimated_and_its_sigma_reported() -> None:
+    """Below the threshold but above its weak floor, made of the extrinsic-like (unbounded)
+    block: estimated where the data put it, its standard deviation reported and the direction
+    named as weak; held and not observable with ``weak_floor=0``, under the floor, or made of a
+    bounded block (an intrinsic)."""
     params = LMParams(max_iterations=20, tsvd_threshold=1.0)
-    far = _weak_problem(20.0)
-    report = solve(far, params)
-    assert float(far["weak"].value) == pytest.approx(0.5 + 20.0 * np.sqrt(2.0), abs=0.05)
-    assert len(report.truncated) == 1 and not report.observable[0]  # the report still says so
-    near = _weak_problem(3.0)
-    solve(near, params)
-    assert float(near["weak"].value) == 0.5
-    never = _weak_problem(20.0)
-    solve(never, LMParams(max_iterations=20, tsvd_threshold=1.0, release_sigmas=0.0))
-    assert float(never["weak"].value) == 0.5
-    hardly = _weak_problem(20.0, sigma=10.0)  # information 0.01, under the floor of 0.1
-    solve(hardly, params)
-    assert float(hardly["weak"].value) == 0.5
-    intrinsic = _weak_problem(20.0)  # a bounded block (an intrinsic) is held at its start
-    solve(intrinsic, LMParams(max_iterations=20, tsvd_threshold=1.0, bounded_blocks=("weak",)))
-    assert float(intrinsic["weak"].value) == 0.5
+    for pull in (20.0, 3.0):
+        weak = _weak_problem(pull)
+        report = solve(weak, params)
+        assert float(weak["weak"].value) == pytest.approx(0.5 + pull * np.sqrt(2.0), abs=0.05)
+        assert report.truncated == () and bool(report.observable[0])
+        assert report.std[0] == pytest.approx(np.sqrt(2.0), rel=1e-3)
+        (named,) = report.weak
+        assert "weakly determined" in named.text and "singular value 0.50" in named.text
+    for problem, held in (
+        (_weak_problem(20.0), replace(params, weak_floor=0.0)),
+        (_weak_problem(20.0, sigma=10.0), params),  # information 0.01, under the floor of 0.1
+        (_weak_problem(20.0), replace(params, bounded_blocks=("weak",))),
+    ):
+        report = solve(problem, held)
+        assert float(problem["weak"].value) == 0.5
+        assert len(report.truncated) == 1 and report.weak == ()
+    assert not solve(_weak_problem(20.0), replace(params, weak_floor=0.0)).observable[0]
 
 
 # --------------------------------------------------------------------------- Monte Carlo stds

@@ -65,6 +65,7 @@ def _report(moved: dict[str, float], names: list[str]) -> Any:
         information=SimpleNamespace(scale=scale, owners=tuple(n.rsplit(".", 1)[0] for n in names)),
         truncated=(direction,),
         observable=observable,
+        weak=(),
     )
     return SolverReport(**fields)
 
@@ -162,3 +163,36 @@ def test_the_joint_verdict_of_segments_gives_the_same_advice() -> None:
     # a truncated direction that leaves the extrinsic alone is not a reason
     gyro_only = {f"{GYRO_ROTATION}.rx": 1e-3}
     assert joint_truncation_reasons(_report(gyro_only, EXT + GYRO)) == []
+
+
+def test_a_weakly_determined_extrinsic_direction_warns_and_is_listed() -> None:
+    """Below the threshold but estimated (``LMParams.weak_floor``): the coordinates keep their
+    sigmas (no FAIL for undetermined coordinates), the verdict warns with the direction and the
+    same advice on what would determine it, and the result lists it apart from the truncated."""
+    from dataclasses import replace
+
+    from licalib_cli.pipeline.checks import observability_of
+
+    moved = {**TILT, f"{GYRO_ROTATION}.rx": 0.25e-3, f"{GYRO_ROTATION}.ry": -0.96e-3, TZ: -3e-4}
+    truncated = _report(moved, EXT + GYRO)
+    (direction,) = truncated.truncated
+    report = replace(
+        truncated,
+        truncated=(),
+        weak=(direction,),
+        observable=np.ones(len(EXT + GYRO), dtype=bool),
+        tsvd_threshold=1.0,
+        scaling="s",
+        singular_values=np.ones(len(EXT + GYRO)),
+    )
+    found = _observability(report, {})
+    assert [f.severity for f in found] == ["warn", "warn"]
+    assert found[0].text == (
+        f"Weakly determined by this data: {direction.text}; its sigmas rest on little information."
+    )
+    assert found[1].text == accelerometer_frame_advice((GYRO_ROTATION,))
+    assert not any("determine only" in f.text for f in found)
+    section = observability_of(report)
+    assert section.weakly_determined == (direction.text,) and section.unobservable == ()
+    # the truncated direction alone: not observable, and a FAIL for the undetermined extrinsic
+    assert any(f.severity == "fail" for f in _observability(truncated, {}))
