@@ -351,21 +351,15 @@ def _absolute_threshold(singular_values: F64, params: LMParams) -> float:
 
 
 def _undamped_information(lin: Linearization) -> InformationSummary:
-    return _undamped(lin)[0]
-
-
-def _undamped(lin: Linearization) -> tuple[InformationSummary, F64]:
-    """The undamped scaled information and the reduced right-hand side ``b`` (own units)."""
+    """The undamped scaled calibration information."""
     layout = lin.layout
-    system = undamped_schur_system(lin)
-    info = summarize_information(
-        system.S,
+    return summarize_information(
+        undamped_schur_system(lin).S,
         layout.calibration_names,
         layout.calibration_owner,
         layout.calibration_scale,
         lin.num_residuals,
     )
-    return info, system.b
 
 
 def _kept_basis(
@@ -374,7 +368,7 @@ def _kept_basis(
     """The undamped information (None without the TSVD) and the directions a step may take."""
     if not params.use_tsvd:
         return None, None
-    info, _ = _undamped(lin)
+    info = _undamped_information(lin)
     return info, observable_basis(info, params)
 
 
