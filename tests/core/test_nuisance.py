@@ -267,6 +267,34 @@ def test_nuisance_step_holds_the_directions_the_joint_information_does_not_deter
     assert step.predicted_reduction > 0.0
 
 
+def test_nuisance_step_moves_along_a_weakly_determined_direction_as_the_solver_does() -> None:
+    """Below the threshold but above its weak floor and made of unbounded coordinates (the
+    solver's ``LMParams.weak_floor``): the step moves along it, as with the threshold lowered
+    under it; the same direction made of bounded ones (intrinsics) is held."""
+    pr, block = make_problem(9, 900, 1, False, None)
+    jac_p, group = _nuisance(np.random.default_rng(3), 900)
+    evaluation, layout, *_ = _dense_full(pr, block, None, jac_p, group)
+    lin = pr.linearize(evaluation, layout)
+    terms = nuisance_terms(pr, evaluation, layout, 0, jac_p, group, NUM_GROUPS)
+    scale = layout.calibration_scale
+    vals = np.linalg.eigvalsh(scale[:, None] * marginal_schur(lin, terms) * scale[None, :])
+    k = vals.size // 2
+    threshold = float(0.5 * (vals[k - 1] + vals[k]))
+    below = float(0.5 * (vals[k - 2] + vals[k - 1]))  # one direction between it and the threshold
+    floor = below / threshold
+    weak = nuisance_step(lin, terms, tsvd_threshold=threshold, weak_floor=floor)
+    lowered = nuisance_step(lin, terms, tsvd_threshold=below)
+    held = nuisance_step(lin, terms, tsvd_threshold=threshold)
+    assert weak.num_truncated == lowered.num_truncated == held.num_truncated - 1
+    np.testing.assert_allclose(weak.dx, lowered.dx, rtol=1e-9, atol=1e-12)
+    owners = tuple(layout.calibration_owner)
+    bounded = nuisance_step(
+        lin, terms, tsvd_threshold=threshold, weak_floor=floor, bounded_blocks=owners
+    )
+    assert bounded.num_truncated == held.num_truncated
+    np.testing.assert_allclose(bounded.dx, held.dx, rtol=1e-9, atol=1e-12)
+
+
 def test_nuisance_step_needs_the_gradient() -> None:
     pr, _ = make_problem(8, 600, 1, False, None)
     evaluation = pr.evaluate()
