@@ -155,6 +155,8 @@ def render_run(run: CalibrationRun, truth: Truth | None) -> None:
     if r.observability is not None:
         for text in unobservable_lines(r.observability.unobservable):
             out.print(f"[yellow]Not observable:[/] {escape(text)}")
+        for text in r.observability.weakly_determined:
+            out.print(f"[yellow]Weakly determined:[/] {escape(text)}")
     for finding in run.checks.findings:
         if finding.severity == "note":
             out.print(f"Note: {escape(finding.text)}")

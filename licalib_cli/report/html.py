@@ -321,7 +321,9 @@ def _observability(result: CalibrationResult, data: ReportData | None) -> str:
         '<p class="note">Each bar is one direction in calibration space (labelled by its largest '
         f"coordinate). Scaling: {_e(obs.scaling)}. A singular value of 1 means the direction is "
         "known to one characteristic scale; below the threshold "
-        f"({obs.threshold:g}) a direction is not updated and keeps its initial value.</p>"
+        f"({obs.threshold:g}) a direction is not updated and keeps its initial value, unless it "
+        "is made of the extrinsic and at least a tenth of the threshold: then it is weakly "
+        "determined, estimated with its (large) sigma.</p>"
     )
     out.append(
         _img(
@@ -330,11 +332,19 @@ def _observability(result: CalibrationResult, data: ReportData | None) -> str:
             "Scaled singular values of the calibration information against the threshold.",
         )
     )
-    if not obs.unobservable:
+    if obs.weakly_determined:
         out.append(
-            "<p><b>Every calibration direction was determined by the data</b> (all singular "
-            "values above the threshold).</p>"
+            f"<p><b>{len(obs.weakly_determined)} direction(s) were weakly determined</b> (below "
+            "the threshold but estimated, their large sigmas in the table above; a verdict with "
+            "one is at most WARN):</p>"
         )
+        out.append("<ul>" + "".join(f"<li>{_e(t)}</li>" for t in obs.weakly_determined) + "</ul>")
+    if not obs.unobservable:
+        if not obs.weakly_determined:
+            out.append(
+                "<p><b>Every calibration direction was determined by the data</b> (all singular "
+                "values above the threshold).</p>"
+            )
         return "\n".join(out)
     out.append(f"<p><b>{len(obs.unobservable)} direction(s) were not observable:</b></p>")
     for text in obs.unobservable:

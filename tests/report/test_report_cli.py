@@ -413,3 +413,25 @@ def test_truth_given_to_report_is_shown_beside_the_estimate(tmp_path, capsys):
     assert '<th class="">truth</th>' in page and "-10.00 mm" in page and "-0.100 ms" in page
     code, _, err = run(["report", str(result), "--truth", str(truth), "-o", str(truth)], capsys)
     assert "is the truth file" in _one_sentence_error(err, code, 6)
+
+
+def test_a_weakly_determined_direction_is_listed_and_the_page_does_not_say_all_determined(
+    tmp_path, capsys
+):
+    weak = (
+        "ext.rotation along [-0.30, 0.76, -0.55] in the LiDAR frame: weakly determined by the "
+        "data (singular value 0.77, below the threshold: one standard deviation of 1.1 "
+        "characteristic scales along it, which the sigmas include)"
+    )
+    path = tmp_path / "calib.yaml"
+    result = write_result(path, "warn", (f"Weakly determined by this data: {weak}.",))
+    assert result.observability is not None
+    obs = replace(result.observability, unobservable=(), weakly_determined=(weak,))
+    replace(result, observability=obs).save(path)
+    assert CalibrationResult.load(path).observability.weakly_determined == (weak,)
+    code, _, err = run(["report", str(path)], capsys)
+    assert code == 0, err
+    page = (tmp_path / "calib.html").read_text()
+    assert "1 direction(s) were weakly determined" in page
+    assert f"<li>{weak}</li>" in page
+    assert "Every calibration direction was determined" not in page
