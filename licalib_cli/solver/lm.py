@@ -326,7 +326,7 @@ def weak_mask(information: InformationSummary, params: LMParams) -> npt.NDArray[
     10 s OS1-64 shake with the simulator's intrinsic errors and the gyro-to-IMU rotation
     estimated, the extrinsic rotation along the direction it trades with that rotation had a
     singular value of 0.77; held, the result failed as not determined (and without the gyro
-    rotation it was 25 mm / 0.96 deg off); estimated, 3.6 mm / 0.066 deg off within 1.7 of its
+    rotation it was 25 mm / 0.96 deg off); estimated, 3.5 mm / 0.059 deg off within 1.7 of its
     sigmas. A direction of the intrinsics is truncated below the threshold: they start at their
     nominal values, known to their characteristic scale, and a pull far beyond that came from
     what the model lacked (a 10 s OS1-64 shake with per-beam horizontal offsets: the beams'
