@@ -108,7 +108,9 @@ __all__ = [
     "correlated_with",
     "drift_against_stamps",
     "entangled_intrinsics",
+    "extrinsic_truncated",
     "judge",
+    "moving_extrinsic",
     "observability_of",
     "raw_uncertainty",
     "rejudge",
@@ -344,10 +346,10 @@ def extrinsic_truncated(
     """The truncated directions of ``report`` that move the extrinsic, and the blocks of
     :data:`ACCELEROMETER_FRAME_BLOCKS` any of them turns with the extrinsic rotation
     (:func:`accelerometer_frame_partners`), in that mapping's order."""
-    return _moving_extrinsic(report, report.truncated)
+    return moving_extrinsic(report, report.truncated)
 
 
-def _moving_extrinsic(
+def moving_extrinsic(
     report: SolverReport, directions: Sequence[DirectionDescription]
 ) -> tuple[tuple[DirectionDescription, ...], tuple[str, ...]]:
     """Those of ``directions`` that move the extrinsic, and the blocks of
@@ -399,7 +401,7 @@ def _observability(report: SolverReport, prior: Mapping[str, float]) -> list[Fin
                 "measurement (initialization.translation_m, rotation_rpy_deg, time_offset_s).",
             )
         )
-    weak, weak_partners = _moving_extrinsic(report, report.weak)
+    weak, weak_partners = moving_extrinsic(report, report.weak)
     if weak:
         # estimated, its sigma reported: but from information below the threshold, where a
         # linearisation says less, so never a PASS

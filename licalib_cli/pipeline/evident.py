@@ -59,6 +59,7 @@ __all__ = [
     "added_note",
     "bic_change",
     "estimating",
+    "refit_groups",
     "with_added",
 ]
 
@@ -121,9 +122,9 @@ def add_evident(
     """Estimate the effects ``run``'s checks show beyond doubt.
 
     Every such effect of the checks' forward selection is added in one refit (when that is not
-    kept, those of the strongest's sensor are tried, then the strongest alone); then the same on
-    the refit's checks, up to
-    :data:`MAX_PASSES` refits kept.
+    kept, those of the strongest's sensor are tried, then the strongest alone:
+    :func:`refit_groups`); then the same on the refit's checks, up to :data:`MAX_PASSES` refits
+    kept.
 
     Args:
         prepared: the segment, noise and initial guess.
@@ -137,17 +138,18 @@ def add_evident(
     """
     added: list[AddedEffect] = []
     stuck = run.checks.exit_status == "not converged"
+    declined: tuple[str, CalibrationState] | None = None
+    notes: tuple[str, ...] = ()
     passes = 0
     while passes < MAX_PASSES:
         strong = addable(run.checks.effects, cfg)
         if not strong:
             break
-        tries = _groups(strong)
-        kept = None
-        for group in tries:
+        kept = outcome = None
+        for group in refit_groups(strong):
             outcome = _refit(prepared, run, cfg, group, progress, timer)
             if outcome is None:  # the refit failed: the effects stay held
-                return Evident(run, cfg, tuple(added))
+                break
             new, new_cfg, delta_bic = outcome
             # an effect that takes away what the data determine (a gyro rotation beside the
             # extrinsic rotation on a shake that hardly tilted) is not added: the fit without it
@@ -158,10 +160,10 @@ def add_evident(
                 break
             last = (group[0].score.name, new.state)
         if kept is None:
-            notes = (_failed_note(group, new),) if lost else ()
-            if stuck and added:
-                notes = (_settled_note(added), *notes)
-            return Evident(run, cfg, tuple(added), last, notes)
+            if outcome is not None:
+                declined = last
+                notes = (_failed_note(group, new),) if lost else ()
+            break
         group, new, new_cfg, delta_bic = kept
         move = extrinsic_of(run.state).moved_to(extrinsic_of(new.state))
         added += [
@@ -187,16 +189,21 @@ def add_evident(
         )
         run, cfg = new, new_cfg
         passes += 1
-    return Evident(run, cfg, tuple(added), notes=(_settled_note(added),) if stuck and added else ())
+    if stuck and added:
+        notes = (_settled_note(added), *notes)
+    return Evident(run, cfg, tuple(added), declined, notes)
 
 
-def _groups(strong: Sequence[EffectEvidence]) -> list[list[EffectEvidence]]:
+def refit_groups(
+    strong: Sequence[EffectEvidence], *, alone: bool = True
+) -> list[list[EffectEvidence]]:
     """The groups of ``strong`` (strongest first) to refit with, in turn, until one is kept:
     all of them; those of the strongest's sensor (an IMU effect that the recording cannot tell
     from the extrinsic rotation, such as a gyro-to-IMU rotation on a shake that hardly tilted,
-    would otherwise keep a LiDAR's per-beam errors out with it); the strongest alone."""
+    would otherwise keep a LiDAR's per-beam errors out with it); with ``alone``, the strongest
+    alone. Each group once."""
     own = [e for e in strong if e.sensor == strong[0].sensor]
-    tries = [list(strong), own, list(strong[:1])]
+    tries = [list(strong), own, list(strong[:1])] if alone else [list(strong), own]
     names = [[e.score.name for e in g] for g in tries]
     return [g for k, g in enumerate(tries) if names[k] not in names[:k]]
 

@@ -75,6 +75,7 @@ from licalib_cli.pipeline.checks import (
     accelerometer_frame_advice,
     entangled_intrinsics,
     extrinsic_truncated,
+    moving_extrinsic,
     uncertainty_findings,
 )
 from licalib_cli.pipeline.inflation import (
@@ -702,8 +703,7 @@ def _joint_result(
     weak = [
         f"Weakly determined by the segments together: {d.text}; its sigmas rest on little "
         "information."
-        for d in report.weak
-        if any(b.startswith("ext.") for b, _ in d.blocks)
+        for d in moving_extrinsic(report, report.weak)[0]
     ]
     if not_observable or weak:
         worst = "warn" if worst == "pass" else worst

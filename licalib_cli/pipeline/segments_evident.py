@@ -25,7 +25,9 @@ import numpy as np
 from licalib_cli.config import CalibConfig
 from licalib_cli.errors import LicalibError
 from licalib_cli.pipeline import CalibrationRun, Prepared, fit_and_check
-from licalib_cli.pipeline.evident import addable, bic_change, estimating
+from licalib_cli.pipeline.effect_refit import unmistakable_ones
+from licalib_cli.pipeline.evident import addable, bic_change, estimating, refit_groups
+from licalib_cli.pipeline.fitcheck import EffectEvidence
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.segments import _with_range
 from licalib_cli.pipeline.timing import Timer
@@ -66,35 +68,38 @@ def add_evident_to_windows(
     sensor are tried (as for one segment, :func:`~licalib_cli.pipeline.evident.add_evident`).
     When neither is kept the windows' fits stand: ``runs`` and ``cfg`` as given, nothing
     added."""
-    strongest: dict[str, tuple[float, int, str]] = {}
+    strongest: dict[str, EffectEvidence] = {}  # per effect, the window's largest per dof
     for run in runs:
         for e in addable(run.checks.effects, cfg):
-            name, stat, dof = e.score.name, float(e.score.statistic), int(e.score.rank)
-            if name not in strongest or stat / dof > strongest[name][0] / strongest[name][1]:
-                strongest[name] = (stat, dof, e.sensor)
+            name = e.score.name
+            if name not in strongest or _per_dof(e) > _per_dof(strongest[name]):
+                strongest[name] = e
     if not strongest:
         return None
-    ranked = sorted(strongest, key=lambda n: -strongest[n][0] / strongest[n][1])
-    own = [n for n in ranked if strongest[n][2] == strongest[ranked[0]][2]]
-    for names in (ranked, own) if own != ranked else (ranked,):
+    for group in refit_groups(unmistakable_ones(list(strongest.values())), alone=False):
+        names = [e.score.name for e in group]
         kept = _refit_windows(bag, runs, windows, cfg, names, progress)
         if kept is None:
             continue
         new_runs, new_cfg, delta_bic, largest = kept
         added = tuple(
             AddedEffect(
-                effect=name,
-                statistic=strongest[name][0],
-                dof=strongest[name][1],
+                effect=e.score.name,
+                statistic=float(e.score.statistic),
+                dof=int(e.score.rank),
                 delta_bic=delta_bic,
                 moved_translation_m=float(np.linalg.norm(largest[:3])),
                 moved_rotation_deg=float(np.degrees(np.linalg.norm(largest[3:6]))),
                 moved_time_offset_s=float(largest[6]),
             )
-            for name in names
+            for e in group
         )
         return WindowsEvident(tuple(new_runs), new_cfg, added)
     return WindowsEvident(tuple(runs), cfg, ())
+
+
+def _per_dof(e: EffectEvidence) -> float:
+    return float(e.score.statistic) / int(e.score.rank)
 
 
 def _refit_windows(

@@ -576,11 +576,7 @@ def _report(
 ) -> SolverReport:
     layout = lin.layout
     s, u = info.singular_values, info.singular_vectors
-    keep = (
-        kept_mask(info, params)
-        if params.use_tsvd
-        else truncation_mask(s, params.tsvd_threshold, relative=params.tsvd_relative)
-    )
+    keep = kept_mask(info, params)  # without the TSVD: nothing weak, the threshold alone
     weak = tuple(
         describe_direction(
             u[:, i],

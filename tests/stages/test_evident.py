@@ -18,6 +18,7 @@ import pytest
 from held_effects import scored_effect
 
 from licalib_cli.config import load_config
+from licalib_cli.errors import SolverError
 from licalib_cli.geometry import so3
 from licalib_cli.pipeline import evident
 from licalib_cli.pipeline.checks import Finding
@@ -75,7 +76,10 @@ class _Refits:
             assert warm
             blocks = (*cfg.model.imu, *cfg.model.lidar)
             self.asked.append(blocks)
-            return self.table[blocks][0]
+            fit = self.table[blocks][0]
+            if isinstance(fit, Exception):  # the refit itself fails
+                raise fit
+            return fit
 
         def bic_terms(new, new_cfg, others):  # type: ignore[no-untyped-def]
             blocks = (*new_cfg.model.imu, *new_cfg.model.lidar)
@@ -271,6 +275,17 @@ def test_a_fit_that_did_not_converge_is_refitted_and_the_note_says_the_effects_l
         "what the data show, which pulled the estimate one way and another); with them estimated "
         "they converged.",
     )
+    # the next refit fails outright: what was added stays, and so does the note
+    onward = _Run(0.30, (_evidence("accel_scale", STRONG),))
+    _Refits(
+        {
+            ("gyro_rotation", "range_offset"): (onward, -4e5),
+            ("gyro_rotation", "accel_scale", "range_offset"): (SolverError("diverged"), 0.0),
+        }
+    ).install(monkeypatch)
+    out = _add(stuck)
+    assert out.run is onward and len(out.added) == 2 and out.declined is None
+    assert out.notes[0].startswith("Without lidar_range_offset, gyro_rotation the rounds")
     # still stuck with them: neither is kept, the fit stays as it was and nothing is noted
     again = _Run(0.25, status="not converged")
     _Refits(
