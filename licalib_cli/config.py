@@ -279,6 +279,11 @@ class SolverSection(_Section):
     use_tsvd: bool = True
     tsvd_threshold: float = Field(default=1.0, gt=0.0)
     """Eigenvalue threshold of the scaled calibration information (see the README)."""
+    weak_floor: float = Field(default=0.1, ge=0.0, le=1.0)
+    """A direction below ``tsvd_threshold`` whose singular value is at least this fraction of it
+    and which is made mostly of the extrinsic is weakly determined: estimated, its (large)
+    sigma reported, the verdict at most WARN (see the README). 0 or 1: none is; every direction
+    below the threshold keeps its initial value."""
 
 
 ImuBlock = Literal[

@@ -183,13 +183,15 @@ class Uncertainty(Section):
 @dataclass(frozen=True)
 class Observability(Section):
     """Spectrum of the scaled calibration information, the truncated directions and the
-    weakly determined ones (below the threshold, estimated, their sigma reported)."""
+    weakly determined ones (below the threshold, at least ``weak_floor`` of it, estimated,
+    their sigma reported; ``weak_floor`` 0: none can be)."""
 
     scaling: str
     threshold: float
     singular_values: tuple[float, ...]
     unobservable: tuple[str, ...] = ()
     weakly_determined: tuple[str, ...] = ()
+    weak_floor: float = 0.1
 
 
 @dataclass(frozen=True)

@@ -214,6 +214,7 @@ def observability_of(report: SolverReport, resting: Sequence[OnPrior] = ()) -> O
         singular_values=tuple(float(f"{s:.6g}") for s in report.singular_values),
         unobservable=tuple(d.text for d in report.truncated) + tuple(r.text for r in resting),
         weakly_determined=tuple(d.text for d in report.weak),
+        weak_floor=float(report.weak_floor),
     )
 
 

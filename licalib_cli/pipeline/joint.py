@@ -766,6 +766,7 @@ def _joint_result(
             singular_values=tuple(float(s) for s in report.singular_values),
             unobservable=truncated + tuple(r.text for r in resting),
             weakly_determined=tuple(d.text for d in report.weak),
+            weak_floor=float(report.weak_floor),
         ),
         verdict=VerdictSection(worst, tuple(reasons)),
         segments=section,

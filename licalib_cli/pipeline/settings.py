@@ -298,6 +298,7 @@ def lm_params(
         function_tolerance=function_tolerance,
         use_tsvd=cfg.solver.use_tsvd,
         tsvd_threshold=cfg.solver.tsvd_threshold,
+        weak_floor=cfg.solver.weak_floor,
     )
 
 

@@ -310,6 +310,18 @@ def _intrinsics(result: CalibrationResult) -> str:
     return "\n".join(out)
 
 
+def _weak_rule(floor: float) -> str:
+    """The exception for weakly determined directions, as the fit applied it
+    (``solver.weak_floor``)."""
+    if not 0.0 < floor < 1.0:
+        return " (solver.weak_floor off: no direction below it was weakly determined)"
+    return (
+        ", unless it is made of the extrinsic and at least "
+        f"{floor:g} of the threshold: then it is weakly determined, estimated with its (large) "
+        "sigma"
+    )
+
+
 def _observability(result: CalibrationResult, data: ReportData | None) -> str:
     out = ["<h2>What the data determined</h2>"]
     obs = result.observability
@@ -321,9 +333,9 @@ def _observability(result: CalibrationResult, data: ReportData | None) -> str:
         '<p class="note">Each bar is one direction in calibration space (labelled by its largest '
         f"coordinate). Scaling: {_e(obs.scaling)}. A singular value of 1 means the direction is "
         "known to one characteristic scale; below the threshold "
-        f"({obs.threshold:g}) a direction is not updated and keeps its initial value, unless it "
-        "is made of the extrinsic and at least a tenth of the threshold: then it is weakly "
-        "determined, estimated with its (large) sigma.</p>"
+        f"({obs.threshold:g}) a direction is not updated and keeps its initial value"
+        + _weak_rule(obs.weak_floor)
+        + ".</p>"
     )
     out.append(
         _img(

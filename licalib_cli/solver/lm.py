@@ -237,6 +237,7 @@ class SolverReport:
             directions: near 1 for a coordinate the data do not determine at all.
         weak: Weakly determined directions (below the threshold, estimated, their standard
             deviation in the sigmas: ``LMParams.weak_floor``), weakest first.
+        weak_floor: ``LMParams.weak_floor`` as applied (0 without the TSVD: nothing weak).
     """
 
     status: Literal["converged", "max_iterations", "failed"]
@@ -260,6 +261,7 @@ class SolverReport:
     covariance: F64 = field(default_factory=lambda: np.zeros((0, 0)))
     truncated_weight: F64 = field(default_factory=lambda: np.zeros(0))
     weak: tuple[DirectionDescription, ...] = ()
+    weak_floor: float = 0.0
 
     @property
     def converged(self) -> bool:
@@ -639,6 +641,7 @@ def _report(
         covariance=covariance,
         truncated_weight=np.sum(trunc**2, axis=1) if trunc.size else np.zeros(len(owners)),
         weak=weak,
+        weak_floor=params.weak_floor if params.use_tsvd else 0.0,
     )
 
 

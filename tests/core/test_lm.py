@@ -486,6 +486,7 @@ def test_a_weak_direction_is_estimated_and_its_sigma_reported() -> None:
         assert report.std[0] == pytest.approx(np.sqrt(2.0), rel=1e-3)
         (named,) = report.weak
         assert "weakly determined" in named.text and "singular value 0.50" in named.text
+        assert report.weak_floor == params.weak_floor == 0.1  # as applied, for the result
     for problem, held in (
         (_weak_problem(20.0), replace(params, weak_floor=0.0)),
         (_weak_problem(20.0, sigma=10.0), params),  # information 0.01, under the floor of 0.1
@@ -495,6 +496,7 @@ def test_a_weak_direction_is_estimated_and_its_sigma_reported() -> None:
         assert float(problem["weak"].value) == 0.5
         assert len(report.truncated) == 1 and report.weak == ()
     assert not solve(_weak_problem(20.0), replace(params, weak_floor=0.0)).observable[0]
+    assert solve(_weak_problem(20.0), replace(params, use_tsvd=False)).weak_floor == 0.0
 
 
 # --------------------------------------------------------------------------- Monte Carlo stds

@@ -436,3 +436,11 @@ def test_a_weakly_determined_direction_is_listed_and_the_page_does_not_say_all_d
     assert "1 direction(s) were weakly determined" in page
     assert f"<li>{weak}</li>" in page
     assert "Every calibration direction was determined" not in page
+    assert "at least 0.1 of the threshold" in page  # the rule as the fit applied it
+    # another floor, and none: the page states the rule of the result, not the default
+    for floor, said in ((0.25, "at least 0.25 of the threshold"), (0.0, "solver.weak_floor off")):
+        replace(result, observability=replace(obs, weak_floor=floor)).save(path)
+        assert CalibrationResult.load(path).observability.weak_floor == floor
+        code, _, err = run(["report", str(path)], capsys)
+        assert code == 0, err
+        assert said in (tmp_path / "calib.html").read_text()

@@ -184,6 +184,7 @@ def test_a_weakly_determined_extrinsic_direction_warns_and_is_listed() -> None:
         tsvd_threshold=1.0,
         scaling="s",
         singular_values=np.ones(len(EXT + GYRO)),
+        weak_floor=0.2,
     )
     found = _observability(report, {})
     assert [f.severity for f in found] == ["warn", "warn"]
@@ -194,5 +195,6 @@ def test_a_weakly_determined_extrinsic_direction_warns_and_is_listed() -> None:
     assert not any("determine only" in f.text for f in found)
     section = observability_of(report)
     assert section.weakly_determined == (direction.text,) and section.unobservable == ()
+    assert section.weak_floor == 0.2  # the rule the solver applied, for the report
     # the truncated direction alone: not observable, and a FAIL for the undetermined extrinsic
     assert any(f.severity == "fail" for f in _observability(truncated, {}))

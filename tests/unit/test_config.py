@@ -201,3 +201,19 @@ def test_lidar_spread_units_limits_and_the_priors_it_sets(tmp_path):
         path.write_text(f"model:\n  lidar_spread:\n    {bad}\n")
         with pytest.raises(ConfigError, match=bad.split(":")[0]):
             load_config(path)
+
+
+def test_the_weak_floor_reaches_the_solver_and_is_checked(tmp_path):
+    """``solver.weak_floor``: the fraction of the threshold above which an extrinsic direction
+    is weakly determined (0.1 by default; 0 turns it off), passed to every round's solver."""
+    from licalib_cli.pipeline.settings import lm_params
+
+    assert lm_params(load_config(None)).weak_floor == 0.1
+    assert lm_params(load_config(None, {"solver.weak_floor": 0.0})).weak_floor == 0.0
+    path = tmp_path / "c.yaml"
+    path.write_text("solver:\n  weak_floor: 0.25\n")
+    assert lm_params(load_config(path)).weak_floor == 0.25
+    path.write_text("solver:\n  weak_floor: 1.5\n")
+    with pytest.raises(ConfigError, match=r"solver\.weak_floor") as info:
+        load_config(path)
+    assert "\n" not in str(info.value)
