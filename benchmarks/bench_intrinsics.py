@@ -29,6 +29,8 @@ Examples::
     .venv/bin/python benchmarks/bench_intrinsics.py --imu-rate 200 --seeds 3   # a 200 Hz IMU
     .venv/bin/python benchmarks/bench_intrinsics.py --seeds 1 \
         --set surfels.final_points_per_scan=8000
+    .venv/bin/python benchmarks/bench_intrinsics.py --seeds 1 \
+        --set surfels.final_points_per_scan=null   # no denser final round
 
 Each run happens in a fresh subprocess.
 """
@@ -72,6 +74,25 @@ def _override(item: str) -> tuple[str, object]:
     return key.strip(), yaml.safe_load(value)
 
 
+def _null_settings(overrides: dict[str, object], workdir: Path) -> Path | None:
+    """A config file setting the ``--set KEY=null`` keys to null (overrides of None mean "not
+    given" to ``load_config``), or None when there are none."""
+    nulls = [k for k, v in overrides.items() if v is None]
+    if not nulls:
+        return None
+    tree: dict = {}
+    for key in nulls:
+        *sections, leaf = key.split(".")
+        node = tree
+        for name in sections:
+            node = node.setdefault(name, {})
+        node[leaf] = None
+    path = workdir / "null_settings.yaml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump(tree))
+    return path
+
+
 def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
     import numpy as np
 
@@ -98,7 +119,7 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
     imu_blocks, lidar_blocks = INTRINSIC_PRESETS[args.model]
     overrides = {"model.imu": list(imu_blocks), "model.lidar": list(lidar_blocks)}
     overrides.update(args.set)
-    cfg = load_config(None, overrides)
+    cfg = load_config(_null_settings(overrides, workdir), overrides)
     t0 = time.perf_counter()
     run = calibrate(out.bag_path, cfg)
     wall = time.perf_counter() - t0
