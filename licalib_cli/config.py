@@ -242,7 +242,9 @@ class SurfelSection(_Section):
     """Points kept per scan for the optimisation (uniformly over the sweep)."""
     max_points: int = Field(default=600_000, ge=1000)
     """Cap on the points of a round over all scans (memory and time); ``points_per_scan`` and
-    ``final_points_per_scan`` shrink on long segments to respect it."""
+    ``final_points_per_scan`` shrink on long segments to respect it. The dense final round's
+    points bound the accuracy: 1 500 000 with ``final_points_per_scan`` 15 000 took twenty 10 s
+    sinusoids from 1.86 to 1.36 mm off on average, for about 8 s and 1.6 GB more (README)."""
     final_points_per_scan: int | None = Field(default=6000, ge=50)
     """Points per scan of one last round once the others have settled (the uncertainty of the
     time offset and translation shrinks with the number of points); None skips it. The default
