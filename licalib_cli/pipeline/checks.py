@@ -59,6 +59,7 @@ from licalib_cli.pipeline.inflation import (
 from licalib_cli.pipeline.initialise import SINGLE_AXIS, InitialGuess
 from licalib_cli.pipeline.intrinsic_sigmas import intrinsics_uncertainty
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty, map_uncertainty
+from licalib_cli.pipeline.points import PointBudget
 from licalib_cli.pipeline.prior_directions import (
     OnPrior,
     PriorConflict,
@@ -548,6 +549,20 @@ def _resting_advice(sigma_m: F64, limit_m: float, resting: Sequence[OnPrior]) ->
 _MORE_ROTATION = " Record with more rotation about all axes (and a quieter IMU)."
 
 
+def more_points_advice(points: PointBudget | None) -> str:
+    """Advice when the last round kept far fewer points of each sweep than a sweep holds: the
+    translation's and the time offset's information grows with them (on the paper's 10 s
+    sinusoid 15 000 instead of 6000 a sweep took the translation from 1.86 to 1.36 mm off on
+    average over twenty bags and turned both of their WARNs for a sigma into PASS)."""
+    if points is None or not points.more_available:
+        return ""
+    return (
+        f" The last round kept {points.kept} of about {points.available} points a sweep: more "
+        "(surfels.final_points_per_scan, within surfels.max_points over the whole recording) "
+        "narrow it, for time and memory."
+    )
+
+
 def uncertainty_findings(
     sigma: F64,
     without_effects: F64,
@@ -558,6 +573,7 @@ def uncertainty_findings(
     resting: Sequence[OnPrior] = (),
     halves: SplitResult | None = None,
     noisy: F64 | None = None,
+    points: PointBudget | None = None,
 ) -> list[Finding]:
     """Sigmas above the ``checks`` limits (5 mm / 0.1 deg / 0.2 ms by default).
 
@@ -574,7 +590,9 @@ def uncertainty_findings(
     directions the data leave to a measured lever arm; an axis above the limit along one is
     said to be the measurement's. ``halves``: the split-half comparison; a coordinate whose
     floor from it (:func:`split_floor`) alone exceeds the limit is said to be held there by the
-    halves' difference. Every finding is marked ``information``."""
+    halves' difference. ``points``: the last round's points per sweep; when a sweep holds
+    many more, the translation's and the time offset's findings say that more narrow them
+    (:func:`more_points_advice`). Every finding is marked ``information``."""
     out = []
     t, r, c = sigma[:3], np.degrees(sigma[3:6]), float(sigma[6])
     t_max, r_max = limits.max_translation_sigma_m, limits.max_rotation_sigma_deg
@@ -641,7 +659,7 @@ def uncertainty_findings(
                 f"above checks.max_translation_sigma_m = {1e3 * t_max:g} mm)."
                 + cause(
                     bool(np.any(t0[np.isfinite(t0)] > t_max)),
-                    noise_advice(0, 3, t_max, _MORE_ROTATION),
+                    noise_advice(0, 3, t_max, _MORE_ROTATION) + more_points_advice(points),
                 )
                 + from_halves(worst(0, 3), t_max)
                 + _entangled_advice(entangled)
@@ -669,7 +687,10 @@ def uncertainty_findings(
                 "warn",
                 f"Time offset is uncertain (1-sigma {1e3 * c:.3g} ms, above "
                 f"checks.max_time_offset_sigma_s = {1e3 * c_max:g} ms)."
-                + cause(bool(without_effects[6] > c_max), noise_advice(6, 7, c_max, ""))
+                + cause(
+                    bool(without_effects[6] > c_max),
+                    noise_advice(6, 7, c_max, "") + more_points_advice(points),
+                )
                 + from_halves(6, c_max),
             )
         )
@@ -1036,6 +1057,7 @@ def run_checks(
         resting,
         split,
         spread[0] if spread is not None else None,
+        fit.points,
     )
     findings += _sensors(sensors)
     findings += _effects(effects, raw)

@@ -23,8 +23,11 @@ from licalib_cli.models.lidar import lidar_point, nominal_point
 from licalib_cli.parallel.threads import map_slices
 
 __all__ = [
+    "MORE_POINTS_FACTOR",
+    "PointBudget",
     "PointSample",
     "nominal_elevations",
+    "point_budget",
     "points_and_rays_in_global",
     "points_in_global",
     "points_per_scan",
@@ -114,6 +117,42 @@ def points_per_scan(cfg: CalibConfig, num_scans: int, wanted: int | None = None)
     all scans together keep at most ``surfels.max_points``."""
     per_scan = cfg.surfels.points_per_scan if wanted is None else wanted
     return max(1, min(per_scan, cfg.surfels.max_points // max(num_scans, 1)))
+
+
+MORE_POINTS_FACTOR = 2
+"""The last round's points are said to bound the sigmas when a sweep holds at least this many
+times the points it kept of each."""
+
+
+@dataclass(frozen=True)
+class PointBudget:
+    """How many points of each sweep the last round kept, against how many a sweep holds.
+
+    Attributes:
+        kept: points kept per sweep (``surfels.final_points_per_scan`` for the dense final
+            round, ``surfels.points_per_scan`` without one, both lowered to keep
+            ``surfels.max_points`` over all sweeps).
+        available: points of the median sweep.
+    """
+
+    kept: int
+    available: int
+
+    @property
+    def more_available(self) -> bool:
+        """Whether a sweep holds at least :data:`MORE_POINTS_FACTOR` times the points kept."""
+        return self.available >= MORE_POINTS_FACTOR * self.kept
+
+
+def point_budget(cfg: CalibConfig, scans: tuple[LidarScan, ...]) -> PointBudget | None:
+    """The last round's points per sweep against the sweeps' (None without sweeps)."""
+    if not scans:
+        return None
+    regular = points_per_scan(cfg, len(scans))
+    final = cfg.surfels.final_points_per_scan
+    kept = max(regular, points_per_scan(cfg, len(scans), final)) if final is not None else regular
+    available = int(np.median([len(s) for s in scans]))  # loop over sweeps, not points
+    return PointBudget(kept, available)
 
 
 def sample_points(

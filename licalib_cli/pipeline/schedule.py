@@ -44,7 +44,13 @@ from licalib_cli.pipeline.free_planes import (
     refine_with_planes,
 )
 from licalib_cli.pipeline.initialise import InitialGuess
-from licalib_cli.pipeline.points import PointSample, points_per_scan, sample_points
+from licalib_cli.pipeline.points import (
+    PointBudget,
+    PointSample,
+    point_budget,
+    points_per_scan,
+    sample_points,
+)
 from licalib_cli.pipeline.prior_directions import data_translation_std
 from licalib_cli.pipeline.round import (
     MappedSample,
@@ -199,6 +205,7 @@ class Fit:
             sigmas (:func:`final_jump`; 0 without one).
         extra_rounds: regular rounds run beyond ``schedule.max_rounds`` to check a planes-free
             step taken near it (:data:`STEP_CHECK_ROUNDS`).
+        points: the last round's points per sweep against the sweeps' (None: not known).
     """
 
     state: CalibrationState
@@ -213,6 +220,7 @@ class Fit:
     final_unsettled: bool = False
     final_jump: float = 0.0
     extra_rounds: int = 0
+    points: PointBudget | None = None
 
 
 def _change(before: CalibrationState, after: CalibrationState) -> Change:
@@ -774,4 +782,5 @@ def run_schedule(
         final_unsettled=final_unsettled,
         final_jump=last_jump,
         extra_rounds=max(0, index - sch.max_rounds),
+        points=point_budget(cfg, rec.scans),
     )

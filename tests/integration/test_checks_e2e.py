@@ -472,3 +472,17 @@ def test_a_prior_a_shake_cannot_check_warns_and_tilting_the_rig_checks_it(tmp_pa
         "consistency"
     ]["unchecked_priors"]
     assert not any(r.startswith("The extrinsic rests on") for r in tilted["verdict"]["reasons"])
+
+
+def test_the_fit_knows_the_last_round_s_points_against_the_sweeps(clean_fit: tuple) -> None:
+    """``Fit.points``: the dense round's points per sweep against the median sweep, as the
+    uncertainty findings read them."""
+    from licalib_cli.pipeline.points import point_budget
+
+    cfg, prepared, fit = clean_fit
+    assert fit.points is not None and fit.points == point_budget(cfg, prepared.rec.scans)
+    sizes = sorted(len(s) for s in prepared.rec.scans)
+    assert sizes[0] <= fit.points.available <= sizes[-1]
+    assert fit.points.kept == min(
+        cfg.surfels.final_points_per_scan, cfg.surfels.max_points // len(prepared.rec.scans)
+    )

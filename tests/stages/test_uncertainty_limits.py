@@ -203,3 +203,52 @@ def test_the_model_entries_that_estimate_held_effects_are_named() -> None:
         lists.setdefault(sensor, []).append(block)
     cfg = CalibConfig.model_validate({"model": lists})
     assert len(cfg.model.imu) + len(cfg.model.lidar) == len(CANDIDATES)
+
+
+def test_a_sweep_holding_many_more_points_than_the_last_round_kept_is_said() -> None:
+    """On a short bag the dense final round's points bound the translation and the time offset
+    (twenty 10 s sinusoids: 15 000 instead of 6000 a sweep turned both WARNs for a sigma into
+    PASS): their findings say so when a sweep holds at least twice the points kept, unless the
+    IMU priors are the cause; the rotation's (the gyro's) does not."""
+    from licalib_cli.pipeline.points import PointBudget
+
+    limits = CalibConfig().checks
+    sigma = _sigma(5.95, 0.12, 0.216)
+    few = PointBudget(kept=6000, available=28_800)
+    texts = [f.text for f in uncertainty_findings(sigma, sigma, limits, points=few)]
+    said = "The last round kept 6000 of about 28800 points a sweep: more"
+    assert said in texts[0] and "more rotation" in texts[0]
+    assert said not in texts[1]
+    assert said in texts[2] and "surfels.final_points_per_scan" in texts[2]
+    # every point of a sweep kept, or nearly: nothing to add
+    for budget in (PointBudget(6000, 11_999), None):
+        assert not any(
+            "points a sweep" in f.text
+            for f in uncertainty_findings(sigma, sigma, limits, points=budget)
+        )
+    # the IMU priors, not the points, hold it: the finding names them alone
+    (prior,) = uncertainty_findings(
+        _sigma(5.05, 0.01, 0.05), _sigma(3.1, 0.01, 0.05), limits, prior="gyro_rotation", points=few
+    )
+    assert "points a sweep" not in prior.text
+
+
+def test_the_point_budget_is_the_last_round_s_against_the_median_sweep() -> None:
+    """``point_budget``: the dense round's points per sweep (within ``max_points``), the
+    regular rounds' without one, against the median sweep."""
+    from licalib_cli.measurements import LidarScan
+    from licalib_cli.pipeline.points import point_budget
+
+    def scan(n: int) -> LidarScan:
+        return LidarScan(0, np.zeros((n, 3)), np.zeros(n, dtype=np.int64))
+
+    scans = tuple(scan(n) for n in (20_000, 30_000, 25_000, 40))
+    cfg = CalibConfig()
+    budget = point_budget(cfg, scans)
+    assert budget is not None and (budget.kept, budget.available) == (6000, 22_500)
+    assert budget.more_available
+    capped = load_config(None, {"surfels.max_points": 8000})
+    assert point_budget(capped, scans) == type(budget)(2000, 22_500)
+    none = CalibConfig.model_validate({"surfels": {"final_points_per_scan": None}})
+    assert point_budget(none, scans) == type(budget)(1000, 22_500)
+    assert point_budget(cfg, ()) is None
