@@ -35,6 +35,8 @@ Examples::
     .venv/bin/python benchmarks/bench_consistency.py --scenarios figure8 --lever-arm-prior 0.01
     .venv/bin/python benchmarks/bench_consistency.py --scenarios walk --duration 20  # walking
     .venv/bin/python benchmarks/bench_consistency.py --only clean --record-delay-ms 2  # late
+    .venv/bin/python benchmarks/bench_consistency.py --only clean \
+        --set surfels.final_points_per_scan=15000 --set surfels.max_points=1500000  # denser
 
 Each run happens in a fresh subprocess; rows print as they finish (JSON with ``--json``). At the
 end: how many clean runs end outside 0.3 cm / 0.05 deg / 0.1 ms, against how many an unbiased
@@ -135,6 +137,7 @@ from _motion import add_tilt_option, tilt_spec_kwargs  # noqa: E402
 from _noise import add_noise_options, noise_spec_kwargs  # noqa: E402
 from _rates import add_rate_options, check_rates, rate_spec_kwargs  # noqa: E402
 from _runner import run_cases  # noqa: E402
+from _settings import add_set_option, load_with  # noqa: E402
 
 
 def _rotation_error_lidar(r_est, r_true):
@@ -147,7 +150,7 @@ def _rotation_error_lidar(r_est, r_true):
 def one_run(case: dict, workdir: Path) -> dict:
     import numpy as np
 
-    from licalib_cli.config import INTRINSIC_PRESETS, load_config
+    from licalib_cli.config import INTRINSIC_PRESETS
     from licalib_cli.pipeline import calibrate
     from licalib_cli.simulation import SimulationSpec, simulate
 
@@ -199,7 +202,7 @@ def one_run(case: dict, workdir: Path) -> dict:
         measured_off = np.random.default_rng(case["seed"] + 7919).normal(0.0, prior, 3)
         overrides["initialization.translation_m"] = [float(x) for x in np.add(lever, measured_off)]
         overrides["initialization.translation_sigma_m"] = prior
-    cfg = load_config(None, overrides)
+    cfg = load_with(overrides, workdir / f"run{case['seed']}")
     t0 = time.perf_counter()
     row = {**case, "rpy_deg": [round(x, 1) for x in rpy], "lever_m": [round(x, 3) for x in lever]}
     try:
@@ -348,6 +351,7 @@ def main() -> None:
     )
     add_noise_options(p)
     add_rate_options(p)
+    add_set_option(p)
     p.add_argument(
         "--duration",
         type=float,
@@ -422,11 +426,11 @@ def main() -> None:
             "tilt_deg": args.tilt_deg,
             **({"record_delay_ms": args.record_delay_ms} if args.record_delay_ms else {}),
             **({"lever_arm_prior": args.lever_arm_prior} if args.lever_arm_prior else {}),
-            **(
-                {"overrides": {**c.get("overrides", {}), "model.add_evident_effects": False}}
-                if args.exact_model
-                else {}
-            ),
+            "overrides": {
+                **c.get("overrides", {}),
+                **({"model.add_evident_effects": False} if args.exact_model else {}),
+                **dict(args.set),
+            },
         }
         for c in cases(args.first_seed, tuple(args.lidars), tuple(args.scenarios))
         if (args.only is None or args.only in c["name"])

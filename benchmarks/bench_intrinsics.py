@@ -46,14 +46,13 @@ import tempfile
 import time
 from pathlib import Path
 
-import yaml
-
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _information import information_bound, plane_factors
 from _noise import add_noise_options, noise_spec_kwargs
 from _rates import add_rate_options, check_rates, rate_spec_kwargs
+from _settings import add_set_option, load_with
 
 PAPER_LIDAR_MAE = {
     "range_scale": 0.006e-2,  # 0.006 %
@@ -65,38 +64,10 @@ PAPER_LIDAR_MAE = {
 }
 
 
-def _override(item: str) -> tuple[str, object]:
-    """``KEY=VALUE`` of ``--set``: the dotted config key and its YAML value."""
-    key, sep, value = item.partition("=")
-    if not sep or not key.strip():
-        msg = f"expected KEY=VALUE (e.g. surfels.final_points_per_scan=8000), got {item!r}"
-        raise argparse.ArgumentTypeError(msg)
-    return key.strip(), yaml.safe_load(value)
-
-
-def _null_settings(overrides: dict[str, object], workdir: Path) -> Path | None:
-    """A config file setting the ``--set KEY=null`` keys to null (overrides of None mean "not
-    given" to ``load_config``), or None when there are none."""
-    nulls = [k for k, v in overrides.items() if v is None]
-    if not nulls:
-        return None
-    tree: dict = {}
-    for key in nulls:
-        *sections, leaf = key.split(".")
-        node = tree
-        for name in sections:
-            node = node.setdefault(name, {})
-        node[leaf] = None
-    path = workdir / "null_settings.yaml"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(yaml.safe_dump(tree))
-    return path
-
-
 def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
     import numpy as np
 
-    from licalib_cli.config import INTRINSIC_PRESETS, load_config
+    from licalib_cli.config import INTRINSIC_PRESETS
     from licalib_cli.geometry import so3
     from licalib_cli.pipeline import calibrate
     from licalib_cli.pipeline.intrinsic_sigmas import LIDAR_UNCERTAINTY_KEYS
@@ -119,7 +90,7 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
     imu_blocks, lidar_blocks = INTRINSIC_PRESETS[args.model]
     overrides = {"model.imu": list(imu_blocks), "model.lidar": list(lidar_blocks)}
     overrides.update(args.set)
-    cfg = load_config(_null_settings(overrides, workdir), overrides)
+    cfg = load_with(overrides, workdir)
     t0 = time.perf_counter()
     run = calibrate(out.bag_path, cfg)
     wall = time.perf_counter() - t0
@@ -326,14 +297,7 @@ def main() -> None:
     p.add_argument("--json", default=None)
     add_noise_options(p)
     add_rate_options(p)
-    p.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        type=_override,
-        metavar="KEY=VALUE",
-        help="config override, e.g. surfels.final_points_per_scan=8000 (repeatable)",
-    )
+    add_set_option(p)
     p.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--workdir", default=None, help=argparse.SUPPRESS)
     args = p.parse_args()

@@ -67,6 +67,43 @@ def test_a_record_delay_outside_its_range_is_refused(value: str) -> None:
     assert "Traceback" not in out.stderr
 
 
+def test_every_listed_case_carries_the_config_overrides_given_with_set() -> None:
+    """``--set KEY=VALUE`` (YAML values, repeatable) joins every case's overrides, beside the
+    case's own; a key without ``=`` is refused."""
+    out = _run(
+        "--set",
+        "surfels.final_points_per_scan=15000",
+        "--set",
+        "surfels.max_points=1500000",
+        "--exact-model",
+        "--only",
+        "clean",
+    )
+    cases = _listed(out)
+    assert cases and all(
+        c["overrides"]
+        == {
+            "model.add_evident_effects": False,
+            "surfels.final_points_per_scan": 15000,
+            "surfels.max_points": 1500000,
+        }
+        for c in cases
+    )
+    bad = _run("--set", "surfels.max_points")
+    assert bad.returncode == 2 and "expected KEY=VALUE" in bad.stderr
+
+
+def test_a_key_set_to_null_is_unset(tmp_path: Path) -> None:
+    """``load_config`` reads an override of None as "not given": the benchmarks' ``--set
+    KEY=null`` goes through a config file instead, and the key is unset."""
+    sys.path.insert(0, str(BENCH.parent))
+    from _settings import load_with
+
+    cfg = load_with({"surfels.final_points_per_scan": None, "surfels.max_points": 8000}, tmp_path)
+    assert cfg.surfels.final_points_per_scan is None and cfg.surfels.max_points == 8000
+    assert load_with({"surfels.max_points": 8000}, tmp_path).surfels.final_points_per_scan == 6000
+
+
 def test_the_default_rates_are_left_to_the_simulator() -> None:
     out = _run("--only", "clean")
     cases = _listed(out)
