@@ -51,9 +51,9 @@ from licalib_cli.solver.observability import (
     DirectionDescription,
     InformationSummary,
     describe_direction,
+    kept_directions,
     mostly_free,
     summarize_information,
-    truncation_mask,
     undamped_schur_system,
     weak_directions,
 )
@@ -312,9 +312,14 @@ def observable_basis(information: InformationSummary, params: LMParams) -> F64:
 def kept_mask(information: InformationSummary, params: LMParams) -> npt.NDArray[np.bool_]:
     """(Nc,) which singular directions of ``information`` the TSVD keeps: those above the
     threshold, and the weakly determined ones (:func:`weak_mask`)."""
-    s = information.singular_values
-    return truncation_mask(s, params.tsvd_threshold, relative=params.tsvd_relative) | weak_mask(
-        information, params
+    return kept_directions(
+        information.singular_values,
+        information.singular_vectors,
+        information.owners,
+        params.tsvd_threshold,
+        relative=params.tsvd_relative,
+        floor=params.weak_floor if params.use_tsvd else 0.0,
+        bounded_blocks=params.bounded_blocks,
     )
 
 

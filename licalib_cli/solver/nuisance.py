@@ -51,7 +51,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from licalib_cli.parallel.threads import map_blocks
-from licalib_cli.solver.observability import truncation_mask, weak_directions
+from licalib_cli.solver.observability import kept_directions
 from licalib_cli.solver.problem import Evaluation, Layout, Linearization, Problem
 from licalib_cli.solver.schur import _BandedCholesky, _sparse_lu_solver, _trajectory_diagonal
 
@@ -552,13 +552,12 @@ def segmented_nuisance_step(
         s_d = scale[:, None] * s_c * scale[None, :]
         vals, vecs = np.linalg.eigh(0.5 * (s_d + s_d.T))
         vals = np.clip(vals, 0.0, None)
-        keep = truncation_mask(vals, tsvd_threshold, relative=tsvd_relative)
-        absolute = tsvd_threshold * (float(vals.max(initial=0.0)) if tsvd_relative else 1.0)
-        keep |= weak_directions(
+        keep = kept_directions(
             vals,
             vecs,
             lin.layout.calibration_owner,
-            absolute,
+            tsvd_threshold,
+            relative=tsvd_relative,
             floor=weak_floor,
             bounded_blocks=bounded_blocks,
         )

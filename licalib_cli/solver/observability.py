@@ -38,6 +38,7 @@ __all__ = [
     "InformationSummary",
     "calibration_information",
     "describe_direction",
+    "kept_directions",
     "marginal_information",
     "mostly_free",
     "summarize_information",
@@ -184,6 +185,26 @@ def weak_directions(
         return np.zeros(s.size, dtype=bool)
     weak = ~truncation_mask(s, threshold) & truncation_mask(s, floor * threshold)
     return weak & mostly_free(vectors, owners, bounded_blocks)
+
+
+def kept_directions(
+    singular_values: npt.ArrayLike,
+    vectors: F64,
+    owners: Sequence[str],
+    threshold: float,
+    *,
+    relative: bool = False,
+    floor: float,
+    bounded_blocks: Sequence[str],
+) -> npt.NDArray[np.bool_]:
+    """Which singular directions a step moves along: those the truncated SVD keeps
+    (:func:`truncation_mask`) and the weakly determined ones (:func:`weak_directions`, with
+    ``threshold`` made absolute when ``relative``)."""
+    s = np.asarray(singular_values, dtype=np.float64)
+    absolute = threshold * (max(float(s.max(initial=0.0)), 0.0) if relative else 1.0)
+    return truncation_mask(s, absolute) | weak_directions(
+        s, vectors, owners, absolute, floor=floor, bounded_blocks=bounded_blocks
+    )
 
 
 def truncation_mask(
