@@ -32,6 +32,7 @@ __all__ = [
     "points_in_global",
     "points_per_scan",
     "query_times",
+    "round_points",
     "sample_points",
     "solver_points",
     "usable_mask",
@@ -144,13 +145,22 @@ class PointBudget:
         return self.available >= MORE_POINTS_FACTOR * self.kept
 
 
+def round_points(cfg: CalibConfig, num_scans: int) -> tuple[int, int | None]:
+    """Points per sweep of the regular rounds, and of the denser final round: None when there
+    is none (``surfels.final_points_per_scan`` unset, or not above the regular rounds' once
+    both keep ``surfels.max_points``)."""
+    regular = points_per_scan(cfg, num_scans)
+    final = cfg.surfels.final_points_per_scan
+    dense = points_per_scan(cfg, num_scans, final) if final is not None else None
+    return regular, dense if dense is not None and dense > regular else None
+
+
 def point_budget(cfg: CalibConfig, scans: tuple[LidarScan, ...]) -> PointBudget | None:
     """The last round's points per sweep against the sweeps' (None without sweeps)."""
     if not scans:
         return None
-    regular = points_per_scan(cfg, len(scans))
-    final = cfg.surfels.final_points_per_scan
-    kept = max(regular, points_per_scan(cfg, len(scans), final)) if final is not None else regular
+    regular, dense = round_points(cfg, len(scans))
+    kept = regular if dense is None else dense
     available = int(np.median([len(s) for s in scans]))  # loop over sweeps, not points
     return PointBudget(kept, available)
 

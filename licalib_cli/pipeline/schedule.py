@@ -48,7 +48,7 @@ from licalib_cli.pipeline.points import (
     PointBudget,
     PointSample,
     point_budget,
-    points_per_scan,
+    round_points,
     sample_points,
 )
 from licalib_cli.pipeline.prior_directions import data_translation_std
@@ -509,7 +509,8 @@ def run_schedule(
     sch = cfg.schedule
     state = guess.state
     phi = guess.nominal_elevation
-    sample = sample_points(rec.scans, phi, points_per_scan(cfg, len(rec.scans)), cfg)
+    regular, final = round_points(cfg, len(rec.scans))  # final: the denser round's, or None
+    sample = sample_points(rec.scans, phi, regular, cfg)
     probe = sample.subset(np.arange(0, len(sample), max(1, len(sample) // _PROBE_POINTS)))
     imu = ImuData.from_samples(rec.imu, state.t0_ns)
     base = association_distance(cfg, noise)
@@ -530,10 +531,7 @@ def run_schedule(
     previous_at = np.inf  # the association distance of the round before
     crawl_steps = 0
     step: tuple[CalibrationState, CalibrationState] | None = None  # the last step, from and to
-    final = cfg.surfels.final_points_per_scan
-    if final is not None:
-        final = points_per_scan(cfg, len(rec.scans), final)
-    dense_after = final is not None and final > points_per_scan(cfg, len(rec.scans))
+    dense_after = final is not None
     cap, index = sch.max_rounds, 0
     while index < cap:
         index += 1

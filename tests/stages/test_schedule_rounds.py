@@ -194,7 +194,12 @@ def _schedule(
     monkeypatch.setattr(schedule, "map_movement", lambda before, after, probe: 1e-3 * moved_mm)
     monkeypatch.setattr(schedule, "intrinsic_change", lambda before, after, report: 0.0)
     monkeypatch.setattr(schedule, "sample_points", sample_points)
-    monkeypatch.setattr(schedule, "points_per_scan", lambda cfg, n, per_scan=None: per_scan or 100)
+
+    def round_points(cfg: Any, n: int) -> tuple[int, int | None]:
+        final = cfg.surfels.final_points_per_scan  # 100 points a sweep in the regular rounds
+        return 100, final if final is not None and final > 100 else None
+
+    monkeypatch.setattr(schedule, "round_points", round_points)
     monkeypatch.setattr(
         schedule,
         "round_settings",

@@ -252,3 +252,10 @@ def test_the_point_budget_is_the_last_round_s_against_the_median_sweep() -> None
     none = CalibConfig.model_validate({"surfels": {"final_points_per_scan": None}})
     assert point_budget(none, scans) == type(budget)(1000, 22_500)
     assert point_budget(cfg, ()) is None
+    # a "denser" round no denser than the regular ones is none: the regular rounds' points
+    from licalib_cli.pipeline.points import round_points
+
+    sparse = CalibConfig.model_validate({"surfels": {"final_points_per_scan": 500}})
+    assert round_points(sparse, len(scans)) == (1000, None)
+    assert point_budget(sparse, scans) == type(budget)(1000, 22_500)
+    assert round_points(cfg, len(scans)) == (1000, 6000)
