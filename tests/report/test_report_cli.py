@@ -286,6 +286,7 @@ def test_not_a_result_is_refused(tmp_path, capsys, content, expected):
         (("imu_intrinsics", "gyro_g_sensitivity"), [1], "is [1], not 3 rows of 3"),
         (("gravity_G",), "down", "is 'down', not a list of 3"),
         (("observability", "weakly_determined"), 5, "is 5, not a list of strings"),
+        (("observability", "weak_floor"), "tenth", "is 'tenth', not a number"),
     ],
 )
 def test_a_value_of_the_wrong_type_is_named_by_its_key(tmp_path, capsys, key, value, expected):
