@@ -52,6 +52,7 @@ __all__ = [
     "LIDAR_COLUMNS",
     "LOOSE_BLUR_SHARE",
     "MIN_THICKNESS_M",
+    "SETTLED_COST_TOLERANCE",
     "SIZED_CALIBRATION_BLOCKS",
     "THICKNESS_PER_RANGE_SIGMA",
     "NoiseLevels",
@@ -281,13 +282,24 @@ growing as the damping fell (a 12 s shake: rounds of six iterations whose cost k
 does not reduce the cost raises the damping as before (Nielsen)."""
 
 
+SETTLED_COST_TOLERANCE = 0.05
+"""Cost (half the whitened chi-square) the next step of a solve must still remove: a step that
+would remove less moves the estimate by under ``sqrt(2 * 0.05)``, 0.32, of a sigma along its
+own direction and the calibration by less than that of its own sigmas (its marginal
+information being at most the joint one), as a planes-free step below
+:data:`~licalib_cli.pipeline.free_planes.MIN_GAIN` is not taken either. Without it the relative
+tolerance alone (1e-8 of costs of 1e4-1e5) let the solves after the planes-free steps and the
+checks' refits run whole iterations for gains of 0.003-0.1."""
+
+
 def lm_params(
     cfg: CalibConfig,
     max_iterations: int | None = None,
-    cost_tolerance: float = 0.0,
+    cost_tolerance: float = SETTLED_COST_TOLERANCE,
     function_tolerance: float = LMParams.function_tolerance,
 ) -> LMParams:
-    """Levenberg-Marquardt settings of a round."""
+    """Levenberg-Marquardt settings of a solve (a step must remove at least
+    :data:`SETTLED_COST_TOLERANCE` of the cost unless ``cost_tolerance`` says otherwise)."""
     return LMParams(
         max_iterations=cfg.schedule.iterations_per_round
         if max_iterations is None
@@ -541,7 +553,7 @@ def round_settings(
     An ``evaluate_only`` round builds its map, associations and problem and linearises them at
     its starting estimate without a solver step: the planes-free steps then take over from that
     linearisation (the denser final round, :mod:`schedule`)."""
-    tolerance = PROVISIONAL_COST_TOLERANCE if provisional else 0.0
+    tolerance = PROVISIONAL_COST_TOLERANCE if provisional else SETTLED_COST_TOLERANCE
     coarse = max_distance_m > association_distance(cfg, noise)
     return RoundSettings(
         surfels=surfel_config(cfg, noise, max_distance_m),

@@ -518,9 +518,11 @@ def test_provisional_rounds_stop_early_with_or_without_intrinsics() -> None:
     """A provisional round (a denser final round follows) may leave its last tenths of a sigma
     to the next round, with intrinsics free too (the dense round's planes-free steps take the
     range scales' common mode to the optimum); the final round and every round when there is
-    none are solved to their optimum."""
+    none are solved until a step would gain less than SETTLED_COST_TOLERANCE (under a third of
+    a sigma along it), a smaller tolerance than the provisional rounds'."""
     from licalib_cli.pipeline.settings import (
         PROVISIONAL_COST_TOLERANCE,
+        SETTLED_COST_TOLERANCE,
         NoiseLevels,
         round_settings,
     )
@@ -536,7 +538,8 @@ def test_provisional_rounds_stop_early_with_or_without_intrinsics() -> None:
         return settings.solver.cost_tolerance
 
     assert tolerance(False, True) == tolerance(True, True) == PROVISIONAL_COST_TOLERANCE > 0.0
-    assert tolerance(False, False) == tolerance(True, False) == 0.0
+    assert tolerance(False, False) == tolerance(True, False) == SETTLED_COST_TOLERANCE
+    assert 0.0 < SETTLED_COST_TOLERANCE < PROVISIONAL_COST_TOLERANCE
 
 
 def test_coarse_rounds_stop_at_a_fraction_of_the_cost() -> None:
