@@ -32,6 +32,7 @@ from licalib_cli.initialization.rotation import (
     constant_velocity_error_deg,
     estimate_rotation_extrinsic,
     lidar_rotation_at,
+    relative_rotations,
 )
 from licalib_cli.initialization.rotation_search import (
     RotationSearch,
@@ -284,6 +285,33 @@ def _with_rotation_hint(err: ExcitationError) -> ExcitationError:
     return ExcitationError(msg)
 
 
+STILL_SPAN_DEG = 1.0
+"""A rig whose attitude (integrated from the gyro) stays within this angle of where it started
+over the whole recording cannot show its rotation extrinsic by any of the ways tried: hand-eye,
+one axis, nor the search by map sharpness (every rotation maps a still rig's sweeps alike).
+A 3 s still bag was refused after 9 s of search; it is refused at once."""
+
+
+def _refuse_a_still_rig(gyro: GyroIntegrator, t_imu: npt.NDArray[np.int64]) -> None:
+    """Raise when the IMU turned less than :data:`STILL_SPAN_DEG` from its first attitude at
+    every time of ``t_imu`` (the sweeps' times on the IMU clock).
+
+    Raises:
+        ExcitationError: the rig hardly turned.
+    """
+    if t_imu.size < 2:
+        return
+    turned = relative_rotations(gyro, np.full(t_imu.size - 1, t_imu[0]), t_imu[1:])
+    span = float(np.degrees(np.max(turned.magnitude())))
+    if span < STILL_SPAN_DEG:
+        msg = (
+            f"Rotation excitation is too weak: the IMU turned at most {span:.2g} deg from its "
+            f"first attitude over the recording (under {STILL_SPAN_DEG:g}); rotate the rig "
+            "about at least two axes during the recording"
+        )
+        raise _with_rotation_hint(ExcitationError(msg))
+
+
 def _searched_rotation(
     rec: Recording,
     odo: Odometry,
@@ -415,6 +443,8 @@ def _initial_rotation(
         )
     t_imu = poses.t_ns + np.int64(round(t_c * 1e9))
     t_imu = t_imu[(t_imu >= gyro.t_ns[0]) & (t_imu <= gyro.t_ns[-1])]
+    if first is None:
+        _refuse_a_still_rig(gyro, t_imu)
     if first is None and rotation_axes(gyro, t_imu).second_to_first < ini.min_axis_ratio:
         found = single_axis_rotation(rec.imu, gyro, poses, t_c, ini.min_rotation_deg)
         return found.R_imu_lidar, poses, None, SINGLE_AXIS
