@@ -12,13 +12,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from light_config import LIGHT_VLP16
 
 from licalib_cli.cli import main
 from licalib_cli.models.intrinsics import ImuIntrinsics, LidarIntrinsics
 from licalib_cli.results import CalibrationResult
 from licalib_cli.simulation import SimulationSpec, lidar_model, simulate
 
-CONFIG = Path(__file__).resolve().parents[2] / "configs" / "vlp16.yaml"
+CONFIG = LIGHT_VLP16  # configs/vlp16.yaml with a lighter final round
 VLP16_ELEVATION = np.radians(np.arange(-15.0, 16.0, 2.0))
 
 pytestmark = pytest.mark.slow

@@ -9,10 +9,9 @@ intrinsic moved.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
+from light_config import LIGHT_VLP16
 
 from licalib_cli.config import INTRINSIC_PRESETS, load_config
 from licalib_cli.estimation import state_from_problem
@@ -23,7 +22,7 @@ from licalib_cli.pipeline.split import COORDINATES, half_problem, intrinsic_resp
 from licalib_cli.simulation import SimulationSpec, simulate
 from licalib_cli.solver.lm import solve
 
-CONFIG = Path(__file__).resolve().parents[2] / "configs" / "vlp16.yaml"
+CONFIG = LIGHT_VLP16  # configs/vlp16.yaml with a lighter final round
 IMU_BLOCKS = list(INTRINSIC_PRESETS["imu"][0])
 
 pytestmark = pytest.mark.slow

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from light_config import LIGHT_VLP16
 
 from licalib_cli.config import load_config
 from licalib_cli.models.intrinsics import LidarIntrinsics
@@ -21,7 +22,7 @@ from licalib_cli.pipeline.joint import calibrate_segments
 from licalib_cli.results import CalibrationResult
 from licalib_cli.simulation import SimulationSpec, simulate
 
-CONFIG = Path(__file__).resolve().parents[2] / "configs" / "vlp16.yaml"
+CONFIG = LIGHT_VLP16  # configs/vlp16.yaml with a lighter final round
 VLP16_ELEVATION = np.radians(np.arange(-15.0, 16.0, 2.0))
 
 pytestmark = pytest.mark.slow

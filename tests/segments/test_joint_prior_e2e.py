@@ -13,11 +13,12 @@ from pathlib import Path
 
 import pytest
 import yaml
+from light_config import LIGHT_VLP16
 
 from licalib_cli.cli import main
 from licalib_cli.simulation import SimulationSpec, simulate
 
-CONFIG = Path(__file__).resolve().parents[2] / "configs" / "vlp16.yaml"
+CONFIG = LIGHT_VLP16  # configs/vlp16.yaml with a lighter final round
 
 pytestmark = pytest.mark.slow
 

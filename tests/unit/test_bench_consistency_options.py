@@ -5,6 +5,9 @@ refused; the diagnose benchmark's report of rivals and of effects tried and not 
 from __future__ import annotations
 
 import ast
+import contextlib
+import io
+import runpy
 import subprocess
 import sys
 from pathlib import Path
@@ -15,14 +18,28 @@ import pytest
 BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_consistency.py"
 
 
+def _script(path: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """``python path ARGS``, run in this process (a new interpreter per call took a second of
+    imports each): its exit code, stdout and stderr."""
+    out, err = io.StringIO(), io.StringIO()
+    code = 0
+    argv, sys_path = sys.argv, list(sys.path)
+    sys.argv = [str(path), *args]
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            runpy.run_path(str(path), run_name="__main__")
+    except SystemExit as exit_:
+        code = exit_.code if isinstance(exit_.code, int) else (0 if exit_.code is None else 1)
+        if isinstance(exit_.code, str):
+            err.write(exit_.code)
+    finally:
+        sys.argv = argv
+        sys.path[:] = sys_path
+    return subprocess.CompletedProcess(sys.argv, code, out.getvalue(), err.getvalue())
+
+
 def _run(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, str(BENCH), *args, "--list"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
+    return _script(BENCH, *args, "--list")
 
 
 def _listed(out: subprocess.CompletedProcess[str]) -> list[dict]:
@@ -124,13 +141,7 @@ INTRINSICS = BENCH.parent / "bench_intrinsics.py"
 
 
 def _diagnose(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, str(DIAGNOSE), *args],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
+    return _script(DIAGNOSE, *args)
 
 
 def _bench_diagnose() -> ModuleType:
@@ -170,13 +181,7 @@ def test_a_diagnose_case_lasts_the_length_asked_or_its_effects_longer_one() -> N
 
 @pytest.mark.parametrize("bench", [DIAGNOSE, INTRINSICS], ids=["diagnose", "intrinsics"])
 def test_the_other_benchmarks_refuse_a_rate_that_is_not_positive(bench: Path) -> None:
-    out = subprocess.run(
-        [sys.executable, str(bench), "--lidar-rate", "-10"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
+    out = _script(bench, "--lidar-rate", "-10")
     assert out.returncode == 2
     assert "--lidar-rate must be a positive number of samples per second" in out.stderr
     assert "Traceback" not in out.stderr
@@ -220,13 +225,7 @@ def test_the_diagnose_benchmark_counts_the_rivals_named_in_the_leaders_place(
     ]
     path = tmp_path / "rows.jsonl"
     path.write_text("".join(json.dumps(r) + "\n" for r in rows))
-    out = subprocess.run(
-        [sys.executable, str(DIAGNOSE), "--report", str(path)],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
+    out = _script(DIAGNOSE, "--report", str(path))
     assert out.returncode == 0, out.stderr
     assert (
         "rivals refitted beside the leader at 2 steps of 2 runs (shares 0.83-0.91); named in "
