@@ -161,3 +161,25 @@ def test_constant_velocity_error_is_what_the_previous_interval_mispredicts() -> 
         assert np.median(np.abs(err - expected)) < 0.05 * expected, (np.median(err), expected)
     # Fewer than three times inside the IMU data: nothing to compare.
     assert constant_velocity_error_deg(steady, scans[:2]).size == 0
+
+
+def test_a_still_rig_is_refused_and_a_slow_turn_is_not() -> None:
+    """The still-rig check before the rotation search: an IMU that stays within 1 deg of its
+    first attitude is refused with the angle it turned; a turn of 3 deg over 10 s (0.03 deg a
+    sweep, far below what hand-eye pairs need) is left to the search."""
+    from licalib_cli.pipeline.initialise import STILL_SPAN_DEG, _refuse_a_still_rig
+
+    t = T0_NS + np.arange(0, 4000) * 2_500_000  # 400 Hz, 10 s
+    sweeps = T0_NS + np.arange(0, 100) * 100_000_000
+    phase = 2 * np.pi * (t - T0_NS) / 2e9  # a 2 s wobble
+    amplitude = np.radians(0.3)  # attitude within +-0.3 deg about x and y
+    wobble = np.stack(
+        [amplitude * np.pi * np.cos(phase), amplitude * np.pi * np.sin(phase), 0 * phase], axis=1
+    )
+    still = GyroIntegrator.from_imu(ImuSamples(t, wobble, np.zeros((t.size, 3))))
+    with pytest.raises(ExcitationError, match=r"the IMU turned at most 0\.[0-9]+ deg") as info:
+        _refuse_a_still_rig(still, sweeps)
+    assert f"(under {STILL_SPAN_DEG:g})" in str(info.value)
+    assert "initialization.rotation_rpy_deg" in str(info.value)
+    slow = np.tile(np.radians([0.3, 0.0, 0.0]), (t.size, 1))  # 3 deg over the 10 s
+    _refuse_a_still_rig(GyroIntegrator.from_imu(ImuSamples(t, slow, np.zeros((t.size, 3)))), sweeps)
