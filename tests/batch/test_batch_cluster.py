@@ -18,6 +18,7 @@ from pathlib import Path
 
 import cloudpickle
 import pytest
+from light_config import LIGHT_VLP16
 
 from licalib_cli import __version__
 from licalib_cli.batch import TaskInput, TaskOutcome, calibrate_task, read_inputs, run_batch
@@ -32,7 +33,7 @@ from licalib_cli.simulation import SimulationSpec, simulate
 
 pytestmark = pytest.mark.slow
 
-CONFIG = Path(__file__).resolve().parents[2] / "configs" / "vlp16.yaml"
+CONFIG = LIGHT_VLP16  # configs/vlp16.yaml with a lighter final round
 
 # The tasks below run in worker processes: send them by value, not as a module to import.
 cloudpickle.register_pickle_by_value(sys.modules[__name__])

@@ -8,6 +8,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+from light_config import LIGHT_VLP16
 
 from licalib_cli.batch import BatchJob, read_inputs
 from licalib_cli.batch.plan import job_fingerprint, plan
@@ -20,7 +21,7 @@ from licalib_cli.pipeline.assemble import bag_fingerprint
 from licalib_cli.results import CalibrationResult
 from licalib_cli.sections import Provenance, SegmentsSection, VerdictSection
 
-CONFIG = Path(__file__).resolve().parents[2] / "configs" / "vlp16.yaml"
+CONFIG = LIGHT_VLP16  # configs/vlp16.yaml with a lighter final round
 
 
 @pytest.fixture

@@ -5,17 +5,17 @@ is installed, look at the page as a person would."""
 from __future__ import annotations
 
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from light_config import LIGHT_VLP16
 
 from licalib_cli.cli import main
 from licalib_cli.report import ReportData, report_data_path
 from licalib_cli.simulation import SimulationSpec, simulate
 
-CONFIG = Path(__file__).resolve().parents[2] / "configs" / "vlp16.yaml"
+CONFIG = LIGHT_VLP16  # configs/vlp16.yaml with a lighter final round
 
 pytest.importorskip("matplotlib")
 o3d = pytest.importorskip("open3d")
