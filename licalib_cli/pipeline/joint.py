@@ -88,7 +88,12 @@ from licalib_cli.pipeline.intrinsic_sigmas import intrinsics_uncertainty
 from licalib_cli.pipeline.joint_planes import refine_segments_with_planes
 from licalib_cli.pipeline.joint_problem import joint_problem, segment_values
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty
-from licalib_cli.pipeline.points import points_in_global, solver_points, usable_points
+from licalib_cli.pipeline.points import (
+    joint_point_budget,
+    points_in_global,
+    solver_points,
+    usable_points,
+)
 from licalib_cli.pipeline.prior_directions import lever_arm_conflict, on_prior
 from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.pipeline.schedule import cover_truncated
@@ -693,8 +698,10 @@ def _joint_result(
     sigma = unc.vector()
     entangled = entangled_intrinsics(report, sigma[:3])
     resting = on_prior(report, prior_sd(cfg))
+    # the joint problem takes each segment's last round's points
+    points = joint_point_budget([r.fit.points for r in runs])
     for finding in uncertainty_findings(
-        sigma, sigma, cfg.checks, entangled=entangled, resting=resting
+        sigma, sigma, cfg.checks, entangled=entangled, resting=resting, points=points
     ):
         worst = "warn" if worst == "pass" else worst
         reasons.append(f"Joint estimate: {finding.text}")

@@ -8,6 +8,7 @@ so that the map and the solver apply exactly the same point model.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,6 +27,7 @@ __all__ = [
     "MORE_POINTS_FACTOR",
     "PointBudget",
     "PointSample",
+    "joint_point_budget",
     "nominal_elevations",
     "point_budget",
     "points_and_rays_in_global",
@@ -163,6 +165,16 @@ def point_budget(cfg: CalibConfig, scans: tuple[LidarScan, ...]) -> PointBudget 
     kept = regular if dense is None else dense
     available = int(np.median([len(s) for s in scans]))  # loop over sweeps, not points
     return PointBudget(kept, available)
+
+
+def joint_point_budget(budgets: Sequence[PointBudget | None]) -> PointBudget | None:
+    """The points of segments estimated together: the most any segment's last round kept per
+    sweep against the fewest a segment's sweep holds, so that more are said to be available
+    only when every segment holds them (None when a segment has no budget)."""
+    if not budgets or any(b is None for b in budgets):
+        return None
+    known = [b for b in budgets if b is not None]
+    return PointBudget(max(b.kept for b in known), min(b.available for b in known))
 
 
 def sample_points(

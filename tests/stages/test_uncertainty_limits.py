@@ -233,6 +233,27 @@ def test_a_sweep_holding_many_more_points_than_the_last_round_kept_is_said() -> 
     assert "points a sweep" not in prior.text
 
 
+def test_segments_estimated_together_are_told_of_more_points_only_when_every_one_holds_them() -> (
+    None
+):
+    """``joint_point_budget``: the joint problem takes each segment's last round's points; the
+    advice on points stands only when every segment's sweep holds at least twice the most any
+    segment kept, and not when a segment's budget is unknown."""
+    from licalib_cli.pipeline.points import PointBudget, joint_point_budget
+
+    both = joint_point_budget([PointBudget(6000, 28_800), PointBudget(4000, 14_000)])
+    assert both == PointBudget(6000, 14_000) and both.more_available
+    # one segment kept nearly all of its sweeps: more do not help it
+    full = joint_point_budget([PointBudget(6000, 28_800), PointBudget(6000, 11_000)])
+    assert full == PointBudget(6000, 11_000) and not full.more_available
+    assert joint_point_budget([PointBudget(6000, 28_800), None]) is None
+    assert joint_point_budget([]) is None
+    limits = CalibConfig().checks
+    sigma = _sigma(5.95, 0.12, 0.216)
+    texts = [f.text for f in uncertainty_findings(sigma, sigma, limits, points=both)]
+    assert "The last round kept 6000 of about 14000 points a sweep: more" in texts[0]
+
+
 def test_the_point_budget_is_the_last_round_s_against_the_median_sweep() -> None:
     """``point_budget``: the dense round's points per sweep (within ``max_points``), the
     regular rounds' without one, against the median sweep."""
