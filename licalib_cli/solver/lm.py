@@ -50,6 +50,7 @@ from licalib_cli.errors import SolverError
 from licalib_cli.solver.observability import (
     DirectionDescription,
     InformationSummary,
+    absolute_threshold,
     describe_direction,
     kept_directions,
     mostly_free,
@@ -353,8 +354,7 @@ def weak_mask(information: InformationSummary, params: LMParams) -> npt.NDArray[
 
 def _absolute_threshold(singular_values: F64, params: LMParams) -> float:
     """``params.tsvd_threshold`` in singular-value units (times the largest when relative)."""
-    s = singular_values
-    return params.tsvd_threshold * (float(s[0]) if params.tsvd_relative and s.size else 1.0)
+    return absolute_threshold(singular_values, params.tsvd_threshold, relative=params.tsvd_relative)
 
 
 def _undamped_information(lin: Linearization) -> InformationSummary:

@@ -36,6 +36,7 @@ __all__ = [
     "TRAJECTORY_REGULARISATION",
     "DirectionDescription",
     "InformationSummary",
+    "absolute_threshold",
     "calibration_information",
     "describe_direction",
     "kept_directions",
@@ -201,10 +202,19 @@ def kept_directions(
     (:func:`truncation_mask`) and the weakly determined ones (:func:`weak_directions`, with
     ``threshold`` made absolute when ``relative``)."""
     s = np.asarray(singular_values, dtype=np.float64)
-    absolute = threshold * (max(float(s.max(initial=0.0)), 0.0) if relative else 1.0)
+    absolute = absolute_threshold(s, threshold, relative=relative)
     return truncation_mask(s, absolute) | weak_directions(
         s, vectors, owners, absolute, floor=floor, bounded_blocks=bounded_blocks
     )
+
+
+def absolute_threshold(
+    singular_values: npt.ArrayLike, threshold: float, *, relative: bool = False
+) -> float:
+    """The truncation threshold in singular-value units: ``threshold`` itself, or when
+    ``relative`` that fraction of the largest singular value."""
+    s = np.asarray(singular_values, dtype=np.float64)
+    return threshold * (max(float(s.max()), 0.0) if relative and s.size else 1.0)
 
 
 def truncation_mask(
@@ -226,8 +236,7 @@ def truncation_mask(
     if s.size == 0:
         return np.zeros(0, dtype=bool)
     smax = max(float(s.max()), 0.0)
-    thr = threshold * smax if relative else threshold
-    return (s > thr) & (s > _RCOND * smax)
+    return (s > absolute_threshold(s, threshold, relative=relative)) & (s > _RCOND * smax)
 
 
 @dataclass(frozen=True)
