@@ -171,9 +171,9 @@ def joint_point_budget(budgets: Sequence[PointBudget | None]) -> PointBudget | N
     """The points of segments estimated together: the most any segment's last round kept per
     sweep against the fewest a segment's sweep holds, so that more are said to be available
     only when every segment holds them (None when a segment has no budget)."""
-    if not budgets or any(b is None for b in budgets):
-        return None
     known = [b for b in budgets if b is not None]
+    if not known or len(known) < len(budgets):
+        return None
     return PointBudget(max(b.kept for b in known), min(b.available for b in known))
 
 

@@ -23,8 +23,9 @@ def _script(path: Path, *args: str) -> subprocess.CompletedProcess[str]:
     imports each): its exit code, stdout and stderr."""
     out, err = io.StringIO(), io.StringIO()
     code = 0
+    command = [str(path), *args]
     argv, sys_path = sys.argv, list(sys.path)
-    sys.argv = [str(path), *args]
+    sys.argv = command
     try:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             runpy.run_path(str(path), run_name="__main__")
@@ -35,7 +36,7 @@ def _script(path: Path, *args: str) -> subprocess.CompletedProcess[str]:
     finally:
         sys.argv = argv
         sys.path[:] = sys_path
-    return subprocess.CompletedProcess(sys.argv, code, out.getvalue(), err.getvalue())
+    return subprocess.CompletedProcess(command, code, out.getvalue(), err.getvalue())
 
 
 def _run(*args: str) -> subprocess.CompletedProcess[str]:
