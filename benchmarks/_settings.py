@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 from typing import Any
 
 import yaml
@@ -32,22 +31,9 @@ def add_set_option(p: argparse.ArgumentParser) -> None:
     )
 
 
-def load_with(overrides: dict[str, Any], workdir: Path) -> Any:
-    """The default config with ``overrides`` (dotted keys). ``load_config`` reads an override
-    of None as "not given", so the keys set to null go through a config file in ``workdir``."""
+def load_with(overrides: dict[str, Any]) -> Any:
+    """The default config with ``overrides`` (dotted keys; None sets a key to null), as
+    ``licalib calibrate --set`` gives them."""
     from licalib_cli.config import load_config
 
-    nulls = [k for k, v in overrides.items() if v is None]
-    if not nulls:
-        return load_config(None, overrides)
-    tree: dict = {}
-    for key in nulls:
-        *sections, leaf = key.split(".")
-        node = tree
-        for name in sections:
-            node = node.setdefault(name, {})
-        node[leaf] = None
-    path = workdir / "null_settings.yaml"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(yaml.safe_dump(tree))
-    return load_config(path, overrides)
+    return load_config(None, settings=overrides)

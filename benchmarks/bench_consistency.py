@@ -202,7 +202,7 @@ def one_run(case: dict, workdir: Path) -> dict:
         measured_off = np.random.default_rng(case["seed"] + 7919).normal(0.0, prior, 3)
         overrides["initialization.translation_m"] = [float(x) for x in np.add(lever, measured_off)]
         overrides["initialization.translation_sigma_m"] = prior
-    cfg = load_with(overrides, workdir / f"run{case['seed']}")
+    cfg = load_with(overrides)
     t0 = time.perf_counter()
     row = {**case, "rpy_deg": [round(x, 1) for x in rpy], "lever_m": [round(x, 3) for x in lever]}
     try:

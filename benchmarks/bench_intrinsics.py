@@ -90,7 +90,7 @@ def one_run(args: argparse.Namespace, seed: int, workdir: Path) -> dict:
     imu_blocks, lidar_blocks = INTRINSIC_PRESETS[args.model]
     overrides = {"model.imu": list(imu_blocks), "model.lidar": list(lidar_blocks)}
     overrides.update(args.set)
-    cfg = load_with(overrides, workdir)
+    cfg = load_with(overrides)
     t0 = time.perf_counter()
     run = calibrate(out.bag_path, cfg)
     wall = time.perf_counter() - t0

@@ -668,12 +668,35 @@ def _where(loc: tuple[Any, ...]) -> str:
     return ".".join(kept)
 
 
-def load_config(path: Path | None, overrides: dict[str, Any] | None = None) -> CalibConfig:
+def _put(data: dict[str, Any], dotted: str, value: Any) -> None:
+    """Set the dotted key ``dotted`` of the nested mapping ``data`` to ``value``, making the
+    sections on the way (a section given as a scalar is left for the validation to name)."""
+    node: Any = data
+    *parents, leaf = dotted.split(".")
+    for key in parents:
+        if node.get(key) is None:  # absent, or an empty section (``bag:``)
+            node[key] = {}
+        node = node[key]
+        if not isinstance(node, dict):
+            return
+    node[leaf] = value
+
+
+def load_config(
+    path: Path | None,
+    overrides: dict[str, Any] | None = None,
+    settings: dict[str, Any] | None = None,
+) -> CalibConfig:
     """Read a YAML config (or defaults) and apply dotted overrides such as ``{"imu.topic": "/x"}``.
+
+    ``settings`` are the ``--set KEY=VALUE`` settings by dotted key, applied over the file as
+    given (None sets a key to null); ``overrides`` are the dedicated options' (``--imu-topic``
+    ...), applied last, None meaning "not given".
 
     Raises:
         ConfigError: the file is missing, a folder, not text, not YAML (or names a key twice),
-            or has unknown keys or bad values; an override has a bad value.
+            or has unknown keys or bad values; a setting or an override names an unknown key or
+            has a bad value.
     """
     data: dict[str, Any] = {}
     if path is not None:
@@ -684,32 +707,38 @@ def load_config(path: Path | None, overrides: dict[str, Any] | None = None) -> C
             raise ConfigError(msg)
         data = loaded or {}
     given = {k: v for k, v in (overrides or {}).items() if v is not None}
-    for dotted, value in given.items():
-        node: Any = data
-        *parents, leaf = dotted.split(".")
-        for key in parents:
-            if node.get(key) is None:  # absent, or an empty section (``bag:``)
-                node[key] = {}
-            node = node[key]
-            if not isinstance(node, dict):  # a section given as a scalar: validation says so
-                break
-        else:
-            node[leaf] = value
+    for dotted, value in {**(settings or {}), **given}.items():
+        _put(data, dotted, value)
     try:
         return CalibConfig.model_validate(data)
     except ValidationError as err:
-        first = err.errors()[0]
-        loc = tuple(first["loc"])
-        where = _where(loc)
-        why = first["msg"].replace("Value error, ", "")
-        option = next((k for k in given if where == k or where.startswith(k + ".")), None)
-        if option is not None:
-            flag = OPTION_NAMES.get(option, option)
-            msg = f"Invalid value {given[option]!r} for {flag} ({option}): {why}."
-        else:
-            source = f"config file {path}" if path else "options"
-            msg = f"Invalid setting '{where}' in the {source}: {why}."
-        raise ConfigError(msg) from err
+        raise ConfigError(_invalid(err, path, given, settings or {})) from err
+
+
+def _invalid(
+    err: ValidationError, path: Path | None, given: dict[str, Any], settings: dict[str, Any]
+) -> str:
+    """One sentence on the first error of a config's validation, naming where the bad key or
+    value came from: an option, a ``--set`` setting or the file."""
+    first = err.errors()[0]
+    where = _where(tuple(first["loc"]))
+    why = first["msg"].replace("Value error, ", "")
+    option = next((k for k in given if where == k or where.startswith(k + ".")), None)
+    setting = next((k for k in settings if where == k or where.startswith(k + ".")), None)
+    if setting is None and first["type"] == "extra_forbidden":  # ``--set a.b.c`` under ``a.b``
+        setting = next((k for k in settings if k.startswith(where + ".")), None)
+    listed = "licalib config dump prints every setting with its default"
+    if option is not None:
+        flag = OPTION_NAMES.get(option, option)
+        return f"Invalid value {given[option]!r} for {flag} ({option}): {why}."
+    if setting is not None:
+        if first["type"] == "extra_forbidden":
+            return f"Unknown setting '{setting}' in --set; {listed}."
+        return f"Invalid value {settings[setting]!r} for --set {setting}: {why}."
+    source = f"config file {path}" if path else "options"
+    if first["type"] == "extra_forbidden":
+        return f"Unknown setting '{where}' in the {source}; {listed}."
+    return f"Invalid setting '{where}' in the {source}: {why}."
 
 
 def dump_config(cfg: CalibConfig) -> str:

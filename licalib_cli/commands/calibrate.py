@@ -16,9 +16,11 @@ from licalib_cli.commands.options import (
     ImuTopicOption,
     Intrinsics,
     LidarTopicOption,
+    SetOption,
     StartOption,
     input_overrides,
     intrinsics_overrides,
+    settings_of,
 )
 from licalib_cli.commands.render import console, console_err, render_run
 from licalib_cli.config import dump_config, load_config
@@ -167,6 +169,7 @@ def _write_report_outputs(
 def calibrate_command(
     bag: BagArgument,
     config: ConfigOption = None,
+    settings: SetOption = None,
     imu_topic: ImuTopicOption = None,
     lidar_topic: LidarTopicOption = None,
     start: StartOption = None,
@@ -264,6 +267,7 @@ def calibrate_command(
             **intrinsics_overrides(intrinsics),
             **evident_override(model),
         },
+        settings_of(settings),
     )
     if model is ModelChoice.AUTO and intrinsics is not None:
         msg = "--model auto chooses the intrinsics itself; drop --intrinsics or use --model config."

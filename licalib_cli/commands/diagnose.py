@@ -20,8 +20,10 @@ from licalib_cli.commands.options import (
     DurationOption,
     ImuTopicOption,
     LidarTopicOption,
+    SetOption,
     StartOption,
     input_overrides,
+    settings_of,
 )
 from licalib_cli.commands.render import VERDICT_COLOURS, console, reason_lines
 from licalib_cli.config import dump_config, load_config
@@ -509,6 +511,7 @@ def render_diagnosis(diag: Any) -> None:
 def diagnose_command(
     bag: BagArgument,
     config: ConfigOption = None,
+    settings: SetOption = None,
     imu_topic: ImuTopicOption = None,
     lidar_topic: LidarTopicOption = None,
     start: StartOption = None,
@@ -547,6 +550,7 @@ def diagnose_command(
     cfg = load_config(
         config,
         input_overrides(imu_topic, lidar_topic, start, duration),
+        settings_of(settings),
     )
     if candidates:
         unknown = [c for c in candidates if c not in CANDIDATES]

@@ -6,13 +6,16 @@ the option's description for every command that uses it.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from enum import Enum
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
+import yaml
 
 from licalib_cli.config import INTRINSIC_PRESETS
+from licalib_cli.errors import ConfigError
 
 __all__ = [
     "INPUT_PANEL",
@@ -22,9 +25,11 @@ __all__ = [
     "ImuTopicOption",
     "Intrinsics",
     "LidarTopicOption",
+    "SetOption",
     "StartOption",
     "input_overrides",
     "intrinsics_overrides",
+    "settings_of",
 ]
 
 INPUT_PANEL = "Input"
@@ -41,6 +46,18 @@ BagArgument = Annotated[
 ConfigOption = Annotated[
     Path | None,
     typer.Option("--config", "-c", help="YAML config.", rich_help_panel=INPUT_PANEL),
+]
+SetOption = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--set",
+        metavar="KEY=VALUE",
+        help="Change one setting of the config, e.g. surfels.final_points_per_scan=15000 "
+        "(repeatable; the value is read as YAML, null unsets an optional setting; `licalib "
+        "config dump` prints them all).",
+        rich_help_panel=INPUT_PANEL,
+        show_default=False,
+    ),
 ]
 ImuTopicOption = Annotated[
     str | None,
@@ -89,3 +106,30 @@ def intrinsics_overrides(choice: Intrinsics | None) -> dict[str, list[str] | Non
         return {}
     imu, lidar = INTRINSIC_PRESETS[choice.value]
     return {"model.imu": list(imu), "model.lidar": list(lidar)}
+
+
+def settings_of(values: Sequence[str] | None) -> dict[str, Any]:
+    """The ``--set KEY=VALUE`` settings by dotted key, each value read as YAML (a later one of
+    the same key wins).
+
+    Raises:
+        ConfigError: a value without ``=``, an empty key or value, or a value that is not YAML.
+    """
+    settings: dict[str, Any] = {}
+    for item in values or ():
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key or any(not part for part in key.split(".")):
+            msg = (
+                f"--set takes KEY=VALUE, such as surfels.final_points_per_scan=15000; got {item!r}."
+            )
+            raise ConfigError(msg)
+        if not text.strip():
+            msg = f"--set {key}= gives no value; write {key}=null to unset it."
+            raise ConfigError(msg)
+        try:
+            settings[key] = yaml.safe_load(text)
+        except yaml.YAMLError as err:
+            msg = f"The value of --set {key} is not valid YAML ({text!r}); quote it or fix it."
+            raise ConfigError(msg) from err
+    return settings

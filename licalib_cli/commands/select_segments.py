@@ -18,8 +18,10 @@ from licalib_cli.commands.options import (
     ImuTopicOption,
     Intrinsics,
     LidarTopicOption,
+    SetOption,
     input_overrides,
     intrinsics_overrides,
+    settings_of,
 )
 from licalib_cli.commands.render import console
 from licalib_cli.config import load_config
@@ -114,6 +116,7 @@ def save_selection_plot(sel: Selection, path: Path) -> Path:
 def select_segments_command(
     bag: BagArgument,
     config: ConfigOption = None,
+    settings: SetOption = None,
     imu_topic: ImuTopicOption = None,
     lidar_topic: LidarTopicOption = None,
     start: float | None = typer.Option(
@@ -187,6 +190,7 @@ def select_segments_command(
             **input_overrides(imu_topic, lidar_topic, start, duration),
             **intrinsics_overrides(intrinsics),
         },
+        settings_of(settings),
     )
     from licalib_cli.commands.calibrate import RichProgress
 
