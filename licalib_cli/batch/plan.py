@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -62,12 +62,16 @@ class PlannedBag:
         return self.job.label
 
 
-def plan(jobs: Sequence[BatchJob], out_dir: Path) -> list[PlannedBag]:
+def plan(
+    jobs: Sequence[BatchJob], out_dir: Path, settings: Mapping[str, Any] | None = None
+) -> list[PlannedBag]:
     """Resolve every job's configuration and result path, and find the up-to-date results.
 
     Args:
         jobs: the bags (see :func:`licalib_cli.batch.read_inputs`).
         out_dir: the output folder.
+        settings: ``--set`` settings by dotted key, applied over every job's config file (its
+            manifest row's options over them).
 
     Returns:
         One entry per job, in order.
@@ -80,6 +84,8 @@ def plan(jobs: Sequence[BatchJob], out_dir: Path) -> list[PlannedBag]:
     from licalib_cli.pipeline.assemble import bag_fingerprint
 
     out_dir = Path(out_dir).absolute()
+    if settings:  # an unknown key or bad value of --set is said once, not against a bag
+        load_config(None, settings=dict(settings))
     configs: dict[tuple[Any, ...], CalibConfig] = {}
     owners: dict[Path, BatchJob] = {}
     inputs = _inputs(jobs)
@@ -87,7 +93,7 @@ def plan(jobs: Sequence[BatchJob], out_dir: Path) -> list[PlannedBag]:
     for job in jobs:
         key = (job.config, *job.overrides().values())
         if key not in configs:
-            configs[key] = _load(job)
+            configs[key] = _load(job, settings)
         cfg = configs[key]
         result = out_dir / job.rig / f"{job.stem}.yaml"
         other = owners.setdefault(result, job)
@@ -133,9 +139,9 @@ def _inputs(jobs: Sequence[BatchJob]) -> list[tuple[str, Path | None]]:
     return out
 
 
-def _load(job: BatchJob) -> CalibConfig:
+def _load(job: BatchJob, settings: Mapping[str, Any] | None) -> CalibConfig:
     try:
-        return load_config(job.config, job.overrides())
+        return load_config(job.config, job.overrides(), dict(settings or {}))
     except ConfigError as err:
         if job.config is not None and str(job.config) in str(err):
             raise

@@ -13,7 +13,7 @@ import logging
 import time
 import uuid
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -192,6 +192,7 @@ def run_batch(
     task: Task = calibrate_task,
     connect_timeout_s: float = 10.0,
     quiet_dask: bool = True,
+    settings: Mapping[str, Any] | None = None,
 ) -> BatchReport:
     """Calibrate every bag on a Dask cluster; write each result, ``summary.csv``, ``rigs.csv``.
 
@@ -207,6 +208,7 @@ def run_batch(
             it must be importable, or picklable, on the workers.
         connect_timeout_s: how long to wait for an existing scheduler and its first worker.
         quiet_dask: keep Dask's own log lines off.
+        settings: ``--set`` settings by dotted key, applied over every bag's config file.
 
     Returns:
         The report.
@@ -227,7 +229,7 @@ def run_batch(
     if out_dir.exists() and not out_dir.is_dir():
         msg = f"The output {out_dir} is a file; -o takes a folder, give another one."
         raise ConfigError(msg)
-    planned = plan(jobs, out_dir)
+    planned = plan(jobs, out_dir, settings)
     create_folder(out_dir, "The output folder", "give another folder with -o")
     tracker = _Tracker(planned, out_dir)
     todo = [i for i, p in enumerate(planned) if p.existing is None]

@@ -13,6 +13,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from licalib_cli.commands.options import SetOption, settings_of
 from licalib_cli.commands.render import VERDICT_COLOURS, console, console_err
 from licalib_cli.errors import BatchIncomplete
 
@@ -212,6 +213,7 @@ def batch_command(
         help="YAML config of every bag whose manifest row names none.",
         rich_help_panel=_IO,
     ),
+    settings: SetOption = None,
     segments: str | None = typer.Option(
         None,
         "--segments",
@@ -256,6 +258,7 @@ def batch_command(
         retries=retries,
         progress=BatchProgress(),
         quiet_dask=not logging.getLogger("licalib_cli").isEnabledFor(logging.DEBUG),
+        settings=settings_of(settings),
     )
     if as_json:
         typer.echo(json.dumps(report_dict(report), indent=2))

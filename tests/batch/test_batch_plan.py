@@ -6,8 +6,11 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
+import pytest
+
 from licalib_cli.batch import BatchJob, plan
 from licalib_cli.config import config_fingerprint, load_config
+from licalib_cli.errors import ConfigError
 from licalib_cli.pipeline.assemble import bag_fingerprint
 from licalib_cli.results import CalibrationResult
 from licalib_cli.sections import Provenance, VerdictSection
@@ -65,3 +68,23 @@ def test_the_calibration_writes_the_config_fingerprint(tmp_path: Path) -> None:
     assert config_fingerprint(cfg) == config_fingerprint(load_config(CONFIG, {"bag.duration_s": 3}))
     old = Provenance("0.1.0", "0123456789abcdef", "2026-11-25T00:00:00Z")
     assert "config_fingerprint" not in old.to_dict()
+
+
+def test_settings_apply_to_every_bag_and_a_changed_one_calibrates_again(tmp_path: Path) -> None:
+    """``batch --set``: the settings go over every bag's config (a manifest row's options over
+    them), a result made with other settings is out of date, and a bad one is one sentence."""
+    bag = tmp_path / "a.bag"
+    bag.write_bytes(b"a" * 1000)
+    jobs = [BatchJob(bag=bag, rig="r", config=CONFIG, start_s=2.0)]
+    out = tmp_path / "out"
+    dense = {"surfels.final_points_per_scan": 15000, "bag.start_s": 5.0}
+    (first,) = plan(jobs, out, dense)
+    assert first.cfg.surfels.final_points_per_scan == 15000
+    assert first.cfg.bag.start_s == 2.0  # the row's start
+    _write_result(first.result_path, bag, first.config_fingerprint)
+    (same,) = plan(jobs, out, dense)
+    assert same.reason == "up to date"
+    (other,) = plan(jobs, out)
+    assert other.reason == "config changed" and other.cfg.surfels.final_points_per_scan == 6000
+    with pytest.raises(ConfigError, match=r"^Unknown setting 'surfels.final_points' in --set;"):
+        plan(jobs, out, {"surfels.final_points": 15000})
