@@ -20,7 +20,7 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from licalib_cli.commands.options import input_overrides
+from licalib_cli.commands.options import SetOption, input_overrides, settings_of
 from licalib_cli.commands.render import console
 from licalib_cli.config import load_config
 from licalib_cli.errors import LicalibError
@@ -44,6 +44,7 @@ def info_command(
         str | None, typer.Option("--lidar-topic", help="sensor_msgs/PointCloud2 topic.")
     ] = None,
     config: Annotated[Path | None, typer.Option("--config", "-c", help="YAML config file.")] = None,
+    settings: SetOption = None,
     as_json: Annotated[
         bool, typer.Option("--json", help="Print one JSON object for scripts.")
     ] = False,
@@ -62,6 +63,7 @@ def info_command(
         cfg = load_config(
             config,
             input_overrides(imu_topic, lidar_topic, start, duration),
+            settings_of(settings),
         )
         report = inspect_bag(bag, cfg)
     except LicalibError as err:

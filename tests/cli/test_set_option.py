@@ -128,3 +128,11 @@ def test_the_commands_that_solve_take_the_settings(
     code, _, err = run([*argv[:-1], "surfels.final_point_per_scan=12000"], capsys)
     assert code == 6 and "Unknown setting 'surfels.final_point_per_scan' in --set" in err, err
     assert len(seen) == 1
+
+
+def test_info_reads_the_segment_the_settings_give(capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, err = run(["info", str(SAMPLE), "--set", "bag.start_s=2", "--json"], capsys)
+    assert code == 0, err
+    assert '"start_s": 2.0' in out, out[:400]
+    code, _, err = run(["info", str(SAMPLE), "--set", "bag.start=2"], capsys)
+    assert code == 6 and "Unknown setting 'bag.start' in --set" in err, err
