@@ -84,8 +84,6 @@ def plan(
     from licalib_cli.pipeline.assemble import bag_fingerprint
 
     out_dir = Path(out_dir).absolute()
-    if settings:  # an unknown key or bad value of --set is said once, not against a bag
-        load_config(None, settings=dict(settings))
     configs: dict[tuple[Any, ...], CalibConfig] = {}
     owners: dict[Path, BatchJob] = {}
     inputs = _inputs(jobs)
@@ -143,7 +141,8 @@ def _load(job: BatchJob, settings: Mapping[str, Any] | None) -> CalibConfig:
     try:
         return load_config(job.config, job.overrides(), dict(settings or {}))
     except ConfigError as err:
-        if job.config is not None and str(job.config) in str(err):
+        # a fault of the config file or of --set is the same for every bag that uses them
+        if "--set" in str(err) or (job.config is not None and str(job.config) in str(err)):
             raise
         msg = f"{str(err).rstrip('.')} (for {job.bag}, {job.source})."
         raise ConfigError(msg) from err

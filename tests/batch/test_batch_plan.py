@@ -88,3 +88,14 @@ def test_settings_apply_to_every_bag_and_a_changed_one_calibrates_again(tmp_path
     assert other.reason == "config changed" and other.cfg.surfels.final_points_per_scan == 6000
     with pytest.raises(ConfigError, match=r"^Unknown setting 'surfels.final_points' in --set;"):
         plan(jobs, out, {"surfels.final_points": 15000})
+    # a setting valid only with what the bag's config file gives is taken (a lever arm's sigma
+    # needs the lever arm, which the file holds)
+    measured = tmp_path / "measured.yaml"
+    lever_arm = "\ninitialization:\n  translation_m: [0.3, 0.1, 0.0]\n"
+    measured.write_text(CONFIG.read_text() + lever_arm)
+    (lever,) = plan(
+        [BatchJob(bag=bag, rig="m", config=measured)],
+        out,
+        {"initialization.translation_sigma_m": 0.01},
+    )
+    assert lever.cfg.initialization.translation_sigma_m == [0.01, 0.01, 0.01]
