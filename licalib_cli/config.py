@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import math
 from collections.abc import Sequence
+from itertools import pairwise
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -21,6 +22,7 @@ from pydantic import (
     field_validator,
     model_validator,
 )
+from pydantic.fields import FieldInfo
 
 from licalib_cli.errors import ConfigError
 
@@ -218,8 +220,11 @@ class SplineConfig(_Section):
 class SurfelSection(_Section):
     """Surfel map and point-to-plane association."""
 
-    cell_sizes_m: list[float] = Field(default=[1.0, 0.5], min_length=1)
-    """Voxel sizes, coarse to fine; non-planar coarse cells are split."""
+    cell_sizes_m: list[Annotated[float, Field(ge=0.01, le=100.0)]] = Field(
+        default=[1.0, 0.5], min_length=1
+    )
+    """Voxel sizes, coarse to fine (each smaller than the one before, 1 cm to 100 m);
+    non-planar coarse cells are split."""
     min_points: int = Field(default=10, ge=4)
     min_planarity: float = Field(default=0.8, ge=0.0, le=1.0)
     """Plane-likeness P = 2 (l1 - l0) / (l0 + l1 + l2) a cell needs to become a surfel."""
@@ -252,6 +257,16 @@ class SurfelSection(_Section):
     intrinsic estimated, 6000 instead of 4000 took the mean time-offset error over twenty seeds
     from 0.065 to 0.043 ms and the beams' horizontal offsets' from 0.30 to 0.22 mm, for about
     1.7 s more (benchmarks/RESULTS.md, forty-fifth stop); from 15 s on the cap decides."""
+
+    @field_validator("cell_sizes_m")
+    @classmethod
+    def _coarse_to_fine(cls, sizes: list[float]) -> list[float]:
+        if any(b >= a for a, b in pairwise(sizes)):
+            msg = (
+                f"cell sizes go from coarse to fine, each smaller than the one before; got {sizes}"
+            )
+            raise ValueError(msg)
+        return sizes
 
 
 class ScheduleConfig(_Section):
@@ -715,6 +730,87 @@ def load_config(
         raise ConfigError(_invalid(err, path, given, settings or {})) from err
 
 
+def _field_at(dotted: str) -> tuple[type[BaseModel], FieldInfo] | None:
+    """The section of :class:`CalibConfig` holding a dotted key and the key's field, None when
+    the key names none."""
+    model: Any = CalibConfig
+    found = None
+    for part in dotted.split("."):
+        if not (isinstance(model, type) and issubclass(model, BaseModel)):
+            return None
+        field = model.model_fields.get(part)
+        if field is None:
+            return None
+        found = (model, field)
+        model = field.annotation
+    return found
+
+
+def _section_at(dotted: str) -> type[BaseModel] | None:
+    """The section class of :class:`CalibConfig` at a dotted key, None when the key names no
+    section."""
+    found = _field_at(dotted)
+    kind = found[1].annotation if found is not None else None
+    return kind if isinstance(kind, type) and issubclass(kind, BaseModel) else None
+
+
+def _valid_as(dotted: str, value: Any) -> bool:
+    """Whether the section holding ``dotted`` takes ``value`` there (the other keys at their
+    defaults)."""
+    found = _field_at(dotted)
+    if found is None:
+        return False
+    try:
+        found[0].model_validate({dotted.rsplit(".", 1)[-1]: value})
+    except (ValidationError, ValueError):
+        return False
+    return True
+
+
+def _list_form(dotted: str) -> str:
+    """How a list setting is written: its length when fixed, else its default as an example."""
+    found = _field_at(dotted)
+    if found is None:
+        return ", such as [a, b]"
+    field = found[1]
+    lengths = {
+        name: getattr(m, name)
+        for m in field.metadata
+        for name in ("min_length", "max_length")
+        if getattr(m, name, None) is not None
+    }
+    if lengths.get("min_length") is not None and lengths.get("min_length") == lengths.get(
+        "max_length"
+    ):
+        return f" of {lengths['min_length']} items"
+    if isinstance(field.default, list) and field.default:
+        return f", such as {yaml.safe_dump(field.default, default_flow_style=True).strip()}"
+    return ", such as [a, b]"
+
+
+def _reason(error: Any, where: str) -> str:
+    """Why a value is invalid, in the config's own words: a section given a single value names
+    one of its keys, a list given a single value shows the list form (pydantic's message names
+    its class or says only "a valid list")."""
+    kind = error["type"]
+    if kind == "model_type":
+        section = _section_at(where)
+        if section is not None:
+            key = next(iter(section.model_fields))
+            return (
+                f"'{where}' is a section of settings, not a value; give its keys one by one, "
+                f"such as {where}.{key}"
+            )
+    if kind == "list_type":
+        given = error.get("input")
+        if _valid_as(where, [given]):
+            return f"'{where}' takes a list; write [{given}] for that one item"
+        return f"'{where}' takes a list{_list_form(where)}"
+    if kind == "dict_type":
+        return f"'{where}' takes a mapping of names to values, such as {{name: value}}"
+    return str(error["msg"]).replace("Value error, ", "")
+
+
 def _invalid(
     err: ValidationError, path: Path | None, given: dict[str, Any], settings: dict[str, Any]
 ) -> str:
@@ -722,7 +818,7 @@ def _invalid(
     value came from: an option, a ``--set`` setting or the file."""
     first = err.errors()[0]
     where = _where(tuple(first["loc"]))
-    why = first["msg"].replace("Value error, ", "")
+    why = _reason(first, where)
     option = next((k for k in given if where == k or where.startswith(k + ".")), None)
     setting = next((k for k in settings if where == k or where.startswith(k + ".")), None)
     if setting is None and first["type"] == "extra_forbidden":  # ``--set a.b.c`` under ``a.b``

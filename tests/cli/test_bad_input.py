@@ -339,6 +339,8 @@ def test_undecodable_imu_message_is_counted_in_the_result(tmp_path: Path) -> Non
         (["-c", "{tmp}/evident.yaml"], "Invalid setting 'model.add_evident_effects'"),
         (["-c", "{tmp}/draws.yaml"], "Invalid setting 'checks.range_noise_draws'"),
         (["-c", "{tmp}/draws_from.yaml"], "Invalid setting 'checks.range_noise_draws_from_m'"),
+        (["-c", "{tmp}/cells0.yaml"], "Invalid setting 'surfels.cell_sizes_m.0'"),
+        (["-c", "{tmp}/cells_up.yaml"], "cell sizes go from coarse to fine"),
     ],
 )
 def test_bad_options_and_configs_exit_6(
@@ -355,6 +357,10 @@ def test_bad_options_and_configs_exit_6(
     (tmp_path / "evident.yaml").write_text("model:\n  add_evident_effects: sometimes\n")
     (tmp_path / "draws.yaml").write_text("checks:\n  range_noise_draws: -1\n")
     (tmp_path / "draws_from.yaml").write_text("checks:\n  range_noise_draws_from_m: 0\n")
+    # a zero cell ran into a voxel key overflow (said as points too far from the origin) and a
+    # negative one calibrated; fine-to-coarse cells would split fine cells into coarse ones
+    (tmp_path / "cells0.yaml").write_text("surfels:\n  cell_sizes_m: [0]\n")
+    (tmp_path / "cells_up.yaml").write_text("surfels:\n  cell_sizes_m: [0.5, 1.0]\n")
     options = [o.format(tmp=tmp_path) for o in options]
     code, out, err = run(["info", str(bag), "--json", *options], capsys)
     data = json.loads(out)

@@ -90,6 +90,47 @@ def test_an_unknown_key_in_the_file_is_named_with_where_to_find_the_keys(
     ), err
 
 
+@pytest.mark.parametrize(
+    ("setting", "said"),
+    [
+        (
+            "checks=5",
+            "'checks' is a section of settings, not a value; give its keys one by one, such as "
+            "checks.max_translation_sigma_m.",
+        ),
+        ("model=null", "'model' is a section of settings, not a value;"),
+        ("model.lidar_prior=3", "such as model.lidar_prior.elevation_deg."),
+        ("model.imu=gyro_scale", "'model.imu' takes a list; write [gyro_scale] for that one item."),
+        ("surfels.cell_sizes_m={a: 1}", "'surfels.cell_sizes_m' takes a list, such as [1.0, 0.5]."),
+        (
+            "initialization.translation_m=abc",
+            "'initialization.translation_m' takes a list of 3 items.",
+        ),
+        ("model.expected_size=[1]", "takes a mapping of names to values, such as {name: value}."),
+    ],
+)
+def test_a_value_of_the_wrong_form_says_the_form(
+    setting: str, said: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A section given one value, or a list or mapping given a single value: the message shows
+    the form the setting takes, not the form's class name, from --set and from a file alike."""
+    code, _, err = run(["config", "dump", "--set", setting], capsys)
+    assert code == 6
+    text = " ".join(err.split())
+    assert said in text and "Section" not in text, text
+    key, _, value = setting.partition("=")
+    *sections, leaf = key.split(".")
+    nested = leaf + ": " + value
+    for name in reversed(sections):  # the same setting written in a file
+        nested = name + ":\n" + "\n".join("  " + ln for ln in nested.splitlines())
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(nested + "\n")
+    code, _, err = run(["config", "dump", "-c", str(cfg)], capsys)
+    assert code == 6
+    text = " ".join(err.split())
+    assert f"Invalid setting '{key}' in the config file" in text and said in text, text
+
+
 class _Stop(LicalibError):
     exit_code = 9
 

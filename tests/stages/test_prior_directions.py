@@ -178,7 +178,7 @@ def test_the_config_makes_the_prior_a_residual_of_every_round(tmp_path):
         ("translation_m: [0, 0, 0]\n  translation_sigma_m: [0.01, 0.02]\n", "at least 3 items"),
         ("translation_m: [0, 0, 0]\n  translation_sigma_m: 1.0e-9\n", "greater than or equal"),
         ("translation_m: [0, 0, 0]\n  translation_sigma_m: .inf\n", "finite number"),
-        ("translation_m: [0, 0, 0]\n  translation_sigma_m: abc\n", "valid list"),
+        ("translation_m: [0, 0, 0]\n  translation_sigma_m: abc\n", "takes a list of 3 items"),
     ],
 )
 def test_a_prior_the_run_cannot_use_is_refused_at_load_time(tmp_path, text, fragment):
