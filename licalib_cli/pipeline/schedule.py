@@ -252,15 +252,31 @@ def takes_back(
 
 
 def _diverged(
-    err: ExcitationError, index: int, first_points: int, moved: Change
+    err: ExcitationError, index: int, first_points: int, moved: Change, given: Sequence[str] = ()
 ) -> ExcitationError:
     """The error of a map that lost its planes after the first round: the rounds diverged from
-    the initial guess, which the scene's sentence would not say."""
+    the initial guess, which the scene's sentence would not say.
+
+    Args:
+        given: the initial guesses that came from the config (``rotation_rpy_deg``,
+            ``translation_m``): the advice is to check those rather than to give them.
+    """
+    if given:
+        named = " and ".join(f"initialization.{k}" for k in given)
+        advice = (
+            f"check the {named} the config gives (the LiDAR's pose in the IMU frame, "
+            "p_imu = R p_lidar + t, in degrees and metres), or remove "
+            f"{'them' if len(given) > 1 else 'it'} to start from what the data show."
+        )
+    else:
+        advice = (
+            "give initialization.rotation_rpy_deg and initialization.translation_m (a tape "
+            "measure or CAD is enough) to start closer."
+        )
     msg = (
         f"{str(err).split(';')[0].rstrip('.')} in round {index}, although round 1 had "
         f"{first_points} points on them: the estimate diverged from the initial guess (it moved "
-        f"{_describe(moved)}); give initialization.rotation_rpy_deg and "
-        "initialization.translation_m (a tape measure or CAD is enough) to start closer."
+        f"{_describe(moved)}); {advice}"
     )
     return ExcitationError(msg)
 
@@ -552,7 +568,17 @@ def run_schedule(
         except ExcitationError as err:
             if not rounds:
                 raise
-            raise _diverged(err, index, rounds[0].points, _change(guess.state, state)) from err
+            given = [
+                key
+                for key, source in (
+                    ("rotation_rpy_deg", guess.rotation_source),
+                    ("translation_m", guess.translation_source),
+                )
+                if source == "config"
+            ]
+            raise _diverged(
+                err, index, rounds[0].points, _change(guess.state, state), given
+            ) from err
         state, summary, report, inputs = done.state, done.summary, done.report, done.inputs
         solved, mapped = done.solved, done.mapped
         del done

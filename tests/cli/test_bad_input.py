@@ -341,6 +341,7 @@ def test_undecodable_imu_message_is_counted_in_the_result(tmp_path: Path) -> Non
         (["-c", "{tmp}/draws_from.yaml"], "Invalid setting 'checks.range_noise_draws_from_m'"),
         (["-c", "{tmp}/cells0.yaml"], "Invalid setting 'surfels.cell_sizes_m.0'"),
         (["-c", "{tmp}/cells_up.yaml"], "cell sizes go from coarse to fine"),
+        (["-c", "{tmp}/lever_cm.yaml"], "translation_m puts the LiDAR 33.9 m from the IMU"),
     ],
 )
 def test_bad_options_and_configs_exit_6(
@@ -361,6 +362,8 @@ def test_bad_options_and_configs_exit_6(
     # negative one calibrated; fine-to-coarse cells would split fine cells into coarse ones
     (tmp_path / "cells0.yaml").write_text("surfels:\n  cell_sizes_m: [0]\n")
     (tmp_path / "cells_up.yaml").write_text("surfels:\n  cell_sizes_m: [0.5, 1.0]\n")
+    # a lever arm of 0.30, 0.15, 0.05 m written in centimetres ended 8 m off, only warning
+    (tmp_path / "lever_cm.yaml").write_text("initialization:\n  translation_m: [30, 15, 5]\n")
     options = [o.format(tmp=tmp_path) for o in options]
     code, out, err = run(["info", str(bag), "--json", *options], capsys)
     data = json.loads(out)

@@ -107,6 +107,7 @@ def _schedule(
     entropy: Callable[[int], float] = lambda index: -4.0 - 0.3 * index,
     fraction: float = 0.6,
     kept_steps: int = 1,
+    sources: tuple[str, str] = ("hand-eye", "odometry + accelerometer"),
 ) -> _Run:
     """Run :func:`run_schedule` with rounds that move the translation by ``step_mm(index,
     dense)`` mm (``dense``: a round on the final, denser sample), each reporting a translation
@@ -218,7 +219,12 @@ def _schedule(
         }
     )
     rec = SimpleNamespace(scans=(), imu=None, clock_rate=None)
-    guess = SimpleNamespace(state=_State("guess", 0.0), nominal_elevation=None)
+    guess = SimpleNamespace(
+        state=_State("guess", 0.0),
+        nominal_elevation=None,
+        rotation_source=sources[0],
+        translation_source=sources[1],
+    )
     warm = lidar if warm is None else warm
     run.fit = schedule.run_schedule(rec, guess, None, cfg, NullProgress(), warm=warm)  # type: ignore[arg-type]
     if lidar and warm:
@@ -644,7 +650,18 @@ def test_a_map_lost_after_the_first_round_is_told_as_a_divergence(
     assert text.startswith("No planar surfaces were found in the LiDAR map in round 3")
     assert "round 1 had 1 points" in text and "diverged" in text
     assert "1400.00 mm" in text  # how far the two rounds before it moved the estimate
-    assert "initialization.rotation_rpy_deg" in text
+    assert "give initialization.rotation_rpy_deg and initialization.translation_m" in text
+    # from a rotation and a lever arm the config gave: check those, not give them
+    with pytest.raises(ExcitationError) as given:
+        _schedule(monkeypatch, lost_in(3), lidar=False, sources=("config", "config"))
+    text = " ".join(str(given.value).split())
+    assert "check the initialization.rotation_rpy_deg and initialization.translation_m the " in text
+    assert "or remove them to start from what the data show." in text and "give " not in text
+    with pytest.raises(ExcitationError) as one:
+        _schedule(monkeypatch, lost_in(3), lidar=False, sources=("hand-eye", "config"))
+    text = str(one.value)
+    assert "check the initialization.translation_m the config gives" in text
+    assert "rotation_rpy_deg" not in text and "or remove it to start" in text
 
 
 def test_the_initial_rotation_is_as_uncertain_as_the_gyro_rotation_when_that_is_estimated() -> None:
