@@ -150,3 +150,32 @@ def test_planar_motion_with_a_measured_lever_arm_takes_the_vertical_from_it(
     reasons = result["verdict"]["reasons"]
     assert not any("Not observable from this data" in r for r in reasons)
     assert not any("disagrees with the data" in r for r in reasons)  # measured within its sigma
+
+
+def test_a_configured_rotation_far_from_hand_eye_is_refused(short_bag, tmp_path, capsys):
+    """A rotation guess with an axis turned by 90 degrees ended 99.8 deg and 3.7 m off with
+    every residual check passing (the verdict only warned): it is refused before the rounds,
+    naming what hand-eye shows; a guess a few degrees off, as from a drawing, is taken."""
+    from licalib_cli.config import load_config
+    from licalib_cli.pipeline import prepare
+    from licalib_cli.pipeline.timing import Timer
+    from licalib_cli.progress import NullProgress
+
+    roll, pitch, yaw = yaml.safe_load((short_bag.parent / "truth.yaml").read_text())["extrinsic"][
+        "rotation_rpy_deg"
+    ]
+    turned = tmp_path / "turned.yaml"
+    turned.write_text(
+        CONFIG.read_text() + f"initialization:\n  rotation_rpy_deg: [{roll}, {pitch}, {yaw + 90}]\n"
+    )
+    out = tmp_path / "result.yaml"
+    with pytest.raises(SystemExit) as stop:
+        main(["calibrate", str(short_bag), "-c", str(turned), "-o", str(out)])
+    assert stop.value.code == 6
+    said = " ".join(capsys.readouterr().err.split())
+    assert "initialization.rotation_rpy_deg" in said and "deg from the rotation the LiDAR" in said
+    assert "check its axes and order" in said and not out.exists()
+    # four degrees off: the guess is the start, as given
+    near = load_config(turned, {"initialization.rotation_rpy_deg": [roll + 3, pitch - 2, yaw + 1]})
+    guess = prepare(short_bag, near, NullProgress(), Timer()).guess
+    assert guess.rotation_source == "config" and guess.hand_eye is None
