@@ -71,6 +71,7 @@ from licalib_cli.pipeline.prior_directions import (
 from licalib_cli.pipeline.schedule import JITTER_FACTOR, MAX_FINAL_ROUNDS, Change, Fit, within
 from licalib_cli.pipeline.settings import NoiseLevels, narrow_association, prior_sd
 from licalib_cli.pipeline.split import COORDINATES, SplitResult, split_half
+from licalib_cli.pipeline.start_agreement import hand_eye_disagreement, trusted
 from licalib_cli.pipeline.unchecked_priors import (
     assumed_note,
     prior_owner,
@@ -948,7 +949,25 @@ def check(
         k, sd = fit.state.time_drift, fit.report.std_of(TIME_DRIFT)
         differs = drift_against_stamps(k, sd, clock_rate)
         notes = (*notes, differs) if differs else notes
-    return run_checks(fit, sensors, effects, split, cfg, notes, planes)
+    return run_checks(
+        fit, sensors, effects, split, cfg, notes, planes, failures=away_from_start(fit, guess, cfg)
+    )
+
+
+def away_from_start(fit: Fit, guess: InitialGuess, cfg: CalibConfig) -> tuple[str, ...]:
+    """A failure when the estimate's rotation ended far from the hand-eye rotation it started
+    from (:mod:`~licalib_cli.pipeline.start_agreement`): the rounds settled in a wrong minimum."""
+    if not trusted(guess.hand_eye, cfg.initialization.max_hand_eye_residual_deg):
+        return ()
+    assert guess.hand_eye is not None
+    apart = hand_eye_disagreement(fit.state.R_imu_lidar, guess.hand_eye, "The estimated rotation")
+    if apart is None:
+        return ()
+    return (
+        f"{apart}: the rounds settled in a wrong minimum, whatever the residuals say, so the "
+        "result is not trustworthy; give initialization.rotation_rpy_deg and translation_m near "
+        "the rig's (a drawing is enough) and calibrate again.",
+    )
 
 
 def drift_against_stamps(k: float, sd: float, rate: ClockRate) -> str | None:
@@ -981,6 +1000,7 @@ def run_checks(
     notes: tuple[str, ...] = (),
     planes: MapUncertainty | None = None,
     spread: tuple[F64, str] | None = None,
+    failures: tuple[str, ...] = (),
 ) -> Checks:
     """Every check on the fit, the inflated sigmas and the verdict.
 
@@ -996,6 +1016,8 @@ def run_checks(
             (:func:`~licalib_cli.pipeline.map_uncertainty.map_uncertainty`); None: not applied.
         spread: (7,) a floor of the sigmas measured by refits with more noise, and the
             sentence that says so (:mod:`~licalib_cli.pipeline.noise_draws`); None: none.
+        failures: failures of earlier stages (one sentence each), e.g. an estimate that ended
+            far from the hand-eye rotation it started from.
 
     Returns:
         The checks' outcome.
@@ -1038,7 +1060,8 @@ def run_checks(
         sigma = sigma.copy()
         sigma[:3] = conflict.covered(sigma[:3])
         why = (*why, "by how far the measured lever arm pulled the translation from the data's")
-    findings = [Finding("warn", n) for n in notes]
+    findings = [Finding("fail", f) for f in failures]
+    findings += [Finding("warn", n) for n in notes]
     findings += _prior_conflict(conflict)
     findings += _convergence(fit, cfg, settled_in_sigmas, crawl)
     findings += _observability(report, prior)

@@ -66,7 +66,8 @@ from licalib_cli.pipeline.settings import (
     odometry_config,
     time_offset_config,
 )
-from licalib_cli.results import matrix_from_rpy_deg, rpy_deg_from_matrix
+from licalib_cli.pipeline.start_agreement import hand_eye_disagreement, trusted
+from licalib_cli.results import matrix_from_rpy_deg
 from licalib_cli.spline import R3Spline, SO3Spline, UniformKnots
 
 __all__ = [
@@ -500,11 +501,6 @@ class Alignment:
     poses: PoseSeries
 
 
-CONFIGURED_ROTATION_TOLERANCE_DEG = 10.0
-"""A configured ``initialization.rotation_rpy_deg`` farther than this from a trusted hand-eye
-rotation is refused: a guess from a drawing is degrees off, an axis swapped or turned is tens."""
-
-
 def _check_configured_rotation(
     rot: F64, gyro: GyroIntegrator, odo: Odometry, t_c: float, cfg: CalibConfig
 ) -> None:
@@ -514,12 +510,12 @@ def _check_configured_rotation(
     axis swapped or turned by 90 degrees started the rounds in a wrong minimum: a VLP-16
     sinusoid configured 90 degrees off in yaw ended 99.8 deg and 3.7 m off with every residual
     check passing, the verdict only warning. Hand-eye is a check here only where it is trusted
-    (well conditioned, residual within ``initialization.max_hand_eye_residual_deg``); on
-    violent or single-axis motion, or when it is refused, the rotation is taken as given.
+    (:func:`~licalib_cli.pipeline.start_agreement.trusted`); on violent or single-axis motion,
+    or when it is refused, the rotation is taken as given.
 
     Raises:
         ConfigError: the configured rotation lies more than
-            :data:`CONFIGURED_ROTATION_TOLERANCE_DEG` from hand-eye's.
+            :data:`~licalib_cli.pipeline.start_agreement.ROTATION_TOLERANCE_DEG` from hand-eye's.
     """
     if odo.gyro_aided:
         return
@@ -529,20 +525,16 @@ def _check_configured_rotation(
         )
     except ExcitationError:
         return
-    if found.residual_rms_deg > cfg.initialization.max_hand_eye_residual_deg:
+    if not trusted(found, cfg.initialization.max_hand_eye_residual_deg):
         return
-    apart = float(np.degrees(np.linalg.norm(so3.log(rot.T @ found.R_imu_lidar))))
-    if apart <= CONFIGURED_ROTATION_TOLERANCE_DEG:
-        return
-    shown = ", ".join(f"{v:.1f}" for v in rpy_deg_from_matrix(found.R_imu_lidar))
-    msg = (
-        f"initialization.rotation_rpy_deg {list(cfg.initialization.rotation_rpy_deg or [])} lies "
-        f"{apart:.1f} deg from the rotation the LiDAR odometry and the gyro show (hand-eye: "
-        f"[{shown}] deg, residual {found.residual_rms_deg:.2f} deg); check its axes and order "
-        "(roll, pitch, yaw of the LiDAR in the IMU frame, p_imu = R p_lidar + t), or remove it "
-        "to start from hand-eye's."
-    )
-    raise ConfigError(msg)
+    given = list(cfg.initialization.rotation_rpy_deg or [])
+    apart = hand_eye_disagreement(rot, found, f"initialization.rotation_rpy_deg {given}")
+    if apart is not None:
+        msg = (
+            f"{apart}; check its axes and order (roll, pitch, yaw of the LiDAR in the IMU frame, "
+            "p_imu = R p_lidar + t), or remove it to start from hand-eye's."
+        )
+        raise ConfigError(msg)
 
 
 def align_rotation_and_time(

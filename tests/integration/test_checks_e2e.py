@@ -7,6 +7,7 @@ calibration must say so in the verdict, name the sensor and the pattern, and wri
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -492,3 +493,35 @@ def test_the_fit_knows_the_last_round_s_points_against_the_sweeps(clean_fit: tup
     assert fit.points.kept == min(
         cfg.surfels.final_points_per_scan, cfg.surfels.max_points // len(prepared.rec.scans)
     )
+
+
+def test_an_estimate_far_from_the_hand_eye_rotation_it_started_from_fails(
+    clean_fit: tuple,
+) -> None:
+    """The rounds started from hand-eye; an estimate that ended tens of degrees from it came from
+    a wrong minimum, whatever its residuals say (a start 90 degrees off in yaw ended 99.8 deg off
+    with every residual check passing and the verdict warning): the verdict fails saying so. The
+    clean fit itself ends a fraction of a degree from its hand-eye, and a hand-eye whose residual
+    is above initialization.max_hand_eye_residual_deg is no measure of it."""
+    from dataclasses import replace
+
+    from licalib_cli.pipeline.checks import check
+    from licalib_cli.results import matrix_from_rpy_deg
+
+    cfg, prepared, fit = clean_fit
+    guess = prepared.guess
+    assert guess.rotation_source == "hand-eye" and guess.hand_eye is not None
+    assert not any("hand-eye" in r for r in check(fit, guess, prepared.noise, cfg).verdict.reasons)
+    turned = replace(
+        guess.hand_eye,
+        R_imu_lidar=guess.hand_eye.R_imu_lidar @ matrix_from_rpy_deg([0.0, 0.0, 90.0]),
+    )
+    far = check(fit, replace(guess, hand_eye=turned), prepared.noise, cfg)
+    assert far.verdict.status == "fail"
+    (said,) = [r for r in far.verdict.reasons if "hand-eye" in r]
+    assert re.match(
+        r"The estimated rotation lies (89|90|91)\.\d deg from the rotation the LiDAR", said
+    )
+    assert "the rounds settled in a wrong minimum" in said
+    loose = replace(turned, residual_rms_deg=cfg.initialization.max_hand_eye_residual_deg + 0.5)
+    assert check(fit, replace(guess, hand_eye=loose), prepared.noise, cfg).verdict.status != "fail"
