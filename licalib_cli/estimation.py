@@ -103,6 +103,7 @@ __all__ = [
     "LidarPoints",
     "NoiseModel",
     "Planes",
+    "SplineCoverageError",
     "beam_point_counts",
     "build_problem",
     "calibration_moved",
@@ -905,6 +906,11 @@ def calibration_moved(
 # -------------------------------------------------------------------------------- builder
 
 
+class SplineCoverageError(ValueError):
+    """Measurement times outside the trajectory spline (a time offset moved past the spline's
+    padding)."""
+
+
 def _check_coverage(knots: UniformKnots, t_s: F64, what: str) -> None:
     if t_s.size == 0:
         return
@@ -916,7 +922,7 @@ def _check_coverage(knots: UniformKnots, t_s: F64, what: str) -> None:
             f"[{knots.t0_s:.6f}, {knots.t_end_s:.6f}] s (they span [{lo:.6f}, {hi:.6f}] s); "
             "build the spline over a longer interval (with time-offset padding) or drop them"
         )
-        raise ValueError(msg)
+        raise SplineCoverageError(msg)
 
 
 def incidence_cosine(

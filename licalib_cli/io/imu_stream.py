@@ -10,7 +10,7 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig
-from licalib_cli.errors import DataError
+from licalib_cli.errors import ConfigError, DataError
 from licalib_cli.io.bag import BagHandle, MessageLosses, imu_vectors_from_raw
 from licalib_cli.io.findings import (
     IMU_GAP_FACTOR,
@@ -302,6 +302,8 @@ def validate_imu(
     raw = raw.take(~dup)
     units = detect_imu_units(raw.gyro, raw.accel, cfg.imu.gyro_unit, cfg.imu.accel_unit, raw.t_ns)
     gyro, accel = convert_imu(raw.gyro, raw.accel, units)
+    if units.contradiction is not None:
+        findings.append(Finding(units.contradiction, True, ConfigError))
     findings += [Finding(w, False, DataError) for w in units.warnings()]
     if stats.count >= MIN_IMU_SAMPLES:
         findings += _gravity_and_rate(accel, stats, topic, cfg)

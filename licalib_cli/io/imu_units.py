@@ -18,8 +18,11 @@ Detection from the data of a segment:
   the IMU, as Ouster's IMU packets: g and deg/s), rad/s otherwise (ROS's unit). Under 0.5 s of
   data the tilting check cannot run: the warning says that the data is too short to tell.
 
-The config (``imu.gyro_unit``, ``imu.accel_unit``) overrides detection. Converted samples are
-always rad/s and m/s^2.
+The config (``imu.gyro_unit``, ``imu.accel_unit``) overrides detection, unless the data
+contradict it beyond doubt (the accelerometer's median norm is gravity in the other unit, or the
+tilting shows the other gyro unit): :attr:`ImuUnits.contradiction` says so, naming the unit the
+data are in, and the stream refuses the data so read. Converted
+samples are always rad/s and m/s^2.
 """
 
 from __future__ import annotations
@@ -30,7 +33,14 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["GRAVITY", "ImuUnits", "convert_imu", "detect_imu_units", "gravity_turn_factor"]
+__all__ = [
+    "GRAVITY",
+    "ImuUnits",
+    "contradicted_unit",
+    "convert_imu",
+    "detect_imu_units",
+    "gravity_turn_factor",
+]
 
 GRAVITY = 9.80665
 """Standard gravity, m/s^2 (used to convert g)."""
@@ -61,6 +71,8 @@ class ImuUnits:
             rad/s, 0.0175 for deg/s), or None when the data could not tell (too short, no
             tilting, or no stamps given).
         span_s: time the samples span, s (None: no stamps given).
+        contradiction: a sentence when a configured unit contradicts what the data show beyond
+            doubt (:func:`contradicted_unit`), else None.
     """
 
     gyro_unit: GyroUnit
@@ -71,6 +83,7 @@ class ImuUnits:
     accel_norm_median: float
     gravity_turn_factor: float | None = None
     span_s: float | None = None
+    contradiction: str | None = None
 
     @property
     def too_short(self) -> bool:
@@ -235,7 +248,39 @@ def detect_imu_units(
     span = None
     if t_ns is not None and len(t_ns):
         span = float(np.max(t_ns) - np.min(t_ns)) * 1e-9
-    return ImuUnits(gyro_unit, accel_unit, gsrc, asrc, p99, amed, factor, span)
+    contradiction = contradicted_unit(gyro_override, accel_override, amed, factor)
+    return ImuUnits(gyro_unit, accel_unit, gsrc, asrc, p99, amed, factor, span, contradiction)
+
+
+def contradicted_unit(
+    gyro_override: GyroUnit | None,
+    accel_override: AccelUnit | None,
+    accel_median: float,
+    factor: float | None,
+) -> str | None:
+    """One sentence when a configured unit contradicts what the data show beyond doubt, else
+    None: an accelerometer configured in g whose median norm is gravity's in m/s^2 (9.8 read as
+    g is 96 m/s^2; the other way round it reads no gravity, which the stream's own check says),
+    or a gyro whose rate, read in the other unit, is the rate at which gravity turns in the IMU
+    frame (the units are a factor 57 apart; either reading within 3 of its own)."""
+    if accel_override == "g" and 6.0 < accel_median < 14.0:
+        return (
+            f"imu.accel_unit 'g' makes the accelerometer read {accel_median * GRAVITY:.3g} m/s^2 "
+            f"(median norm) where gravity is {GRAVITY:.2f}; the data are in m/s^2 (median norm "
+            f"{accel_median:.3g}): set imu.accel_unit: m/s^2, or remove it to detect the unit."
+        )
+    if gyro_override is None or factor is None:
+        return None
+    scale = {"rad/s": 1.0, "deg/s": np.pi / 180.0}
+    shown = next((u for u, k in scale.items() if _within(factor, k)), None)
+    if shown is None or shown == gyro_override:
+        return None
+    return (
+        f"imu.gyro_unit '{gyro_override}' contradicts the data: gravity turns in the IMU frame at "
+        f"{factor / scale[shown]:.2f} times the gyro's rate read in {shown} "
+        f"({factor / scale[gyro_override]:.3g} times it in {gyro_override}): set imu.gyro_unit: "
+        f"{shown}, or remove it to detect the unit."
+    )
 
 
 def _within(value: float, target: float) -> bool:

@@ -194,6 +194,8 @@ def classify_time_field(
 
     Raises:
         TimestampError: the field has zero span in every sampled cloud.
+        ConfigError: the configured unit makes the sweeps a thousand times too short or long
+            while another unit fits them.
     """
     samples = [(int(s), np.asarray(v)) for s, v in samples if np.asarray(v).size > 0]
     if not samples:
@@ -227,6 +229,19 @@ def classify_time_field(
         hi = vmax * UNIT_TO_NS[u] + _ABS_TOL_NS
         return float(np.mean((stamps >= lo) & (stamps <= hi)))
 
+    if unit is not None and span_score(unit) > _SPAN_PLAUSIBLE:
+        fits = [u for u in _units_for(kind) if span_score(u) <= _SPAN_PLAUSIBLE]
+        if fits:
+            # units are 1000x apart: the configured one makes every sweep 1000x too short or
+            # long (ms on times in s: no deskew, a VLP-16 sinusoid 145 mm off, only warning)
+            sweep_ms = float(np.median(span[span > 0])) * 1e-6
+            msg = (
+                f"lidar.time_unit '{unit}' makes the points of a cloud span "
+                f"{sweep_ms * UNIT_TO_NS[unit]:.3g} ms of its {period * 1e-6:.3g} ms sweep; read "
+                f"in {fits[0]} they span {sweep_ms * UNIT_TO_NS[fits[0]]:.3g} ms: set "
+                f"lidar.time_unit: {fits[0]}, or remove it to detect the unit."
+            )
+            raise ConfigError(msg)
     by_span = min(candidates, key=span_score)
     # A spinning LiDAR's per-point times span about one sweep period: the unit that gives that
     # span is the unit, wherever the header stamp falls. Units are 1000x apart, so at most one

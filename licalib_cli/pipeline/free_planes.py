@@ -37,6 +37,7 @@ import numpy.typing as npt
 from licalib_cli.estimation import (
     CalibrationState,
     Planes,
+    SplineCoverageError,
     state_from_problem,
     state_from_values,
 )
@@ -330,7 +331,11 @@ def planes_free_steps(
             break
         accepted: tuple[T, Problem, float] | None = None
         for fraction in STEP_FRACTIONS:
-            candidate, trial = trial_at(fraction)
+            try:
+                candidate, trial = trial_at(fraction)
+            except SplineCoverageError:
+                # the step moves the time offset past the spline's padding: a shorter one may not
+                continue
             trial_cost = cost_at(trial, candidate)
             if np.isfinite(trial_cost) and trial_cost < cost:
                 accepted = (candidate, trial, trial_cost)

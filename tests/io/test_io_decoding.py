@@ -177,13 +177,28 @@ def test_imu_units_detected_and_converted() -> None:
     g, a = convert_imu(np.rad2deg(gyro), accel / GRAVITY, u)
     np.testing.assert_allclose(g, gyro, rtol=1e-12)
     np.testing.assert_allclose(a, accel, rtol=1e-12)
-    u = detect_imu_units(np.rad2deg(gyro), accel, gyro_override="rad/s", accel_override="g")
+    # the config decides where the data do not contradict it (no stamps: no tilting evidence)
+    u = detect_imu_units(
+        np.rad2deg(gyro), accel / GRAVITY, gyro_override="rad/s", accel_override="g"
+    )
     assert (u.gyro_unit, u.accel_unit, u.gyro_source, u.accel_source) == (
         "rad/s",
         "g",
         "config",
         "config",
     )
+    # a unit the data contradict is said, naming the unit they are in (g on m/s^2 data read
+    # gravity as 96 m/s^2 and the calibration ran 36 m off; deg/s on rad/s data stopped on weak
+    # excitation); the stream makes it a fatal finding
+    assert u.contradiction is None
+    said = detect_imu_units(gyro, accel, accel_override="g", t_ns=t).contradiction
+    assert said is not None and said.startswith("imu.accel_unit 'g' makes the accelerometer read")
+    assert said.endswith("set imu.accel_unit: m/s^2, or remove it to detect the unit.")
+    said = detect_imu_units(gyro, accel, gyro_override="deg/s", t_ns=t).contradiction
+    assert said is not None and "set imu.gyro_unit: rad/s, or remove it" in said
+    said = detect_imu_units(np.rad2deg(gyro), accel, gyro_override="rad/s", t_ns=t).contradiction
+    assert said is not None and "set imu.gyro_unit: deg/s, or remove it" in said
+    assert detect_imu_units(gyro, accel, gyro_override="rad/s", t_ns=t).contradiction is None
     # without stamps only the magnitude speaks: fast deg/s is clear, the rest is assumed
     u = detect_imu_units(np.rad2deg(gyro), accel)
     assert (u.gyro_unit, u.gyro_source) == ("deg/s", "detected")

@@ -39,6 +39,7 @@ from _layouts import (
 )
 
 from licalib_cli.config import load_config
+from licalib_cli.errors import ConfigError
 from licalib_cli.io.writer import BagWriter
 
 T0 = 1_700_000_000 * NS
@@ -275,19 +276,27 @@ def test_livox_v1_index_estimate(tmp_path: Path) -> None:
 
 
 def test_time_overrides(tmp_path: Path) -> None:
-    """Config forces the unit/reference; a wrong override gives wrong times (it is obeyed)."""
+    """Config forces the unit; one the data contradict (a sweep of 100 s at 10 Hz where another
+    unit gives 0.1 s) is refused, naming the unit that fits."""
     path = tmp_path / "x"
     truths = _write(path, next(c for c in CASES if c.name == "ouster"))
-    cfg = load_config(None, {"lidar.time_unit": "us", "lidar.min_range_m": 0.0})
+    cfg = load_config(None, {"lidar.time_unit": "ns", "lidar.min_range_m": 0.0})
     rec = read_short(path, cfg)
-    assert rec.layout.time.unit == "us"
+    assert rec.layout.time.unit == "ns" and "time unit 'ns' set in the config" in (
+        rec.layout.time.notes
+    )
     tr = truths[1]
-    rel = tr.t_ns - tr.stamp_ns
-    np.testing.assert_array_equal(rec.scans[1].t_ns - tr.stamp_ns, rel * 1000)
-    # ... and is flagged: a sweep of 100 s at 10 Hz cannot be right
-    assert rec.layout.time.warnings
-    assert any("span 99.22 s per cloud" in w and "`lidar.time_unit`" in w for w in rec.warnings)
-    # the detected layout has no such warning
+    np.testing.assert_array_equal(rec.scans[1].t_ns, tr.t_ns)
+    for wrong, span in (("us", "9.92e+04 ms"), ("ms", "9.92e+07 ms")):
+        cfg = load_config(None, {"lidar.time_unit": wrong, "lidar.min_range_m": 0.0})
+        with pytest.raises(ConfigError) as info:
+            read_short(path, cfg)
+        assert str(info.value) == (
+            f"lidar.time_unit '{wrong}' makes the points of a cloud span {span} of its 100 ms "
+            "sweep; read in ns they span 99.2 ms: set lidar.time_unit: ns, or remove it to "
+            "detect the unit."
+        )
+    # the detected layout has no warning
     assert read_short(path, load_config(None)).layout.time.warnings == ()
 
 
@@ -314,14 +323,21 @@ def test_time_reference_override_is_obeyed_and_flagged(tmp_path: Path) -> None:
 
 
 def test_wrong_unit_and_reference_overrides_are_reported_by_info(tmp_path: Path) -> None:
-    """The wrong override ``time_unit: ns`` + ``time_reference: absolute`` on a Hesai bag."""
+    """On a Hesai bag (absolute seconds): the wrong ``time_unit: ns`` is refused, naming the
+    unit that fits; the wrong ``time_reference: relative`` is obeyed and warned about."""
     from licalib_cli.inspection import inspect_bag
 
     path = tmp_path / "x"
     _write(path, _case("hesai"))
     cfg = load_config(None, {"lidar.time_unit": "ns", "lidar.time_reference": "absolute"})
     report = inspect_bag(path, cfg, min_span_s=0.0)
-    assert report.usable  # a warning: the overrides are obeyed
+    assert not report.usable
+    (fatal,) = [p for p in report.problems if p.fatal]
+    assert fatal.error is ConfigError and fatal.message.startswith("lidar.time_unit 'ns' makes")
+    assert "set lidar.time_unit: s, or remove it" in fatal.message
+    cfg = load_config(None, {"lidar.time_reference": "relative"})
+    report = inspect_bag(path, cfg, min_span_s=0.0)
+    assert report.usable  # a warning: the reference is obeyed
     messages = [p.message for p in report.problems if not p.fatal]
     assert any(
         m.startswith("Per-point times ('timestamp') lie 1.7e+09 s from the header stamps")

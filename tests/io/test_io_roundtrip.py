@@ -18,7 +18,7 @@ from _layouts import (
 )
 
 from licalib_cli.config import load_config
-from licalib_cli.errors import BagError, DataError
+from licalib_cli.errors import BagError, ConfigError, DataError
 from licalib_cli.io.bag import bag_paths, open_bag
 from licalib_cli.io.reader import iter_scans, read_imu
 from licalib_cli.io.writer import BagWriter
@@ -168,10 +168,14 @@ def test_imu_units_detected_in_bag_and_overridden(tmp_path: Path) -> None:
     np.testing.assert_allclose(rec.imu.gyro, np.deg2rad(gyro), rtol=1e-12)
     np.testing.assert_allclose(rec.imu.accel, accel * 9.80665, rtol=1e-12)
     assert any("deg/s" in w for w in rec.warnings) and any("in g" in w for w in rec.warnings)
-    cfg = load_config(None, {"imu.gyro_unit": "rad/s", "imu.accel_unit": "g"})
+    cfg = load_config(None, {"imu.gyro_unit": "deg/s", "imu.accel_unit": "g"})
     rec = read_short(path, cfg)
-    np.testing.assert_array_equal(rec.imu.gyro, gyro)
-    np.testing.assert_allclose(rec.imu.accel, accel * 9.80665, rtol=1e-12)
+    assert (rec.imu_units.gyro_source, rec.imu_units.accel_source) == ("config", "config")
+    np.testing.assert_allclose(rec.imu.gyro, np.deg2rad(gyro), rtol=1e-12)
+    # A gyro override the tilting contradicts is refused, naming the unit the data are in.
+    cfg = load_config(None, {"imu.gyro_unit": "rad/s"})
+    with pytest.raises(ConfigError, match=r"gravity turns .* set imu.gyro_unit: deg/s, or remove"):
+        read_short(path, cfg)
     # An accelerometer override that leaves no gravity is refused, naming the setting.
     cfg = load_config(None, {"imu.accel_unit": "m/s^2"})
     with pytest.raises(
