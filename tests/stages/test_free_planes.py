@@ -133,6 +133,33 @@ def test_planes_free_steps_take_none_worth_under_a_third_of_a_sigma() -> None:
     assert (final, steps, start) == (0, 0, 10.0)
 
 
+def test_a_step_past_the_spline_s_padding_is_rejected_and_a_shorter_one_tried() -> None:
+    """A whole step that moves the time offset past the spline's padding cannot be built into a
+    problem (the point times leave the spline); it is a rejected trial like one that raises the
+    cost, and half the step is tried (it was an internal error, on a bag read with a wrong
+    accelerometer unit)."""
+    from types import SimpleNamespace
+
+    from licalib_cli.estimation import SplineCoverageError
+    from licalib_cli.pipeline.free_planes import planes_free_steps
+
+    tried: list[float] = []
+
+    def step_at(problem: _Cost, k: int):  # type: ignore[no-untyped-def]
+        def trial(fraction: float):  # type: ignore[no-untyped-def]
+            tried.append(fraction)
+            if fraction == 1.0:
+                raise SplineCoverageError("89 point times fall outside the trajectory spline")
+            return k + 1, _Cost(5.0)
+
+        step = SimpleNamespace(predicted_reduction=5.0 if k == 0 else 0.0, num_truncated=0)
+        return (10.0 if k == 0 else 5.0), step, trial
+
+    final, problem, steps, start = planes_free_steps(_Cost(10.0), 0, step_at, "step")
+    assert tried == [1.0, 0.5]
+    assert (final, steps, start, problem.cost) == (1, 1, 10.0, 5.0)
+
+
 def test_noise_corrected_plane_steps_remove_the_range_noise_tilt() -> None:
     """A patch seen obliquely from one point, its range noise along the rays: a Gauss-Newton
     step of the plane from its true normal tilts the normal away from the rays on average; with
