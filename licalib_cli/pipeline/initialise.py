@@ -347,7 +347,9 @@ def _searched_rotation(
             f"the rig turned about one axis only, or the clocks differ by more than the {lag:.3g} "
             "s searched: raise initialization.time_offset_max_lag_s"
             if free_time
-            else "the rig turned about one axis only"
+            else "the rig turned about one axis only, or the initialization.time_offset_s of "
+            f"{t_c:g} s the config gives is off, since the scans are deskewed with the gyro at "
+            "that offset: remove it to search the offset"
         )
         msg = (
             "Rotation excitation is too weak: the LiDAR odometry did not follow the motion and "

@@ -243,7 +243,8 @@ def test_an_ambiguous_search_names_the_lag_when_the_offset_was_searched(
 ) -> None:
     """The refusal after an ambiguous search says the clocks may differ by more than the lag
     scanned when the time offset was free (a +0.4 s offset on a shake, the lag 0.2 s), and only
-    the rotation when the offset was given."""
+    the rotation or the given offset when the offset was given (a shake given 0.3 s for 0 s was
+    told to rotate about two axes)."""
     import importlib
     from types import SimpleNamespace
 
@@ -259,10 +260,15 @@ def test_an_ambiguous_search_names_the_lag_when_the_offset_was_searched(
     ) as free:
         ini._searched_rotation(rec, odo, None, 0.0, load_config(None))  # type: ignore[arg-type]
     assert str(free.value).count(". ") == 0  # one sentence
-    given = load_config(None, {"initialization": {"time_offset_s": 0.0}})
-    with pytest.raises(ExcitationError, match="about one axis only\\)") as fixed:
-        ini._searched_rotation(rec, odo, None, 0.0, given)  # type: ignore[arg-type]
+    given = load_config(None, {"initialization": {"time_offset_s": 0.3}})
+    with pytest.raises(ExcitationError) as fixed:
+        ini._searched_rotation(rec, odo, None, 0.3, given)  # type: ignore[arg-type]
     assert "max_lag" not in str(fixed.value)
+    assert (
+        "(the rig turned about one axis only, or the initialization.time_offset_s of 0.3 s the "
+        "config gives is off, since the scans are deskewed with the gyro at that offset: remove "
+        "it to search the offset)" in str(fixed.value)
+    )
 
 
 def test_the_lag_widens_to_the_clocks_difference_from_record_times() -> None:
