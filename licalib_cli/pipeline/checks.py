@@ -35,7 +35,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import numpy.typing as npt
 
-from licalib_cli.config import INTRINSIC_PRESETS, CalibConfig, ChecksSection
+from licalib_cli.config import INTRINSIC_PRESETS, MAX_LEVER_ARM_M, CalibConfig, ChecksSection
 from licalib_cli.io.clock_rate import MATERIAL_MOVE_S, SIGNIFICANT_SIGMAS, ClockRate
 from licalib_cli.pipeline.crawl import Crawl, crawl_at_cap
 from licalib_cli.pipeline.fitcheck import (
@@ -955,19 +955,29 @@ def check(
 
 
 def away_from_start(fit: Fit, guess: InitialGuess, cfg: CalibConfig) -> tuple[str, ...]:
-    """A failure when the estimate's rotation ended far from the hand-eye rotation it started
-    from (:mod:`~licalib_cli.pipeline.start_agreement`): the rounds settled in a wrong minimum."""
-    if not trusted(guess.hand_eye, cfg.initialization.max_hand_eye_residual_deg):
-        return ()
-    assert guess.hand_eye is not None
-    apart = hand_eye_disagreement(fit.state.R_imu_lidar, guess.hand_eye, "The estimated rotation")
-    if apart is None:
-        return ()
-    return (
-        f"{apart}: the rounds settled in a wrong minimum, whatever the residuals say, so the "
-        "result is not trustworthy; give initialization.rotation_rpy_deg and translation_m near "
-        "the rig's (a drawing is enough) and calibrate again.",
+    """Failures of an estimate no rig can have: a lever arm beyond
+    :data:`~licalib_cli.config.MAX_LEVER_ARM_M`, or a rotation far from the trusted hand-eye
+    rotation it started from (:mod:`~licalib_cli.pipeline.start_agreement`): the rounds settled
+    in a wrong minimum, whatever the residuals say."""
+    out = []
+    advice = (
+        "so the result is not trustworthy; give initialization.rotation_rpy_deg and "
+        "translation_m near the rig's (a drawing is enough) and calibrate again."
     )
+    lever = float(np.linalg.norm(fit.state.t_imu_lidar))
+    if lever > MAX_LEVER_ARM_M:
+        out.append(
+            f"The estimated lever arm puts the LiDAR {lever:.3g} m from the IMU, farther than "
+            f"any rig's ({MAX_LEVER_ARM_M:g} m): the rounds settled in a wrong minimum, {advice}"
+        )
+    if trusted(guess.hand_eye, cfg.initialization.max_hand_eye_residual_deg):
+        assert guess.hand_eye is not None
+        apart = hand_eye_disagreement(
+            fit.state.R_imu_lidar, guess.hand_eye, "The estimated rotation"
+        )
+        if apart is not None:
+            out.append(f"{apart}: the rounds settled in a wrong minimum, {advice}")
+    return tuple(out)
 
 
 def drift_against_stamps(k: float, sd: float, rate: ClockRate) -> str | None:

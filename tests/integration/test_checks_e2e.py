@@ -505,7 +505,7 @@ def test_an_estimate_far_from_the_hand_eye_rotation_it_started_from_fails(
     is above initialization.max_hand_eye_residual_deg is no measure of it."""
     from dataclasses import replace
 
-    from licalib_cli.pipeline.checks import check
+    from licalib_cli.pipeline.checks import away_from_start, check
     from licalib_cli.results import matrix_from_rpy_deg
 
     cfg, prepared, fit = clean_fit
@@ -525,3 +525,9 @@ def test_an_estimate_far_from_the_hand_eye_rotation_it_started_from_fails(
     assert "the rounds settled in a wrong minimum" in said
     loose = replace(turned, residual_rms_deg=cfg.initialization.max_hand_eye_residual_deg + 0.5)
     assert check(fit, replace(guess, hand_eye=loose), prepared.noise, cfg).verdict.status != "fail"
+    # a lever arm no rig has (the rounds from a lever arm in centimetres read as metres ended
+    # 100 m off, warning) fails too, hand-eye or not
+    far_state = replace(fit.state, t_imu_lidar=np.array([99.9, -35.6, 7.0]))
+    (lever,) = away_from_start(replace(fit, state=far_state), replace(guess, hand_eye=None), cfg)
+    assert lever.startswith("The estimated lever arm puts the LiDAR 106 m from the IMU, farther ")
+    assert away_from_start(fit, guess, cfg) == ()
