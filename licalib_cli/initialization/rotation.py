@@ -31,8 +31,10 @@ __all__ = [
     "GyroIntegrator",
     "HandEyeConfig",
     "HandEyeRotation",
+    "Handedness",
     "constant_velocity_error_deg",
     "estimate_rotation_extrinsic",
+    "gyro_handedness",
     "lidar_rotation_at",
     "relative_rotations",
     "solve_hand_eye_rotation",
@@ -429,3 +431,70 @@ def estimate_rotation_extrinsic(
     rot_l = poses.rotations
     rel_l = rot_l[k0].inv() * rot_l[k0 + s]
     return solve_hand_eye_rotation(rel_i, rel_l, cfg)
+
+
+LEFT_HANDED_RATIO = 0.3
+"""A reflection must fit the paired rotations at least this much better than any rotation."""
+LEFT_HANDED_MAX_DEG = 1.0
+"""... and to within this RMS per interval, degrees, to be taken as a left-handed gyro frame."""
+
+
+@dataclass(frozen=True)
+class Handedness:
+    """How well the gyro's rotations follow the LiDAR's through a rotation and a reflection.
+
+    The rotation vector of each interval's IMU rotation is ``R phi_L`` for a right-handed IMU
+    frame (``R`` the extrinsic rotation). An IMU whose driver flips the sign of one axis (a
+    frame convention mixed up, NED against ENU) publishes ``S R phi_L`` with ``S`` a reflection:
+    no rotation fits, and hand-eye fails or refuses as if the motion were poor, while an
+    orthogonal matrix of determinant -1 fits as well as a rotation fits a right-handed IMU.
+
+    Attributes:
+        rotation_rms_deg: RMS of ``|phi_I - M phi_L|`` for the best rotation ``M``, degrees.
+        reflection_rms_deg: the same for the best orthogonal ``M`` of determinant -1.
+        intervals: intervals compared.
+    """
+
+    rotation_rms_deg: float
+    reflection_rms_deg: float
+    intervals: int
+
+    @property
+    def left_handed(self) -> bool:
+        """Whether a reflection fits beyond doubt and a rotation does not."""
+        return (
+            self.intervals >= 10
+            and self.reflection_rms_deg <= LEFT_HANDED_MAX_DEG
+            and self.reflection_rms_deg < LEFT_HANDED_RATIO * self.rotation_rms_deg
+        )
+
+
+def gyro_handedness(
+    gyro: GyroIntegrator, poses: PoseSeries, time_offset_s: float = 0.0, pair_stride: int = 1
+) -> Handedness:
+    """Fit the IMU's interval rotation vectors to the LiDAR odometry's by the best rotation and
+    by the best reflection (orthogonal Procrustes, each determinant; see :class:`Handedness`).
+
+    Raises:
+        TimestampError: the IMU and LiDAR data do not overlap in time.
+    """
+    t_imu = poses.t_ns + np.int64(round(time_offset_s * 1e9))
+    inside = (t_imu >= gyro.t_ns[0]) & (t_imu <= gyro.t_ns[-1])
+    s = max(int(pair_stride), 1)
+    k0 = np.flatnonzero(inside[:-s] & inside[s:]) if len(poses) > s else np.zeros(0, np.int64)
+    if k0.size == 0:
+        msg = (
+            "The IMU and LiDAR data do not overlap in time; check the topics, the time window "
+            "and the clock offset between the sensors."
+        )
+        raise TimestampError(msg)
+    phi_i = np.degrees(relative_rotations(gyro, t_imu[k0], t_imu[k0 + s]).as_rotvec())
+    rot_l = poses.rotations
+    phi_l = np.degrees((rot_l[k0].inv() * rot_l[k0 + s]).as_rotvec())
+    u, _, vt = np.linalg.svd(phi_i.T @ phi_l)
+    sign = float(np.sign(np.linalg.det(u @ vt))) or 1.0
+    rms = []
+    for det in (1.0, -1.0):
+        m = u @ np.diag([1.0, 1.0, det * sign]) @ vt
+        rms.append(float(np.sqrt(np.mean(np.sum((phi_i - phi_l @ m.T) ** 2, axis=1)))))
+    return Handedness(rms[0], rms[1], int(k0.size))

@@ -23,7 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig
-from licalib_cli.errors import ConfigError, ExcitationError
+from licalib_cli.errors import ConfigError, DataError, ExcitationError, LicalibError
 from licalib_cli.estimation import CalibrationState
 from licalib_cli.geometry import so3
 from licalib_cli.initialization.rotation import (
@@ -31,6 +31,7 @@ from licalib_cli.initialization.rotation import (
     HandEyeRotation,
     constant_velocity_error_deg,
     estimate_rotation_extrinsic,
+    gyro_handedness,
     lidar_rotation_at,
     relative_rotations,
 )
@@ -539,6 +540,30 @@ def _check_configured_rotation(
         raise ConfigError(msg)
 
 
+def _left_handed_gyro(gyro: GyroIntegrator, odo: Odometry, cfg: CalibConfig) -> str | None:
+    """The sentence for an IMU whose axes form a left-handed frame (:class:`~licalib_cli.
+    initialization.rotation.Handedness`), judged on the LiDAR-only odometry; None when it is not
+    (or there is no LiDAR-only odometry, on violent motion). A driver that flips one axis's sign
+    made the rotation's initialisation fail as if the rig had hardly turned, or, on a 4 s
+    sinusoid, hand-eye took a wrong rotation and the verdict failed without saying why."""
+    if odo.gyro_aided:
+        return None
+    t_c = cfg.initialization.time_offset_s or 0.0
+    try:
+        found = gyro_handedness(gyro, odo.refined, t_c)
+    except LicalibError:
+        return None
+    if not found.left_handed:
+        return None
+    return (
+        "The IMU's axes form a left-handed frame: its rotations follow the LiDAR's through a "
+        f"reflection to {found.reflection_rms_deg:.2f} deg but through no rotation better than "
+        f"{found.rotation_rms_deg:.2f} deg per interval, so the driver flips the sign of an "
+        "axis (a frame convention mixed up, such as NED against ENU); fix the IMU driver's axes "
+        "(both the gyro's and the accelerometer's) so that x, y, z are right-handed."
+    )
+
+
 def align_rotation_and_time(
     rec: Recording, odo: Odometry, gyro: GyroIntegrator, cfg: CalibConfig
 ) -> Alignment:
@@ -740,6 +765,9 @@ def initialise(
         ExcitationError: the motion does not determine the rotation, or the data do not overlap.
     """
     gyro = GyroIntegrator.from_imu(rec.imu)
+    flipped = _left_handed_gyro(gyro, odo, cfg)
+    if flipped is not None:
+        raise DataError(flipped)
     a = align_rotation_and_time(rec, odo, gyro, cfg)
     a = gyro_aided_alignment(rec, odo, gyro, a, cfg)
     state, lever, t_source = _initial_state(

@@ -179,3 +179,50 @@ def test_a_configured_rotation_far_from_hand_eye_is_refused(short_bag, tmp_path,
     near = load_config(turned, {"initialization.rotation_rpy_deg": [roll + 3, pitch - 2, yaw + 1]})
     guess = prepare(short_bag, near, NullProgress(), Timer()).guess
     assert guess.rotation_source == "config" and guess.hand_eye is None
+
+
+def _with_imu_axis_flipped(src: Path, dst: Path, axis: str) -> Path:
+    """A copy of a ROS 1 bag whose IMU messages have the sign of one axis flipped (gyro and
+    accelerometer alike), as a driver with a frame convention mixed up publishes them."""
+    from rosbags.rosbag1 import Reader, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    with Reader(src) as reader, Writer(dst) as writer:
+        out = {
+            c.id: writer.add_connection(c.topic, c.msgtype, typestore=store)
+            for c in reader.connections
+        }
+        for conn, t, raw in reader.messages():
+            if conn.msgtype == "sensor_msgs/msg/Imu":
+                msg = store.deserialize_ros1(raw, conn.msgtype)
+                for vec in (msg.angular_velocity, msg.linear_acceleration):
+                    setattr(vec, axis, -getattr(vec, axis))
+                raw = store.serialize_ros1(msg, conn.msgtype)
+            writer.write(out[conn.id], t, raw)
+    return dst
+
+
+def test_an_imu_with_a_flipped_axis_is_named_not_blamed_on_the_motion(tmp_path, capsys):
+    """An IMU driver that flips the sign of one axis publishes a left-handed frame: no rotation
+    maps the LiDAR's motion onto the gyro's, and the calibration stopped saying the rotation
+    excitation was too weak. A reflection fits to a fraction of a degree: the error says so."""
+    spec = SimulationSpec(
+        scenario="sinusoid",
+        lidar="vlp16",
+        fmt="ros1",
+        duration_s=4.0,
+        seed=17,
+        intrinsics="none",
+        azimuth_resolution_deg=0.4,
+    )
+    bag = simulate(spec, tmp_path / "sim").bag_path
+    flipped = _with_imu_axis_flipped(bag, tmp_path / "flipped.bag", "y")
+    out = tmp_path / "result.yaml"
+    with pytest.raises(SystemExit) as stop:
+        main(["calibrate", str(flipped), "-c", str(CONFIG), "-o", str(out)])
+    assert stop.value.code == 4
+    said = " ".join(capsys.readouterr().err.split()).split("Error: ")[-1]
+    assert said.startswith("The IMU's axes form a left-handed frame: its rotations follow the ")
+    assert said.endswith("so that x, y, z are right-handed.") and "excitation" not in said
+    assert not out.exists()
