@@ -556,11 +556,12 @@ def _left_handed_gyro(gyro: GyroIntegrator, odo: Odometry, cfg: CalibConfig) -> 
     if not found.left_handed:
         return None
     return (
-        "The IMU's axes form a left-handed frame: its rotations follow the LiDAR's through a "
-        f"reflection to {found.reflection_rms_deg:.2f} deg but through no rotation better than "
-        f"{found.rotation_rms_deg:.2f} deg per interval, so the driver flips the sign of an "
-        "axis (a frame convention mixed up, such as NED against ENU); fix the IMU driver's axes "
-        "(both the gyro's and the accelerometer's) so that x, y, z are right-handed."
+        "The IMU's axes form a left-handed frame against the LiDAR's: the gyro's rotations "
+        f"follow the LiDAR's through a reflection to {found.reflection_rms_deg:.2f} deg but "
+        f"through no rotation better than {found.rotation_rms_deg:.2f} deg per interval, so a "
+        "driver flips the sign of an axis (most often the IMU's: a frame convention mixed up, "
+        "such as NED against ENU); fix that driver's axes (for the IMU both the gyro's and the "
+        "accelerometer's) so that x, y, z are right-handed."
     )
 
 

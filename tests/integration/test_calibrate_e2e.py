@@ -223,6 +223,6 @@ def test_an_imu_with_a_flipped_axis_is_named_not_blamed_on_the_motion(tmp_path, 
         main(["calibrate", str(flipped), "-c", str(CONFIG), "-o", str(out)])
     assert stop.value.code == 4
     said = " ".join(capsys.readouterr().err.split()).split("Error: ")[-1]
-    assert said.startswith("The IMU's axes form a left-handed frame: its rotations follow the ")
+    assert said.startswith("The IMU's axes form a left-handed frame against the LiDAR's: the ")
     assert said.endswith("so that x, y, z are right-handed.") and "excitation" not in said
     assert not out.exists()
