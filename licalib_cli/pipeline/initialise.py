@@ -764,6 +764,8 @@ def initialise(
 
     Raises:
         ExcitationError: the motion does not determine the rotation, or the data do not overlap.
+        DataError: the IMU's axes form a left-handed frame against the LiDAR's.
+        ConfigError: a configured rotation lies far from a trusted hand-eye rotation.
     """
     gyro = GyroIntegrator.from_imu(rec.imu)
     flipped = _left_handed_gyro(gyro, odo, cfg)
