@@ -49,7 +49,7 @@ from licalib_cli.initialization.time_offset import (
     estimate_time_offset_joint,
 )
 from licalib_cli.initialization.translation import LeverArmEstimate, estimate_lever_arm
-from licalib_cli.measurements import Recording
+from licalib_cli.measurements import ImuSamples, Recording
 from licalib_cli.models.intrinsics import LidarIntrinsics
 from licalib_cli.odometry import (
     PoseSeries,
@@ -344,6 +344,8 @@ def _searched_rotation(
     else:
         found = search_rotation_extrinsic(rec.scans, gyro, t_c)
     if not found.unambiguous:
+        if _mirrored_search_sharpens(rec, t_c, free_time, lag):
+            raise DataError(_LEFT_HANDED_SEARCHED)
         why = (
             f"the rig turned about one axis only, or the clocks differ by more than the {lag:.3g} "
             "s searched: raise initialization.time_offset_max_lag_s"
@@ -538,6 +540,35 @@ def _check_configured_rotation(
             "p_imu = R p_lidar + t), or remove it to start from hand-eye's."
         )
         raise ConfigError(msg)
+
+
+_LEFT_HANDED_SEARCHED = (
+    "The IMU's axes form a left-handed frame against the LiDAR's: no rotation extrinsic makes "
+    "the gyro-deskewed map sharp, but one does with the sign of one gyro axis flipped, so a "
+    "driver flips the sign of an axis (most often the IMU's: a frame convention mixed up, such "
+    "as NED against ENU); fix that driver's axes (for the IMU both the gyro's and the "
+    "accelerometer's) so that x, y, z are right-handed."
+)
+
+
+def _mirrored_search_sharpens(rec: Recording, t_c: float, free_time: bool, lag: float) -> bool:
+    """Whether the rotation search, ambiguous on the gyro as recorded, finds a clear rotation on
+    the gyro with one axis's sign flipped (which axis does not matter: every reflection is one
+    of them times a rotation, and the search covers the rotations). On violent motion no
+    LiDAR-only odometry runs to compare the rotations with (:func:`_left_handed_gyro`); a shake
+    whose IMU flips an axis stopped saying the rotation excitation was too weak. Rotation about
+    one axis cannot tell a reflection from a rotation, so that stays ambiguous either way."""
+    imu = rec.imu
+    flip = np.array([1.0, -1.0, 1.0])
+    mirrored = GyroIntegrator.from_imu(ImuSamples(imu.t_ns, imu.gyro * flip, imu.accel * flip))
+    try:
+        if free_time:
+            found = search_rotation_and_time_offset(rec.scans, mirrored, t_c, max_lag_s=lag)
+        else:
+            found = search_rotation_extrinsic(rec.scans, mirrored, t_c)
+    except LicalibError:
+        return False
+    return bool(found.unambiguous)
 
 
 def _left_handed_gyro(gyro: GyroIntegrator, odo: Odometry, cfg: CalibConfig) -> str | None:

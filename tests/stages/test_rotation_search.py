@@ -254,7 +254,9 @@ def test_an_ambiguous_search_names_the_lag_when_the_offset_was_searched(
     monkeypatch.setattr(ini, "search_rotation_and_time_offset", lambda *a, **k: ambiguous)
     monkeypatch.setattr(ini, "search_rotation_extrinsic", lambda *a, **k: ambiguous)
     odo = SimpleNamespace(search=None)
-    rec = SimpleNamespace(scans=[], lidar_shift_ns=0, clock_offset_s=0.01)
+    t = np.arange(5, dtype=np.int64) * 5_000_000
+    imu = ImuSamples(t, np.zeros((5, 3)), np.tile([0.0, 0.0, 9.81], (5, 1)))
+    rec = SimpleNamespace(scans=[], lidar_shift_ns=0, clock_offset_s=0.01, imu=imu)
     with pytest.raises(
         ExcitationError, match=r"more than the 0\.2 s searched: raise initialization\.time_offset"
     ) as free:
@@ -268,6 +270,40 @@ def test_an_ambiguous_search_names_the_lag_when_the_offset_was_searched(
         "(the rig turned about one axis only, or the initialization.time_offset_s of 0.3 s the "
         "config gives is off, since the scans are deskewed with the gyro at that offset: remove "
         "it to search the offset)" in str(fixed.value)
+    )
+
+
+def test_an_ambiguous_search_that_a_mirrored_gyro_makes_clear_names_a_left_handed_imu(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """On violent motion no LiDAR-only odometry runs to compare rotations with: when the search
+    on the gyro as recorded is ambiguous but the same search on the gyro with one axis's sign
+    flipped is clear, the IMU's frame is left-handed against the LiDAR's (a shake whose IMU
+    flips y stopped saying the rotation excitation was too weak)."""
+    import importlib
+    from types import SimpleNamespace
+
+    from licalib_cli.errors import DataError
+
+    ini = importlib.import_module("licalib_cli.pipeline.initialise")
+    ambiguous = _fake_search(0.4, [], 0.012)(None, None, 0.0)
+    clear = _fake_search(0.0, [], 0.012)(None, None, 0.0)
+    assert not ambiguous.unambiguous and clear.unambiguous
+    seen: list[object] = []
+
+    def search(scans, gyro, *a, **k):  # type: ignore[no-untyped-def]
+        seen.append(gyro)  # the gyro as recorded (None here), then the mirrored one
+        return ambiguous if len(seen) == 1 else clear
+
+    monkeypatch.setattr(ini, "search_rotation_and_time_offset", search)
+    t = np.arange(5, dtype=np.int64) * 5_000_000
+    imu = ImuSamples(t, np.zeros((5, 3)), np.tile([0.0, 0.0, 9.81], (5, 1)))
+    rec = SimpleNamespace(scans=[], lidar_shift_ns=0, clock_offset_s=0.01, imu=imu)
+    with pytest.raises(DataError) as flipped:
+        ini._searched_rotation(rec, SimpleNamespace(search=None), None, 0.0, load_config(None))  # type: ignore[arg-type]
+    assert len(seen) == 2 and seen[0] is None and seen[1] is not None
+    assert str(flipped.value).startswith(
+        "The IMU's axes form a left-handed frame against the LiDAR's: no rotation extrinsic"
     )
 
 
