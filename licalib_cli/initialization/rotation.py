@@ -36,6 +36,7 @@ __all__ = [
     "estimate_rotation_extrinsic",
     "gyro_handedness",
     "lidar_rotation_at",
+    "paired_rotations",
     "relative_rotations",
     "solve_hand_eye_rotation",
 ]
@@ -417,9 +418,23 @@ def estimate_rotation_extrinsic(
     """
     cfg = cfg or HandEyeConfig()
     gyro = imu if isinstance(imu, GyroIntegrator) else GyroIntegrator.from_imu(imu, gyro_bias)
+    rel_i, rel_l = paired_rotations(gyro, poses, time_offset_s, cfg.pair_stride)
+    return solve_hand_eye_rotation(rel_i, rel_l, cfg)
+
+
+def paired_rotations(
+    gyro: GyroIntegrator, poses: PoseSeries, time_offset_s: float = 0.0, pair_stride: int = 1
+) -> tuple[Rotation, Rotation]:
+    """The IMU's and the LiDAR's rotations over the same intervals: pose ``k`` paired with pose
+    ``k + pair_stride``, the IMU's over ``[tau_k + t_c, tau_{k+s} + t_c]`` from the gyro; poses
+    whose IMU times fall outside the IMU data are skipped.
+
+    Raises:
+        TimestampError: the IMU and LiDAR data do not overlap in time.
+    """
     t_imu = poses.t_ns + np.int64(round(time_offset_s * 1e9))
     inside = (t_imu >= gyro.t_ns[0]) & (t_imu <= gyro.t_ns[-1])
-    s = max(int(cfg.pair_stride), 1)
+    s = max(int(pair_stride), 1)
     k0 = np.flatnonzero(inside[:-s] & inside[s:]) if len(poses) > s else np.zeros(0, np.int64)
     if k0.size == 0:
         msg = (
@@ -427,10 +442,8 @@ def estimate_rotation_extrinsic(
             "and the clock offset between the sensors."
         )
         raise TimestampError(msg)
-    rel_i = relative_rotations(gyro, t_imu[k0], t_imu[k0 + s])
     rot_l = poses.rotations
-    rel_l = rot_l[k0].inv() * rot_l[k0 + s]
-    return solve_hand_eye_rotation(rel_i, rel_l, cfg)
+    return relative_rotations(gyro, t_imu[k0], t_imu[k0 + s]), rot_l[k0].inv() * rot_l[k0 + s]
 
 
 LEFT_HANDED_RATIO = 0.3
@@ -478,23 +491,13 @@ def gyro_handedness(
     Raises:
         TimestampError: the IMU and LiDAR data do not overlap in time.
     """
-    t_imu = poses.t_ns + np.int64(round(time_offset_s * 1e9))
-    inside = (t_imu >= gyro.t_ns[0]) & (t_imu <= gyro.t_ns[-1])
-    s = max(int(pair_stride), 1)
-    k0 = np.flatnonzero(inside[:-s] & inside[s:]) if len(poses) > s else np.zeros(0, np.int64)
-    if k0.size == 0:
-        msg = (
-            "The IMU and LiDAR data do not overlap in time; check the topics, the time window "
-            "and the clock offset between the sensors."
-        )
-        raise TimestampError(msg)
-    phi_i = np.degrees(relative_rotations(gyro, t_imu[k0], t_imu[k0 + s]).as_rotvec())
-    rot_l = poses.rotations
-    phi_l = np.degrees((rot_l[k0].inv() * rot_l[k0 + s]).as_rotvec())
+    rel_i, rel_l = paired_rotations(gyro, poses, time_offset_s, pair_stride)
+    phi_i = np.degrees(rel_i.as_rotvec())
+    phi_l = np.degrees(rel_l.as_rotvec())
     u, _, vt = np.linalg.svd(phi_i.T @ phi_l)
     sign = float(np.sign(np.linalg.det(u @ vt))) or 1.0
     rms = []
     for det in (1.0, -1.0):
         m = u @ np.diag([1.0, 1.0, det * sign]) @ vt
         rms.append(float(np.sqrt(np.mean(np.sum((phi_i - phi_l @ m.T) ** 2, axis=1)))))
-    return Handedness(rms[0], rms[1], int(k0.size))
+    return Handedness(rms[0], rms[1], int(phi_i.shape[0]))
