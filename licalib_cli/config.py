@@ -199,9 +199,10 @@ class InitializationConfig(_Section):
         # a lever arm in millimetres or centimetres read as metres: the rounds start hundreds
         # of metres off and settle in a wrong minimum (30, 15, 5 for 0.30, 0.15, 0.05 m ended
         # 8 m off, the verdict only warning)
-        if value is not None and math.hypot(*value) > MAX_LEVER_ARM_M:
+        lever = math.hypot(*value) if value is not None else 0.0
+        if lever > MAX_LEVER_ARM_M:
             msg = (
-                f"translation_m puts the LiDAR {math.hypot(*value):.3g} m from the IMU, farther "
+                f"translation_m puts the LiDAR {lever:.3g} m from the IMU, farther "
                 f"than any rig's lever arm ({MAX_LEVER_ARM_M:g} m); give it in metres (the "
                 "LiDAR's origin in the IMU frame), or remove it to start from the lever arm "
                 "the data show"
@@ -795,16 +796,10 @@ def _list_form(dotted: str) -> str:
     if found is None:
         return ", such as [a, b]"
     field = found[1]
-    lengths = {
-        name: getattr(m, name)
-        for m in field.metadata
-        for name in ("min_length", "max_length")
-        if getattr(m, name, None) is not None
-    }
-    if lengths.get("min_length") is not None and lengths.get("min_length") == lengths.get(
-        "max_length"
-    ):
-        return f" of {lengths['min_length']} items"
+    shortest = next((m.min_length for m in field.metadata if hasattr(m, "min_length")), None)
+    longest = next((m.max_length for m in field.metadata if hasattr(m, "max_length")), None)
+    if shortest is not None and shortest == longest:
+        return f" of {shortest} items"
     if isinstance(field.default, list) and field.default:
         return f", such as {yaml.safe_dump(field.default, default_flow_style=True).strip()}"
     return ", such as [a, b]"

@@ -337,12 +337,7 @@ def _searched_rotation(
     """
     free_time = cfg.initialization.time_offset_s is None
     lag = time_offset_lag_s(rec, cfg)
-    if odo.search is not None:
-        found = odo.search
-    elif free_time:
-        found = search_rotation_and_time_offset(rec.scans, gyro, t_c, max_lag_s=lag)
-    else:
-        found = search_rotation_extrinsic(rec.scans, gyro, t_c)
+    found = odo.search if odo.search is not None else _search(rec, gyro, t_c, free_time, lag)
     if not found.unambiguous:
         if _mirrored_search_sharpens(rec, t_c, free_time, lag):
             raise DataError(_LEFT_HANDED_SEARCHED)
@@ -542,13 +537,28 @@ def _check_configured_rotation(
         raise ConfigError(msg)
 
 
-_LEFT_HANDED_SEARCHED = (
-    "The IMU's axes form a left-handed frame against the LiDAR's: no rotation extrinsic makes "
-    "the gyro-deskewed map sharp, but one does with the sign of one gyro axis flipped, so a "
-    "driver flips the sign of an axis (most often the IMU's: a frame convention mixed up, such "
-    "as NED against ENU); fix that driver's axes (for the IMU both the gyro's and the "
+_LEFT_HANDED_FIX = (
+    "so a driver flips the sign of an axis (most often the IMU's: a frame convention mixed up, "
+    "such as NED against ENU); fix that driver's axes (for the IMU both the gyro's and the "
     "accelerometer's) so that x, y, z are right-handed."
 )
+"""The cause and the fix of an IMU frame left-handed against the LiDAR's, however found."""
+
+_LEFT_HANDED_SEARCHED = (
+    "The IMU's axes form a left-handed frame against the LiDAR's: no rotation extrinsic makes "
+    "the gyro-deskewed map sharp, but one does with the sign of one gyro axis flipped, "
+    + _LEFT_HANDED_FIX
+)
+
+
+def _search(
+    rec: Recording, gyro: GyroIntegrator, t_c: float, free_time: bool, lag: float
+) -> RotationSearch:
+    """The rotation search by map sharpness, with the time offset searched too when it is free
+    (within ``lag``)."""
+    if free_time:
+        return search_rotation_and_time_offset(rec.scans, gyro, t_c, max_lag_s=lag)
+    return search_rotation_extrinsic(rec.scans, gyro, t_c)
 
 
 def _mirrored_search_sharpens(rec: Recording, t_c: float, free_time: bool, lag: float) -> bool:
@@ -559,13 +569,10 @@ def _mirrored_search_sharpens(rec: Recording, t_c: float, free_time: bool, lag: 
     whose IMU flips an axis stopped saying the rotation excitation was too weak. Rotation about
     one axis cannot tell a reflection from a rotation, so that stays ambiguous either way."""
     imu = rec.imu
-    flip = np.array([1.0, -1.0, 1.0])
-    mirrored = GyroIntegrator.from_imu(ImuSamples(imu.t_ns, imu.gyro * flip, imu.accel * flip))
+    flipped = imu.gyro * np.array([1.0, -1.0, 1.0])  # the search integrates the gyro only
+    mirrored = GyroIntegrator.from_imu(ImuSamples(imu.t_ns, flipped, imu.accel))
     try:
-        if free_time:
-            found = search_rotation_and_time_offset(rec.scans, mirrored, t_c, max_lag_s=lag)
-        else:
-            found = search_rotation_extrinsic(rec.scans, mirrored, t_c)
+        found = _search(rec, mirrored, t_c, free_time, lag)
     except LicalibError:
         return False
     return bool(found.unambiguous)
@@ -589,10 +596,8 @@ def _left_handed_gyro(gyro: GyroIntegrator, odo: Odometry, cfg: CalibConfig) -> 
     return (
         "The IMU's axes form a left-handed frame against the LiDAR's: the gyro's rotations "
         f"follow the LiDAR's through a reflection to {found.reflection_rms_deg:.2f} deg but "
-        f"through no rotation better than {found.rotation_rms_deg:.2f} deg per interval, so a "
-        "driver flips the sign of an axis (most often the IMU's: a frame convention mixed up, "
-        "such as NED against ENU); fix that driver's axes (for the IMU both the gyro's and the "
-        "accelerometer's) so that x, y, z are right-handed."
+        f"through no rotation better than {found.rotation_rms_deg:.2f} deg per interval, "
+        + _LEFT_HANDED_FIX
     )
 
 
