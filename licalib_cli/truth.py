@@ -81,7 +81,9 @@ class InitialImuPose(Section):
 
 @dataclass(frozen=True)
 class SimulatedImu(Section):
-    """The simulated IMU: topic, rate, noise, biases and effects (units as named)."""
+    """The simulated IMU: topic, rate, noise, biases and effects (units as named);
+    ``accel_unit`` is the unit of the bag's ``linear_acceleration`` (``g`` for a Livox, the
+    only case the file names it)."""
 
     topic: str
     frame_id: str
@@ -105,6 +107,14 @@ class SimulatedImu(Section):
     accel_bias_end: Vec3
     gyro_bias_walk_scale: float = 1.0
     accel_bias_walk_scale: float = 1.0
+    accel_unit: str = "m/s^2"
+
+    def to_dict(self) -> dict[str, Any]:
+        # the key only for an IMU in g (other truth files read as before)
+        out = super().to_dict()
+        if out.get("accel_unit") == "m/s^2":
+            del out["accel_unit"]
+        return out
 
 
 @dataclass(frozen=True)

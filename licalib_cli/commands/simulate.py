@@ -113,7 +113,14 @@ def simulate_command(
         ),
     ] = 0.0,
     lidar: Annotated[
-        LidarKind, typer.Option("--lidar", help="LiDAR model.", rich_help_panel=_SENSORS)
+        LidarKind,
+        typer.Option(
+            "--lidar",
+            help="LiDAR model; mid360: a non-repetitive Livox Mid-360-like scanner (livox_ros_"
+            "driver2 clouds, no per-beam intrinsics, its built-in IMU in g); avia: the same with "
+            "a forward-looking Livox Avia-like rosette (70.4 x 77.2 deg).",
+            rich_help_panel=_SENSORS,
+        ),
     ] = LidarKind.VLP16,
     lidar_rate: Annotated[
         float, typer.Option("--lidar-rate", help="Sweeps per second.", rich_help_panel=_SENSORS)
@@ -125,7 +132,7 @@ def simulate_command(
         float | None,
         typer.Option(
             "--range-noise",
-            help="Range noise sigma, m (default: 0.01 Velodyne, 0.015 Ouster).",
+            help="Range noise sigma, m (default: 0.01 Velodyne, 0.015 Ouster, 0.02 Livox).",
             rich_help_panel=_SENSORS,
         ),
     ] = None,
@@ -160,13 +167,14 @@ def simulate_command(
         ),
     ] = (0.3, 0.15, 0.05),
     rpy_deg: Annotated[
-        tuple[float, float, float],
+        tuple[float, float, float] | None,
         typer.Option(
             "--rpy-deg",
-            help="Rotation of T_imu_lidar, R = Rz(yaw) Ry(pitch) Rx(roll), deg.",
+            help="Rotation of T_imu_lidar, R = Rz(yaw) Ry(pitch) Rx(roll), deg (default: 1 2 5; "
+            "avia: 1 2 95, its forward view along the IMU's +y).",
             rich_help_panel=_CALIB,
         ),
-    ] = (1.0, 2.0, 5.0),
+    ] = None,
     random_extrinsic: Annotated[
         bool,
         typer.Option(
@@ -311,7 +319,7 @@ def simulate_command(
         str | None,
         typer.Option(
             "--lidar-topic",
-            help="(default: /points_raw for vlp16, /ouster/points for os1-64)",
+            help="(default: /points_raw Velodyne, /ouster/points Ouster, /livox/lidar Livox)",
             rich_help_panel=_OUT,
         ),
     ] = None,
@@ -320,7 +328,7 @@ def simulate_command(
         str | None,
         typer.Option(
             "--lidar-frame",
-            help="(default: velodyne for vlp16, os_sensor for os1-64)",
+            help="(default: velodyne Velodyne, os_sensor Ouster, livox_frame Livox)",
             rich_help_panel=_OUT,
         ),
     ] = None,
@@ -350,7 +358,7 @@ def simulate_command(
         imu_rate_hz=imu_rate,
         lidar_rate_hz=lidar_rate,
         translation=tuple(translation),  # type: ignore[arg-type]
-        rpy_deg=tuple(rpy_deg),  # type: ignore[arg-type]
+        rpy_deg=tuple(rpy_deg) if rpy_deg else None,  # type: ignore[arg-type]
         random_extrinsic=random_extrinsic,
         time_offset_s=time_offset,
         random_time_offset=random_time_offset,

@@ -31,7 +31,9 @@ times the scale; ``lidar_point_time`` publishes each point's time within its swe
 one divided by ``1 - k`` (a driver assuming a firing period ``1 / (1 - k)`` times the real one),
 so a point published at ``tau`` was measured at ``tau - k (tau - sweep start)``, the model's
 ``lidar.point_time_scale``. A constant error of all per-point times would be a change of the
-time offset itself, so the effect is the part that grows within the sweep.
+time offset itself, so the effect is the part that grows within the sweep. The per-beam LiDAR
+effects (:attr:`Effect.per_beam`) do not apply to the non-repetitive ``mid360`` and ``avia``,
+which have no fixed beams.
 """
 
 from __future__ import annotations
@@ -72,6 +74,12 @@ class Effect(str, Enum):
     def sensor(self) -> str:
         """``imu`` or ``lidar``: the sensor whose data carry the effect."""
         return "lidar" if self.value.startswith("lidar") else "imu"
+
+    @property
+    def per_beam(self) -> bool:
+        """A LiDAR intrinsic drawn per beam (every LiDAR effect but ``lidar_point_time``); a
+        scanner without fixed beams (``mid360``, ``avia``) has none."""
+        return self.sensor == "lidar" and self is not Effect.LIDAR_POINT_TIME
 
 
 @dataclass(frozen=True)

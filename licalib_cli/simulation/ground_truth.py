@@ -22,7 +22,8 @@ With ``random_time_offset`` the time offset is drawn uniformly within +-50 ms.
 (:mod:`~licalib_cli.simulation.effects`) replaces its block with a draw of its own size times
 ``effect_scale``, from its own stream (so naming one effect changes nothing else). Beam 0 gets
 zero ``dphi, dtheta, V, H``: the calibration fixes them as the gauge (method.md section 4), so
-the truth uses the same gauge.
+the truth uses the same gauge. A non-repetitive LiDAR (``mid360``, ``avia``) has no per-beam
+intrinsics: its LiDAR intrinsics stay nominal while the IMU's are drawn as usual.
 """
 
 from __future__ import annotations
@@ -152,7 +153,7 @@ def draw_extrinsic(spec: SimulationSpec) -> Extrinsic:
     offset = draw_time_offset(spec)
     if not spec.random_extrinsic:
         return Extrinsic(
-            rotation=matrix_from_rpy_deg(spec.rpy_deg),
+            rotation=matrix_from_rpy_deg(spec.resolved_rpy_deg),
             translation=np.asarray(spec.translation, dtype=np.float64),
             time_offset_s=offset,
         )
@@ -216,8 +217,14 @@ def draw_imu_intrinsics(spec: SimulationSpec) -> ImuIntrinsics:
 
 
 def draw_lidar_intrinsics(spec: SimulationSpec, model: LidarModel) -> LidarIntrinsics:
-    """Per-beam intrinsics from a file, the paper's Table (random) or nominal."""
+    """Per-beam intrinsics from a file, the paper's Table (random) or nominal.
+
+    A non-repetitive scanner has no fixed beams and so no per-beam intrinsics: always nominal
+    (zero corrections for each of its lines), whatever ``intrinsics`` or the file say.
+    """
     b = model.num_beams
+    if not model.repeats:
+        return LidarIntrinsics.nominal(model.nominal_elevation)
     if spec.intrinsics_file is not None:
         loaded = _load_intrinsics_file(spec.intrinsics_file).lidar_intrinsics
         if loaded is None or loaded.num_beams != b:

@@ -12,6 +12,10 @@ firing time (motion distortion); the hit distance is ``rho_bar``. The raw range 
 driver's nominal conversion ``nominal_point(rho, theta, phi_i)``, so
 ``lidar_point(intrinsics, i, rho, theta)`` gives back the true point (up to noise).
 
+A non-repetitive scanner (``mid360``, ``avia``) gives each ray its own nominal elevation ``phi``
+(the pattern's ``elevation``, which changes from sweep to sweep) in place of ``phi_i``; it has no
+per-beam intrinsics (all corrections zero), so its points are the true ones up to noise.
+
 Stamps are on the LiDAR clock: ``tau = t - time_offset_s + lidar_clock_offset_s`` (plus the base
 time). Sweep ``k`` covers true times ``[k T, (k + 1) T)``. With a per-point time error ``k_pt``
 (the ``lidar_point_time`` effect) each point's published time since the sweep's first firing is
@@ -40,8 +44,9 @@ class ScanTruth:
 
     Attributes:
         t_true_s: (N,) true firing time relative to the base time, s.
-        beam: (N,) ring index.
+        beam: (N,) ring index (``line`` of a Livox).
         theta: (N,) encoder azimuth, rad.
+        phi: (N,) nominal elevation of the ray, rad (the ring's ``phi_i`` for a spinning LiDAR).
         rho: (N,) raw range as published (with noise), m; 0 for no-returns.
         rho_bar: (N,) true distance along the true ray, m.
         plane_id: (N,) int32 id of the surface hit (``World.planes()`` row).
@@ -54,6 +59,7 @@ class ScanTruth:
     t_true_s: F64
     beam: npt.NDArray[np.int64]
     theta: F64
+    phi: F64
     rho: F64
     rho_bar: F64
     plane_id: npt.NDArray[np.int32]
@@ -102,10 +108,13 @@ def generate_scans(
         :class:`SimulatedScan` in the order of ``indices``.
     """
     setup = setup or build_setup(spec)
-    pattern = setup.lidar_model.pattern(spec.lidar_rate_hz, spec.azimuth_resolution_deg)
+    model = setup.lidar_model
+    pattern = model.pattern(spec.lidar_rate_hz, spec.azimuth_resolution_deg)
     planes = setup.world.planes()
     refl = setup.world.reflectivity()
     for k in range(num_scans(spec)) if indices is None else indices:
+        if not model.repeats:  # a non-repetitive scanner: each sweep has its own rays
+            pattern = model.pattern(spec.lidar_rate_hz, spec.azimuth_resolution_deg, int(k))
         yield _scan(setup, pattern, planes, refl, int(k))
 
 
@@ -120,16 +129,22 @@ def _scan(
         t_rel = pattern.t_ns.T
         theta = pattern.theta.T
         ring = pattern.ring.T
+        elevation = None if pattern.elevation is None else pattern.elevation.T
     else:
         # Driver order: cycle by cycle, lasers in firing order.
         order = np.argsort(model.firing_order)
         t_rel = pattern.t_ns[:, order]
         theta = pattern.theta[:, order]
         ring = pattern.ring[:, order]
+        elevation = None if pattern.elevation is None else pattern.elevation[:, order]
     shape = t_rel.shape
     t_rel = t_rel.reshape(-1)
     theta = theta.reshape(-1)
     ring = ring.reshape(-1)
+    if elevation is None:  # each ring at its elevation
+        phi_true, phi_nominal = kin.nominal_elevation[ring], model.nominal_elevation[ring]
+    else:  # each ray at its own
+        phi_true = phi_nominal = elevation.reshape(-1)
 
     sweep_start_ns = k * pattern.period_ns
     t_true_ns = sweep_start_ns + t_rel
@@ -138,7 +153,7 @@ def _scan(
     r_wl, p_wl = r_wl[inv], p_wl[inv]
 
     theta_bar = theta + kin.azimuth_correction[ring]
-    phi_bar = kin.nominal_elevation[ring] + kin.elevation_correction[ring]
+    phi_bar = phi_true + kin.elevation_correction[ring]
     h = kin.horizontal_offset[ring]
     c_phi = np.cos(phi_bar)
     origin_l = np.stack(
@@ -156,7 +171,7 @@ def _scan(
     keep = rng.uniform(size=rho_bar.shape[0]) >= spec.dropout
     rho = (rho_bar - kin.range_offset[ring]) / kin.range_scale[ring] + noise
     valid = keep & (rho >= model.min_range) & (rho <= model.max_range)
-    xyz = nominal_point(rho, theta, model.nominal_elevation[ring])
+    xyz = nominal_point(rho, theta, phi_nominal)
     cos_inc = np.abs(np.einsum("ni,ni->n", planes[plane_id, :3], dir_w))
     albedo = refl[plane_id] * cos_inc
 
@@ -168,7 +183,7 @@ def _scan(
     else:
         t_pub_ns = t_true_ns
     sweep_stamp_rel = first_ns
-    if not model.organized and spec.lidar_stamp is LidarStamp.END:
+    if model.kind.is_velodyne and spec.lidar_stamp is LidarStamp.END:
         sweep_stamp_rel = sweep_start_ns + int(t_rel.max())
     stamp_ns = spec.base_time_ns + sweep_stamp_rel + offset_ns
     record_ns = spec.base_time_ns + sweep_start_ns + int(t_rel.max())
@@ -196,14 +211,19 @@ def _scan(
         points = points[sel]
         points["x"], points["y"], points["z"] = xyz[sel, 0], xyz[sel, 1], xyz[sel, 2]
         points["intensity"] = np.round(255.0 * albedo[sel])
-        points["ring"] = ring[sel].astype(np.uint16)
-        points["time"] = ((t_pub_ns[sel] - sweep_stamp_rel) * 1e-9).astype(np.float32)
+        if "line" in (model.dtype.names or ()):  # Livox: absolute ns on the stamp's clock
+            points["line"] = ring[sel].astype(np.uint8)
+            points["timestamp"] = (spec.base_time_ns + offset_ns + t_pub_ns[sel]).astype(np.float64)
+        else:
+            points["ring"] = ring[sel].astype(np.uint16)
+            points["time"] = ((t_pub_ns[sel] - sweep_stamp_rel) * 1e-9).astype(np.float32)
         rho_out = rho
 
     truth = ScanTruth(
         t_true_s=t_true_ns[sel].astype(np.float64) * 1e-9,
         beam=ring[sel].astype(np.int64),
         theta=theta[sel],
+        phi=phi_nominal[sel],
         rho=rho_out[sel],
         rho_bar=rho_bar[sel],
         plane_id=plane_id[sel],

@@ -11,7 +11,8 @@ file (schema v1: ``extrinsic``, ``imu_intrinsics``, ``lidar_intrinsics``) and th
       initial_imu_pose: {stamp_ns, position, rotation_quaternion, velocity, angular_velocity}
       imu: {topic, frame_id, rate_hz, num_samples, noise densities and discrete sigmas,
             bias_walk_scale, effects, g_sensitivity_dps_per_g, clock_drift_ppm,
-            gyro_bias_mean, accel_bias_mean, ..., gyro_bias_walk_scale, accel_bias_walk_scale}
+            gyro_bias_mean, accel_bias_mean, ..., gyro_bias_walk_scale, accel_bias_walk_scale,
+            accel_unit}                           # g: the bag's unit (mid360, avia only)
       lidar: {model, topic, frame_id, rate_hz, num_beams, num_scans, stamp, range_noise_m, ...,
               point_time_error}
       clock: {base_time_ns, time_offset_s, time_offset_drawn, lidar_clock_offset_s, relation,
@@ -24,6 +25,9 @@ file (schema v1: ``extrinsic``, ``imu_intrinsics``, ``lidar_intrinsics``) and th
            values: [...], values_unit: "1 (s - 1)"}
 
 Times in ``bursts_s`` are true seconds after ``base_time_ns`` (the IMU clock without drift).
+Every value is in SI units; the bag's IMU messages carry ``linear_acceleration`` in
+``accel_unit`` (``g`` with the Mid-360 and the Avia, whose built-in IMUs publish g: divided by
+9.80665).
 """
 
 from __future__ import annotations
@@ -215,6 +219,7 @@ def build_truth(
         accel_bias_end=_vec3(imu_truth.accel_bias[-1], 12),
         gyro_bias_walk_scale=float(spec.resolved_gyro_bias_walk_scale),
         accel_bias_walk_scale=float(spec.resolved_accel_bias_walk_scale),
+        accel_unit=spec.accel_unit,
     )
     lidar = tr.SimulatedLidar(
         model=model.kind.value,
@@ -225,7 +230,7 @@ def build_truth(
         rays_per_beam=int(pattern.t_ns.shape[0]),
         num_scans=num_scans(spec),
         organized=model.organized,
-        stamp="start" if model.organized else spec.lidar_stamp.value,
+        stamp=spec.lidar_stamp.value if spec.lidar.is_velodyne else "start",
         range_noise_m=float(spec.resolved_range_noise_m),
         azimuth_resolution_deg=None
         if spec.azimuth_resolution_deg is None
@@ -347,6 +352,7 @@ def simulate(
     lidar_frame = spec.resolved_lidar_frame
     n_points = 0
     n_written = 0
+    accel = imu.accel / STANDARD_GRAVITY if spec.accel_unit == "g" else imu.accel
     tmp_dir = Path(tempfile.mkdtemp(prefix=".simulate-", dir=out_dir))
     try:
         tmp_bag = tmp_dir / bag_path.name
@@ -361,7 +367,7 @@ def simulate(
                         spec.imu_topic,
                         int(imu.t_ns[i]),
                         imu.gyro[i],
-                        imu.accel[i],
+                        accel[i],
                         frame_id=spec.imu_frame,
                         record_ns=int(imu_truth.record_ns[i]),
                     )
@@ -382,7 +388,7 @@ def simulate(
                     spec.imu_topic,
                     int(imu.t_ns[i]),
                     imu.gyro[i],
-                    imu.accel[i],
+                    accel[i],
                     frame_id=spec.imu_frame,
                     record_ns=int(imu_truth.record_ns[i]),
                 )

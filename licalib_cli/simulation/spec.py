@@ -11,7 +11,8 @@ Clocks and time (all stamps int64 ns):
 * Bag record times are the true arrival times: an IMU sample when taken, a scan at its last ray.
 
 Defaults follow the paper's simulation (Sec. VI): 400 Hz IMU, 10 Hz VLP-16, ``T_imu_lidar`` with
-``t = [0.3, 0.15, 0.05]`` m and ``rpy = [1, 2, 5]`` deg, 10 s, random intrinsics.
+``t = [0.3, 0.15, 0.05]`` m and ``rpy = [1, 2, 5]`` deg (the forward-looking avia: yaw 95 deg,
+:data:`AVIA_RPY_DEG`), 10 s, random intrinsics.
 """
 
 from __future__ import annotations
@@ -58,19 +59,34 @@ class Scenario(str, Enum):
 
 class LidarKind(str, Enum):
     """Simulated LiDAR: two Velodyne (unorganised clouds, a ``time`` field relative to the
-    stamp) and three Ouster (organised clouds, a ``t`` field in ns from the sweep start)
-    beam counts."""
+    stamp), three Ouster (organised clouds, a ``t`` field in ns from the sweep start) beam
+    counts, and two Livox-like non-repetitive scanners, the Mid-360 (360 deg around) and the
+    forward-looking Avia (a rosette) (unorganised clouds, a ``line`` field grouping points of
+    many elevations, an absolute ``timestamp`` field in ns)."""
 
     VLP16 = "vlp16"
     HDL32 = "hdl-32"
     OS1_32 = "os1-32"
     OS1_64 = "os1-64"
     OS1_128 = "os1-128"
+    MID360 = "mid360"
+    AVIA = "avia"
 
     @property
     def is_velodyne(self) -> bool:
         """A Velodyne (cycle-based firing, unorganised ``PointXYZIRT`` clouds)."""
         return self in (LidarKind.VLP16, LidarKind.HDL32)
+
+    @property
+    def is_ouster(self) -> bool:
+        """An Ouster OS1 (column-based firing, organised clouds)."""
+        return self in (LidarKind.OS1_32, LidarKind.OS1_64, LidarKind.OS1_128)
+
+    @property
+    def is_non_repetitive(self) -> bool:
+        """A scanner without fixed beams (Livox): each ray has its own elevation and
+        successive sweeps cover different directions, so there are no per-beam intrinsics."""
+        return self in (LidarKind.MID360, LidarKind.AVIA)
 
     @property
     def display_name(self) -> str:
@@ -81,6 +97,8 @@ class LidarKind(str, Enum):
             LidarKind.OS1_32: "OS1-32",
             LidarKind.OS1_64: "OS1-64",
             LidarKind.OS1_128: "OS1-128",
+            LidarKind.MID360: "Mid-360",
+            LidarKind.AVIA: "Avia",
         }[self]
 
 
@@ -120,9 +138,24 @@ MAX_RECORD_DELAY_MS = 20.0
 """Largest ``record_delay_ms`` (a recorder further behind would reorder the topics' messages)."""
 RANDOM_TIME_OFFSET_MAX_S = 0.05
 """``random_time_offset`` draws the time offset uniformly in +-this, s."""
+LIVOX_RANGE_NOISE_M = 0.02
+"""Default range noise of the Livox scanners, m (Mid-360 datasheet: range precision <= 2 cm
+at 10 m; Avia: 2 cm)."""
+LIVOX_MIN_RATE_HZ = 5.0
+LIVOX_MAX_RATE_HZ = 50.0
+"""Publish rates of the Livox scanners (``livox_ros_driver2`` ``publish_freq``) the simulator
+takes."""
 
 
 Vec3 = tuple[float, float, float]
+
+DEFAULT_RPY_DEG: Vec3 = (1.0, 2.0, 5.0)
+"""Rotation of ``T_imu_lidar`` by default (the paper's), deg."""
+AVIA_RPY_DEG: Vec3 = (1.0, 2.0, 95.0)
+"""The avia's default rotation: the paper's plus a quarter turn in yaw, so its forward-looking
+70 x 77 deg field of view looks along the IMU's +y. Along +x it would face the x = 8.5 m wall
+from 1.5 m at the sinusoid's start (97 % of a sweep on that one plane, too little for the
+odometry); along +y at least 70 % of every sweep's points lie beyond 3 m in each scenario."""
 
 
 @dataclass(frozen=True)
@@ -145,7 +178,8 @@ class SimulationSpec:
         imu_rate_hz: IMU sample rate.
         lidar_rate_hz: sweeps per second.
         translation: ``t`` of ``T_imu_lidar`` (LiDAR origin in the IMU frame), m.
-        rpy_deg: rotation of ``T_imu_lidar``, ``R = Rz(yaw) Ry(pitch) Rx(roll)``, deg.
+        rpy_deg: rotation of ``T_imu_lidar``, ``R = Rz(yaw) Ry(pitch) Rx(roll)``, deg; None
+            for the default (:data:`DEFAULT_RPY_DEG`, the avia's :data:`AVIA_RPY_DEG`).
         random_extrinsic: draw the extrinsic instead (any rotation, translation within 0.5 m).
         time_offset_s: ``t_imu = t_lidar + time_offset_s`` (stored rounded to ns).
         random_time_offset: draw ``time_offset_s`` uniformly within +-50 ms from the seed
@@ -160,9 +194,11 @@ class SimulationSpec:
         intrinsics_file: result/truth YAML whose ``imu_intrinsics``/``lidar_intrinsics`` are used.
         gyro_bias: constant gyro bias (rad/s), overrides the drawn one.
         accel_bias: constant accelerometer bias (m/s^2), overrides the drawn one.
-        range_noise_m: range noise sigma; None for the model's default.
+        range_noise_m: range noise sigma; None for the model's default (0.01 m Velodyne,
+            0.015 m Ouster, 0.02 m Mid-360 and Avia).
         azimuth_resolution_deg: thin the sweep to about this azimuth step; None for native.
-        lidar_stamp: Velodyne header stamp at the first or the last firing.
+        lidar_stamp: Velodyne header stamp at the first or the last firing (the Ouster and
+            the Livox stamp the first).
         dropout: probability that a ray returns nothing.
         noise_free: zero IMU white noise, bias random walk and range noise.
         bias_walk_scale: multiplies both bias random-walk densities (0 disables the walk);
@@ -204,7 +240,7 @@ class SimulationSpec:
     imu_rate_hz: float = 400.0
     lidar_rate_hz: float = 10.0
     translation: Vec3 = (0.3, 0.15, 0.05)
-    rpy_deg: Vec3 = (1.0, 2.0, 5.0)
+    rpy_deg: Vec3 | None = None
     random_extrinsic: bool = False
     time_offset_s: float = 0.0
     random_time_offset: bool = False
@@ -336,6 +372,21 @@ class SimulationSpec:
                     f"--lidar-rate {self.lidar_rate_hz} Hz: the {name} spins at 5-20 Hz.",
                 )
             )
+        elif self.lidar.is_non_repetitive:
+            per_beam = [e.value for e in self.effects if e.per_beam]
+            checks += [
+                (
+                    LIVOX_MIN_RATE_HZ <= self.lidar_rate_hz <= LIVOX_MAX_RATE_HZ,
+                    f"--lidar-rate {self.lidar_rate_hz} Hz: the {name} driver publishes at "
+                    f"{LIVOX_MIN_RATE_HZ:g}-{LIVOX_MAX_RATE_HZ:g} Hz.",
+                ),
+                (
+                    not per_beam,
+                    f"--effect {(per_beam or [''])[0]} is a per-beam LiDAR effect and the {name} "
+                    "has no fixed beams; drop it (lidar_point_time and the IMU effects apply) or "
+                    "choose a spinning --lidar.",
+                ),
+            ]
         else:
             checks.append(
                 (
@@ -354,16 +405,33 @@ class SimulationSpec:
         return DEFAULT_WALK_DURATION_S if self.scenario is Scenario.WALK else DEFAULT_DURATION_S
 
     @property
+    def resolved_rpy_deg(self) -> Vec3:
+        """Rotation of ``T_imu_lidar`` actually used (unless ``random_extrinsic``), deg."""
+        if self.rpy_deg is not None:
+            return self.rpy_deg
+        return AVIA_RPY_DEG if self.lidar is LidarKind.AVIA else DEFAULT_RPY_DEG
+
+    @property
     def resolved_lidar_topic(self) -> str:
         if self.lidar_topic:
             return self.lidar_topic
+        if self.lidar.is_non_repetitive:
+            return "/livox/lidar"
         return "/points_raw" if self.lidar.is_velodyne else "/ouster/points"
 
     @property
     def resolved_lidar_frame(self) -> str:
         if self.lidar_frame:
             return self.lidar_frame
+        if self.lidar.is_non_repetitive:
+            return "livox_frame"
         return "velodyne" if self.lidar.is_velodyne else "os_sensor"
+
+    @property
+    def accel_unit(self) -> str:
+        """Unit of the published ``linear_acceleration``: ``g`` for the Livox built-in IMU (as
+        ``livox_ros_driver2`` publishes it), ``m/s^2`` otherwise."""
+        return "g" if self.lidar.is_non_repetitive else "m/s^2"
 
     def _strength(self, effect: Effect) -> float:
         """The named effect's reference size times ``effect_scale``; 0 when not named."""
@@ -458,6 +526,8 @@ class SimulationSpec:
             return 0.0
         if self.range_noise_m is not None:
             return float(self.range_noise_m)
+        if self.lidar.is_non_repetitive:
+            return LIVOX_RANGE_NOISE_M
         return 0.01 if self.lidar.is_velodyne else 0.015
 
     @property
