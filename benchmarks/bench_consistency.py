@@ -110,9 +110,17 @@ def cases(
             }
         )
         seed += 1
-    # One named effect each (sizes: the simulator's defaults, i.e. the paper's table).
+    # One named effect each (sizes: the simulator's defaults, i.e. the paper's table); a per-beam
+    # LiDAR effect goes to the next spinning LiDAR's combo (a non-repetitive scanner, a Livox,
+    # has no beams of its own), and is left out when every LiDAR asked for is non-repetitive.
+    spinning = [c for c in combos if not LidarKind(c[1]).is_non_repetitive]
     for i, effect in enumerate(EFFECTS):
         scenario, lidar = combos[i % len(combos)]
+        if Effect(effect).per_beam and LidarKind(lidar).is_non_repetitive:
+            if not spinning:
+                seed += 1
+                continue
+            scenario, lidar = spinning[i % len(spinning)]
         out.append(
             {
                 "name": effect,
@@ -138,6 +146,9 @@ from _noise import add_noise_options, noise_spec_kwargs  # noqa: E402
 from _rates import add_rate_options, check_rates, rate_spec_kwargs  # noqa: E402
 from _runner import run_cases  # noqa: E402
 from _settings import add_set_option, load_with  # noqa: E402
+
+from licalib_cli.simulation.effects import Effect  # noqa: E402
+from licalib_cli.simulation.spec import LidarKind  # noqa: E402
 
 
 def _rotation_error_lidar(r_est, r_true):

@@ -86,6 +86,14 @@ class LidarInputConfig(_Section):
     max_skipped_fraction: float = Field(default=0.5, ge=0.0, le=1.0)
     """Unusable clouds (empty, NaN, corrupt, too few points) are skipped with a warning; more
     than this fraction of the segment's clouds skipped is an error."""
+    scan_pattern: Literal["auto", "spinning", "non_repetitive"] = "auto"
+    """Whether the beam field numbers rings of fixed elevation (``spinning``: Velodyne, Ouster,
+    Hesai, ...) or groups points of many elevations (``non_repetitive``: a Livox's ``line``
+    field). ``auto``: from the spread of the elevations within each beam (a ring's spread is
+    well under a degree). A non-repetitive scanner has no per-beam intrinsics to estimate
+    (``model.lidar``'s per-beam blocks are refused); its points are grouped into elevation
+    bins of :data:`~licalib_cli.pipeline.scan_pattern.BIN_DEG` for the LiDAR model and its
+    range noise is measured along each line's point order."""
 
     @model_validator(mode="after")
     def _beam_table_matches_num_beams(self) -> LidarInputConfig:

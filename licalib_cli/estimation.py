@@ -457,6 +457,9 @@ class FreeParameters:
             data the problems fit (the IMU's stamps against the LiDAR's, from the record
             times), a Gaussian prior on ``ext.time_drift`` when it is estimated; None: none.
             Like ``translation_prior``, part of what the problems add.
+        beam_intrinsics: the LiDAR's beams have intrinsics of their own (a spinning LiDAR's
+            rings); False for a non-repetitive scanner, whose beams are elevation bins
+            (:mod:`licalib_cli.pipeline.scan_pattern`): what may be freed holds none of them.
     """
 
     trajectory: bool = True
@@ -480,6 +483,7 @@ class FreeParameters:
     lidar_spread: tuple[tuple[str, float], ...] = ()
     expected_size: tuple[tuple[str, float], ...] = ()
     time_drift_prior: tuple[float, float] | None = None
+    beam_intrinsics: bool = True
 
     def imu_block_free(self, block: str) -> bool:
         """Whether IMU intrinsic block ``block`` (e.g. ``imu.gyro_scale``) is estimated."""

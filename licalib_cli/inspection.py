@@ -26,6 +26,7 @@ latency, milliseconds).
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +37,7 @@ import numpy as np
 from licalib_cli.config import CalibConfig
 from licalib_cli.errors import ConfigError, ExcitationError, LicalibError, TopicError
 from licalib_cli.io.bag import CLOUD_TYPE, IMU_TYPE, open_bag, select_topic
+from licalib_cli.io.beam_spread import SPREAD_DEG
 from licalib_cli.io.clock_rate import ClockRate, rate_warning, streams_clock_rate
 from licalib_cli.io.findings import Finding
 from licalib_cli.io.imu_stream import ImuRead, read_imu_stream
@@ -295,9 +297,10 @@ class ImuReport:
         excitation: how the IMU moved, or None without samples.
         unreadable: messages of the segment that could not be read (damaged bag).
         dropped: samples dropped for NaN or infinite values.
-        gyro_unit_basis: why an assumed gyro unit was chosen (``accelerometer in g`` or
-            ``ROS convention``), with ``too little data to tell`` when the samples are too
-            short for the tilting check; None when the unit was detected or configured.
+        gyro_unit_basis: why an assumed gyro unit was chosen (``accelerometer in g``,
+            ``Livox driver: g with rad/s`` or ``ROS convention``), with ``too little data to
+            tell`` when the samples are too short for the tilting check; None when the unit was
+            detected or configured.
     """
 
     topic: str
@@ -343,6 +346,9 @@ class LidarReport:
         time_estimation: ``azimuth`` or ``index`` when times are estimated, else None.
         ring_field: beam field, or None when beams are recovered from elevation.
         beams: number of beams.
+        elevation_spread_deg: how far one beam's points spread in elevation (NaN without a
+            ring field): above :data:`~licalib_cli.io.beam_spread.SPREAD_DEG` the beams are a
+            non-repetitive scanner's lines.
         points_per_scan: median points per message (including invalid ones).
         valid_points_per_scan: median valid points per cloud.
         clouds_checked: clouds decoded to check their content (a sample on long bags).
@@ -371,6 +377,7 @@ class LidarReport:
     time_estimation: str | None = None
     ring_field: str | None = None
     beams: int = 0
+    elevation_spread_deg: float = float("nan")
     points_per_scan: int = 0
     valid_points_per_scan: int = 0
     clouds_checked: int = 0
@@ -381,6 +388,14 @@ class LidarReport:
     duplicates: int = 0
     first_stamp_ns: int = 0
     unreadable: int = 0
+
+    @property
+    def scan_pattern(self) -> str | None:
+        """``spinning`` (rings of fixed elevation) or ``non_repetitive`` (a Livox's lines), from
+        :attr:`elevation_spread_deg`; None when it is not known (no ring field)."""
+        if not math.isfinite(self.elevation_spread_deg):
+            return None
+        return "non_repetitive" if self.elevation_spread_deg > SPREAD_DEG else "spinning"
 
 
 @dataclass(frozen=True)
@@ -492,6 +507,12 @@ class BagReport:
                 "time_estimation": li.time_estimation,
                 "beams": li.beams,
                 "ring_field": li.ring_field,
+                "scan_pattern": li.scan_pattern,
+                "elevation_spread_deg": (
+                    _round(li.elevation_spread_deg, 3)
+                    if math.isfinite(li.elevation_spread_deg)
+                    else None
+                ),
                 "fields": list(li.fields),
                 "point_step": li.point_step,
                 "is_bigendian": li.is_bigendian,
@@ -571,7 +592,12 @@ def _imu_report(imu: ImuRead, unreadable: int, findings: list[Finding]) -> ImuRe
     units, stats = imu.units, imu.stats
     basis = None
     if units is not None and units.gyro_source == "assumed":
-        basis = "accelerometer in g" if units.gyro_unit == "deg/s" else "ROS convention"
+        if units.gyro_unit == "deg/s":
+            basis = "accelerometer in g"
+        elif units.livox and units.accel_unit == "g":
+            basis = "Livox driver: g with rad/s"
+        else:
+            basis = "ROS convention"
         if units.too_short:
             basis = f"too little data to tell, {basis}"
     return ImuReport(
@@ -632,6 +658,7 @@ def _lidar_report(lidar: LidarRead, unreadable: int) -> LidarReport:
         time_estimation=tl.method,
         ring_field=layout.ring_field,
         beams=layout.beams,
+        elevation_spread_deg=layout.elevation_spread_deg,
         points_per_scan=layout.points_per_scan,
         valid_points_per_scan=layout.valid_points_per_scan,
         clouds_checked=tally.total,

@@ -195,6 +195,18 @@ def render_report(report: BagReport) -> None:
             lid.add_row("header stamp at sweep", _fmt(li.stamp_position))
             src = f"field '{li.ring_field}'" if li.ring_field else "recovered from elevation"
             lid.add_row("beams", f"{li.beams} ({src})")
+            if li.scan_pattern == "non_repetitive":
+                lid.add_row(
+                    "scan pattern",
+                    f"non-repetitive: a beam's points spread {li.elevation_spread_deg:.1f} deg "
+                    "in elevation (lines, not rings); no per-beam intrinsics",
+                )
+            elif li.scan_pattern == "spinning":
+                lid.add_row(
+                    "scan pattern",
+                    f"spinning: a ring's points spread {li.elevation_spread_deg:.2f} deg in "
+                    "elevation",
+                )
             skipped = sum(li.clouds_skipped.values())
             detail = ", ".join(f"{k}: {v}" for k, v in li.clouds_skipped.items())
             lid.add_row(

@@ -4,7 +4,7 @@ Numeric only (no I/O): the pipeline's checks stage supplies residuals and featur
 these statistics into findings and a verdict.
 """
 
-from licalib_cli.consistency.noise import NoiseEstimate, imu_noise, range_noise
+from licalib_cli.consistency.noise import NoiseEstimate, imu_noise, line_range_noise, range_noise
 from licalib_cli.consistency.patterns import (
     Chi2,
     Pattern,
@@ -30,6 +30,7 @@ __all__ = [
     "explained_shares",
     "group_pattern",
     "imu_noise",
+    "line_range_noise",
     "measured_shift",
     "normalised_chi2",
     "range_noise",

@@ -27,7 +27,7 @@ import scipy.sparse.linalg as spla
 
 from licalib_cli.spline import R3Spline, UniformKnots
 
-__all__ = ["NoiseEstimate", "imu_noise", "range_noise"]
+__all__ = ["NoiseEstimate", "imu_noise", "line_range_noise", "range_noise"]
 
 F64 = npt.NDArray[np.float64]
 
@@ -166,6 +166,70 @@ def range_noise(
         sigma,
         int(counts.sum()),
         "second differences of the range along each beam (variance within 3 sigma)",
+    )
+
+
+def line_range_noise(
+    scan_index: npt.ArrayLike,
+    line: npt.ArrayLike,
+    t_ns: npt.ArrayLike,
+    xyz: npt.ArrayLike,
+    num_lines: int,
+    max_step_factor: float = 1.5,
+) -> NoiseEstimate:
+    """Range noise per line of a non-repetitive scanner, from second differences along each
+    line's point order.
+
+    A line of such a scanner (a Livox ``line``) is one laser tracing a continuous curve, so
+    its consecutive returns in time are neighbours on the surfaces as a spinning beam's
+    consecutive azimuths are (:func:`range_noise`); their elevations differ, which an
+    azimuth order would mix up.
+
+    Args:
+        scan_index: (N,) index of the sweep each return belongs to.
+        line: (N,) line index in ``[0, num_lines)``.
+        t_ns: (N,) time of each return, ns.
+        xyz: (N, 3) points, m.
+        num_lines: number of lines.
+        max_step_factor: a triple is used only when both angular steps between consecutive
+            rays are within this factor of the line's median step.
+
+    Returns:
+        The estimate, one sigma per line (NaN for lines with fewer than 30 usable triples).
+    """
+    scan = np.asarray(scan_index, dtype=np.int64).reshape(-1)
+    b = np.asarray(line, dtype=np.int64).reshape(-1)
+    t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
+    p = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    sigma = np.full(num_lines, np.nan)
+    order = np.lexsort((t, b, scan))
+    scan, b, p = scan[order], b[order], p[order]
+    r = np.linalg.norm(p, axis=1)
+    u = p / np.maximum(r, 1e-9)[:, None]
+    same = (scan[:-2] == scan[2:]) & (b[:-2] == b[2:])
+    if not np.any(same):
+        return NoiseEstimate(sigma, 0, "no consecutive returns")
+    step = np.arccos(np.clip(np.einsum("ij,ij->i", u[1:], u[:-1]), -1.0, 1.0))
+    step1, step2 = step[:-1], step[1:]
+    beam_of = b[:-2]
+    median = np.full(num_lines, np.nan)
+    usable = same & (step1 > 0)
+    for i in range(num_lines):  # loop over lines (a few), not points
+        s = step1[usable & (beam_of == i)]
+        if s.size:
+            median[i] = float(np.median(s))
+    limit = max_step_factor * median[np.clip(beam_of, 0, num_lines - 1)]
+    ok = usable & (step2 > 0) & (step1 < limit) & (step2 < limit)
+    d2 = (r[2:] - 2.0 * r[1:-1] + r[:-2])[ok]
+    beam_of = beam_of[ok]
+    for i in range(num_lines):
+        seg = d2[beam_of == i]
+        if seg.size >= 30:
+            sigma[i] = _trimmed_sigma(seg) / np.sqrt(6.0)
+    return NoiseEstimate(
+        sigma,
+        int(d2.size),
+        "second differences of the range along each line's point order (variance within 3 sigma)",
     )
 
 

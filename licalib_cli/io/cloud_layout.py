@@ -13,6 +13,7 @@ import numpy.typing as npt
 from licalib_cli.config import CalibConfig
 from licalib_cli.errors import ConfigError, DataError, TimestampError
 from licalib_cli.io.bag import BagHandle
+from licalib_cli.io.beam_spread import elevation_spread_deg
 from licalib_cli.io.findings import Finding, count_noun, stamp_text, verb_for
 from licalib_cli.io.pointcloud2 import (
     POINTFIELD_DTYPES,
@@ -80,6 +81,10 @@ class CloudLayout:
             clouds, ns (0 when the stamp marks the sweep start, about minus one period when it
             marks the end). With ``sweep_end_offset_ns`` it gives the time a cloud covers,
             which is what the sensors' overlap is measured with (one cloud covers a sweep).
+        elevation_spread_deg: how far a beam's points spread in elevation (median over the
+            beams, :func:`~licalib_cli.io.beam_spread.elevation_spread_deg`): hundredths of a
+            degree for rings, tens for a non-repetitive scanner's lines; NaN without a ring
+            field.
     """
 
     topic: str
@@ -96,6 +101,7 @@ class CloudLayout:
     valid_points_per_scan: int = 0
     sweep_end_offset_ns: int = 0
     sweep_start_offset_ns: int = 0
+    elevation_spread_deg: float = float("nan")
 
     def sweep_span_ns(self, stamp_ns: int) -> tuple[int, int]:
         """The time a cloud stamped ``stamp_ns`` stands for, ns: its sweep, at least one scan
@@ -276,10 +282,12 @@ def detect_layout(
         _, method, cw = estimate_times(xyzs[0], 0, period, position, lo.clockwise)
         tl = TimeLayout(None, None, "estimated", position, period, method, cw, notes)
     table = None
+    spread = float("nan")
     if ring_field is not None:
         all_rings = np.concatenate(rings)
         beams = int(np.unique(all_rings).size)
         top = int(all_rings.max()) + 1
+        spread = elevation_spread_deg(xyzs, rings)
     else:
         table = detect_beams(xyzs, lo.num_beams)
         beams = top = table.num_beams
@@ -313,6 +321,7 @@ def detect_layout(
         valid_points_per_scan=int(np.median(valid_counts)),
         sweep_end_offset_ns=end_offset,
         sweep_start_offset_ns=start_offset,
+        elevation_spread_deg=spread,
     )
 
 

@@ -274,6 +274,7 @@ def validate_imu(
     lost: MessageLosses | None = None,
     offset_ns: int = 0,
     absence: Callable[[Finding], Finding] | None = None,
+    livox: bool = False,
 ) -> ImuRead:
     """Validate and convert raw IMU samples (the checks of the module table, in its order).
 
@@ -284,6 +285,7 @@ def validate_imu(
         lost: the topic's unreadable messages, to explain gaps.
         offset_ns: the topic's ``stamp - record`` offset, kept in the result.
         absence: replaces the finding of too few samples with a better diagnosis.
+        livox: the LiDAR is a Livox (:func:`livox_clouds`): its IMU's g pairs with rad/s.
 
     Returns:
         The stream; its findings say whether it is usable. Only :class:`LicalibError`
@@ -300,7 +302,9 @@ def validate_imu(
         stamp_findings = [absence(stamp_findings[0])]
     findings += stamp_findings
     raw = raw.take(~dup)
-    units = detect_imu_units(raw.gyro, raw.accel, cfg.imu.gyro_unit, cfg.imu.accel_unit, raw.t_ns)
+    units = detect_imu_units(
+        raw.gyro, raw.accel, cfg.imu.gyro_unit, cfg.imu.accel_unit, raw.t_ns, livox=livox
+    )
     gyro, accel = convert_imu(raw.gyro, raw.accel, units)
     if units.contradiction is not None:
         findings.append(Finding(units.contradiction, True, ConfigError))
@@ -352,4 +356,20 @@ def read_imu_stream(
     def absence(default: Finding) -> Finding:
         return absence_finding(bag, window, topic, lidar_topic, "IMU", default)
 
-    return validate_imu(raw, topic, cfg, bag.loss(topic), offset, absence)
+    livox = lidar_topic is not None and livox_clouds(bag, lidar_topic, window)
+    return validate_imu(raw, topic, cfg, bag.loss(topic), offset, absence, livox)
+
+
+LIVOX_FIELDS = frozenset({"tag", "line"})
+"""Fields every Livox driver's clouds carry (``livox_ros_driver`` and ``livox_ros_driver2``
+PointCloud2, and ``CustomMsg`` converted to PointCloud2) and no spinning LiDAR's driver does."""
+
+
+def livox_clouds(bag: BagHandle, topic: str, window: SegmentWindow) -> bool:
+    """Whether the first cloud of ``topic`` in the window carries :data:`LIVOX_FIELDS` (a Livox
+    driver's: its IMU publishes acceleration in g and angular velocity in rad/s)."""
+    for message in bag.messages([topic], start_ns=window.start_ns):
+        msg = bag.decode(message)
+        fields = getattr(msg, "fields", None)
+        return fields is not None and LIVOX_FIELDS <= {str(f.name) for f in fields}
+    return False

@@ -73,6 +73,7 @@ class ImuUnits:
         span_s: time the samples span, s (None: no stamps given).
         contradiction: a sentence when a configured unit contradicts what the data show beyond
             doubt (:func:`contradicted_unit`), else None.
+        livox: the LiDAR's clouds are a Livox driver's, whose IMU publishes g with rad/s.
     """
 
     gyro_unit: GyroUnit
@@ -84,6 +85,7 @@ class ImuUnits:
     gravity_turn_factor: float | None = None
     span_s: float | None = None
     contradiction: str | None = None
+    livox: bool = False
 
     @property
     def too_short(self) -> bool:
@@ -116,12 +118,15 @@ class ImuUnits:
         out = []
         if self.gyro_source == "assumed":
             other = "rad/s" if self.gyro_unit == "deg/s" else "deg/s"
-            why = (
-                "as the accelerometer reads g (drivers that keep the IMU's raw units publish g "
-                "with deg/s, Livox's g with rad/s)"
-                if self.gyro_unit == "deg/s"
-                else "as ROS specifies"
-            )
+            if self.gyro_unit == "deg/s":
+                why = (
+                    "as the accelerometer reads g (drivers that keep the IMU's raw units publish "
+                    "g with deg/s, Livox's g with rad/s)"
+                )
+            elif self.livox and self.accel_unit == "g":
+                why = "as the LiDAR's clouds are a Livox driver's, which publishes g with rad/s"
+            else:
+                why = "as ROS specifies"
             if self.too_short:
                 evidence = (
                     f"{self.span_s:.2f} s of IMU data is too little to tell the gyro unit (the "
@@ -201,6 +206,7 @@ def detect_imu_units(
     gyro_override: GyroUnit | None = None,
     accel_override: AccelUnit | None = None,
     t_ns: npt.NDArray[np.int64] | None = None,
+    livox: bool = False,
 ) -> ImuUnits:
     """Decide the units of raw IMU data.
 
@@ -210,6 +216,9 @@ def detect_imu_units(
         gyro_override: ``imu.gyro_unit`` from the config, or None to detect.
         accel_override: ``imu.accel_unit`` from the config, or None to detect.
         t_ns: (N,) stamps, ns; enables the gravity-direction check of the gyro unit.
+        livox: the LiDAR's clouds are a Livox driver's (``tag`` and ``line`` fields), whose
+            IMU publishes g with rad/s: an accelerometer in g then pairs with rad/s where the
+            data cannot tell the gyro's unit (deg/s otherwise, as IMUs' raw units).
 
     Returns:
         The decided units with their evidence.
@@ -241,7 +250,7 @@ def detect_imu_units(
         gyro_unit, gsrc = "deg/s", "detected"
     elif p99 > _GYRO_DEG_THRESHOLD:
         gyro_unit, gsrc = "deg/s", "detected"
-    elif accel_unit == "g" and asrc != "assumed":
+    elif accel_unit == "g" and asrc != "assumed" and not livox:
         gyro_unit, gsrc = "deg/s", "assumed"  # raw IMU units: g with deg/s
     else:
         gyro_unit, gsrc = "rad/s", "assumed"
@@ -249,7 +258,9 @@ def detect_imu_units(
     if t_ns is not None and len(t_ns):
         span = float(np.max(t_ns) - np.min(t_ns)) * 1e-9
     contradiction = contradicted_unit(gyro_override, accel_override, amed, factor)
-    return ImuUnits(gyro_unit, accel_unit, gsrc, asrc, p99, amed, factor, span, contradiction)
+    return ImuUnits(
+        gyro_unit, accel_unit, gsrc, asrc, p99, amed, factor, span, contradiction, livox
+    )
 
 
 def contradicted_unit(

@@ -35,6 +35,7 @@ from licalib_cli.pipeline.fitcheck import EffectEvidence
 from licalib_cli.pipeline.initialise import InitialGuess, initialise, lidar_odometry
 from licalib_cli.pipeline.read import read
 from licalib_cli.pipeline.round import RoundSummary
+from licalib_cli.pipeline.scan_pattern import SPINNING, ScanPattern, with_scan_pattern
 from licalib_cli.pipeline.schedule import Fit, run_schedule
 from licalib_cli.pipeline.settings import NoiseLevels
 from licalib_cli.pipeline.timing import StageTime, Timer
@@ -76,7 +77,9 @@ class CalibrationRun:
         segment: the segment's measurements (for the report and the map files), or None.
         stage_times: wall and CPU seconds per stage, in order (the same stages as ``timings``).
         config: the configuration of the model estimated when ``calibrate`` added effects the
-            data show beyond doubt (:mod:`~licalib_cli.pipeline.evident`); None: the one given.
+            data show beyond doubt (:mod:`~licalib_cli.pipeline.evident`) or took the clouds for
+            a non-repetitive scanner's (``lidar.scan_pattern``); None: the one given.
+        pattern: what the clouds' beam field means (spinning or non-repetitive).
     """
 
     result: CalibrationResult
@@ -91,6 +94,7 @@ class CalibrationRun:
     segment: Recording | None = None
     stage_times: dict[str, StageTime] = field(default_factory=dict)
     config: CalibConfig | None = None
+    pattern: ScanPattern = SPINNING
 
     @property
     def rounds(self) -> tuple[RoundSummary, ...]:
@@ -134,7 +138,9 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
     """
     progress = progress or NullProgress()
     timer = Timer()
+    given = cfg
     prepared = prepare(Path(bag), cfg, progress, timer)
+    cfg = prepared.cfg
     run = fit_and_check(prepared, prepared.guess, cfg, progress, timer)
     from licalib_cli.pipeline.evident import Evident, add_evident, with_added  # builds on this
 
@@ -147,7 +153,8 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
     run = noise_spread(prepared, run, evident.cfg, progress, timer)
     if evident.added or evident.notes:
         run = with_added(run, evident.added, evident.notes)
-    if evident.added:
+    if evident.added or prepared.cfg is not given:
+        # the model with the effects added, or the scan pattern the data showed
         run = replace(run, config=evident.cfg)
     progress.close()
     return run
@@ -244,12 +251,17 @@ class Prepared:
         rec: the segment.
         noise: the noise the fits are weighted with.
         guess: the initial guess.
+        pattern: what the clouds' beam field means (spinning or non-repetitive).
+        cfg: the configuration given, with ``lidar.scan_pattern`` the data's (what every fit
+            of the segment uses).
     """
 
     bag: Path
     rec: Recording
     noise: NoiseLevels
     guess: InitialGuess
+    pattern: ScanPattern
+    cfg: CalibConfig
 
 
 def prepare(bag: Path, cfg: CalibConfig, progress: Progress, timer: Timer) -> Prepared:
@@ -257,11 +269,12 @@ def prepare(bag: Path, cfg: CalibConfig, progress: Progress, timer: Timer) -> Pr
     with timer.stage("read", progress):
         segment = read(bag, cfg)
     rec, noise = segment.recording, segment.noise
+    cfg = with_scan_pattern(cfg, segment.pattern)
     with timer.stage("odometry", progress, total=len(rec.scans)):
         odo = lidar_odometry(rec, cfg, progress=progress.advance)
     with timer.stage("initialisation", progress):
         guess = initialise(rec, odo, segment.nominal_elevation, noise, cfg)
-    return Prepared(bag, rec, noise, guess)
+    return Prepared(bag, rec, noise, guess, segment.pattern, cfg)
 
 
 def fit_and_check(
@@ -307,4 +320,5 @@ def fit_and_check(
         warnings=rec.warnings,
         effects=checks.effects,
         segment=rec,
+        pattern=prepared.pattern,
     )

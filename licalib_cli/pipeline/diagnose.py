@@ -98,6 +98,7 @@ from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE
 from licalib_cli.pipeline.held_effects import HELD_WEIGHT
 from licalib_cli.pipeline.rivals import CandidatePool, compare_rivals, pick_rival, rivals_of
 from licalib_cli.pipeline.round import extrinsic_of
+from licalib_cli.pipeline.scan_pattern import with_scan_pattern
 from licalib_cli.pipeline.settings import lm_params
 from licalib_cli.pipeline.twin import TWIN_ITERATIONS, Twin, twin_checks
 from licalib_cli.pipeline.walk_pieces import WALKS, finer_walk
@@ -453,6 +454,8 @@ def diagnose(
     )
     base_cfg = with_effects(cfg, ())
     prepared: Prepared = prepare(Path(str(bag)), base_cfg, progress, timer)
+    base_cfg = prepared.cfg
+    cfg = with_scan_pattern(cfg, prepared.pattern)
     rate = (len(prepared.rec.imu) - 1) / max(
         float(prepared.rec.imu.t_ns[-1] - prepared.rec.imu.t_ns[0]) * 1e-9, 1e-9
     )

@@ -541,7 +541,7 @@ def effect_evidence(
     all_free = replace(
         free,
         imu_intrinsics=True,
-        lidar_intrinsics=True,
+        lidar_intrinsics=free.beam_intrinsics,
         g_sensitivity=True,
         gyro_bias_drift=True,
         accel_bias_drift=True,

@@ -5,14 +5,14 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig
-from licalib_cli.consistency import imu_noise, range_noise
+from licalib_cli.consistency import imu_noise, line_range_noise, range_noise
 from licalib_cli.geometry.vectors import norms
 from licalib_cli.inspection import (
     ACCELEROMETER_FRAME_MODEL,
@@ -24,6 +24,13 @@ from licalib_cli.io.reader import read_segment
 from licalib_cli.io.window import MIN_SEGMENT_S
 from licalib_cli.measurements import ImuSamples, Recording
 from licalib_cli.pipeline.points import nominal_elevations
+from licalib_cli.pipeline.scan_pattern import (
+    SPINNING,
+    ScanPattern,
+    check_model,
+    elevation_beams,
+    scan_pattern,
+)
 from licalib_cli.pipeline.settings import NoiseLevels
 
 __all__ = [
@@ -51,11 +58,14 @@ class Segment:
         recording: the segment's IMU samples and scans on one clock.
         nominal_elevation: (B,) nominal elevation of each beam, rad.
         noise: the noise the fit is weighted with.
+        pattern: what the clouds' beam field means (a non-repetitive scanner's points carry
+            elevation bins as their beams: :func:`.scan_pattern.elevation_beams`).
     """
 
     recording: Recording
     nominal_elevation: npt.NDArray[np.float64]
     noise: NoiseLevels
+    pattern: ScanPattern = SPINNING
 
 
 def read(bag: Path, cfg: CalibConfig) -> Segment:
@@ -63,15 +73,31 @@ def read(bag: Path, cfg: CalibConfig) -> Segment:
 
     Raises:
         BagError, TopicError, DataError, TimestampError: unreadable or unusable input.
-        ConfigError: the configured beam table does not cover the data's beams.
+        ConfigError: the configured beam table does not cover the data's beams, or the model
+            estimates per-beam intrinsics of a non-repetitive scanner.
         ExcitationError: the segment is shorter than :data:`MIN_SEGMENT_S`.
     """
     rec = read_recording(bag, cfg)
     warning = tilt_warning(rec.imu, cfg.model.imu)
     if warning:
         logger.warning(warning)
-    phi = nominal_elevations(rec.scans, cfg)
-    return Segment(rec, phi, measure_noise(rec, cfg, phi.shape[0]))
+    pattern = scan_pattern(rec.layout.elevation_spread_deg, cfg)
+    if not pattern.non_repetitive:
+        phi = nominal_elevations(rec.scans, cfg)
+        return Segment(rec, phi, measure_noise(rec, cfg, phi.shape[0]), pattern)
+    check_model(cfg, pattern)
+    lines = 1 + max(int(s.ring.max()) for s in rec.scans if s.ring is not None and len(s))
+    noise = measure_noise(rec, cfg, lines, along_lines=True)
+    scans, phi = elevation_beams(rec.scans)
+    binned = replace(rec, scans=scans)
+    logger.info(
+        "The LiDAR is a non-repetitive scanner (%s): its points are grouped into %d elevation "
+        "bins as beams, and it has no per-beam intrinsics.",
+        pattern.evidence(),
+        phi.shape[0],
+    )
+    per_bin = np.full(phi.shape[0], noise.range_measured_m)
+    return Segment(binned, phi, replace(noise, range_sigma_per_beam=per_bin), pattern)
 
 
 def tilt_warning(imu: ImuSamples, model_imu: Sequence[str]) -> str | None:
@@ -111,13 +137,17 @@ def read_recording(bag: Path, cfg: CalibConfig) -> Recording:
     return rec
 
 
-def measure_noise(rec: Recording, cfg: CalibConfig, num_beams: int) -> NoiseLevels:
+def measure_noise(
+    rec: Recording, cfg: CalibConfig, num_beams: int, *, along_lines: bool = False
+) -> NoiseLevels:
     """The noise the fit is weighted with: the config's where given, else measured.
 
     The IMU noise is what a free spline with the calibration's knot spacing leaves of each axis
     (:func:`licalib_cli.consistency.imu_noise`); the range noise comes from second differences
-    along each beam (:func:`licalib_cli.consistency.range_noise`). Both are measured even when
-    the config gives values (the checks report them side by side).
+    along each beam (:func:`licalib_cli.consistency.range_noise`), or with ``along_lines``
+    along each line's point order (a non-repetitive scanner's lines:
+    :func:`licalib_cli.consistency.line_range_noise`). Both are measured even when the config
+    gives values (the checks report them side by side).
     """
     t_s = (rec.imu.t_ns - rec.imu.t_ns[0]) * 1e-9
     rate = (len(rec.imu) - 1) / max(float(t_s[-1]), 1e-9)
@@ -128,13 +158,14 @@ def measure_noise(rec: Recording, cfg: CalibConfig, num_beams: int) -> NoiseLeve
     scans = [s for s in rec.scans[::step] if s.ring is not None and len(s)]
     if scans:
         xyz = np.concatenate([s.xyz for s in scans])
-        rn = range_noise(
-            np.concatenate([np.full(len(s), i) for i, s in enumerate(scans)]),
-            np.concatenate([np.asarray(s.ring, dtype=np.int64) for s in scans]),
-            np.arctan2(xyz[:, 1], xyz[:, 0]),
-            norms(xyz),
-            num_beams,
-        ).sigma
+        index = np.concatenate([np.full(len(s), i) for i, s in enumerate(scans)])
+        beam = np.concatenate([np.asarray(s.ring, dtype=np.int64) for s in scans])
+        if along_lines:
+            t_ns = np.concatenate([s.t_ns for s in scans])
+            rn = line_range_noise(index, beam, t_ns, xyz, num_beams).sigma
+        else:
+            azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
+            rn = range_noise(index, beam, azimuth, norms(xyz), num_beams).sigma
     else:
         rn = np.full(num_beams, np.nan)
     range_data = float(np.nanmedian(rn)) if np.any(np.isfinite(rn)) else float("nan")

@@ -29,6 +29,7 @@ from licalib_cli.pipeline.effect_refit import unmistakable_ones
 from licalib_cli.pipeline.evident import addable, bic_change, estimating, refit_groups
 from licalib_cli.pipeline.fitcheck import EffectEvidence
 from licalib_cli.pipeline.round import extrinsic_of
+from licalib_cli.pipeline.scan_pattern import with_scan_pattern
 from licalib_cli.pipeline.segments import _with_range
 from licalib_cli.pipeline.timing import Timer
 from licalib_cli.progress import Progress
@@ -124,8 +125,8 @@ def _refit_windows(
     new_runs, delta_bic, moves = [], 0.0, []
     for run, (a, b) in zip(runs, windows, strict=True):
         assert run.segment is not None
-        prepared = Prepared(bag, run.segment, run.noise, run.initial)
-        window_cfg = _with_range(new_cfg, a, b - a)
+        window_cfg = _with_range(with_scan_pattern(new_cfg, run.pattern), a, b - a)
+        prepared = Prepared(bag, run.segment, run.noise, run.initial, run.pattern, window_cfg)
         try:
             new = fit_and_check(
                 prepared,

@@ -330,8 +330,13 @@ def free_parameters(cfg: CalibConfig, intrinsics: bool) -> FreeParameters:
     offset; with ``intrinsics`` also the blocks of the ``model:`` section."""
     m = cfg.model
     prior = translation_prior(cfg)
+    beams = cfg.lidar.scan_pattern != "non_repetitive"
     if not intrinsics:
-        return FreeParameters(min_points_per_beam=m.min_points_per_beam, translation_prior=prior)
+        return FreeParameters(
+            min_points_per_beam=m.min_points_per_beam,
+            translation_prior=prior,
+            beam_intrinsics=beams,
+        )
     spread = tuple(
         (LIDAR_COLUMNS[name], sigma)
         for name in m.lidar
@@ -352,6 +357,7 @@ def free_parameters(cfg: CalibConfig, intrinsics: bool) -> FreeParameters:
         expected_size=tuple(
             (calibration_block(name), size) for name, size in sorted(m.expected_size.items())
         ),
+        beam_intrinsics=beams,
     )
 
 

@@ -15,6 +15,7 @@ from licalib_cli.config import load_config
 from licalib_cli.consistency import EffectScore
 from licalib_cli.pipeline.diagnosis_step import DiagnosisStep
 from licalib_cli.pipeline.rivals import CandidatePool
+from licalib_cli.pipeline.scan_pattern import SPINNING
 
 
 def _evidence(
@@ -63,7 +64,11 @@ def _diagnose(monkeypatch: pytest.MonkeyPatch, base: Any, refits: dict[str, Any]
     """``diagnose`` on scripted fits: ``refits[name](run)`` is the step of refitting ``name``
     on ``run``."""
     monkeypatch.setattr(
-        dg, "prepare", lambda *a, **k: SimpleNamespace(rec=SimpleNamespace(imu=_Imu()), guess=None)
+        dg,
+        "prepare",
+        lambda bag, cfg, *a, **k: SimpleNamespace(
+            rec=SimpleNamespace(imu=_Imu()), guess=None, cfg=cfg, pattern=SPINNING
+        ),
     )
     monkeypatch.setattr(dg, "fit_and_check", lambda *a, **k: base)
     monkeypatch.setattr(dg, "twin_of", lambda run, cfg: None)

@@ -235,3 +235,22 @@ def test_ambiguous_gyro_unit_is_assumed_with_a_warning() -> None:
     (warning,) = u.warnings()
     assert "cannot be told" in warning and "`imu.gyro_unit: deg/s`" in warning
     assert warning.endswith(".") and warning.count(". ") == 0
+
+
+def test_an_accelerometer_in_g_beside_a_livox_pairs_with_rad_s() -> None:
+    """Where the data cannot tell the gyro's unit, g pairs with deg/s (IMUs' raw units), but a
+    Livox driver publishes g with rad/s: beside Livox clouds the gyro is taken in rad/s."""
+    t = np.arange(800, dtype=np.int64) * 5_000_000
+    s = t / NS
+    gyro = np.stack([np.zeros_like(s), np.zeros_like(s), 2.0 * np.sin(1.5 * s)], 1)
+    accel = np.tile([0.0, 0.0, 1.0], (800, 1))
+    raw = detect_imu_units(gyro, accel, t_ns=t)
+    assert (raw.gyro_unit, raw.gyro_source, raw.accel_unit) == ("deg/s", "assumed", "g")
+    livox = detect_imu_units(gyro, accel, t_ns=t, livox=True)
+    assert (livox.gyro_unit, livox.gyro_source) == ("rad/s", "assumed")
+    (warning,) = livox.warnings()
+    assert "Livox driver's, which publishes g with rad/s" in warning
+    assert "`imu.gyro_unit: deg/s`" in warning
+    # a unit the data show is the data's, Livox or not
+    fast = detect_imu_units(np.rad2deg(gyro) * 3, accel, t_ns=t, livox=True)
+    assert (fast.gyro_unit, fast.gyro_source) == ("deg/s", "detected")
