@@ -16,6 +16,7 @@ from licalib_cli.config import load_config
 from licalib_cli.geometry import so3
 from licalib_cli.pipeline import segments_evident
 from licalib_cli.pipeline.effect_refit import REFIT_STATISTIC_PER_DOF
+from licalib_cli.pipeline.scan_pattern import SPINNING, ScanPattern
 
 STRONG = 3.0 * REFIT_STATISTIC_PER_DOF
 
@@ -35,6 +36,7 @@ class _Window:
     segment: object = "segment"
     noise: object = "noise"
     initial: _Initial = _Initial()
+    pattern: ScanPattern = SPINNING
 
     @property
     def state(self) -> SimpleNamespace:
