@@ -99,7 +99,7 @@ from licalib_cli.pipeline.held_effects import HELD_WEIGHT
 from licalib_cli.pipeline.rivals import CandidatePool, compare_rivals, pick_rival, rivals_of
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.scan_pattern import with_scan_pattern
-from licalib_cli.pipeline.settings import lm_params
+from licalib_cli.pipeline.settings import LIDAR_COLUMNS, lm_params
 from licalib_cli.pipeline.twin import TWIN_ITERATIONS, Twin, twin_checks
 from licalib_cli.pipeline.walk_pieces import WALKS, finer_walk
 from licalib_cli.progress import NullProgress, Progress
@@ -109,6 +109,7 @@ __all__ = [
     "DETECTION_POWER",
     "DISPLAY_UNITS",
     "GAP_NOISE_SIGMAS",
+    "PER_BEAM_CANDIDATES",
     "Diagnosis",
     "DiagnosisStep",
     "Gap",
@@ -122,6 +123,13 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
+
+PER_BEAM_CANDIDATES = frozenset(
+    name
+    for name, (sensor, block, _) in CANDIDATES.items()
+    if sensor == "lidar" and block in LIDAR_COLUMNS
+)
+"""The candidates that are a LiDAR beam's intrinsics (not tried on a non-repetitive scanner)."""
 
 
 @dataclass(frozen=True)
@@ -456,6 +464,14 @@ def diagnose(
     prepared: Prepared = prepare(Path(str(bag)), base_cfg, progress, timer)
     base_cfg = prepared.cfg
     cfg = with_scan_pattern(cfg, prepared.pattern)
+    if prepared.pattern.non_repetitive:
+        # a non-repetitive scanner's lines have no intrinsics of their own
+        per_beam = [c for c in allowed if c in PER_BEAM_CANDIDATES]
+        allowed = tuple(c for c in allowed if c not in PER_BEAM_CANDIDATES)
+        if per_beam:
+            logger.info(
+                "The LiDAR is a non-repetitive scanner: %s do not apply.", ", ".join(per_beam)
+            )
     rate = (len(prepared.rec.imu) - 1) / max(
         float(prepared.rec.imu.t_ns[-1] - prepared.rec.imu.t_ns[0]) * 1e-9, 1e-9
     )

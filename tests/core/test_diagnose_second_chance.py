@@ -15,7 +15,7 @@ from licalib_cli.config import load_config
 from licalib_cli.consistency import EffectScore
 from licalib_cli.pipeline.diagnosis_step import DiagnosisStep
 from licalib_cli.pipeline.rivals import CandidatePool
-from licalib_cli.pipeline.scan_pattern import SPINNING
+from licalib_cli.pipeline.scan_pattern import SPINNING, ScanPattern
 
 
 def _evidence(
@@ -60,14 +60,20 @@ class _Imu:
         return 2
 
 
-def _diagnose(monkeypatch: pytest.MonkeyPatch, base: Any, refits: dict[str, Any]) -> Any:
+def _diagnose(
+    monkeypatch: pytest.MonkeyPatch,
+    base: Any,
+    refits: dict[str, Any],
+    pattern: ScanPattern = SPINNING,
+    allowed: list[tuple[str, ...]] | None = None,
+) -> Any:
     """``diagnose`` on scripted fits: ``refits[name](run)`` is the step of refitting ``name``
-    on ``run``."""
+    on ``run``; ``allowed`` receives the candidates the diagnosis reports on."""
     monkeypatch.setattr(
         dg,
         "prepare",
         lambda bag, cfg, *a, **k: SimpleNamespace(
-            rec=SimpleNamespace(imu=_Imu()), guess=None, cfg=cfg, pattern=SPINNING
+            rec=SimpleNamespace(imu=_Imu()), guess=None, cfg=cfg, pattern=pattern
         ),
     )
     monkeypatch.setattr(dg, "fit_and_check", lambda *a, **k: base)
@@ -82,7 +88,8 @@ def _diagnose(monkeypatch: pytest.MonkeyPatch, base: Any, refits: dict[str, Any]
     monkeypatch.setattr(dg, "compare_rivals", lambda trials, kept, cfg, samples: trials)
     monkeypatch.setattr(dg, "sensor_samples", lambda run, sensor: 1000)
     monkeypatch.setattr(dg, "drop_redundant", lambda kept, deltas, refit: [])
-    monkeypatch.setattr(dg, "_not_shown", lambda run, allowed, found: ())
+    seen = allowed if allowed is not None else []
+    monkeypatch.setattr(dg, "_not_shown", lambda run, allowed, found: seen.append(allowed) or ())
     monkeypatch.setattr(dg, "noise_spread", lambda prepared, run, cfg, progress, timer: run)
     return dg.diagnose("bag.bag", load_config(None))
 
@@ -210,3 +217,26 @@ def test_a_rival_that_lost_to_an_effect_kept_is_offered_once_more() -> None:
     unpaid.refitting("lidar_vertical_offset")
     unpaid.decided(["lidar_vertical_offset"], "lidar_elevation", kept=False)
     assert unpaid.offered([_evidence("lidar_vertical_offset", 1748.3, 0.0)])[0] == []
+
+
+def test_a_non_repetitive_scanner_is_not_diagnosed_for_per_beam_intrinsics(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A Livox's lines have no intrinsics: the per-beam candidates are neither tried nor
+    reported as effects the bag does not show."""
+    base = _run(_evidence(ELEVATION, 49495.5, 0.0, {}))
+    allowed: list[tuple[str, ...]] = []
+    lines = ScanPattern("non_repetitive", 20.0, "data")
+    diag = _diagnose(monkeypatch, base, {}, pattern=lines, allowed=allowed)
+    assert diag.effects_found == () and diag.steps == ()
+    (reported,) = allowed
+    assert "lidar_point_time" in reported and "gyro_scale" in reported
+    assert not set(reported) & dg.PER_BEAM_CANDIDATES
+    assert dg.PER_BEAM_CANDIDATES == {
+        "lidar_range_offset",
+        "lidar_range_scale",
+        "lidar_elevation",
+        "lidar_azimuth",
+        "lidar_vertical_offset",
+        "lidar_horizontal_offset",
+    }
