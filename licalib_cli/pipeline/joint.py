@@ -96,6 +96,7 @@ from licalib_cli.pipeline.points import (
 )
 from licalib_cli.pipeline.prior_directions import lever_arm_conflict, on_prior
 from licalib_cli.pipeline.round import RoundInputs
+from licalib_cli.pipeline.scan_pattern import with_scan_pattern
 from licalib_cli.pipeline.schedule import cover_truncated
 from licalib_cli.pipeline.segment_runs import calibrate_windows, sigma_size
 from licalib_cli.pipeline.segments import select_segments
@@ -248,7 +249,8 @@ class JointRun:
         model: with ``model_auto``, what each window's diagnosis found and the model the joint
             calibration estimated (None otherwise).
         config: the configuration the segments were calibrated with (with ``model_auto``, its
-            ``model:`` section is the one the diagnoses arrived at).
+            ``model:`` section is the one the diagnoses arrived at; ``lidar.scan_pattern`` the
+            clouds').
     """
 
     result: CalibrationResult
@@ -470,8 +472,10 @@ def calibrate_segments(
     result = _joint_result(runs, kept, states, report, best, cfg, alone.started_from)
     if added and result.model is not None:
         result = replace(result, model=replace(result.model, added=added))
+    # the resolved config says what the windows' clouds showed (a non-repetitive scanner's)
+    used = with_scan_pattern(cfg, runs[best].pattern)
     return JointRun(
-        result, tuple(runs), tuple(kept), report, tuple(states), timings, selection, cfg
+        result, tuple(runs), tuple(kept), report, tuple(states), timings, selection, used
     )
 
 
