@@ -86,7 +86,9 @@ def read(bag: Path, cfg: CalibConfig) -> Segment:
         phi = nominal_elevations(rec.scans, cfg)
         return Segment(rec, phi, measure_noise(rec, cfg, phi.shape[0]), pattern)
     check_model(cfg, pattern)
-    lines = 1 + max(int(s.ring.max()) for s in rec.scans if s.ring is not None and len(s))
+    lines = 1 + max(
+        (int(s.ring.max()) for s in rec.scans if s.ring is not None and len(s)), default=0
+    )
     noise = measure_noise(rec, cfg, lines, along_lines=True)
     scans, phi = elevation_beams(rec.scans)
     binned = replace(rec, scans=scans)

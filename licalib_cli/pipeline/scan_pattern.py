@@ -21,7 +21,6 @@ the model's per-beam blocks are refused (:func:`check_model`) and the checks do 
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass, replace
 from typing import Literal
 
@@ -44,8 +43,6 @@ __all__ = [
     "scan_pattern",
     "with_scan_pattern",
 ]
-
-logger = logging.getLogger(__name__)
 
 F64 = npt.NDArray[np.float64]
 
