@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["cross_rows", "norms"]
+__all__ = ["cross_rows", "elevations", "norms"]
 
 
 def norms(v: npt.ArrayLike) -> npt.NDArray[np.float64]:
@@ -22,6 +22,12 @@ def norms(v: npt.ArrayLike) -> npt.NDArray[np.float64]:
     """
     a = np.asarray(v, dtype=np.float64)
     return np.sqrt(np.einsum("ij,ij->i", a, a))
+
+
+def elevations(xyz: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """(N,) elevation of every point of an (N, 3) array seen from the origin, rad (0 for the
+    origin itself)."""
+    return np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1]))
 
 
 def cross_rows(a: npt.NDArray[np.float64], b: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:

@@ -16,6 +16,8 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
+from licalib_cli.geometry.vectors import elevations, norms
+
 __all__ = ["FAR_SHARE", "MIN_RANGE_M", "NEAR_RANGE_M", "SPREAD_DEG", "elevation_spread_deg"]
 
 SPREAD_DEG = 3.0
@@ -58,21 +60,11 @@ def elevation_spread_deg(
         return float("nan")
     p = np.concatenate([np.asarray(x, dtype=np.float64).reshape(-1, 3) for x in xyz])
     b = np.concatenate([np.asarray(r, dtype=np.int64).reshape(-1) for r in ring])
-    r = np.linalg.norm(p, axis=1)
+    r = norms(p)
     far, near = r >= MIN_RANGE_M, r >= NEAR_RANGE_M
     # a few far points of a scanner facing a wall lie in one patch, whatever its lines do
     keep = far if np.count_nonzero(far) >= FAR_SHARE * np.count_nonzero(near) else near
-    return _median_spread(p, r, b, keep)
-
-
-def _median_spread(
-    p: npt.NDArray[np.float64],
-    r: npt.NDArray[np.float64],
-    b: npt.NDArray[np.int64],
-    keep: npt.NDArray[np.bool_],
-) -> float:
-    """The median over the beams with enough ``keep`` points of their elevation spread, deg."""
-    elev = np.degrees(np.arcsin(np.clip(p[keep, 2] / np.maximum(r[keep], 1e-9), -1.0, 1.0)))
+    elev = np.degrees(elevations(p[keep]))
     beam = b[keep]
     order = np.argsort(beam, kind="stable")
     elev, beam = elev[order], beam[order]

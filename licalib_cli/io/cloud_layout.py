@@ -12,6 +12,7 @@ import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.errors import ConfigError, DataError, TimestampError
+from licalib_cli.geometry.vectors import elevations
 from licalib_cli.io.bag import BagHandle
 from licalib_cli.io.beam_spread import elevation_spread_deg
 from licalib_cli.io.findings import Finding, count_noun, stamp_text, verb_for
@@ -157,10 +158,6 @@ class Skip:
     detail: str = ""
 
 
-def _elevation(xyz: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-    return np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1]))
-
-
 def content_skip(
     dec: DecodedCloud, mask: npt.NDArray[np.bool_], ring: npt.NDArray[np.int32] | None
 ) -> Skip | None:
@@ -179,7 +176,7 @@ def content_skip(
     elif dec.height > 1 and dec.height * dec.width == len(dec):
         one = int(np.count_nonzero(mask.reshape(dec.height, dec.width).any(axis=1))) < 2
     else:
-        one = float(np.ptp(_elevation(dec.xyz[mask]))) < _ONE_BEAM_RAD
+        one = float(np.ptp(elevations(dec.xyz[mask]))) < _ONE_BEAM_RAD
     return Skip("one beam") if one else None
 
 

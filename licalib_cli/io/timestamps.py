@@ -41,7 +41,7 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.errors import ConfigError, DataError, TimestampError
-from licalib_cli.geometry.vectors import norms
+from licalib_cli.geometry.vectors import elevations, norms
 
 __all__ = [
     "RING_FIELD_CANDIDATES",
@@ -443,10 +443,6 @@ class BeamTable:
         return int(self.elevation_rad.shape[0])
 
 
-def _elevation(xyz: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-    return np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1]))
-
-
 def detect_beams(
     clouds: Sequence[npt.NDArray[np.float64]], num_beams: int | None = None
 ) -> BeamTable:
@@ -474,7 +470,7 @@ def detect_beams(
     far = norms(xyz) > 3.0
     if far.sum() > 1000:
         xyz = xyz[far]
-    el = np.sort(_elevation(xyz))
+    el = np.sort(elevations(xyz))
     gaps = np.diff(el)
     if gaps.size == 0:
         return BeamTable(np.array([el[0]]))
@@ -500,6 +496,6 @@ def assign_beams(xyz: npt.NDArray[np.float64], table: BeamTable) -> npt.NDArray[
     Returns:
         (N,) int16 ring indices (0 = lowest beam).
     """
-    el = _elevation(xyz)
+    el = elevations(xyz)
     mids = 0.5 * (table.elevation_rad[1:] + table.elevation_rad[:-1])
     return np.searchsorted(mids, el).astype(np.int16)

@@ -29,7 +29,7 @@ import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.errors import ConfigError
-from licalib_cli.geometry.vectors import norms
+from licalib_cli.geometry.vectors import elevations
 from licalib_cli.io.beam_spread import SPREAD_DEG
 from licalib_cli.measurements import LidarScan
 from licalib_cli.pipeline.settings import LIDAR_COLUMNS
@@ -85,10 +85,6 @@ SPINNING = ScanPattern("spinning", float("nan"), "data")
 """A spinning LiDAR's pattern, as assumed where no data were read."""
 
 
-def _elevation(xyz: F64) -> F64:
-    return np.arcsin(np.clip(xyz[:, 2] / np.maximum(norms(xyz), 1e-9), -1.0, 1.0))
-
-
 def scan_pattern(spread_deg: float, cfg: CalibConfig) -> ScanPattern:
     """The configured ``lidar.scan_pattern``, or the data's: lines when the beams' elevations
     spread more than :data:`~licalib_cli.io.beam_spread.SPREAD_DEG` (``spread_deg``, the
@@ -131,7 +127,7 @@ def elevation_beams(scans: tuple[LidarScan, ...]) -> tuple[tuple[LidarScan, ...]
         The scans with every ``ring`` replaced by its points' bins, and the (B,) nominal
         elevations (bins without points get their centre).
     """
-    elev = [np.degrees(_elevation(s.xyz)) for s in scans]
+    elev = [np.degrees(elevations(s.xyz)) for s in scans]
     lowest = min((float(e.min()) for e in elev if e.size), default=0.0)
     edge = np.floor(lowest / BIN_DEG) * BIN_DEG
     bins = [np.floor((e - edge) / BIN_DEG).astype(np.int64) for e in elev]
