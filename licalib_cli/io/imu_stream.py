@@ -11,7 +11,7 @@ import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.errors import ConfigError, DataError
-from licalib_cli.io.bag import BagHandle, MessageLosses, imu_vectors_from_raw
+from licalib_cli.io.bag import CLOUD_TYPE, BagHandle, MessageLosses, imu_vectors_from_raw
 from licalib_cli.io.findings import (
     IMU_GAP_FACTOR,
     MIN_IMU_SAMPLES,
@@ -343,7 +343,9 @@ def read_imu_stream(
         topic: the IMU topic.
         window: the segment.
         cfg: configuration (``imu`` units, ``spline.knot_spacing_s``).
-        lidar_topic: the LiDAR topic, to tell why the segment holds no IMU samples.
+        lidar_topic: the LiDAR topic, to tell why the segment holds no IMU samples and whether
+            the IMU is a Livox's (:func:`livox_clouds`); None: the configured one or the bag's
+            only cloud topic, for the latter.
 
     Returns:
         The stream; its findings say whether it is usable.
@@ -356,8 +358,18 @@ def read_imu_stream(
     def absence(default: Finding) -> Finding:
         return absence_finding(bag, window, topic, lidar_topic, "IMU", default)
 
-    livox = lidar_topic is not None and livox_clouds(bag, lidar_topic, window)
+    clouds = lidar_topic if lidar_topic is not None else _cloud_topic(bag, cfg)
+    livox = clouds is not None and livox_clouds(bag, clouds, window)
     return validate_imu(raw, topic, cfg, bag.loss(topic), offset, absence, livox)
+
+
+def _cloud_topic(bag: BagHandle, cfg: CalibConfig) -> str | None:
+    """The configured LiDAR topic, or the bag's only cloud topic (None when there are several
+    or none): whose clouds tell whether the IMU is a Livox's."""
+    if cfg.lidar.topic is not None:
+        return cfg.lidar.topic
+    topics = bag.topics_of_type(CLOUD_TYPE)
+    return topics[0].name if len(topics) == 1 else None
 
 
 LIVOX_FIELDS = frozenset({"tag", "line"})

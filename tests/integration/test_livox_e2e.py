@@ -11,6 +11,7 @@ import yaml
 
 from licalib_cli.cli import main
 from licalib_cli.config import CalibConfig
+from licalib_cli.io.reader import read_imu
 from licalib_cli.pipeline.read import measure_noise, read, read_recording
 from licalib_cli.simulation import SimulationSpec, simulate
 
@@ -76,20 +77,27 @@ def test_per_beam_intrinsics_of_a_mid360_are_refused_with_the_fix(
     assert not (tmp_path / "r.yaml").exists()
 
 
+@pytest.fixture(scope="module")
+def livox_shake(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    spec = SimulationSpec(scenario="shake", lidar="mid360", duration_s=3.0, seed=13308)
+    return simulate(spec, tmp_path_factory.mktemp("shake")).bag_path
+
+
 def test_a_livox_imu_in_g_is_read_in_rad_s_where_the_data_cannot_tell(
-    tmp_path_factory: pytest.TempPathFactory, capsys: pytest.CaptureFixture[str]
+    livox_shake: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """A shake hardly tilts the rig, so the gyro's unit is not in the data; an accelerometer in
     g is taken with deg/s (IMUs' raw units), which made a Livox's shake 'hardly rotate' (0.6
     deg) and refused it. Beside Livox clouds it is taken in rad/s, as the driver publishes."""
-    spec = SimulationSpec(scenario="shake", lidar="mid360", duration_s=3.0, seed=13308)
-    bag = simulate(spec, tmp_path_factory.mktemp("shake")).bag_path
-    main(["info", str(bag), "--json"])
+    main(["info", str(livox_shake), "--json"])
     report = json.loads(capsys.readouterr().out)
     imu = report["imu"]
     assert (imu["accel_unit"], imu["gyro_unit"]) == ("g", "rad/s")
     assert imu["gyro_unit_basis"] == "Livox driver: g with rad/s"
     assert report["lidar"]["scan_pattern"] == "non_repetitive"
+    # the IMU read on its own (select-segments' ranking) finds the clouds beside it too
+    _, units, _ = read_imu(livox_shake, CalibConfig())
+    assert (units.gyro_unit, units.gyro_source, units.livox) == ("rad/s", "assumed", True)
 
 
 def test_an_avias_rosette_is_read_as_lines_and_its_noise_measured_along_them(
