@@ -165,3 +165,16 @@ def test_lines_facing_a_near_wall_are_still_lines(rng: np.random.Generator) -> N
         ring.append(s.ring)
     assert 0 < np.mean(np.concatenate([np.linalg.norm(p, axis=1) > 3.0 for p in xyz])) < 0.05
     assert elevation_spread_deg(xyz, ring) > 5 * SPREAD_DEG
+
+
+def test_an_unknown_scan_pattern_is_refused_naming_the_choices(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    from licalib_cli.cli import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(["config", "dump", "--set", "lidar.scan_pattern=rings"])
+    assert stop.value.code == 6
+    err = capsys.readouterr().err
+    assert "lidar.scan_pattern" in err and "'spinning' or 'non_repetitive'" in err
+    assert "Traceback" not in err
