@@ -15,6 +15,9 @@ sentence); the verdict is the worst severity. A check that could not be computed
   extrinsic by more than its sigma (``warn``);
 * split-half: the two halves of the segment disagree beyond their sigmas (``warn``);
 * map: few points on planar surfaces (``warn``), a very poor overall fit (``fail``);
+* implausible estimates: a lever arm, a rotation away from a trusted hand-eye, or an IMU bias
+  no rig can have (``fail``: the rounds settled in a wrong minimum;
+  :mod:`licalib_cli.pipeline.implausible`);
 * unchecked priors: a block held fixed whose prior (IMU, or LiDAR when set) the recording
   cannot check, and whose effect below what it shows could move the extrinsic by three of its
   sigmas (``warn``); an effect held fixed without a prior that could do the same (``note``: the
@@ -35,7 +38,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import numpy.typing as npt
 
-from licalib_cli.config import INTRINSIC_PRESETS, MAX_LEVER_ARM_M, CalibConfig, ChecksSection
+from licalib_cli.config import INTRINSIC_PRESETS, CalibConfig, ChecksSection
 from licalib_cli.io.clock_rate import MATERIAL_MOVE_S, SIGNIFICANT_SIGMAS, ClockRate
 from licalib_cli.pipeline.crawl import Crawl, crawl_at_cap
 from licalib_cli.pipeline.fitcheck import (
@@ -46,6 +49,7 @@ from licalib_cli.pipeline.fitcheck import (
     sensor_checks,
 )
 from licalib_cli.pipeline.held_effects import held_effect_text, held_effects
+from licalib_cli.pipeline.implausible import implausible_estimates
 from licalib_cli.pipeline.inflation import (
     COVER_P_VALUE,
     effect_is_material,
@@ -71,7 +75,6 @@ from licalib_cli.pipeline.prior_directions import (
 from licalib_cli.pipeline.schedule import JITTER_FACTOR, MAX_FINAL_ROUNDS, Change, Fit, within
 from licalib_cli.pipeline.settings import NoiseLevels, narrow_association, prior_sd
 from licalib_cli.pipeline.split import COORDINATES, SplitResult, split_half
-from licalib_cli.pipeline.start_agreement import hand_eye_disagreement, trusted
 from licalib_cli.pipeline.unchecked_priors import (
     assumed_note,
     prior_owner,
@@ -164,6 +167,8 @@ class Checks:
         planes: the sigma factors for the map planes' own uncertainty (None: not computed).
         split: the split-half comparison (None: not kept).
         notes: warnings of earlier stages the verdict took.
+        failures: failures of earlier stages the verdict took (estimates no rig can have,
+            :mod:`~licalib_cli.pipeline.implausible`).
     """
 
     verdict: VerdictSection
@@ -178,6 +183,7 @@ class Checks:
     planes: MapUncertainty | None = None
     split: SplitResult | None = None
     notes: tuple[str, ...] = ()
+    failures: tuple[str, ...] = ()
 
 
 def _std(report: SolverReport, names: list[str]) -> F64:
@@ -950,34 +956,15 @@ def check(
         differs = drift_against_stamps(k, sd, clock_rate)
         notes = (*notes, differs) if differs else notes
     return run_checks(
-        fit, sensors, effects, split, cfg, notes, planes, failures=away_from_start(fit, guess, cfg)
+        fit,
+        sensors,
+        effects,
+        split,
+        cfg,
+        notes,
+        planes,
+        failures=implausible_estimates(fit, guess, cfg),
     )
-
-
-def away_from_start(fit: Fit, guess: InitialGuess, cfg: CalibConfig) -> tuple[str, ...]:
-    """Failures of an estimate no rig can have: a lever arm beyond
-    :data:`~licalib_cli.config.MAX_LEVER_ARM_M`, or a rotation far from the trusted hand-eye
-    rotation it started from (:mod:`~licalib_cli.pipeline.start_agreement`): the rounds settled
-    in a wrong minimum, whatever the residuals say."""
-    out = []
-    advice = (
-        "so the result is not trustworthy; give initialization.rotation_rpy_deg and "
-        "translation_m near the rig's (a drawing is enough) and calibrate again."
-    )
-    lever = float(np.linalg.norm(fit.state.t_imu_lidar))
-    if lever > MAX_LEVER_ARM_M:
-        out.append(
-            f"The estimated lever arm puts the LiDAR {lever:.3g} m from the IMU, farther than "
-            f"any rig's ({MAX_LEVER_ARM_M:g} m): the rounds settled in a wrong minimum, {advice}"
-        )
-    if trusted(guess.hand_eye, cfg.initialization.max_hand_eye_residual_deg):
-        assert guess.hand_eye is not None
-        apart = hand_eye_disagreement(
-            fit.state.R_imu_lidar, guess.hand_eye, "The estimated rotation"
-        )
-        if apart is not None:
-            out.append(f"{apart}: the rounds settled in a wrong minimum, {advice}")
-    return tuple(out)
 
 
 def drift_against_stamps(k: float, sd: float, rate: ClockRate) -> str | None:
@@ -1135,6 +1122,7 @@ def run_checks(
         planes=planes,
         split=split,
         notes=notes,
+        failures=failures,
     )
 
 
@@ -1160,6 +1148,7 @@ def rejudge(
         checks.notes,
         checks.planes,
         spread,
+        failures=checks.failures,
     )
 
 

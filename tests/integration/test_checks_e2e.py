@@ -505,13 +505,14 @@ def test_an_estimate_far_from_the_hand_eye_rotation_it_started_from_fails(
     is above initialization.max_hand_eye_residual_deg is no measure of it."""
     from dataclasses import replace
 
-    from licalib_cli.pipeline.checks import away_from_start, check
+    from licalib_cli.pipeline.checks import check
+    from licalib_cli.pipeline.implausible import implausible_estimates
     from licalib_cli.results import matrix_from_rpy_deg
 
     cfg, prepared, fit = clean_fit
     guess = prepared.guess
     assert guess.rotation_source == "hand-eye" and guess.hand_eye is not None
-    assert away_from_start(fit, guess, cfg) == ()
+    assert implausible_estimates(fit, guess, cfg) == ()
     turned = replace(
         guess.hand_eye,
         R_imu_lidar=guess.hand_eye.R_imu_lidar @ matrix_from_rpy_deg([0.0, 0.0, 90.0]),
@@ -524,9 +525,47 @@ def test_an_estimate_far_from_the_hand_eye_rotation_it_started_from_fails(
     )
     assert "the rounds settled in a wrong minimum" in said
     loose = replace(turned, residual_rms_deg=cfg.initialization.max_hand_eye_residual_deg + 0.5)
-    assert away_from_start(fit, replace(guess, hand_eye=loose), cfg) == ()
+    assert implausible_estimates(fit, replace(guess, hand_eye=loose), cfg) == ()
     # a lever arm no rig has (the rounds from a lever arm in centimetres read as metres ended
     # 100 m off, warning) fails too, hand-eye or not
     far_state = replace(fit.state, t_imu_lidar=np.array([99.9, -35.6, 7.0]))
-    (lever,) = away_from_start(replace(fit, state=far_state), replace(guess, hand_eye=None), cfg)
+    (lever,) = implausible_estimates(
+        replace(fit, state=far_state), replace(guess, hand_eye=None), cfg
+    )
     assert lever.startswith("The estimated lever arm puts the LiDAR 106 m from the IMU, farther ")
+
+
+def test_an_imu_bias_no_part_has_fails_and_a_rejudged_verdict_keeps_it(clean_fit: tuple) -> None:
+    """A wrong minimum bends the IMU to fit: two simulated Avia-like rosettes whose
+    initialisation went astray ended metres off with accelerometer biases of 4.3 and 4.5 m/s^2
+    (their IMUs had none) and a warning whose sigmas were a fifth of the error. A bias beyond
+    any part's fails the verdict, per sensor; the clean fit's are far below the limits; and
+    judging the same evidence again (as the noise draws and refits do) keeps the failure."""
+    from dataclasses import replace
+
+    from licalib_cli.pipeline.checks import check, rejudge
+    from licalib_cli.pipeline.implausible import (
+        MAX_ACCEL_BIAS_MS2,
+        MAX_GYRO_BIAS_RADS,
+        implausible_estimates,
+    )
+
+    cfg, prepared, fit = clean_fit
+    guess = prepared.guess
+    assert np.abs(fit.state.accel_bias).max() < 0.1 * MAX_ACCEL_BIAS_MS2
+    assert np.abs(fit.state.gyro_bias).max() < 0.1 * MAX_GYRO_BIAS_RADS
+    accel = replace(fit.state, accel_bias=np.array([0.1, -4.28, 0.0]))
+    (said,) = implausible_estimates(replace(fit, state=accel), guess, cfg)
+    assert said.startswith("The estimated accelerometer bias reaches 4.28 m/s^2 (0.44 g), more ")
+    assert "initialization.rotation_rpy_deg" in said
+    gyro = replace(fit.state, gyro_bias=np.array([0.0, 0.0, 0.6]))
+    (said,) = implausible_estimates(replace(fit, state=gyro), guess, cfg)
+    assert said.startswith("The estimated gyro bias reaches 34.4 deg/s, more than any gyro's")
+    both = replace(accel, gyro_bias=gyro.gyro_bias)
+    assert len(implausible_estimates(replace(fit, state=both), guess, cfg)) == 2
+    bent = replace(fit, state=accel)
+    checks = check(bent, guess, prepared.noise, cfg)
+    assert checks.verdict.status == "fail" and checks.exit_status == "fail"
+    again = rejudge(bent, checks, checks.effects, cfg)
+    assert again.verdict.status == "fail"
+    assert any(r.startswith("The estimated accelerometer bias") for r in again.verdict.reasons)
