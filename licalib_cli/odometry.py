@@ -484,6 +484,16 @@ _BEGIN_PRIOR = 1e-3
 weights of the matched points (:func:`_register_with_sweep_motion`)."""
 
 
+_END_PRIOR = 1e-3
+"""Weight of the sweep's end position at its prediction, relative to the summed weights of the
+matched points (:func:`_register_with_sweep_motion`). It holds only what the sweep leaves
+undetermined: a narrow field of view seeing one or two planes cannot fix the translation
+along them, and without it the registration slid there. On a simulated Avia-like rosette
+(about 70 keypoints a sweep) with the true calibration, sweeps slid up to 6 m, the map
+followed them, and 65 of 99 registrations were then rejected; with it none was, and no end
+moved more than 0.18 m from its prediction. Where the sweep determines the translation the
+prediction moves it by a thousandth of its error."""
+
 _PARALLEL_QUERY_POINTS = 20_000
 """Nearest-neighbour queries of at least this many points use the block threads. A sweep's
 keypoints (about a thousand on a VLP-16, against a local map of seven thousand) are queried
@@ -511,7 +521,7 @@ def _register_with_sweep_motion(
     ``refine.robust_scale``, nearest map points within ``correspondence`` found again every
     step, at most ``refine.max_iterations`` steps, fewer once a step moves less than 1 mm and
     0.3 mrad: :data:`_SETTLED_ROTATION_RAD`), ``p_begin`` held softly at ``p_before``
-    (:data:`_BEGIN_PRIOR`).
+    (:data:`_BEGIN_PRIOR`) and ``p`` at the prediction ``pose`` (:data:`_END_PRIOR`).
 
     On hand-held shaking the LiDAR's translation turns from one sweep to the next (the more so
     the longer the lever arm): a translation deskewed with the previous motion, even once
@@ -535,6 +545,7 @@ def _register_with_sweep_motion(
     tree, q_all, n_all = target
     rot = np.array(pose[:3, :3], dtype=np.float64)
     pos = np.array(pose[:3, 3], dtype=np.float64)
+    predicted = pos.copy()
     beg = np.array(p_before, dtype=np.float64)
     a = end_weight[:, None]
     k = float(refine.robust_scale)
@@ -564,6 +575,9 @@ def _register_with_sweep_motion(
         lam = _BEGIN_PRIOR * float(w.sum())
         h[6:, 6:] += lam * np.eye(3)
         g[6:] += lam * (beg - p_before)
+        mu = _END_PRIOR * float(w.sum())
+        h[3:6, 3:6] += mu * np.eye(3)
+        g[3:6] += mu * (pos - predicted)
         h += 1e-9 * max(float(np.trace(h)), 1e-12) * np.eye(9)
         step = -np.linalg.solve(h, g)
         rot = Rotation.from_rotvec(step[:3]).as_matrix() @ rot
