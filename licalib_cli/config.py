@@ -574,7 +574,8 @@ class ChecksSection(_Section):
     refits as a floor of the sigmas (``pipeline/noise_draws.py``). 0: off."""
     range_noise_draws_from_m: float = Field(default=0.025, gt=0.0, le=1.0)
     """The range noise (m, the one the fit is weighted with) from which the draws run: at 4 cm
-    the estimate scattered about twice as far as the linearised sigmas said."""
+    the estimate scattered about twice as far as the linearised sigmas said. On a non-repetitive
+    scanner (Livox) they run at any range noise."""
     refit_effects: bool = True
     """Refit once with the strongest effect the data show beyond doubt (a score of 100 per
     degree of freedom) to measure how far it moves the extrinsic, instead of trusting the

@@ -178,3 +178,32 @@ def test_an_unknown_scan_pattern_is_refused_naming_the_choices(
     err = capsys.readouterr().err
     assert "lidar.scan_pattern" in err and "'spinning' or 'non_repetitive'" in err
     assert "Traceback" not in err
+
+
+def test_a_non_repetitive_scanner_draws_noisier_refits_at_any_range_noise(
+    rng: np.random.Generator,
+) -> None:
+    """The refits with more range noise run from checks.range_noise_draws_from_m (2.5 cm) on a
+    spinning LiDAR, and at 2 cm or less on lines (a clean Avia-like shake at 2 cm was 3.6 of its
+    linearised sigmas off); checks.range_noise_draws: 0 turns them off for both."""
+    from licalib_cli.pipeline.noise_draws import draws_due
+    from licalib_cli.pipeline.settings import NoiseLevels
+
+    def levels(measured: float) -> NoiseLevels:
+        gyro, accel = np.full(3, 1e-3), np.full(3, 1e-2)
+        per_beam = np.full(4, measured)
+        return NoiseLevels(
+            gyro, accel, measured, "data", "data", "data", per_beam, gyro, accel, measured
+        )
+
+    lines = with_scan_pattern(
+        CalibConfig(), scan_pattern(_spread(_line_scans(rng, 2, 0.02)), CalibConfig())
+    )
+    assert lines.lidar.scan_pattern == "non_repetitive"
+    assert draws_due(levels(0.02), lines) and draws_due(levels(0.005), lines)
+    assert not draws_due(levels(0.02), CalibConfig())
+    assert draws_due(levels(0.03), CalibConfig())
+    off = lines.model_copy(
+        update={"checks": lines.checks.model_copy(update={"range_noise_draws": 0})}
+    )
+    assert not draws_due(levels(0.02), off)
