@@ -95,6 +95,12 @@ class LidarInputConfig(_Section):
     bins of :data:`~licalib_cli.pipeline.scan_pattern.BIN_DEG` for the LiDAR model and its
     range noise is measured along each line's point order."""
 
+    @property
+    def non_repetitive(self) -> bool:
+        """Whether ``scan_pattern`` says lines of a non-repetitive scanner (as given, or as the
+        data showed once the pipeline resolved it)."""
+        return self.scan_pattern == "non_repetitive"
+
     @model_validator(mode="after")
     def _beam_table_matches_num_beams(self) -> LidarInputConfig:
         table = self.nominal_elevation_deg

@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from licalib_cli.config import MAX_LEVER_ARM_M, CalibConfig
+from licalib_cli.io.imu_units import GRAVITY
 from licalib_cli.pipeline.initialise import InitialGuess
 from licalib_cli.pipeline.schedule import Fit
 from licalib_cli.pipeline.start_agreement import hand_eye_disagreement, trusted
@@ -59,7 +60,7 @@ def implausible_estimates(fit: Fit, guess: InitialGuess, cfg: CalibConfig) -> tu
     accel = float(np.max(np.abs(fit.state.accel_bias)))
     if accel > MAX_ACCEL_BIAS_MS2:
         out.append(
-            f"The estimated accelerometer bias reaches {accel:.2f} m/s^2 ({accel / 9.80665:.2f} "
+            f"The estimated accelerometer bias reaches {accel:.2f} m/s^2 ({accel / GRAVITY:.2f} "
             f"g), more than any accelerometer's ({MAX_ACCEL_BIAS_MS2:g} m/s^2): the fit bent the "
             f"IMU to a wrong calibration, {_ADVICE}"
         )

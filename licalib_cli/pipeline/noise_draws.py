@@ -68,8 +68,7 @@ def draws_due(noise: NoiseLevels, cfg: CalibConfig) -> bool:
     is a non-repetitive scanner (module docstring)."""
     checks = cfg.checks
     return checks.range_noise_draws > 0 and (
-        range_noise_in_data(noise) >= checks.range_noise_draws_from_m
-        or cfg.lidar.scan_pattern == "non_repetitive"
+        range_noise_in_data(noise) >= checks.range_noise_draws_from_m or cfg.lidar.non_repetitive
     )
 
 

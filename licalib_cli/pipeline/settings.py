@@ -330,7 +330,7 @@ def free_parameters(cfg: CalibConfig, intrinsics: bool) -> FreeParameters:
     offset; with ``intrinsics`` also the blocks of the ``model:`` section."""
     m = cfg.model
     prior = translation_prior(cfg)
-    beams = cfg.lidar.scan_pattern != "non_repetitive"
+    beams = not cfg.lidar.non_repetitive
     if not intrinsics:
         return FreeParameters(
             min_points_per_beam=m.min_points_per_beam,
