@@ -253,6 +253,16 @@ def _step_errors_deg(poses: PoseSeries, r_true: Rotation) -> npt.NDArray[np.floa
     return np.degrees((rel_true.inv() * rel).magnitude())
 
 
+def _step_errors_m(
+    poses: PoseSeries, r_true: npt.NDArray[np.float64], p_true: npt.NDArray[np.float64]
+) -> npt.NDArray[np.float64]:
+    """Distance between the estimated and the true translation of each scan from the one before,
+    in the earlier scan's frame, (K-1,) metres (``r_true``, ``p_true``: the LiDAR's true poses)."""
+    rel = np.linalg.inv(poses.T_map_lidar[:-1]) @ poses.T_map_lidar[1:]
+    true_step = np.einsum("kji,kj->ki", r_true[:-1], p_true[1:] - p_true[:-1])
+    return np.linalg.norm(rel[:, :3, 3] - true_step, axis=1)
+
+
 def test_refinement_without_rotation_prior(scans: list[LidarScan]) -> None:
     kiss = run_odometry(scans, _CFG)
     calls: list[tuple[int, int]] = []
@@ -455,14 +465,10 @@ def test_gyro_aided_odometry_holds_a_narrow_view_at_its_prediction(tmp_path: Pat
     )
     t = (poses.t_ns - spec.base_time_ns) * 1e-9 + spec.time_offset_s
     r_wl, p_wl = setup.lidar_pose_at(t)
-    # each scan's motion from the one before, in the earlier scan's frame, against the truth
-    # (freely: a median of 1.07 m and 1.07 deg, the largest 6.4 m and 51 deg)
-    rel = np.linalg.inv(poses.T_map_lidar[:-1]) @ poses.T_map_lidar[1:]
-    true_step = np.einsum("kji,kj->ki", r_wl[:-1], p_wl[1:] - p_wl[:-1])
-    step = np.linalg.norm(rel[:, :3, 3] - true_step, axis=1)
-    true_turn = np.einsum("kji,kjl->kil", r_wl[:-1], r_wl[1:])
-    turn = np.einsum("kji,kjl->kil", rel[:, :3, :3], true_turn)
-    turn_deg = np.degrees(Rotation.from_matrix(turn).magnitude())
+    # each scan's motion from the one before against the truth (freely: a median of 1.07 m and
+    # 1.07 deg, the largest 6.4 m and 51 deg)
+    step = _step_errors_m(poses, r_wl, p_wl)
+    turn_deg = _step_errors_deg(poses, Rotation.from_matrix(r_wl))
     assert np.median(step) < 0.15 and step.max() < 0.6, np.round(step, 3)
     assert np.median(turn_deg) < 0.8 and turn_deg.max() < 10.0, np.round(turn_deg, 2)
 
@@ -562,11 +568,8 @@ def test_refinement_of_kiss_icp_stays_near_it_where_a_registration_is_weak(
     kiss = run_odometry(rec.scans, cfg)
     poses = refine_odometry(rec.scans, kiss, cfg)
     t = (poses.t_ns - spec.base_time_ns) * 1e-9 + spec.time_offset_s
-    rot, pos = setup.lidar_pose_at(t)
     # each scan's motion from the one before, in the earlier scan's frame, against the truth
-    rel = np.linalg.inv(poses.T_map_lidar[:-1]) @ poses.T_map_lidar[1:]
-    true_step = np.einsum("kji,kj->ki", rot[:-1], pos[1:] - pos[:-1])
-    error = np.linalg.norm(rel[:, :3, 3] - true_step, axis=1)
+    error = _step_errors_m(poses, *setup.lidar_pose_at(t))
     assert error.max() < 0.3, error
     assert np.median(error) < 0.03, error
 
