@@ -23,13 +23,17 @@ from licalib_cli.initialization.rotation import GyroIntegrator, RotationAt, lida
 from licalib_cli.io.reader import read_segment
 from licalib_cli.measurements import ImuSamples, LidarScan, Recording
 from licalib_cli.odometry import (
+    MIN_KEYPOINTS,
+    MIN_SCENE_SCALE,
     OdometryConfig,
     PoseSeries,
     RefineConfig,
+    at_scale,
     kiss_icp_config,
     prepare_sweeps,
     refine_odometry,
     run_odometry,
+    scene_scale,
 )
 from licalib_cli.parallel import threads as thr
 from licalib_cli.simulation.ground_truth import SimulationSetup, build_setup
@@ -466,11 +470,76 @@ def test_gyro_aided_odometry_holds_a_narrow_view_at_its_prediction(tmp_path: Pat
     t = (poses.t_ns - spec.base_time_ns) * 1e-9 + spec.time_offset_s
     r_wl, p_wl = setup.lidar_pose_at(t)
     # each scan's motion from the one before against the truth (freely: a median of 1.07 m and
-    # 1.07 deg, the largest 6.4 m and 51 deg)
+    # 1.07 deg, the largest 6.4 m and 51 deg; held: 5.5 cm and 0.51 deg, and at 0.33 of the
+    # lengths, which gives 1360 keypoints a sweep instead of 145, 2.0 cm and 0.27 deg)
     step = _step_errors_m(poses, r_wl, p_wl)
     turn_deg = _step_errors_deg(poses, Rotation.from_matrix(r_wl))
     assert np.median(step) < 0.15 and step.max() < 0.6, np.round(step, 3)
     assert np.median(turn_deg) < 0.8 and turn_deg.max() < 10.0, np.round(turn_deg, 2)
+
+
+@pytest.mark.slow
+def test_gyro_aided_odometry_shrinks_its_lengths_to_a_close_scene(tmp_path: Path) -> None:
+    """An Avia-like rosette shaken 1.6 m (median range) from a corner, the mounting of the
+    trust benchmark's seed 13408, which ended 18.7 mm off at 5.1 of its sigmas. The sweeps see
+    about 2 m of the corner: with the lengths made for a room (0.4 m keypoint voxels, 0.6 m
+    normal radius and correspondences) a sweep had 60 keypoints and the odometry of the 10 s
+    recording came to a 46 m path for a 3.6 m one. At a quarter of the lengths (1000 keypoints)
+    it follows the truth."""
+    spec = SimulationSpec(
+        scenario=Scenario.SHAKE,
+        lidar="avia",
+        duration_s=3.0,
+        seed=13408,
+        intrinsics=IntrinsicsMode.NONE,
+        rpy_deg=(-147.295265791, 66.65997967, -173.204313145),
+        translation=(0.008985358, -0.033322879, -0.07704333),
+        time_offset_s=-0.008217583,
+    )
+    rec, setup, rotation_at = _with_gyro_prior(spec, tmp_path)
+    cfg = OdometryConfig()
+    scale = scene_scale(rec.scans, cfg)
+    assert scale == MIN_SCENE_SCALE, scale
+    prepared = prepare_sweeps(rec.scans, cfg)
+    assert prepared.scale == scale
+    poses = refine_odometry(
+        rec.scans, None, cfg, RefineConfig(passes=1), rotation_at=rotation_at, prepared=prepared
+    )
+    t = (poses.t_ns - spec.base_time_ns) * 1e-9 + spec.time_offset_s
+    r_wl, p_wl = setup.lidar_pose_at(t)
+    step = _step_errors_m(poses, r_wl, p_wl)
+    turn_deg = _step_errors_deg(poses, Rotation.from_matrix(r_wl))
+    # Measured: median 3.2 cm and 0.59 deg, 970 keypoints a sweep (at the room's lengths 19 cm
+    # and 2.6 deg, 60 keypoints)
+    assert np.median(step) < 0.08, np.round(step, 3)
+    assert np.median(turn_deg) < 1.2, np.round(turn_deg, 2)
+    assert poses.threshold_m[0] == pytest.approx(RefineConfig().max_correspondence * scale)
+
+
+def test_the_refinement_lengths_shrink_until_a_sweep_has_enough_keypoints() -> None:
+    """A wall of 20 x 20 m keeps the lengths (2500 keypoints of 0.4 m), one of 10 x 10 m has 625
+    and takes the first scale of the ladder with 1000 (1 / 1.2^2: 0.83 gives 900), one of 2 x 2 m
+    the smallest; the robust scale (the points' noise) stays."""
+    cfg = OdometryConfig(min_range=0.3)
+
+    def wall(side: float) -> list[LidarScan]:
+        g = np.arange(-side / 2, side / 2, 0.03)
+        u, v = np.meshgrid(g, g)
+        xyz = np.stack([np.full(u.size, 3.0), u.ravel(), v.ravel()], axis=1)
+        return [LidarScan(T0_NS, xyz, np.full(len(xyz), T0_NS, dtype=np.int64))]
+
+    assert scene_scale(wall(20.0), cfg) == 1.0
+    assert scene_scale(wall(10.0), cfg) == pytest.approx(1.0 / 1.2**2)
+    assert scene_scale(wall(2.0), cfg) == MIN_SCENE_SCALE == 0.25
+    assert MIN_KEYPOINTS == 1000
+    base = RefineConfig()
+    half = at_scale(base, 0.5)
+    assert half.voxel_size == base.voxel_size / 2 and half.map_voxel_size == base.map_voxel_size / 2
+    assert half.normal_radius == base.normal_radius / 2
+    assert half.max_correspondence == base.max_correspondence / 2
+    assert half.fine_correspondence == base.fine_correspondence / 2
+    assert half.robust_scale == base.robust_scale and half.map_scans == base.map_scans
+    assert at_scale(base, 1.0) is base
 
 
 def test_kiss_icp_in_a_forked_process_gives_the_same_odometry(
