@@ -826,7 +826,7 @@ def scene_scale(
     The lengths (:class:`RefineConfig`: 0.4 m keypoint voxels, 0.25 m map voxels, 0.6 m normal
     radius and correspondence distance) were made for spinning LiDARs in rooms. A narrow field
     of view sees a few metres of a scene: an Avia-like rosette (70 x 77 deg) shaken 1.6 m
-    (median range) from a corner had 60 keypoints a sweep, and its gyro-aided odometry over
+    (median range) from the walls had 60 keypoints a sweep, and its gyro-aided odometry over
     10 s, with the true calibration, was 43 cm off the truth (median) in each scan's motion
     from the one before, where the rig moved 3.6 cm: a 46 m path for a 3.6 m one. At a quarter
     of the lengths (1000 keypoints) it is 2.9 cm off and the path 5.0 m. The same rosette on a

@@ -480,9 +480,9 @@ def test_gyro_aided_odometry_holds_a_narrow_view_at_its_prediction(tmp_path: Pat
 
 @pytest.mark.slow
 def test_gyro_aided_odometry_shrinks_its_lengths_to_a_close_scene(tmp_path: Path) -> None:
-    """An Avia-like rosette shaken 1.6 m (median range) from a corner, the mounting of the
+    """An Avia-like rosette shaken 1.6 m (median range) from the walls, the mounting of the
     trust benchmark's seed 13408, which ended 18.7 mm off at 5.1 of its sigmas. The sweeps see
-    about 2 m of the corner: with the lengths made for a room (0.4 m keypoint voxels, 0.6 m
+    about 2 m of them: with the lengths made for a room (0.4 m keypoint voxels, 0.6 m
     normal radius and correspondences) a sweep had 60 keypoints and the odometry of the 10 s
     recording came to a 46 m path for a 3.6 m one. At a quarter of the lengths (1000 keypoints)
     it follows the truth."""
