@@ -817,11 +817,12 @@ _SCALE_STEP = 1.2
 
 
 def scene_scale(
-    scans: Sequence[LidarScan], cfg: OdometryConfig, refine: RefineConfig | None = None
+    clouds: Sequence[npt.NDArray[np.float64]], refine: RefineConfig | None = None
 ) -> float:
-    """The factor of the refinement's lengths for the scene of ``scans``: the largest of 1,
-    1/1.2, 1/1.2^2, ... (at least :data:`MIN_SCENE_SCALE`) at which the median sweep has
-    :data:`MIN_KEYPOINTS` keypoints (twenty sweeps spread over the recording are counted).
+    """The factor of the refinement's lengths for the scene of ``clouds`` (every sweep's points
+    within the range filter): the largest of 1, 1/1.2, 1/1.2^2, ... (at least
+    :data:`MIN_SCENE_SCALE`) at which the median sweep has :data:`MIN_KEYPOINTS` keypoints
+    (twenty sweeps spread over the recording are counted).
 
     The lengths (:class:`RefineConfig`: 0.4 m keypoint voxels, 0.25 m map voxels, 0.6 m normal
     radius and correspondence distance) were made for spinning LiDARs in rooms. A narrow field
@@ -834,18 +835,12 @@ def scene_scale(
     at 0.37 of the lengths (1650 keypoints).
     """
     refine = refine or RefineConfig()
-    kcfg = kiss_icp_config(cfg)
-    lo, hi = float(kcfg.data.min_range), float(kcfg.data.max_range)
-    clouds = []
-    for scan in scans[:: max(1, len(scans) // 20)]:
-        r = norms(scan.xyz)
-        clouds.append(np.asarray(scan.xyz[(r >= lo) & (r <= hi)], dtype=np.float64))
-    clouds = [c for c in clouds if c.shape[0]]
-    if not clouds:
+    counted = [c for c in clouds[:: max(1, len(clouds) // 20)] if c.shape[0]]
+    if not counted:
         return 1.0
     scale = 1.0
     while True:
-        kept = [c[_voxel_first(c, refine.map_voxel_size * scale)] for c in clouds]
+        kept = [c[_voxel_first(c, refine.map_voxel_size * scale)] for c in counted]
         count = np.median([len(_voxel_first(c, refine.voxel_size * scale)) for c in kept])
         if count >= MIN_KEYPOINTS or scale <= MIN_SCENE_SCALE:
             return scale
@@ -942,13 +937,7 @@ def prepare_sweeps(
         raise DataError(msg)
     kcfg = kiss_icp_config(cfg)
     t_ref = _reference_times(scans)
-    asked = refine
-    scale = scene_scale(scans, cfg, refine)
-    refine = at_scale(refine, scale)
-    search = o3d.geometry.KDTreeSearchParamHybrid(
-        radius=refine.normal_radius, max_nn=refine.normal_neighbors
-    )
-    sweeps = []
+    in_range = []
     for i, scan in enumerate(scans):
         rng = norms(scan.xyz)
         keep = (rng >= kcfg.data.min_range) & (rng <= kcfg.data.max_range)
@@ -959,7 +948,16 @@ def prepare_sweeps(
                 "limits of the odometry and the point units."
             )
             raise DataError(msg)
-        xyz = np.asarray(scan.xyz[keep], dtype=np.float64)
+        in_range.append(keep)
+    clouds = [np.asarray(s.xyz[k], dtype=np.float64) for s, k in zip(scans, in_range, strict=True)]
+    asked = refine
+    scale = scene_scale(clouds, refine)
+    refine = at_scale(refine, scale)
+    search = o3d.geometry.KDTreeSearchParamHybrid(
+        radius=refine.normal_radius, max_nn=refine.normal_neighbors
+    )
+    sweeps = []
+    for i, (scan, keep, xyz) in enumerate(zip(scans, in_range, clouds, strict=True)):
         n_points = xyz.shape[0]
         sel = _voxel_first(xyz, refine.map_voxel_size)
         xyz = xyz[sel]

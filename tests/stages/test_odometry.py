@@ -498,10 +498,9 @@ def test_gyro_aided_odometry_shrinks_its_lengths_to_a_close_scene(tmp_path: Path
     )
     rec, setup, rotation_at = _with_gyro_prior(spec, tmp_path)
     cfg = OdometryConfig()
-    scale = scene_scale(rec.scans, cfg)
-    assert scale == MIN_SCENE_SCALE, scale
     prepared = prepare_sweeps(rec.scans, cfg)
-    assert prepared.scale == scale
+    scale = prepared.scale
+    assert scale == MIN_SCENE_SCALE, scale
     poses = refine_odometry(
         rec.scans, None, cfg, RefineConfig(passes=1), rotation_at=rotation_at, prepared=prepared
     )
@@ -520,17 +519,15 @@ def test_the_refinement_lengths_shrink_until_a_sweep_has_enough_keypoints() -> N
     """A wall of 20 x 20 m keeps the lengths (2500 keypoints of 0.4 m), one of 10 x 10 m has 625
     and takes the first scale of the ladder with 1000 (1 / 1.2^2: 0.83 gives 900), one of 2 x 2 m
     the smallest; the robust scale (the points' noise) stays."""
-    cfg = OdometryConfig(min_range=0.3)
 
-    def wall(side: float) -> list[LidarScan]:
+    def wall(side: float) -> list[npt.NDArray[np.float64]]:
         g = np.arange(-side / 2, side / 2, 0.03)
         u, v = np.meshgrid(g, g)
-        xyz = np.stack([np.full(u.size, 3.0), u.ravel(), v.ravel()], axis=1)
-        return [LidarScan(T0_NS, xyz, np.full(len(xyz), T0_NS, dtype=np.int64))]
+        return [np.stack([np.full(u.size, 3.0), u.ravel(), v.ravel()], axis=1)]
 
-    assert scene_scale(wall(20.0), cfg) == 1.0
-    assert scene_scale(wall(10.0), cfg) == pytest.approx(1.0 / 1.2**2)
-    assert scene_scale(wall(2.0), cfg) == MIN_SCENE_SCALE == 0.25
+    assert scene_scale(wall(20.0)) == 1.0
+    assert scene_scale(wall(10.0)) == pytest.approx(1.0 / 1.2**2)
+    assert scene_scale(wall(2.0)) == MIN_SCENE_SCALE == 0.25
     assert MIN_KEYPOINTS == 1000
     base = RefineConfig()
     half = at_scale(base, 0.5)
