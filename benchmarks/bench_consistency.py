@@ -147,6 +147,7 @@ from _rates import add_rate_options, check_rates, rate_spec_kwargs  # noqa: E402
 from _runner import run_cases  # noqa: E402
 from _settings import add_set_option, load_with  # noqa: E402
 
+from licalib_cli.errors import ConfigError  # noqa: E402
 from licalib_cli.simulation.effects import Effect  # noqa: E402
 from licalib_cli.simulation.spec import LidarKind  # noqa: E402
 
@@ -201,7 +202,10 @@ def one_run(case: dict, workdir: Path) -> dict:
         **kwargs,
     )
     t0 = time.perf_counter()
-    out = simulate(spec, workdir / f"run{case['seed']}", force=True)
+    try:
+        out = simulate(spec, workdir / f"run{case['seed']}", force=True)
+    except ConfigError as err:  # the seed's rig does not fit the room: no bag, nothing to judge
+        return {**case, "verdict": NOT_SIMULATED, "reason": str(err)}
     sim_s = time.perf_counter() - t0
     imu_blocks, lidar_blocks = INTRINSIC_PRESETS[case.get("model", "none")]
     overrides = {"model.imu": list(imu_blocks), "model.lidar": list(lidar_blocks)}
@@ -298,8 +302,15 @@ def one_run(case: dict, workdir: Path) -> dict:
     return row
 
 
+NOT_SIMULATED = "not simulated"
+"""The verdict of a row whose bag the simulator refused (e.g. a lever arm that takes the rig
+through the room's objects): no calibration ran, so it is neither a refusal nor a target miss."""
+
+
 def judge(row: dict) -> str:
     """``ok`` or why the row misses a target."""
+    if row["verdict"] == NOT_SIMULATED:
+        return "ok"
     if row["verdict"] == "pass":
         if row["max_error_over_sigma"] > 3.0:
             return "PASS beyond 3 sigma"
@@ -321,10 +332,10 @@ def judge(row: dict) -> str:
 
 def _line(row: dict) -> str:
     motion = row["scenario"] + row.get("mounting", "")
-    if row["verdict"] == "error":
+    if row["verdict"] in ("error", NOT_SIMULATED):
         return (
             f"{row['seed']:4d} {row['name']:<24} {motion:<8} {row['lidar']:<6} "
-            f"ERROR {row['reason'][:90]}"
+            f"{row['verdict'].upper()} {row['reason'][:90]}"
         )
     unobservable = (
         f"  along the vertical {row['unobservable_mm']:+.0f} mm" if "unobservable_mm" in row else ""
@@ -474,7 +485,13 @@ def main() -> None:
         f"\n{len(rows)} runs: {len(passes)} PASS, "
         f"{sum(r['verdict'] == 'warn' for r in rows)} WARN, "
         f"{sum(r['verdict'] == 'fail' for r in rows)} FAIL, "
-        f"{sum(r['verdict'] == 'error' for r in rows)} refused; target misses: {len(bad)}"
+        f"{sum(r['verdict'] == 'error' for r in rows)} refused"
+        + (
+            f", {unsimulated} not simulated (the simulator refused the seed's rig)"
+            if (unsimulated := sum(r["verdict"] == NOT_SIMULATED for r in rows))
+            else ""
+        )
+        + f"; target misses: {len(bad)}"
     )
     for r in bad:
         print(f"  miss: seed {r['seed']} {r['name']}: {judge(r)}")

@@ -253,3 +253,32 @@ def test_the_diagnose_benchmark_says_an_injected_effect_was_tried_and_not_kept()
     kept = {**row, "named": ["accel_bias_walk"]}
     kept["steps"] = [[*row["steps"][0][:4], True, *row["steps"][0][5:]]]
     assert not [m for m in bench_diagnose.judge(kept) if "not kept" in m]
+
+
+def _bench_consistency() -> ModuleType:
+    """The trust benchmark script, imported as a module."""
+    sys.path.insert(0, str(BENCH.parent))
+    try:
+        import bench_consistency
+    finally:
+        sys.path.remove(str(BENCH.parent))
+    return bench_consistency
+
+
+def test_a_seed_whose_rig_the_simulator_refuses_is_no_refusal_and_no_target_miss(
+    tmp_path: Path,
+) -> None:
+    # seed 14612's 1.97 m lever arm takes the walking rig through the room's objects
+    (case,) = _listed(
+        _run(
+            *("--first-seed", "14600", "--seeds", "14612", "--duration", "20"),
+            *("--lidars", "hdl-32", "os1-32", "os1-128", "--scenarios", "walk", "shake"),
+        )
+    )
+    bench = _bench_consistency()
+    row = bench.one_run(case, tmp_path)
+    assert row["verdict"] == bench.NOT_SIMULATED
+    assert "passes through the simulated room's objects" in row["reason"]
+    assert bench.judge(row) == "ok"
+    assert "NOT SIMULATED" in bench._line(row)
+    assert bench.judge({**row, "verdict": "error"}) == "clean run refused"
