@@ -118,7 +118,8 @@ def inflate(
     """The sigmas to report: the solver's, enlarged to cover what the checks found.
 
     Returns:
-        ``(sigma (7,), reasons)`` with one sentence per enlargement applied.
+        ``(sigma (7,), reasons)`` with one sentence per enlargement applied (none for a
+        chi-square factor that would print as 1.00).
     """
     sigma = raw.copy()
     why: list[str] = []
@@ -126,15 +127,16 @@ def inflate(
     if chi > 1.0:
         sigma = sigma * np.sqrt(chi)
         worst = max(sensors, key=lambda s: s.chi2_per_sample)
-        why.append(
-            f"times {np.sqrt(chi):.2f}, the root of the {worst.sensor} residuals' chi-square "
-            "per sample"
-        )
+        if f"{np.sqrt(chi):.2f}" != "1.00":  # a factor that prints as 1.00 is not worth a line
+            why.append(
+                f"times {np.sqrt(chi):.2f}, the root of the {worst.sensor} residuals' "
+                "chi-square per sample"
+            )
     if split.ran:
         grown = np.maximum(sigma, split_floor(split))
         if np.any(grown > sigma * (1 + 1e-9)):
             why.append(
-                "at least half the difference between the two halves of the segment beyond "
+                "to at least half the difference between the two halves of the segment beyond "
                 "its expected spread"
             )
         sigma = grown

@@ -228,3 +228,17 @@ def test_the_checks_table_says_a_measured_drift_got_its_size_from_the_stamps() -
     scored = replace(drift, measured=False)
     row = next(r for r in Consistency(effects=(scored,)).rows() if r[0] == "effects held fixed")
     assert row[1].startswith("imu_clock_drift: score 1 (dof 3)")
+
+
+@pytest.mark.parametrize(("chi2", "said"), [(1.004, False), (1.21, True)])
+def test_the_residuals_chi_square_enlarges_and_is_said_when_it_shows(
+    chi2: float, said: bool
+) -> None:
+    sensors = (SimpleNamespace(sensor="lidar", chi2_per_sample=chi2),)
+    sigma, why = inflate(
+        RAW, sensors, [], SimpleNamespace(ran=False), SimpleNamespace(jitter=False)
+    )
+    np.testing.assert_allclose(sigma, RAW * np.sqrt(chi2), rtol=1e-12)
+    # "times 1.00" says nothing; "times 1.10" names the sensor whose residuals set it
+    expected = ("times 1.10, the root of the lidar residuals' chi-square per sample",)
+    assert why == (expected if said else ())

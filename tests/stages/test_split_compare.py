@@ -82,7 +82,7 @@ def test_the_sigmas_take_half_the_difference_beyond_its_spread() -> None:
     np.testing.assert_allclose(sigma, expected, rtol=1e-12)
     assert sigma[1] > 10 * raw[1] and sigma[2] == raw[2]  # t_z within its spread: as it was
     assert why == (
-        "at least half the difference between the two halves of the segment beyond its "
+        "to at least half the difference between the two halves of the segment beyond its "
         "expected spread",
     )
 
