@@ -162,7 +162,10 @@ def simulate_command(
         tuple[float, float, float],
         typer.Option(
             "--translation",
-            help="t of T_imu_lidar (LiDAR origin in the IMU frame), m.",
+            metavar="X Y Z",
+            help="t of T_imu_lidar (LiDAR origin in the IMU frame), m, three numbers apart "
+            "(--translation 0.3 -0.15 0.05).",
+            show_default="0.3 0.15 0.05",
             rich_help_panel=_CALIB,
         ),
     ] = (0.3, 0.15, 0.05),
@@ -170,6 +173,7 @@ def simulate_command(
         tuple[float, float, float] | None,
         typer.Option(
             "--rpy-deg",
+            metavar="ROLL PITCH YAW",
             help="Rotation of T_imu_lidar, R = Rz(yaw) Ry(pitch) Rx(roll), deg (default: 1 2 5; "
             "avia: 1 2 95, its forward view along the IMU's +y).",
             rich_help_panel=_CALIB,
@@ -240,12 +244,20 @@ def simulate_command(
     ] = None,
     gyro_bias: Annotated[
         tuple[float, float, float] | None,
-        typer.Option("--gyro-bias", help="Constant gyro bias, rad/s.", rich_help_panel=_CALIB),
+        typer.Option(
+            "--gyro-bias",
+            metavar="X Y Z",
+            help="Constant gyro bias, rad/s.",
+            rich_help_panel=_CALIB,
+        ),
     ] = None,
     accel_bias: Annotated[
         tuple[float, float, float] | None,
         typer.Option(
-            "--accel-bias", help="Constant accelerometer bias, m/s^2.", rich_help_panel=_CALIB
+            "--accel-bias",
+            metavar="X Y Z",
+            help="Constant accelerometer bias, m/s^2.",
+            rich_help_panel=_CALIB,
         ),
     ] = None,
     noise_free: Annotated[

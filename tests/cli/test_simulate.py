@@ -207,3 +207,20 @@ def test_output_that_is_a_file_is_a_clear_error(tmp_path: Path) -> None:
     result = CliRunner().invoke(_app(), ["simulate", str(tmp_path / "taken"), "--duration", "0.2"])
     assert isinstance(result.exception, ConfigError)
     assert "is a file; give a folder path" in str(result.exception)
+
+
+def test_the_help_shows_three_numbers_apart_for_a_vector() -> None:
+    # the typed tuple rendered as <float,float,float> led to --translation 0.3,0.15,0.05,
+    # which is refused; the help shows the form the option takes
+    result = CliRunner().invoke(_app(), ["simulate", "--help"], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    assert "float,float" not in result.output
+    for option, metavar in [
+        ("--translation", "X Y Z"),
+        ("--rpy-deg", "ROLL PITCH YAW"),
+        ("--gyro-bias", "X Y Z"),
+        ("--accel-bias", "X Y Z"),
+    ]:
+        line = next(x for x in result.output.splitlines() if option in x)
+        assert metavar in line, line
+    assert "--translation 0.3 -0.15 0.05" in " ".join(result.output.split())
