@@ -18,6 +18,7 @@ import importlib
 import json
 import logging
 import os
+import re
 import signal
 import sys
 import threading
@@ -135,11 +136,33 @@ def _click_exception_types() -> tuple[tuple[type, ...], tuple[type, ...], tuple[
 
 
 def _usage_message(err: Exception) -> str:
-    """Click's message of a usage error as one sentence (pydantic's prefix removed)."""
+    """Click's message of a usage error as one sentence (pydantic's prefix removed), and for
+    an option of several numbers given joined by commas, the same numbers apart."""
     fmt = getattr(err, "format_message", None)
     text = str(fmt() if callable(fmt) else err).strip()
     text = text.replace("Value error, ", "").rstrip(".")
-    return text + "."
+    args = _state["args"]
+    return text + "." + _numbers_apart(err, list(args) if isinstance(args, tuple) else [])
+
+
+def _numbers_apart(err: Exception, args: list[str]) -> str:
+    """`` Give the 3 numbers apart: --translation 0.1 -0.3 0.08.`` when ``err`` is about an
+    option that takes several values and ``args`` give it ``0.1,-0.3,0.08``; else ``""``."""
+    param = getattr(err, "param", None)
+    nargs = getattr(param, "nargs", 1)
+    opts = list(getattr(param, "opts", ()))
+    named = getattr(err, "option_name", None)
+    if param is None and named:  # the value was the last word: "requires 3 arguments"
+        found = re.search(r"requires (\d+) arguments", str(err))
+        nargs, opts = (int(found.group(1)) if found else 1), [str(named)]
+    if not isinstance(nargs, int) or nargs < 2:
+        return ""
+    for opt in opts:
+        for i, arg in enumerate(args[:-1]):
+            if arg == opt and "," in args[i + 1]:
+                apart = " ".join(p for p in args[i + 1].split(",") if p.strip())
+                return f" Give the {nargs} numbers apart, not joined by commas: {opt} {apart}."
+    return ""
 
 
 def _show_usage_error(err: Exception) -> None:

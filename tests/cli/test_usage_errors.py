@@ -57,6 +57,16 @@ def _check_usage_error(code: int, out: str, err: str, usage: str, message: str) 
             "'bogus' is not one of 'evident', 'config', 'auto'",
         ),
         (["frobnicate"], "licalib [OPTIONS] COMMAND", "No such command 'frobnicate'"),
+        (
+            ["simulate", "OUT", "--translation", "0.12,-0.31,0.08", "--duration", "1"],
+            "licalib simulate",
+            "Give the 3 numbers apart, not joined by commas: --translation 0.12 -0.31 0.08.",
+        ),
+        (
+            ["simulate", "OUT", "--rpy-deg", "3,178,91", "--duration", "1"],
+            "licalib simulate",
+            "Give the 3 numbers apart, not joined by commas: --rpy-deg 3 178 91.",
+        ),
     ],
     ids=[
         "unknown-option",
@@ -67,6 +77,8 @@ def _check_usage_error(code: int, out: str, err: str, usage: str, message: str) 
         "bad-intrinsics",
         "bad-model",
         "bad-command",
+        "vector-with-commas",
+        "angles-with-commas",
     ],
 )
 def test_usage_error_exit_code_6(
@@ -163,3 +175,23 @@ def test_verbosity_after_the_command(capsys: pytest.CaptureFixture[str]) -> None
         assert logger.level == logging.WARNING
     finally:
         logger.setLevel(before)
+
+
+def test_numbers_joined_by_commas_as_the_last_word_get_the_same_hint(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    # click then says only that the option wants 3 values, without a usage line
+    code, out, err = _run(["simulate", "OUT", "--rpy-deg", "-3,178,91"], capsys)
+    assert code == ConfigError.exit_code and out == "", err
+    assert err.strip() == (
+        "Error: Option '--rpy-deg' requires 3 arguments. Give the 3 numbers apart, not joined "
+        "by commas: --rpy-deg -3 178 91."
+    )
+
+
+def test_a_single_number_option_gets_no_hint_about_commas(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    code, out, err = _run(["info", "x.bag", "--start", "1,5"], capsys)
+    _check_usage_error(code, out, err, "licalib info", "Invalid value for '--start'")
+    assert "apart" not in err
