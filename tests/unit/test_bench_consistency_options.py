@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import ast
 import contextlib
+import importlib
 import io
 import runpy
 import subprocess
@@ -145,14 +146,18 @@ def _diagnose(*args: str) -> subprocess.CompletedProcess[str]:
     return _script(DIAGNOSE, *args)
 
 
+def _bench_module(path: Path) -> ModuleType:
+    """A benchmark script, imported as a module (its folder on the path while it imports)."""
+    sys.path.insert(0, str(path.parent))
+    try:
+        return importlib.import_module(path.stem)
+    finally:
+        sys.path.remove(str(path.parent))
+
+
 def _bench_diagnose() -> ModuleType:
     """The diagnose benchmark script, imported as a module."""
-    sys.path.insert(0, str(DIAGNOSE.parent))
-    try:
-        import bench_diagnose
-    finally:
-        sys.path.remove(str(DIAGNOSE.parent))
-    return bench_diagnose
+    return _bench_module(DIAGNOSE)
 
 
 def test_the_diagnose_benchmark_carries_the_sensor_rates_into_every_case() -> None:
@@ -255,16 +260,6 @@ def test_the_diagnose_benchmark_says_an_injected_effect_was_tried_and_not_kept()
     assert not [m for m in bench_diagnose.judge(kept) if "not kept" in m]
 
 
-def _bench_consistency() -> ModuleType:
-    """The trust benchmark script, imported as a module."""
-    sys.path.insert(0, str(BENCH.parent))
-    try:
-        import bench_consistency
-    finally:
-        sys.path.remove(str(BENCH.parent))
-    return bench_consistency
-
-
 def test_a_seed_whose_rig_the_simulator_refuses_is_no_refusal_and_no_target_miss(
     tmp_path: Path,
 ) -> None:
@@ -275,7 +270,7 @@ def test_a_seed_whose_rig_the_simulator_refuses_is_no_refusal_and_no_target_miss
             *("--lidars", "hdl-32", "os1-32", "os1-128", "--scenarios", "walk", "shake"),
         )
     )
-    bench = _bench_consistency()
+    bench = _bench_module(BENCH)
     row = bench.one_run(case, tmp_path)
     assert row["verdict"] == bench.NOT_SIMULATED
     assert "passes through the simulated room's objects" in row["reason"]
