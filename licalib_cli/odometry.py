@@ -812,6 +812,9 @@ MIN_SCENE_SCALE = 0.25
 """The refinement's lengths shrink (:func:`scene_scale`) down to this fraction (the keypoints of
 a sweep grow about as the inverse square)."""
 
+SCALE_SWEEPS = 20
+"""Sweeps, spread over the recording, whose keypoints :func:`scene_scale` counts."""
+
 _SCALE_STEP = 1.2
 """The scales tried: 1, 1 / 1.2, 1 / 1.2^2, ... down to :data:`MIN_SCENE_SCALE`."""
 
@@ -822,7 +825,7 @@ def scene_scale(
     """The factor of the refinement's lengths for the scene of ``clouds`` (every sweep's points
     within the range filter): the largest of 1, 1/1.2, 1/1.2^2, ... (at least
     :data:`MIN_SCENE_SCALE`) at which the median sweep has :data:`MIN_KEYPOINTS` keypoints
-    (twenty sweeps spread over the recording are counted).
+    (:data:`SCALE_SWEEPS` sweeps spread over the recording are counted).
 
     The lengths (:class:`RefineConfig`: 0.4 m keypoint voxels, 0.25 m map voxels, 0.6 m normal
     radius and correspondence distance) were made for spinning LiDARs in rooms. A narrow field
@@ -835,7 +838,7 @@ def scene_scale(
     at 0.37 of the lengths (1650 keypoints).
     """
     refine = refine or RefineConfig()
-    counted = [c for c in clouds[:: max(1, len(clouds) // 20)] if c.shape[0]]
+    counted = [c for c in clouds[:: max(1, len(clouds) // SCALE_SWEEPS)] if c.shape[0]]
     if not counted:
         return 1.0
     scale = 1.0
@@ -949,15 +952,18 @@ def prepare_sweeps(
             )
             raise DataError(msg)
         in_range.append(keep)
-    clouds = [np.asarray(s.xyz[k], dtype=np.float64) for s, k in zip(scans, in_range, strict=True)]
+    # the scale from the sweeps it counts (a copy of every scan's points at once would double
+    # the memory the scans hold)
+    counted = range(0, len(scans), max(1, len(scans) // SCALE_SWEEPS))
     asked = refine
-    scale = scene_scale(clouds, refine)
+    scale = scene_scale([scans[i].xyz[in_range[i]] for i in counted], refine)
     refine = at_scale(refine, scale)
     search = o3d.geometry.KDTreeSearchParamHybrid(
         radius=refine.normal_radius, max_nn=refine.normal_neighbors
     )
     sweeps = []
-    for i, (scan, keep, xyz) in enumerate(zip(scans, in_range, clouds, strict=True)):
+    for i, (scan, keep) in enumerate(zip(scans, in_range, strict=True)):
+        xyz = np.asarray(scan.xyz[keep], dtype=np.float64)
         n_points = xyz.shape[0]
         sel = _voxel_first(xyz, refine.map_voxel_size)
         xyz = xyz[sel]
