@@ -127,10 +127,10 @@ def inflate(
     if chi > 1.0:
         sigma = sigma * np.sqrt(chi)
         worst = max(sensors, key=lambda s: s.chi2_per_sample)
-        factor = f"{np.sqrt(chi):.2f}"
-        if factor != "1.00":  # a factor that prints as 1.00 is not worth a line
+        shown = f"{np.sqrt(chi):.2f}"
+        if shown != "1.00":  # a factor that prints as 1.00 is not worth a line
             why.append(
-                f"times {factor}, the root of the {worst.sensor} residuals' chi-square per sample"
+                f"times {shown}, the root of the {worst.sensor} residuals' chi-square per sample"
             )
     if split.ran:
         grown = np.maximum(sigma, split_floor(split))
