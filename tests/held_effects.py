@@ -80,3 +80,21 @@ def scored_effect(
         shift_rotation_rad=np.zeros(3),
         shift_time_offset_s=0.0,
     )
+
+
+def prior_held(joint: EffectScore, spread: float) -> EffectEvidence:
+    """A one-coordinate block held to its prior, as every coordinate of the extrinsic sees it:
+    its own posterior spread ``spread`` and the joint test's (``joint``: the spread and the move
+    to the posterior mean of the blocks held together)."""
+    return EffectEvidence(
+        score=joint,
+        sensor="imu",
+        selected=False,
+        shift_translation_m=np.zeros(3),
+        shift_rotation_rad=np.zeros(3),
+        shift_time_offset_s=0.0,
+        prior_std=np.full(7, spread),
+        joint_prior_var=np.full(7, joint.prior_shift_sigma[0] ** 2),
+        joint_prior_shift=np.full(7, joint.prior_shift[0]),
+        joint_p_value=joint.p_value,
+    )

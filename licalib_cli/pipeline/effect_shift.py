@@ -18,7 +18,9 @@ whose own information is singular or indefinite held where it is), for the LiDAR
 whose shift the reported sigmas may have to cover. The tests' statistics are not changed: with
 the planes free, a range offset's common mode is nearly a move of every plane towards the
 sensor, and the test would lose the power that names it. IMU effects keep the planes-fixed
-shift (see :func:`~licalib_cli.pipeline.fitcheck.effect_evidence`).
+shift (see :func:`~licalib_cli.pipeline.fitcheck.effect_evidence`), but what the IMU blocks
+held to their priors add to the sigmas is computed with the planes free too
+(:func:`planes_free_priors`): a posterior spread is bounded by its prior.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
-from licalib_cli.consistency import score_effects
+from licalib_cli.consistency import EffectScore, score_effects
 from licalib_cli.estimation import CalibrationState, Planes
 from licalib_cli.pipeline.free_planes import corrected_plane_terms, gauge_hold, lidar_block
 from licalib_cli.pipeline.points import PointSample, points_and_rays_in_global
@@ -38,7 +40,12 @@ from licalib_cli.residuals import PointToPlaneResidual
 from licalib_cli.solver.nuisance import marginal_system
 from licalib_cli.solver.problem import Evaluation, Linearization, Problem
 
-__all__ = ["MIN_PLANE_INFORMATION", "planes_free_shifts"]
+__all__ = [
+    "MIN_PLANE_INFORMATION",
+    "planes_free_priors",
+    "planes_free_shifts",
+    "planes_free_system",
+]
 
 F64 = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.intp]
@@ -82,9 +89,57 @@ def planes_free_shifts(
         name -> ``(shift, shift_sigma)``, each (len(base),) in ``base``'s order; empty when the
         problem has no LiDAR points.
     """
-    block = lidar_block(problem)
-    if block is None or not wanted:
+    if not wanted:
         return {}
+    base_idx = np.asarray(base, dtype=np.intp)
+    columns = np.unique(
+        np.concatenate(
+            [base_idx]
+            + [np.asarray(g, dtype=np.intp) for g, _ in wanted.values()]
+            + [np.asarray(c, dtype=np.intp) for _, cond in wanted.values() for c in cond]
+        )
+    )
+    system = planes_free_system(
+        problem, evaluation, lin, state, sample, plane, planes, range_noise, columns
+    )
+    if system is None:
+        return {}
+    s, b, at = system
+    out = {}
+    for name, (group, freed) in wanted.items():
+        current = np.concatenate([at[base_idx], *(at[np.asarray(c)] for c in freed)])
+        score = score_effects(s, b, current, {name: at[np.asarray(group)]}, variance_factor)[0]
+        out[name] = (score.shift[: base_idx.size], score.shift_sigma[: base_idx.size])
+    return out
+
+
+def planes_free_system(
+    problem: Problem,
+    evaluation: Evaluation,
+    lin: Linearization,
+    state: CalibrationState,
+    sample: PointSample,
+    plane: IntArray,
+    planes: Planes,
+    range_noise: F64,
+    columns: IntArray,
+) -> tuple[F64, F64, IntArray] | None:
+    """The calibration coordinates' information with the map planes free as well.
+
+    Args:
+        problem, evaluation, lin, state, sample, plane, planes, range_noise: as for
+            :func:`planes_free_shifts`.
+        columns: the calibration coordinates to keep (indices into ``lin``'s, sorted); the
+            others are held.
+
+    Returns:
+        ``(S, b, at)``: the Schur complement over ``columns`` (trajectory and planes
+        eliminated), its right-hand side, and ``at`` mapping each of ``lin``'s calibration
+        coordinates to its row (-1: not kept); None when the problem has no LiDAR points.
+    """
+    block = lidar_block(problem)
+    if block is None:
+        return None
     residual = problem.residual_blocks[block]
     assert isinstance(residual, PointToPlaneResidual)
     layout = lin.layout
@@ -117,23 +172,11 @@ def planes_free_shifts(
             H_pp=np.where(held[:, None, None], np.eye(3), terms.H_pp),
             g_p=np.where(held[:, None], 0.0, terms.g_p),
         )
-    base_idx = np.asarray(base, dtype=np.intp)
-    columns = np.unique(
-        np.concatenate(
-            [base_idx]
-            + [np.asarray(g, dtype=np.intp) for g, _ in wanted.values()]
-            + [np.asarray(c, dtype=np.intp) for _, cond in wanted.values() for c in cond]
-        )
-    )
+    columns = np.asarray(columns, dtype=np.intp)
     s, b = marginal_system(lin, terms, gauge_hold(layout), columns)
     at = np.full(layout.num_calibration, -1, dtype=np.intp)
     at[columns] = np.arange(columns.size)
-    out = {}
-    for name, (group, freed) in wanted.items():
-        current = np.concatenate([at[base_idx], *(at[np.asarray(c)] for c in freed)])
-        score = score_effects(s, b, current, {name: at[np.asarray(group)]}, variance_factor)[0]
-        out[name] = (score.shift[: base_idx.size], score.shift_sigma[: base_idx.size])
-    return out
+    return s, b, at
 
 
 def _degenerate(h_pp: F64) -> npt.NDArray[np.bool_]:
@@ -145,3 +188,62 @@ def _degenerate(h_pp: F64) -> npt.NDArray[np.bool_]:
     scaled = d[:, :, None] * h_pp * d[:, None, :]
     low = np.linalg.eigvalsh(0.5 * (scaled + np.swapaxes(scaled, 1, 2)))[:, 0]
     return ~ok | (low < MIN_PLANE_INFORMATION)
+
+
+def planes_free_priors(
+    system: tuple[F64, F64, IntArray],
+    base: Sequence[int],
+    groups: Mapping[str, Sequence[int]],
+    prior: Mapping[str, F64],
+    selected: Sequence[str],
+    variance_factor: float,
+) -> tuple[dict[str, F64], EffectScore | None]:
+    """What the blocks held to their priors add to the estimate, with the map planes free.
+
+    Args:
+        system: :func:`planes_free_system` over ``base`` and every group with a prior (and the
+            ``selected`` groups).
+        base: calibration coordinates the round estimated (indices into the layout's).
+        groups: effect name -> its coordinates.
+        prior: effect name -> (k,) prior sigma of each coordinate (the blocks with a prior).
+        selected: the effects the forward selection added, in order: each block is freed with
+            the ones added before it (the selected ones) or with all of them (the others), as
+            the tests were.
+        variance_factor: the fit's a-posteriori variance factor.
+
+    Returns:
+        ``(spread, joint)``: per block with a prior, the spread its posterior adds to the
+        estimated coordinates (len(base),) (:attr:`~licalib_cli.consistency.EffectScore.
+        prior_shift_sigma`); and the test of all of them as one group with its posterior
+        spread and shift (None without any prior).
+    """
+    s, b, at = system
+    base_idx = np.asarray(base, dtype=np.intp)
+    m = base_idx.size
+    spread = {}
+    for name in prior:
+        before = selected[: selected.index(name)] if name in selected else selected
+        freed = [np.asarray(groups[n], dtype=np.intp) for n in before if n in groups]
+        current = np.concatenate([at[base_idx], *(at[c] for c in freed)])
+        (score,) = score_effects(
+            s,
+            b,
+            current,
+            {name: at[np.asarray(groups[name], dtype=np.intp)]},
+            max(variance_factor, 1.0),
+            prior_sigma={name: prior[name]},
+        )
+        spread[name] = score.prior_shift_sigma[:m]
+    if not prior:
+        return spread, None
+    names = sorted(prior)
+    idx = np.concatenate([np.asarray(groups[n], dtype=np.intp) for n in names])
+    (joint,) = score_effects(
+        s,
+        b,
+        at[base_idx],
+        {"held": at[idx]},
+        max(variance_factor, 1.0),
+        prior_sigma={"held": np.concatenate([prior[n] for n in names])},
+    )
+    return spread, joint
