@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -305,6 +306,13 @@ def test_an_ambiguous_search_that_a_mirrored_gyro_makes_clear_names_a_left_hande
     assert str(flipped.value).startswith(
         "The IMU's axes form a left-handed frame against the LiDAR's: no rotation extrinsic"
     )
+    # a mirrored search just unambiguous but no sharper than the recorded one names nothing (a
+    # walk whose odometry did not follow): the motion is blamed, as without the mirror
+    clear = replace(clear, score=ambiguous.score * 1.03, ambiguity=1.021)
+    seen.clear()
+    with pytest.raises(ExcitationError, match=r"^Rotation excitation is too weak"):
+        ini._searched_rotation(rec, SimpleNamespace(search=None), None, 0.0, load_config(None))  # type: ignore[arg-type]
+    assert len(seen) == 2
 
 
 def test_the_lag_widens_to_the_clocks_difference_from_record_times() -> None:
