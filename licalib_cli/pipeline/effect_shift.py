@@ -20,7 +20,7 @@ the planes free, a range offset's common mode is nearly a move of every plane to
 sensor, and the test would lose the power that names it. IMU effects keep the planes-fixed
 shift (see :func:`~licalib_cli.pipeline.fitcheck.effect_evidence`), but what the IMU blocks
 held to their priors add to the sigmas is computed with the planes free too
-(:func:`planes_free_priors`): a posterior spread is bounded by its prior.
+(:func:`planes_free_spreads`): a posterior spread is bounded by its prior.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
-from licalib_cli.consistency import EffectScore, score_effects
+from licalib_cli.consistency import score_effects
 from licalib_cli.estimation import CalibrationState, Planes
 from licalib_cli.pipeline.free_planes import corrected_plane_terms, gauge_hold, lidar_block
 from licalib_cli.pipeline.points import PointSample, points_and_rays_in_global
@@ -42,8 +42,9 @@ from licalib_cli.solver.problem import Evaluation, Linearization, Problem
 
 __all__ = [
     "MIN_PLANE_INFORMATION",
-    "planes_free_priors",
+    "freed_before",
     "planes_free_shifts",
+    "planes_free_spreads",
     "planes_free_system",
 ]
 
@@ -56,14 +57,7 @@ information, the range noise's part taken out, is below this."""
 
 
 def planes_free_shifts(
-    problem: Problem,
-    evaluation: Evaluation,
-    lin: Linearization,
-    state: CalibrationState,
-    sample: PointSample,
-    plane: IntArray,
-    planes: Planes,
-    range_noise: F64,
+    system: tuple[F64, F64, IntArray],
     base: Sequence[int],
     wanted: Mapping[str, tuple[IntArray, Sequence[IntArray]]],
     variance_factor: float,
@@ -71,40 +65,18 @@ def planes_free_shifts(
     """The shift of the estimated coordinates, and its null spread, per effect, planes free.
 
     Args:
-        problem: the final problem with every effect free (its LiDAR block's whitening as the
-            tests use it).
-        evaluation: its evaluation with Jacobians at ``state``.
-        lin: its normal equations.
-        state: the final estimate.
-        sample: the points of the LiDAR block, as sampled (the same order).
-        plane: (N,) each point's plane.
-        planes: the planes.
-        range_noise: (N,) each point's range noise, m.
+        system: :func:`planes_free_system` over ``base`` and every coordinate of ``wanted``
+            (more are held: only those rows are used).
         base: calibration coordinates the round estimated (indices into ``lin``'s).
         wanted: effect name -> (its coordinates, the groups freed with it: the effects selected
             before it).
         variance_factor: the fit's a-posteriori variance factor.
 
     Returns:
-        name -> ``(shift, shift_sigma)``, each (len(base),) in ``base``'s order; empty when the
-        problem has no LiDAR points.
+        name -> ``(shift, shift_sigma)``, each (len(base),) in ``base``'s order.
     """
-    if not wanted:
-        return {}
-    base_idx = np.asarray(base, dtype=np.intp)
-    columns = np.unique(
-        np.concatenate(
-            [base_idx]
-            + [np.asarray(g, dtype=np.intp) for g, _ in wanted.values()]
-            + [np.asarray(c, dtype=np.intp) for _, cond in wanted.values() for c in cond]
-        )
-    )
-    system = planes_free_system(
-        problem, evaluation, lin, state, sample, plane, planes, range_noise, columns
-    )
-    if system is None:
-        return {}
     s, b, at = system
+    base_idx = np.asarray(base, dtype=np.intp)
     out = {}
     for name, (group, freed) in wanted.items():
         current = np.concatenate([at[base_idx], *(at[np.asarray(c)] for c in freed)])
@@ -127,8 +99,15 @@ def planes_free_system(
     """The calibration coordinates' information with the map planes free as well.
 
     Args:
-        problem, evaluation, lin, state, sample, plane, planes, range_noise: as for
-            :func:`planes_free_shifts`.
+        problem: the final problem with every effect free (its LiDAR block's whitening as the
+            tests use it).
+        evaluation: its evaluation with Jacobians at ``state``.
+        lin: its normal equations.
+        state: the final estimate.
+        sample: the points of the LiDAR block, as sampled (the same order).
+        plane: (N,) each point's plane.
+        planes: the planes.
+        range_noise: (N,) each point's range noise, m.
         columns: the calibration coordinates to keep (indices into ``lin``'s, sorted); the
             others are held.
 
@@ -190,40 +169,41 @@ def _degenerate(h_pp: F64) -> npt.NDArray[np.bool_]:
     return ~ok | (low < MIN_PLANE_INFORMATION)
 
 
-def planes_free_priors(
+def freed_before(name: str, selected: Sequence[str]) -> Sequence[str]:
+    """The effects a test of ``name`` frees with it, as the forward selection tested it: the
+    ones ``selected`` before it, or all of them when it was not selected."""
+    return selected[: selected.index(name)] if name in selected else selected
+
+
+def planes_free_spreads(
     system: tuple[F64, F64, IntArray],
     base: Sequence[int],
     groups: Mapping[str, Sequence[int]],
     prior: Mapping[str, F64],
     selected: Sequence[str],
     variance_factor: float,
-) -> tuple[dict[str, F64], EffectScore | None]:
-    """What the blocks held to their priors add to the estimate, with the map planes free.
+) -> dict[str, F64]:
+    """What each block held to its prior adds to the estimate, with the map planes free.
 
     Args:
-        system: :func:`planes_free_system` over ``base`` and every group with a prior (and the
-            ``selected`` groups).
+        system: :func:`planes_free_system` over ``base``, every group with a prior and the
+            ``selected`` groups.
         base: calibration coordinates the round estimated (indices into the layout's).
         groups: effect name -> its coordinates.
         prior: effect name -> (k,) prior sigma of each coordinate (the blocks with a prior).
         selected: the effects the forward selection added, in order: each block is freed with
-            the ones added before it (the selected ones) or with all of them (the others), as
-            the tests were.
+            :func:`freed_before`, as the tests were.
         variance_factor: the fit's a-posteriori variance factor.
 
     Returns:
-        ``(spread, joint)``: per block with a prior, the spread its posterior adds to the
-        estimated coordinates (len(base),) (:attr:`~licalib_cli.consistency.EffectScore.
-        prior_shift_sigma`); and the test of all of them as one group with its posterior
-        spread and shift (None without any prior).
+        Per block with a prior, the spread its posterior adds to the estimated coordinates
+        (len(base),) (:attr:`~licalib_cli.consistency.EffectScore.prior_shift_sigma`).
     """
     s, b, at = system
     base_idx = np.asarray(base, dtype=np.intp)
-    m = base_idx.size
     spread = {}
     for name in prior:
-        before = selected[: selected.index(name)] if name in selected else selected
-        freed = [np.asarray(groups[n], dtype=np.intp) for n in before if n in groups]
+        freed = [np.asarray(groups[n], dtype=np.intp) for n in freed_before(name, selected)]
         current = np.concatenate([at[base_idx], *(at[c] for c in freed)])
         (score,) = score_effects(
             s,
@@ -233,17 +213,5 @@ def planes_free_priors(
             max(variance_factor, 1.0),
             prior_sigma={name: prior[name]},
         )
-        spread[name] = score.prior_shift_sigma[:m]
-    if not prior:
-        return spread, None
-    names = sorted(prior)
-    idx = np.concatenate([np.asarray(groups[n], dtype=np.intp) for n in names])
-    (joint,) = score_effects(
-        s,
-        b,
-        at[base_idx],
-        {"held": at[idx]},
-        max(variance_factor, 1.0),
-        prior_sigma={"held": np.concatenate([prior[n] for n in names])},
-    )
-    return spread, joint
+        spread[name] = score.prior_shift_sigma[: base_idx.size]
+    return spread

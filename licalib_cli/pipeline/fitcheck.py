@@ -38,8 +38,9 @@ from licalib_cli.consistency import (
 from licalib_cli.consistency.distributions import chi2_sf
 from licalib_cli.estimation import CalibrationState, Planes, build_problem, incidence_cosine
 from licalib_cli.pipeline.effect_shift import (
-    planes_free_priors,
+    freed_before,
     planes_free_shifts,
+    planes_free_spreads,
     planes_free_system,
 )
 from licalib_cli.pipeline.points import PointSample
@@ -47,7 +48,6 @@ from licalib_cli.pipeline.round import RoundInputs, SolvedProblem
 from licalib_cli.pipeline.settings import NoiseLevels, translation_priors
 from licalib_cli.residuals import TIME_OFFSET, AccelResidual, GyroResidual, PointToPlaneResidual
 from licalib_cli.sections import PatternCheck, SensorCheck
-from licalib_cli.solver.problem import Evaluation, Linearization, Problem
 from licalib_cli.solver.schur import schur_complement
 
 __all__ = [
@@ -633,32 +633,38 @@ def effect_evidence(
         shares = explained_shares(sch.S, sch.b, base, groups, significant, floors=floors)
     base_names = [names[i] for i in base]
     joint = _joint_prior(sch.S, sch.b, base, groups, prior, variance_factor)
-    free_spread, free_joint = _planes_free_prior(
-        problem,
-        evaluation,
-        lin,
-        state,
-        inputs,
-        subset,
-        base,
-        groups,
-        prior,
-        selection,
-        variance_factor,
-        sch.b,
+    selected = [s.name for s in selection.selected]
+    wanted = _lidar_wanted(selection, planes_free_p)
+    system = (
+        planes_free_system(
+            problem,
+            evaluation,
+            lin,
+            state,
+            *_lidar_sample(inputs, subset),
+            _columns(base, groups, [*prior, *selected, *wanted]),
+        )
+        if prior or wanted
+        else None
     )
-    planes_free = _planes_free(
-        problem,
-        evaluation,
-        lin,
-        state,
-        inputs,
-        subset,
-        base,
-        groups,
-        selection,
-        planes_free_p,
-        max(variance_factor, 1.0),
+    planes_free = (
+        {}
+        if system is None or not wanted
+        else planes_free_shifts(
+            system,
+            base,
+            {
+                name: (
+                    np.asarray(groups[name], dtype=np.intp),
+                    [np.asarray(groups[n], dtype=np.intp) for n in freed_before(name, selected)],
+                )
+                for name in wanted
+            },
+            max(variance_factor, 1.0),
+        )
+    )
+    free_spread, free_joint = _planes_free_prior(
+        system, sch.b, base, groups, prior, selected, variance_factor
     )
 
     # effects whose size is measured apart from the fit: the shift of holding them at zero
@@ -781,22 +787,20 @@ def _joint_prior(
 
 
 def _planes_free_prior(
-    problem: Problem,
-    evaluation: Evaluation,
-    lin: Linearization,
-    state: CalibrationState,
-    inputs: RoundInputs,
-    subset: npt.NDArray[np.intp],
+    system: tuple[F64, F64, npt.NDArray[np.intp]] | None,
+    b: F64,
     base: list[int],
     groups: dict[str, list[int]],
     prior: dict[str, F64],
-    selection: EffectSelection,
+    selected: list[str],
     variance_factor: float,
-    b: F64,
 ) -> tuple[dict[str, F64], EffectScore | None]:
-    """:func:`~licalib_cli.pipeline.effect_shift.planes_free_priors`: what the blocks held to
-    their priors add to the estimate with the map planes free as well (empty, None without a
-    prior or LiDAR points); ``b`` is the planes-fixed right-hand side (all coordinates).
+    """What the blocks held to their priors add to the estimate with the map planes free as
+    well: each one's spread (:func:`~licalib_cli.pipeline.effect_shift.planes_free_spreads`)
+    and all of them together (:func:`_joint_prior`); empty, None without a prior or LiDAR
+    points (``system`` None). ``system`` is :func:`~licalib_cli.pipeline.effect_shift.
+    planes_free_system` over ``base`` and the groups with a prior, ``b`` the planes-fixed
+    right-hand side (all coordinates).
 
     The map planes were fitted to points mapped with the same estimate: held where they are,
     they take up part of what a held intrinsic moves, as for the LiDAR effects
@@ -812,33 +816,31 @@ def _planes_free_prior(
     and with the planes-free gradient the posterior-mean move of a 10 s Avia shake reached 4.1
     deg and 41 mm (6.0 deg and 59 mm with only the planes' own gradient dropped) where the
     extrinsic was 0.03 deg and 1.2 mm off."""
-    if not prior:
-        return {}, None
-    selected = [s.name for s in selection.selected]
-    columns = np.unique(
-        np.concatenate(
-            [np.asarray(base, dtype=np.intp)]
-            + [np.asarray(groups[n], dtype=np.intp) for n in (*prior, *selected)]
-        )
-    )
-    system = planes_free_system(
-        problem,
-        evaluation,
-        lin,
-        state,
-        *_lidar_sample(inputs, subset),
-        columns,
-    )
-    if system is None:
+    if system is None or not prior:
         return {}, None
     s, _, at = system
-    return planes_free_priors(
-        (s, np.asarray(b, dtype=np.float64)[columns], at),
-        base,
-        groups,
+    kept = np.asarray(b, dtype=np.float64)[at >= 0]  # the system's rows, in order
+    spread = planes_free_spreads((s, kept, at), base, groups, prior, selected, variance_factor)
+    joint = _joint_prior(
+        s,
+        kept,
+        [int(i) for i in at[base]],
+        {n: [int(i) for i in at[groups[n]]] for n in prior},
         prior,
-        selected,
         variance_factor,
+    )
+    return spread, joint
+
+
+def _columns(
+    base: list[int], groups: dict[str, list[int]], names: Sequence[str]
+) -> npt.NDArray[np.intp]:
+    """The calibration coordinates of ``base`` and of the ``names``' groups, sorted."""
+    return np.unique(
+        np.concatenate(
+            [np.asarray(base, dtype=np.intp)]
+            + [np.asarray(groups[n], dtype=np.intp) for n in names]
+        )
     )
 
 
@@ -863,45 +865,18 @@ def _larger_spread(fixed: F64, free: EffectScore | None) -> F64:
     return np.maximum(fixed, np.asarray(free.prior_shift_sigma, dtype=np.float64)[: fixed.size])
 
 
-def _planes_free(
-    problem: Problem,
-    evaluation: Evaluation,
-    lin: Linearization,
-    state: CalibrationState,
-    inputs: RoundInputs,
-    subset: npt.NDArray[np.intp],
-    base: list[int],
-    groups: dict[str, list[int]],
-    selection: EffectSelection,
-    p_value: float,
-    variance_factor: float,
-) -> dict[str, tuple[F64, F64]]:
-    """:func:`~licalib_cli.pipeline.effect_shift.planes_free_shifts` of the LiDAR effects tested
-    below ``p_value``, each freed with the effects selected before it (as the tests).
+def _lidar_wanted(selection: EffectSelection, p_value: float) -> list[str]:
+    """The LiDAR effects tested below ``p_value``: their shifts are computed with the planes
+    free (:func:`~licalib_cli.pipeline.effect_shift.planes_free_shifts`), each freed with the
+    effects selected before it (as the tests).
 
     The IMU effects keep their planes-fixed shifts: with the planes free as well, an IMU effect
     that trades off with the extrinsic rotation (a gyro-to-IMU rotation) is only weakly
     determined on a window with little motion, and its linearised shift grew to degrees where
     the extrinsic was 0.03 deg off (a 10 s walking window with one fast burst, whose gyro
     misfit hints at a gyro rotation the data do not hold)."""
-    selected = [s.name for s in selection.selected]
-    wanted: dict[str, tuple[npt.NDArray[np.intp], list[npt.NDArray[np.intp]]]] = {}
-    for s in (*selection.selected, *selection.remaining):
-        if s.p_value < p_value and s.name.startswith("lidar"):
-            before = selected[: selected.index(s.name)] if s.name in selected else selected
-            wanted[s.name] = (
-                np.asarray(groups[s.name], dtype=np.intp),
-                [np.asarray(groups[n], dtype=np.intp) for n in before],
-            )
-    if not wanted:
-        return {}
-    return planes_free_shifts(
-        problem,
-        evaluation,
-        lin,
-        state,
-        *_lidar_sample(inputs, subset),
-        base,
-        wanted,
-        variance_factor,
-    )
+    return [
+        s.name
+        for s in (*selection.selected, *selection.remaining)
+        if s.p_value < p_value and s.name.startswith("lidar")
+    ]

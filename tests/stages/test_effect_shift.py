@@ -31,7 +31,7 @@ def _held_block_z(rng: np.random.Generator, planes_free: bool, prior: float = 0.
     that the nuisance partly takes up. Returns the squared error of ``x_b`` over its sigma with
     what the prior adds (its spread and the move to its posterior mean), computed with the
     nuisance eliminated or held; the solver's own sigma with the nuisance free either way."""
-    from licalib_cli.pipeline.effect_shift import planes_free_priors
+    from licalib_cli.pipeline.fitcheck import _planes_free_prior
     from licalib_cli.pipeline.inflation import prior_variance
 
     n = 400
@@ -45,13 +45,9 @@ def _held_block_z(rng: np.random.Generator, planes_free: bool, prior: float = 0.
     held_s, b = s_full[:2, :2], g[:2]  # the nuisance held where the fit put it
     keep = [0, 1]  # or eliminated (the right-hand side the planes-fixed one, as the checks take)
     free_s = s_full[np.ix_(keep, keep)] - np.outer(s_full[keep, 2], s_full[2, keep]) / s_full[2, 2]
-    spread, joint = planes_free_priors(
-        (free_s if planes_free else held_s, b, np.arange(2)),
-        [0],
-        {"e": [1]},
-        {"e": np.array([prior])},
-        [],
-        1.0,
+    system = (free_s if planes_free else held_s, np.full(2, np.nan), np.arange(2))
+    spread, joint = _planes_free_prior(
+        system, b, [0], {"e": [1]}, {"e": np.array([prior])}, [], 1.0
     )
     assert joint is not None
     evidence = prior_held(joint, spread["e"][0])
