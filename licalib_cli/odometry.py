@@ -32,6 +32,7 @@ from __future__ import annotations
 import importlib
 import logging
 import sys
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from types import ModuleType
@@ -45,7 +46,7 @@ from scipy.spatial.transform import Rotation
 from licalib_cli.errors import ConfigError, DataError
 from licalib_cli.geometry.vectors import norms
 from licalib_cli.measurements import LidarScan
-from licalib_cli.parallel.threads import threads
+from licalib_cli.parallel.threads import Filled, serial, threads
 
 if TYPE_CHECKING:
     import open3d
@@ -653,6 +654,10 @@ def _registration_pass(
     refine: RefineConfig,
     progress: Callable[[int], None] | None,
     seed_translation: bool = False,
+    *,
+    out: npt.NDArray[np.float64] | None = None,
+    filled: Filled | None = None,
+    previous_filled: Filled | None = None,
 ) -> tuple[npt.NDArray[np.float64], int]:
     """One pass of scan-to-local-map point-to-plane ICP over all K >= 2 scans.
 
@@ -676,6 +681,11 @@ def _registration_pass(
             constrained along one direction then stays near the seed there; from its own
             velocity it ran away on an OS1-64 sinusoid (1.2 m per scan where kiss-icp had
             0.2 m), and the lever arm and the calibration with it.
+        out: (K, 4, 4) array the poses are written to (returned); None: a new one.
+        filled: told how many leading poses of ``out`` are final as the pass goes (a later
+            pass running at the same time reads them); None: nobody waits.
+        previous_filled: how many of ``previous`` are final, when the pass before is still
+            running: scan ``k`` waits for its poses up to ``k + 1``.
 
     Returns:
         (K, 4, 4) poses (the first is the identity) and the number of rejected registrations.
@@ -689,7 +699,8 @@ def _registration_pass(
     first = previous is None
     correspondence = refine.max_correspondence if first else refine.fine_correspondence
     k_total = len(sweeps)
-    out = np.empty((k_total, 4, 4), dtype=np.float64)
+    if out is None:
+        out = np.empty((k_total, 4, 4), dtype=np.float64)
     out[0] = np.eye(4)
     window: list[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]] = []
 
@@ -737,10 +748,19 @@ def _registration_pass(
             return (t_ns[idx] - t_ns[i]).astype(np.float64), xi
         return linear_nodes(i, *prediction(i))
 
+    def wait_for_previous(i: int) -> None:
+        # sweep i reads the previous pass's poses up to i + 1 (its nodes and its guess)
+        if previous_filled is not None:
+            previous_filled.wait_for(min(k_total, i + 2))
+
+    wait_for_previous(0)
     add_to_map(0, sweep_nodes(0))
+    if filled is not None:
+        filled.publish(1)
     n_rejected = 0
     pivot = _PivotPrediction()
     for i in range(1, k_total):
+        wait_for_previous(i)
         if previous is not None:
             guess = out[i - 1] @ np.linalg.inv(previous[i - 1]) @ previous[i]
         elif seed_translation:
@@ -797,10 +817,112 @@ def _registration_pass(
         else:
             out[i] = guess
             n_rejected += 1
+        if filled is not None:
+            filled.publish(i + 1)
         add_to_map(i, nodes)
         if progress is not None:
             progress(i + 1)
     return out, n_rejected
+
+
+def _registration_passes(
+    sweeps: list[_Sweep],
+    t_ns: npt.NDArray[np.int64],
+    seed_rel: npt.NDArray[np.float64],
+    refine: RefineConfig,
+    n_passes: int,
+    progress: ProgressFn | None,
+    seed_translation: bool,
+) -> tuple[npt.NDArray[np.float64], int]:
+    """``n_passes`` registration passes (:func:`_registration_pass`), each from the one before.
+
+    Sweep ``k`` of a pass needs the pass before only up to sweep ``k + 1``, so with a second
+    thread (:func:`~licalib_cli.parallel.threads.threads`) each pass runs one or two sweeps
+    behind the one before instead of after it: open3d's ICP, most of a pass, runs without the
+    GIL. Every pass computes what it computes alone (open3d runs on one thread in either), so
+    the poses are the same. Progress counts the sweeps of every pass done.
+
+    Returns:
+        The last pass's (K, 4, 4) poses and its number of rejected registrations.
+    """
+    k_total = len(sweeps)
+    total = n_passes * k_total
+    outs = [np.empty((k_total, 4, 4), dtype=np.float64) for _ in range(n_passes)]
+    if n_passes < 2 or threads() < 2:
+        previous: npt.NDArray[np.float64] | None = None
+        n_rejected = 0
+        for p in range(n_passes):
+
+            def tick(done: int, p: int = p) -> None:
+                if progress is not None:
+                    progress(p * k_total + done, total)
+
+            previous, n_rejected = _registration_pass(
+                sweeps, t_ns, seed_rel, previous, refine, tick, seed_translation, out=outs[p]
+            )
+        assert previous is not None
+        return previous, n_rejected
+    filled = [Filled() for _ in range(n_passes)]
+    failures: list[BaseException] = []
+
+    def earlier_pass(p: int) -> None:
+        try:
+            with serial():
+                _registration_pass(
+                    sweeps,
+                    t_ns,
+                    seed_rel,
+                    outs[p - 1] if p else None,
+                    refine,
+                    None,
+                    seed_translation,
+                    out=outs[p],
+                    filled=filled[p],
+                    previous_filled=filled[p - 1] if p else None,
+                )
+        except BaseException as err:
+            failures.append(err)
+            filled[p].fail()
+
+    workers = [
+        threading.Thread(target=earlier_pass, args=(p,), name=f"licalib-odometry-pass-{p}")
+        for p in range(n_passes - 1)
+    ]
+    for worker in workers:
+        worker.start()
+
+    def tick_all(done: int) -> None:
+        # the earlier passes are ahead of the last one: their sweeps done, and its own
+        if progress is not None:
+            progress(sum(f.count for f in filled[:-1]) + done, total)
+
+    try:
+        result = _registration_pass(
+            sweeps,
+            t_ns,
+            seed_rel,
+            outs[-2],
+            refine,
+            tick_all,
+            seed_translation,
+            out=outs[-1],
+            previous_filled=filled[-2],
+        )
+    except RuntimeError:
+        if failures:  # a pass before this one failed: its error, not the wait's
+            _join(workers)
+            raise failures[0] from None
+        raise
+    finally:
+        _join(workers)
+    if failures:
+        raise failures[0]
+    return result
+
+
+def _join(workers: Sequence[threading.Thread]) -> None:
+    for worker in workers:
+        worker.join()
 
 
 MIN_KEYPOINTS = 1000
@@ -1128,18 +1250,11 @@ def refine_odometry(
         warm, _ = _registration_pass(*head, warm, refine, None)
         seed_rel[: n_warm - 1] = np.linalg.inv(warm[:-1]) @ warm[1:]
     out = np.eye(4)[None].repeat(k_total, axis=0)
-    previous: npt.NDArray[np.float64] | None = None
     n_rejected = 0
-    for p in range(n_passes if k_total > 1 else 0):
-
-        def tick(done: int, p: int = p) -> None:
-            if progress is not None:
-                progress(p * k_total + done, n_passes * k_total)
-
-        out, n_rejected = _registration_pass(
-            sweeps, t_out, seed_rel, previous, refine, tick, seed_translation
+    if k_total > 1:
+        out, n_rejected = _registration_passes(
+            sweeps, t_out, seed_rel, refine, n_passes, progress, seed_translation
         )
-        previous = out
     if progress is not None:
         progress(n_passes * k_total, n_passes * k_total)
     if n_rejected:

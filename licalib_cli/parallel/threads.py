@@ -42,6 +42,7 @@ __all__ = [
     "BLOCK",
     "MIN_BLOCKS",
     "THREADS",
+    "Filled",
     "map_blocks",
     "map_slices",
     "serial",
@@ -197,3 +198,48 @@ def map_slices(fn: Callable[[slice], T], size: int, block: int = BLOCK) -> list[
     """``fn`` on the consecutive slices of ``range(size)`` of ``block`` items (the last one
     shorter), shared as :func:`map_blocks` shares its blocks; results in slice order."""
     return map_blocks(lambda k: fn(slice(k * block, min((k + 1) * block, size))), -(-size // block))
+
+
+class Filled:
+    """How many leading entries of an array one thread fills in order are final, for another
+    thread that reads them as they come (:meth:`wait_for`).
+
+    The producer calls :meth:`publish` after writing an entry and :meth:`fail` when it stops
+    early; a reader waiting for entries that will never come then raises instead of waiting
+    forever.
+    """
+
+    def __init__(self) -> None:
+        self._count = 0
+        self._failed = False
+        self._changed = threading.Condition()
+
+    @property
+    def count(self) -> int:
+        """Entries final so far."""
+        return self._count
+
+    def publish(self, count: int) -> None:
+        """The first ``count`` entries are final."""
+        with self._changed:
+            self._count = max(self._count, count)
+            self._changed.notify_all()
+
+    def fail(self) -> None:
+        """The producer stopped: no more entries will come."""
+        with self._changed:
+            self._failed = True
+            self._changed.notify_all()
+
+    def wait_for(self, count: int) -> None:
+        """Return once the first ``count`` entries are final.
+
+        Raises:
+            RuntimeError: the producer stopped before filling them.
+        """
+        with self._changed:
+            while self._count < count and not self._failed:
+                self._changed.wait()
+            if self._count < count:
+                msg = f"the producing thread stopped after {self._count} of {count} entries"
+                raise RuntimeError(msg)

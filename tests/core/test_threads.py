@@ -84,6 +84,42 @@ def test_map_blocks_uses_the_pool_keeps_order_and_raises() -> None:
         thr.map_blocks(bad, 8)
 
 
+def test_filled_lets_a_reader_wait_for_entries_and_raises_when_the_producer_stops() -> None:
+    filled = thr.Filled()
+    seen: list[int] = []
+
+    def reader() -> None:
+        filled.wait_for(3)
+        seen.append(filled.count)
+
+    waiting = threading.Thread(target=reader)
+    waiting.start()
+    filled.publish(2)
+    waiting.join(timeout=0.2)
+    assert waiting.is_alive() and not seen  # two of three: still waiting
+    filled.publish(3)
+    waiting.join(timeout=10.0)
+    assert seen == [3]
+    filled.publish(1)  # never counts down
+    assert filled.count == 3
+    filled.wait_for(3)  # already there: returns at once
+
+    errors: list[BaseException] = []
+
+    def stranded() -> None:
+        try:
+            filled.wait_for(5)
+        except RuntimeError as err:
+            errors.append(err)
+
+    waiting = threading.Thread(target=stranded)
+    waiting.start()
+    filled.fail()
+    waiting.join(timeout=10.0)
+    assert not waiting.is_alive()
+    assert len(errors) == 1 and "after 3 of 5" in str(errors[0])
+
+
 @pytest.mark.parametrize(
     ("order", "jacobians", "jacobian_order"),
     [(0, False, None), (0, True, None), (1, True, None), (1, True, 0), (2, True, None)],

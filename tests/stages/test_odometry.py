@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import itertools
 import subprocess
 import sys
+import threading
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -12,6 +15,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from stages_motion import body_rate_from_rotvec
 
+from licalib_cli import odometry
 from licalib_cli.config import load_config
 from licalib_cli.errors import ConfigError, DataError
 from licalib_cli.initialization import (
@@ -267,7 +271,9 @@ def _step_errors_m(
     return np.linalg.norm(rel[:, :3, 3] - true_step, axis=1)
 
 
-def test_refinement_without_rotation_prior(scans: list[LidarScan]) -> None:
+def test_refinement_without_rotation_prior(
+    scans: list[LidarScan], monkeypatch: pytest.MonkeyPatch
+) -> None:
     kiss = run_odometry(scans, _CFG)
     calls: list[tuple[int, int]] = []
     poses = refine_odometry(scans, kiss, _CFG, progress=lambda d, n: calls.append((d, n)))
@@ -289,11 +295,42 @@ def test_refinement_without_rotation_prior(scans: list[LidarScan]) -> None:
     np.testing.assert_array_equal(run_odometry(scans, _CFG).T_map_lidar, kiss.T_map_lidar)
     again = refine_odometry(scans, kiss, _CFG)
     np.testing.assert_array_equal(again.T_map_lidar, poses.T_map_lidar)
+    # the second pass running one sweep behind the first on a second thread: the same poses
+    # as one pass after the other, and the progress still counts up to both passes' sweeps
+    piped_calls: list[tuple[int, int]] = []
+    with monkeypatch.context() as m:
+        m.setattr(thr, "THREADS", 2)  # also when the suite runs with LICALIB_THREADS=1
+        piped = refine_odometry(scans, kiss, _CFG, progress=lambda d, n: piped_calls.append((d, n)))
+    with thr.serial():
+        alone = refine_odometry(scans, kiss, _CFG)
+    np.testing.assert_array_equal(piped.T_map_lidar, alone.T_map_lidar)
+    assert piped_calls[-1] == (40, 40)
+    assert all(b[0] >= a[0] for a, b in itertools.pairwise(piped_calls))
 
     with pytest.raises(DataError, match="pass the scans"):
         refine_odometry(scans[:5], kiss, _CFG)
     with pytest.raises(DataError, match="sort the scans"):
         refine_odometry([scans[1], scans[0]], run_odometry(scans[:2], _CFG), _CFG)
+
+
+def test_an_error_in_a_pass_running_ahead_is_raised_not_waited_for(
+    scans: list[LidarScan], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    kiss = run_odometry(scans, _CFG)
+    deskew = odometry._deskew
+
+    def failing(*args: Any, **kwargs: Any) -> Any:
+        # the first pass runs on its own thread, ahead of the second
+        if threading.current_thread().name == "licalib-odometry-pass-0":
+            msg = "a sweep the first pass cannot deskew"
+            raise ValueError(msg)
+        return deskew(*args, **kwargs)
+
+    monkeypatch.setattr(odometry, "_deskew", failing)
+    monkeypatch.setattr(thr, "THREADS", 2)
+    with pytest.raises(ValueError, match="cannot deskew"):
+        refine_odometry(scans, kiss, _CFG)
+    assert not [t for t in threading.enumerate() if t.name.startswith("licalib-odometry")]
 
 
 @pytest.fixture(scope="module")
