@@ -72,7 +72,7 @@ from licalib_cli.pipeline.prior_directions import (
     lever_arm_conflict,
     on_prior,
 )
-from licalib_cli.pipeline.schedule import JITTER_FACTOR, MAX_FINAL_ROUNDS, Change, Fit, within
+from licalib_cli.pipeline.schedule import JITTER_FACTOR, Change, Fit, within
 from licalib_cli.pipeline.settings import NoiseLevels, narrow_association, prior_sd
 from licalib_cli.pipeline.split import COORDINATES, SplitResult, split_half
 from licalib_cli.pipeline.unchecked_priors import (
@@ -249,7 +249,7 @@ def _convergence(
         return [
             Finding(
                 "fail",
-                f"The calibration did not converge: each of the {MAX_FINAL_ROUNDS} denser final "
+                f"The calibration did not converge: each of the {fit.final_rounds} denser final "
                 f"rounds moved the estimate by many of its sigmas (the last "
                 f"{1e3 * c.translation_m:.1f} mm / {c.rotation_deg:.3f} deg / "
                 f"{1e3 * c.time_offset_s:.2f} ms): the denser points pull the estimate away "

@@ -493,11 +493,59 @@ def test_dense_rounds_that_keep_jumping_are_a_non_convergence(
     assert sum(r[3] for r in run.rounds) == MAX_FINAL_ROUNDS
     fit = run.fit
     assert fit.final_unsettled and not fit.converged
+    assert fit.final_rounds == MAX_FINAL_ROUNDS
     assert fit.last_change.translation_m == pytest.approx(2e-3)
     cfg = CalibConfig()
     (finding,) = checks._convergence(fit, cfg)
     assert finding.severity == "fail"
-    assert finding.text.startswith("The calibration did not converge")
+    assert finding.text.startswith(
+        f"The calibration did not converge: each of the {MAX_FINAL_ROUNDS} denser final rounds"
+    )
+
+
+def test_dense_rounds_that_converge_go_on_past_the_cap_until_they_settle(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Dense rounds moving 40, 16, 6.4 and 2.56 sigmas: each move shrinks to 0.4 of the one
+    before, so a fourth round follows the cap of three and settles (within 5 sigmas)."""
+    dense_moves: list[float] = []
+
+    def step(index: int, dense: bool) -> float:
+        if not dense:
+            return _settling(index)
+        dense_moves.append(40.0 * 0.4 ** len(dense_moves))
+        return dense_moves[-1]
+
+    run = _schedule(monkeypatch, step, lidar=False, final_points=400, sigma_mm=1.0)
+    assert sum(r[3] for r in run.rounds) == MAX_FINAL_ROUNDS + 1
+    fit = run.fit
+    assert fit.converged and not fit.final_unsettled
+    assert fit.final_rounds == MAX_FINAL_ROUNDS + 1
+    assert fit.final_jump == pytest.approx(2.56)
+
+
+@pytest.mark.parametrize(("shrink", "rounds"), [(0.6, MAX_FINAL_ROUNDS), (0.5, 6)])
+def test_dense_rounds_that_shrink_too_slowly_or_too_long_are_a_non_convergence(
+    monkeypatch: pytest.MonkeyPatch, shrink: float, rounds: int
+) -> None:
+    """Moves shrinking to 0.6 of the one before stop at the cap of three; to 0.5 (1000, 500,
+    ... 31 sigmas) at the cap of converging rounds, still beyond 5 sigmas."""
+    assert rounds == schedule.MAX_CONVERGING_FINAL_ROUNDS or shrink > schedule.FINAL_SHRINK
+    dense_moves: list[float] = []
+
+    def step(index: int, dense: bool) -> float:
+        if not dense:
+            return _settling(index)
+        dense_moves.append(1000.0 * shrink ** len(dense_moves))
+        return dense_moves[-1]
+
+    run = _schedule(monkeypatch, step, lidar=False, final_points=400, sigma_mm=1.0)
+    assert sum(r[3] for r in run.rounds) == rounds
+    fit = run.fit
+    assert fit.final_unsettled and not fit.converged
+    assert fit.final_rounds == rounds
+    (finding,) = checks._convergence(fit, CalibConfig())
+    assert f"each of the {rounds} denser final rounds" in finding.text
     assert "denser final rounds" in finding.text
 
 
