@@ -87,6 +87,7 @@ __all__ = [
     "Fit",
     "cover_truncated",
     "crawls",
+    "dense_rounds_rested",
     "final_jump",
     "refined_summary",
     "run_schedule",
@@ -168,6 +169,12 @@ truth where the data determine it; a fourth dense round moved 0.4 mm."""
 MAX_CONVERGING_FINAL_ROUNDS = 6
 """Dense final rounds at most while they converge (:data:`FINAL_SHRINK`)."""
 
+DENSE_REST_SIGMAS = 1.0
+"""A last dense final round that moved the extrinsic by at most this many of its sigmas, after
+an earlier one had moved it by more (:func:`dense_rounds_rested`), shows the estimate at rest on
+a map rebuilt at it, whatever the regular rounds did before."""
+
+
 _PROBE_POINTS = 5000
 """Points whose displacement between rounds measures how much the map moved."""
 
@@ -236,6 +243,12 @@ class Fit:
     final_rounds: int = 0
     extra_rounds: int = 0
     points: PointBudget | None = None
+
+
+def dense_rounds_rested(fit: Fit) -> bool:
+    """Whether the denser final rounds came to rest (:data:`DENSE_REST_SIGMAS`) after at least
+    two of them: the estimate is where the rounds, on the denser sample, stop moving it."""
+    return not fit.final_unsettled and fit.final_rounds >= 2 and fit.final_jump <= DENSE_REST_SIGMAS
 
 
 def _change(before: CalibrationState, after: CalibrationState) -> Change:

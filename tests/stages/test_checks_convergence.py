@@ -31,6 +31,8 @@ def test_rounds_moving_at_the_cap_fail_unless_within_the_sigmas() -> None:
         jitter=False,
         last_change=Change(4e-4, 0.035, 3e-5),
         extra_rounds=0,
+        final_rounds=1,
+        final_jump=0.3,
     )
     cfg = CalibConfig()
     (failed,) = _convergence(fit, cfg)  # type: ignore[arg-type]
@@ -58,8 +60,39 @@ def test_rounds_that_crawl_at_the_cap_fail_and_say_which_coordinate() -> None:
         jitter=False,
         last_change=Change(5.1e-3, 0.03, 1e-5),
         extra_rounds=0,
+        final_rounds=0,
+        final_jump=0.0,
     )
     crawl = Crawl(coordinate=0, net=12.7e-3, sigma=7.15e-3, rounds=4)
     (failed,) = _convergence(fit, CalibConfig(), crawl=crawl)  # type: ignore[arg-type]
     assert failed.severity == "fail" and "did not converge" in failed.text
     assert "its last 4 rounds moved t_x by +12.7 mm (its sigma 7.15 mm) the same way" in failed.text
+
+
+def test_rounds_moving_at_the_cap_warn_when_the_dense_rounds_after_them_came_to_rest() -> None:
+    """The regular rounds ran out still moving; the dense rounds after them moved the estimate
+    by many of its sigmas, then by at most one (a 10 s Avia sinusoid with the IMU intrinsics
+    estimated: 62.7, 10.8 and 0.5 sigmas)."""
+    fit = SimpleNamespace(
+        converged=False,
+        final_unsettled=False,
+        jitter=False,
+        last_change=Change(8.5e-3, 0.031, 2.0e-4),
+        extra_rounds=0,
+        final_rounds=3,
+        final_jump=0.5,
+    )
+    crawl = Crawl(coordinate=5, net=np.radians(-0.784), sigma=np.radians(0.0196), rounds=4)
+    (warned,) = _convergence(fit, CalibConfig(), crawl=crawl)  # type: ignore[arg-type]
+    assert warned.severity == "warn"
+    assert warned.text.startswith(
+        "After schedule.max_rounds = 12 rounds the estimate still moved 8.5 mm / 0.031 deg / "
+        "0.20 ms per round; the 3 denser final rounds after them came to rest (the last moved "
+        "it 0.5 of its sigmas)"
+    )
+    # not at rest: the last dense round moved more than one sigma, or only one dense round ran
+    # (nothing checked where it went), or they never settled
+    for rounds, jump, unsettled in ((3, 1.5, False), (1, 0.5, False), (6, 0.5, True)):
+        fit.final_rounds, fit.final_jump, fit.final_unsettled = rounds, jump, unsettled
+        (failed,) = _convergence(fit, CalibConfig(), crawl=crawl)  # type: ignore[arg-type]
+        assert failed.severity == "fail" and "did not converge" in failed.text
