@@ -16,6 +16,20 @@ from licalib_cli.pipeline.schedule import Change
 SIGMA = np.array([1e-3, 0.4e-3, 0.6e-3, *np.radians([0.5, 0.3, 0.2]), 2e-4])
 
 
+def _at_cap(change: Change, final_rounds: int = 0, final_jump: float = 0.0) -> SimpleNamespace:
+    """A fit whose regular rounds ran out still moving by ``change``, with ``final_rounds``
+    denser final rounds after them, the last moving it ``final_jump`` of its sigmas."""
+    return SimpleNamespace(
+        converged=False,
+        final_unsettled=False,
+        jitter=False,
+        last_change=change,
+        extra_rounds=0,
+        final_rounds=final_rounds,
+        final_jump=final_jump,
+    )
+
+
 def test_a_change_below_every_reported_sigma_is_within_them() -> None:
     assert within_sigmas(Change(0.4e-3, 0.035, 0.03e-3), SIGMA)  # the trust benchmark's 1300
     assert not within_sigmas(Change(1.2e-3, 0.035, 0.03e-3), SIGMA)  # translation beyond
@@ -25,15 +39,7 @@ def test_a_change_below_every_reported_sigma_is_within_them() -> None:
 
 
 def test_rounds_moving_at_the_cap_fail_unless_within_the_sigmas() -> None:
-    fit = SimpleNamespace(
-        converged=False,
-        final_unsettled=False,
-        jitter=False,
-        last_change=Change(4e-4, 0.035, 3e-5),
-        extra_rounds=0,
-        final_rounds=1,
-        final_jump=0.3,
-    )
+    fit = _at_cap(Change(4e-4, 0.035, 3e-5), final_rounds=1, final_jump=0.3)
     cfg = CalibConfig()
     (failed,) = _convergence(fit, cfg)  # type: ignore[arg-type]
     assert failed.severity == "fail" and "did not converge" in failed.text
@@ -54,15 +60,7 @@ def test_rounds_moving_at_the_cap_fail_unless_within_the_sigmas() -> None:
 
 
 def test_rounds_that_crawl_at_the_cap_fail_and_say_which_coordinate() -> None:
-    fit = SimpleNamespace(
-        converged=False,
-        final_unsettled=False,
-        jitter=False,
-        last_change=Change(5.1e-3, 0.03, 1e-5),
-        extra_rounds=0,
-        final_rounds=0,
-        final_jump=0.0,
-    )
+    fit = _at_cap(Change(5.1e-3, 0.03, 1e-5))
     crawl = Crawl(coordinate=0, net=12.7e-3, sigma=7.15e-3, rounds=4)
     (failed,) = _convergence(fit, CalibConfig(), crawl=crawl)  # type: ignore[arg-type]
     assert failed.severity == "fail" and "did not converge" in failed.text
@@ -73,15 +71,7 @@ def test_rounds_moving_at_the_cap_warn_when_the_dense_rounds_after_them_came_to_
     """The regular rounds ran out still moving; the dense rounds after them moved the estimate
     by many of its sigmas, then by at most one (a 10 s Avia sinusoid with the IMU intrinsics
     estimated: 62.7, 10.8 and 0.5 sigmas)."""
-    fit = SimpleNamespace(
-        converged=False,
-        final_unsettled=False,
-        jitter=False,
-        last_change=Change(8.5e-3, 0.031, 2.0e-4),
-        extra_rounds=0,
-        final_rounds=3,
-        final_jump=0.5,
-    )
+    fit = _at_cap(Change(8.5e-3, 0.031, 2.0e-4), final_rounds=3, final_jump=0.5)
     crawl = Crawl(coordinate=5, net=np.radians(-0.784), sigma=np.radians(0.0196), rounds=4)
     (warned,) = _convergence(fit, CalibConfig(), crawl=crawl)  # type: ignore[arg-type]
     assert warned.severity == "warn"
