@@ -20,8 +20,8 @@ the planes free, a range offset's common mode is nearly a move of every plane to
 sensor, and the test would lose the power that names it. IMU effects keep the planes-fixed
 shift (see :func:`~licalib_cli.pipeline.fitcheck.effect_evidence`), but what the IMU blocks
 held to their priors add to the sigmas is computed with the planes free too
-(:func:`planes_free_spreads`): a posterior spread is bounded by its prior.
-"""
+(:func:`planes_free_spreads`): a posterior spread is bounded by its prior. Not beside estimated
+LiDAR intrinsics (see :func:`~licalib_cli.pipeline.fitcheck._planes_free_prior`)."""
 
 from __future__ import annotations
 
