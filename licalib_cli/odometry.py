@@ -910,19 +910,14 @@ def _registration_passes(
         )
     except RuntimeError:
         if failures:  # a pass before this one failed: its error, not the wait's
-            _join(workers)
             raise failures[0] from None
         raise
     finally:
-        _join(workers)
+        for worker in workers:  # before any error leaves: no pass outlives the call
+            worker.join()
     if failures:
         raise failures[0]
     return result
-
-
-def _join(workers: Sequence[threading.Thread]) -> None:
-    for worker in workers:
-        worker.join()
 
 
 MIN_KEYPOINTS = 1000
