@@ -7,10 +7,16 @@ values the map was built with, so the rounds move it by less than their toleranc
 short of the optimum. This stage takes the final round's points and associations and runs
 Gauss-Newton steps of the joint problem: trajectory, calibration and every plane (two normal
 directions about the plane's centroid and its offset), the planes eliminated per plane
-(:func:`licalib_cli.solver.nuisance.nuisance_step`), the gauge (the whole map and trajectory
-moving together) held at the first control point. A step is kept only when it lowers the cost
-with the stepped planes. The solver then settles the state on the final planes and reports the
-sigmas there.
+(:func:`licalib_cli.solver.nuisance.eliminate_nuisance`), the gauge (the whole map and
+trajectory moving together) held at the first control point. A step is kept only when it lowers
+the cost with the stepped planes. The steps after the first are chord steps: the first step's
+elimination (the banded factor of the trajectory, the Gram product of its couplings with the
+planes and the factor of the planes' block: about 0.9 s of a 1.5 s step on a 15 s VLP-16 bag)
+solved with the gradient at the new estimate, a step of millimetres not changing the curvature
+measurably (the dense round of that bag: the second step lowered the cost from 12887.5 to
+12882.0 either way, in 0.7 s as a chord step and 1.6 s as a full one). The solver then settles
+the state on the final planes and reports the sigmas there; the planes-free information kept
+for the sigmas is the first step's (its linearisation and elimination).
 
 A plane's normal fitted to the same noisy points whose distances it scores is biased: the range
 noise moves each point along its ray, and the noise's own spread (``sigma^2 (n . u)^2`` per
@@ -48,9 +54,12 @@ from licalib_cli.solver import s2_basis
 from licalib_cli.solver.lm import LMParams, SolverReport, solve_with_linearization
 from licalib_cli.solver.nuisance import (
     NuisanceStep,
+    NuisanceSystem,
     NuisanceTerms,
-    nuisance_step,
+    eliminate_nuisance,
+    nuisance_gradient,
     nuisance_terms,
+    whole_trajectory,
 )
 from licalib_cli.solver.observability import undamped_schur
 from licalib_cli.solver.problem import Evaluation, Layout, Linearization, Problem
@@ -68,6 +77,7 @@ __all__ = [
     "gauge_hold",
     "lidar_block",
     "noise_corrected",
+    "noise_corrected_gradient",
     "noise_cost",
     "plane_jacobian",
     "planes_free_steps",
@@ -188,14 +198,36 @@ def noise_corrected(
         The terms with ``sum noise^2 (B^T u)(n . u)`` taken from the normal's gradient and
         ``sum noise^2 (B^T u)(B^T u)^T`` from its curvature (the module docstring).
     """
-    basis = s2_basis(normal)[plane]  # (N, 3, 2)
-    across = np.einsum("nij,ni->nj", basis, rays) * noise[:, None]  # (N, 2)
-    along = _noise_along(plane, normal, rays, noise)
-    g_p = terms.g_p.copy()
+    across = _noise_across(plane, normal, rays, noise)
     h_pp = terms.H_pp.copy()
-    np.add.at(g_p[:, :2], plane, -across * along[:, None])
     np.add.at(h_pp[:, :2, :2], plane, -across[:, :, None] * across[:, None, :])
+    g_p = noise_corrected_gradient(terms.g_p, plane, normal, rays, noise, across)
     return replace(terms, g_p=g_p, H_pp=h_pp)
+
+
+def noise_corrected_gradient(
+    g_p: F64,
+    plane: npt.NDArray[np.intp],
+    normal: F64,
+    rays: F64,
+    noise: F64,
+    across: F64 | None = None,
+) -> F64:
+    """:func:`noise_corrected`'s gradient alone: ``g_p`` (P, 3) less ``sum noise^2 (B^T u)
+    (n . u)`` in the normal's coordinates (``across``: (N, 2) ``noise B^T u`` when the caller
+    has it)."""
+    if across is None:
+        across = _noise_across(plane, normal, rays, noise)
+    along = _noise_along(plane, normal, rays, noise)
+    out = np.array(g_p, dtype=np.float64)
+    np.add.at(out[:, :2], plane, -across * along[:, None])
+    return out
+
+
+def _noise_across(plane: npt.NDArray[np.intp], normal: F64, rays: F64, noise: F64) -> F64:
+    """(N, 2) each point's whitened range noise across its plane's normal, ``noise B^T u``."""
+    basis = s2_basis(normal)[plane]  # (N, 3, 2)
+    return np.einsum("nij,ni->nj", basis, rays) * noise[:, None]
 
 
 def noise_cost(plane: npt.NDArray[np.intp], normal: F64, rays: F64, noise: F64) -> float:
@@ -498,6 +530,8 @@ def planes_free_steps_from(
     # the next step, or by the solve after the steps) at the same estimate
     evaluated: list[tuple[Problem, Evaluation]] = []
     last_step: list[tuple[Linearization, NuisanceStep]] = []
+    # the first step's elimination: the steps after it are chord steps on its curvature
+    eliminated: list[NuisanceSystem] = []
     if solved is not None:
         evaluated.append((solved.problem, solved.evaluation))
 
@@ -514,41 +548,57 @@ def planes_free_steps_from(
         problem: Problem, current: tuple[CalibrationState, Planes]
     ) -> tuple[float, NuisanceStep, Callable[[float], Stepped[tuple[CalibrationState, Planes]]]]:
         state, planes = current
-        if solved is not None and problem is solved.problem and planes is inputs.planes:
-            # the round's own evaluation and normal equations at this estimate
-            evaluation, lin = solved.evaluation, solved.linearization
-            layout = lin.layout
-        else:
-            layout = problem.layout()
-            evaluation = evaluation_of(problem)
-            lin = problem.linearize(evaluation, layout)
         residual = problem.residual_blocks[block]
         assert isinstance(residual, PointToPlaneResidual)
         p_g, rays = points_and_rays(state)
         normal = np.asarray(planes.normal, dtype=np.float64)
-        terms, centroid, noise = corrected_plane_terms(
-            problem,
-            evaluation,
-            layout,
-            block,
-            residual.whitening(),
-            p_g,
-            rays,
-            plane,
-            normal,
-            range_noise,
-        )
+        whitening = residual.whitening()
+        system = eliminated[0] if eliminated else None
+        if system is not None and not problem.layout().same_coordinates(system.lin.layout):
+            system = None  # other free coordinates: a step of its own
+        if system is not None:
+            # a chord step: the first step's elimination with the gradient here
+            layout = system.lin.layout
+            evaluation = evaluation_of(problem)
+            jac, centroid = plane_jacobian(p_g, plane, normal)
+            jac *= whitening[:, None]
+            noise = whitening * range_noise
+            g_p = nuisance_gradient(evaluation, block, jac, plane, normal.shape[0])
+            g_p = noise_corrected_gradient(g_p, plane, normal, rays, noise)
+            step = system.step(problem.gradient(evaluation, layout), [g_p])
+        else:
+            if solved is not None and problem is solved.problem and planes is inputs.planes:
+                # the round's own evaluation and normal equations at this estimate
+                evaluation, lin = solved.evaluation, solved.linearization
+                layout = lin.layout
+            else:
+                layout = problem.layout()
+                evaluation = evaluation_of(problem)
+                lin = problem.linearize(evaluation, layout)
+            terms, centroid, noise = corrected_plane_terms(
+                problem,
+                evaluation,
+                layout,
+                block,
+                whitening,
+                p_g,
+                rays,
+                plane,
+                normal,
+                range_noise,
+            )
+            system = eliminate_nuisance(
+                lin,
+                [whole_trajectory(lin, terms, gauge_hold(layout))],
+                tsvd_threshold=lm.tsvd_threshold if lm.use_tsvd else 0.0,
+                tsvd_relative=lm.tsvd_relative,
+                weak_floor=lm.weak_floor,
+                bounded_blocks=lm.bounded_blocks,
+            )
+            eliminated[:] = [system]
+            step = system.step()
         cost = evaluation.cost - noise_cost(plane, normal, rays, noise)
-        step = nuisance_step(
-            lin,
-            terms,
-            gauge_hold(layout),
-            tsvd_threshold=lm.tsvd_threshold if lm.use_tsvd else 0.0,
-            tsvd_relative=lm.tsvd_relative,
-            weak_floor=lm.weak_floor,
-            bounded_blocks=lm.bounded_blocks,
-        )
-        last_step[:] = [(lin, step)]
+        last_step[:] = [(system.lin, step)]
 
         def trial(fraction: float) -> Stepped[tuple[CalibrationState, Planes]]:
             moved = state_from_values(state, problem.retracted_values(fraction * step.dx, layout))

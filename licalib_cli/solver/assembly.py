@@ -45,8 +45,10 @@ __all__ = [
     "GroupCache",
     "TrajectoryPattern",
     "add_dense",
+    "add_dense_gradient",
     "add_dense_split",
     "add_sparse",
+    "add_sparse_gradient",
     "first_with_same_elements",
     "same_elements",
 ]
@@ -895,6 +897,29 @@ def add_dense_split(
         acc.h_tc += a.h_tc
         acc.h_cc += a.h_cc
         g += gk
+
+
+def add_dense_gradient(parts: list[DensePart], r_w: F64, g: F64) -> None:
+    """Add ``J^T r_w`` of a residual block whose Jacobians are all dense: the gradient alone,
+    as :func:`add_dense` adds it with the curvature.
+
+    Args:
+        parts: the Jacobian pieces on free coordinates.
+        r_w: (n, m) whitened residuals times the IRLS weights (not their square roots).
+        g: (Nt + Nc,) gradient, added to.
+    """
+    n = r_w.shape[0]
+    for part in parts:
+        values = np.einsum("nmw,nm->nw", part.values, r_w)
+        _add_gradient(g, part.table[part.elements].reshape(n, -1), values)
+
+
+def add_sparse_gradient(pieces: list[tuple[IntArray, IntArray, F64]], r_w: F64, g: F64) -> None:
+    """Add ``J^T r_w`` of a residual block with sparse Jacobian pieces (arguments as
+    :func:`add_dense_gradient`'s; ``pieces`` as :func:`add_sparse`'s)."""
+    flat = r_w.reshape(-1)
+    for rows, cols, values in pieces:
+        _add_gradient(g, cols, values * flat[rows])
 
 
 def add_sparse(

@@ -22,7 +22,9 @@ then ``p`` gives the calibration information ``S = S_cc - S_cp S_pp^-1 S_pc`` wi
 
 :func:`nuisance_step` solves the same system for a Gauss-Newton step of all three (the nuisance
 estimated with the problem instead of held fixed), with the calibration step restricted to the
-directions the joint information determines.
+directions the joint information determines. :func:`eliminate_nuisance` keeps the elimination
+(:class:`NuisanceSystem`), whose steps for the gradient at a nearby estimate are chord steps on
+the same curvature: a banded solve and a few products instead of a new elimination.
 
 :func:`segmented_nuisance_step` is the same step for a problem made of segments that share only
 the calibration (the multi-segment calibration: each segment has its own trajectory and its own
@@ -59,13 +61,17 @@ __all__ = [
     "GRAM_SPLIT",
     "NuisanceSegment",
     "NuisanceStep",
+    "NuisanceSystem",
     "NuisanceTerms",
+    "eliminate_nuisance",
     "gram",
     "marginal_schur",
     "marginal_system",
+    "nuisance_gradient",
     "nuisance_step",
     "nuisance_terms",
     "segmented_nuisance_step",
+    "whole_trajectory",
 ]
 
 F64 = npt.NDArray[np.float64]
@@ -129,6 +135,42 @@ def nuisance_terms(
     Raises:
         ValueError: On mismatched shapes.
     """
+    r, weight, jp, grp = _nuisance_inputs(evaluation, block, jac_p, group, "nuisance_terms")
+    n, k = jp.shape
+    g = int(grp.max()) + 1 if num_groups is None and n else int(num_groups or 0)
+    g_p = _nuisance_gradient(r, weight, jp, grp, g)
+    h_xp = problem.coupling_matrix(evaluation, block, layout, jp * weight[:, None], grp, g)
+    jp = jp * np.sqrt(weight)[:, None]
+    h_pp = np.zeros((g, k, k))
+    np.add.at(h_pp, grp, jp[:, :, None] * jp[:, None, :])
+    return NuisanceTerms(h_xp, h_pp, g_p)
+
+
+def nuisance_gradient(
+    evaluation: Evaluation, block: int, jac_p: F64, group: npt.ArrayLike, num_groups: int
+) -> F64:
+    """The gradient ``J_p^T r`` (robust-loss weighted) of nuisance coordinates entering one
+    residual block: :func:`nuisance_terms`'s ``g_p`` alone (arguments as its).
+
+    Returns:
+        (G, k) the gradient.
+
+    Raises:
+        ValueError: On mismatched shapes.
+    """
+    r, weight, jp, grp = _nuisance_inputs(evaluation, block, jac_p, group, "nuisance_gradient")
+    return _nuisance_gradient(r, weight, jp, grp, num_groups)
+
+
+def _nuisance_inputs(
+    evaluation: Evaluation, block: int, jac_p: F64, group: npt.ArrayLike, caller: str
+) -> tuple[F64, F64, F64, IntArray]:
+    """``(r (N,), robust-loss weights (N,), jac_p (N, k), group (N,))`` of a nuisance entering
+    one residual block, checked.
+
+    Raises:
+        ValueError: On mismatched shapes.
+    """
     ev = evaluation.evals[block]
     loss = evaluation.losses[block]
     r = ev.residuals
@@ -136,18 +178,17 @@ def nuisance_terms(
     jp = np.asarray(jac_p, dtype=np.float64)
     grp = np.asarray(group, dtype=np.intp).reshape(-1)
     if r.shape[1:] != (1,) or jp.ndim != 2 or jp.shape[0] != n or grp.shape != (n,):
-        msg = "nuisance_terms needs one residual per measurement, (N, k) derivatives, (N,) groups"
+        msg = f"{caller} needs one residual per measurement, (N, k) derivatives, (N,) groups"
         raise ValueError(msg)
-    k = jp.shape[1]
-    g = int(grp.max()) + 1 if num_groups is None and n else int(num_groups or 0)
     weight = np.ones(n) if loss is None else loss(r[:, 0] ** 2)[1]
-    g_p = np.zeros((g, k))
-    np.add.at(g_p, grp, jp * (weight * r[:, 0])[:, None])
-    h_xp = problem.coupling_matrix(evaluation, block, layout, jp * weight[:, None], grp, g)
-    jp = jp * np.sqrt(weight)[:, None]
-    h_pp = np.zeros((g, k, k))
-    np.add.at(h_pp, grp, jp[:, :, None] * jp[:, None, :])
-    return NuisanceTerms(h_xp, h_pp, g_p)
+    return r[:, 0], weight, jp, grp
+
+
+def _nuisance_gradient(r: F64, weight: F64, jac_p: F64, group: IntArray, num_groups: int) -> F64:
+    """``(G, k)`` sums of ``jac_p * weight * r`` over each group's measurements."""
+    g_p = np.zeros((num_groups, jac_p.shape[1]))
+    np.add.at(g_p, group, jac_p * (weight * r)[:, None])
+    return g_p
 
 
 def marginal_schur(lin: Linearization, terms: NuisanceTerms, hold: npt.ArrayLike = ()) -> F64:
@@ -387,6 +428,7 @@ class _Reduced:
     h_xp: sp.csr_matrix
     x: F64
     y: F64
+    solve_pp: Callable[[F64], F64] | None
 
 
 def _check_segments(lin: Linearization, segments: Sequence[NuisanceSegment]) -> None:
@@ -487,6 +529,7 @@ def _eliminate_segment(lin: Linearization, seg: NuisanceSegment, s_c: F64, b_c: 
     idx = ncs + np.arange(npar).reshape(g, k)
     s_full[idx[:, :, None], idx[:, None, :]] += terms.H_pp
     s_cp, s_pp = s_full[:ncs, ncs:], s_full[ncs:, ncs:]
+    solve_pp: Callable[[F64], F64] | None = None
     if npar:
         solve_pp = _psd_solver(s_pp)
         x, y = solve_pp(s_cp.T), solve_pp(b[ncs:])
@@ -494,10 +537,123 @@ def _eliminate_segment(lin: Linearization, seg: NuisanceSegment, s_c: F64, b_c: 
         x, y = np.zeros((0, ncs)), np.zeros(0)
     s_c[np.ix_(c, c)] += s_full[:ncs, :ncs] - s_cp @ x
     b_c[c] += b[:ncs] - s_cp @ y
-    return _Reduced(t, c, solve_tt, h_xp, x, y)
+    return _Reduced(t, c, solve_tt, h_xp, x, y, solve_pp)
 
 
-def segmented_nuisance_step(
+@dataclass(frozen=True)
+class NuisanceSystem:
+    """The joint system of one linearisation with the trajectory and the nuisance eliminated
+    (:func:`eliminate_nuisance`), ready to give steps.
+
+    :meth:`step` gives the Gauss-Newton step for the linearisation's own gradient and, for any
+    other gradient at a nearby estimate, the step on the same curvature (a chord step, as of the
+    simplified Newton method). The elimination (the banded factor of each segment's trajectory,
+    the Gram product of its couplings and the factor of its nuisance block) is what costs; a
+    step for another gradient takes a banded solve and a few products a segment.
+
+    Attributes:
+        lin: The normal equations eliminated.
+        segments: Their segments.
+        information: (Nc, Nc) the calibration information with the trajectory and the nuisance
+            eliminated, before truncation.
+        num_truncated: calibration directions the joint information does not determine (held).
+    """
+
+    lin: Linearization
+    segments: tuple[NuisanceSegment, ...]
+    information: F64
+    num_truncated: int
+    _reduced: tuple[_Reduced, ...] = field(repr=False)
+    _b_c: F64 = field(repr=False)  # the calibration's reduced right-hand side, own gradient
+    _basis: F64 = field(repr=False)  # (Nc, kept) the kept scaled eigen-directions of S
+    _values: F64 = field(repr=False)  # (kept,) their eigenvalues
+
+    def step(self, g: F64 | None = None, g_p: Sequence[F64] | None = None) -> NuisanceStep:
+        """The step for a gradient: the linearisation's own (None), or ``g`` (Nt + Nc,) with
+        each segment's nuisance gradient ``g_p`` (G_k, k) at another estimate whose free
+        coordinates are laid out as the linearisation's (a chord step: the same curvature).
+
+        Returns:
+            The step; its quadratic model is this system's curvature with the gradient given.
+
+        Raises:
+            ValueError: ``g`` and ``g_p`` are not given together, or do not match the system.
+        """
+        lin = self.lin
+        nt = lin.layout.num_trajectory
+        nc = lin.layout.num_calibration
+        if (g is None) != (g_p is None):
+            msg = "a chord step needs both the gradient and the nuisance gradients"
+            raise ValueError(msg)
+        if g is None or g_p is None:
+            grad, grads_p = lin.g, [seg.terms.g_p for seg in self.segments]
+            b_c = self._b_c
+            ys = [red.y for red in self._reduced]
+        else:
+            grad = np.asarray(g, dtype=np.float64)
+            grads_p = [np.asarray(gp, dtype=np.float64) for gp in g_p]
+            if grad.shape != lin.g.shape or len(grads_p) != len(self.segments):
+                msg = "the gradient does not match the eliminated system"
+                raise ValueError(msg)
+            b_c, ys = self._reduced_gradient(grad, grads_p)
+        dc = np.zeros(nc)
+        if nc:
+            scale = np.asarray(lin.layout.calibration_scale, dtype=np.float64)
+            u = self._basis
+            dc = scale * (u @ ((u.T @ (scale * b_c)) / self._values))
+        dt = np.zeros(nt)
+        dps: list[F64] = []
+        # quadratic model of the full system at the step, the nuisance's terms segment by segment
+        quad_p = cross = grad_p = 0.0
+        g_t = grad[:nt]
+        for seg, red, y, gp in zip(self.segments, self._reduced, ys, grads_p, strict=True):
+            dp = y - red.x @ dc[red.calibration]
+            t = red.trajectory
+            if t.size:
+                assert red.solve_tt is not None
+                rhs = g_t[t] + lin.H_tc[np.ix_(t, red.calibration)] @ dc[red.calibration]
+                dt[t] = red.solve_tt(-(rhs + red.h_xp[t] @ dp))
+            groups, k, _ = seg.terms.H_pp.shape
+            dps.append(dp.reshape(groups, k))
+            quad_p += float(np.einsum("gi,gij,gj->", dps[-1], seg.terms.H_pp, dps[-1]))
+            grad_p += float(gp.reshape(-1) @ dp)
+        dx = np.concatenate([dt, dc])
+        for dp_k, red in zip(dps, self._reduced, strict=True):
+            cross += float(dx @ (red.h_xp @ dp_k.reshape(-1)))
+        quad = lin.quadratic(dx) + 2.0 * cross + quad_p
+        predicted = -(float(grad @ dx) + grad_p + 0.5 * quad)
+        dp_all = np.concatenate(dps) if dps else np.zeros((0, 0))
+        return NuisanceStep(dx, dp_all, predicted, self.num_truncated, self.information)
+
+    def _reduced_gradient(self, g: F64, g_p: Sequence[F64]) -> tuple[F64, list[F64]]:
+        """The calibration's reduced right-hand side and each segment's ``S_pp^+ b_p`` for a
+        gradient (``b = -g`` with the trajectory and the nuisance eliminated)."""
+        lin = self.lin
+        nt = lin.layout.num_trajectory
+        nc = lin.layout.num_calibration
+        b_c = np.zeros(nc)
+        ys: list[F64] = []
+        for seg, red, gp in zip(self.segments, self._reduced, g_p, strict=True):
+            groups, k, _ = seg.terms.H_pp.shape
+            if gp.shape != (groups, k):
+                msg = "a nuisance gradient does not match its segment's nuisance"
+                raise ValueError(msg)
+            c, t = red.calibration, red.trajectory
+            b_cal = np.zeros(c.size)
+            b_p = -gp.reshape(-1)
+            if t.size:
+                assert red.solve_tt is not None
+                v = red.solve_tt(g[t])  # A_tt^-1 g_t: the trajectory's gradient carried over
+                b_cal += lin.H_tc[np.ix_(t, c)].T @ v
+                b_p = b_p + red.h_xp[t].T @ v
+            y = red.solve_pp(b_p) if red.solve_pp is not None else np.zeros(0)
+            # S_cp S_pp^+ b_p = (S_pp^+ S_pc)^T b_p: S_pp^+ is symmetric
+            b_c[c] += b_cal - red.x.T @ b_p
+            ys.append(y)
+        return b_c - g[nt:], ys
+
+
+def eliminate_nuisance(
     lin: Linearization,
     segments: Sequence[NuisanceSegment],
     *,
@@ -505,8 +661,8 @@ def segmented_nuisance_step(
     tsvd_relative: bool = False,
     weak_floor: float = 0.0,
     bounded_blocks: Sequence[str] = (),
-) -> NuisanceStep:
-    """The Gauss-Newton step over trajectory, calibration and nuisance, segment by segment.
+) -> NuisanceSystem:
+    """Eliminate the trajectory and the nuisance of each segment (:class:`NuisanceSystem`).
 
     The segments share the calibration and nothing else, so the full system is block-arrow
     shaped: each segment's trajectory and nuisance couple with themselves and with the
@@ -517,8 +673,7 @@ def segmented_nuisance_step(
     time. The calibration step solves ``S`` in the coordinates scaled by
     ``lin.layout.calibration_scale``, restricted to its eigen-directions above
     ``tsvd_threshold`` (the solver's truncation rule); each segment's nuisance and trajectory
-    steps follow by back-substitution. With one segment holding the whole trajectory this is
-    :func:`nuisance_step`.
+    steps follow by back-substitution.
 
     Args:
         lin: The problem's normal equations.
@@ -531,22 +686,21 @@ def segmented_nuisance_step(
             ``LMParams.weak_floor``); 0: none.
 
     Returns:
-        The step; ``dp`` holds every segment's groups in turn.
+        The eliminated system.
 
     Raises:
         ValueError: a segment carries no gradient, the segments do not partition the
             trajectory, or a segment couples with another's coordinates.
     """
     _check_segments(lin, segments)
-    nt = lin.layout.num_trajectory
     nc = lin.layout.num_calibration
     s_c = np.zeros((nc, nc))
     b_c = np.zeros(nc)
-    reduced = [_eliminate_segment(lin, seg, s_c, b_c) for seg in segments]
+    reduced = tuple(_eliminate_segment(lin, seg, s_c, b_c) for seg in segments)
     s_c += lin.H_cc
     b_c -= lin.g_c
     num_truncated = 0
-    dc = np.zeros(nc)
+    basis, values = np.zeros((nc, 0)), np.zeros(0)
     if nc:
         scale = np.asarray(lin.layout.calibration_scale, dtype=np.float64)
         s_d = scale[:, None] * s_c * scale[None, :]
@@ -562,30 +716,54 @@ def segmented_nuisance_step(
             bounded_blocks=bounded_blocks,
         )
         num_truncated = int(nc - np.count_nonzero(keep))
-        u = vecs[:, keep]
-        dc = scale * (u @ ((u.T @ (scale * b_c)) / vals[keep]))
-    dt = np.zeros(nt)
-    dps: list[F64] = []
-    # quadratic model of the full system at the step, the nuisance's terms segment by segment
-    quad_p = cross = grad_p = 0.0
-    for seg, red in zip(segments, reduced, strict=True):
-        dp = red.y - red.x @ dc[red.calibration]
-        t = red.trajectory
-        if t.size:
-            assert red.solve_tt is not None
-            rhs = lin.g_t[t] + lin.H_tc[np.ix_(t, red.calibration)] @ dc[red.calibration]
-            dt[t] = red.solve_tt(-(rhs + red.h_xp[t] @ dp))
-        g, k, _ = seg.terms.H_pp.shape
-        dps.append(dp.reshape(g, k))
-        quad_p += float(np.einsum("gi,gij,gj->", dps[-1], seg.terms.H_pp, dps[-1]))
-        grad_p += float(seg.terms.g_p.reshape(-1) @ dp)
-    dx = np.concatenate([dt, dc])
-    for dp_k, red in zip(dps, reduced, strict=True):
-        cross += float(dx @ (red.h_xp @ dp_k.reshape(-1)))
-    quad = lin.quadratic(dx) + 2.0 * cross + quad_p
-    predicted = -(float(lin.g @ dx) + grad_p + 0.5 * quad)
-    dp_all = np.concatenate(dps) if dps else np.zeros((0, 0))
-    return NuisanceStep(dx, dp_all, predicted, num_truncated, 0.5 * (s_c + s_c.T))
+        basis, values = vecs[:, keep], vals[keep]
+    return NuisanceSystem(
+        lin,
+        tuple(segments),
+        0.5 * (s_c + s_c.T),
+        num_truncated,
+        reduced,
+        b_c,
+        basis,
+        values,
+    )
+
+
+def segmented_nuisance_step(
+    lin: Linearization,
+    segments: Sequence[NuisanceSegment],
+    *,
+    tsvd_threshold: float = 1.0,
+    tsvd_relative: bool = False,
+    weak_floor: float = 0.0,
+    bounded_blocks: Sequence[str] = (),
+) -> NuisanceStep:
+    """The Gauss-Newton step over trajectory, calibration and nuisance, segment by segment:
+    :func:`eliminate_nuisance`, then the step for the linearisation's own gradient. With one
+    segment holding the whole trajectory this is :func:`nuisance_step`.
+
+    Arguments and errors as :func:`eliminate_nuisance`'s.
+
+    Returns:
+        The step; ``dp`` holds every segment's groups in turn.
+    """
+    return eliminate_nuisance(
+        lin,
+        segments,
+        tsvd_threshold=tsvd_threshold,
+        tsvd_relative=tsvd_relative,
+        weak_floor=weak_floor,
+        bounded_blocks=bounded_blocks,
+    ).step()
+
+
+def whole_trajectory(
+    lin: Linearization, terms: NuisanceTerms, hold: npt.ArrayLike = ()
+) -> NuisanceSegment:
+    """The one segment of a problem whose nuisance couples with its whole trajectory, holding
+    the trajectory coordinates ``hold`` (reduced indices: the shared gauge)."""
+    held = np.unique(np.asarray(hold, dtype=np.intp).reshape(-1))
+    return NuisanceSegment(np.arange(lin.layout.num_trajectory), terms, held)
 
 
 def nuisance_step(
@@ -621,11 +799,9 @@ def nuisance_step(
     Raises:
         ValueError: ``terms`` carries no gradient.
     """
-    held = np.unique(np.asarray(hold, dtype=np.intp).reshape(-1))
-    whole = NuisanceSegment(np.arange(lin.layout.num_trajectory), terms, held)
     return segmented_nuisance_step(
         lin,
-        [whole],
+        [whole_trajectory(lin, terms, hold)],
         tsvd_threshold=tsvd_threshold,
         tsvd_relative=tsvd_relative,
         weak_floor=weak_floor,

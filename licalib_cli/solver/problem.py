@@ -44,8 +44,10 @@ from licalib_cli.solver.assembly import (
     DensePart,
     GroupCache,
     TrajectoryPattern,
+    add_dense_gradient,
     add_dense_split,
     add_sparse,
+    add_sparse_gradient,
     first_with_same_elements,
 )
 from licalib_cli.solver.parameters import ParameterBlock
@@ -258,6 +260,15 @@ class Layout:
     def calibration_owner(self) -> tuple[str, ...]:
         """(Nc,) owning block of each calibration coordinate."""
         return self.owner[self.num_trajectory :]
+
+    def same_coordinates(self, other: Layout) -> bool:
+        """Whether ``other`` lays out the same free coordinates in the same order."""
+        return (
+            self.block_names == other.block_names
+            and self.names == other.names
+            and self.index.keys() == other.index.keys()
+            and all(np.array_equal(v, other.index[k]) for k, v in self.index.items())
+        )
 
 
 @dataclass(frozen=True)
@@ -539,6 +550,33 @@ class Problem:
         h_tt, h_tc, h_cc = acc.result()
         self._tt_pattern = acc.pattern
         return Linearization(layout, evaluation.cost, evaluation.num_residuals, h_tt, h_tc, h_cc, g)
+
+    def gradient(self, evaluation: Evaluation, layout: Layout | None = None) -> F64:
+        """The gradient ``J^T r`` (IRLS-weighted) of :meth:`linearize` alone, without assembling
+        the curvature (the same sums in another order: equal to rounding).
+
+        Args:
+            evaluation: Output of :meth:`evaluate` with ``jacobians=True``.
+            layout: Coordinate layout (default: :meth:`layout`).
+
+        Returns:
+            (Nt + Nc,) the gradient.
+
+        Raises:
+            ValueError: When a Jacobian names an unknown block or has the wrong tangent size.
+        """
+        layout = self.layout() if layout is None else layout
+        g = np.zeros(layout.num_free)
+        for ev, loss in zip(evaluation.evals, evaluation.losses, strict=True):
+            r = ev.residuals
+            if r.shape[0] == 0:
+                continue
+            r_w = r if loss is None else r * loss(np.einsum("ij,ij->i", r, r))[1][:, None]
+            if any(isinstance(j, SparseJacobian) for j in ev.jacobians):
+                add_sparse_gradient(self._sparse_pieces(ev, layout), r_w, g)
+            else:
+                add_dense_gradient(self._dense_parts(ev, layout), r_w, g)
+        return g
 
     def jacobian_matrix(self, evaluation: Evaluation, block: int, layout: Layout) -> sp.csr_matrix:
         """The Jacobian of one residual block on the free coordinates, robust-loss weighted.

@@ -21,6 +21,7 @@ without a Huber loss, with one and with three residuals per measurement.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -132,6 +133,35 @@ def test_dense_assembly_matches_reference(
     np.testing.assert_allclose(lin.g, g, rtol=0.0, atol=1e-12 * np.abs(g).max())
     # the assembled H_tt is canonical CSC (sorted, no duplicates)
     assert lin.H_tt.has_canonical_format
+
+
+@pytest.mark.parametrize("m", [1, 3])
+@pytest.mark.parametrize("huber", [False, True])
+@pytest.mark.parametrize("sparse", [False, True])
+def test_the_gradient_alone_is_the_linearisations(m: int, huber: bool, sparse: bool) -> None:
+    """``Problem.gradient`` equals the gradient ``linearize`` assembles with the curvature, from
+    dense and from sparse Jacobian pieces, with fixed coordinates and a robust loss."""
+    loss = HuberLoss(1.5) if huber else None
+    pr, block = make_problem(31 + m, 600, m, True, loss)
+    pr["ctrl"].fix([0, 1, 2, 40])
+    pr["beam"].fix([0, 1, 5])
+    pr["ext"].fix(["ext.y"])
+    evaluation = pr.evaluate()
+    if sparse:
+        evaluation = replace(
+            evaluation,
+            evals=tuple(
+                ResidualEval(ev.residuals, tuple(j.to_coo() for j in ev.jacobians))
+                for ev in evaluation.evals
+            ),
+        )
+    layout = pr.layout()
+    got = pr.gradient(evaluation, layout)
+    _, expected = dense_reference(pr, block, loss)
+    np.testing.assert_allclose(got, expected, rtol=0.0, atol=1e-12 * np.abs(expected).max())
+    np.testing.assert_allclose(
+        got, pr.linearize(evaluation, layout).g, rtol=0.0, atol=1e-12 * np.abs(expected).max()
+    )
 
 
 @pytest.mark.parametrize("pieces", [2, 3])

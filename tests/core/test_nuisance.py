@@ -21,12 +21,15 @@ from licalib_cli.solver.nuisance import (
     NuisanceSegment,
     NuisanceTerms,
     _reduced_by,
+    eliminate_nuisance,
     gram,
     marginal_schur,
     marginal_system,
+    nuisance_gradient,
     nuisance_step,
     nuisance_terms,
     segmented_nuisance_step,
+    whole_trajectory,
 )
 from licalib_cli.solver.observability import undamped_schur
 from licalib_cli.solver.problem import Evaluation, Layout, Linearization, Problem
@@ -221,6 +224,63 @@ def test_nuisance_step_matches_the_dense_gauss_newton_step(huber: bool) -> None:
 
 
 @pytest.mark.parametrize("huber", [False, True])
+def test_a_chord_step_solves_the_eliminated_curvature_with_another_gradient(huber: bool) -> None:
+    """The elimination of one linearisation gives, for the gradient at another estimate, the
+    dense system's step on the same curvature; for its own gradient, the Gauss-Newton step."""
+    lin, terms, layout, full, grad = _dense_case(huber, 19)
+    hold = np.array([0, 1, 2])
+    system = eliminate_nuisance(lin, [whole_trajectory(lin, terms, hold)], tsvd_threshold=0.0)
+    own = system.step()
+    plain = nuisance_step(lin, terms, hold, tsvd_threshold=0.0)
+    np.testing.assert_array_equal(own.dx, plain.dx)  # the same computation
+    np.testing.assert_array_equal(own.dp, plain.dp)
+    assert own.predicted_reduction == plain.predicted_reduction
+    # the own gradient given explicitly takes the chord path: the same step to rounding
+    again = system.step(lin.g, [terms.g_p])
+    np.testing.assert_allclose(again.dx, own.dx, rtol=1e-7, atol=1e-9 * np.abs(own.dx).max())
+    np.testing.assert_allclose(again.dp, own.dp, rtol=1e-7, atol=1e-9 * np.abs(own.dp).max())
+
+    rng = np.random.default_rng(7)
+    moved = grad + rng.normal(size=grad.shape) * np.abs(grad).mean()
+    nf = layout.num_free
+    chord = system.step(moved[:nf], [moved[nf:].reshape(NUM_GROUPS, K)])
+    keep = np.setdiff1d(np.arange(full.shape[0]), hold)
+    expected = _dense_step(full, moved, keep)
+    got = np.concatenate([chord.dx, chord.dp.reshape(-1)])
+    np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-8 * np.abs(expected).max())
+    assert (
+        np.abs(got - np.concatenate([own.dx, own.dp.reshape(-1)])).max() > 0.1 * np.abs(got).max()
+    )  # another gradient, another step
+    predicted = -(moved @ expected + 0.5 * expected @ full @ expected)
+    assert chord.predicted_reduction == pytest.approx(predicted, rel=1e-8)
+    np.testing.assert_array_equal(chord.information, own.information)
+
+
+def test_a_chord_step_refuses_a_gradient_that_does_not_match() -> None:
+    lin, terms = _plain_case(3, 300, 4)
+    system = eliminate_nuisance(lin, [whole_trajectory(lin, terms)])
+    with pytest.raises(ValueError, match="both"):
+        system.step(lin.g)
+    with pytest.raises(ValueError, match="does not match"):
+        system.step(lin.g[:-1], [terms.g_p])
+    with pytest.raises(ValueError, match="does not match"):
+        system.step(lin.g, [terms.g_p[:-1]])
+
+
+@pytest.mark.parametrize("huber", [False, True])
+def test_the_nuisance_gradient_alone_is_the_terms_gradient(huber: bool) -> None:
+    loss = HuberLoss(1.5) if huber else None
+    pr, _ = make_problem(3, 500, 1, False, loss)
+    jac_p, group = _nuisance(np.random.default_rng(8), 500)
+    evaluation = pr.evaluate()
+    terms = nuisance_terms(pr, evaluation, pr.layout(), 0, jac_p, group, NUM_GROUPS)
+    got = nuisance_gradient(evaluation, 0, jac_p, group, NUM_GROUPS)
+    np.testing.assert_array_equal(got, terms.g_p)
+    with pytest.raises(ValueError, match="one residual per measurement"):
+        nuisance_gradient(evaluation, 0, jac_p[:-1], group, NUM_GROUPS)
+
+
+@pytest.mark.parametrize("huber", [False, True])
 def test_marginal_system_gives_the_dense_calibration_step(huber: bool) -> None:
     lin, terms, layout, full, grad = _dense_case(huber, 23)
     nt, nc = layout.num_trajectory, layout.num_calibration
@@ -376,21 +436,28 @@ def _segments(
     return evaluation, layout, segments
 
 
-@pytest.mark.parametrize("own_calibration", [False, True])
-@pytest.mark.parametrize("truncated", [False, True])
-def test_segmented_step_equals_the_dense_nuisance_step(
-    own_calibration: bool, truncated: bool
-) -> None:
-    pr, nuisance, groups = _two_segments(21)
+def _segmented_case(
+    seed: int, own_calibration: bool
+) -> tuple[Linearization, Layout, list[NuisanceSegment], NuisanceTerms, np.ndarray]:
+    """Two segments linearised, and every segment's nuisance at once as one set of groups with
+    the segments' held coordinates together."""
+    pr, nuisance, groups = _two_segments(seed)
     evaluation, layout, segments = _segments(pr, nuisance, groups, own_calibration)
     lin = pr.linearize(evaluation, layout)
-    # every segment's nuisance at once, as one set of groups
     whole = NuisanceTerms(
         sp.hstack([s.terms.H_xp for s in segments]).tocsr(),
         np.concatenate([s.terms.H_pp for s in segments]),
         np.concatenate([s.terms.g_p for s in segments]),
     )
-    hold = np.concatenate([s.hold for s in segments])
+    return lin, layout, segments, whole, np.concatenate([s.hold for s in segments])
+
+
+@pytest.mark.parametrize("own_calibration", [False, True])
+@pytest.mark.parametrize("truncated", [False, True])
+def test_segmented_step_equals_the_dense_nuisance_step(
+    own_calibration: bool, truncated: bool
+) -> None:
+    lin, layout, segments, whole, hold = _segmented_case(21, own_calibration)
     tsvd, expected = 0.0, 0
     if truncated:  # between two eigenvalues, half the directions held
         scale = layout.calibration_scale
@@ -404,6 +471,22 @@ def test_segmented_step_equals_the_dense_nuisance_step(
     np.testing.assert_allclose(got.dp, dense.dp, rtol=1e-7, atol=1e-9 * np.abs(dense.dp).max())
     assert got.predicted_reduction == pytest.approx(dense.predicted_reduction, rel=1e-9)
     assert np.abs(got.dx[layout.index["s2:wide"]]).min() > 0.0  # a segment's own coordinates
+
+
+def test_a_segmented_chord_step_equals_the_dense_one() -> None:
+    """Two segments eliminated once; a step for another gradient equals the one-segment chord
+    step over every segment's nuisance at once."""
+    lin, _, segments, whole, hold = _segmented_case(24, True)
+    rng = np.random.default_rng(9)
+    g = lin.g + rng.normal(size=lin.g.shape) * np.abs(lin.g).mean()
+    g_p = [s.terms.g_p + rng.normal(size=s.terms.g_p.shape) for s in segments]
+    got = eliminate_nuisance(lin, segments, tsvd_threshold=0.0).step(g, g_p)
+    dense = eliminate_nuisance(lin, [whole_trajectory(lin, whole, hold)], tsvd_threshold=0.0).step(
+        g, [np.concatenate(g_p)]
+    )
+    np.testing.assert_allclose(got.dx, dense.dx, rtol=1e-7, atol=1e-9 * np.abs(dense.dx).max())
+    np.testing.assert_allclose(got.dp, dense.dp, rtol=1e-7, atol=1e-9 * np.abs(dense.dp).max())
+    assert got.predicted_reduction == pytest.approx(dense.predicted_reduction, rel=1e-9)
 
 
 def test_segmented_step_refuses_segments_that_do_not_partition_the_problem() -> None:

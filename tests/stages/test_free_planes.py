@@ -166,7 +166,7 @@ def test_noise_corrected_plane_steps_remove_the_range_noise_tilt() -> None:
     the noise's expected part removed (``noise_corrected``) the mean tilt is zero."""
     import scipy.sparse as sp
 
-    from licalib_cli.pipeline.free_planes import noise_corrected
+    from licalib_cli.pipeline.free_planes import noise_corrected, noise_corrected_gradient
     from licalib_cli.solver import s2_basis
     from licalib_cli.solver.nuisance import NuisanceTerms
 
@@ -190,10 +190,12 @@ def test_noise_corrected_plane_steps_remove_the_range_noise_tilt() -> None:
             (jac.T @ jac)[None],
             (jac.T @ (r / sigma))[None],
         )
-        for out, t in (
-            (plain, terms),
-            (corrected, noise_corrected(terms, plane, normal, rays, np.ones(n))),
-        ):
+        fixed = noise_corrected(terms, plane, normal, rays, np.ones(n))
+        # the gradient alone (the chord steps' path) is the terms' gradient
+        np.testing.assert_array_equal(
+            noise_corrected_gradient(terms.g_p, plane, normal, rays, np.ones(n)), fixed.g_p
+        )
+        for out, t in ((plain, terms), (corrected, fixed)):
             step = -np.linalg.solve(t.H_pp[0], t.g_p[0])
             out.append(s2_basis(normal)[0] @ step[:2])  # the normal's change
     tilt_plain, tilt_corrected = np.array(plain)[:, 1], np.array(corrected)[:, 1]
