@@ -38,6 +38,7 @@ if TYPE_CHECKING:
     from licalib_cli.solver.problem import Layout
 
 __all__ = [
+    "MAP_ENTRIES",
     "SPLIT_PARTS",
     "SPLIT_ROWS",
     "Accumulator",
@@ -619,14 +620,32 @@ class Accumulator:
         return h_tt, self.h_tc.reshape(nt, nc), 0.5 * (h_cc + h_cc.T)
 
 
+MAP_ENTRIES = 2**28
+"""Matrices of at most this many entries (``H_tt`` of up to 16 384 coordinates, about a 50 s
+bag) find their pattern through an index map over every entry (:func:`_unique_entries`)."""
+
+
 def _unique_entries(flat: npt.NDArray[np.int64], n: int) -> tuple[npt.NDArray[np.int64], IntArray]:
     """``np.unique(flat, return_inverse=True)`` for entries ``col * n + row`` of an (n, n) matrix.
 
-    With ``n`` below 2**16 the entries are ordered by two stable radix sorts of 16-bit keys (row,
-    then column), linear in the number of entries, instead of a comparison sort of 64-bit
-    integers (the pattern of ``H_tt`` has about a million entries on a 15 s bag).
+    Up to :data:`MAP_ENTRIES` entries of the matrix, an index map over all of them finds one
+    occurrence of each entry (the map is allocated but only its pages that entries fall in are
+    touched: a band and the border's rows), and only those are sorted; the pattern of ``H_tt``
+    has about a million contributions and a quarter million entries on a 15 s bag (0.02-0.07 s
+    against 0.04-0.13 s for the radix sorts of the contributions). Beyond, with ``n`` below
+    2**16, two stable radix sorts of 16-bit keys (row, then column), linear in the number of
+    contributions; beyond that, a comparison sort.
     """
-    if n > np.iinfo(np.uint16).max or flat.size == 0:
+    if flat.size == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.intp)
+    if n * n <= MAP_ENTRIES and flat.size < np.iinfo(np.int32).max:
+        index = np.arange(flat.size, dtype=np.int32)
+        at = np.empty(n * n, dtype=np.int32)
+        at[flat] = index  # of repeated entries one write is kept, whichever
+        uniq = np.sort(flat[at[flat] == index])
+        at[uniq] = np.arange(uniq.size, dtype=np.int32)  # the map now gives each entry's rank
+        return uniq, at[flat].astype(np.intp)
+    if n > np.iinfo(np.uint16).max:
         uniq, inverse = np.unique(flat, return_inverse=True)
         return uniq, inverse.reshape(-1)
     col, row = np.divmod(flat, n)

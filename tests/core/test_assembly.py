@@ -33,7 +33,12 @@ from licalib_cli.solver import (
     Problem,
     ResidualEval,
 )
-from licalib_cli.solver.assembly import _compress_key, _element_key, _unique_entries
+from licalib_cli.solver.assembly import (
+    MAP_ENTRIES,
+    _compress_key,
+    _element_key,
+    _unique_entries,
+)
 
 NUM_CTRL = 14
 NUM_BEAMS = 5
@@ -297,10 +302,11 @@ def test_group_keys() -> None:
     assert _element_key(np.tile([3, 1], (5, 1))).key is None
 
 
-@pytest.mark.parametrize("n", [1, 37, 4526, 2**16 - 1, 2**16 + 3])
+@pytest.mark.parametrize("n", [1, 37, 4526, 16384, 16385, 2**16 - 1, 2**16 + 3])
 def test_unique_entries_is_numpys_unique(n: int) -> None:
-    """The radix-sorted pattern of ``H_tt`` (and its fallback above 16-bit indices) equals
-    ``np.unique(..., return_inverse=True)``."""
+    """The pattern of ``H_tt`` by the index map, by radix sorts above :data:`MAP_ENTRIES` and by
+    a comparison sort above 16-bit indices equals ``np.unique(..., return_inverse=True)``."""
+    assert (16384**2 <= MAP_ENTRIES) and (16385**2 > MAP_ENTRIES)  # both sides of the map
     rng = np.random.default_rng(n)
     rows = rng.integers(0, n, 3000)
     cols = np.clip(rows + rng.integers(-5, 6, 3000), 0, n - 1)
