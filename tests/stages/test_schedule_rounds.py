@@ -439,6 +439,35 @@ def test_a_final_round_within_its_sigmas_runs_once(monkeypatch: pytest.MonkeyPat
     assert run.fit.converged
 
 
+@pytest.mark.parametrize(
+    ("later_mm", "rounds", "rested"), [(0.05, 2, True), (0.12, 3, False), (0.3, 3, False)]
+)
+def test_after_unsettled_regular_rounds_the_dense_rounds_go_on_to_rest(
+    monkeypatch: pytest.MonkeyPatch, later_mm: float, rounds: int, rested: bool
+) -> None:
+    """Regular rounds still moving 1 mm (10 sigmas) each at the cap, a first dense round 3
+    sigmas: the dense rounds go on until the second or a later one moves at most
+    DENSE_REST_SIGMAS (half a sigma: at rest after two), within MAX_FINAL_ROUNDS (1.2 sigmas
+    or 3 sigmas a round: three, not at rest; within FINAL_SETTLE_SIGMAS, so no non-convergence
+    of the dense rounds, the regular rounds' finding stands). Settled regular rounds run one
+    (test_a_final_round_within_its_sigmas_runs_once)."""
+    moves = iter([0.3] + [later_mm] * 5)
+
+    def step(index: int, dense: bool) -> float:
+        return next(moves) if dense else 1.0
+
+    run = _schedule(monkeypatch, step, lidar=False, final_points=400, refine_mm=0.0)
+    dense = [r for r in run.rounds if r[3]]
+    assert len(dense) == rounds
+    assert dense[1][1] == f"step after {dense[0][0]}" and not dense[1][2]
+    fit = run.fit
+    assert not fit.converged and not fit.final_unsettled and fit.final_rounds == rounds
+    assert fit.final_jump == pytest.approx(10.0 * later_mm)
+    assert schedule.dense_rounds_rested(fit) is rested
+    (finding,) = checks._convergence(fit, CalibConfig())
+    assert finding.severity == ("warn" if rested else "fail")
+
+
 @pytest.mark.parametrize("moved_mm", [0.0, 0.3, 1.5])
 def test_without_lidar_intrinsics_the_dense_round_is_one_planes_free_step(
     monkeypatch: pytest.MonkeyPatch, moved_mm: float
