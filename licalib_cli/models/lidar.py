@@ -156,6 +156,18 @@ class LidarPointTerms:
     cos_theta: F64
     sin_theta: F64
 
+    def rows(self, sl: slice) -> LidarPointTerms:
+        """The terms of the points ``sl`` (views)."""
+        return LidarPointTerms(
+            self.point[sl],
+            self.rho[sl],
+            self.rho_bar[sl],
+            self.cos_phi[sl],
+            self.sin_phi[sl],
+            self.cos_theta[sl],
+            self.sin_theta[sl],
+        )
+
     def jacobian(self) -> F64:
         """(N, 3, 6) ``d p_L / d [dphi, dtheta, V, H, s, drho]`` of each point's beam."""
         rb, cp, sp, ct, st = (

@@ -286,7 +286,8 @@ class PointToPlaneResidual:
         d_ext_rotation = np.empty((n, 3)) if jacobians and EXT_ROTATION in params else None
         d_ext_translation = np.empty((n, 3)) if jacobians and EXT_TRANSLATION in params else None
         d_time = np.empty(n) if want_time else None
-        d_point = np.empty((n, 3)) if want_intr else None
+        d_int = np.empty((n, NUM_BEAM_INTRINSICS)) if want_intr else None
+        range_scale = intr[self.beam, BeamIntrinsic.RANGE_SCALE] if want_intr else None
         shift = np.zeros(n) if want_intr and self.intrinsics_at_predicted_range else None
         motion_shift = jacobians and self.motion_at_predicted_range
 
@@ -333,8 +334,14 @@ class PointToPlaneResidual:
             if d_time is not None:
                 assert geo.d_time is not None
                 np.multiply(geo.d_time, wb, out=d_time[sl])
-            if d_point is not None:
-                np.multiply(geo.d_point, wc, out=d_point[sl])
+            if d_int is not None:
+                # v^T d p_L / d intrinsics of each point, here while its rows are in cache
+                assert range_scale is not None
+                d_int[sl] = terms.rows(sl).vjp(
+                    geo.d_point * wc,
+                    None if shift is None else shift[sl],
+                    None if shift is None else range_scale[sl],
+                )
 
         # Blocks of the spline evaluations' size, each from the splines to its whitened
         # derivatives while its arrays are in cache, shared by the threads of
@@ -365,9 +372,7 @@ class PointToPlaneResidual:
             if POINT_TIME_SCALE in params and self.into_sweep is not None:
                 j = (-d_t * self.into_sweep)[:, None, None, None]
                 jacs.append(DenseJacobian(POINT_TIME_SCALE, self._zeros, j))
-        if d_point is not None:
-            scale = intr[self.beam, BeamIntrinsic.RANGE_SCALE]
-            d_int = terms.vjp(d_point, shift, scale if shift is not None else None)
+        if d_int is not None:
             jacs.append(DenseJacobian(LIDAR_INTRINSICS, self._beam_elements, d_int[:, None, None]))
         return ResidualEval(r[:, None], tuple(jacs))
 
