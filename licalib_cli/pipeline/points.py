@@ -235,22 +235,22 @@ def _mapped(state: CalibrationState, sample: PointSample, rays: bool) -> tuple[F
     # margin its points were chosen with) is mapped at the spline's end, as the point-to-plane
     # residuals evaluate it; the next round's usable points leave it out.
     t = state.knots.clamp(query_times(state, sample))
-    p_l = lidar_point(state.lidar_intrinsics, sample.beam, sample.rho, sample.theta)
-    u_i = None
-    if rays:
-        u_i = p_l @ state.R_imu_lidar.T
-        u_i /= np.maximum(np.linalg.norm(u_i, axis=1, keepdims=True), 1e-12)
-    p_i = (p_l + sample.model_gap) @ state.R_imu_lidar.T + state.t_imu_lidar
-    out = np.empty_like(p_i)
-    ray_out = np.empty_like(p_i) if rays else None
+    r_il = state.R_imu_lidar
+    out = np.empty((t.shape[0], 3))
+    ray_out = np.empty_like(out) if rays else None
 
     def block(sl: slice) -> None:
-        # the splines' own blocks (BLOCK queries): the values of one evaluation of all points
+        # the splines' own blocks (BLOCK queries): the values of one evaluation of all points;
+        # the LiDAR model per point as well
+        p_l = lidar_point(state.lidar_intrinsics, sample.beam[sl], sample.rho[sl], sample.theta[sl])
+        p_i = (p_l + sample.model_gap[sl]) @ r_il.T + state.t_imu_lidar
         rot = state.so3_spline.rotation(t[sl])
-        np.einsum("nij,nj->ni", rot, p_i[sl], out=out[sl])
+        np.einsum("nij,nj->ni", rot, p_i, out=out[sl])
         out[sl] += state.r3_spline.position(t[sl])
-        if ray_out is not None and u_i is not None:
-            np.einsum("nij,nj->ni", rot, u_i[sl], out=ray_out[sl])
+        if ray_out is not None:
+            u_i = p_l @ r_il.T
+            u_i /= np.maximum(np.linalg.norm(u_i, axis=1, keepdims=True), 1e-12)
+            np.einsum("nij,nj->ni", rot, u_i, out=ray_out[sl])
 
     map_slices(block, t.shape[0])
     return out, ray_out

@@ -237,14 +237,25 @@ class PointToPlaneResidual:
         cached = self._terms_cache
         if cached is not None and cached[1] is self.inv_sigma and np.array_equal(cached[0], intr):
             return cached[2]
-        terms = lidar_point_terms(
-            self.nominal_elevation,
-            intr,
-            self.beam,
-            self.rho,
-            self.theta,
-            self._cos_sin_theta,
-        )
+        n = self.rho.shape[0]
+        terms = LidarPointTerms(np.empty((n, 3)), self.rho, *(np.empty(n) for _ in range(5)))
+        cos_theta, sin_theta = self._cos_sin_theta
+
+        def block(sl: slice) -> None:
+            # the same per-point values as one call over all points, on the block threads
+            part = lidar_point_terms(
+                self.nominal_elevation,
+                intr,
+                self.beam[sl],
+                self.rho[sl],
+                self.theta[sl],
+                (cos_theta[sl], sin_theta[sl]),
+            )
+            for f in fields(part):
+                if f.name != "rho":
+                    getattr(terms, f.name)[sl] = getattr(part, f.name)
+
+        map_slices(block, n)
         point = terms.point if self.model_gap is None else terms.point + self.model_gap
         w = self.whitening()
         for a in (point, w, *(getattr(terms, f.name) for f in fields(terms) if f.name != "rho")):

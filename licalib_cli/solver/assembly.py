@@ -928,9 +928,18 @@ def add_dense_gradient(parts: list[DensePart], r_w: F64, g: F64) -> None:
         g: (Nt + Nc,) gradient, added to.
     """
     n = r_w.shape[0]
-    for part in parts:
+
+    def part_gradient(i: int) -> F64:
+        # each piece on a block thread (the spline's rotation and position pieces are most of
+        # it), added in order: the same sums whatever the threads
+        part = parts[i]
+        out = np.zeros_like(g)
         values = np.einsum("nmw,nm->nw", part.values, r_w)
-        _add_gradient(g, part.table[part.elements].reshape(n, -1), values)
+        _add_gradient(out, part.table[part.elements].reshape(n, -1), values)
+        return out
+
+    for piece in map_blocks(part_gradient, len(parts)):
+        g += piece
 
 
 def add_sparse_gradient(pieces: list[tuple[IntArray, IntArray, F64]], r_w: F64, g: F64) -> None:

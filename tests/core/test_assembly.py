@@ -26,6 +26,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from licalib_cli.parallel import threads as thr
 from licalib_cli.solver import (
     DenseJacobian,
     HuberLoss,
@@ -162,6 +163,8 @@ def test_the_gradient_alone_is_the_linearisations(m: int, huber: bool, sparse: b
         )
     layout = pr.layout()
     got = pr.gradient(evaluation, layout)
+    with thr.serial():  # the pieces on the block threads: the same sums, bit for bit
+        np.testing.assert_array_equal(pr.gradient(evaluation, layout), got)
     _, expected = dense_reference(pr, block, loss)
     np.testing.assert_allclose(got, expected, rtol=0.0, atol=1e-12 * np.abs(expected).max())
     np.testing.assert_allclose(
