@@ -175,16 +175,32 @@ def test_known_large_lever_arm_is_initialised_from_odometry_and_accelerometer(
     assert np.linalg.norm(np.asarray(result["extrinsic"]["translation"]) - lever) < 0.003
 
 
+@pytest.mark.parametrize("dense", [False, True])
 def test_rounds_that_run_out_are_a_non_convergence_with_its_own_exit_code(
-    tmp_path: Path, clean_sim: SimulationOutput, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, clean_sim: SimulationOutput, capsys: pytest.CaptureFixture[str], dense: bool
 ) -> None:
-    result, _, code = _calibrate(tmp_path, clean_sim, {"schedule": {"max_rounds": 1}})
+    """One regular round: without the denser final round a non-convergence (exit code 10);
+    with it, the dense rounds go on until one comes to rest, and the verdict warns instead,
+    naming the regular rounds' last change."""
+    extra: dict = {"schedule": {"max_rounds": 1}}
+    if not dense:
+        extra["surfels"] = {"final_points_per_scan": None}
+    result, _, code = _calibrate(tmp_path, clean_sim, extra)
     err = capsys.readouterr().err
-    assert code == 10
-    assert result["verdict"]["status"] == "fail"
-    assert result["verdict"]["reasons"][0].startswith("The calibration did not converge")
     assert result["fit"]["converged"] is False
-    assert "did not converge" in err
+    if not dense:
+        assert code == 10
+        assert result["verdict"]["status"] == "fail"
+        assert result["verdict"]["reasons"][0].startswith("The calibration did not converge")
+        assert "did not converge" in err
+        return
+    assert code == 0
+    assert result["verdict"]["status"] == "warn"
+    assert any(
+        r.startswith("After schedule.max_rounds = 1 rounds the estimate still moved")
+        and "came to rest" in r
+        for r in result["verdict"]["reasons"]
+    )
 
 
 def test_a_wrong_noise_setting_shows_as_a_misfit_of_that_sensor(
