@@ -71,6 +71,7 @@ __all__ = [
     "STEP_FRACTIONS",
     "PlaneRefinement",
     "PlanesFreeSteps",
+    "corrected_plane_gradient",
     "corrected_plane_terms",
     "expected_noise_cost",
     "free_planes_information",
@@ -309,11 +310,35 @@ def corrected_plane_terms(
     Returns:
         ``(terms, centroids (P, 3), whitened range noise (N,))``.
     """
+    jac, centroid, noise = _whitened_plane_jacobian(p_g, plane, normal, whitening, range_noise)
+    terms = nuisance_terms(problem, evaluation, layout, block, jac, plane, normal.shape[0])
+    return noise_corrected(terms, plane, normal, rays, noise), centroid, noise
+
+
+def corrected_plane_gradient(
+    evaluation: Evaluation,
+    block: int,
+    whitening: F64,
+    p_g: F64,
+    rays: F64,
+    plane: npt.NDArray[np.intp],
+    normal: F64,
+    range_noise: F64,
+) -> tuple[F64, F64, F64]:
+    """:func:`corrected_plane_terms`'s gradient alone (arguments as its): ``(g_p (P, 3),
+    centroids (P, 3), whitened range noise (N,))``."""
+    jac, centroid, noise = _whitened_plane_jacobian(p_g, plane, normal, whitening, range_noise)
+    g_p = nuisance_gradient(evaluation, block, jac, plane, normal.shape[0])
+    return noise_corrected_gradient(g_p, plane, normal, rays, noise), centroid, noise
+
+
+def _whitened_plane_jacobian(
+    p_g: F64, plane: npt.NDArray[np.intp], normal: F64, whitening: F64, range_noise: F64
+) -> tuple[F64, F64, F64]:
+    """:func:`plane_jacobian` whitened, the centroids and each point's whitened range noise."""
     jac, centroid = plane_jacobian(p_g, plane, normal)
     jac *= whitening[:, None]
-    terms = nuisance_terms(problem, evaluation, layout, block, jac, plane, normal.shape[0])
-    noise = whitening * range_noise
-    return noise_corrected(terms, plane, normal, rays, noise), centroid, noise
+    return jac, centroid, whitening * range_noise
 
 
 def planes_free_steps(
@@ -560,11 +585,9 @@ def planes_free_steps_from(
             # a chord step: the first step's elimination with the gradient here
             layout = system.lin.layout
             evaluation = evaluation_of(problem)
-            jac, centroid = plane_jacobian(p_g, plane, normal)
-            jac *= whitening[:, None]
-            noise = whitening * range_noise
-            g_p = nuisance_gradient(evaluation, block, jac, plane, normal.shape[0])
-            g_p = noise_corrected_gradient(g_p, plane, normal, rays, noise)
+            g_p, centroid, noise = corrected_plane_gradient(
+                evaluation, block, whitening, p_g, rays, plane, normal, range_noise
+            )
             step = system.step(problem.gradient(evaluation, layout), [g_p])
         else:
             if solved is not None and problem is solved.problem and planes is inputs.planes:

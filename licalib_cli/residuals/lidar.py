@@ -298,8 +298,8 @@ class PointToPlaneResidual:
         d_ext_translation = np.empty((n, 3)) if jacobians and EXT_TRANSLATION in params else None
         d_time = np.empty(n) if want_time else None
         d_int = np.empty((n, NUM_BEAM_INTRINSICS)) if want_intr else None
-        range_scale = intr[self.beam, BeamIntrinsic.RANGE_SCALE] if want_intr else None
-        shift = np.zeros(n) if want_intr and self.intrinsics_at_predicted_range else None
+        intr_shift = want_intr and self.intrinsics_at_predicted_range
+        range_scale = intr[self.beam, BeamIntrinsic.RANGE_SCALE] if intr_shift else None
         motion_shift = jacobians and self.motion_at_predicted_range
 
         def block(sl: slice) -> None:
@@ -326,11 +326,10 @@ class PointToPlaneResidual:
             assert rot_ev.rotation_vjp is not None and elements is not None
             assert j_so3 is not None and j_r3 is not None
             wc = wb[:, None]
-            if motion_shift or shift is not None:
+            moved: F64 | None = None  # metres from each range to where its ray meets its plane
+            if motion_shift or intr_shift:
                 ray, along = _rays(terms, sl, geo.d_point)
                 moved = _predicted_range_shift(along, geo.distance, 1.0 / wb)
-                if shift is not None:
-                    shift[sl] = moved
                 if motion_shift:
                     geo = _at_predicted_range(geo, ray, moved, r_il, rot_ev.angular_velocity)
             np.add(rot_ev.index[:, None], _OFFSETS, out=elements[sl])
@@ -347,11 +346,10 @@ class PointToPlaneResidual:
                 np.multiply(geo.d_time, wb, out=d_time[sl])
             if d_int is not None:
                 # v^T d p_L / d intrinsics of each point, here while its rows are in cache
-                assert range_scale is not None
                 d_int[sl] = terms.rows(sl).vjp(
                     geo.d_point * wc,
-                    None if shift is None else shift[sl],
-                    None if shift is None else range_scale[sl],
+                    moved if intr_shift else None,
+                    range_scale[sl] if range_scale is not None else None,
                 )
 
         # Blocks of the spline evaluations' size, each from the splines to its whitened

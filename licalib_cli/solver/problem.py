@@ -30,7 +30,7 @@ Normal equations
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
@@ -532,14 +532,9 @@ class Problem:
         layout = self.layout() if layout is None else layout
         g = np.zeros(layout.num_free)
         acc = Accumulator(layout.num_trajectory, layout.num_calibration, self._tt_pattern)
-        for ev, loss in zip(evaluation.evals, evaluation.losses, strict=True):
-            r = ev.residuals
-            if r.shape[0] == 0:
-                continue
-            sqrt_w: F64 | None = None
-            if loss is not None:
-                sqrt_w = np.sqrt(loss(np.einsum("ij,ij->i", r, r))[1])
-            if any(isinstance(j, SparseJacobian) for j in ev.jacobians):
+        for ev, r, weight, sparse in _weighted_blocks(evaluation):
+            sqrt_w = None if weight is None else np.sqrt(weight)
+            if sparse:
                 r_w = r if sqrt_w is None else r * sqrt_w[:, None]
                 add_sparse(self._sparse_pieces(ev, layout), r_w, sqrt_w, g, acc)
             else:
@@ -567,12 +562,9 @@ class Problem:
         """
         layout = self.layout() if layout is None else layout
         g = np.zeros(layout.num_free)
-        for ev, loss in zip(evaluation.evals, evaluation.losses, strict=True):
-            r = ev.residuals
-            if r.shape[0] == 0:
-                continue
-            r_w = r if loss is None else r * loss(np.einsum("ij,ij->i", r, r))[1][:, None]
-            if any(isinstance(j, SparseJacobian) for j in ev.jacobians):
+        for ev, r, weight, sparse in _weighted_blocks(evaluation):
+            r_w = r if weight is None else r * weight[:, None]
+            if sparse:
                 add_sparse_gradient(self._sparse_pieces(ev, layout), r_w, g)
             else:
                 add_dense_gradient(self._dense_parts(ev, layout), r_w, g)
@@ -800,6 +792,20 @@ class Problem:
             rows = np.asarray(coo.rows, dtype=np.intp)
             pieces.append((rows, idx[coo.cols], coo.values))
         return pieces
+
+
+def _weighted_blocks(
+    evaluation: Evaluation,
+) -> Iterator[tuple[ResidualEval, F64, F64 | None, bool]]:
+    """Each evaluated residual block with measurements: ``(its evaluation, (n, m) whitened
+    residuals, (n,) robust-loss weights or None, whether any of its Jacobians is sparse)``, as
+    :meth:`Problem.linearize` and :meth:`Problem.gradient` assemble them."""
+    for ev, loss in zip(evaluation.evals, evaluation.losses, strict=True):
+        r = ev.residuals
+        if r.shape[0] == 0:
+            continue
+        weight = None if loss is None else loss(np.einsum("ij,ij->i", r, r))[1]
+        yield ev, r, weight, any(isinstance(j, SparseJacobian) for j in ev.jacobians)
 
 
 def _runs(
