@@ -249,9 +249,35 @@ class InitializationConfig(_Section):
 class SplineConfig(_Section):
     """Continuous-time trajectory."""
 
-    knot_spacing_s: float = Field(default=0.02, ge=0.005, le=0.2)
+    knot_spacing_s: float | None = Field(default=None, ge=0.005, le=0.2)
+    """Time between the trajectory splines' knots, s. Unset: chosen from the IMU's signals,
+    the coarsest spacing from ``min_knot_spacing_s`` to ``max_knot_spacing_s`` whose splines
+    still follow the gyro and accelerometer readings as closely as the finest does (at most
+    5 % more residual variance, ``pipeline/knot_spacing.py``): slow, smooth motion gets fewer
+    knots and a faster fit, a shake keeps the finest. The resolved config gives the spacing
+    chosen."""
+    min_knot_spacing_s: float = Field(default=0.02, ge=0.005, le=0.2)
+    """The finest spacing the choice considers, s (and the one it falls back to)."""
+    max_knot_spacing_s: float = Field(default=0.05, ge=0.005, le=0.2)
+    """The coarsest spacing the choice considers, s."""
     time_offset_padding_s: float = Field(default=0.05, ge=0.0, le=1.0)
     """Extra spline length at both ends so that ``tau + time_offset_s`` stays inside."""
+
+    @model_validator(mode="after")
+    def _spacing_range(self) -> SplineConfig:
+        if self.min_knot_spacing_s > self.max_knot_spacing_s:
+            msg = (
+                f"min_knot_spacing_s ({self.min_knot_spacing_s:g}) is above max_knot_spacing_s "
+                f"({self.max_knot_spacing_s:g}); give a range with min <= max"
+            )
+            raise ValueError(msg)
+        return self
+
+    @property
+    def spacing_s(self) -> float:
+        """The knot spacing the splines use: ``knot_spacing_s``, or ``min_knot_spacing_s``
+        where the data have not chosen one."""
+        return self.knot_spacing_s if self.knot_spacing_s is not None else self.min_knot_spacing_s
 
 
 class SurfelSection(_Section):

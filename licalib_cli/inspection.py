@@ -692,7 +692,7 @@ def inspect_bag(path: Path, cfg: CalibConfig, *, min_span_s: float = MIN_SEGMENT
         path: a ROS1 ``.bag`` (or folder of split ``.bag`` files), a ROS2 bag folder, or a bare
             ``.db3``/``.mcap`` file.
         cfg: configuration (``bag``, ``imu``, ``lidar`` sections: topics, segment, overrides;
-            ``spline.knot_spacing_s`` for the IMU rate it needs).
+            ``spline.spacing_s`` for the IMU rate it needs).
         min_span_s: the least time both sensors must cover, as
             :func:`licalib_cli.io.reader.read_segment` (0: judge a short bag's data only).
 

@@ -202,7 +202,8 @@ def _gravity_and_rate(
                 DataError,
             )
         )
-    knot = cfg.spline.knot_spacing_s
+    # the configured spacing, or the finest the data may choose (pipeline/knot_spacing.py)
+    knot = cfg.spline.spacing_s
     needed = 1.0 / knot
     if 0 < stats.rate_hz < 0.95 * needed:
         out.append(

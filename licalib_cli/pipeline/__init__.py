@@ -33,6 +33,7 @@ from licalib_cli.pipeline.checks import Checks, check, rejudge
 from licalib_cli.pipeline.effect_refit import refit_shifts
 from licalib_cli.pipeline.fitcheck import EffectEvidence
 from licalib_cli.pipeline.initialise import InitialGuess, initialise, lidar_odometry
+from licalib_cli.pipeline.knot_spacing import with_knot_spacing
 from licalib_cli.pipeline.read import read
 from licalib_cli.pipeline.round import RoundSummary
 from licalib_cli.pipeline.scan_pattern import SPINNING, ScanPattern, with_scan_pattern
@@ -252,8 +253,8 @@ class Prepared:
         noise: the noise the fits are weighted with.
         guess: the initial guess.
         pattern: what the clouds' beam field means (spinning or non-repetitive).
-        cfg: the configuration given, with ``lidar.scan_pattern`` the data's (what every fit
-            of the segment uses).
+        cfg: the configuration given, with ``lidar.scan_pattern`` and ``spline.knot_spacing_s``
+            the data's (what every fit of the segment uses).
     """
 
     bag: Path
@@ -270,6 +271,8 @@ def prepare(bag: Path, cfg: CalibConfig, progress: Progress, timer: Timer) -> Pr
         segment = read(bag, cfg)
     rec, noise = segment.recording, segment.noise
     cfg = with_scan_pattern(cfg, segment.pattern)
+    if segment.knots is not None:
+        cfg = with_knot_spacing(cfg, segment.knots.spacing_s)
     with timer.stage("odometry", progress, total=len(rec.scans)):
         odo = lidar_odometry(rec, cfg, progress=progress.advance)
     with timer.stage("initialisation", progress):
@@ -302,6 +305,8 @@ def fit_and_check(
             ``diagnose`` reads them).
     """
     rec, noise, guess = prepared.rec, prepared.noise, prepared.guess
+    if cfg.spline.knot_spacing_s is None:  # the segment's splines were laid with its spacing
+        cfg = with_knot_spacing(cfg, prepared.cfg.spline.spacing_s)
     with timer.stage("optimisation", progress, total=cfg.schedule.max_rounds):
         fit = run_schedule(rec, start, noise, cfg, progress, warm=warm)
     with timer.stage("checks", progress):

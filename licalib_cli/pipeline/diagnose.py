@@ -96,6 +96,7 @@ from licalib_cli.pipeline.effect_models import (
 from licalib_cli.pipeline.effect_size import sized_refit, with_sizes_of
 from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE
 from licalib_cli.pipeline.held_effects import HELD_WEIGHT
+from licalib_cli.pipeline.knot_spacing import with_knot_spacing
 from licalib_cli.pipeline.rivals import CandidatePool, compare_rivals, pick_rival, rivals_of
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.scan_pattern import with_scan_pattern
@@ -228,7 +229,7 @@ class Diagnosis:
 def _expected_chi2(sensor: str, cfg: CalibConfig, imu_rate_hz: float) -> float:
     if sensor == "lidar":
         return 1.0
-    knots_per_s = 1.0 / cfg.spline.knot_spacing_s
+    knots_per_s = 1.0 / cfg.spline.spacing_s
     return max(0.0, 1.0 - knots_per_s / max(imu_rate_hz, 1e-9))
 
 
@@ -463,7 +464,7 @@ def diagnose(
     base_cfg = with_effects(cfg, ())
     prepared: Prepared = prepare(Path(str(bag)), base_cfg, progress, timer)
     base_cfg = prepared.cfg
-    cfg = with_scan_pattern(cfg, prepared.pattern)
+    cfg = with_knot_spacing(with_scan_pattern(cfg, prepared.pattern), prepared.cfg.spline.spacing_s)
     if prepared.pattern.non_repetitive:
         # a non-repetitive scanner's lines have no intrinsics of their own
         per_beam = [c for c in allowed if c in PER_BEAM_CANDIDATES]

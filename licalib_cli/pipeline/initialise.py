@@ -734,7 +734,7 @@ def _initial_state(
     ini = cfg.initialization
     t0 = int(rec.imu.t_ns[0])
     t_imu = (rec.imu.t_ns - t0) * 1e-9
-    knots = UniformKnots.for_interval(0.0, float(t_imu[-1]), cfg.spline.knot_spacing_s)
+    knots = UniformKnots.for_interval(0.0, float(t_imu[-1]), cfg.spline.spacing_s)
     # The gyro bias starts at zero (the optimisation estimates it): taking it from the
     # odometry's rotation would turn the odometry's tilt drift into a bias.
     gyro_bias = np.zeros(3)

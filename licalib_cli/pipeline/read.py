@@ -23,6 +23,7 @@ from licalib_cli.inspection import (
 from licalib_cli.io.reader import read_segment
 from licalib_cli.io.window import MIN_SEGMENT_S
 from licalib_cli.measurements import ImuSamples, Recording
+from licalib_cli.pipeline.knot_spacing import KnotSpacing, choose_knot_spacing, with_knot_spacing
 from licalib_cli.pipeline.points import nominal_elevations
 from licalib_cli.pipeline.scan_pattern import (
     SPINNING,
@@ -60,12 +61,15 @@ class Segment:
         noise: the noise the fit is weighted with.
         pattern: what the clouds' beam field means (a non-repetitive scanner's points carry
             elevation bins as their beams: :func:`.scan_pattern.elevation_beams`).
+        knots: the trajectory splines' knot spacing (the config's, or chosen from the IMU's
+            signals: :mod:`.knot_spacing`); None: the config's as it stands.
     """
 
     recording: Recording
     nominal_elevation: npt.NDArray[np.float64]
     noise: NoiseLevels
     pattern: ScanPattern = SPINNING
+    knots: KnotSpacing | None = None
 
 
 def read(bag: Path, cfg: CalibConfig) -> Segment:
@@ -81,10 +85,15 @@ def read(bag: Path, cfg: CalibConfig) -> Segment:
     warning = tilt_warning(rec.imu, cfg.model.imu)
     if warning:
         logger.warning(warning)
+    knots = choose_knot_spacing(rec.imu, cfg)
+    (logger.info if knots.chosen else logger.debug)(knots.describe())
+    cfg = with_knot_spacing(
+        cfg, knots.spacing_s
+    )  # the IMU noise is measured with the splines' spacing
     pattern = scan_pattern(rec.layout.elevation_spread_deg, cfg)
     if not pattern.non_repetitive:
         phi = nominal_elevations(rec.scans, cfg)
-        return Segment(rec, phi, measure_noise(rec, cfg, phi.shape[0]), pattern)
+        return Segment(rec, phi, measure_noise(rec, cfg, phi.shape[0]), pattern, knots)
     check_model(cfg, pattern)
     lines = 1 + max(
         (int(s.ring.max()) for s in rec.scans if s.ring is not None and len(s)), default=0
@@ -99,7 +108,7 @@ def read(bag: Path, cfg: CalibConfig) -> Segment:
         phi.shape[0],
     )
     per_bin = np.full(phi.shape[0], noise.range_measured_m)
-    return Segment(binned, phi, replace(noise, range_sigma_per_beam=per_bin), pattern)
+    return Segment(binned, phi, replace(noise, range_sigma_per_beam=per_bin), pattern, knots)
 
 
 def tilt_warning(imu: ImuSamples, model_imu: Sequence[str]) -> str | None:
@@ -153,7 +162,7 @@ def measure_noise(
     """
     t_s = (rec.imu.t_ns - rec.imu.t_ns[0]) * 1e-9
     rate = (len(rec.imu) - 1) / max(float(t_s[-1]), 1e-9)
-    dt = cfg.spline.knot_spacing_s
+    dt = cfg.spline.spacing_s
     gyro_data = imu_noise(t_s, rec.imu.gyro, dt, 1).sigma
     accel_data = imu_noise(t_s, rec.imu.accel, dt, 2).sigma
     step = max(1, len(rec.scans) // _NOISE_SCANS)

@@ -419,7 +419,7 @@ def _window_state(imu: ImuSamples, est: CommonEstimate, cfg: CalibConfig) -> Cal
     """The window's trajectory from the IMU alone (see the module docstring)."""
     t0 = int(imu.t_ns[0])
     t = (imu.t_ns - t0) * 1e-9
-    knots = UniformKnots.for_interval(0.0, float(t[-1]), cfg.spline.knot_spacing_s)
+    knots = UniformKnots.for_interval(0.0, float(t[-1]), cfg.spline.spacing_s)
     rot = GyroIntegrator.from_imu(imu)(imu.t_ns).as_matrix()
     so3 = SO3Spline.from_rotations(knots, t, rot)
     r_gi = so3.rotation(t)

@@ -484,7 +484,7 @@ def estimates_intrinsics(cfg: CalibConfig) -> bool:
 def spline_margin_s(cfg: CalibConfig) -> float:
     """How far inside the spline a point's trajectory time ``tau + t_c`` must stay, s (room
     for the time offset to move)."""
-    return max(cfg.spline.time_offset_padding_s, 2 * cfg.spline.knot_spacing_s)
+    return max(cfg.spline.time_offset_padding_s, 2 * cfg.spline.spacing_s)
 
 
 @dataclass(frozen=True)

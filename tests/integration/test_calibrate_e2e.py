@@ -57,7 +57,10 @@ def test_calibrate_recovers_extrinsic_and_time_offset(short_bag, tmp_path, capsy
         "time_offset_std_s",
     }
     assert result["verdict"]["status"] in ("pass", "warn")
-    assert (out.parent / "result.config.yaml").exists()
+    # the knot spacing the IMU's signals allowed, chosen from the config's range, is written
+    resolved = yaml.safe_load((out.parent / "result.config.yaml").read_text())["spline"]
+    assert resolved["min_knot_spacing_s"] <= resolved["knot_spacing_s"]
+    assert resolved["knot_spacing_s"] <= resolved["max_knot_spacing_s"]
     assert "Error against truth" in printed
     assert "Verdict" in printed
 

@@ -37,6 +37,7 @@ class _Window:
     noise: object = "noise"
     initial: _Initial = _Initial()
     pattern: ScanPattern = SPINNING
+    config: object = None  # the window fit's resolved config: the one given
 
     @property
     def state(self) -> SimpleNamespace:
