@@ -87,9 +87,8 @@ def read(bag: Path, cfg: CalibConfig) -> Segment:
         logger.warning(warning)
     knots = choose_knot_spacing(rec.imu, cfg)
     (logger.info if knots.chosen else logger.debug)(knots.describe())
-    cfg = with_knot_spacing(
-        cfg, knots.spacing_s
-    )  # the IMU noise is measured with the splines' spacing
+    # the IMU noise is measured with the splines' spacing
+    cfg = with_knot_spacing(cfg, knots.spacing_s)
     pattern = scan_pattern(rec.layout.elevation_spread_deg, cfg)
     if not pattern.non_repetitive:
         phi = nominal_elevations(rec.scans, cfg)
