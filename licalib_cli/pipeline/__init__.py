@@ -305,8 +305,6 @@ def fit_and_check(
             ``diagnose`` reads them).
     """
     rec, noise, guess = prepared.rec, prepared.noise, prepared.guess
-    if cfg.spline.knot_spacing_s is None:  # the segment's splines were laid with its spacing
-        cfg = with_knot_spacing(cfg, prepared.cfg.spline.spacing_s)
     with timer.stage("optimisation", progress, total=cfg.schedule.max_rounds):
         fit = run_schedule(rec, start, noise, cfg, progress, warm=warm)
     with timer.stage("checks", progress):

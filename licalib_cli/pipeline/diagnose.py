@@ -226,16 +226,14 @@ class Diagnosis:
     config: CalibConfig | None = None
 
 
-def _expected_chi2(sensor: str, cfg: CalibConfig, imu_rate_hz: float) -> float:
+def _expected_chi2(sensor: str, knot_spacing_s: float, imu_rate_hz: float) -> float:
     if sensor == "lidar":
         return 1.0
-    knots_per_s = 1.0 / cfg.spline.spacing_s
+    knots_per_s = 1.0 / knot_spacing_s
     return max(0.0, 1.0 - knots_per_s / max(imu_rate_hz, 1e-9))
 
 
-def _gap(
-    run: CalibrationRun, sensor: str, cfg: CalibConfig, imu_rate_hz: float, twin: Twin | None
-) -> Gap:
+def _gap(run: CalibrationRun, sensor: str, imu_rate_hz: float, twin: Twin | None) -> Gap:
     consistency = run.result.consistency
     assert consistency is not None
     s = next(c for c in consistency.sensors if c.sensor == sensor)
@@ -244,7 +242,7 @@ def _gap(
     return Gap(
         sensor=sensor,
         chi2_per_sample=s.chi2_per_sample,
-        expected=_expected_chi2(sensor, cfg, imu_rate_hz),
+        expected=_expected_chi2(sensor, run.state.knots.dt_s, imu_rate_hz),
         rms=s.rms,
         map_entropy=run.rounds[-1].map_entropy if sensor == "lidar" else nan,
         twin_chi2_per_sample=t.chi2_per_sample if t is not None else nan,
@@ -317,7 +315,6 @@ def share_of(
     run: CalibrationRun,
     without: CalibrationRun,
     effect: str,
-    cfg: CalibConfig,
     imu_rate_hz: float,
     twin: Twin | None,
 ) -> tuple[Gap, Gap]:
@@ -331,7 +328,7 @@ def share_of(
     gap to close. This is what it closes with the others in.
     """
     sensor = CANDIDATES[effect][2]
-    return _gap(without, sensor, cfg, imu_rate_hz, twin), _gap(run, sensor, cfg, imu_rate_hz, twin)
+    return _gap(without, sensor, imu_rate_hz, twin), _gap(run, sensor, imu_rate_hz, twin)
 
 
 def _try_effect(
@@ -380,8 +377,8 @@ def _try_effect(
         kept=bool(delta_bic < 0.0),
         estimate=_estimate(new, name),
         held=_held(new, name),
-        gap_before=_gap(run, sensor, cfg, rate, run_twin),
-        gap_after=_gap(new, sensor, cfg, rate, new_twin),
+        gap_before=_gap(run, sensor, rate, run_twin),
+        gap_after=_gap(new, sensor, rate, new_twin),
         moved_translation_m=moved["translation_m"],
         moved_rotation_deg=moved["rotation_deg"],
         moved_time_offset_s=moved["time_offset_s"],
@@ -626,7 +623,7 @@ def diagnose(
         if wants_share(t, kept):
             with timer.stage("share", progress):
                 without = fit_without(kept, t.effect)
-            before, after = share_of(run, without, t.effect, cfg, rate, run_twin)
+            before, after = share_of(run, without, t.effect, rate, run_twin)
             steps[i] = replace(t, share_before=before, share_after=after)
             logger.info(
                 "Diagnose: %s closed %.0f %% of the %s gap when it was added; with the other "

@@ -219,7 +219,7 @@ def _reassociate(
         association_distance(cfg, run.noise),
         bool(cfg.model.imu or cfg.model.lidar),
     )
-    pts = usable_points(state, data.points, settings.margin_s)
+    pts = usable_points(state, data.points, settings.margin_s(state.knots))
     p_g = points_in_global(state, pts)
     surfels = build_surfels(p_g, settings.surfels)
     assoc = associate_points(p_g, surfels, settings.surfels)

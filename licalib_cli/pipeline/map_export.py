@@ -105,7 +105,7 @@ def map_chunks(
         The number of points the chunks hold in total, and the chunks.
     """
     phi = state.lidar_intrinsics.nominal_elevation
-    margin = spline_margin_s(cfg)
+    margin = spline_margin_s(cfg.spline.time_offset_padding_s, state.knots)
     count = 0
     for scan in _mappable(rec):  # sweeps, not points: the count goes into a file header first
         sample, _ = _scan_sample(scan, phi, cfg, every)
@@ -122,7 +122,7 @@ def _chunks(
 ) -> Iterator[MapChunk]:
     """The chunks of :func:`map_chunks` (without counting their points first)."""
     phi = state.lidar_intrinsics.nominal_elevation
-    margin = spline_margin_s(cfg)
+    margin = spline_margin_s(cfg.spline.time_offset_padding_s, state.knots)
     scans = _mappable(rec)
     group: list[tuple[PointSample, npt.NDArray[np.float32]]] = []
     size = 0

@@ -275,7 +275,7 @@ def run_round(
     """
     watch, total = Stopwatch(), Stopwatch()
     times: dict[str, StageTime] = {}
-    usable = usable_mask(state, sample, settings.margin_s)
+    usable = usable_mask(state, sample, settings.margin_s(state.knots))
     if (
         mapped is not None
         and mapped.state is state

@@ -488,7 +488,7 @@ def window_information(
     state = _window_state(imu, est, cfg)
     sample, normal_l = _concat(parts)
     tq = (sample.t_ns - state.t0_ns) * 1e-9 + state.time_offset_s
-    margin = spline_margin_s(cfg)
+    margin = spline_margin_s(cfg.spline.time_offset_padding_s, state.knots)
     inside = (tq >= state.knots.t0_s + margin) & (tq <= state.knots.t_end_s - margin)
     if np.count_nonzero(inside) < 50:
         return None

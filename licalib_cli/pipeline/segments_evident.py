@@ -28,7 +28,6 @@ from licalib_cli.pipeline import CalibrationRun, Prepared, fit_and_check
 from licalib_cli.pipeline.effect_refit import unmistakable_ones
 from licalib_cli.pipeline.evident import addable, bic_change, estimating, refit_groups
 from licalib_cli.pipeline.fitcheck import EffectEvidence
-from licalib_cli.pipeline.knot_spacing import with_knot_spacing
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.scan_pattern import with_scan_pattern
 from licalib_cli.pipeline.segments import _with_range
@@ -127,8 +126,6 @@ def _refit_windows(
     for run, (a, b) in zip(runs, windows, strict=True):
         assert run.segment is not None
         window_cfg = _with_range(with_scan_pattern(new_cfg, run.pattern), a, b - a)
-        if run.config is not None:  # the knot spacing the window's fit chose
-            window_cfg = with_knot_spacing(window_cfg, run.config.spline.spacing_s)
         prepared = Prepared(bag, run.segment, run.noise, run.initial, run.pattern, window_cfg)
         try:
             new = fit_and_check(

@@ -44,6 +44,7 @@ from licalib_cli.surfels import SurfelConfig
 
 if TYPE_CHECKING:
     from licalib_cli.io.clock_rate import ClockRate
+    from licalib_cli.spline import UniformKnots
 
 __all__ = [
     "DEFAULT_MAX_DISTANCE_M",
@@ -481,10 +482,11 @@ def estimates_intrinsics(cfg: CalibConfig) -> bool:
     return bool(cfg.model.imu or cfg.model.lidar)
 
 
-def spline_margin_s(cfg: CalibConfig) -> float:
+def spline_margin_s(padding_s: float, knots: UniformKnots) -> float:
     """How far inside the spline a point's trajectory time ``tau + t_c`` must stay, s (room
-    for the time offset to move)."""
-    return max(cfg.spline.time_offset_padding_s, 2 * cfg.spline.spacing_s)
+    for the time offset to move): ``spline.time_offset_padding_s``, at least two intervals of
+    the knots the splines were laid with."""
+    return max(padding_s, 2 * knots.dt_s)
 
 
 @dataclass(frozen=True)
@@ -496,15 +498,19 @@ class RoundSettings:
         weights: residual weights.
         solver: Levenberg-Marquardt settings.
         free: what the round estimates.
-        margin_s: points whose trajectory time comes closer than this to the spline's ends are
-            left out, s.
+        padding_s: ``spline.time_offset_padding_s``: points whose trajectory time comes closer
+            to the spline's ends than :meth:`margin_s` are left out.
     """
 
     surfels: SurfelConfig
     weights: NoiseModel
     solver: LMParams
     free: FreeParameters
-    margin_s: float
+    padding_s: float
+
+    def margin_s(self, knots: UniformKnots) -> float:
+        """The margin on splines with ``knots`` (:func:`spline_margin_s`), s."""
+        return spline_margin_s(self.padding_s, knots)
 
 
 def with_clock_rate(settings: RoundSettings, rate: ClockRate | None) -> RoundSettings:
@@ -571,5 +577,5 @@ def round_settings(
             function_tolerance=COARSE_FUNCTION_TOLERANCE if coarse else LMParams.function_tolerance,
         ),
         free=free_parameters(cfg, intrinsics),
-        margin_s=spline_margin_s(cfg),
+        padding_s=cfg.spline.time_offset_padding_s,
     )

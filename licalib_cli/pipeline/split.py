@@ -195,7 +195,7 @@ def half_problem(
     (with the spline margin), the IMU samples over that sub-spline and the associated points of
     the half, estimating ``free`` (default :func:`held_free` of the round's); a sentence when
     the half holds too few points."""
-    margin = spline_margin_s(cfg)
+    margin = spline_margin_s(cfg.spline.time_offset_padding_s, state.knots)
     sub = _sub_state(state, lo_s - margin, hi_s + margin)
     knots = sub.knots
     imu = inputs.imu

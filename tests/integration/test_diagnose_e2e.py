@@ -648,7 +648,6 @@ def test_an_effect_of_a_final_model_with_several_gets_its_share_of_its_sensors_g
     progress, timer = NullProgress(), Timer()
     base_cfg = with_effects(cfg, ())
     prepared = prepare(bag, base_cfg, progress, timer)
-    cfg = prepared.cfg  # with the knot spacing the data chose, which the gaps expect
     base = fit_and_check(prepared, prepared.guess, base_cfg, progress, timer)
     # calibrate's checks do not size the rivals (only diagnose reads them); asked, they do
     significant = {e.score.name for e in base.effects if e.score.p_value < EFFECT_P_VALUE}
@@ -666,11 +665,11 @@ def test_an_effect_of_a_final_model_with_several_gets_its_share_of_its_sensors_g
     rest = with_effects(cfg, ("accel_scale",))
     without = fit_and_check(prepared, start, rest, progress, timer, warm=True)
     rate = 400.0
-    before, after = share_of(run, without, "gyro_scale", cfg, rate, None)
+    before, after = share_of(run, without, "gyro_scale", rate, None)
     assert before.sensor == after.sensor == "gyro"
     # taken out, its sensor's gap is back near the base fit's, which lacked both
-    reopened = _gap(base, "gyro", cfg, rate, None).excess
+    reopened = _gap(base, "gyro", rate, None).excess
     assert before.excess > 3.0 * before.sigma
     assert 0.7 * reopened < before.excess < 1.3 * reopened
     assert max(after.excess, 0.0) < 0.2 * before.excess  # in, it closes it
-    assert after.chi2_per_sample == _gap(run, "gyro", cfg, rate, None).chi2_per_sample
+    assert after.chi2_per_sample == _gap(run, "gyro", rate, None).chi2_per_sample
