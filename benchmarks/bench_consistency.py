@@ -268,6 +268,8 @@ def one_run(case: dict, workdir: Path) -> dict:
         covered=[e.name for e in res.consistency.effects if e.covered] if res.consistency else [],
         # the effects calibrate estimated because the data showed them beyond doubt
         added=[a.effect for a in res.model.added] if res.model is not None else [],
+        # the IMU blocks the recording determined none of (their choice in the sigmas)
+        undetermined=list(res.model.undetermined) if res.model is not None else [],
         # the priors this recording cannot check (and the effects taken as exact that could
         # hide three sigmas), with the shift each could hide
         unchecked=(
@@ -346,6 +348,7 @@ def _line(row: dict) -> str:
         f"dt {row['time_offset_ms']:6.3f} ms  max err/sigma {row['max_error_over_sigma']:6.2f}  "
         f"{row['verdict'].upper():4}  {row['calibrate_s']:5.1f} s  {judge(row)}{unobservable}"
         + (f"  added {'+'.join(row['added'])}" if row.get("added") else "")
+        + (f"  undetermined {'+'.join(row['undetermined'])}" if row.get("undetermined") else "")
     )
 
 

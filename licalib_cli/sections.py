@@ -548,6 +548,8 @@ class ModelInfo(Section):
             characteristic scale (``model.expected_size``, its keys and units); empty otherwise.
         added: the effects estimated beyond the config's model because the data showed them
             beyond doubt (``model.add_evident_effects``), in the order added.
+        undetermined: IMU blocks of the model the recording determined none of: estimated,
+            the sigmas include how far holding them at nominal moves the extrinsic.
     """
 
     imu: tuple[str, ...] = ()
@@ -557,6 +559,7 @@ class ModelInfo(Section):
     lidar_spread: dict[str, float] = field(default_factory=dict)
     expected_size: dict[str, float] = field(default_factory=dict)
     added: tuple[AddedEffect, ...] = ()
+    undetermined: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)

@@ -54,6 +54,7 @@ __all__ = [
     "Timer",
     "calibrate",
     "fit_and_check",
+    "judged_again",
     "noise_spread",
     "prepare",
 ]
@@ -150,10 +151,14 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
         if cfg.model.add_evident_effects
         else Evident(run, cfg)
     )
+    from licalib_cli.pipeline.undetermined import weigh_undetermined, with_choice
+
     run = _refit_unmistakable(prepared, evident.run, evident.cfg, progress, timer, evident.declined)
+    run, choice = weigh_undetermined(prepared, run, evident.cfg, progress, timer)
     run = noise_spread(prepared, run, evident.cfg, progress, timer)
     if evident.added or evident.notes:
         run = with_added(run, evident.added, evident.notes)
+    run = with_choice(run, choice)
     if evident.added or prepared.cfg is not given:
         # the model with the effects added, or the scan pattern the data showed
         run = replace(run, config=evident.cfg)
@@ -181,10 +186,10 @@ def noise_spread(
         return run
     text = spread_text(prepared.noise, cfg.checks.range_noise_draws)
     judged = rejudge(run.fit, run.checks, run.checks.effects, cfg, (spread, text))
-    return _judged_again(prepared, run, judged, cfg, timer)
+    return judged_again(prepared, run, judged, cfg, timer)
 
 
-def _judged_again(
+def judged_again(
     prepared: Prepared, run: CalibrationRun, checks: Checks, cfg: CalibConfig, timer: Timer
 ) -> CalibrationRun:
     """``run`` with the checks judged again on its fit, its result assembled from them and the
@@ -240,7 +245,7 @@ def _refit_unmistakable(
     effects = refit_shifts(run.checks.effects, run.state, refit)
     if effects is None:
         return run
-    return _judged_again(prepared, run, rejudge(run.fit, run.checks, effects, cfg), cfg, timer)
+    return judged_again(prepared, run, rejudge(run.fit, run.checks, effects, cfg), cfg, timer)
 
 
 @dataclass(frozen=True)

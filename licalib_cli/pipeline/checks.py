@@ -175,6 +175,9 @@ class Checks:
         notes: warnings of earlier stages the verdict took.
         failures: failures of earlier stages the verdict took (estimates no rig can have,
             :mod:`~licalib_cli.pipeline.implausible`).
+        choice: (7,) how far a fit with the IMU blocks the recording determines none of held
+            instead of estimated moved the extrinsic (t m, r rad, dt s), in the sigmas, and the
+            sentence that says so (:mod:`~licalib_cli.pipeline.undetermined`); None: none.
     """
 
     verdict: VerdictSection
@@ -190,6 +193,7 @@ class Checks:
     split: SplitResult | None = None
     notes: tuple[str, ...] = ()
     failures: tuple[str, ...] = ()
+    choice: tuple[F64, str] | None = None
 
 
 def _std(report: SolverReport, names: list[str]) -> F64:
@@ -1024,6 +1028,7 @@ def run_checks(
     planes: MapUncertainty | None = None,
     spread: tuple[F64, str] | None = None,
     failures: tuple[str, ...] = (),
+    choice: tuple[F64, str] | None = None,
 ) -> Checks:
     """Every check on the fit, the inflated sigmas and the verdict.
 
@@ -1041,6 +1046,9 @@ def run_checks(
             sentence that says so (:mod:`~licalib_cli.pipeline.noise_draws`); None: none.
         failures: failures of earlier stages (one sentence each), e.g. an estimate that ended
             far from the hand-eye rotation it started from.
+        choice: (7,) how far holding the IMU blocks the recording determines none of moves
+            the extrinsic, added to the sigmas in quadrature, and the sentence that says so
+            (:mod:`~licalib_cli.pipeline.undetermined`); None: none.
 
     Returns:
         The checks' outcome.
@@ -1073,6 +1081,12 @@ def run_checks(
             ratio = float(np.nanmax(np.where(sigma > 0, grown / sigma, 1.0)))
             why = (*why, f"{text} (times up to {ratio:.2f})")
         sigma = grown
+    if choice is not None:
+        moved, text = choice
+        grown = np.sqrt(sigma**2 + np.asarray(moved) ** 2)
+        ratio = float(np.nanmax(np.where(sigma > 0, grown / sigma, 1.0)))
+        why = (*why, f"{text} (times up to {ratio:.2f})")
+        sigma = grown
     prior = prior_sd(cfg)
     resting = on_prior(report, prior)
     # the data's own estimate as uncertain as the checks found the result
@@ -1093,6 +1107,8 @@ def run_checks(
     without_effects, _ = inflate(raw, sensors, [], split, fit)
     if spread is not None:  # the noise's spread is no effect held fixed
         without_effects = np.maximum(without_effects, spread[0])
+    if choice is not None:  # nor the choice of the model's undetermined blocks
+        without_effects = np.sqrt(without_effects**2 + np.asarray(choice[0]) ** 2)
     findings += uncertainty_findings(
         sigma,
         without_effects,
@@ -1149,6 +1165,7 @@ def run_checks(
         split=split,
         notes=notes,
         failures=failures,
+        choice=choice,
     )
 
 
@@ -1158,10 +1175,12 @@ def rejudge(
     effects: Sequence[EffectEvidence],
     cfg: CalibConfig,
     spread: tuple[F64, str] | None = None,
+    choice: tuple[F64, str] | None = None,
 ) -> Checks:
     """The checks again on the same evidence, with the effects' tests replaced by ``effects``
-    (their shifts measured another way, :mod:`licalib_cli.pipeline.effect_refit`) and the
-    sigmas at least ``spread`` (:func:`run_checks`)."""
+    (their shifts measured another way, :mod:`licalib_cli.pipeline.effect_refit`), the
+    sigmas at least ``spread`` and ``choice`` (``checks.choice`` when None) in them
+    (:func:`run_checks`)."""
     if checks.split is None:
         msg = "the checks kept no split-half comparison to judge again"
         raise ValueError(msg)
@@ -1175,6 +1194,7 @@ def rejudge(
         checks.planes,
         spread,
         failures=checks.failures,
+        choice=checks.choice if choice is None else choice,
     )
 
 

@@ -268,6 +268,16 @@ def _intrinsics(result: CalibrationResult) -> str:
             )
             + ".</p>"
         )
+    if model.undetermined:
+        out.append(
+            "<p>"
+            + _e(
+                "The recording determines none of the numbers of "
+                f"{', '.join(model.undetermined)}: estimated as configured, the sigmas include "
+                "how far holding them at nominal moves the extrinsic."
+            )
+            + "</p>"
+        )
     rows = []
     k = result.imu_intrinsics
     for name in model.imu:

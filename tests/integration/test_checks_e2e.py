@@ -596,3 +596,25 @@ def test_an_imu_bias_no_part_has_fails_and_a_rejudged_verdict_keeps_it(clean_fit
     again = rejudge(bent, checks, checks.effects, cfg)
     assert again.verdict.status == "fail"
     assert any(r.startswith("The estimated accelerometer bias") for r in again.verdict.reasons)
+
+
+def test_the_choice_of_an_undetermined_block_adds_to_the_sigmas_and_stays(
+    clean_fit: tuple,
+) -> None:
+    """How far holding an undetermined IMU block moves the extrinsic enters the sigmas in
+    quadrature, is said among the enlargements, and stays through a later judgement (as the
+    noise draws judge again)."""
+    from licalib_cli.pipeline.checks import check, rejudge
+    from licalib_cli.pipeline.undetermined import sigma_of
+
+    cfg, prepared, fit = clean_fit
+    checks = check(fit, prepared.guess, prepared.noise, cfg)
+    before = sigma_of(checks)
+    moved = np.array([0.0, 0.0, 3e-3, 0.0, 0.0, 0.0, 0.0])
+    text = "by how far holding accel_misalignment at nominal instead of estimating it moves it"
+    weighed = rejudge(fit, checks, checks.effects, cfg, choice=(moved, text))
+    after = sigma_of(weighed)
+    np.testing.assert_allclose(after, np.sqrt(before**2 + moved**2), rtol=1e-6)
+    assert any(w.startswith(text) for w in weighed.consistency.inflation)
+    again = rejudge(fit, weighed, weighed.effects, cfg)
+    np.testing.assert_allclose(sigma_of(again), after, rtol=1e-12)

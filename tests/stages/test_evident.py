@@ -15,6 +15,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from finished_runs import finished_run
 from held_effects import scored_effect
 
 from licalib_cli.config import load_config
@@ -310,29 +311,13 @@ def test_at_most_max_passes_refits_add_effects(monkeypatch: pytest.MonkeyPatch) 
     assert [a.effect for a in out.added] == chain[: evident.MAX_PASSES]
 
 
-@dataclass(frozen=True)
-class _Result:
-    model: ModelInfo
-
-
-@dataclass(frozen=True)
-class _Checks:
-    findings: tuple[Finding, ...]
-
-
-@dataclass(frozen=True)
-class _Finished:
-    result: _Result
-    checks: _Checks
-
-
 def test_the_result_names_what_was_added_and_the_findings_note_it() -> None:
     added = (
         AddedEffect("lidar_range_offset", 35716.5, 16, -909137.0, 0.0132, 0.0291, 7.7e-5),
         AddedEffect("lidar_elevation", 2400.0, 15, -909137.0, 0.0132, 0.0291, 7.7e-5),
         AddedEffect("accel_scale", 900.0, 3, -80.0, 0.0021, 0.001, -1e-6, refit=2),
     )
-    run = _Finished(_Result(ModelInfo((), ("range_offset",))), _Checks((Finding("warn", "w"),)))
+    run = finished_run(ModelInfo((), ("range_offset",)), Finding("warn", "w"))
     out = evident.with_added(run, added)  # type: ignore[arg-type]
     assert out.result.model.added == added
     first, second, kept = out.checks.findings
