@@ -274,7 +274,8 @@ def _intrinsics(result: CalibrationResult) -> str:
             + _e(
                 "The recording determines none of the numbers of "
                 f"{', '.join(model.undetermined)}: estimated as configured, the sigmas include "
-                "how far holding them at nominal moves the extrinsic."
+                f"how far holding {'it' if len(model.undetermined) == 1 else 'them'} at nominal "
+                "moves the extrinsic."
             )
             + "</p>"
         )

@@ -398,6 +398,14 @@ def test_estimated_intrinsics_are_tabled_with_their_sigmas(tmp_path):
         "lidar_range_offset (score test 35716 on 16 degrees of freedom; its refit&#x27;s BIC "
         "-909137, extrinsic moved 13.20 mm / 0.0291 deg / 0.077 ms)." in page
     )
+    assert "determines none of the numbers" not in page
+    weighed = replace(spread, undetermined=("accel_misalignment",))
+    page = render_html(replace(result, model=weighed), None, "calib.yaml")
+    assert (
+        "The recording determines none of the numbers of accel_misalignment: estimated as "
+        "configured, the sigmas include how far holding it at nominal moves the extrinsic."
+        in page
+    )
 
 
 def test_truth_given_to_report_is_shown_beside_the_estimate(tmp_path, capsys):
