@@ -403,8 +403,7 @@ def test_estimated_intrinsics_are_tabled_with_their_sigmas(tmp_path):
     page = render_html(replace(result, model=weighed), None, "calib.yaml")
     assert (
         "The recording determines none of the numbers of accel_misalignment: estimated as "
-        "configured, the sigmas include how far holding it at nominal moves the extrinsic."
-        in page
+        "configured, the sigmas include how far holding it at nominal moves the extrinsic." in page
     )
 
 
