@@ -34,7 +34,12 @@ import scipy.sparse as sp
 
 from licalib_cli.consistency import score_effects
 from licalib_cli.estimation import CalibrationState, Planes
-from licalib_cli.pipeline.free_planes import corrected_plane_terms, gauge_hold, lidar_block
+from licalib_cli.pipeline.free_planes import (
+    PlanePoints,
+    corrected_plane_terms,
+    gauge_hold,
+    lidar_block,
+)
 from licalib_cli.pipeline.points import PointSample, points_and_rays_in_global
 from licalib_cli.residuals import PointToPlaneResidual
 from licalib_cli.solver.nuisance import marginal_system
@@ -125,18 +130,8 @@ def planes_free_system(
     plane = np.asarray(plane, dtype=np.intp)
     normal = np.asarray(planes.normal, dtype=np.float64)
     p_g, rays = points_and_rays_in_global(state, sample)
-    terms, _, _ = corrected_plane_terms(
-        problem,
-        evaluation,
-        layout,
-        block,
-        residual.whitening(),
-        p_g,
-        rays,
-        plane,
-        normal,
-        range_noise,
-    )
+    points = PlanePoints(residual.whitening(), p_g, rays, plane, normal, range_noise)
+    terms, _, _ = corrected_plane_terms(problem, evaluation, layout, block, points)
     held = _degenerate(terms.H_pp)
     if np.any(held):
         # Held where they are: a plane whose own information is singular or, with the range

@@ -69,6 +69,7 @@ __all__ = [
     "MIN_GAIN",
     "RELATIVE_DECREASE",
     "STEP_FRACTIONS",
+    "PlanePoints",
     "PlaneRefinement",
     "PlanesFreeSteps",
     "corrected_plane_gradient",
@@ -284,17 +285,37 @@ def gauge_hold(layout: Layout, so3: str = TRAJ_SO3, r3: str = TRAJ_R3) -> npt.ND
     return np.asarray(hold[hold >= 0], dtype=np.intp)
 
 
+@dataclass(frozen=True)
+class PlanePoints:
+    """The points of a point-to-plane block on their planes, as the planes' nuisance terms read
+    them.
+
+    Attributes:
+        whitening: (N,) the block's whitening per point.
+        p_g: (N, 3) the points in the planes' frame, m.
+        rays: (N, 3) their unit rays there.
+        plane: (N,) each point's plane.
+        normal: (P, 3) the planes' unit normals.
+        range_noise: (N,) each point's range noise, m.
+    """
+
+    whitening: F64
+    p_g: F64
+    rays: F64
+    plane: npt.NDArray[np.intp]
+    normal: F64
+    range_noise: F64
+
+    def whitened_jacobian(self) -> tuple[F64, F64, F64]:
+        """:func:`plane_jacobian` whitened, the centroids and each point's whitened range
+        noise."""
+        jac, centroid = plane_jacobian(self.p_g, self.plane, self.normal)
+        jac *= self.whitening[:, None]
+        return jac, centroid, self.whitening * self.range_noise
+
+
 def corrected_plane_terms(
-    problem: Problem,
-    evaluation: Evaluation,
-    layout: Layout,
-    block: int,
-    whitening: F64,
-    p_g: F64,
-    rays: F64,
-    plane: npt.NDArray[np.intp],
-    normal: F64,
-    range_noise: F64,
+    problem: Problem, evaluation: Evaluation, layout: Layout, block: int, points: PlanePoints
 ) -> tuple[NuisanceTerms, F64, F64]:
     """The planes as nuisance of the point-to-plane block ``block``, without the range noise's
     expected part (:func:`noise_corrected`).
@@ -302,43 +323,26 @@ def corrected_plane_terms(
     Args:
         problem, evaluation, layout: the problem, its evaluation with Jacobians and its layout.
         block: the point-to-plane block.
-        whitening: (N,) the block's whitening per point.
-        p_g: (N, 3) its points in the planes' frame; rays: (N, 3) their unit rays there.
-        plane: (N,) each point's plane; normal: (P, 3) the planes' unit normals.
-        range_noise: (N,) each point's range noise, m.
+        points: its points on their planes.
 
     Returns:
         ``(terms, centroids (P, 3), whitened range noise (N,))``.
     """
-    jac, centroid, noise = _whitened_plane_jacobian(p_g, plane, normal, whitening, range_noise)
+    jac, centroid, noise = points.whitened_jacobian()
+    plane, normal = points.plane, points.normal
     terms = nuisance_terms(problem, evaluation, layout, block, jac, plane, normal.shape[0])
-    return noise_corrected(terms, plane, normal, rays, noise), centroid, noise
+    return noise_corrected(terms, plane, normal, points.rays, noise), centroid, noise
 
 
 def corrected_plane_gradient(
-    evaluation: Evaluation,
-    block: int,
-    whitening: F64,
-    p_g: F64,
-    rays: F64,
-    plane: npt.NDArray[np.intp],
-    normal: F64,
-    range_noise: F64,
+    evaluation: Evaluation, block: int, points: PlanePoints
 ) -> tuple[F64, F64, F64]:
     """:func:`corrected_plane_terms`'s gradient alone (arguments as its): ``(g_p (P, 3),
     centroids (P, 3), whitened range noise (N,))``."""
-    jac, centroid, noise = _whitened_plane_jacobian(p_g, plane, normal, whitening, range_noise)
+    jac, centroid, noise = points.whitened_jacobian()
+    plane, normal = points.plane, points.normal
     g_p = nuisance_gradient(evaluation, block, jac, plane, normal.shape[0])
-    return noise_corrected_gradient(g_p, plane, normal, rays, noise), centroid, noise
-
-
-def _whitened_plane_jacobian(
-    p_g: F64, plane: npt.NDArray[np.intp], normal: F64, whitening: F64, range_noise: F64
-) -> tuple[F64, F64, F64]:
-    """:func:`plane_jacobian` whitened, the centroids and each point's whitened range noise."""
-    jac, centroid = plane_jacobian(p_g, plane, normal)
-    jac *= whitening[:, None]
-    return jac, centroid, whitening * range_noise
+    return noise_corrected_gradient(g_p, plane, normal, points.rays, noise), centroid, noise
 
 
 def planes_free_steps(
@@ -577,7 +581,7 @@ def planes_free_steps_from(
         assert isinstance(residual, PointToPlaneResidual)
         p_g, rays = points_and_rays(state)
         normal = np.asarray(planes.normal, dtype=np.float64)
-        whitening = residual.whitening()
+        points = PlanePoints(residual.whitening(), p_g, rays, plane, normal, range_noise)
         system = eliminated[0] if eliminated else None
         if system is not None and not problem.layout().same_coordinates(system.lin.layout):
             system = None  # other free coordinates: a step of its own
@@ -585,9 +589,7 @@ def planes_free_steps_from(
             # a chord step: the first step's elimination with the gradient here
             layout = system.lin.layout
             evaluation = evaluation_of(problem)
-            g_p, centroid, noise = corrected_plane_gradient(
-                evaluation, block, whitening, p_g, rays, plane, normal, range_noise
-            )
+            g_p, centroid, noise = corrected_plane_gradient(evaluation, block, points)
             step = system.step(problem.gradient(evaluation, layout), [g_p])
         else:
             if solved is not None and problem is solved.problem and planes is inputs.planes:
@@ -599,16 +601,7 @@ def planes_free_steps_from(
                 evaluation = evaluation_of(problem)
                 lin = problem.linearize(evaluation, layout)
             terms, centroid, noise = corrected_plane_terms(
-                problem,
-                evaluation,
-                layout,
-                block,
-                whitening,
-                p_g,
-                rays,
-                plane,
-                normal,
-                range_noise,
+                problem, evaluation, layout, block, points
             )
             system = eliminate_nuisance(
                 lin,

@@ -26,6 +26,7 @@ import numpy.typing as npt
 
 from licalib_cli.estimation import CalibrationState, FreeParameters, Planes, state_from_values
 from licalib_cli.pipeline.free_planes import (
+    PlanePoints,
     Stepped,
     corrected_plane_terms,
     expected_noise_cost,
@@ -131,18 +132,8 @@ def _nuisance_segment(
     plane = np.asarray(data.lidar.plane, dtype=np.intp)
     p_g, rays = points_and_rays_in_global(state, data.points)
     normal = np.asarray(planes.normal, dtype=np.float64)
-    terms, centroid, noise = corrected_plane_terms(
-        problem,
-        evaluation,
-        layout,
-        block,
-        residual.inner.whitening(),
-        p_g,
-        rays,
-        plane,
-        normal,
-        range_noise,
-    )
+    points = PlanePoints(residual.inner.whitening(), p_g, rays, plane, normal, range_noise)
+    terms, centroid, noise = corrected_plane_terms(problem, evaluation, layout, block, points)
     expected = noise_cost(plane, normal, rays, noise)
     nt = layout.num_trajectory
     prefix = segment_name(k, "")
