@@ -115,6 +115,7 @@ __all__ = [
     "Finding",
     "accelerometer_frame_advice",
     "accelerometer_frame_partners",
+    "at_cap",
     "check",
     "correlated_with",
     "drift_against_stamps",
@@ -125,6 +126,7 @@ __all__ = [
     "observability_of",
     "raw_uncertainty",
     "rejudge",
+    "rounds_accepted",
     "run_checks",
     "uncertainty_findings",
 ]
@@ -249,6 +251,27 @@ def within_sigmas(change: Change, sigma: F64) -> bool:
         0.5 * float(sigma[6]),
     )
     return bool(within(change, half, JITTER_FACTOR))
+
+
+def at_cap(fit: Fit, sigma: F64) -> tuple[Crawl | None, bool]:
+    """Rounds that ran out at the cap (the denser final rounds not unsettled), judged with the
+    (7,) ``sigma``: the coordinate their last changes still crawl one way (None: none, or not
+    at the cap), and whether the last change lies within ``sigma`` without such a crawl."""
+    if fit.converged or fit.final_unsettled:
+        return None, False
+    crawl = crawl_at_cap([r.extrinsic for r in fit.rounds], sigma)
+    return crawl, crawl is None and within_sigmas(fit.last_change, sigma)
+
+
+def rounds_accepted(fit: Fit, sigma: F64) -> bool:
+    """Whether the checks, with the (7,) ``sigma``, take ``fit``'s rounds as converged
+    (:func:`_convergence` finds no non-convergence): converged, or at the cap within ``sigma``
+    (:func:`at_cap`), or with the denser final rounds after them at rest."""
+    if fit.converged:
+        return True
+    if fit.final_unsettled:
+        return False
+    return at_cap(fit, sigma)[1] or dense_rounds_rested(fit)
 
 
 def _convergence(
@@ -1061,9 +1084,7 @@ def run_checks(
     # a jitter of the rounds within the result's uncertainty, covered like the schedule's;
     # unless their last changes crawl one way beyond the sigmas (pipeline/crawl.py): then they
     # are still on their way, and have not converged.
-    at_cap = not fit.converged and not fit.final_unsettled
-    crawl = crawl_at_cap([r.extrinsic for r in fit.rounds], sigma) if at_cap else None
-    settled_in_sigmas = at_cap and crawl is None and within_sigmas(fit.last_change, sigma)
+    crawl, settled_in_sigmas = at_cap(fit, sigma)
     if settled_in_sigmas:
         sigma = with_change(sigma, fit.last_change)
         why = (*why, "by the last round's change (the rounds settled only to within it)")

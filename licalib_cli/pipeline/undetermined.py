@@ -37,11 +37,10 @@ import numpy.typing as npt
 from licalib_cli.config import CalibConfig
 from licalib_cli.errors import LicalibError
 from licalib_cli.pipeline import CalibrationRun, Prepared, judged_again
-from licalib_cli.pipeline.checks import Checks, Finding, rejudge, within_sigmas
-from licalib_cli.pipeline.crawl import crawl_at_cap
+from licalib_cli.pipeline.checks import Checks, Finding, rejudge, rounds_accepted
 from licalib_cli.pipeline.held_effects import EFFECT_BLOCKS, HELD_WEIGHT
 from licalib_cli.pipeline.round import extrinsic_of
-from licalib_cli.pipeline.schedule import Fit, run_schedule
+from licalib_cli.pipeline.schedule import run_schedule
 from licalib_cli.pipeline.settings import calibration_block
 from licalib_cli.pipeline.timing import Timer
 from licalib_cli.progress import Progress
@@ -50,7 +49,6 @@ from licalib_cli.solver.lm import SolverReport
 __all__ = [
     "Choice",
     "choice_note",
-    "settled",
     "sigma_of",
     "undetermined_blocks",
     "weigh_undetermined",
@@ -151,7 +149,7 @@ def weigh_undetermined(
     except LicalibError as exc:
         logger.warning("The fit with %s held failed (%s); not in the sigmas.", names, exc)
         return run, None
-    if not settled(held, sigma_of(run.checks)):
+    if not rounds_accepted(held, sigma_of(run.checks)):
         logger.warning("The fit with %s held did not converge; not in the sigmas.", names)
         return run, None
     choice = Choice(blocks, extrinsic_of(run.state).moved_to(extrinsic_of(held.state)))
@@ -173,18 +171,6 @@ def sigma_of(checks: Checks) -> F64:
     u = checks.uncertainty
     return np.array(
         [*u.translation_std_m, *np.radians(u.rotation_std_deg), u.time_offset_std_s], np.float64
-    )
-
-
-def settled(fit: Fit, sigma: F64) -> bool:
-    """Whether ``fit``'s rounds converged, or ran out moving by less than ``sigma`` (7,) and not
-    crawling one way (as the checks accept a fit at the cap)."""
-    if fit.converged:
-        return True
-    if fit.final_unsettled:
-        return False
-    return crawl_at_cap([r.extrinsic for r in fit.rounds], sigma) is None and within_sigmas(
-        fit.last_change, sigma
     )
 
 

@@ -22,7 +22,7 @@ from licalib_cli.config import CalibConfig
 from licalib_cli.errors import SolverError
 from licalib_cli.geometry import so3
 from licalib_cli.pipeline import undetermined
-from licalib_cli.pipeline.checks import Finding
+from licalib_cli.pipeline.checks import Finding, rounds_accepted
 from licalib_cli.pipeline.schedule import Change
 from licalib_cli.pipeline.undetermined import Choice
 from licalib_cli.results import Extrinsic
@@ -97,6 +97,8 @@ class _Fit:
     final_unsettled: bool = False
     last_change: Change = STILL
     moves: tuple[float, ...] = ()
+    final_rounds: int = 1
+    final_jump: float = 0.0
     report: SimpleNamespace = field(default_factory=lambda: _report(ALL_HELD))
 
     @property
@@ -113,6 +115,8 @@ class _Fit:
 
 JITTER = (0.0, 1e-4, 0.0, 1e-4)
 """The last rounds' t_z: back and forth, not one way."""
+CRAWL = (0.0, 3e-3, 6e-3, 9e-3, 12e-3)
+"""The last rounds' t_z: one way, by more than its sigma each time."""
 
 
 @pytest.mark.parametrize(
@@ -125,13 +129,16 @@ JITTER = (0.0, 1e-4, 0.0, 1e-4)
         # at the cap, still moving by more than the sigmas
         (_Fit(converged=False, last_change=Change(5e-3, 0.0, 0.0), moves=JITTER), False),
         # at the cap, the last rounds going one way by more than the sigmas
-        (_Fit(converged=False, moves=(0.0, 3e-3, 6e-3, 9e-3, 12e-3)), False),
+        (_Fit(converged=False, moves=CRAWL), False),
+        # the same, but two denser final rounds after them came to rest
+        (_Fit(converged=False, moves=CRAWL, final_rounds=2, final_jump=0.2), True),
     ],
 )
 def test_a_fit_with_the_blocks_held_counts_when_the_checks_would_accept_its_rounds(
     fit: _Fit, settled: bool
 ) -> None:
-    assert undetermined.settled(fit, SIGMA) is settled  # type: ignore[arg-type]
+    """The stage takes the rule the checks judge convergence by (``rounds_accepted``)."""
+    assert rounds_accepted(fit, SIGMA) is settled  # type: ignore[arg-type]
 
 
 def _checks(status: str = "warn") -> SimpleNamespace:
