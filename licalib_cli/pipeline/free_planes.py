@@ -604,12 +604,7 @@ def planes_free_steps_from(
                 problem, evaluation, layout, block, points
             )
             system = eliminate_nuisance(
-                lin,
-                [whole_trajectory(lin, terms, gauge_hold(layout))],
-                tsvd_threshold=lm.tsvd_threshold if lm.use_tsvd else 0.0,
-                tsvd_relative=lm.tsvd_relative,
-                weak_floor=lm.weak_floor,
-                bounded_blocks=lm.bounded_blocks,
+                lin, [whole_trajectory(lin, terms, gauge_hold(layout))], lm.truncation
             )
             eliminated[:] = [system]
             step = system.step()

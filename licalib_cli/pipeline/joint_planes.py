@@ -209,14 +209,7 @@ def refine_segments_with_planes(
             )
             for k, b in enumerate(blocks)
         ]
-        step = segmented_nuisance_step(
-            lin,
-            [seg for seg, _, _ in parts],
-            tsvd_threshold=lm.tsvd_threshold if lm.use_tsvd else 0.0,
-            tsvd_relative=lm.tsvd_relative,
-            weak_floor=lm.weak_floor,
-            bounded_blocks=lm.bounded_blocks,
-        )
+        step = segmented_nuisance_step(lin, [seg for seg, _, _ in parts], lm.truncation)
         split = np.cumsum([p.d.shape[0] for p in planes])[:-1]
         dps = np.split(step.dp, split)
 

@@ -50,6 +50,7 @@ from licalib_cli.errors import SolverError
 from licalib_cli.solver.observability import (
     DirectionDescription,
     InformationSummary,
+    Truncation,
     absolute_threshold,
     describe_direction,
     kept_directions,
@@ -161,6 +162,16 @@ class LMParams:
         "lidar.",
     )
     verbose: bool = False
+
+    @property
+    def truncation(self) -> Truncation:
+        """The rule for which calibration directions a step moves along, for the steps taken
+        outside :func:`solve` (:func:`~licalib_cli.solver.nuisance.eliminate_nuisance`)."""
+        if not self.use_tsvd:
+            return Truncation(0.0, bounded_blocks=self.bounded_blocks)
+        return Truncation(
+            self.tsvd_threshold, self.tsvd_relative, self.weak_floor, self.bounded_blocks
+        )
 
 
 @dataclass(frozen=True)

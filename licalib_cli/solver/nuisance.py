@@ -53,7 +53,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from licalib_cli.parallel.threads import map_blocks
-from licalib_cli.solver.observability import kept_directions
+from licalib_cli.solver.observability import Truncation
 from licalib_cli.solver.problem import Evaluation, Layout, Linearization, Problem
 from licalib_cli.solver.schur import _BandedCholesky, _sparse_lu_solver, _trajectory_diagonal
 
@@ -656,11 +656,7 @@ class NuisanceSystem:
 def eliminate_nuisance(
     lin: Linearization,
     segments: Sequence[NuisanceSegment],
-    *,
-    tsvd_threshold: float = 1.0,
-    tsvd_relative: bool = False,
-    weak_floor: float = 0.0,
-    bounded_blocks: Sequence[str] = (),
+    truncation: Truncation = Truncation(),
 ) -> NuisanceSystem:
     """Eliminate the trajectory and the nuisance of each segment (:class:`NuisanceSystem`).
 
@@ -671,19 +667,16 @@ def eliminate_nuisance(
     system ``S = H_cc + sum_k S_k``, ``b = -g_c + sum_k b_k``; only one segment's dense blocks
     (its ``(Nc_k + Np_k)^2`` system and ``Nt_k x (Nc_k + Np_k)`` whitened coupling) exist at a
     time. The calibration step solves ``S`` in the coordinates scaled by
-    ``lin.layout.calibration_scale``, restricted to its eigen-directions above
-    ``tsvd_threshold`` (the solver's truncation rule); each segment's nuisance and trajectory
-    steps follow by back-substitution.
+    ``lin.layout.calibration_scale``, restricted to the eigen-directions ``truncation`` keeps
+    (the solver's rule); each segment's nuisance and trajectory steps follow by
+    back-substitution.
 
     Args:
         lin: The problem's normal equations.
         segments: The segments, their trajectories partitioning the free trajectory
             coordinates.
-        tsvd_threshold: Smallest scaled information of a calibration direction that moves.
-        tsvd_relative: ``tsvd_threshold`` is relative to the largest.
-        weak_floor, bounded_blocks: below the threshold, a weakly determined direction moves
-            too (:func:`~licalib_cli.solver.observability.weak_directions`, the solver's
-            ``LMParams.weak_floor``); 0: none.
+        truncation: Which calibration directions move (the solver's rule,
+            ``LMParams.truncation``); by default those known to one characteristic scale.
 
     Returns:
         The eliminated system.
@@ -706,15 +699,7 @@ def eliminate_nuisance(
         s_d = scale[:, None] * s_c * scale[None, :]
         vals, vecs = np.linalg.eigh(0.5 * (s_d + s_d.T))
         vals = np.clip(vals, 0.0, None)
-        keep = kept_directions(
-            vals,
-            vecs,
-            lin.layout.calibration_owner,
-            tsvd_threshold,
-            relative=tsvd_relative,
-            floor=weak_floor,
-            bounded_blocks=bounded_blocks,
-        )
+        keep = truncation.kept(vals, vecs, lin.layout.calibration_owner)
         num_truncated = int(nc - np.count_nonzero(keep))
         basis, values = vecs[:, keep], vals[keep]
     return NuisanceSystem(
@@ -732,11 +717,7 @@ def eliminate_nuisance(
 def segmented_nuisance_step(
     lin: Linearization,
     segments: Sequence[NuisanceSegment],
-    *,
-    tsvd_threshold: float = 1.0,
-    tsvd_relative: bool = False,
-    weak_floor: float = 0.0,
-    bounded_blocks: Sequence[str] = (),
+    truncation: Truncation = Truncation(),
 ) -> NuisanceStep:
     """The Gauss-Newton step over trajectory, calibration and nuisance, segment by segment:
     :func:`eliminate_nuisance`, then the step for the linearisation's own gradient. With one
@@ -747,14 +728,7 @@ def segmented_nuisance_step(
     Returns:
         The step; ``dp`` holds every segment's groups in turn.
     """
-    return eliminate_nuisance(
-        lin,
-        segments,
-        tsvd_threshold=tsvd_threshold,
-        tsvd_relative=tsvd_relative,
-        weak_floor=weak_floor,
-        bounded_blocks=bounded_blocks,
-    ).step()
+    return eliminate_nuisance(lin, segments, truncation).step()
 
 
 def whole_trajectory(
@@ -770,28 +744,22 @@ def nuisance_step(
     lin: Linearization,
     terms: NuisanceTerms,
     hold: npt.ArrayLike = (),
-    *,
-    tsvd_threshold: float = 1.0,
-    tsvd_relative: bool = False,
-    weak_floor: float = 0.0,
-    bounded_blocks: Sequence[str] = (),
+    truncation: Truncation = Truncation(),
 ) -> NuisanceStep:
     """The Gauss-Newton step over trajectory, calibration and nuisance.
 
     The trajectory is eliminated by the banded factor of ``H_tt`` (held coordinates fixed), then
     the nuisance (Jacobi-scaled pseudo-inverse, as :func:`marginal_schur`); the calibration step
     solves the remaining system in the coordinates scaled by ``lin.layout.calibration_scale``,
-    restricted to its eigen-directions above ``tsvd_threshold`` (the solver's truncation rule);
-    the nuisance and the trajectory steps follow by back-substitution. This is
+    restricted to the eigen-directions ``truncation`` keeps (the solver's rule); the nuisance
+    and the trajectory steps follow by back-substitution. This is
     :func:`segmented_nuisance_step` with one segment.
 
     Args:
         lin: The problem's normal equations.
         terms: The nuisance's terms at the same state, with their gradient ``g_p``.
         hold: Trajectory coordinates (reduced indices) held fixed: the shared gauge.
-        tsvd_threshold: Smallest scaled information of a calibration direction that moves.
-        tsvd_relative: ``tsvd_threshold`` is relative to the largest.
-        weak_floor, bounded_blocks: as :func:`segmented_nuisance_step`.
+        truncation: Which calibration directions move (as :func:`eliminate_nuisance`).
 
     Returns:
         The step.
@@ -799,11 +767,4 @@ def nuisance_step(
     Raises:
         ValueError: ``terms`` carries no gradient.
     """
-    return segmented_nuisance_step(
-        lin,
-        [whole_trajectory(lin, terms, hold)],
-        tsvd_threshold=tsvd_threshold,
-        tsvd_relative=tsvd_relative,
-        weak_floor=weak_floor,
-        bounded_blocks=bounded_blocks,
-    )
+    return segmented_nuisance_step(lin, [whole_trajectory(lin, terms, hold)], truncation)

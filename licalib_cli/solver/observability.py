@@ -36,6 +36,7 @@ __all__ = [
     "TRAJECTORY_REGULARISATION",
     "DirectionDescription",
     "InformationSummary",
+    "Truncation",
     "absolute_threshold",
     "calibration_information",
     "describe_direction",
@@ -186,6 +187,42 @@ def weak_directions(
         return np.zeros(s.size, dtype=bool)
     weak = ~truncation_mask(s, threshold) & truncation_mask(s, floor * threshold)
     return weak & mostly_free(vectors, owners, bounded_blocks)
+
+
+@dataclass(frozen=True)
+class Truncation:
+    """Which calibration directions a step moves along (the solver's ``LMParams.tsvd_threshold``,
+    ``tsvd_relative``, ``weak_floor`` and ``bounded_blocks``, as :func:`kept_directions` takes
+    them).
+
+    Attributes:
+        threshold: Smallest scaled information of a calibration direction that moves.
+        relative: ``threshold`` is a fraction of the largest singular value.
+        weak_floor: Below the threshold, a direction of at least this fraction of it made
+            mostly of coordinates outside ``bounded_blocks`` is weakly determined and moves too
+            (:func:`weak_directions`); 0: none.
+        bounded_blocks: Prefixes of the calibration blocks known a priori to within their
+            characteristic scale (the intrinsics).
+    """
+
+    threshold: float = 1.0
+    relative: bool = False
+    weak_floor: float = 0.0
+    bounded_blocks: tuple[str, ...] = ()
+
+    def kept(
+        self, singular_values: npt.ArrayLike, vectors: F64, owners: Sequence[str]
+    ) -> npt.NDArray[np.bool_]:
+        """(k,) which singular directions a step moves along (:func:`kept_directions`)."""
+        return kept_directions(
+            singular_values,
+            vectors,
+            owners,
+            self.threshold,
+            relative=self.relative,
+            floor=self.weak_floor,
+            bounded_blocks=self.bounded_blocks,
+        )
 
 
 def kept_directions(

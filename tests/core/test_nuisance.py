@@ -16,6 +16,7 @@ from test_assembly import RandomBlock, dense_reference, make_problem
 
 from licalib_cli.parallel import threads as thr
 from licalib_cli.solver import HuberLoss, ParameterBlock, ResidualEval
+from licalib_cli.solver.lm import LMParams
 from licalib_cli.solver.nuisance import (
     GRAM_SPLIT,
     NuisanceSegment,
@@ -31,7 +32,7 @@ from licalib_cli.solver.nuisance import (
     segmented_nuisance_step,
     whole_trajectory,
 )
-from licalib_cli.solver.observability import undamped_schur
+from licalib_cli.solver.observability import Truncation, undamped_schur
 from licalib_cli.solver.problem import Evaluation, Layout, Linearization, Problem
 
 NUM_GROUPS = 9
@@ -209,7 +210,7 @@ def test_nuisance_step_matches_the_dense_gauss_newton_step(huber: bool) -> None:
     np.testing.assert_allclose(terms.g_p.reshape(-1), grad[layout.num_free :], atol=1e-10)
 
     hold = np.array([0, 1, 2])
-    step = nuisance_step(lin, terms, hold, tsvd_threshold=0.0)
+    step = nuisance_step(lin, terms, hold, truncation=Truncation(0.0))
     expected = _dense_step(full, grad, np.setdiff1d(np.arange(full.shape[0]), hold))
     got = np.concatenate([step.dx, step.dp.reshape(-1)])
     np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-8 * np.abs(expected).max())
@@ -229,9 +230,11 @@ def test_a_chord_step_solves_the_eliminated_curvature_with_another_gradient(hube
     dense system's step on the same curvature; for its own gradient, the Gauss-Newton step."""
     lin, terms, layout, full, grad = _dense_case(huber, 19)
     hold = np.array([0, 1, 2])
-    system = eliminate_nuisance(lin, [whole_trajectory(lin, terms, hold)], tsvd_threshold=0.0)
+    system = eliminate_nuisance(
+        lin, [whole_trajectory(lin, terms, hold)], truncation=Truncation(0.0)
+    )
     own = system.step()
-    plain = nuisance_step(lin, terms, hold, tsvd_threshold=0.0)
+    plain = nuisance_step(lin, terms, hold, truncation=Truncation(0.0))
     np.testing.assert_array_equal(own.dx, plain.dx)  # the same computation
     np.testing.assert_array_equal(own.dp, plain.dp)
     assert own.predicted_reduction == plain.predicted_reduction
@@ -319,7 +322,7 @@ def test_nuisance_step_holds_the_directions_the_joint_information_does_not_deter
     # side with the rounding of another decomposition of the same matrix)
     k = vals.size // 2
     threshold = float(0.5 * (vals[k - 1] + vals[k]))
-    step = nuisance_step(lin, terms, tsvd_threshold=threshold)
+    step = nuisance_step(lin, terms, truncation=Truncation(threshold))
     weak = vecs[:, vals < threshold]
     assert step.num_truncated == weak.shape[1] > 0
     dc_scaled = step.dx[layout.num_trajectory :] / scale
@@ -342,14 +345,14 @@ def test_nuisance_step_moves_along_a_weakly_determined_direction_as_the_solver_d
     threshold = float(0.5 * (vals[k - 1] + vals[k]))
     below = float(0.5 * (vals[k - 2] + vals[k - 1]))  # one direction between it and the threshold
     floor = below / threshold
-    weak = nuisance_step(lin, terms, tsvd_threshold=threshold, weak_floor=floor)
-    lowered = nuisance_step(lin, terms, tsvd_threshold=below)
-    held = nuisance_step(lin, terms, tsvd_threshold=threshold)
+    weak = nuisance_step(lin, terms, truncation=Truncation(threshold, weak_floor=floor))
+    lowered = nuisance_step(lin, terms, truncation=Truncation(below))
+    held = nuisance_step(lin, terms, truncation=Truncation(threshold))
     assert weak.num_truncated == lowered.num_truncated == held.num_truncated - 1
     np.testing.assert_allclose(weak.dx, lowered.dx, rtol=1e-9, atol=1e-12)
     owners = tuple(layout.calibration_owner)
     bounded = nuisance_step(
-        lin, terms, tsvd_threshold=threshold, weak_floor=floor, bounded_blocks=owners
+        lin, terms, truncation=Truncation(threshold, weak_floor=floor, bounded_blocks=owners)
     )
     assert bounded.num_truncated == held.num_truncated
     np.testing.assert_allclose(bounded.dx, held.dx, rtol=1e-9, atol=1e-12)
@@ -464,8 +467,8 @@ def test_segmented_step_equals_the_dense_nuisance_step(
         vals = np.linalg.eigvalsh(scale[:, None] * marginal_schur(lin, whole, hold) * scale)
         expected = vals.size // 2
         tsvd = float(np.sqrt(vals[expected - 1] * vals[expected]))
-    dense = nuisance_step(lin, whole, hold, tsvd_threshold=tsvd)
-    got = segmented_nuisance_step(lin, segments, tsvd_threshold=tsvd)
+    dense = nuisance_step(lin, whole, hold, truncation=Truncation(tsvd))
+    got = segmented_nuisance_step(lin, segments, truncation=Truncation(tsvd))
     assert got.num_truncated == dense.num_truncated == expected
     np.testing.assert_allclose(got.dx, dense.dx, rtol=1e-7, atol=1e-9 * np.abs(dense.dx).max())
     np.testing.assert_allclose(got.dp, dense.dp, rtol=1e-7, atol=1e-9 * np.abs(dense.dp).max())
@@ -480,10 +483,10 @@ def test_a_segmented_chord_step_equals_the_dense_one() -> None:
     rng = np.random.default_rng(9)
     g = lin.g + rng.normal(size=lin.g.shape) * np.abs(lin.g).mean()
     g_p = [s.terms.g_p + rng.normal(size=s.terms.g_p.shape) for s in segments]
-    got = eliminate_nuisance(lin, segments, tsvd_threshold=0.0).step(g, g_p)
-    dense = eliminate_nuisance(lin, [whole_trajectory(lin, whole, hold)], tsvd_threshold=0.0).step(
-        g, [np.concatenate(g_p)]
-    )
+    got = eliminate_nuisance(lin, segments, truncation=Truncation(0.0)).step(g, g_p)
+    dense = eliminate_nuisance(
+        lin, [whole_trajectory(lin, whole, hold)], truncation=Truncation(0.0)
+    ).step(g, [np.concatenate(g_p)])
     np.testing.assert_allclose(got.dx, dense.dx, rtol=1e-7, atol=1e-9 * np.abs(dense.dx).max())
     np.testing.assert_allclose(got.dp, dense.dp, rtol=1e-7, atol=1e-9 * np.abs(dense.dp).max())
     assert got.predicted_reduction == pytest.approx(dense.predicted_reduction, rel=1e-9)
@@ -562,3 +565,13 @@ def test_the_gram_matrix_in_blocks_is_w_transpose_w_on_one_thread_or_two(
     np.testing.assert_array_equal(found[1], found[2])  # the same blocks either way
     np.testing.assert_array_equal(found[2], found[2].T)
     np.testing.assert_allclose(found[2], w.T @ w, rtol=0, atol=1e-10 * np.abs(w.T @ w).max())
+
+
+def test_the_solvers_settings_give_the_steps_truncation() -> None:
+    """The planes-free steps move along the directions the solver's own steps move along."""
+    params = LMParams(
+        tsvd_threshold=2.0, tsvd_relative=True, weak_floor=0.2, bounded_blocks=("lidar.",)
+    )
+    assert params.truncation == Truncation(2.0, True, 0.2, ("lidar.",))
+    plain = replace(params, use_tsvd=False).truncation
+    assert (plain.threshold, plain.weak_floor) == (0.0, 0.0)
