@@ -728,12 +728,23 @@ def test_a_map_lost_after_the_first_round_is_told_as_a_divergence(
     assert "round 1 had 1 points" in text and "diverged" in text
     assert "1400.00 mm" in text  # how far the two rounds before it moved the estimate
     assert "give initialization.rotation_rpy_deg and initialization.translation_m" in text
+    # the model holds the beams of a spinning LiDAR at nominal: beams that disagree blur the
+    # map from the first round on, so the error also says how to estimate them
+    assert text.endswith(
+        "or, if the LiDAR's beams may disagree (per-beam range offsets or angles from an old or "
+        "generic beam table blur the map from the first round on; round 1 had 60.0 % of its "
+        "points on planes), estimate their intrinsics (licalib calibrate --intrinsics lidar, or "
+        "model.lidar in the config)."
+    ), text
+    with pytest.raises(ExcitationError) as estimated:
+        _schedule(monkeypatch, lost_in(3), lidar=True, warm=False)
+    assert "diverged" in str(estimated.value) and "--intrinsics lidar" not in str(estimated.value)
     # from a rotation and a lever arm the config gave: check those, not give them
     with pytest.raises(ExcitationError) as given:
         _schedule(monkeypatch, lost_in(3), lidar=False, sources=("config", "config"))
     text = " ".join(str(given.value).split())
     assert "check the initialization.rotation_rpy_deg and initialization.translation_m the " in text
-    assert "or remove them to start from what the data show." in text and "give " not in text
+    assert "or remove them to start from what the data show" in text and "give " not in text
     with pytest.raises(ExcitationError) as one:
         _schedule(monkeypatch, lost_in(3), lidar=False, sources=("hand-eye", "config"))
     text = str(one.value)
