@@ -1099,14 +1099,12 @@ def run_checks(
         floor, text = spread
         grown = np.maximum(sigma, floor)
         if np.any(grown > sigma * (1 + 1e-9)):
-            ratio = float(np.nanmax(np.where(sigma > 0, grown / sigma, 1.0)))
-            why = (*why, f"{text} (times up to {ratio:.2f})")
+            why = (*why, _grown_by(sigma, grown, text))
         sigma = grown
     if choice is not None:
         moved, text = choice
         grown = np.sqrt(sigma**2 + np.asarray(moved) ** 2)
-        ratio = float(np.nanmax(np.where(sigma > 0, grown / sigma, 1.0)))
-        why = (*why, f"{text} (times up to {ratio:.2f})")
+        why = (*why, _grown_by(sigma, grown, text))
         sigma = grown
     prior = prior_sd(cfg)
     resting = on_prior(report, prior)
@@ -1188,6 +1186,13 @@ def run_checks(
         failures=failures,
         choice=choice,
     )
+
+
+def _grown_by(sigma: F64, grown: F64, text: str) -> str:
+    """``text``, the reason the sigmas grew from ``sigma`` to ``grown``, with the largest
+    factor (the result's ``consistency.inflation``)."""
+    ratio = float(np.nanmax(np.where(sigma > 0, grown / sigma, 1.0)))
+    return f"{text} (times up to {ratio:.2f})"
 
 
 def rejudge(
