@@ -40,7 +40,7 @@ from licalib_cli.pipeline.free_planes import (
     gauge_hold,
     lidar_block,
 )
-from licalib_cli.pipeline.points import PointSample, points_and_rays_in_global
+from licalib_cli.pipeline.points import PointSample
 from licalib_cli.residuals import PointToPlaneResidual
 from licalib_cli.solver.nuisance import marginal_system
 from licalib_cli.solver.problem import Evaluation, Linearization, Problem
@@ -127,10 +127,7 @@ def planes_free_system(
     residual = problem.residual_blocks[block]
     assert isinstance(residual, PointToPlaneResidual)
     layout = lin.layout
-    plane = np.asarray(plane, dtype=np.intp)
-    normal = np.asarray(planes.normal, dtype=np.float64)
-    p_g, rays = points_and_rays_in_global(state, sample)
-    points = PlanePoints(residual.whitening(), p_g, rays, plane, normal, range_noise)
+    points = PlanePoints.mapped(state, sample, residual.whitening(), plane, planes, range_noise)
     terms, _, _ = corrected_plane_terms(problem, evaluation, layout, block, points)
     held = _degenerate(terms.H_pp)
     if np.any(held):

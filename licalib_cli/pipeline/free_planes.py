@@ -47,7 +47,7 @@ from licalib_cli.estimation import (
     state_from_problem,
     state_from_values,
 )
-from licalib_cli.pipeline.points import points_and_rays_in_global
+from licalib_cli.pipeline.points import PointSample, points_and_rays_in_global
 from licalib_cli.pipeline.round import FreePlanesInformation, RoundInputs, SolvedProblem
 from licalib_cli.residuals import TRAJ_R3, TRAJ_SO3, PointToPlaneResidual
 from licalib_cli.solver import s2_basis
@@ -305,6 +305,22 @@ class PlanePoints:
     plane: npt.NDArray[np.intp]
     normal: F64
     range_noise: F64
+
+    @classmethod
+    def mapped(
+        cls,
+        state: CalibrationState,
+        sample: PointSample,
+        whitening: F64,
+        plane: npt.ArrayLike,
+        planes: Planes,
+        range_noise: F64,
+    ) -> PlanePoints:
+        """The points of ``sample`` mapped with ``state`` (:func:`points_and_rays_in_global`),
+        each on its plane ``plane`` of ``planes``."""
+        p_g, rays = points_and_rays_in_global(state, sample)
+        normal = np.asarray(planes.normal, dtype=np.float64)
+        return cls(whitening, p_g, rays, np.asarray(plane, dtype=np.intp), normal, range_noise)
 
     def whitened_jacobian(self) -> tuple[F64, F64, F64]:
         """:func:`plane_jacobian` whitened, the centroids and each point's whitened range

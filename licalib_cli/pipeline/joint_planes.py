@@ -42,7 +42,6 @@ from licalib_cli.pipeline.joint_problem import (
     segment_values,
     values_of_segment,
 )
-from licalib_cli.pipeline.points import points_and_rays_in_global
 from licalib_cli.pipeline.round import RoundInputs
 from licalib_cli.residuals import TRAJ_R3, TRAJ_SO3, PointToPlaneResidual
 from licalib_cli.solver.lm import LMParams, SolverReport, solve
@@ -129,12 +128,11 @@ def _nuisance_segment(
     """
     residual = problem.residual_blocks[block]
     assert isinstance(residual, RenamedBlock) and isinstance(residual.inner, PointToPlaneResidual)
-    plane = np.asarray(data.lidar.plane, dtype=np.intp)
-    p_g, rays = points_and_rays_in_global(state, data.points)
-    normal = np.asarray(planes.normal, dtype=np.float64)
-    points = PlanePoints(residual.inner.whitening(), p_g, rays, plane, normal, range_noise)
+    points = PlanePoints.mapped(
+        state, data.points, residual.inner.whitening(), data.lidar.plane, planes, range_noise
+    )
     terms, centroid, noise = corrected_plane_terms(problem, evaluation, layout, block, points)
-    expected = noise_cost(plane, normal, rays, noise)
+    expected = noise_cost(points.plane, points.normal, points.rays, noise)
     nt = layout.num_trajectory
     prefix = segment_name(k, "")
     owner = np.asarray(layout.owner, dtype=str)
