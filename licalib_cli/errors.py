@@ -49,6 +49,19 @@ class ExcitationError(LicalibError):
     exit_code = 7
 
 
+class MapLost(ExcitationError):
+    """The map lost its planes after the first round: the estimate diverged from the guess.
+
+    Attributes:
+        beams_held: the model held a spinning LiDAR's beams at nominal, so beams that disagree
+            may be what blurred the map.
+    """
+
+    def __init__(self, msg: str, beams_held: bool = False) -> None:
+        super().__init__(msg)
+        self.beams_held = beams_held
+
+
 class SolverError(LicalibError):
     """The optimisation failed."""
 

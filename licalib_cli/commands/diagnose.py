@@ -207,6 +207,26 @@ def retried_sentence(s: Any) -> str | None:
     )
 
 
+def beams_in_base_sentence(b: Any) -> str | None:
+    """What a base model that lost its map did with the beams (None when it held its map)."""
+    if b is None:
+        return None
+    where = b.reason.split(":")[0]
+    kept = ", ".join(
+        f"{e} (BIC {b.delta_bic[e]:+.1f} with it)" if e in b.delta_bic else e for e in b.kept
+    )
+    dropped = ", ".join(f"{e} (BIC {b.delta_bic[e]:+.1f})" for e in b.dropped)
+    text = (
+        f"The base model lost its map ({where}): beams that disagree blur it. The beams' "
+        f"intrinsics joined the base model: {kept or 'none'} kept"
+    )
+    if dropped:
+        text += f"; {dropped} dropped, the data do not need them"
+    if b.lost_without:
+        text += f"; without {b.lost_without} the map was lost again"
+    return text + "."
+
+
 def diagnosis_dict(diag: Any) -> dict[str, Any]:
     """The diagnosis as plain data (the JSON and ``diagnosis.yaml`` content)."""
     steps = []
@@ -269,8 +289,18 @@ def diagnosis_dict(diag: Any) -> dict[str, Any]:
     residuals = {"base": _residuals(diag.base, diag.base_twin)}
     if diag.effects_found:
         residuals["final"] = _residuals(diag.final, diag.final_twin)
+    b = diag.beams_in_base
     return {
         "effects_found": list(diag.effects_found),
+        "beams_in_base": None
+        if b is None
+        else {
+            "reason": b.reason,
+            "freed": list(b.freed),
+            "kept": list(b.kept),
+            "delta_bic": {k: _num(v) for k, v in b.delta_bic.items()},
+            "lost_without": b.lost_without or None,
+        },
         "steps": steps,
         "not_shown": not_shown,
         "residuals": residuals,
@@ -416,6 +446,8 @@ def render_diagnosis(diag: Any) -> None:
     """The residuals against the twin, the steps as a table, then the effects kept and the
     final verdict."""
     out = console()
+    if (beams := beams_in_base_sentence(diag.beams_in_base)) is not None:
+        out.print(beams)
     out.print(
         _residual_table(
             "Base model: residuals measured and on its twin recording",

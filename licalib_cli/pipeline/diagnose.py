@@ -67,6 +67,7 @@ from licalib_cli.consistency.power import (
 )
 from licalib_cli.consistency.score import EffectScore
 from licalib_cli.consistency.spread import SharedSpread, shared_spread
+from licalib_cli.errors import MapLost
 from licalib_cli.estimation import intrinsic_coordinates
 from licalib_cli.pipeline import (
     CalibrationRun,
@@ -77,6 +78,7 @@ from licalib_cli.pipeline import (
     prepare,
 )
 from licalib_cli.pipeline.backward import deltas_without, drop_redundant
+from licalib_cli.pipeline.beams_in_base import BeamsInBase, base_with_beams
 from licalib_cli.pipeline.diagnosis_step import (
     CANDIDATES,
     GAP_NOISE_SIGMAS,
@@ -214,6 +216,9 @@ class Diagnosis:
         config: the configuration of the final fit: the ``model:`` section lists the effects
             kept (and the spread of those kept as one spread across beams); calibrating with it
             estimates that model.
+        beams_in_base: the beams' intrinsics that joined a base model which lost its map
+            (:mod:`~licalib_cli.pipeline.beams_in_base`; None when the base model held it).
+            Those kept lead :attr:`effects_found`, and ``base`` is the fit with them.
     """
 
     base: CalibrationRun
@@ -224,6 +229,7 @@ class Diagnosis:
     final_twin: Twin | None = None
     not_shown: tuple[NotShown, ...] = ()
     config: CalibConfig | None = None
+    beams_in_base: BeamsInBase | None = None
 
 
 def _expected_chi2(sensor: str, knot_spacing_s: float, imu_rate_hz: float) -> float:
@@ -473,11 +479,21 @@ def diagnose(
     rate = (len(prepared.rec.imu) - 1) / max(
         float(prepared.rec.imu.t_ns[-1] - prepared.rec.imu.t_ns[0]) * 1e-9, 1e-9
     )
-    run = fit_and_check(prepared, prepared.guess, base_cfg, progress, timer, rivals=True)
+    in_base: BeamsInBase | None = None
+    try:
+        run = fit_and_check(prepared, prepared.guess, base_cfg, progress, timer, rivals=True)
+    except MapLost as lost:
+        if not lost.beams_held:
+            raise
+        beams = tuple(c for c in allowed if c in PER_BEAM_CANDIDATES)
+        run, in_base = base_with_beams(prepared, base_cfg, beams, lost, progress, timer)
     with timer.stage("twin", progress):
         run_twin = twin_of(run, cfg)
     base, base_twin = run, run_twin
-    kept: tuple[str, ...] = ()
+    # the beams a lost map made join the base model are kept as found; the selection and its
+    # check backwards work on the effects added to that
+    fixed = in_base.kept if in_base is not None else ()
+    kept: tuple[str, ...] = fixed
     pool = CandidatePool(allowed)
     spread_log_det: dict[str, float] = {}
     steps: list[DiagnosisStep] = []
@@ -609,11 +625,11 @@ def diagnose(
         run_twin = twin_of(run, cfg)
 
     dropped = drop_redundant(
-        kept,
+        kept[len(fixed) :],
         lambda effects, tested: deltas_without(
-            run, effects, tested, base.state, cfg, spread_log_det
+            run, (*fixed, *effects), tested, base.state, cfg, spread_log_det
         ),
-        refit_without,
+        lambda effects, effect: refit_without((*fixed, *effects), effect),
     )
     for effect, later, delta in dropped:
         i = next(i for i, t in enumerate(steps) if t.effect == effect and t.kept)
@@ -651,4 +667,5 @@ def diagnose(
         final_twin=run_twin,
         not_shown=_not_shown(run, allowed, (*kept, *sorted(pool.tried))),
         config=final_config(cfg, kept),
+        beams_in_base=in_base,
     )

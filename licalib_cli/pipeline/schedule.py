@@ -27,7 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from licalib_cli.config import CalibConfig
-from licalib_cli.errors import ExcitationError
+from licalib_cli.errors import ExcitationError, MapLost
 from licalib_cli.estimation import (
     CALIBRATION_SCALES,
     CalibrationState,
@@ -291,7 +291,7 @@ def _diverged(
     moved: Change,
     given: Sequence[str] = (),
     beams_held: bool = False,
-) -> ExcitationError:
+) -> MapLost:
     """The error of a map that lost its planes after the first round: the rounds diverged from
     the initial guess, which the scene's sentence would not say.
 
@@ -330,7 +330,7 @@ def _diverged(
         f"{first.points} points on them: the estimate diverged from the initial guess (it moved "
         f"{_describe(moved)}); {advice}"
     )
-    return ExcitationError(msg)
+    return MapLost(msg, beams_held=beams_held)
 
 
 def _describe(c: Change) -> str:

@@ -703,7 +703,7 @@ def test_a_map_lost_after_the_first_round_is_told_as_a_divergence(
     """A map without planes in a later round means the rounds ran away from the initial guess
     (the first round's map had them): the error says so and how to start closer; in the first
     round it is the scene's own sentence."""
-    from licalib_cli.errors import ExcitationError
+    from licalib_cli.errors import ExcitationError, MapLost
 
     scene = (
         "No planar surfaces were found in the LiDAR map; calibrate in a structured scene "
@@ -736,9 +736,12 @@ def test_a_map_lost_after_the_first_round_is_told_as_a_divergence(
         "points on planes), estimate their intrinsics (licalib calibrate --intrinsics lidar, or "
         "model.lidar in the config)."
     ), text
+    # diagnose reads whether the beams were held (it then frees them, beams_in_base)
+    assert isinstance(later.value, MapLost) and later.value.beams_held
     with pytest.raises(ExcitationError) as estimated:
         _schedule(monkeypatch, lost_in(3), lidar=True, warm=False)
     assert "diverged" in str(estimated.value) and "--intrinsics lidar" not in str(estimated.value)
+    assert isinstance(estimated.value, MapLost) and not estimated.value.beams_held
     # from a rotation and a lever arm the config gave: check those, not give them
     with pytest.raises(ExcitationError) as given:
         _schedule(monkeypatch, lost_in(3), lidar=False, sources=("config", "config"))

@@ -1,0 +1,179 @@
+"""A base model that lost its map: the beams' intrinsics join it and the check backwards keeps
+those the data need (:mod:`licalib_cli.pipeline.beams_in_base`), and ``diagnose`` starts its
+selection from that fit. Every fit is scripted."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+
+import licalib_cli.pipeline.beams_in_base as bb
+import licalib_cli.pipeline.diagnose as dg
+from licalib_cli.config import load_config
+from licalib_cli.errors import ExcitationError, MapLost
+from licalib_cli.pipeline.diagnosis_step import CANDIDATES
+from licalib_cli.pipeline.scan_pattern import SPINNING
+
+OFFSET, SCALE, ELEVATION = "lidar_range_offset", "lidar_range_scale", "lidar_elevation"
+LOST = MapLost(
+    "Only 55 LiDAR points lie on planar surfaces in round 9, although round 1 had 2495 points "
+    "on them: the estimate diverged from the initial guess.",
+    beams_held=True,
+)
+
+
+@dataclass(frozen=True)
+class _Guess:
+    state: Any
+
+
+def _blocks(cfg: Any) -> tuple[str, ...]:
+    """The per-beam candidates a config's model estimates."""
+    return tuple(
+        name
+        for name, (sensor, block, _) in CANDIDATES.items()
+        if sensor == "lidar" and block in cfg.model.lidar
+    )
+
+
+def _script(
+    monkeypatch: pytest.MonkeyPatch,
+    deltas: list[dict[str, float]],
+    lost_without: str = "",
+) -> list[tuple[str, ...]]:
+    """Fits that record their model's blocks (the one without ``lost_without`` loses its map
+    again), and ``deltas`` as the successive BIC tests; returns the models fitted."""
+    fitted: list[tuple[str, ...]] = []
+
+    def fit(prepared: Any, start: Any, cfg: Any, *a: Any, **k: Any) -> Any:
+        blocks = _blocks(cfg)
+        if lost_without and lost_without not in blocks:
+            raise ExcitationError("Only 12 LiDAR points lie on planar surfaces in round 3.")
+        fitted.append(blocks)
+        return SimpleNamespace(state=blocks)
+
+    tests = iter(deltas)
+
+    def tested(run: Any, kept: tuple[str, ...], effects: tuple[str, ...], *a: Any) -> Any:
+        assert run.state == kept == effects, "each block is tested on the fit of the blocks left"
+        out = next(tests)
+        assert set(out) == set(kept)
+        return out
+
+    monkeypatch.setattr(bb, "fit_and_check", fit)
+    monkeypatch.setattr(bb, "deltas_without", tested)
+    monkeypatch.setattr(bb, "without_effect", lambda state, effect, start: state)
+    return fitted
+
+
+def _base(beams: tuple[str, ...]) -> tuple[Any, bb.BeamsInBase]:
+    prepared = SimpleNamespace(guess=_Guess(state=()))
+    return bb.base_with_beams(prepared, load_config(None), beams, LOST, None, None)  # type: ignore[arg-type]
+
+
+def test_blocks_the_data_do_not_need_are_dropped_one_at_a_time_the_worst_first(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    fitted = _script(
+        monkeypatch,
+        [
+            {OFFSET: -512.0, SCALE: 3.0, ELEVATION: 8.5},
+            {OFFSET: -498.0, SCALE: 2.1},
+            {OFFSET: -470.0},
+        ],
+    )
+    run, beams = _base((OFFSET, SCALE, ELEVATION))
+    assert fitted == [(OFFSET, SCALE, ELEVATION), (OFFSET, SCALE), (OFFSET,)]
+    assert run.state == (OFFSET,)
+    assert beams.kept == (OFFSET,)
+    assert beams.dropped == (SCALE, ELEVATION)
+    # each block's BIC change where it was last tested: the kept one's on the final fit
+    assert beams.delta_bic == {OFFSET: -470.0, SCALE: 2.1, ELEVATION: 8.5}
+    assert beams.lost_without == ""
+    assert "round 1 had 2495 points" in beams.reason
+
+
+def test_a_block_whose_removal_loses_the_map_again_is_kept(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The BIC on the fit's data would drop the range offsets, but without them the map is
+    lost: the fit with them stays."""
+    fitted = _script(monkeypatch, [{OFFSET: 1.5, SCALE: -40.0}], lost_without=OFFSET)
+    run, beams = _base((OFFSET, SCALE))
+    assert fitted == [(OFFSET, SCALE)]
+    assert run.state == (OFFSET, SCALE)
+    assert beams.kept == (OFFSET, SCALE)
+    assert beams.lost_without == OFFSET
+
+
+def test_without_a_beam_candidate_the_lost_map_is_the_error(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    _script(monkeypatch, [])
+    with pytest.raises(MapLost, match="round 1 had 2495 points"):
+        _base(())
+
+
+class _Imu:
+    t_ns = np.array([0, 10_000_000_000])
+
+    def __len__(self) -> int:
+        return 2
+
+
+def _diagnose(monkeypatch: pytest.MonkeyPatch, lost: MapLost, candidates: Any = None) -> Any:
+    """``diagnose`` whose base fit loses its map; the beams' fit (``base_with_beams``, which
+    records the candidates it was given) shows no further effect."""
+    monkeypatch.setattr(
+        dg,
+        "prepare",
+        lambda bag, cfg, *a, **k: SimpleNamespace(
+            rec=SimpleNamespace(imu=_Imu()), guess=None, cfg=cfg, pattern=SPINNING
+        ),
+    )
+
+    def lose(prepared: Any, start: Any, cfg: Any, *a: Any, **k: Any) -> Any:
+        assert not cfg.model.lidar
+        raise lost
+
+    given: list[tuple[str, ...]] = []
+    with_beams = SimpleNamespace(effects=[])
+
+    def beams(prepared: Any, cfg: Any, allowed: tuple[str, ...], err: Any, *a: Any) -> Any:
+        assert err is lost
+        given.append(allowed)
+        return with_beams, bb.BeamsInBase(
+            reason=str(err), freed=allowed, kept=(OFFSET,), delta_bic={OFFSET: -900.0}
+        )
+
+    monkeypatch.setattr(dg, "fit_and_check", lose)
+    monkeypatch.setattr(dg, "base_with_beams", beams)
+    monkeypatch.setattr(dg, "twin_of", lambda run, cfg: None)
+    monkeypatch.setattr(dg, "_not_shown", lambda run, allowed, found: ())
+    monkeypatch.setattr(dg, "noise_spread", lambda prepared, run, cfg, progress, timer: run)
+    diag = dg.diagnose("bag.bag", load_config(None), candidates=candidates)
+    return diag, given
+
+
+def test_diagnose_starts_from_the_beams_a_lost_map_needed(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    diag, given = _diagnose(monkeypatch, LOST, candidates=(OFFSET, SCALE, "gyro_scale"))
+    assert given == [(OFFSET, SCALE)], "only the per-beam candidates allowed join the base"
+    assert diag.effects_found == (OFFSET,)
+    assert diag.beams_in_base.kept == (OFFSET,)
+    assert diag.base is diag.final
+    assert _blocks(diag.config) == (OFFSET,)
+
+
+def test_a_lost_map_with_the_beams_already_estimated_is_the_error(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A non-repetitive scanner's lost map (no beams held) is not a beam problem."""
+    lost = MapLost("Only 3 LiDAR points lie on planar surfaces in round 4.", beams_held=False)
+    with pytest.raises(MapLost, match="round 4"):
+        _diagnose(monkeypatch, lost)
