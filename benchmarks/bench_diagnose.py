@@ -92,7 +92,8 @@ def _size_and_length(
     """The multiple of the reference sizes and the bag length of a case (one multiple for all
     its effects: the simulator's ``effect_scale``). A pair with a LiDAR intrinsic stays at
     ``scale``: per-beam range offsets at five times the paper's (5 cm RMS) blur the map until
-    fewer than a hundred points lie on planes and even the base model cannot be fitted. Bags
+    fewer than a hundred points lie on planes, the base model loses its map and diagnose has to
+    free the beams before it can test the IMU's effect (``beams_in_base``). Bags
     last ``shortest`` seconds, or :data:`LONGER`'s length for its effects when that is longer."""
     k = max([STRONGER.get(e, scale) for e in effects] or [scale])
     if any(e.startswith("lidar_") and e != "lidar_point_time" for e in effects):
@@ -279,6 +280,9 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
     return {
         **case,
         "named": list(diag.effects_found),
+        # the beams' blocks that joined a base model which lost its map ("before" is then the
+        # base with them)
+        "beams_in_base": list(diag.beams_in_base.kept) if diag.beams_in_base else [],
         "shrink": {s.effect: s.shrink for s in diag.steps if s.kept},
         # with the final model's other effects in (when it holds several and the effect's own
         # step closed less than half): its sensor's gap refitted without it -> the final fit's
@@ -512,6 +516,7 @@ def main() -> None:
             named = (
                 ",".join(
                     n
+                    + (" [base lost its map]" if n in row.get("beams_in_base", []) else "")
                     + (" [spread]" if n in row.get("spread", {}) else "")
                     + (f" [{row['pieces'][n][0]} pieces]" if n in row.get("pieces", {}) else "")
                     + (f" [sized {row['sized'][n][0]:.0e}]" if n in row.get("sized", {}) else "")

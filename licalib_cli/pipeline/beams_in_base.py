@@ -2,14 +2,17 @@
 
 A spinning LiDAR whose beams disagree by centimetres (per-beam range offsets from an old or
 generic beam table) blurs the map from the first round on; the base model, which holds the beams
-at nominal, then loses its planes (:class:`~licalib_cli.errors.MapLost`) and leaves no fit whose
-residuals a score test could read. The beams' intrinsics then join the base model all at once
+at nominal, then loses its planes (:class:`~licalib_cli.errors.MapLost`), or ends on the few
+points left on a few of them (:func:`~licalib_cli.pipeline.lost_map.collapsed_map`), and leaves
+no fit whose residuals a score test could read. The beams' intrinsics then join the base model
+all at once
 (``calibrate --intrinsics lidar`` with the candidates allowed), and the check backwards decides
 which of them the data need: each block in turn is reset to nominal on the fit's data and the
 rest re-solved (:func:`~licalib_cli.pipeline.backward.deltas_without`); the block whose removal
 lowers the BIC most is dropped and the model refitted without it, until no removal pays or the
-fit without a block loses its map again (that block is needed). What is left is named as found,
-with its BIC change, before the forward selection tests the other candidates on that fit.
+fit without a block loses its map again, either way (that block is needed). What is left is
+named as found, with its BIC change, before the forward selection tests the other candidates on
+that fit.
 """
 
 from __future__ import annotations
@@ -18,10 +21,11 @@ import logging
 from dataclasses import dataclass, replace
 
 from licalib_cli.config import CalibConfig
-from licalib_cli.errors import ExcitationError, MapLost
+from licalib_cli.errors import ExcitationError
 from licalib_cli.pipeline import CalibrationRun, Prepared, Timer, fit_and_check
 from licalib_cli.pipeline.backward import deltas_without
 from licalib_cli.pipeline.effect_models import with_effects, without_effect
+from licalib_cli.pipeline.lost_map import collapsed_map
 from licalib_cli.progress import Progress
 
 __all__ = ["BeamsInBase", "base_with_beams"]
@@ -34,8 +38,7 @@ class BeamsInBase:
     """The beams' intrinsics that joined a base model which lost its map.
 
     Attributes:
-        reason: the base fit's error (where the map was lost, round 1's share of points on
-            planes).
+        reason: how the base fit lost its map (its error, or how far the map collapsed).
         freed: the per-beam candidates freed with the base model.
         kept: those the data need, in the order freed.
         delta_bic: per block freed, the BIC with it minus without it on the data of the fit it
@@ -60,7 +63,7 @@ def base_with_beams(
     prepared: Prepared,
     cfg: CalibConfig,
     beams: tuple[str, ...],
-    lost: MapLost,
+    lost: str,
     progress: Progress,
     timer: Timer,
 ) -> tuple[CalibrationRun, BeamsInBase]:
@@ -69,8 +72,10 @@ def base_with_beams(
     Args:
         prepared: the segment, noise and initial guess (its state holds the beams at nominal).
         cfg: the base model's configuration.
-        beams: the per-beam candidates allowed (none: ``lost`` is raised again).
-        lost: the base fit's error.
+        beams: the per-beam candidates allowed (at least one).
+        lost: how the base fit lost its map (its error, or
+            :func:`~licalib_cli.pipeline.lost_map.collapsed_map`'s sentence); its part before the
+            first colon says where.
         progress: progress sink.
         timer: stage timer.
 
@@ -78,14 +83,12 @@ def base_with_beams(
         The fit with the blocks kept, and what was freed, kept and dropped.
 
     Raises:
-        MapLost: no per-beam candidate is allowed, or the map is lost with the beams free too.
+        ExcitationError: the map is lost with the beams free too.
     """
-    if not beams:
-        raise lost
     logger.warning(
         "Diagnose: the base model lost its map (%s); the beams' intrinsics (%s) join it, and "
         "each is kept only if the data need it.",
-        str(lost).split(":")[0],
+        lost.split(":")[0],
         ", ".join(beams),
     )
     nominal = prepared.guess.state
@@ -108,16 +111,18 @@ def base_with_beams(
         )
         start = replace(prepared.guess, state=without_effect(run.state, effect, nominal))
         try:
-            run = fit_and_check(
+            refit: CalibrationRun | None = fit_and_check(
                 prepared, start, with_effects(cfg, rest), progress, timer, warm=True, rivals=True
             )
         except ExcitationError:
+            refit = None
+        if refit is None or collapsed_map(refit.rounds) is not None:
             logger.info("Diagnose: without %s the map is lost again: it is kept.", effect)
             lost_without = effect
             break
-        kept = rest
+        run, kept = refit, rest
     return run, BeamsInBase(
-        reason=str(lost),
+        reason=lost,
         freed=beams,
         kept=kept,
         delta_bic={e: deltas[e] for e in beams if e in deltas},

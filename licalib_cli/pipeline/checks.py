@@ -62,6 +62,7 @@ from licalib_cli.pipeline.inflation import (
 )
 from licalib_cli.pipeline.initialise import SINGLE_AXIS, InitialGuess
 from licalib_cli.pipeline.intrinsic_sigmas import intrinsics_uncertainty
+from licalib_cli.pipeline.lost_map import POOR_MAP_FRACTION, beams_held, collapsed_map
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty, map_uncertainty
 from licalib_cli.pipeline.points import PointBudget
 from licalib_cli.pipeline.prior_directions import (
@@ -898,10 +899,29 @@ def _split(split: SplitResult) -> list[Finding]:
     ]
 
 
-def _map(fit: Fit, report: SolverReport) -> list[Finding]:
+def _map(fit: Fit, report: SolverReport, cfg: CalibConfig) -> list[Finding]:
     out = []
     last = fit.rounds[-1]
-    if last.associated_fraction < 0.2:
+    collapsed = collapsed_map(fit.rounds)
+    if collapsed is not None:
+        # the rounds lost the map they had: the fit rests on a few points on a few planes
+        advice = (
+            "; if the LiDAR's beams may disagree (per-beam range offsets or angles from an old "
+            "or generic beam table blur the map from the first round on), estimate their "
+            "intrinsics (licalib calibrate --intrinsics lidar, or model.lidar in the config)"
+            if beams_held(cfg)
+            else ""
+        )
+        out.append(
+            Finding(
+                "fail",
+                f"The rounds lost the map ({collapsed}): the estimate ran away from where it "
+                "started and rests on the few points left on planes; start closer "
+                "(initialization.rotation_rpy_deg and translation_m, or check them if the config "
+                f"gives them){advice}.",
+            )
+        )
+    elif last.associated_fraction < POOR_MAP_FRACTION:
         out.append(
             Finding(
                 "warn",
@@ -1143,7 +1163,7 @@ def run_checks(
     findings += _sensors(sensors)
     findings += _effects(effects, raw)
     findings += _split(split)
-    findings += _map(fit, report)
+    findings += _map(fit, report, cfg)
     # an IMU block held fixed whose prior the recording cannot check, and whose error of the
     # size it cannot show would move the extrinsic beyond its sigmas
     unchecked = unchecked_priors(uncovered(effects, raw), sigma)

@@ -99,6 +99,7 @@ from licalib_cli.pipeline.effect_size import sized_refit, with_sizes_of
 from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE
 from licalib_cli.pipeline.held_effects import HELD_WEIGHT
 from licalib_cli.pipeline.knot_spacing import with_knot_spacing
+from licalib_cli.pipeline.lost_map import beams_held, collapsed_map
 from licalib_cli.pipeline.rivals import CandidatePool, compare_rivals, pick_rival, rivals_of
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.scan_pattern import with_scan_pattern
@@ -479,13 +480,19 @@ def diagnose(
     rate = (len(prepared.rec.imu) - 1) / max(
         float(prepared.rec.imu.t_ns[-1] - prepared.rec.imu.t_ns[0]) * 1e-9, 1e-9
     )
+    # a base model that lost its map (an error, or a fit on what was left of it) frees the
+    # beams of a spinning LiDAR it held at nominal
     in_base: BeamsInBase | None = None
+    beams = tuple(c for c in allowed if c in PER_BEAM_CANDIDATES)
+    lost: str | None = None
     try:
         run = fit_and_check(prepared, prepared.guess, base_cfg, progress, timer, rivals=True)
-    except MapLost as lost:
-        if not lost.beams_held:
+        lost = collapsed_map(run.rounds) if beams_held(base_cfg) else None
+    except MapLost as err:
+        if not err.beams_held or not beams:
             raise
-        beams = tuple(c for c in allowed if c in PER_BEAM_CANDIDATES)
+        lost = str(err)
+    if lost is not None and beams:
         run, in_base = base_with_beams(prepared, base_cfg, beams, lost, progress, timer)
     with timer.stage("twin", progress):
         run_twin = twin_of(run, cfg)

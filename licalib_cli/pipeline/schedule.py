@@ -44,6 +44,7 @@ from licalib_cli.pipeline.free_planes import (
     refine_with_planes,
 )
 from licalib_cli.pipeline.initialise import InitialGuess
+from licalib_cli.pipeline.lost_map import beams_held
 from licalib_cli.pipeline.points import (
     PointBudget,
     PointSample,
@@ -628,9 +629,8 @@ def run_schedule(
                 )
                 if source == "config"
             ]
-            beams_held = not cfg.model.lidar and not cfg.lidar.non_repetitive
             raise _diverged(
-                err, index, rounds[0], _change(guess.state, state), given, beams_held
+                err, index, rounds[0], _change(guess.state, state), given, beams_held(cfg)
             ) from err
         state, summary, report, inputs = done.state, done.summary, done.report, done.inputs
         solved, mapped = done.solved, done.mapped

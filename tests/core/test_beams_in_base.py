@@ -16,6 +16,7 @@ import licalib_cli.pipeline.diagnose as dg
 from licalib_cli.config import load_config
 from licalib_cli.errors import ExcitationError, MapLost
 from licalib_cli.pipeline.diagnosis_step import CANDIDATES
+from licalib_cli.pipeline.lost_map import collapsed_map
 from licalib_cli.pipeline.scan_pattern import SPINNING
 
 OFFSET, SCALE, ELEVATION = "lidar_range_offset", "lidar_range_scale", "lidar_elevation"
@@ -24,6 +25,14 @@ LOST = MapLost(
     "on them: the estimate diverged from the initial guess.",
     beams_held=True,
 )
+
+
+def _round(index: int, fraction: float, points: int) -> Any:
+    return SimpleNamespace(index=index, associated_fraction=fraction, points=points)
+
+
+HELD = [_round(1, 0.15, 23451), _round(3, 0.2, 44974), _round(4, 0.25, 60000)]
+COLLAPSED = [_round(1, 0.15, 23451), _round(3, 0.2, 44974), _round(12, 0.003, 144)]
 
 
 @dataclass(frozen=True)
@@ -44,17 +53,20 @@ def _script(
     monkeypatch: pytest.MonkeyPatch,
     deltas: list[dict[str, float]],
     lost_without: str = "",
+    collapses: bool = False,
 ) -> list[tuple[str, ...]]:
     """Fits that record their model's blocks (the one without ``lost_without`` loses its map
-    again), and ``deltas`` as the successive BIC tests; returns the models fitted."""
+    again: an error, or with ``collapses`` a fit on what is left of it), and ``deltas`` as the
+    successive BIC tests; returns the models fitted."""
     fitted: list[tuple[str, ...]] = []
 
     def fit(prepared: Any, start: Any, cfg: Any, *a: Any, **k: Any) -> Any:
         blocks = _blocks(cfg)
-        if lost_without and lost_without not in blocks:
+        lost = bool(lost_without) and lost_without not in blocks
+        if lost and not collapses:
             raise ExcitationError("Only 12 LiDAR points lie on planar surfaces in round 3.")
         fitted.append(blocks)
-        return SimpleNamespace(state=blocks)
+        return SimpleNamespace(state=blocks, rounds=COLLAPSED if lost else HELD)
 
     tests = iter(deltas)
 
@@ -72,7 +84,7 @@ def _script(
 
 def _base(beams: tuple[str, ...]) -> tuple[Any, bb.BeamsInBase]:
     prepared = SimpleNamespace(guess=_Guess(state=()))
-    return bb.base_with_beams(prepared, load_config(None), beams, LOST, None, None)  # type: ignore[arg-type]
+    return bb.base_with_beams(prepared, load_config(None), beams, str(LOST), None, None)  # type: ignore[arg-type]
 
 
 def test_blocks_the_data_do_not_need_are_dropped_one_at_a_time_the_worst_first(
@@ -97,25 +109,35 @@ def test_blocks_the_data_do_not_need_are_dropped_one_at_a_time_the_worst_first(
     assert "round 1 had 2495 points" in beams.reason
 
 
+@pytest.mark.parametrize("collapses", [False, True])
 def test_a_block_whose_removal_loses_the_map_again_is_kept(
-    monkeypatch: pytest.MonkeyPatch,
+    monkeypatch: pytest.MonkeyPatch, collapses: bool
 ) -> None:
     """The BIC on the fit's data would drop the range offsets, but without them the map is
-    lost: the fit with them stays."""
-    fitted = _script(monkeypatch, [{OFFSET: 1.5, SCALE: -40.0}], lost_without=OFFSET)
+    lost (the planes vanish, or a few points stay on a few): the fit with them stays."""
+    fitted = _script(
+        monkeypatch, [{OFFSET: 1.5, SCALE: -40.0}], lost_without=OFFSET, collapses=collapses
+    )
     run, beams = _base((OFFSET, SCALE))
-    assert fitted == [(OFFSET, SCALE)]
+    assert fitted == [(OFFSET, SCALE)] + ([(SCALE,)] if collapses else [])
     assert run.state == (OFFSET, SCALE)
     assert beams.kept == (OFFSET, SCALE)
     assert beams.lost_without == OFFSET
 
 
-def test_without_a_beam_candidate_the_lost_map_is_the_error(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    _script(monkeypatch, [])
-    with pytest.raises(MapLost, match="round 1 had 2495 points"):
-        _base(())
+def test_a_collapsed_map_is_told_apart_from_a_poor_scene_and_a_held_one() -> None:
+    """The rounds lost the map when the last round holds under a tenth of the best round's
+    share of points on planes and under a fifth in all; a scene poor from the first round, or
+    a last round that keeps its share, is no collapse."""
+    assert collapsed_map(COLLAPSED) == (
+        "round 12 had 0.3 % of its points on planes (144), round 3 had 20.0 % (44974)"
+    )
+    assert collapsed_map(HELD) is None
+    poor = [_round(1, 0.04, 900), _round(2, 0.03, 700), _round(3, 0.01, 300)]
+    assert collapsed_map(poor) is None
+    assert collapsed_map([*COLLAPSED[:2], _round(12, 0.019, 4000)]) is not None
+    assert collapsed_map([*COLLAPSED[:2], _round(12, 0.021, 4400)]) is None
+    assert collapsed_map([]) is None
 
 
 class _Imu:
@@ -125,9 +147,10 @@ class _Imu:
         return 2
 
 
-def _diagnose(monkeypatch: pytest.MonkeyPatch, lost: MapLost, candidates: Any = None) -> Any:
-    """``diagnose`` whose base fit loses its map; the beams' fit (``base_with_beams``, which
-    records the candidates it was given) shows no further effect."""
+def _diagnose(monkeypatch: pytest.MonkeyPatch, lost: Any, candidates: Any = None) -> Any:
+    """``diagnose`` whose base fit loses its map (``lost``: its error, or the rounds of a fit
+    whose map collapsed); the beams' fit (``base_with_beams``, which records the candidates it
+    was given) shows no further effect."""
     monkeypatch.setattr(
         dg,
         "prepare",
@@ -138,16 +161,18 @@ def _diagnose(monkeypatch: pytest.MonkeyPatch, lost: MapLost, candidates: Any = 
 
     def lose(prepared: Any, start: Any, cfg: Any, *a: Any, **k: Any) -> Any:
         assert not cfg.model.lidar
-        raise lost
+        if isinstance(lost, MapLost):
+            raise lost
+        return SimpleNamespace(rounds=lost, effects=[])
 
     given: list[tuple[str, ...]] = []
     with_beams = SimpleNamespace(effects=[])
 
-    def beams(prepared: Any, cfg: Any, allowed: tuple[str, ...], err: Any, *a: Any) -> Any:
-        assert err is lost
+    def beams(prepared: Any, cfg: Any, allowed: tuple[str, ...], reason: str, *a: Any) -> Any:
+        assert reason == (str(lost) if isinstance(lost, MapLost) else collapsed_map(lost))
         given.append(allowed)
         return with_beams, bb.BeamsInBase(
-            reason=str(err), freed=allowed, kept=(OFFSET,), delta_bic={OFFSET: -900.0}
+            reason=reason, freed=allowed, kept=(OFFSET,), delta_bic={OFFSET: -900.0}
         )
 
     monkeypatch.setattr(dg, "fit_and_check", lose)
@@ -159,10 +184,11 @@ def _diagnose(monkeypatch: pytest.MonkeyPatch, lost: MapLost, candidates: Any = 
     return diag, given
 
 
+@pytest.mark.parametrize("lost", [LOST, COLLAPSED], ids=["error", "collapsed"])
 def test_diagnose_starts_from_the_beams_a_lost_map_needed(
-    monkeypatch: pytest.MonkeyPatch,
+    monkeypatch: pytest.MonkeyPatch, lost: Any
 ) -> None:
-    diag, given = _diagnose(monkeypatch, LOST, candidates=(OFFSET, SCALE, "gyro_scale"))
+    diag, given = _diagnose(monkeypatch, lost, candidates=(OFFSET, SCALE, "gyro_scale"))
     assert given == [(OFFSET, SCALE)], "only the per-beam candidates allowed join the base"
     assert diag.effects_found == (OFFSET,)
     assert diag.beams_in_base.kept == (OFFSET,)
@@ -177,3 +203,39 @@ def test_a_lost_map_with_the_beams_already_estimated_is_the_error(
     lost = MapLost("Only 3 LiDAR points lie on planar surfaces in round 4.", beams_held=False)
     with pytest.raises(MapLost, match="round 4"):
         _diagnose(monkeypatch, lost)
+
+
+def test_a_lost_map_without_a_beam_candidate_is_the_error(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    with pytest.raises(MapLost, match="round 1 had 2495 points"):
+        _diagnose(monkeypatch, LOST, candidates=("gyro_scale",))
+
+
+def test_a_fit_on_a_collapsed_map_fails_and_names_the_beams_when_they_are_held() -> None:
+    """``calibrate``'s verdict on what diagnose reads as a lost map: a failure that says so,
+    and to estimate the beams when the model holds a spinning LiDAR's at nominal."""
+    from licalib_cli.pipeline.checks import _map
+
+    report = SimpleNamespace(variance_factor=1.0)
+    held = load_config(None)
+    (finding,) = _map(SimpleNamespace(rounds=COLLAPSED), report, held)  # type: ignore[arg-type]
+    assert finding.severity == "fail"
+    assert finding.text.startswith(
+        "The rounds lost the map (round 12 had 0.3 % of its points on planes (144), round 3 "
+        "had 20.0 % (44974)): the estimate ran away from where it started"
+    )
+    assert finding.text.endswith(
+        "estimate their intrinsics (licalib calibrate --intrinsics lidar, or model.lidar in the "
+        "config)."
+    )
+    estimated = held.model_copy(
+        update={"model": held.model.model_copy(update={"lidar": ["range_offset"]})}
+    )
+    (finding,) = _map(SimpleNamespace(rounds=COLLAPSED), report, estimated)  # type: ignore[arg-type]
+    assert finding.severity == "fail" and "--intrinsics lidar" not in finding.text
+    # a poor map from the first round on is the warning it was
+    poor = [_round(1, 0.04, 900), _round(3, 0.01, 300)]
+    (finding,) = _map(SimpleNamespace(rounds=poor), report, held)  # type: ignore[arg-type]
+    assert finding.severity == "warn" and finding.text.startswith("Only 1 % of the points")
+    assert _map(SimpleNamespace(rounds=HELD), report, held) == []  # type: ignore[arg-type]
