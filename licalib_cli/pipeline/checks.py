@@ -899,29 +899,35 @@ def _split(split: SplitResult) -> list[Finding]:
     ]
 
 
-def _map(fit: Fit, report: SolverReport, cfg: CalibConfig) -> list[Finding]:
+def _lost_map(fit: Fit, cfg: CalibConfig) -> list[Finding]:
+    """The rounds lost the map they had (:func:`collapsed_map`): the fit rests on a few points
+    on a few planes, and what the data seem not to determine follows from that. The verdict's
+    first reason."""
+    collapsed = collapsed_map(fit.rounds)
+    if collapsed is None:
+        return []
+    advice = (
+        "; if the LiDAR's beams may disagree (per-beam range offsets or angles from an old "
+        "or generic beam table blur the map from the first round on), estimate their "
+        "intrinsics (licalib calibrate --intrinsics lidar, or model.lidar in the config)"
+        if beams_held(cfg)
+        else ""
+    )
+    return [
+        Finding(
+            "fail",
+            f"The rounds lost the map ({collapsed}): the estimate ran away from where it "
+            "started and rests on the few points left on planes; start closer "
+            "(initialization.rotation_rpy_deg and translation_m, or check them if the config "
+            f"gives them){advice}.",
+        )
+    ]
+
+
+def _map(fit: Fit, report: SolverReport) -> list[Finding]:
     out = []
     last = fit.rounds[-1]
-    collapsed = collapsed_map(fit.rounds)
-    if collapsed is not None:
-        # the rounds lost the map they had: the fit rests on a few points on a few planes
-        advice = (
-            "; if the LiDAR's beams may disagree (per-beam range offsets or angles from an old "
-            "or generic beam table blur the map from the first round on), estimate their "
-            "intrinsics (licalib calibrate --intrinsics lidar, or model.lidar in the config)"
-            if beams_held(cfg)
-            else ""
-        )
-        out.append(
-            Finding(
-                "fail",
-                f"The rounds lost the map ({collapsed}): the estimate ran away from where it "
-                "started and rests on the few points left on planes; start closer "
-                "(initialization.rotation_rpy_deg and translation_m, or check them if the config "
-                f"gives them){advice}.",
-            )
-        )
-    elif last.associated_fraction < POOR_MAP_FRACTION:
+    if last.associated_fraction < POOR_MAP_FRACTION and collapsed_map(fit.rounds) is None:
         out.append(
             Finding(
                 "warn",
@@ -1136,7 +1142,8 @@ def run_checks(
         sigma = sigma.copy()
         sigma[:3] = conflict.covered(sigma[:3])
         why = (*why, "by how far the measured lever arm pulled the translation from the data's")
-    findings = [Finding("fail", f) for f in failures]
+    findings = _lost_map(fit, cfg)
+    findings += [Finding("fail", f) for f in failures]
     findings += [Finding("warn", n) for n in notes]
     findings += _prior_conflict(conflict)
     findings += _convergence(fit, cfg, settled_in_sigmas, crawl)
@@ -1163,7 +1170,7 @@ def run_checks(
     findings += _sensors(sensors)
     findings += _effects(effects, raw)
     findings += _split(split)
-    findings += _map(fit, report, cfg)
+    findings += _map(fit, report)
     # an IMU block held fixed whose prior the recording cannot check, and whose error of the
     # size it cannot show would move the extrinsic beyond its sigmas
     unchecked = unchecked_priors(uncovered(effects, raw), sigma)

@@ -214,12 +214,14 @@ def test_a_lost_map_without_a_beam_candidate_is_the_error(
 
 def test_a_fit_on_a_collapsed_map_fails_and_names_the_beams_when_they_are_held() -> None:
     """``calibrate``'s verdict on what diagnose reads as a lost map: a failure that says so,
-    and to estimate the beams when the model holds a spinning LiDAR's at nominal."""
-    from licalib_cli.pipeline.checks import _map
+    and to estimate the beams when the model holds a spinning LiDAR's at nominal; the poor
+    map's warning is not repeated beside it."""
+    from licalib_cli.pipeline.checks import _lost_map, _map
 
     report = SimpleNamespace(variance_factor=1.0)
     held = load_config(None)
-    (finding,) = _map(SimpleNamespace(rounds=COLLAPSED), report, held)  # type: ignore[arg-type]
+    collapsed = SimpleNamespace(rounds=COLLAPSED)
+    (finding,) = _lost_map(collapsed, held)  # type: ignore[arg-type]
     assert finding.severity == "fail"
     assert finding.text.startswith(
         "The rounds lost the map (round 12 had 0.3 % of its points on planes (144), round 3 "
@@ -229,13 +231,16 @@ def test_a_fit_on_a_collapsed_map_fails_and_names_the_beams_when_they_are_held()
         "estimate their intrinsics (licalib calibrate --intrinsics lidar, or model.lidar in the "
         "config)."
     )
+    assert _map(collapsed, report) == []  # type: ignore[arg-type]
     estimated = held.model_copy(
         update={"model": held.model.model_copy(update={"lidar": ["range_offset"]})}
     )
-    (finding,) = _map(SimpleNamespace(rounds=COLLAPSED), report, estimated)  # type: ignore[arg-type]
+    (finding,) = _lost_map(collapsed, estimated)  # type: ignore[arg-type]
     assert finding.severity == "fail" and "--intrinsics lidar" not in finding.text
     # a poor map from the first round on is the warning it was
-    poor = [_round(1, 0.04, 900), _round(3, 0.01, 300)]
-    (finding,) = _map(SimpleNamespace(rounds=poor), report, held)  # type: ignore[arg-type]
+    poor = SimpleNamespace(rounds=[_round(1, 0.04, 900), _round(3, 0.01, 300)])
+    assert _lost_map(poor, held) == []  # type: ignore[arg-type]
+    (finding,) = _map(poor, report)  # type: ignore[arg-type]
     assert finding.severity == "warn" and finding.text.startswith("Only 1 % of the points")
-    assert _map(SimpleNamespace(rounds=HELD), report, held) == []  # type: ignore[arg-type]
+    held_map = SimpleNamespace(rounds=HELD)
+    assert _lost_map(held_map, held) == [] and _map(held_map, report) == []  # type: ignore[arg-type]
