@@ -37,7 +37,7 @@ def _evidence(
 
 
 def _run(*effects: Any) -> Any:
-    return SimpleNamespace(effects=list(effects))
+    return SimpleNamespace(effects=list(effects), rounds=[])
 
 
 def _step(effect: str, delta_bic: float, rival_bic: float, after: Any) -> DiagnosisStep:

@@ -132,6 +132,7 @@ def _steps_dict(monkeypatch: pytest.MonkeyPatch, *steps: DiagnosisStep) -> list[
         ),
         base_twin=None,
         final_twin=None,
+        beams_in_base=None,
     )
     monkeypatch.setattr(cmd, "_residuals", lambda run, twin: {})
     return list(diagnosis_dict(diag)["steps"])
