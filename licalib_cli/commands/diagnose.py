@@ -532,8 +532,11 @@ def render_diagnosis(diag: Any) -> None:
         out.print(quiet)
     colour = VERDICT_COLOURS
     v0, v1 = diag.base.verdict.status, diag.final.verdict.status
+    base = "base model"
+    if diag.beams_in_base is not None:  # the base that held its map is the one with the beams
+        base = f"base model with {', '.join(diag.beams_in_base.kept) or 'the beams'}"
     out.print(
-        f"Verdict: base model [{colour[v0]}]{v0.upper()}[/], with the effects "
+        f"Verdict: {base} [{colour[v0]}]{v0.upper()}[/], with the effects "
         f"[bold {colour[v1]}]{v1.upper()}[/]"
     )
     for line in reason_lines(diag.final.verdict.reasons):

@@ -244,3 +244,32 @@ def test_a_fit_on_a_collapsed_map_fails_and_names_the_beams_when_they_are_held()
     assert finding.severity == "warn" and finding.text.startswith("Only 1 % of the points")
     held_map = SimpleNamespace(rounds=HELD)
     assert _lost_map(held_map, held) == [] and _map(held_map, report) == []  # type: ignore[arg-type]
+
+
+def test_diagnose_says_which_beams_joined_the_base_and_which_the_data_do_not_need() -> None:
+    from licalib_cli.commands.diagnose import beams_in_base_sentence
+
+    assert beams_in_base_sentence(None) is None
+    beams = bb.BeamsInBase(
+        reason=str(LOST),
+        freed=(OFFSET, SCALE, ELEVATION),
+        kept=(OFFSET,),
+        delta_bic={OFFSET: -4908080.0, SCALE: 194.2, ELEVATION: 183.9},
+    )
+    assert beams_in_base_sentence(beams) == (
+        "The base model lost its map (Only 55 LiDAR points lie on planar surfaces in round 9, "
+        "although round 1 had 2495 points on them): beams that disagree blur it. The beams' "
+        "intrinsics joined the base model: lidar_range_offset (BIC -4908080.0 with it) kept; "
+        "lidar_range_scale (BIC +194.2), lidar_elevation (BIC +183.9) dropped, the data do not "
+        "need them."
+    )
+    again = bb.BeamsInBase(
+        reason=collapsed_map(COLLAPSED) or "",
+        freed=(OFFSET, SCALE),
+        kept=(OFFSET, SCALE),
+        delta_bic={OFFSET: 1.5, SCALE: -40.0},
+        lost_without=OFFSET,
+    )
+    text = beams_in_base_sentence(again) or ""
+    assert text.startswith("The base model lost its map (round 12 had 0.3 % of its points")
+    assert text.endswith("; without lidar_range_offset the map was lost again.")
