@@ -9,6 +9,13 @@ with the spline's control-point Jacobians (right perturbations for ``traj.so3``,
 ``traj.r3``) and gravity uses the s2 retraction Jacobian of the solver. A gyroscope and an
 accelerometer block built with the same :class:`~licalib_cli.spline.SO3EvaluationCache` (as
 :func:`licalib_cli.estimation.build_problem` does) evaluate the rotation spline once per state.
+
+The splines' time axis is the IMU's clock. An IMU clock that runs at another rate than the
+LiDAR's (``ext.time_drift`` ``k``: IMU time ``tau + t_c + k (tau - t_ref)`` of a LiDAR time
+``tau``) does not change what the IMU measures, rates per second of the world: the splines'
+derivatives on the IMU clock are ``1 + k`` times too slow, so the angular velocity is scaled by
+``1 + k`` and the acceleration by ``(1 + k)^2`` before the sensor model (without it a 250 ppm
+drift left a gyro scale of that size for ``diagnose`` to name).
 """
 
 from __future__ import annotations
@@ -31,6 +38,7 @@ from licalib_cli.residuals import (
     GYRO_MISALIGNMENT,
     GYRO_ROTATION,
     GYRO_SCALE,
+    TIME_DRIFT,
     TRAJ_R3,
     TRAJ_SO3,
 )
@@ -66,6 +74,13 @@ def _check_samples(t_s: npt.ArrayLike, values: npt.ArrayLike, what: str) -> tupl
 def _get(params: Mapping[str, F64], name: str, default: F64) -> F64:
     value = params.get(name)
     return default if value is None else np.asarray(value, dtype=np.float64)
+
+
+def _clock_rate(params: Mapping[str, F64]) -> float | None:
+    """``1 + k`` of an IMU clock drift ``k`` in ``params`` (None without the block)."""
+    if TIME_DRIFT not in params:
+        return None
+    return 1.0 + float(np.asarray(params[TIME_DRIFT], dtype=np.float64).reshape(-1)[0])
 
 
 class GyroResidual:
@@ -125,15 +140,18 @@ class GyroResidual:
         n = self.t_s.shape[0]
         ev = self.so3_cache.evaluate(self.knots, params[TRAJ_SO3], self.t_s, 1, jacobians)
         assert ev.angular_velocity is not None
+        rate = _clock_rate(params)
+        omega = ev.angular_velocity if rate is None else rate * ev.angular_velocity
         use_gs = self.g_sensitivity and GYRO_G_SENSITIVITY in params
         sf = None
         pos = None
         if use_gs:
             pos = R3Spline(self.knots, params[TRAJ_R3]).evaluate(self.t_s, order=2)
             assert pos.acceleration is not None
-            sf = specific_force(ev.rotation, pos.acceleration, params[GRAVITY])
+            acc = pos.acceleration if rate is None else rate**2 * pos.acceleration
+            sf = specific_force(ev.rotation, acc, params[GRAVITY])
         model = gyro_model(
-            ev.angular_velocity,
+            omega,
             None if sf is None else sf.value,
             _get(params, GYRO_SCALE, np.ones(3)),
             _get(params, GYRO_MISALIGNMENT, np.zeros(3)),
@@ -151,16 +169,21 @@ class GyroResidual:
             return ResidualEval(r)
         assert ev.jac_angular_velocity is not None and ev.jac_rotation is not None
         dw = w[:, None] * model.d_omega  # (3, 3) whitened
-        j_so3 = _left_multiply(dw, ev.jac_angular_velocity)
+        j_so3 = _left_multiply(dw if rate is None else rate * dw, ev.jac_angular_velocity)
         elements = ev.index[:, None] + _OFFSETS
         jacs: list[DenseJacobian] = [DenseJacobian(TRAJ_SO3, elements, j_so3)]
+        j_rate = None if rate is None else ev.angular_velocity @ dw.T  # d r / d k, (n, 3)
         if use_gs:
             assert sf is not None and pos is not None and pos.acceleration_weights is not None
+            assert pos.acceleration is not None
             da = w[:, None] * model.d_accel  # A_w, whitened
             j_so3 += _left_multiply(_matmul_const(da, sf.d_rotation), ev.jac_rotation)
             a_rt = _matmul_const(da, sf.d_acceleration)  # (n, 3, 3)
+            if rate is not None and j_rate is not None:
+                j_rate = j_rate + 2.0 * rate * np.einsum("nij,nj->ni", a_rt, pos.acceleration)
             if TRAJ_R3 in params:
-                j_r3 = _times_weights(a_rt, pos.acceleration_weights)
+                scaled = a_rt if rate is None else rate**2 * a_rt
+                j_r3 = _times_weights(scaled, pos.acceleration_weights)
                 jacs.append(DenseJacobian(TRAJ_R3, elements, j_r3))
             if GRAVITY in params:
                 j_g = -_times_const(a_rt, s2_retraction_jacobian(params[GRAVITY]))[:, :, None]
@@ -173,6 +196,8 @@ class GyroResidual:
                     (model.d_g_sensitivity * w[None, :, None])[:, :, None, :],
                 )
             )
+        if j_rate is not None:
+            jacs.append(DenseJacobian(TIME_DRIFT, self._zeros, j_rate[:, :, None, None]))
         if GYRO_BIAS in params:
             jacs.append(DenseJacobian(GYRO_BIAS, self._zeros, _bias_jacobian(n, w)))
         if GYRO_BIAS_DRIFT in params:
@@ -242,7 +267,9 @@ class AccelResidual:
         ev = self.so3_cache.evaluate(self.knots, params[TRAJ_SO3], self.t_s, 0, jacobians)
         pos = R3Spline(self.knots, params[TRAJ_R3]).evaluate(self.t_s, order=2)
         assert pos.acceleration is not None
-        sf = specific_force(ev.rotation, pos.acceleration, params[GRAVITY])
+        rate = _clock_rate(params)
+        acc = pos.acceleration if rate is None else rate**2 * pos.acceleration
+        sf = specific_force(ev.rotation, acc, params[GRAVITY])
         model = accel_model(
             sf.value,
             _get(params, ACCEL_SCALE, np.ones(3)),
@@ -262,11 +289,14 @@ class AccelResidual:
         elements = ev.index[:, None] + _OFFSETS
         j_so3 = _left_multiply(_matmul_const(k, sf.d_rotation), ev.jac_rotation)
         k_rt = _matmul_const(k, sf.d_acceleration)  # (n, 3, 3)
-        j_r3 = _times_weights(k_rt, pos.acceleration_weights)
+        j_r3 = _times_weights(k_rt if rate is None else rate**2 * k_rt, pos.acceleration_weights)
         jacs: list[DenseJacobian] = [
             DenseJacobian(TRAJ_SO3, elements, j_so3),
             DenseJacobian(TRAJ_R3, elements, j_r3),
         ]
+        if rate is not None:
+            j_rate = 2.0 * rate * np.einsum("nij,nj->ni", k_rt, pos.acceleration)
+            jacs.append(DenseJacobian(TIME_DRIFT, self._zeros, j_rate[:, :, None, None]))
         if GRAVITY in params:
             j_g = -_times_const(k_rt, s2_retraction_jacobian(params[GRAVITY]))[:, :, None]
             jacs.append(DenseJacobian(GRAVITY, self._zeros, j_g))

@@ -548,3 +548,68 @@ def test_clock_drift_and_point_time_jacobians() -> None:
     )
     expected = pts["t"] + 0.004 + 2e-4 * (pts["t"] - 0.5) - 5e-3 * (pts["t"] - start)
     np.testing.assert_allclose(res.query_times(0.004, 2e-4, 5e-3), expected)
+
+
+def test_an_imu_clock_drift_scales_the_rates_the_imu_measures() -> None:
+    """The splines run on the IMU's clock: an IMU clock ``1 + k`` fast sees the world move
+    ``1 + k`` times slower, while the IMU measures rates per second of the world. The gyro's
+    prediction is then that of a gyro scale ``1 + k`` times larger, the accelerometer's takes
+    the acceleration ``(1 + k)^2`` times (gravity as it is), and the Jacobians hold with the
+    drift among the blocks."""
+    from licalib_cli.residuals import TIME_DRIFT
+
+    k = 2e-4
+    rng = np.random.default_rng(43)
+    params = _random_params(rng)
+    params[TIME_DRIFT] = np.array([k])
+    t = rng.uniform(0.0, KNOTS.t_end_s, 25)
+    gyro = GyroResidual(KNOTS, t, rng.standard_normal((25, 3)), np.array([0.5, 1.0, 2.0]))
+    plain = {b: v for b, v in params.items() if b != GYRO_G_SENSITIVITY}
+    _check_all(
+        gyro,
+        plain,
+        [TRAJ_SO3, GYRO_BIAS, GYRO_SCALE, GYRO_MISALIGNMENT, GYRO_ROTATION, TIME_DRIFT],
+        float(np.abs(gyro.gyro * gyro.inv_sigma).max()),
+    )
+    scaled = {b: v for b, v in plain.items() if b != TIME_DRIFT}
+    scaled[GYRO_SCALE] = plain[GYRO_SCALE] * (1.0 + k)
+    np.testing.assert_allclose(
+        gyro.evaluate(plain, jacobians=False).residuals,
+        gyro.evaluate(scaled, jacobians=False).residuals,
+        rtol=1e-10,
+        atol=1e-12,
+    )
+    sensitive = GyroResidual(KNOTS, t, rng.standard_normal((25, 3)), 0.7, g_sensitivity=True)
+    _check_all(
+        sensitive,
+        params,
+        [
+            TRAJ_SO3,
+            TRAJ_R3,
+            GRAVITY,
+            GYRO_BIAS,
+            GYRO_SCALE,
+            GYRO_MISALIGNMENT,
+            GYRO_ROTATION,
+            GYRO_G_SENSITIVITY,
+            TIME_DRIFT,
+        ],
+        float(np.abs(sensitive.gyro * sensitive.inv_sigma).max()),
+    )
+    accel = AccelResidual(KNOTS, t, rng.standard_normal((25, 3)) * 9.0, np.array([0.3, 0.5, 1.0]))
+    _check_all(
+        accel,
+        params,
+        [TRAJ_SO3, TRAJ_R3, GRAVITY, ACCEL_BIAS, ACCEL_SCALE, ACCEL_MISALIGNMENT, TIME_DRIFT],
+        float(np.abs(accel.accel * accel.inv_sigma).max()),
+    )
+    # the acceleration is linear in the position's control points: scaling them all by
+    # (1 + k)^2 scales the acceleration alone (gravity as it is), as the drift does
+    stretched = {b: v for b, v in params.items() if b != TIME_DRIFT}
+    stretched[TRAJ_R3] = params[TRAJ_R3] * (1.0 + k) ** 2
+    np.testing.assert_allclose(
+        accel.evaluate(params, jacobians=False).residuals,
+        accel.evaluate(stretched, jacobians=False).residuals,
+        rtol=1e-10,
+        atol=1e-10,
+    )
