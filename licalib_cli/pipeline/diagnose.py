@@ -1,6 +1,9 @@
 """Model selection stage (``licalib diagnose``, ``calibrate --model auto``, method.md section 10).
 
-1. Fit the base model: extrinsic, time offset, trajectory, biases and gravity.
+1. Fit the base model: extrinsic, time offset, trajectory, biases and gravity. A base model
+   that loses its map (beams that disagree by centimetres blur it) has the beams' intrinsics
+   freed, and those the data need kept, before anything is scored
+   (:mod:`~licalib_cli.pipeline.beams_in_base`).
 2. Score every candidate effect the model lacks against the residuals (a Lagrange-multiplier
    test with the trajectory and the estimated parameters profiled out through the solver's Schur
    complement, :mod:`licalib_cli.consistency.score`), the strongest first.
