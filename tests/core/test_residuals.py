@@ -140,26 +140,25 @@ def test_gyro_residual_jacobians(seed: int) -> None:
     _check_all(res, params, blocks, float(np.abs(res.gyro * res.inv_sigma).max()))
 
 
+GYRO_G_BLOCKS = [
+    TRAJ_SO3,
+    TRAJ_R3,
+    GRAVITY,
+    GYRO_BIAS,
+    GYRO_SCALE,
+    GYRO_MISALIGNMENT,
+    GYRO_ROTATION,
+    GYRO_G_SENSITIVITY,
+]
+"""The blocks a gyro residual with g-sensitivity touches."""
+
+
 def test_gyro_residual_with_g_sensitivity_jacobians() -> None:
     rng = np.random.default_rng(3)
     params = _random_params(rng)
     t = rng.uniform(0.0, KNOTS.t_end_s, 25)
     res = GyroResidual(KNOTS, t, rng.standard_normal((25, 3)), 0.7, g_sensitivity=True)
-    _check_all(
-        res,
-        params,
-        [
-            TRAJ_SO3,
-            TRAJ_R3,
-            GRAVITY,
-            GYRO_BIAS,
-            GYRO_SCALE,
-            GYRO_MISALIGNMENT,
-            GYRO_ROTATION,
-            GYRO_G_SENSITIVITY,
-        ],
-        float(np.abs(res.gyro * res.inv_sigma).max()),
-    )
+    _check_all(res, params, GYRO_G_BLOCKS, float(np.abs(res.gyro * res.inv_sigma).max()))
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -583,17 +582,7 @@ def test_an_imu_clock_drift_scales_the_rates_the_imu_measures() -> None:
     _check_all(
         sensitive,
         params,
-        [
-            TRAJ_SO3,
-            TRAJ_R3,
-            GRAVITY,
-            GYRO_BIAS,
-            GYRO_SCALE,
-            GYRO_MISALIGNMENT,
-            GYRO_ROTATION,
-            GYRO_G_SENSITIVITY,
-            TIME_DRIFT,
-        ],
+        [*GYRO_G_BLOCKS, TIME_DRIFT],
         float(np.abs(sensitive.gyro * sensitive.inv_sigma).max()),
     )
     accel = AccelResidual(KNOTS, t, rng.standard_normal((25, 3)) * 9.0, np.array([0.3, 0.5, 1.0]))
