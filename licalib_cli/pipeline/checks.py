@@ -62,7 +62,12 @@ from licalib_cli.pipeline.inflation import (
 )
 from licalib_cli.pipeline.initialise import SINGLE_AXIS, InitialGuess
 from licalib_cli.pipeline.intrinsic_sigmas import intrinsics_uncertainty
-from licalib_cli.pipeline.lost_map import POOR_MAP_FRACTION, beams_held, collapsed_map
+from licalib_cli.pipeline.lost_map import (
+    POOR_MAP_FRACTION,
+    beams_advice,
+    beams_held,
+    collapsed_map,
+)
 from licalib_cli.pipeline.map_uncertainty import MapUncertainty, map_uncertainty
 from licalib_cli.pipeline.points import PointBudget
 from licalib_cli.pipeline.prior_directions import (
@@ -899,20 +904,13 @@ def _split(split: SplitResult) -> list[Finding]:
     ]
 
 
-def _lost_map(fit: Fit, cfg: CalibConfig) -> list[Finding]:
-    """The rounds lost the map they had (:func:`collapsed_map`): the fit rests on a few points
-    on a few planes, and what the data seem not to determine follows from that. The verdict's
-    first reason."""
-    collapsed = collapsed_map(fit.rounds)
+def _lost_map(collapsed: str | None, cfg: CalibConfig) -> list[Finding]:
+    """The rounds lost the map they had (``collapsed``, :func:`collapsed_map`'s sentence): the
+    fit rests on a few points on a few planes, and what the data seem not to determine follows
+    from that. The verdict's first reason."""
     if collapsed is None:
         return []
-    advice = (
-        "; if the LiDAR's beams may disagree (per-beam range offsets or angles from an old "
-        "or generic beam table blur the map from the first round on), estimate their "
-        "intrinsics (licalib calibrate --intrinsics lidar, or model.lidar in the config)"
-        if beams_held(cfg)
-        else ""
-    )
+    advice = f"; {beams_advice()}" if beams_held(cfg) else ""
     return [
         Finding(
             "fail",
@@ -924,10 +922,11 @@ def _lost_map(fit: Fit, cfg: CalibConfig) -> list[Finding]:
     ]
 
 
-def _map(fit: Fit, report: SolverReport) -> list[Finding]:
+def _map(fit: Fit, report: SolverReport, collapsed: str | None) -> list[Finding]:
+    """A poor map (unless it collapsed: :func:`_lost_map` says so) and a poor fit."""
     out = []
     last = fit.rounds[-1]
-    if last.associated_fraction < POOR_MAP_FRACTION and collapsed_map(fit.rounds) is None:
+    if last.associated_fraction < POOR_MAP_FRACTION and collapsed is None:
         out.append(
             Finding(
                 "warn",
@@ -1142,7 +1141,8 @@ def run_checks(
         sigma = sigma.copy()
         sigma[:3] = conflict.covered(sigma[:3])
         why = (*why, "by how far the measured lever arm pulled the translation from the data's")
-    findings = _lost_map(fit, cfg)
+    collapsed = collapsed_map(fit.rounds)
+    findings = _lost_map(collapsed, cfg)
     findings += [Finding("fail", f) for f in failures]
     findings += [Finding("warn", n) for n in notes]
     findings += _prior_conflict(conflict)
@@ -1170,7 +1170,7 @@ def run_checks(
     findings += _sensors(sensors)
     findings += _effects(effects, raw)
     findings += _split(split)
-    findings += _map(fit, report)
+    findings += _map(fit, report, collapsed)
     # an IMU block held fixed whose prior the recording cannot check, and whose error of the
     # size it cannot show would move the extrinsic beyond its sigmas
     unchecked = unchecked_priors(uncovered(effects, raw), sigma)

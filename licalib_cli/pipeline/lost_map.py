@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from licalib_cli.config import CalibConfig
 from licalib_cli.pipeline.round import RoundSummary
 
-__all__ = ["COLLAPSED_SHARE", "POOR_MAP_FRACTION", "beams_held", "collapsed_map"]
+__all__ = ["COLLAPSED_SHARE", "POOR_MAP_FRACTION", "beams_advice", "beams_held", "collapsed_map"]
 
 POOR_MAP_FRACTION = 0.2
 """A last round with fewer of its points on planes than this is a poor map."""
@@ -32,6 +32,19 @@ is poor from round 1 and a clean fit's last (dense) round holds its share."""
 def beams_held(cfg: CalibConfig) -> bool:
     """The model holds the beams of a spinning LiDAR at nominal (no ``model.lidar``)."""
     return not cfg.model.lidar and not cfg.lidar.non_repetitive
+
+
+def beams_advice(detail: str = "") -> str:
+    """The advice to estimate beams that may disagree, with ``detail`` (how the map fared) in
+    its parenthesis; the lost map's error and the collapsed map's finding end with it."""
+    why = (
+        "per-beam range offsets or angles from an old or generic beam table blur the map from "
+        "the first round on"
+    )
+    return (
+        f"if the LiDAR's beams may disagree ({why}{f'; {detail}' if detail else ''}), estimate "
+        "their intrinsics (licalib calibrate --intrinsics lidar, or model.lidar in the config)"
+    )
 
 
 def collapsed_map(rounds: Sequence[RoundSummary]) -> str | None:

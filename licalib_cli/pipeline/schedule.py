@@ -44,7 +44,7 @@ from licalib_cli.pipeline.free_planes import (
     refine_with_planes,
 )
 from licalib_cli.pipeline.initialise import InitialGuess
-from licalib_cli.pipeline.lost_map import beams_held
+from licalib_cli.pipeline.lost_map import beams_advice, beams_held
 from licalib_cli.pipeline.points import (
     PointBudget,
     PointSample,
@@ -319,13 +319,8 @@ def _diverged(
             "measure or CAD is enough) to start closer."
         )
     if beams_held:
-        advice = (
-            f"{advice.rstrip('.')}, or, if the LiDAR's beams may disagree (per-beam range "
-            "offsets or angles from an old or generic beam table blur the map from the first "
-            f"round on; round 1 had {100 * first.associated_fraction:.1f} % of its points on "
-            "planes), estimate their intrinsics (licalib calibrate --intrinsics lidar, or "
-            "model.lidar in the config)."
-        )
+        share = f"round 1 had {100 * first.associated_fraction:.1f} % of its points on planes"
+        advice = f"{advice.rstrip('.')}, or, {beams_advice(share)}."
     msg = (
         f"{str(err).split(';')[0].rstrip('.')} in round {index}, although round 1 had "
         f"{first.points} points on them: the estimate diverged from the initial guess (it moved "

@@ -216,12 +216,19 @@ def test_a_fit_on_a_collapsed_map_fails_and_names_the_beams_when_they_are_held()
     """``calibrate``'s verdict on what diagnose reads as a lost map: a failure that says so,
     and to estimate the beams when the model holds a spinning LiDAR's at nominal; the poor
     map's warning is not repeated beside it."""
-    from licalib_cli.pipeline.checks import _lost_map, _map
+    from licalib_cli.pipeline.checks import _lost_map
+    from licalib_cli.pipeline.checks import _map as _map_with
+
+    def _map(fit: Any, report: Any) -> Any:  # as run_checks calls it
+        return _map_with(fit, report, collapsed_map(fit.rounds))
+
+    def _lost(fit: Any, cfg: Any) -> Any:
+        return _lost_map(collapsed_map(fit.rounds), cfg)
 
     report = SimpleNamespace(variance_factor=1.0)
     held = load_config(None)
     collapsed = SimpleNamespace(rounds=COLLAPSED)
-    (finding,) = _lost_map(collapsed, held)  # type: ignore[arg-type]
+    (finding,) = _lost(collapsed, held)
     assert finding.severity == "fail"
     assert finding.text.startswith(
         "The rounds lost the map (round 12 had 0.3 % of its points on planes (144), round 3 "
@@ -231,19 +238,19 @@ def test_a_fit_on_a_collapsed_map_fails_and_names_the_beams_when_they_are_held()
         "estimate their intrinsics (licalib calibrate --intrinsics lidar, or model.lidar in the "
         "config)."
     )
-    assert _map(collapsed, report) == []  # type: ignore[arg-type]
+    assert _map(collapsed, report) == []
     estimated = held.model_copy(
         update={"model": held.model.model_copy(update={"lidar": ["range_offset"]})}
     )
-    (finding,) = _lost_map(collapsed, estimated)  # type: ignore[arg-type]
+    (finding,) = _lost(collapsed, estimated)
     assert finding.severity == "fail" and "--intrinsics lidar" not in finding.text
     # a poor map from the first round on is the warning it was
     poor = SimpleNamespace(rounds=[_round(1, 0.04, 900), _round(3, 0.01, 300)])
-    assert _lost_map(poor, held) == []  # type: ignore[arg-type]
-    (finding,) = _map(poor, report)  # type: ignore[arg-type]
+    assert _lost(poor, held) == []
+    (finding,) = _map(poor, report)
     assert finding.severity == "warn" and finding.text.startswith("Only 1 % of the points")
     held_map = SimpleNamespace(rounds=HELD)
-    assert _lost_map(held_map, held) == [] and _map(held_map, report) == []  # type: ignore[arg-type]
+    assert _lost(held_map, held) == [] and _map(held_map, report) == []
 
 
 def test_diagnose_says_which_beams_joined_the_base_and_which_the_data_do_not_need() -> None:
