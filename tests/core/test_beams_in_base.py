@@ -125,6 +125,20 @@ def test_a_block_whose_removal_loses_the_map_again_is_kept(
     assert beams.lost_without == OFFSET
 
 
+def test_a_map_lost_with_the_beams_free_too_is_the_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Beams freed and the map still lost: the user gets that fit's one-sentence error (exit
+    code 7), not a diagnosis."""
+    lost = MapLost("Only 63 LiDAR points lie on planar surfaces in round 5.", beams_held=False)
+
+    def fit(*a: Any, **k: Any) -> Any:
+        raise lost
+
+    monkeypatch.setattr(bb, "fit_and_check", fit)
+    with pytest.raises(MapLost, match="round 5") as err:
+        _base((OFFSET, SCALE))
+    assert err.value.exit_code == 7
+
+
 def test_a_collapsed_map_is_told_apart_from_a_poor_scene_and_a_held_one() -> None:
     """The rounds lost the map when the last round holds under a tenth of the best round's
     share of points on planes and under a fifth in all; a scene poor from the first round, or
