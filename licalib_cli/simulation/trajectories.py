@@ -83,6 +83,30 @@ class Signal:
             np.concatenate([self.window, other.window]),
         )
 
+    def _active(self, tt: F64) -> npt.NDArray[np.bool_] | None:
+        """The terms whose windows overlap the times ``tt`` (None: none does).
+
+        Windowed terms that do not overlap the queried times contribute exact zeros: they are
+        skipped (a long walk has many bursts, a sweep spans 0.1 s)."""
+        if self.amp.size == 0 or tt.size == 0:
+            return None
+        bounded = np.all(np.isfinite(self.window), axis=1)
+        active = ~bounded | ((self.window[:, 1] >= tt.min()) & (self.window[:, 0] <= tt.max()))
+        return active if active.any() else None
+
+    def value(self, t: npt.ArrayLike) -> F64:
+        """The value alone, (N,): the first of :meth:`eval`'s, computed the same way."""
+        tt = np.asarray(t, dtype=np.float64).reshape(-1)
+        f = self.offset + self.slope * tt
+        active = self._active(tt)
+        if active is None:
+            return f
+        window = self.window[active]
+        s = self.amp[active] * np.sin(tt[:, None] * self.omega[active] + self.phase[active])
+        if np.isfinite(window).all(axis=1).any():
+            s = _window(tt, window) * s
+        return f + s.sum(axis=1)
+
     def eval(self, t: npt.ArrayLike) -> tuple[F64, F64, F64]:
         """Value and first two derivatives.
 
@@ -96,13 +120,8 @@ class Signal:
         f = self.offset + self.slope * tt
         d1 = np.full_like(tt, self.slope)
         d2 = np.zeros_like(tt)
-        if self.amp.size == 0 or tt.size == 0:
-            return f, d1, d2
-        # Windowed terms that do not overlap the queried times contribute exact zeros: skip them
-        # (a long walk has many bursts, a sweep spans 0.1 s).
-        bounded = np.all(np.isfinite(self.window), axis=1)
-        active = ~bounded | ((self.window[:, 1] >= tt.min()) & (self.window[:, 0] <= tt.max()))
-        if not active.any():
+        active = self._active(tt)
+        if active is None:
             return f, d1, d2
         amp, omega, phase = self.amp[active], self.omega[active], self.phase[active]
         window = self.window[active]
@@ -110,7 +129,7 @@ class Signal:
         s = amp * np.sin(arg)
         s1 = amp * omega * np.cos(arg)
         s2 = -(omega**2) * s
-        if bounded[active].any():
+        if np.isfinite(window).all(axis=1).any():
             w, w1, w2 = _windows(tt, window)
             s2 = w2 * s + 2.0 * w1 * s1 + w * s2
             s1 = w1 * s + w * s1
@@ -118,14 +137,29 @@ class Signal:
         return f + s.sum(axis=1), d1 + s1.sum(axis=1), d2 + s2.sum(axis=1)
 
 
-def _windows(t: F64, window: F64) -> tuple[F64, F64, F64]:
-    """``sin^4`` windows and their derivatives, (N, K) each."""
+def _window_phase(
+    t: F64, window: F64
+) -> tuple[F64, F64, npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
+    """Each time's phase ``u`` in its term's window (N, K), ``k = pi / length`` (K,), and which
+    are inside the window (N, K) and which windows are unbounded (K,)."""
     t0, t1 = window[:, 0], window[:, 1]
     unbounded = ~np.isfinite(t0) | ~np.isfinite(t1)
     length = np.where(unbounded, 1.0, t1 - t0)
     k = np.pi / length
     u = (t[:, None] - np.where(unbounded, 0.0, t0)) * k
     inside = (u >= 0.0) & (u <= np.pi)
+    return u, k, inside, unbounded
+
+
+def _window(t: F64, window: F64) -> F64:
+    """``sin^4`` windows, (N, K): the first of :func:`_windows`'s."""
+    u, _, inside, unbounded = _window_phase(t, window)
+    return np.where(unbounded, 1.0, np.where(inside, np.sin(u) ** 4, 0.0))
+
+
+def _windows(t: F64, window: F64) -> tuple[F64, F64, F64]:
+    """``sin^4`` windows and their derivatives, (N, K) each."""
+    u, k, inside, unbounded = _window_phase(t, window)
     su, cu = np.sin(u), np.cos(u)
     w = np.where(inside, su**4, 0.0)
     w1 = np.where(inside, 4.0 * su**3 * cu * k, 0.0)
@@ -246,12 +280,12 @@ class EulerTrajectory:
     def position_at(self, t: npt.ArrayLike) -> F64:
         """``p_W_I(t)``, (N, 3) m."""
         tt = np.asarray(t, dtype=np.float64).reshape(-1)
-        return np.stack([s.eval(tt)[0] for s in self.position], axis=-1)
+        return np.stack([s.value(tt) for s in self.position], axis=-1)
 
     def rotation_at(self, t: npt.ArrayLike) -> F64:
         """``R_W_I(t)``, (N, 3, 3)."""
         tt = np.asarray(t, dtype=np.float64).reshape(-1)
-        rx, ry, rz = (s.eval(tt)[0] for s in self.euler)
+        rx, ry, rz = (s.value(tt) for s in self.euler)
         return euler_zyx_matrix(rx, ry, rz) @ self.mount
 
     def pose_at(self, t: npt.ArrayLike) -> tuple[F64, F64]:

@@ -45,6 +45,18 @@ def test_signal_derivatives_match_finite_differences() -> None:
     assert np.allclose(f[outside], plain.eval(t[outside])[0], atol=1e-15)
 
 
+def test_signal_value_is_evals_first_to_the_bit() -> None:
+    """Poses are evaluated per point with the value alone: the bags it writes must be those
+    of the value with its derivatives (windowed, plain, and windows the times miss)."""
+    sig = Signal.sines([0.7, 0.3], [2.0, 9.0], [0.1, 1.0], offset=1.0, slope=0.2) + Signal.sines(
+        [0.5, 0.2], [7.0, 3.0], [0.3, 0.0], window=[[1.0, 3.0], [5.0, 6.0]]
+    )
+    for t in (np.linspace(0.0, 4.0, 401), np.linspace(3.5, 4.5, 7), np.empty(0)):
+        assert np.array_equal(sig.value(t), sig.eval(t)[0])
+    only_windowed = Signal.sines([0.5], [7.0], [0.3], window=[1.0, 3.0])
+    assert np.array_equal(only_windowed.value([4.0, 5.0]), [0.0, 0.0])
+
+
 def test_sinusoid_is_the_papers_equation() -> None:
     t = np.linspace(0.0, 10.0, 57)
     st = sinusoid().state(t)
