@@ -9,8 +9,8 @@ default's own accuracy is the benchmarks' business, and ``test_calibrate_e2e`` k
 
 from __future__ import annotations
 
-import atexit
-import shutil
+import hashlib
+import os
 import tempfile
 from pathlib import Path
 
@@ -23,14 +23,24 @@ FINAL_POINTS_PER_SCAN = 3000
 
 
 def _write() -> Path:
-    """``configs/vlp16.yaml`` with ``surfels.final_points_per_scan`` lowered, written once per
-    process into a folder removed at exit."""
+    """``configs/vlp16.yaml`` with ``surfels.final_points_per_scan`` lowered, in a folder of the
+    temporary directory named after its content.
+
+    Every process of a run (pytest's workers, the batch tests' cluster workers, which import
+    the test modules and are stopped without running ``atexit`` handlers) finds the same file,
+    and the next run reuses it: one folder in all, not one left behind per process. The file is
+    written atomically, so processes writing it at once write the same bytes in turn."""
     tree = yaml.safe_load(VLP16.read_text())
     tree.setdefault("surfels", {})["final_points_per_scan"] = FINAL_POINTS_PER_SCAN
-    folder = Path(tempfile.mkdtemp(prefix="licalib-tests-config-"))
-    atexit.register(shutil.rmtree, folder, True)
+    text = yaml.safe_dump(tree, sort_keys=False)
+    digest = hashlib.sha256(text.encode()).hexdigest()[:12]
+    folder = Path(tempfile.gettempdir()) / f"licalib-tests-config-{digest}"
     path = folder / "vlp16.yaml"
-    path.write_text(yaml.safe_dump(tree, sort_keys=False))
+    if not (path.is_file() and path.read_text() == text):
+        folder.mkdir(exist_ok=True)
+        part = folder / f".vlp16.{os.getpid()}.yaml"
+        part.write_text(text)
+        os.replace(part, path)
     return path
 
 
