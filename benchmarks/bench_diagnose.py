@@ -368,6 +368,17 @@ def one_run(case: dict, workdir: Path, scale: float) -> dict:
     }
 
 
+def _lost_to(row: dict, effect: str) -> str:
+    """Why a tried effect whose refit paid was not kept: the rival it was refitted beside and
+    whose refit paid more ("" when it was not such a rival)."""
+    for rival, leader, _share, kept in row.get("rivals", []):
+        if rival == effect and not kept:
+            paid = [s[3] for s in row.get("steps", []) if s[0] == leader and s[4]]
+            better = f" (BIC change {paid[0]:+.1f})" if paid else ""
+            return f", refitted as the rival of {leader}, which paid more{better}"
+    return ""
+
+
 def judge(row: dict) -> list[str]:
     misses = []
     injected = set(row["effects"])
@@ -380,7 +391,7 @@ def judge(row: dict) -> list[str]:
             if step[0] == effect and not step[4]:
                 misses.append(
                     f"{effect} tried (score {step[1]:.1f} on {step[2]}), BIC change "
-                    f"{step[3]:+.1f}: not kept"
+                    f"{step[3]:+.1f}: not kept{_lost_to(row, effect)}"
                 )
         final_p = row.get("final_p", {}).get(effect)
         if final_p is not None:

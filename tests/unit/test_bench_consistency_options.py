@@ -260,6 +260,29 @@ def test_the_diagnose_benchmark_says_an_injected_effect_was_tried_and_not_kept()
     assert not [m for m in bench_diagnose.judge(kept) if "not kept" in m]
 
 
+def test_the_diagnose_benchmark_says_a_rival_whose_refit_paid_lost_to_its_leader() -> None:
+    """An injected effect refitted as the rival of another and not kept although its refit
+    paid (a BIC change below zero): the miss names the leader that paid more."""
+    bench_diagnose = _bench_diagnose()
+    err = {"translation_mm": 0.7, "rotation_deg": 0.13, "time_offset_ms": 0.008}
+    row = {
+        "effects": ["accel_misalignment", "gyro_rotation"],
+        "named": ["gyro_rotation"],
+        "steps": [
+            ["accel_misalignment", 98.9, 3, -64.4, False, -0.014, -0.018, 0.015],
+            ["gyro_rotation", 166.0, 3, -95.0, True, 0.005, 0.004, 0.015],
+        ],
+        "rivals": [["accel_misalignment", "gyro_rotation", 0.54, False]],
+        "shrink": {},
+        "before": err,
+        "after": err,
+    }
+    assert (
+        "accel_misalignment tried (score 98.9 on 3), BIC change -64.4: not kept, refitted as "
+        "the rival of gyro_rotation, which paid more (BIC change -95.0)"
+    ) in bench_diagnose.judge(row)
+
+
 def test_a_seed_whose_rig_the_simulator_refuses_is_no_refusal_and_no_target_miss(
     tmp_path: Path,
 ) -> None:
