@@ -300,3 +300,24 @@ def test_a_seed_whose_rig_the_simulator_refuses_is_no_refusal_and_no_target_miss
     assert bench.judge(row) == "ok"
     assert "NOT SIMULATED" in bench._line(row)
     assert bench.judge({**row, "verdict": "error"}) == "clean run refused"
+
+
+def test_a_calm_walk_refused_for_too_little_rotation_is_no_target_miss() -> None:
+    """A clean walk without a shaking burst (a 10 s walk often has none) refused because its
+    rotation cannot show the extrinsic is the right answer; the same refusal of a walk with a
+    burst, or another refusal of a calm walk, is still a miss."""
+    bench = _bench_module(BENCH)
+    row = {
+        "name": "clean",
+        "scenario": "walk",
+        "seed": 18103,
+        "verdict": "error",
+        "bursts": 0,
+        "reason": "ExcitationError: Rotation excitation is too weak: the LiDAR odometry did not "
+        "follow the motion and no rotation extrinsic makes the map clearly sharper than others",
+    }
+    assert bench.calm_walk_refused(row) and bench.judge(row) == "ok"
+    assert bench.judge({**row, "bursts": 1}) == "clean run refused"
+    other = {**row, "reason": "DataError: the bag has no IMU messages"}
+    assert bench.judge(other) == "clean run refused"
+    assert bench.judge({k: v for k, v in row.items() if k != "bursts"}) == "clean run refused"
