@@ -26,10 +26,10 @@ def _write() -> Path:
     """``configs/vlp16.yaml`` with ``surfels.final_points_per_scan`` lowered, in a folder of the
     temporary directory named after its content.
 
-    Every process of a run (pytest's workers, the batch tests' cluster workers, which import
-    the test modules and are stopped without running ``atexit`` handlers) finds the same file,
-    and the next run reuses it: one folder in all, not one left behind per process. The file is
-    written atomically, so processes writing it at once write the same bytes in turn."""
+    Every process of a run finds the same file and the next run reuses it: one folder in all.
+    A folder per process, removed at exit, was left behind by the batch tests' cluster workers,
+    which import the test modules and are stopped without running ``atexit`` handlers. The file
+    is written atomically, so processes writing it at once write the same bytes in turn."""
     tree = yaml.safe_load(VLP16.read_text())
     tree.setdefault("surfels", {})["final_points_per_scan"] = FINAL_POINTS_PER_SCAN
     text = yaml.safe_dump(tree, sort_keys=False)
