@@ -153,6 +153,7 @@ from _settings import add_set_option, load_with  # noqa: E402
 
 from licalib_cli.errors import ConfigError  # noqa: E402
 from licalib_cli.simulation.effects import Effect  # noqa: E402
+from licalib_cli.simulation.scenarios import WALK_SURE_OF_A_BURST_S  # noqa: E402
 from licalib_cli.simulation.spec import LidarKind  # noqa: E402
 
 
@@ -314,11 +315,6 @@ def one_run(case: dict, workdir: Path) -> dict:
 NOT_SIMULATED = "not simulated"
 """The verdict of a row whose bag the simulator refused (e.g. a lever arm that takes the rig
 through the room's objects): no calibration ran, so it is neither a refusal nor a target miss."""
-
-
-WALK_SURE_OF_A_BURST_S = 17.0
-"""A walk at least this long holds a shaking burst (the simulator's first starts 5-10 s in and
-lasts 3-6 s, ending at least 1 s before the end); a shorter one may be calm walking only."""
 
 
 def calm_walk_refused(row: dict) -> bool:

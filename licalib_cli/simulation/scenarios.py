@@ -40,6 +40,17 @@ TILT_FREQUENCY_HZ = (0.1, 0.2)
 WALK_CENTER = (2.5, 5.0, 1.4)
 WALK_RADII = (4.0, 3.0)
 WALK_LAP_S = 40.0
+BURST_FIRST_S = (5.0, 10.0)
+"""The walk's first shaking burst starts this far in (uniform), s."""
+BURST_LENGTH_S = (3.0, 6.0)
+"""Each burst lasts this long (uniform), s."""
+BURST_GAP_S = (15.0, 30.0)
+"""Calm walking between two bursts (uniform), s."""
+BURST_END_MARGIN_S = 1.0
+"""A burst ends at least this long before the recording does, s."""
+WALK_SURE_OF_A_BURST_S = BURST_FIRST_S[1] + BURST_LENGTH_S[1] + BURST_END_MARGIN_S
+"""A walk at least this long holds a shaking burst whatever its draws (17 s); a shorter one
+may be calm walking only."""
 
 
 @dataclass(frozen=True)
@@ -156,13 +167,13 @@ def shake(rng: np.random.Generator, tilt_rad: float = 0.0) -> EulerTrajectory:
 def burst_intervals(rng: np.random.Generator, duration_s: float) -> F64:
     """Shaking intervals of the walk: 3-6 s long, 15-30 s apart, first at 5-10 s, (M, 2)."""
     out = []
-    t = float(rng.uniform(5.0, 10.0))
+    t = float(rng.uniform(*BURST_FIRST_S))
     while True:
-        length = float(rng.uniform(3.0, 6.0))
-        if t + length > duration_s - 1.0:
+        length = float(rng.uniform(*BURST_LENGTH_S))
+        if t + length > duration_s - BURST_END_MARGIN_S:
             break
         out.append((round(t, 3), round(t + length, 3)))
-        t += length + float(rng.uniform(15.0, 30.0))
+        t += length + float(rng.uniform(*BURST_GAP_S))
     return np.array(out, dtype=np.float64).reshape(-1, 2)
 
 
