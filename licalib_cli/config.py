@@ -129,7 +129,7 @@ class BagConfig(_Section):
 class NoiseConfig(_Section):
     """Sensor noise used to weight the residuals; measured from the data when unset.
 
-    The fit checks compare the residuals with this noise (README, "Checks of the fit"): a value
+    The fit checks compare the residuals with this noise (docs/checks.md, "Noise"): a value
     given here is trusted as the sensor's noise, so a wrong value shows up as a misfit; leave a
     value unset to have it measured from the recording itself.
     """
@@ -148,8 +148,8 @@ class NoiseConfig(_Section):
     residual whose ray meets its plane with at least this cosine is weighted so; flatter rays
     keep the full range noise (their distances carry errors the cosine does not). 1 (the
     default): every point weighted with the full range noise. 0.2 made the paper's sinusoids'
-    translation 6 % more accurate over twenty seeds but their gyro scales less so (README,
-    "Checks of the fit")."""
+    translation 6 % more accurate over twenty seeds but their gyro scales less so
+    (docs/checks.md, "Noise")."""
 
 
 class OdometrySection(_Section):
@@ -408,7 +408,7 @@ class ImuPriorSection(_Section):
 
     The reported sigmas of the extrinsic and the time offset include what these uncertainties
     move them by, as far as the recording does not determine the intrinsics better itself
-    (README, "How far to trust the result"); 0 treats a block as known exactly. Blocks the
+    (docs/checks.md, "IMU intrinsics held fixed"); 0 treats a block as known exactly. Blocks the
     model estimates (``model.imu``) are not affected.
     """
 
@@ -453,7 +453,8 @@ class LidarSpreadSection(_Section):
     value is the data's alone. Set, the beams' values are drawn toward nominal as far as the
     data leave them uncertain: many small per-beam errors are then estimated together with one
     number, their spread, instead of one free number each. ``licalib diagnose`` sets it from
-    the data when a per-beam effect the data show pays only so (README, "Reading a diagnosis").
+    the data when a per-beam effect the data show pays only so (docs/diagnose.md, "one spread
+    across beams").
     """
 
     elevation_deg: float | None = Field(default=None, gt=0.0, le=10.0)
@@ -502,7 +503,7 @@ class LidarPriorSection(_Section):
 
     0 (the default) treats a block as exact: the sigmas then rest on it, and the checks say
     when an error of it this recording cannot show could move the extrinsic or time offset by
-    three of their sigmas (README, "How far to trust the result"). Set, a block enters the
+    three of their sigmas (docs/checks.md, "What the model takes as exact"). Set, a block enters the
     reported sigmas as the IMU's priors do (``model.imu_prior``), and the verdict warns when the
     recording cannot check it. Blocks the model estimates (``model.lidar``) are not affected.
     """

@@ -232,7 +232,7 @@ class SensorCheck(Section):
         unit: unit of ``rms`` and ``noise``.
         noise: noise standard deviation the fit was weighted with (per axis, or the median per
             beam for the LiDAR's point-to-plane distance along the ray).
-        noise_source: ``config`` or ``data`` (measured, see the README).
+        noise_source: ``config`` or ``data`` (measured, see docs/checks.md).
         chi2_per_sample: sum of squared residuals over the noise variance, per scalar residual
             (about 1 when the model explains the data).
         rms: residual RMS.
