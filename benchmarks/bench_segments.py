@@ -237,23 +237,45 @@ def planar(args: argparse.Namespace, workdir: Path) -> None:
     )
 
 
-def _run_measured(cmd: list[str]) -> tuple[int, str, str, float, resource.struct_rusage]:
-    """Run ``cmd``: its exit code, output, error output, wall time and its own resource usage.
+_LAUNCHER = """
+import json, os, resource, subprocess, sys
+proc = subprocess.Popen(json.loads(sys.argv[1]))
+_, status, usage = os.wait4(proc.pid, 0)
+code = os.waitstatus_to_exitcode(status)
+with open(sys.argv[2], "w") as f:
+    json.dump([code, usage.ru_utime, usage.ru_stime, usage.ru_maxrss], f)
+"""
 
-    The usage is that of this one process tree (``os.wait4``), not ``RUSAGE_CHILDREN``: that
-    one's peak RSS is the largest of every child this benchmark ever waited for, such as the
-    odometry children that the walk part's calibrations fork from this process (2389 MB
-    reported for a select-segments that peaked at 587 MB).
+
+def _run_measured(cmd: list[str]) -> tuple[int, str, str, float, float, float]:
+    """Run ``cmd``: its exit code, output, error output, wall time, CPU seconds and peak RSS
+    (MB), the last two of that process alone.
+
+    Linux keeps a process's high-water RSS across ``exec`` and counts the memory of its parent
+    at the fork in it, so a command started from this process (gigabytes after the simulations
+    and calibrations before it) would report this process's peak as its own (2389 MB for a
+    ranking that peaked at 587 MB), and ``RUSAGE_CHILDREN`` is the largest of every child ever
+    waited for. A small launcher process starts the command instead and reports its usage.
     """
-    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+    with (
+        tempfile.TemporaryFile("w+") as out,
+        tempfile.TemporaryFile("w+") as err,
+        tempfile.TemporaryDirectory() as tmp,
+    ):
+        usage_file = Path(tmp) / "usage.json"
         t = time.perf_counter()
-        proc = subprocess.Popen(cmd, stdout=out, stderr=err, text=True)
-        _, status, usage = os.wait4(proc.pid, 0)
+        subprocess.run(
+            [sys.executable, "-c", _LAUNCHER, json.dumps(cmd), str(usage_file)],
+            stdout=out,
+            stderr=err,
+            text=True,
+            check=True,
+        )
         wall = time.perf_counter() - t
-        proc.returncode = os.waitstatus_to_exitcode(status)
+        code, utime, stime, maxrss_kb = json.loads(usage_file.read_text())
         out.seek(0)
         err.seek(0)
-        return proc.returncode, out.read(), err.read(), wall, usage
+        return code, out.read(), err.read(), wall, utime + stime, maxrss_kb / 1024
 
 
 def long_run(args: argparse.Namespace, workdir: Path) -> None:
@@ -282,15 +304,14 @@ def long_run(args: argparse.Namespace, workdir: Path) -> None:
         str(_config()),
         "--json",
     ]
-    returncode, stdout, stderr, wall, usage = _run_measured(cmd)
+    returncode, stdout, stderr, wall, cpu, peak_mb = _run_measured(cmd)
     if returncode != 0:
         print(stderr[-2000:])
         raise SystemExit(returncode)
     data = json.loads(stdout)
-    cpu = usage.ru_utime + usage.ru_stime
     print(
         f"\nlong bag {bag} ({size / 1e9:.2f} GB, {len(data['segments'])} windows of 15 s): "
-        f"{wall:.1f} s wall, {cpu:.1f} s CPU, peak RSS {usage.ru_maxrss / 1024:.0f} MB; "
+        f"{wall:.1f} s wall, {cpu:.1f} s CPU, peak RSS {peak_mb:.0f} MB; "
         f"stages {data['timings_s']}"
     )
     top = [(s["start_s"], s["end_s"]) for s in data["segments"] if s["selected"]]
