@@ -238,7 +238,7 @@ def planar(args: argparse.Namespace, workdir: Path) -> None:
 
 
 _LAUNCHER = """
-import json, os, resource, subprocess, sys
+import json, os, subprocess, sys
 proc = subprocess.Popen(json.loads(sys.argv[1]))
 _, status, usage = os.wait4(proc.pid, 0)
 code = os.waitstatus_to_exitcode(status)

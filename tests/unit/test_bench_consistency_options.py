@@ -1,6 +1,7 @@
 """The trust benchmark's ``--duration`` and sensor rates, the diagnose benchmark's
 ``--duration`` and the intrinsics benchmark's rates: every case carries them, and a bad one is
-refused; the diagnose benchmark's report of rivals and of effects tried and not kept."""
+refused; the diagnose benchmark's report of rivals and of effects tried and not kept; the
+segment benchmark's measure of the long ranking's own process."""
 
 from __future__ import annotations
 
@@ -321,3 +322,26 @@ def test_a_calm_walk_refused_for_too_little_rotation_is_no_target_miss() -> None
     other = {**row, "reason": "DataError: the bag has no IMU messages"}
     assert bench.judge(other) == "clean run refused"
     assert bench.judge({k: v for k, v in row.items() if k != "bursts"}) == "clean run refused"
+
+
+def test_the_peak_memory_is_the_measured_process_s_own() -> None:
+    """Neither this process's own peak (a child counts its parent's memory at the fork in its
+    high-water mark, across the exec) nor an earlier, larger child's is the command's."""
+    bench = _bench_module(BENCH.parent / "bench_segments.py")
+    grow = "b = bytearray(400_000_000); b[::4096] = b'x' * len(b[::4096])"
+    subprocess.run([sys.executable, "-c", grow], check=True)  # a larger child waited for first
+    ballast = bytearray(300_000_000)
+    ballast[::4096] = b"x" * len(ballast[::4096])  # and this process 300 MB larger
+    code, out, err, wall, cpu, peak_mb = bench._run_measured(
+        [sys.executable, "-c", "import sys; print('ranked'); sys.stderr.write('note')"]
+    )
+    assert (code, out, err) == (0, "ranked\n", "note")
+    assert 0.0 < wall < 60.0 and 0.0 < cpu < 60.0
+    assert peak_mb < 150, peak_mb  # an interpreter, not 300 or 400 MB
+    code, _, _, _, _, peak_mb = bench._run_measured(
+        [sys.executable, "-c", "b = bytearray(200_000_000); b[::4096] = b'x' * len(b[::4096])"]
+    )
+    assert code == 0 and 200 < peak_mb < 350, peak_mb  # its own 200 MB counted
+    code, _, _, _, _, _ = bench._run_measured([sys.executable, "-c", "raise SystemExit(3)"])
+    assert code == 3
+    del ballast
