@@ -275,7 +275,16 @@ def one_run(case: dict, workdir: Path) -> dict:
         inflation=list(res.consistency.inflation) if res.consistency else [],
         covered=[e.name for e in res.consistency.effects if e.covered] if res.consistency else [],
         # the effects calibrate estimated because the data showed them beyond doubt
-        added=[a.effect for a in res.model.added] if res.model is not None else [],
+        # ("a~b": a estimated, the recording does not tell it from b; "a>b": a fit the same data
+        # better than b, which could stand in for it)
+        added=[
+            a.effect
+            + "".join(f"~{n}" for n in a.not_told_apart)
+            + (">" + a.rival if a.rival and not a.not_told_apart else "")
+            for a in res.model.added
+        ]
+        if res.model is not None
+        else [],
         # the IMU blocks the recording determined none of (their choice in the sigmas)
         undetermined=list(res.model.undetermined) if res.model is not None else [],
         # the priors this recording cannot check (and the effects taken as exact that could

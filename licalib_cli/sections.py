@@ -518,6 +518,14 @@ class AddedEffect(Section):
         moved_time_offset_s: ... the time offset (signed).
         refit: which refit added it (1, 2): effects added together share its BIC change and
             move.
+        rival: a candidate that could stand in for it (freed with it, it explained most of its
+            score), refitted in its place and compared with it on the same data; empty when
+            none was.
+        rival_delta_bic: this effect's BIC minus the rival's on the same data (negative: it fit
+            better); 0 without a rival.
+        not_told_apart: the rival, when the recording does not tell the two apart (neither
+            one's score test is significant on the refit with the other): the data show an
+            effect of this kind, not which of the two it is.
     """
 
     _digits = 6
@@ -530,6 +538,9 @@ class AddedEffect(Section):
     moved_rotation_deg: float
     moved_time_offset_s: float
     refit: int = 1
+    rival: str = ""
+    rival_delta_bic: float = 0.0
+    not_told_apart: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)

@@ -143,7 +143,10 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
     given = cfg
     prepared = prepare(Path(bag), cfg, progress, timer)
     cfg = prepared.cfg
-    run = fit_and_check(prepared, prepared.guess, cfg, progress, timer)
+    # the checks size which effects can stand in for each other when effects may be added
+    run = fit_and_check(
+        prepared, prepared.guess, cfg, progress, timer, rivals=cfg.model.add_evident_effects
+    )
     from licalib_cli.pipeline.evident import Evident, add_evident, with_added  # builds on this
 
     evident = (
@@ -306,8 +309,8 @@ def fit_and_check(
         warm: ``start`` is already a fit: the model's intrinsics are estimated from the first
             round and the association starts less loose.
         rivals: size which candidates stand in for each significant effect
-            (:attr:`~licalib_cli.pipeline.fitcheck.EffectEvidence.explained_by`; only
-            ``diagnose`` reads them).
+            (:attr:`~licalib_cli.pipeline.fitcheck.EffectEvidence.explained_by`; read by
+            ``diagnose`` and by the evident effects' rivals).
     """
     rec, noise, guess = prepared.rec, prepared.noise, prepared.guess
     with timer.stage("optimisation", progress, total=cfg.schedule.max_rounds):

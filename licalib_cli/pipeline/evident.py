@@ -46,6 +46,7 @@ from licalib_cli.pipeline.diagnosis_step import CANDIDATES
 from licalib_cli.pipeline.effect_models import bic_terms, sensor_samples, with_effect
 from licalib_cli.pipeline.effect_refit import unmistakable_ones
 from licalib_cli.pipeline.fitcheck import EffectEvidence
+from licalib_cli.pipeline.rivals import refits_alike, rivals_of, same_data_bic
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.timing import Timer
 from licalib_cli.progress import Progress
@@ -60,6 +61,8 @@ __all__ = [
     "bic_change",
     "estimating",
     "refit_groups",
+    "rival_in",
+    "statistic_of",
     "with_added",
 ]
 
@@ -99,7 +102,9 @@ def added_note(added: Sequence[AddedEffect]) -> str:
     """The verdict's note on the effects one refit added."""
     a = added[0]
     tests = " and ".join(
-        f"{e.effect} (score test {e.statistic:.0f} on {e.dof} degrees of freedom)" for e in added
+        f"{' or '.join((e.effect, *e.not_told_apart))} (score test {e.statistic:.0f} on "
+        f"{e.dof} degrees of freedom)"
+        for e in added
     )
     them = "it was" if len(added) == 1 else "they were"
     return (
@@ -140,6 +145,7 @@ def add_evident(
     stuck = run.checks.exit_status == "not converged"
     declined: tuple[str, CalibrationState] | None = None
     notes: tuple[str, ...] = ()
+    rival_notes: list[str] = []
     passes = 0
     while passes < MAX_PASSES:
         strong = addable(run.checks.effects, cfg)
@@ -164,12 +170,20 @@ def add_evident(
                 declined = last
                 notes = (_failed_note(group, new),) if lost else ()
             break
+        # a close rival of the refit's effects is refitted in its place, the better kept
+        pair = rival_in(kept[0], run.checks.effects, cfg)
+        weighed = (
+            None if pair is None else _weigh_rival(prepared, run, cfg, kept, pair, progress, timer)
+        )
+        if weighed is not None:
+            kept = weighed.kept
+            rival_notes.append(weighed.note)
         group, new, new_cfg, delta_bic = kept
         move = extrinsic_of(run.state).moved_to(extrinsic_of(new.state))
-        added += [
+        ours = [
             AddedEffect(
                 effect=e.score.name,
-                statistic=float(e.score.statistic),
+                statistic=statistic_of(e),
                 dof=int(e.score.rank),
                 delta_bic=delta_bic,
                 moved_translation_m=float(np.linalg.norm(move[:3])),
@@ -179,6 +193,7 @@ def add_evident(
             )
             for e in group
         ]
+        added += ours if weighed is None else [weighed.on(a) for a in ours]
         logger.info(
             "%s estimated (BIC %+.1f): the extrinsic moved %.2f mm / %.4f deg / %.3f ms.",
             ", ".join(e.score.name for e in group),
@@ -189,9 +204,146 @@ def add_evident(
         )
         run, cfg = new, new_cfg
         passes += 1
+    notes = (*rival_notes, *notes)
     if stuck and added:
         notes = (_settled_note(added), *notes)
     return Evident(run, cfg, tuple(added), declined, notes)
+
+
+@dataclass(frozen=True)
+class _Weighed:
+    """A refit's leading effect weighed against its close rival (:func:`_weigh_rival`).
+
+    Attributes:
+        kept: the refit to keep (group, run, configuration, BIC change against the fit without
+            them): the rival's when it fit the same data better.
+        winner: the effect of the two estimated.
+        loser: the other.
+        delta_bic: the winner's BIC minus the loser's on the same data (at most 0).
+        alike: the recording does not tell the two apart.
+        note: what the verdict's notes say about it.
+    """
+
+    kept: tuple[list[EffectEvidence], CalibrationRun, CalibConfig, float]
+    winner: str
+    loser: str
+    delta_bic: float
+    alike: bool
+    note: str
+
+    def on(self, added: AddedEffect) -> AddedEffect:
+        """``added`` naming the rival when it is the winner."""
+        if added.effect != self.winner:
+            return added
+        return replace(
+            added,
+            rival=self.loser,
+            rival_delta_bic=self.delta_bic,
+            not_told_apart=(self.loser,) if self.alike else (),
+        )
+
+
+def statistic_of(e: EffectEvidence) -> float:
+    """``e``'s score test as the checks' forward selection added it, or on its own when it was
+    not added (a rival in a refit's place: its test with the leader freed says nothing of
+    it)."""
+    return float(e.score.statistic if e.selected else e.statistic_alone)
+
+
+def rival_in(
+    group: Sequence[EffectEvidence], effects: Sequence[EffectEvidence], cfg: CalibConfig
+) -> tuple[EffectEvidence, EffectEvidence] | None:
+    """The first effect of ``group`` (strongest first) with a close rival among ``effects``
+    that ``cfg`` does not estimate and the group does not hold
+    (:func:`~licalib_cli.pipeline.rivals.rivals_of`: freed with it, the rival explains most
+    of its score), and that rival; None when none has one.
+
+    Turning about one axis ``u``, a gyro measures only ``M u`` of its 3x3 error ``M``: with the
+    IMU mounted obliquely on a car that drove figure-8s, a per-axis gyro scale explained 99.9 %
+    of a gyro-to-IMU rotation's score (6496 against 6494 on 3 degrees of freedom), both refits
+    paid (BIC -5964 and -5982), and the strongest alone would have named the scale.
+    """
+    names = {e.score.name for e in group}
+    options = [
+        e
+        for e in effects
+        if e.score.name not in names
+        and e.score.rank > 0
+        and e.score.name in CANDIDATES
+        and with_effect(cfg, e.score.name) is not cfg
+    ]
+    for e in group:
+        rivals = rivals_of(e, options)
+        if rivals:
+            return e, rivals[0]
+    return None
+
+
+def _weigh_rival(
+    prepared: Prepared,
+    run: CalibrationRun,
+    cfg: CalibConfig,
+    kept: tuple[list[EffectEvidence], CalibrationRun, CalibConfig, float],
+    pair: tuple[EffectEvidence, EffectEvidence],
+    progress: Progress,
+    timer: Timer,
+) -> _Weighed | None:
+    """The refit ``kept`` against one with ``pair``'s rival in place of its leader, compared on
+    the same data (:func:`~licalib_cli.pipeline.rivals.same_data_bic`) as ``diagnose`` compares
+    rivals; None when the rival's refit failed, did not converge or did not pay (``kept``
+    stands)."""
+    group, new, new_cfg, _ = kept
+    leader, rival = pair
+    a, b = leader.score.name, rival.score.name
+    logger.info(
+        "%s could stand in for %s (freed with it, it explains %.0f %% of its score); refitting "
+        "with %s in its place.",
+        b,
+        a,
+        100.0 * leader.explained_by.get(b, 0.0),
+        b,
+    )
+    other = [rival if e is leader else e for e in group]
+    outcome = _refit(prepared, run, cfg, other, progress, timer)
+    if outcome is None:
+        return None
+    r_new, r_cfg, r_delta = outcome
+    if r_new.checks.exit_status in ("not converged", "fail") or not r_delta < 0.0:
+        logger.info("%s does not stand in for %s here; %s stays.", b, a, a)
+        return None
+    samples = max(sensor_samples(run, CANDIDATES[n][2]) for n in (a, b))
+    b_minus_a = same_data_bic((a, new, new_cfg), (b, r_new, r_cfg), samples)
+    alike = refits_alike((a, new), (b, r_new))
+    if b_minus_a < 0.0:
+        winner, loser, won, lost = b, a, (other, r_new, r_cfg, r_delta), new
+    else:
+        winner, loser, won, lost = a, b, kept, r_new
+    diff = extrinsic_of(won[1].state).moved_to(extrinsic_of(lost.state))
+    delta = -abs(b_minus_a)
+    note = _rival_note(winner, loser, delta, alike, diff)
+    return _Weighed(won, winner, loser, delta, alike, note)
+
+
+def _rival_note(winner: str, loser: str, delta_bic: float, alike: bool, diff: F64) -> str:
+    """The verdict's note on an effect estimated in place of, or against, its close rival."""
+    apart = (
+        f"{1e3 * float(np.linalg.norm(diff[:3])):.2f} mm / "
+        f"{float(np.degrees(np.linalg.norm(diff[3:6]))):.4f} deg / "
+        f"{1e3 * abs(float(diff[6])):.3f} ms"
+    )
+    if alike:
+        return (
+            f"This recording does not tell {winner} from {loser}: with either estimated, the "
+            f"other's score test is no longer significant. Both were refitted; {winner} fit "
+            f"the same data better (BIC {delta_bic:+.0f}) and is estimated, and the two refits' "
+            f"extrinsics differ by {apart}. Its numbers stand for an effect either one explains, "
+            f"not for {winner} alone; a motion that excites more axes tells them apart, and "
+            "licalib diagnose shows both."
+        )
+    return (
+        f"{loser} could stand in for {winner}; refitted in its place, it fit the same data "
+        f"worse (BIC {-delta_bic:+.0f}), and the data tell the two apart."
+    )
 
 
 def refit_groups(
@@ -230,7 +382,7 @@ def _refit(
     logger.info(
         "Shown beyond doubt: %s; refitting with %s estimated.",
         ", ".join(
-            f"{e.score.name} (score {e.score.statistic:.0f} on {e.score.rank} degrees of freedom)"
+            f"{e.score.name} (score {statistic_of(e):.0f} on {e.score.rank} degrees of freedom)"
             for e in group
         ),
         "it" if len(group) == 1 else "them",
@@ -238,7 +390,7 @@ def _refit(
     new_cfg = estimating(cfg, names)
     start = replace(prepared.guess, state=run.state)
     try:
-        new = fit_and_check(prepared, start, new_cfg, progress, timer, warm=True)
+        new = fit_and_check(prepared, start, new_cfg, progress, timer, warm=True, rivals=True)
         delta_bic = bic_change(new, new_cfg, run, cfg, names)
     except LicalibError as exc:
         logger.warning("The refit with %s failed (%s); held fixed.", ", ".join(names), exc)

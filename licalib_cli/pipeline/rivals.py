@@ -1,11 +1,13 @@
-"""Close rivals at a step of the forward selection (:mod:`licalib_cli.pipeline.diagnose`).
+"""Close rivals: effects that can stand in for each other.
 
 A candidate that explains most of the leading candidate's score when freed with it can stand in
 for it (:func:`rivals_of`); both are refitted and compared on the same data
-(:func:`rival_delta_bic`, :func:`pick_rival`), a pair that neither score test separates is
-reported as not told apart (:func:`not_told_apart`), and a rival that lost to an effect kept is
-offered once more while the data still show it given the winner (:class:`CandidatePool`).
-"""
+(:func:`rival_delta_bic`, :func:`same_data_bic`, :func:`pick_rival`), and a pair that neither
+score test separates is reported as not told apart (:func:`not_told_apart`,
+:func:`refits_alike`). ``diagnose``'s forward selection (:mod:`licalib_cli.pipeline.diagnose`)
+weighs its rivals so at every step, and offers a rival that lost to an effect kept once more
+while the data still show it given the winner (:class:`CandidatePool`); ``calibrate``'s evident
+effects (:mod:`licalib_cli.pipeline.evident`) weigh each refit's close rival."""
 
 from __future__ import annotations
 
@@ -29,8 +31,10 @@ __all__ = [
     "compare_rivals",
     "not_told_apart",
     "pick_rival",
+    "refits_alike",
     "rival_delta_bic",
     "rivals_of",
+    "same_data_bic",
     "stand_in_share",
 ]
 
@@ -40,7 +44,22 @@ logger = logging.getLogger(__name__)
 def rival_delta_bic(
     a: DiagnosisStep, b: DiagnosisStep, kept: tuple[str, ...], cfg: CalibConfig, samples: int
 ) -> float:
-    """BIC of ``b``'s model minus ``a``'s, both on the same data.
+    """BIC of ``b``'s model minus ``a``'s, both on the same data (:func:`same_data_bic`)."""
+    assert a.after is not None and b.after is not None
+    return same_data_bic(
+        (a.effect, a.after, with_effects(cfg, (*kept, a.effect))),
+        (b.effect, b.after, with_effects(cfg, (*kept, b.effect))),
+        samples,
+    )
+
+
+def same_data_bic(
+    a: tuple[str, CalibrationRun, CalibConfig],
+    b: tuple[str, CalibrationRun, CalibConfig],
+    samples: int,
+) -> float:
+    """BIC of the model of ``b`` minus that of ``a``, both on the same data; each given as
+    ``(label, refit, its configuration)``.
 
     Each refit ends on its own data: its final association of points to surfels and its map
     (the planes estimated with the effect). Between two refits these differ by a few hundred
@@ -53,29 +72,36 @@ def rival_delta_bic(
     base model is) and the differences on the two data sets are averaged, so that neither
     keeps the advantage of the map that was built with it.
     """
-    assert a.after is not None and b.after is not None
-    cfg_a = with_effects(cfg, (*kept, a.effect))
-    cfg_b = with_effects(cfg, (*kept, b.effect))
-    ss_a, _, k_a = sum_of_squares(a.after, cfg_a, refit=False)
-    ss_b, _, k_b = sum_of_squares(b.after, cfg_b, refit=False)
-    ss_b_on_a, _, _ = sum_of_squares(replace(a.after, state=b.after.state), cfg_b, refit=True)
-    ss_a_on_b, _, _ = sum_of_squares(replace(b.after, state=a.after.state), cfg_a, refit=True)
+    (name_a, run_a, cfg_a), (name_b, run_b, cfg_b) = a, b
+    ss_a, _, k_a = sum_of_squares(run_a, cfg_a, refit=False)
+    ss_b, _, k_b = sum_of_squares(run_b, cfg_b, refit=False)
+    ss_b_on_a, _, _ = sum_of_squares(replace(run_a, state=run_b.state), cfg_b, refit=True)
+    ss_a_on_b, _, _ = sum_of_squares(replace(run_b, state=run_a.state), cfg_a, refit=True)
     logger.info(
-        "Diagnose: %s against %s on the same data: sum of squares %+.1f on the data of %s, "
+        "%s against %s on the same data: sum of squares %+.1f on the data of %s, "
         "%+.1f on those of %s.",
-        b.effect,
-        a.effect,
+        name_b,
+        name_a,
         ss_b_on_a - ss_a,
-        a.effect,
+        name_a,
         ss_b - ss_a_on_b,
-        b.effect,
+        name_b,
     )
     return 0.5 * ((ss_b_on_a - ss_a) + (ss_b - ss_a_on_b)) + (k_b - k_a) * math.log(max(samples, 2))
 
 
 def not_told_apart(a: DiagnosisStep, b: DiagnosisStep) -> bool:
     """Whether the data show nothing that one of two refitted rivals explains and the other
-    does not: the score test of each on the refit with the other is not significant.
+    does not (:func:`refits_alike`)."""
+    return refits_alike((a.effect, a.after), (b.effect, b.after))
+
+
+def refits_alike(
+    a: tuple[str, CalibrationRun | None], b: tuple[str, CalibrationRun | None]
+) -> bool:
+    """Whether two refits, each ``(effect, refit with it)``, leave nothing that one of the
+    effects explains and the other does not: the score test of each on the refit with the
+    other is not significant.
 
     Such a pair is one effect as far as the bag can tell (a per-beam range scale and a range
     offset in a room seen at ranges spread by a few tens of percent around their mean: a scale
@@ -88,9 +114,10 @@ def not_told_apart(a: DiagnosisStep, b: DiagnosisStep) -> bool:
             return 0.0
         return next((float(e.score.p_value) for e in fit.effects if e.score.name == name), 0.0)
 
+    (name_a, fit_a), (name_b, fit_b) = a, b
     return (
-        conditional_p(a.after, b.effect) >= EFFECT_P_VALUE
-        and conditional_p(b.after, a.effect) >= EFFECT_P_VALUE
+        conditional_p(fit_a, name_b) >= EFFECT_P_VALUE
+        and conditional_p(fit_b, name_a) >= EFFECT_P_VALUE
     )
 
 

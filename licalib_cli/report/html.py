@@ -19,7 +19,7 @@ from licalib_cli.geometry import so3
 from licalib_cli.report import figures
 from licalib_cli.report.data import ReportData
 from licalib_cli.results import CalibrationResult, Extrinsic, estimate_rows, rpy_deg_from_matrix
-from licalib_cli.sections import Consistency
+from licalib_cli.sections import AddedEffect, Consistency
 
 __all__ = ["render_html"]
 
@@ -247,6 +247,18 @@ def _sigma_of(values: dict[str, tuple[float | None, ...]], key: str, i: int, fac
     return "-" if v is None or not np.isfinite(v) else f"{v * factor:.4g}"
 
 
+def _rival_text(a: AddedEffect) -> str:
+    """What an added effect's close rival showed (empty without one)."""
+    if not a.rival:
+        return ""
+    if a.not_told_apart:
+        return (
+            f"; this recording does not tell it from {a.rival}, which fit the same data "
+            f"{-a.rival_delta_bic:.0f} worse in BIC"
+        )
+    return f"; {a.rival}, which could stand in for it, fit the same data worse"
+
+
 def _intrinsics(result: CalibrationResult) -> str:
     """Tables of the estimated intrinsics with their 1-sigma (empty when none were)."""
     model = result.model
@@ -262,7 +274,7 @@ def _intrinsics(result: CalibrationResult) -> str:
                     f"{a.effect} (score test {a.statistic:.0f} on {a.dof} degrees of freedom; "
                     f"its refit's BIC {a.delta_bic:+.0f}, extrinsic moved "
                     f"{1e3 * a.moved_translation_m:.2f} mm / {a.moved_rotation_deg:.4f} deg / "
-                    f"{1e3 * abs(a.moved_time_offset_s):.3f} ms)"
+                    f"{1e3 * abs(a.moved_time_offset_s):.3f} ms{_rival_text(a)})"
                 )
                 for a in model.added
             )

@@ -398,6 +398,22 @@ def test_estimated_intrinsics_are_tabled_with_their_sigmas(tmp_path):
         "lidar_range_offset (score test 35716 on 16 degrees of freedom; its refit&#x27;s BIC "
         "-909137, extrinsic moved 13.20 mm / 0.0291 deg / 0.077 ms)." in page
     )
+    # an effect estimated in place of a rival the recording does not tell it from says so
+    rival = replace(
+        added,
+        effect="gyro_rotation",
+        rival="gyro_scale",
+        rival_delta_bic=-17.1,
+        not_told_apart=("gyro_scale",),
+    )
+    page = render_html(replace(result, model=replace(spread, added=(rival,))), None, "calib.yaml")
+    assert (
+        "0.077 ms; this recording does not tell it from gyro_scale, which fit the same data 17 "
+        "worse in BIC)." in page
+    )
+    told = replace(rival, not_told_apart=())
+    page = render_html(replace(result, model=replace(spread, added=(told,))), None, "calib.yaml")
+    assert "0.077 ms; gyro_scale, which could stand in for it, fit the same data worse)." in page
     assert "determines none of the numbers" not in page
     weighed = replace(spread, undetermined=("accel_misalignment",))
     page = render_html(replace(result, model=weighed), None, "calib.yaml")

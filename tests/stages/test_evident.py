@@ -73,8 +73,8 @@ class _Refits:
         self.asked: list[tuple[str, ...]] = []
 
     def install(self, monkeypatch: pytest.MonkeyPatch) -> None:
-        def fit_and_check(prepared, start, cfg, progress, timer, *, warm):  # type: ignore[no-untyped-def]
-            assert warm
+        def fit_and_check(prepared, start, cfg, progress, timer, *, warm, rivals):  # type: ignore[no-untyped-def]
+            assert warm and rivals  # the refits' checks size the next one's rivals
             blocks = (*cfg.model.imu, *cfg.model.lidar)
             self.asked.append(blocks)
             fit = self.table[blocks][0]
@@ -311,6 +311,134 @@ def test_at_most_max_passes_refits_add_effects(monkeypatch: pytest.MonkeyPatch) 
     assert [a.effect for a in out.added] == chain[: evident.MAX_PASSES]
 
 
+def _leader_and_rival(share: float, rival_per_dof: float) -> tuple[EffectEvidence, ...]:
+    """A gyro scale shown beyond doubt, a gyro rotation that explains ``share`` of its score
+    when freed with it (figure-8s of a car with the IMU mounted obliquely) and an accelerometer
+    scale that explains 0.9 of it."""
+    leader = replace(
+        _evidence("gyro_scale", STRONG),
+        statistic_alone=3 * STRONG,
+        explained_by={"gyro_rotation": share, "accel_scale": 0.9},
+    )
+    rival = replace(
+        _evidence("gyro_rotation", 2.0), selected=False, statistic_alone=3 * rival_per_dof
+    )
+    return (
+        leader,
+        rival,
+        replace(_evidence("accel_scale", 2.0), selected=False, statistic_alone=3 * STRONG),
+    )
+
+
+def _same_data(monkeypatch: pytest.MonkeyPatch, rival_minus_leader: float, alike: bool) -> list:
+    compared: list = []
+
+    def same_data_bic(a, b, samples):  # type: ignore[no-untyped-def]
+        compared.append((a[0], b[0], samples))
+        return rival_minus_leader
+
+    monkeypatch.setattr(evident, "same_data_bic", same_data_bic)
+    monkeypatch.setattr(evident, "refits_alike", lambda a, b: alike)
+    return compared
+
+
+def test_a_close_rival_is_refitted_in_the_leaders_place_and_the_better_one_named(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    base = _Run(0.30, _leader_and_rival(0.999, 0.9 * STRONG))
+    scale, rotation = _Run(0.31), _Run(0.312)
+    refits = _Refits(
+        {
+            ("accel_scale", "gyro_scale"): (scale, -5964.0),
+            ("accel_scale", "gyro_rotation"): (rotation, -5982.0),
+        }
+    )
+    refits.install(monkeypatch)
+    compared = _same_data(monkeypatch, -17.0, alike=True)
+    out = _add(base, {"model.imu": ["accel_scale"]})
+    assert refits.asked == [("accel_scale", "gyro_scale"), ("accel_scale", "gyro_rotation")]
+    assert compared == [("gyro_scale", "gyro_rotation", 1000)]
+    assert out.run is rotation and out.cfg.model.imu == ["accel_scale", "gyro_rotation"]
+    (a,) = out.added
+    assert (a.effect, a.rival, a.not_told_apart) == ("gyro_rotation", "gyro_scale", ("gyro_scale",))
+    # the rival's own test, not the one conditional on the leader freed
+    assert a.statistic == pytest.approx(2.7 * STRONG) and a.delta_bic == pytest.approx(-5982.0)
+    assert a.rival_delta_bic == pytest.approx(-17.0)
+    assert out.notes == (
+        "This recording does not tell gyro_rotation from gyro_scale: with either estimated, the "
+        "other's score test is no longer significant. Both were refitted; gyro_rotation fit the "
+        "same data better (BIC -17) and is estimated, and the two refits' extrinsics differ by "
+        "2.00 mm / 0.0000 deg / 0.000 ms. Its numbers stand for an effect either one explains, "
+        "not for gyro_rotation alone; a motion that excites more axes tells them apart, and "
+        "licalib diagnose shows both.",
+    )
+    note = evident.added_note(out.added)
+    assert note.startswith(
+        "The data showed gyro_rotation or gyro_scale (score test 810 on 3 degrees of freedom) "
+        "beyond doubt; it was estimated (BIC -5982)"
+    )
+
+
+def test_a_rival_that_fits_worse_leaves_the_leader_and_the_data_tell_them_apart(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    base = _Run(0.30, _leader_and_rival(0.8, 0.5 * STRONG)[:2])
+    scale = _Run(0.31)
+    _Refits({("gyro_scale",): (scale, -900.0), ("gyro_rotation",): (_Run(0.33), -850.0)}).install(
+        monkeypatch
+    )
+    _same_data(monkeypatch, +40.0, alike=False)
+    out = _add(base)
+    assert out.run is scale
+    (a,) = out.added
+    assert (a.effect, a.rival, a.rival_delta_bic, a.not_told_apart) == (
+        "gyro_scale",
+        "gyro_rotation",
+        -40.0,
+        (),
+    )
+    assert a.statistic == pytest.approx(STRONG * 3)
+    assert out.notes == (
+        "gyro_rotation could stand in for gyro_scale; refitted in its place, it fit the same "
+        "data worse (BIC +40), and the data tell the two apart.",
+    )
+
+
+def test_a_rival_whose_refit_does_not_pay_or_converge_leaves_the_leader_unweighed(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    base = _Run(0.30, _leader_and_rival(0.999, STRONG)[:2])
+    scale = _Run(0.31)
+    for rival_refit in [(_Run(0.33), +3.0), (_Run(0.33, status="not converged"), -900.0)]:
+        _Refits({("gyro_scale",): (scale, -900.0), ("gyro_rotation",): rival_refit}).install(
+            monkeypatch
+        )
+        compared = _same_data(monkeypatch, -50.0, alike=True)
+        out = _add(base)
+        assert out.run is scale and compared == [] and out.notes == ()
+        assert out.added[0].rival == "" and out.added[0].not_told_apart == ()
+
+
+def test_only_a_candidate_that_explains_most_of_the_score_and_is_strong_enough_is_a_rival() -> None:
+    cfg = load_config(None, {})
+    leader, rival, accel = _leader_and_rival(0.999, STRONG)
+    # the one that explains most of the score
+    assert evident.rival_in([leader], [leader, rival, accel], cfg) == (leader, rival)
+    leader, rival, accel = _leader_and_rival(0.8, STRONG)
+    assert evident.rival_in([leader], [leader, rival, accel], cfg) == (leader, accel)
+    # not one the model estimates already
+    estimated = load_config(None, {"model.imu": ["accel_scale"]})
+    assert evident.rival_in([leader], [leader, rival, accel], estimated) == (leader, rival)
+    # one that explains little of the score, or is weak on its own, is none
+    leader, rival, _ = _leader_and_rival(0.2, STRONG)
+    assert evident.rival_in([leader], [leader, rival], estimated) is None
+    leader, rival, _ = _leader_and_rival(0.999, 0.2 * STRONG)
+    assert evident.rival_in([leader], [leader, rival], estimated) is None
+    # an effect the refit holds already is no rival of another in it
+    leader, rival, _ = _leader_and_rival(0.999, STRONG)
+    assert evident.rival_in([leader, rival], [leader, rival], estimated) is None
+
+
 def test_the_result_names_what_was_added_and_the_findings_note_it() -> None:
     added = (
         AddedEffect("lidar_range_offset", 35716.5, 16, -909137.0, 0.0132, 0.0291, 7.7e-5),
@@ -334,3 +462,18 @@ def test_the_result_names_what_was_added_and_the_findings_note_it() -> None:
     d = ModelInfo((), ("range_offset",), added=added).to_dict()
     assert d["added"][0]["effect"] == "lidar_range_offset"
     assert ModelInfo.from_dict(d).added == added
+    # a rival's names round-trip; a file written before them reads as without a rival
+    rival = (
+        replace(
+            added[2],
+            rival="accel_misalignment",
+            rival_delta_bic=-3.5,
+            not_told_apart=("accel_misalignment",),
+        ),
+    )
+    d = ModelInfo(("accel_scale",), added=rival).to_dict()
+    assert d["added"][0]["not_told_apart"] == ["accel_misalignment"]
+    assert ModelInfo.from_dict(d).added == rival
+    for key in ("rival", "rival_delta_bic", "not_told_apart"):
+        del d["added"][0][key]
+    assert ModelInfo.from_dict(d).added == added[2:]
