@@ -429,6 +429,13 @@ def test_only_a_candidate_that_explains_most_of_the_score_and_is_strong_enough_i
     # not one the model estimates already
     estimated = load_config(None, {"model.imu": ["accel_scale"]})
     assert evident.rival_in([leader], [leader, rival, accel], estimated) == (leader, rival)
+    # one that leaves beyond doubt part of the score cannot stand in for it: not refitted
+    # (60 % of 900 explained leaves 360 on 3 degrees of freedom)
+    leader, rival, _ = _leader_and_rival(0.6, STRONG)
+    assert evident.rival_in([leader], [leader, rival], estimated) is None
+    assert not evident.stands_in(leader, rival)
+    leader, rival, _ = _leader_and_rival(0.7, STRONG)
+    assert evident.stands_in(leader, rival)
     # one that explains little of the score, or is weak on its own, is none
     leader, rival, _ = _leader_and_rival(0.2, STRONG)
     assert evident.rival_in([leader], [leader, rival], estimated) is None
