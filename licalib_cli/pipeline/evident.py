@@ -14,6 +14,13 @@ shows them all at once, and adding one per refit took three refits (70-110 s on 
 add three of them. Each effect added is named in the result (``model.added``) and the
 verdict's notes, with how far its refit moved the extrinsic.
 
+A refit kept with several effects is checked backwards: those the others explain (shown only
+by a fit that had not settled) are left out by one more refit
+(:mod:`licalib_cli.pipeline.evident_prune`). Then an effect of the refit with a close rival,
+one that could stand in for it (:func:`rival_in`), is refitted with the rival in its place and
+the better on the same data kept, as ``diagnose`` weighs rivals; ``model.added`` names the
+rival and whether the recording tells the two apart.
+
 A fit whose rounds did not converge is tried too: an effect the model lacks (per-beam intrinsics
 of a LiDAR, a gyro-to-IMU rotation) blurs the map and pulls the rounds one way and another, and
 estimating it is often what lets them settle (an HDL-32 sinusoid with the simulator's intrinsic
@@ -45,6 +52,7 @@ from licalib_cli.pipeline.checks import Finding
 from licalib_cli.pipeline.diagnosis_step import CANDIDATES
 from licalib_cli.pipeline.effect_models import bic_terms, sensor_samples, with_effect
 from licalib_cli.pipeline.effect_refit import REFIT_STATISTIC_PER_DOF, unmistakable_ones
+from licalib_cli.pipeline.evident_prune import redundant, without_all
 from licalib_cli.pipeline.fitcheck import EffectEvidence
 from licalib_cli.pipeline.rivals import refits_alike, rivals_of, same_data_bic
 from licalib_cli.pipeline.round import extrinsic_of
@@ -146,7 +154,7 @@ def add_evident(
     stuck = run.checks.exit_status == "not converged"
     declined: tuple[str, CalibrationState] | None = None
     notes: tuple[str, ...] = ()
-    rival_notes: list[str] = []
+    stage_notes: list[str] = []
     passes = 0
     while passes < MAX_PASSES:
         strong = addable(run.checks.effects, cfg)
@@ -171,6 +179,10 @@ def add_evident(
                 declined = last
                 notes = (_failed_note(group, new),) if lost else ()
             break
+        # effects the others explain are left out (shown only by a fit that had not settled)
+        kept, left_out = _pruned(prepared, run, cfg, kept, progress, timer)
+        if left_out:
+            stage_notes.append(left_out)
         # a close rival of the refit's effects is refitted in its place, the better kept
         pair = rival_in(kept[0], run.checks.effects, cfg)
         weighed = (
@@ -178,7 +190,7 @@ def add_evident(
         )
         if weighed is not None:
             kept = weighed.kept
-            rival_notes.append(weighed.note)
+            stage_notes.append(weighed.note)
         group, new, new_cfg, delta_bic = kept
         move = extrinsic_of(run.state).moved_to(extrinsic_of(new.state))
         ours = [
@@ -205,10 +217,63 @@ def add_evident(
         )
         run, cfg = new, new_cfg
         passes += 1
-    notes = (*rival_notes, *notes)
+    notes = (*stage_notes, *notes)
     if stuck and added:
         notes = (_settled_note(added), *notes)
     return Evident(run, cfg, tuple(added), declined, notes)
+
+
+def _pruned(
+    prepared: Prepared,
+    run: CalibrationRun,
+    cfg: CalibConfig,
+    kept: tuple[list[EffectEvidence], CalibrationRun, CalibConfig, float],
+    progress: Progress,
+    timer: Timer,
+) -> tuple[tuple[list[EffectEvidence], CalibrationRun, CalibConfig, float], str]:
+    """``kept`` refitted without the effects the others explain
+    (:func:`~licalib_cli.pipeline.evident_prune.redundant`) when that refit pays its BIC and
+    converges, with the note that says so; ``kept`` itself and no note otherwise."""
+    group, new, new_cfg, _ = kept
+    names = [e.score.name for e in group]
+    try:
+        out, deltas = redundant(
+            new,
+            new_cfg,
+            names,
+            run.state,
+            lambda drop: estimating(cfg, [n for n in names if n not in drop]),
+        )
+    except LicalibError as exc:
+        logger.warning("Taking the effects out one by one failed (%s); all are kept.", exc)
+        return kept, ""
+    if not out:
+        return kept, ""
+    rest = [e for e in group if e.score.name not in out]
+    outcome = _refit(
+        prepared, run, cfg, rest, progress, timer, state=without_all(new.state, out, run.state)
+    )
+    if outcome is None:
+        return kept, ""
+    r_new, r_cfg, r_delta = outcome
+    if r_new.checks.exit_status in ("not converged", "fail") or not r_delta < 0.0:
+        logger.info("The refit without %s did not pay or settle; all are kept.", ", ".join(out))
+        return kept, ""
+    one = len(out) == 1
+    note = (
+        f"The fit before this refit also showed {_listed(out)}, but with "
+        f"{_listed([e.score.name for e in rest])} estimated "
+        f"{'it' if one else 'they'} explained nothing more (BIC "
+        + ", ".join(f"{deltas[e]:+.0f}" for e in out)
+        + f" with {'it' if one else 'each'} than without); "
+        f"{'it was' if one else 'they were'} left out."
+    )
+    return (rest, r_new, r_cfg, r_delta), note
+
+
+def _listed(names: Sequence[str]) -> str:
+    """``a``, ``a and b``, ``a, b and c``."""
+    return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
 
 
 @dataclass(frozen=True)
@@ -398,10 +463,11 @@ def _refit(
     group: Sequence[EffectEvidence],
     progress: Progress,
     timer: Timer,
+    state: CalibrationState | None = None,
 ) -> tuple[CalibrationRun, CalibConfig, float] | None:
-    """``run`` refitted from its estimate with ``group`` estimated too: the refit, its
-    configuration and its BIC change on its data (the penalty at the largest sensor's sample
-    count among the group's); None when the refit failed."""
+    """``run`` refitted from its estimate (or ``state``) with ``group`` estimated too: the
+    refit, its configuration and its BIC change on its data (the penalty at the largest
+    sensor's sample count among the group's); None when the refit failed."""
     names = [e.score.name for e in group]
     logger.info(
         "Shown beyond doubt: %s; refitting with %s estimated.",
@@ -412,7 +478,7 @@ def _refit(
         "it" if len(group) == 1 else "them",
     )
     new_cfg = estimating(cfg, names)
-    start = replace(prepared.guess, state=run.state)
+    start = replace(prepared.guess, state=run.state if state is None else state)
     try:
         new = fit_and_check(prepared, start, new_cfg, progress, timer, warm=True, rivals=True)
         delta_bic = bic_change(new, new_cfg, run, cfg, names)

@@ -68,15 +68,22 @@ class _Refits:
     """The refits the stage asks for, answered from a table: the model's blocks (IMU then
     LiDAR, as listed) -> (run, BIC)."""
 
-    def __init__(self, table: dict[tuple[str, ...], tuple[_Run, float]]) -> None:
+    def __init__(
+        self,
+        table: dict[tuple[str, ...], tuple[_Run, float]],
+        redundant: dict[tuple[str, ...], tuple[tuple[str, ...], dict[str, float]]] | None = None,
+    ) -> None:
         self.table = table
+        self.redundant = redundant or {}  # refit's blocks -> effects the others explain
         self.asked: list[tuple[str, ...]] = []
+        self.starts: list[object] = []
 
     def install(self, monkeypatch: pytest.MonkeyPatch) -> None:
         def fit_and_check(prepared, start, cfg, progress, timer, *, warm, rivals):  # type: ignore[no-untyped-def]
             assert warm and rivals  # the refits' checks size the next one's rivals
             blocks = (*cfg.model.imu, *cfg.model.lidar)
             self.asked.append(blocks)
+            self.starts.append(start.state)
             fit = self.table[blocks][0]
             if isinstance(fit, Exception):  # the refit itself fails
                 raise fit
@@ -86,7 +93,13 @@ class _Refits:
             blocks = (*new_cfg.model.imu, *new_cfg.model.lidar)
             return [(self.table[blocks][1], 0)]
 
+        def redundant(refit, refit_cfg, names, start, model_without):  # type: ignore[no-untyped-def]
+            blocks = (*refit_cfg.model.imu, *refit_cfg.model.lidar)
+            return self.redundant.get(blocks, ((), {}))
+
         monkeypatch.setattr(evident, "fit_and_check", fit_and_check)
+        monkeypatch.setattr(evident, "redundant", redundant)
+        monkeypatch.setattr(evident, "without_all", lambda state, out, start: ("without", out))
         monkeypatch.setattr(evident, "bic_terms", bic_terms)
         monkeypatch.setattr(evident, "sensor_samples", lambda run, sensor: 1000)
 
@@ -309,6 +322,41 @@ def test_at_most_max_passes_refits_add_effects(monkeypatch: pytest.MonkeyPatch) 
     out = _add(base)
     assert len(refits.asked) == evident.MAX_PASSES == len(out.added)
     assert [a.effect for a in out.added] == chain[: evident.MAX_PASSES]
+
+
+def test_effects_the_others_explain_are_left_out_by_a_second_refit(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # a fit that had not settled showed a gyro scale beside the range offsets in the data
+    base = _Run(
+        0.20,
+        (_evidence("lidar_range_offset", 4 * STRONG, rank=16), _evidence("gyro_scale", STRONG)),
+    )
+    both, offsets = _Run(0.29), _Run(0.30)
+    refits = _Refits(
+        {("gyro_scale", "range_offset"): (both, -9e5), ("range_offset",): (offsets, -8.9e5)},
+        redundant={("gyro_scale", "range_offset"): (("gyro_scale",), {"gyro_scale": 30.3})},
+    )
+    refits.install(monkeypatch)
+    out = _add(base)
+    assert refits.asked == [("gyro_scale", "range_offset"), ("range_offset",)]
+    # the second refit starts where the first ended, the effect left out back at nominal
+    assert refits.starts[1] == ("without", ("gyro_scale",))
+    assert out.run is offsets and [a.effect for a in out.added] == ["lidar_range_offset"]
+    assert out.added[0].delta_bic == pytest.approx(-8.9e5)
+    assert out.cfg.model.imu == [] and out.cfg.model.lidar == ["range_offset"]
+    assert out.notes == (
+        "The fit before this refit also showed gyro_scale, but with lidar_range_offset "
+        "estimated it explained nothing more (BIC +30 with it than without); it was left out.",
+    )
+    # a second refit that does not pay keeps the first, all its effects named
+    refits = _Refits(
+        {("gyro_scale", "range_offset"): (both, -9e5), ("range_offset",): (offsets, +5.0)},
+        redundant={("gyro_scale", "range_offset"): (("gyro_scale",), {"gyro_scale": 30.3})},
+    )
+    refits.install(monkeypatch)
+    out = _add(base)
+    assert out.run is both and len(out.added) == 2 and out.notes == ()
 
 
 def _leader_and_rival(share: float, rival_per_dof: float) -> tuple[EffectEvidence, ...]:
