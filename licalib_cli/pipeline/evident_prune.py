@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import CalibrationState
@@ -28,7 +28,7 @@ from licalib_cli.pipeline import CalibrationRun
 from licalib_cli.pipeline.diagnosis_step import CANDIDATES
 from licalib_cli.pipeline.effect_models import bic_terms, sensor_samples, without_effect
 
-__all__ = ["redundant", "without_all"]
+__all__ = ["joint_delta", "left_out", "redundant", "single_deltas", "without_all"]
 
 logger = logging.getLogger(__name__)
 
@@ -66,26 +66,65 @@ def redundant(
     """
     if len(names) < 2:
         return (), {}
+    deltas = single_deltas(refit, refit_cfg, names, start, model_without)
+    out = left_out(
+        names, deltas, lambda out: joint_delta(refit, refit_cfg, out, start, model_without)
+    )
+    return out, deltas
 
-    def log_n(effect: str) -> float:
-        return math.log(max(sensor_samples(refit, CANDIDATES[effect][2]), 2))
 
+def single_deltas(
+    refit: CalibrationRun,
+    refit_cfg: CalibConfig,
+    names: Sequence[str],
+    start: CalibrationState,
+    model_without: Callable[[Sequence[str]], CalibConfig],
+) -> dict[str, float]:
+    """Per effect of ``names``: the BIC of ``refit`` minus that of its model without the
+    effect, both on the refit's data (the latter re-solved a few iterations from the refit's
+    estimate with the effect back at its value in ``start``); arguments as :func:`redundant`."""
     others = [(without_all(refit.state, (e,), start), model_without((e,))) for e in names]
     deltas = {
-        e: ss + k * log_n(e)
+        e: ss + k * _log_n(refit, e)
         for e, (ss, k) in zip(names, bic_terms(refit, refit_cfg, others), strict=True)
     }
     for e, delta in deltas.items():
         logger.info("%s with the others in: BIC %+.1f against without it.", e, delta)
+    return deltas
+
+
+def joint_delta(
+    refit: CalibrationRun,
+    refit_cfg: CalibConfig,
+    out: Sequence[str],
+    start: CalibrationState,
+    model_without: Callable[[Sequence[str]], CalibConfig],
+) -> float:
+    """The BIC of ``refit`` minus that of its model without all of ``out`` together, on the
+    refit's data (the penalty at the largest of their sensors' sample counts)."""
+    ((ss, k),) = bic_terms(
+        refit, refit_cfg, [(without_all(refit.state, out, start), model_without(out))]
+    )
+    return float(ss + k * max(_log_n(refit, e) for e in out))
+
+
+def left_out(
+    names: Sequence[str], deltas: Mapping[str, float], joint: Callable[[list[str]], float]
+) -> tuple[str, ...]:
+    """The effects to leave out given each one's BIC difference ``deltas`` (with it minus
+    without it) and ``joint`` (the same for a set of them together): those with a positive
+    difference, together when ``joint`` is positive for them all, else the largest alone; never
+    every one of ``names``."""
     out = [e for e in names if deltas[e] > 0.0]
     if len(out) == len(names):  # the one the BIC needs most stays
         out.remove(min(out, key=lambda e: deltas[e]))
     if len(out) > 1:
-        ((ss, k),) = bic_terms(
-            refit, refit_cfg, [(without_all(refit.state, out, start), model_without(out))]
-        )
-        joint = ss + k * max(log_n(e) for e in out)
-        logger.info("%s together: BIC %+.1f against without them.", ", ".join(out), joint)
-        if not joint > 0.0:
+        together = joint(out)
+        logger.info("%s together: BIC %+.1f against without them.", ", ".join(out), together)
+        if not together > 0.0:
             out = [max(out, key=lambda e: deltas[e])]
-    return tuple(out), deltas
+    return tuple(out)
+
+
+def _log_n(run: CalibrationRun, effect: str) -> float:
+    return math.log(max(sensor_samples(run, CANDIDATES[effect][2]), 2))

@@ -9,8 +9,10 @@ often being why) is a property of the sensors, not of a window: as for one segme
 (:mod:`~licalib_cli.pipeline.evident`), every window is then refitted from its own estimate with
 all such effects estimated, and the refits are kept when together they pay their BIC (the sum
 of the windows' changes), every one converged and none failed where its fit without them did
-not; else those of the strongest effect's sensor are tried. The joint calibration then
-estimates that model.
+not; else those of the strongest effect's sensor are tried. Of several effects kept, those the
+others explain (their BIC summed over the windows is lower without them, on the refits' data:
+:mod:`~licalib_cli.pipeline.evident_prune`) are left out by one more refit of the windows, kept
+on the same terms. The joint calibration then estimates that model.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from licalib_cli.errors import LicalibError
 from licalib_cli.pipeline import CalibrationRun, Prepared, fit_and_check
 from licalib_cli.pipeline.effect_refit import unmistakable_ones
 from licalib_cli.pipeline.evident import addable, bic_change, estimating, refit_groups
+from licalib_cli.pipeline.evident_prune import joint_delta, left_out, single_deltas
 from licalib_cli.pipeline.fitcheck import EffectEvidence
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.scan_pattern import with_scan_pattern
@@ -82,6 +85,13 @@ def add_evident_to_windows(
         kept = _refit_windows(bag, runs, windows, cfg, names, progress)
         if kept is None:
             continue
+        out = _redundant(runs, kept[0], windows, cfg, names)
+        if out:
+            rest = [n for n in names if n not in out]
+            again = _refit_windows(bag, runs, windows, cfg, rest, progress)
+            if again is not None:
+                logger.info("%s left out: the others explain them.", ", ".join(out))
+                kept, group = again, [e for e in group if e.score.name in rest]
         new_runs, new_cfg, delta_bic, largest = kept
         added = tuple(
             AddedEffect(
@@ -97,6 +107,42 @@ def add_evident_to_windows(
         )
         return WindowsEvident(tuple(new_runs), new_cfg, added)
     return WindowsEvident(tuple(runs), cfg, ())
+
+
+def _redundant(
+    runs: Sequence[CalibrationRun],
+    refits: Sequence[CalibrationRun],
+    windows: Sequence[tuple[float, float]],
+    cfg: CalibConfig,
+    names: Sequence[str],
+) -> tuple[str, ...]:
+    """The effects of ``names`` the others explain in the windows' ``refits`` (each
+    effect's BIC difference summed over the windows; :func:`~licalib_cli.pipeline.
+    evident_prune.left_out`); empty for fewer than two, or when a re-solve failed."""
+    if len(names) < 2:
+        return ()
+
+    def model(run: CalibrationRun, a: float, b: float, drop: Sequence[str]) -> CalibConfig:
+        kept = estimating(cfg, [n for n in names if n not in drop])
+        return _with_range(with_scan_pattern(kept, run.pattern), a, b - a)
+
+    parts = [
+        (refit, model(run, a, b, ()), run.state, lambda d, r=run, a=a, b=b: model(r, a, b, d))
+        for run, refit, (a, b) in zip(runs, refits, windows, strict=True)
+    ]
+    try:
+        deltas = {n: 0.0 for n in names}
+        for refit, refit_cfg, start, without in parts:
+            for n, d in single_deltas(refit, refit_cfg, names, start, without).items():
+                deltas[n] += d
+        return left_out(
+            names,
+            deltas,
+            lambda out: sum(joint_delta(r, c, out, s, w) for r, c, s, w in parts),
+        )
+    except LicalibError as exc:
+        logger.warning("Taking the effects out one by one failed (%s); all are kept.", exc)
+        return ()
 
 
 def _per_dof(e: EffectEvidence) -> float:

@@ -53,11 +53,32 @@ class _Window:
 
 
 def _install(
-    monkeypatch: pytest.MonkeyPatch, refits: dict, bic: float = -50.0
+    monkeypatch: pytest.MonkeyPatch,
+    refits: dict,
+    bic: float = -50.0,
+    without: dict[str, float | dict[float, float]] | None = None,
 ) -> list[tuple[float, tuple[str, ...]]]:
-    """Refits answered by window start (or by (start, IMU blocks)); returns what was asked
-    (start, IMU and LiDAR blocks)."""
+    """Refits answered by window start (or by (start, IMU blocks)); ``without``: per effect,
+    a window's BIC with it minus without it on the refit's data (or per window start; -100 for
+    the others, and the sum for several left out together); returns what was asked (start, IMU
+    and LiDAR blocks)."""
     asked: list[tuple[float, tuple[str, ...]]] = []
+    without = without or {}
+
+    def delta(name: str, window_start: float) -> float:
+        d = without.get(name, -100.0)
+        return d[window_start] if isinstance(d, dict) else d
+
+    def single_deltas(refit, refit_cfg, names, start, model_without):  # type: ignore[no-untyped-def]
+        assert model_without(()).model == refit_cfg.model  # the refit's own model
+        assert refit_cfg.bag.start_s == model_without(names[:1]).bag.start_s
+        return {n: delta(n, refit_cfg.bag.start_s) for n in names}
+
+    def joint_delta(refit, refit_cfg, out, start, model_without):  # type: ignore[no-untyped-def]
+        return sum(delta(n, refit_cfg.bag.start_s) for n in out)
+
+    monkeypatch.setattr(segments_evident, "single_deltas", single_deltas)
+    monkeypatch.setattr(segments_evident, "joint_delta", joint_delta)
 
     def fit_and_check(prepared, start, cfg, progress, timer, *, warm):  # type: ignore[no-untyped-def]
         assert warm
@@ -137,3 +158,43 @@ def test_when_every_effect_together_fails_a_window_the_strongest_sensors_are_tri
     ]
     assert out is not None and [a.effect for a in out.added] == ["lidar_range_offset"]
     assert out.cfg.model.imu == [] and out.cfg.model.lidar == ["range_offset"]
+
+
+def test_effects_the_others_explain_are_left_out_by_refitting_the_windows_again(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # a window that had not settled showed a gyro scale beside the range offsets; with the
+    # offsets in, it costs 8 of BIC in each window
+    offsets = scored_effect("lidar_range_offset", 2 * STRONG, rank=15, shift_z_mm=0.0)
+    scale = scored_effect("gyro_scale", STRONG, shift_z_mm=0.0)
+    windows = [_Window(0.20, "not converged", (offsets, scale)), _Window(0.30)]
+    refits = {
+        (0.0, ("gyro_scale",)): _Window(0.31),
+        (5.0, ("gyro_scale",)): _Window(0.32),
+        0.0: _Window(0.301),
+        5.0: _Window(0.302),
+    }
+    asked = _install(monkeypatch, refits, without={"gyro_scale": 8.0})
+    out = _add(windows)
+    assert asked == [
+        (0.0, ("gyro_scale", "range_offset")),
+        (5.0, ("gyro_scale", "range_offset")),
+        (0.0, ("range_offset",)),
+        (5.0, ("range_offset",)),
+    ]
+    assert out is not None and [a.effect for a in out.added] == ["lidar_range_offset"]
+    assert out.cfg.model.imu == [] and [r.tz for r in out.runs] == [0.301, 0.302]
+    # summed over the windows it pays (one window's -20 outweighs the other's +8): both stay
+    asked = _install(monkeypatch, refits, without={"gyro_scale": {0.0: 8.0, 5.0: -20.0}})
+    out = _add(windows)
+    assert len(asked) == 2 and out is not None and len(out.added) == 2
+    # the refit without it does not pay: the first refits stand, both named
+    asked = _install(
+        monkeypatch,
+        {**refits, 5.0: _Window(0.25, "not converged")},
+        without={"gyro_scale": 8.0},
+    )
+    out = _add(windows)
+    assert len(asked) == 4 and out is not None
+    assert [a.effect for a in out.added] == ["lidar_range_offset", "gyro_scale"]
+    assert [r.tz for r in out.runs] == [0.31, 0.32]
