@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import CalibrationState
@@ -22,7 +22,7 @@ from licalib_cli.pipeline.effect_models import (
     without_effect,
 )
 
-__all__ = ["deltas_without", "drop_redundant"]
+__all__ = ["bic_deltas", "deltas_without", "drop_redundant", "log_samples"]
 
 logger = logging.getLogger(__name__)
 
@@ -36,24 +36,48 @@ def deltas_without(
     spread_log_det: Mapping[str, float] | None = None,
 ) -> dict[str, float]:
     """Per effect of ``effects``: the BIC of ``run``'s model (the effects ``kept``) minus that of
-    the model without it, both on ``run``'s final data; the latter re-solved from ``run``'s
-    estimate with the effect back at its value in ``start``. Positive: the others explain what
-    it did. An effect kept as one spread across beams (``spread_log_det``: its ``ln det(1 +
-    s^2 I)``) costs that and ``ln n`` instead of ``ln n`` per coordinate."""
+    the model without it, both on ``run``'s final data (:func:`bic_deltas`, the models those of
+    ``cfg`` with exactly the effects listed)."""
+    return bic_deltas(
+        run,
+        with_effects(cfg, kept),
+        effects,
+        start,
+        lambda drop: with_effects(cfg, tuple(x for x in kept if x not in drop)),
+        spread_log_det,
+    )
+
+
+def bic_deltas(
+    refit: CalibrationRun,
+    refit_cfg: CalibConfig,
+    effects: Sequence[str],
+    start: CalibrationState,
+    model_without: Callable[[Sequence[str]], CalibConfig],
+    spread_log_det: Mapping[str, float] | None = None,
+) -> dict[str, float]:
+    """Per effect of ``effects``: the BIC of ``refit`` (model ``refit_cfg``) minus that of the
+    model without it (``model_without((effect,))``), both on the refit's final data; the latter
+    re-solved from the refit's estimate with the effect back at its value in ``start``.
+    Positive: the others explain what it did. An effect kept as one spread across beams
+    (``spread_log_det``: its ``ln det(1 + s^2 I)``) costs that and ``ln n`` instead of ``ln n``
+    per coordinate."""
     spread_log_det = spread_log_det or {}
-    others = [
-        (without_effect(run.state, e, start), with_effects(cfg, tuple(x for x in kept if x != e)))
-        for e in effects
-    ]
-    terms = bic_terms(run, with_effects(cfg, kept), others)
+    others = [(without_effect(refit.state, e, start), model_without((e,))) for e in effects]
+    terms = bic_terms(refit, refit_cfg, others)
     deltas = {}
     for e, (ss, k) in zip(effects, terms, strict=True):
-        log_n = math.log(max(sensor_samples(run, CANDIDATES[e][2]), 2))
+        log_n = log_samples(refit, e)
         penalty = log_n + spread_log_det[e] if e in spread_log_det else k * log_n
         deltas[e] = ss + penalty
     for effect, delta in deltas.items():
-        logger.info("Diagnose: %s with the others in: BIC %+.1f against without it.", effect, delta)
+        logger.info("%s with the others in: BIC %+.1f against without it.", effect, delta)
     return deltas
+
+
+def log_samples(run: CalibrationRun, effect: str) -> float:
+    """``ln n`` of an effect's BIC penalty: ``n`` the residuals of its sensor in ``run``."""
+    return math.log(max(sensor_samples(run, CANDIDATES[effect][2]), 2))
 
 
 def drop_redundant(

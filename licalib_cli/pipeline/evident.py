@@ -170,7 +170,7 @@ def add_evident(
             # extrinsic rotation on a shake that hardly tilted) is not added: the fit without it
             # stands, its shift in the sigmas
             lost = new.checks.exit_status == "fail" and run.checks.exit_status == "ok"
-            if new.checks.exit_status not in ("not converged", "fail") and delta_bic < 0.0:
+            if _keeps(new, delta_bic):
                 kept = (group, new, new_cfg, delta_bic)
                 break
             last = (group[0].score.name, new.state)
@@ -223,6 +223,12 @@ def add_evident(
     return Evident(run, cfg, tuple(added), declined, notes)
 
 
+def _keeps(refit: CalibrationRun, delta_bic: float) -> bool:
+    """Whether a refit may be kept: its rounds converged, its verdict did not fail and it paid
+    its BIC."""
+    return refit.checks.exit_status not in ("not converged", "fail") and delta_bic < 0.0
+
+
 def _pruned(
     prepared: Prepared,
     run: CalibrationRun,
@@ -256,7 +262,7 @@ def _pruned(
     if outcome is None:
         return kept, ""
     r_new, r_cfg, r_delta = outcome
-    if r_new.checks.exit_status in ("not converged", "fail") or not r_delta < 0.0:
+    if not _keeps(r_new, r_delta):
         logger.info("The refit without %s did not pay or settle; all are kept.", ", ".join(out))
         return kept, ""
     one = len(out) == 1
@@ -397,7 +403,7 @@ def _weigh_rival(
     if outcome is None:
         return None
     r_new, r_cfg, r_delta = outcome
-    if r_new.checks.exit_status in ("not converged", "fail") or not r_delta < 0.0:
+    if not _keeps(r_new, r_delta):
         logger.info("%s does not stand in for %s here; %s stays.", b, a, a)
         return None
     samples = max(sensor_samples(run, CANDIDATES[n][2]) for n in (a, b))

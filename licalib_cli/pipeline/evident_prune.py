@@ -8,7 +8,8 @@ only per-beam range offsets (``bench_consistency.py --first-seed 18980 --scenari
 round, and its checks showed seven effects beyond doubt, among them a gyro scale (965 on 3
 degrees of freedom) and an accelerometer misalignment (196 on 1) that the refit with all seven
 put at 2e-5 and 4e-4. Each effect of a refit with several is therefore taken out on the
-refit's data, as ``diagnose`` checks backwards (:mod:`licalib_cli.pipeline.backward`): its
+refit's data, as ``diagnose`` checks backwards (:func:`licalib_cli.pipeline.backward.
+bic_deltas`): its
 parameters back at the values of the fit without it, the rest re-solved a few iterations. Those
 whose BIC is lower without them explain nothing the others do not. They are left out together
 when the BIC is lower without them all too, else the one the BIC needs least alone (two effects
@@ -19,16 +20,15 @@ them.
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Callable, Mapping, Sequence
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.estimation import CalibrationState
 from licalib_cli.pipeline import CalibrationRun
-from licalib_cli.pipeline.diagnosis_step import CANDIDATES
-from licalib_cli.pipeline.effect_models import bic_terms, sensor_samples, without_effect
+from licalib_cli.pipeline.backward import bic_deltas, log_samples
+from licalib_cli.pipeline.effect_models import bic_terms, without_effect
 
-__all__ = ["joint_delta", "left_out", "redundant", "single_deltas", "without_all"]
+__all__ = ["joint_delta", "left_out", "redundant", "without_all"]
 
 logger = logging.getLogger(__name__)
 
@@ -66,31 +66,11 @@ def redundant(
     """
     if len(names) < 2:
         return (), {}
-    deltas = single_deltas(refit, refit_cfg, names, start, model_without)
+    deltas = bic_deltas(refit, refit_cfg, names, start, model_without)
     out = left_out(
         names, deltas, lambda out: joint_delta(refit, refit_cfg, out, start, model_without)
     )
     return out, deltas
-
-
-def single_deltas(
-    refit: CalibrationRun,
-    refit_cfg: CalibConfig,
-    names: Sequence[str],
-    start: CalibrationState,
-    model_without: Callable[[Sequence[str]], CalibConfig],
-) -> dict[str, float]:
-    """Per effect of ``names``: the BIC of ``refit`` minus that of its model without the
-    effect, both on the refit's data (the latter re-solved a few iterations from the refit's
-    estimate with the effect back at its value in ``start``); arguments as :func:`redundant`."""
-    others = [(without_all(refit.state, (e,), start), model_without((e,))) for e in names]
-    deltas = {
-        e: ss + k * _log_n(refit, e)
-        for e, (ss, k) in zip(names, bic_terms(refit, refit_cfg, others), strict=True)
-    }
-    for e, delta in deltas.items():
-        logger.info("%s with the others in: BIC %+.1f against without it.", e, delta)
-    return deltas
 
 
 def joint_delta(
@@ -105,7 +85,7 @@ def joint_delta(
     ((ss, k),) = bic_terms(
         refit, refit_cfg, [(without_all(refit.state, out, start), model_without(out))]
     )
-    return float(ss + k * max(_log_n(refit, e) for e in out))
+    return float(ss + k * max(log_samples(refit, e) for e in out))
 
 
 def left_out(
@@ -124,7 +104,3 @@ def left_out(
         if not together > 0.0:
             out = [max(out, key=lambda e: deltas[e])]
     return tuple(out)
-
-
-def _log_n(run: CalibrationRun, effect: str) -> float:
-    return math.log(max(sensor_samples(run, CANDIDATES[effect][2]), 2))

@@ -27,9 +27,10 @@ import numpy as np
 from licalib_cli.config import CalibConfig
 from licalib_cli.errors import LicalibError
 from licalib_cli.pipeline import CalibrationRun, Prepared, fit_and_check
+from licalib_cli.pipeline.backward import bic_deltas
 from licalib_cli.pipeline.effect_refit import unmistakable_ones
 from licalib_cli.pipeline.evident import addable, bic_change, estimating, refit_groups
-from licalib_cli.pipeline.evident_prune import joint_delta, left_out, single_deltas
+from licalib_cli.pipeline.evident_prune import joint_delta, left_out
 from licalib_cli.pipeline.fitcheck import EffectEvidence
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.scan_pattern import with_scan_pattern
@@ -133,7 +134,7 @@ def _redundant(
     try:
         deltas = {n: 0.0 for n in names}
         for refit, refit_cfg, start, without in parts:
-            for n, d in single_deltas(refit, refit_cfg, names, start, without).items():
+            for n, d in bic_deltas(refit, refit_cfg, names, start, without).items():
                 deltas[n] += d
         return left_out(
             names,

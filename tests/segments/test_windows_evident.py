@@ -69,7 +69,7 @@ def _install(
         d = without.get(name, -100.0)
         return d[window_start] if isinstance(d, dict) else d
 
-    def single_deltas(refit, refit_cfg, names, start, model_without):  # type: ignore[no-untyped-def]
+    def bic_deltas(refit, refit_cfg, names, start, model_without):  # type: ignore[no-untyped-def]
         assert model_without(()).model == refit_cfg.model  # the refit's own model
         assert refit_cfg.bag.start_s == model_without(names[:1]).bag.start_s
         return {n: delta(n, refit_cfg.bag.start_s) for n in names}
@@ -77,7 +77,7 @@ def _install(
     def joint_delta(refit, refit_cfg, out, start, model_without):  # type: ignore[no-untyped-def]
         return sum(delta(n, refit_cfg.bag.start_s) for n in out)
 
-    monkeypatch.setattr(segments_evident, "single_deltas", single_deltas)
+    monkeypatch.setattr(segments_evident, "bic_deltas", bic_deltas)
     monkeypatch.setattr(segments_evident, "joint_delta", joint_delta)
 
     def fit_and_check(prepared, start, cfg, progress, timer, *, warm):  # type: ignore[no-untyped-def]

@@ -12,7 +12,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from licalib_cli.pipeline import evident_prune
+from licalib_cli.pipeline import backward, evident_prune
 
 LOG_N = math.log(100)
 
@@ -32,8 +32,13 @@ def _install(
             out.append((ss_without[without], len(without)))
         return out
 
-    monkeypatch.setattr(evident_prune, "bic_terms", bic_terms)
-    monkeypatch.setattr(evident_prune, "sensor_samples", lambda run, sensor: 100)
+    # each effect alone is taken out by the backward check's bic_deltas, several together here
+    for module in (backward, evident_prune):
+        monkeypatch.setattr(module, "bic_terms", bic_terms)
+    monkeypatch.setattr(backward, "sensor_samples", lambda run, sensor: 100)
+    monkeypatch.setattr(
+        backward, "without_effect", lambda state, effect, start: ("state without", (effect,))
+    )
     monkeypatch.setattr(
         evident_prune,
         "without_all",
