@@ -20,6 +20,7 @@ from held_effects import scored_effect
 
 from licalib_cli.config import load_config
 from licalib_cli.errors import SolverError
+from licalib_cli.filetypes import FileValueError
 from licalib_cli.geometry import so3
 from licalib_cli.pipeline import evident
 from licalib_cli.pipeline.checks import Finding
@@ -529,6 +530,12 @@ def test_the_result_names_what_was_added_and_the_findings_note_it() -> None:
     d = ModelInfo(("accel_scale",), added=rival).to_dict()
     assert d["added"][0]["not_told_apart"] == ["accel_misalignment"]
     assert ModelInfo.from_dict(d).added == rival
+    # a hand-edited file with a rival of the wrong type is named, not taken
+    bad = {**d, "added": [{**d["added"][0], "not_told_apart": 5}]}
+    with pytest.raises(
+        FileValueError, match=r"model\.added\.0\.not_told_apart. is 5, not a list of strings"
+    ):
+        ModelInfo.from_dict(bad, "model")
     for key in ("rival", "rival_delta_bic", "not_told_apart"):
         del d["added"][0][key]
     assert ModelInfo.from_dict(d).added == added[2:]
