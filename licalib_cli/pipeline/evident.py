@@ -362,8 +362,8 @@ def stands_in(leader: EffectEvidence, rival: EffectEvidence) -> bool:
     does, and its refit is not needed to tell. On three single-effect bags (10 s, VLP-16 and
     OS1-64) a per-beam range scale left 8 % of a range offset's score (106620 on 64 degrees of
     freedom), a vertical offset 14 % of an elevation's (100131 on 63), an azimuth 7 % of a
-    horizontal offset's (61469 on 15); each rival's refit, 10-20 s, fit the same data worse by
-    a BIC of 17285, 17672 and 3409. The gyro scale above left 0.1 %."""
+    horizontal offset's (61469 on 15); each rival's refit, 9-13 s more a run, fit the same data
+    worse by a BIC of 17285, 17672 and 3409. The gyro scale above left 0.1 %."""
     share = leader.explained_by.get(rival.score.name, 0.0)
     left = (1.0 - share) * float(leader.statistic_alone)
     return bool(left < REFIT_STATISTIC_PER_DOF * max(leader.score.rank, 1))
