@@ -27,6 +27,7 @@ if TYPE_CHECKING:
     from licalib_cli.pipeline.joint import JointRun
     from licalib_cli.pipeline.segments_model import SegmentsModel
     from licalib_cli.report.data import ReportData
+    from licalib_cli.sections import AddedEffect
     from licalib_cli.truth import Truth
 
 
@@ -152,16 +153,8 @@ def run_segments(
         )
     model = run.result.model
     if model is not None and model.added:
-        a = model.added[0]
-        con.print(
-            "Note: a segment showed "
-            + " and ".join(f"{e.effect} ({e.statistic:.0f} on {e.dof} dof)" for e in model.added)
-            + f" beyond doubt; every segment estimated {'it' if len(model.added) == 1 else 'them'}"
-            f" (BIC {a.delta_bic:+.0f}; a segment's extrinsic moved up to "
-            f"{1e3 * a.moved_translation_m:.2f} mm). The resolved config estimates "
-            f"{'it' if len(model.added) == 1 else 'them'}; --model config keeps to the config's "
-            "model."
-        )
+        for line in added_notes(model.added):
+            con.print(f"Note: {escape(line)}")
     verdict = run.result.verdict
     assert verdict is not None
     for reason in verdict.reasons:
@@ -186,6 +179,37 @@ def run_segments(
         msg = f"The verdict is FAIL; the result in {out} is for inspection only."
         raise VerdictFailure(msg)
     return run
+
+
+def added_notes(added: Sequence[AddedEffect]) -> list[str]:
+    """The notes on the effects added to every segment because one showed them beyond doubt,
+    and on an added effect's close rival (refitted in its place in every segment)."""
+    them = "it" if len(added) == 1 else "them"
+    a = added[0]
+    notes = [
+        "a segment showed "
+        + " and ".join(f"{e.effect} ({e.statistic:.0f} on {e.dof} dof)" for e in added)
+        + f" beyond doubt; every segment estimated {them} (BIC {a.delta_bic:+.0f}; a segment's "
+        f"extrinsic moved up to {1e3 * a.moved_translation_m:.2f} mm). The resolved config "
+        f"estimates {them}; --model config keeps to the config's model."
+    ]
+    for e in added:
+        if e.rival and e.not_told_apart:
+            notes.append(
+                f"no segment tells {e.effect} from {e.rival}: with either estimated, the other's "
+                f"score test is no longer significant. Both were refitted in every segment; "
+                f"{e.effect} fit the same data better (BIC {e.rival_delta_bic:+.0f} summed over "
+                "the segments) and is estimated. Its numbers stand for an effect either one "
+                "explains; a motion that excites more axes tells them apart, and licalib "
+                "diagnose on a segment shows both."
+            )
+        elif e.rival:
+            notes.append(
+                f"{e.rival} could stand in for {e.effect}; refitted in its place in every "
+                f"segment, it fit the same data worse (BIC {-e.rival_delta_bic:+.0f} summed over "
+                "the segments)."
+            )
+    return notes
 
 
 def _window_label(path: Path, index: int | str) -> str:

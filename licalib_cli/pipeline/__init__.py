@@ -120,7 +120,9 @@ class CalibrationRun:
         return self.result.recording
 
 
-def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> CalibrationRun:
+def calibrate(
+    bag: Path, cfg: CalibConfig, progress: Progress | None = None, *, rivals: bool | None = None
+) -> CalibrationRun:
     """Calibrate ``T_imu_lidar`` and the time offset from one segment of a bag, and check it.
 
     Args:
@@ -128,6 +130,8 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
             ``.mcap`` file. It is only read.
         cfg: the configuration tree.
         progress: where stage progress goes (nothing by default).
+        rivals: size in the checks which effects can stand in for each other (read when effects
+            are added); by default when ``cfg`` adds the effects the data show beyond doubt.
 
     Returns:
         The run: result, verdict, sigmas, observability, fit checks, per-round and per-stage
@@ -144,9 +148,8 @@ def calibrate(bag: Path, cfg: CalibConfig, progress: Progress | None = None) -> 
     prepared = prepare(Path(bag), cfg, progress, timer)
     cfg = prepared.cfg
     # the checks size which effects can stand in for each other when effects may be added
-    run = fit_and_check(
-        prepared, prepared.guess, cfg, progress, timer, rivals=cfg.model.add_evident_effects
-    )
+    sized = cfg.model.add_evident_effects if rivals is None else rivals
+    run = fit_and_check(prepared, prepared.guess, cfg, progress, timer, rivals=sized)
     from licalib_cli.pipeline.evident import Evident, add_evident, with_added  # builds on this
 
     evident = (

@@ -73,6 +73,7 @@ __all__ = [
     "stands_in",
     "statistic_of",
     "with_added",
+    "with_rival",
 ]
 
 logger = logging.getLogger(__name__)
@@ -305,14 +306,23 @@ class _Weighed:
 
     def on(self, added: AddedEffect) -> AddedEffect:
         """``added`` naming the rival when it is the winner."""
-        if added.effect != self.winner:
-            return added
-        return replace(
-            added,
-            rival=self.loser,
-            rival_delta_bic=self.delta_bic,
-            not_told_apart=(self.loser,) if self.alike else (),
-        )
+        return with_rival(added, self.winner, self.loser, self.delta_bic, self.alike)
+
+
+def with_rival(
+    added: AddedEffect, winner: str, loser: str, delta_bic: float, alike: bool
+) -> AddedEffect:
+    """``added`` naming ``loser`` as its rival when it is ``winner``, the close rival's
+    comparison on the same data (``delta_bic``, at most 0) and whether the recording tells the
+    two apart; ``added`` itself for another effect."""
+    if added.effect != winner:
+        return added
+    return replace(
+        added,
+        rival=loser,
+        rival_delta_bic=delta_bic,
+        not_told_apart=(loser,) if alike else (),
+    )
 
 
 def statistic_of(e: EffectEvidence) -> float:

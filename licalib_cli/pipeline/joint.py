@@ -405,13 +405,19 @@ def calibrate_segments(
             ", ".join(selection.effects) or "the base model (no effect kept)",
         )
         timings["diagnoses"] = time.perf_counter() - clock
+    adding = selection is None and cfg.model.add_evident_effects
     alone = calibrate_windows(
-        bag, cfg, windows, _KeptOpen(progress), chosen=segments.strip().lower() == "auto"
+        bag,
+        cfg,
+        windows,
+        _KeptOpen(progress),
+        chosen=segments.strip().lower() == "auto",
+        rivals=adding,
     )
     runs, kept = list(alone.runs), list(alone.windows)
     timings.update(alone.timings)
     added: tuple[AddedEffect, ...] = ()
-    if selection is None and cfg.model.add_evident_effects:
+    if adding:
         clock = time.perf_counter()
         evident = add_evident_to_windows(bag, runs, kept, cfg, _KeptOpen(progress))
         if evident is not None:  # refits tried: their time counts whether kept or not

@@ -164,6 +164,7 @@ def calibrate_windows(
     progress: Progress,
     *,
     chosen: bool,
+    rivals: bool = False,
 ) -> WindowRuns:
     """Calibrate each window alone (:func:`each_window`).
 
@@ -173,6 +174,8 @@ def calibrate_windows(
         windows: the windows, seconds after the bag start, in time order.
         progress: stage progress (kept open across the windows by the caller).
         chosen: as for :func:`each_window`.
+        rivals: the windows' checks size which effects can stand in for each other (read when
+            effects are added to the windows: :mod:`~licalib_cli.pipeline.segments_evident`).
 
     Raises:
         LicalibError: as :func:`each_window`; ``ExcitationError`` when no window could be
@@ -186,7 +189,9 @@ def calibrate_windows(
         try:
             # every window estimates the same model, as the joint problem shares it: an effect
             # one window shows beyond doubt widens its sigmas and is named, not added there
-            return calibrate(bag, _exact_model(_with_range(window_cfg, a, b - a)), progress)
+            return calibrate(
+                bag, _exact_model(_with_range(window_cfg, a, b - a)), progress, rivals=rivals
+            )
         finally:  # a window tried twice counts both tries
             timings[key] = timings.get(key, 0.0) + time.perf_counter() - clock
 

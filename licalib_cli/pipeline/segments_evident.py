@@ -12,7 +12,13 @@ of the windows' changes), every one converged and none failed where its fit with
 not; else those of the strongest effect's sensor are tried. Of several effects kept, those the
 others explain (their BIC summed over the windows is lower without them, on the refits' data:
 :mod:`~licalib_cli.pipeline.evident_prune`) are left out by one more refit of the windows, kept
-on the same terms. The joint calibration then estimates that model.
+on the same terms. An effect kept with a close rival, one that could stand in for it in the
+window that showed it most (:func:`~licalib_cli.pipeline.evident.rival_in`), is weighed as for
+one segment: every window is refitted with the rival in its place, and the two are compared on
+the same data in every window (:func:`~licalib_cli.pipeline.rivals.same_data_bic`, summed); the
+rival is estimated instead when it fit better, and the two are reported as not told apart when
+no window separates them (:func:`~licalib_cli.pipeline.rivals.refits_alike` in each). The joint
+calibration then estimates that model.
 """
 
 from __future__ import annotations
@@ -28,10 +34,21 @@ from licalib_cli.config import CalibConfig
 from licalib_cli.errors import LicalibError
 from licalib_cli.pipeline import CalibrationRun, Prepared, fit_and_check
 from licalib_cli.pipeline.backward import bic_deltas
+from licalib_cli.pipeline.diagnosis_step import CANDIDATES
+from licalib_cli.pipeline.effect_models import sensor_samples
 from licalib_cli.pipeline.effect_refit import unmistakable_ones
-from licalib_cli.pipeline.evident import addable, bic_change, estimating, refit_groups
+from licalib_cli.pipeline.evident import (
+    addable,
+    bic_change,
+    estimating,
+    refit_groups,
+    rival_in,
+    statistic_of,
+    with_rival,
+)
 from licalib_cli.pipeline.evident_prune import joint_delta, left_out
 from licalib_cli.pipeline.fitcheck import EffectEvidence
+from licalib_cli.pipeline.rivals import refits_alike, same_data_bic
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.scan_pattern import with_scan_pattern
 from licalib_cli.pipeline.segments import _with_range
@@ -91,13 +108,26 @@ def add_evident_to_windows(
             rest = [n for n in names if n not in out]
             again = _refit_windows(bag, runs, windows, cfg, rest, progress)
             if again is not None:
-                logger.info("%s left out: the others explain them.", ", ".join(out))
+                logger.info(
+                    "%s left out: with %s estimated, %s explained nothing more.",
+                    ", ".join(out),
+                    ", ".join(rest),
+                    "it" if len(out) == 1 else "they",
+                )
                 kept, group = again, [e for e in group if e.score.name in rest]
+        pair = _rival_pair(runs, group, cfg)
+        weighed = (
+            None
+            if pair is None
+            else _weigh_rival(bag, runs, windows, cfg, (group, kept), pair, progress)
+        )
+        if weighed is not None:
+            group, kept = weighed.group, weighed.kept
         new_runs, new_cfg, delta_bic, largest = kept
         added = tuple(
             AddedEffect(
                 effect=e.score.name,
-                statistic=float(e.score.statistic),
+                statistic=statistic_of(e),
                 dof=int(e.score.rank),
                 delta_bic=delta_bic,
                 moved_translation_m=float(np.linalg.norm(largest[:3])),
@@ -106,6 +136,11 @@ def add_evident_to_windows(
             )
             for e in group
         )
+        if weighed is not None:
+            added = tuple(
+                with_rival(a, weighed.winner, weighed.loser, weighed.delta_bic, weighed.alike)
+                for a in added
+            )
         return WindowsEvident(tuple(new_runs), new_cfg, added)
     return WindowsEvident(tuple(runs), cfg, ())
 
@@ -124,8 +159,7 @@ def _redundant(
         return ()
 
     def model(run: CalibrationRun, a: float, b: float, drop: Sequence[str]) -> CalibConfig:
-        kept = estimating(cfg, [n for n in names if n not in drop])
-        return _with_range(with_scan_pattern(kept, run.pattern), a, b - a)
+        return _window_model(estimating(cfg, [n for n in names if n not in drop]), run, a, b)
 
     parts = [
         (refit, model(run, a, b, ()), run.state, lambda d, r=run, a=a, b=b: model(r, a, b, d))
@@ -146,6 +180,110 @@ def _redundant(
         return ()
 
 
+_Refits = tuple[list[CalibrationRun], CalibConfig, float, np.ndarray]
+"""The windows refitted with a model (:func:`_refit_windows`): the refits, the model's
+configuration, the summed BIC change and the largest move of a window's extrinsic."""
+
+
+@dataclass(frozen=True)
+class _Weighed:
+    """The windows' refits kept after a leading effect was weighed against its close rival.
+
+    Attributes:
+        group: the effects of the refits kept (the rival in the leader's place when it won).
+        kept: those refits.
+        winner: the effect of the two estimated.
+        loser: the other.
+        delta_bic: the winner's BIC minus the loser's on the same data, summed over the
+            windows (at most 0).
+        alike: no window tells the two apart.
+    """
+
+    group: list[EffectEvidence]
+    kept: _Refits
+    winner: str
+    loser: str
+    delta_bic: float
+    alike: bool
+
+
+def _rival_pair(
+    runs: Sequence[CalibrationRun], group: Sequence[EffectEvidence], cfg: CalibConfig
+) -> tuple[EffectEvidence, EffectEvidence] | None:
+    """The first effect of ``group`` with a close rival in the window that showed it most (the
+    window whose checks hold its evidence), and that rival (:func:`~licalib_cli.pipeline.
+    evident.rival_in`, the group's other effects excluded); None when none has one."""
+    names = {e.score.name for e in group}
+    for e in group:
+        own = next((r for r in runs if any(x is e for x in r.checks.effects)), None)
+        if own is None:
+            continue
+        options = [x for x in own.checks.effects if x.score.name not in names]
+        pair = rival_in([e], options, cfg)
+        if pair is not None:
+            return pair
+    return None
+
+
+def _weigh_rival(
+    bag: Path,
+    runs: Sequence[CalibrationRun],
+    windows: Sequence[tuple[float, float]],
+    cfg: CalibConfig,
+    ours: tuple[list[EffectEvidence], _Refits],
+    pair: tuple[EffectEvidence, EffectEvidence],
+    progress: Progress,
+) -> _Weighed | None:
+    """The windows' refits ``ours`` against refits with ``pair``'s rival in place of its
+    leader, compared on the same data in every window and summed; None when the rival's refits
+    were not kept (one failed, did not converge, or together they did not pay) or a
+    comparison failed (``ours`` stands)."""
+    group, kept = ours
+    leader, rival = pair
+    a, b = leader.score.name, rival.score.name
+    logger.info(
+        "%s could stand in for %s (freed with it, it explains %.0f %% of its score in the "
+        "segment that showed it most); refitting every segment with %s in its place.",
+        b,
+        a,
+        100.0 * leader.explained_by.get(b, 0.0),
+        b,
+    )
+    other = [rival if e is leader else e for e in group]
+    theirs = _refit_windows(bag, runs, windows, cfg, [e.score.name for e in other], progress)
+    if theirs is None:
+        logger.info("%s does not stand in for %s here; %s stays.", b, a, a)
+        return None
+    b_minus_a, alike = 0.0, True
+    try:
+        for run, x, y, (s, t) in zip(runs, kept[0], theirs[0], windows, strict=True):
+            samples = max(sensor_samples(run, CANDIDATES[n][2]) for n in (a, b))
+            b_minus_a += same_data_bic(
+                (a, x, _window_model(kept[1], run, s, t)),
+                (b, y, _window_model(theirs[1], run, s, t)),
+                samples,
+            )
+            alike = alike and refits_alike((a, x), (b, y))
+    except LicalibError as exc:
+        logger.warning("Comparing %s with %s failed (%s); %s stays.", a, b, exc, a)
+        return None
+    logger.info(
+        "%s against %s on the same data, summed over the segments: BIC %+.1f%s.",
+        b,
+        a,
+        b_minus_a,
+        "; no segment tells them apart" if alike else "",
+    )
+    if b_minus_a < 0.0:
+        return _Weighed(other, theirs, b, a, b_minus_a, alike)
+    return _Weighed(list(group), kept, a, b, -b_minus_a, alike)
+
+
+def _window_model(model: CalibConfig, run: CalibrationRun, a: float, b: float) -> CalibConfig:
+    """``model`` for the window ``a``-``b`` s of ``run``: its range and scan pattern."""
+    return _with_range(with_scan_pattern(model, run.pattern), a, b - a)
+
+
 def _per_dof(e: EffectEvidence) -> float:
     return float(e.score.statistic) / int(e.score.rank)
 
@@ -157,7 +295,7 @@ def _refit_windows(
     cfg: CalibConfig,
     names: Sequence[str],
     progress: Progress,
-) -> tuple[list[CalibrationRun], CalibConfig, float, np.ndarray] | None:
+) -> _Refits | None:
     """Every window refitted from its estimate with ``names`` estimated too: the refits, their
     configuration, the summed BIC change and the largest move of a window's extrinsic; None
     when a refit failed, did not converge or failed the verdict where the window's fit did not,
@@ -172,7 +310,7 @@ def _refit_windows(
     new_runs, delta_bic, moves = [], 0.0, []
     for run, (a, b) in zip(runs, windows, strict=True):
         assert run.segment is not None
-        window_cfg = _with_range(with_scan_pattern(new_cfg, run.pattern), a, b - a)
+        window_cfg = _window_model(new_cfg, run, a, b)
         prepared = Prepared(bag, run.segment, run.noise, run.initial, run.pattern, window_cfg)
         try:
             new = fit_and_check(

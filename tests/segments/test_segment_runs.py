@@ -19,6 +19,7 @@ from licalib_cli.results import CalibrationResult, Extrinsic, matrix_from_rpy_de
 from licalib_cli.sections import Uncertainty
 
 WINDOWS = ((0.0, 10.0), (10.0, 20.0), (20.0, 30.0))
+SIZED: list[bool] = []  # whether each window's checks sized the rivals, in call order
 
 
 def _run(t_std: float, rpy: tuple[float, float, float] = (1.0, 2.0, 3.0)) -> Any:
@@ -33,8 +34,11 @@ def _fake(monkeypatch: pytest.MonkeyPatch, outcome: dict[float, Any]) -> list[Ca
     """``calibrate`` replaced: by the window's start, a run, or an error to raise (an error
     given as a pair ``(error, run)`` is raised only without an initial rotation)."""
     calls: list[CalibConfig] = []
+    SIZED.clear()
 
-    def calibrate(bag: Path, cfg: CalibConfig, progress: object) -> Any:
+    def calibrate(bag: Path, cfg: CalibConfig, progress: object, *, rivals: bool) -> Any:
+        assert not cfg.model.add_evident_effects  # every window estimates the given model
+        SIZED.append(rivals)
         calls.append(cfg)
         what = outcome[cfg.bag.start_s]
         if isinstance(what, tuple):
@@ -65,6 +69,15 @@ def test_a_window_that_cannot_start_alone_starts_from_the_best_windows_estimate(
     assert retry.translation_m == pytest.approx([0.1, -0.2, 0.3])
     assert retry.time_offset_s == pytest.approx(0.004)
     assert set(out.timings) == {"segment 0-10 s", "segment 10-20 s", "segment 20-30 s"}
+
+
+def test_the_windows_size_the_rivals_only_when_asked(monkeypatch: pytest.MonkeyPatch) -> None:
+    # effects added to the windows are weighed against their rivals, which the checks size
+    for rivals in (False, True):
+        _fake(monkeypatch, {0.0: _run(0.001), 10.0: _run(0.002), 20.0: _run(0.003)})
+        cfg = load_config(None)
+        calibrate_windows(Path("x.bag"), cfg, WINDOWS, NullProgress(), chosen=False, rivals=rivals)
+        assert SIZED == [rivals] * 3
 
 
 def test_without_a_window_that_starts_alone_the_given_windows_fail_as_before(

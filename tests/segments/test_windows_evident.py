@@ -4,7 +4,7 @@ on a simulated bag is ``test_joint_evident_e2e.py``)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -198,3 +198,143 @@ def test_effects_the_others_explain_are_left_out_by_refitting_the_windows_again(
     assert len(asked) == 4 and out is not None
     assert [a.effect for a in out.added] == ["lidar_range_offset", "gyro_scale"]
     assert [r.tz for r in out.runs] == [0.31, 0.32]
+
+
+def _scale_and_rotation(share: float) -> tuple:
+    """A gyro scale one window shows beyond doubt and a gyro-to-IMU rotation that explains
+    ``share`` of its score when freed with it (figure-8s with the IMU mounted obliquely)."""
+    scale = replace(
+        scored_effect("gyro_scale", STRONG, shift_z_mm=0.0),
+        statistic_alone=3 * STRONG,
+        explained_by={"gyro_rotation": share},
+    )
+    rotation = replace(
+        scored_effect("gyro_rotation", 2.0, selected=False, shift_z_mm=0.0),
+        statistic_alone=2.7 * STRONG,
+    )
+    return scale, rotation
+
+
+def _compare(
+    monkeypatch: pytest.MonkeyPatch, rotation_minus_scale: float, alike: dict[float, bool]
+) -> list:
+    """The same-data comparison answered per window (by the scale refit's ``tz``)."""
+    compared: list = []
+
+    def same_data_bic(a, b, samples):  # type: ignore[no-untyped-def]
+        assert a[2].bag.start_s == b[2].bag.start_s  # each window's data, its own range
+        compared.append((a[0], b[0], a[2].bag.start_s, samples))
+        return rotation_minus_scale
+
+    monkeypatch.setattr(segments_evident, "same_data_bic", same_data_bic)
+    monkeypatch.setattr(segments_evident, "refits_alike", lambda a, b: alike[a[1].tz])
+    monkeypatch.setattr(segments_evident, "sensor_samples", lambda run, sensor: 4000)
+    return compared
+
+
+ROTATION_REFITS = {
+    (0.0, ("gyro_scale",)): _Window(0.31),
+    (5.0, ("gyro_scale",)): _Window(0.32),
+    (0.0, ("gyro_rotation",)): _Window(0.311),
+    (5.0, ("gyro_rotation",)): _Window(0.321),
+}
+
+
+def test_a_close_rival_is_refitted_in_every_window_and_the_better_summed_one_named(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    scale, rotation = _scale_and_rotation(0.999)
+    windows = [_Window(0.30), _Window(0.30, effects=(scale, rotation))]
+    asked = _install(monkeypatch, ROTATION_REFITS)
+    compared = _compare(monkeypatch, -8.5, {0.31: True, 0.32: True})
+    out = _add(windows)
+    assert asked == [
+        (0.0, ("gyro_scale",)),
+        (5.0, ("gyro_scale",)),
+        (0.0, ("gyro_rotation",)),
+        (5.0, ("gyro_rotation",)),
+    ]
+    assert compared == [
+        ("gyro_scale", "gyro_rotation", 0.0, 4000),
+        ("gyro_scale", "gyro_rotation", 5.0, 4000),
+    ]
+    assert out is not None and out.cfg.model.imu == ["gyro_rotation"]
+    assert [r.tz for r in out.runs] == [0.311, 0.321]
+    (a,) = out.added
+    assert (a.effect, a.rival, a.not_told_apart) == ("gyro_rotation", "gyro_scale", ("gyro_scale",))
+    assert a.rival_delta_bic == pytest.approx(-17.0)  # summed over the two windows
+    assert a.statistic == pytest.approx(2.7 * STRONG)  # its own test, not given the scale
+    # one window that tells them apart is enough to say the data do
+    _install(monkeypatch, ROTATION_REFITS)
+    _compare(monkeypatch, -8.5, {0.31: True, 0.32: False})
+    out = _add(windows)
+    assert out is not None and out.added[0].not_told_apart == ()
+
+
+def test_a_rival_that_fits_worse_in_sum_leaves_the_leader_with_the_rival_named(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    scale, rotation = _scale_and_rotation(0.999)
+    windows = [_Window(0.30, effects=(scale, rotation)), _Window(0.30)]
+    _install(monkeypatch, ROTATION_REFITS)
+    _compare(monkeypatch, +20.0, {0.31: False, 0.32: False})
+    out = _add(windows)
+    assert out is not None and out.cfg.model.imu == ["gyro_scale"]
+    assert [r.tz for r in out.runs] == [0.31, 0.32]
+    (a,) = out.added
+    assert (a.effect, a.rival, a.rival_delta_bic, a.not_told_apart) == (
+        "gyro_scale",
+        "gyro_rotation",
+        -40.0,
+        (),
+    )
+
+
+def test_a_rival_is_not_refitted_when_it_cannot_stand_in_or_its_refits_are_not_kept(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # freed with the scale, the rotation explains 60 %: the rest of the scale's score is beyond
+    # doubt, so the rotation cannot be what the data show
+    scale, rotation = _scale_and_rotation(0.6)
+    asked = _install(monkeypatch, ROTATION_REFITS)
+    compared = _compare(monkeypatch, -50.0, {0.31: True, 0.32: True})
+    out = _add([_Window(0.30, effects=(scale, rotation)), _Window(0.30)])
+    assert len(asked) == 2 and compared == []
+    assert out is not None and out.added[0].rival == ""
+    # the rival's refit of one window does not converge: the scale stays, unweighed
+    scale, rotation = _scale_and_rotation(0.999)
+    refits = {**ROTATION_REFITS, (5.0, ("gyro_rotation",)): _Window(0.35, "not converged")}
+    asked = _install(monkeypatch, refits)
+    compared = _compare(monkeypatch, -50.0, {0.31: True, 0.32: True})
+    out = _add([_Window(0.30, effects=(scale, rotation)), _Window(0.30)])
+    assert len(asked) == 4 and compared == []
+    assert out is not None and out.cfg.model.imu == ["gyro_scale"]
+    assert out.added[0].rival == "" and [r.tz for r in out.runs] == [0.31, 0.32]
+
+
+def test_the_notes_name_the_rival_and_whether_the_segments_told_them_apart() -> None:
+    from licalib_cli.commands.segments_render import added_notes
+    from licalib_cli.sections import AddedEffect
+
+    moved = {"moved_translation_m": 4e-5, "moved_rotation_deg": 0.002, "moved_time_offset_s": 0.0}
+    added = AddedEffect("gyro_rotation", 810.0, 3, -5982.0, **moved)
+    assert added_notes([added]) == [
+        "a segment showed gyro_rotation (810 on 3 dof) beyond doubt; every segment estimated it "
+        "(BIC -5982; a segment's extrinsic moved up to 0.04 mm). The resolved config estimates "
+        "it; --model config keeps to the config's model."
+    ]
+    alike = replace(
+        added, rival="gyro_scale", rival_delta_bic=-17.0, not_told_apart=("gyro_scale",)
+    )
+    assert added_notes([alike])[1] == (
+        "no segment tells gyro_rotation from gyro_scale: with either estimated, the other's score "
+        "test is no longer significant. Both were refitted in every segment; gyro_rotation fit "
+        "the same data better (BIC -17 summed over the segments) and is estimated. Its numbers "
+        "stand for an effect either one explains; a motion that excites more axes tells them "
+        "apart, and licalib diagnose on a segment shows both."
+    )
+    apart = replace(alike, not_told_apart=())
+    assert added_notes([apart])[1:] == [
+        "gyro_scale could stand in for gyro_rotation; refitted in its place in every segment, it "
+        "fit the same data worse (BIC +17 summed over the segments)."
+    ]
