@@ -56,6 +56,10 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from licalib_cli.sections import AddedEffect
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -67,6 +71,17 @@ TIME_LIMIT_S = 1e-4
 
 SCENARIOS = ("shake", "sinusoid", "figure8", "walk")
 MOUNTINGS = ("A", "B", "C")
+
+
+def added_label(a: AddedEffect) -> str:
+    """An effect calibrate added (``model.added``): its name; ``a~b``: a estimated, the
+    recording does not tell it from b; ``a>b``: a fit the same data better than b, which could
+    stand in for it."""
+    return (
+        a.effect
+        + "".join(f"~{n}" for n in a.not_told_apart)
+        + (">" + a.rival if a.rival and not a.not_told_apart else "")
+    )
 
 
 def cases(
@@ -275,16 +290,7 @@ def one_run(case: dict, workdir: Path) -> dict:
         inflation=list(res.consistency.inflation) if res.consistency else [],
         covered=[e.name for e in res.consistency.effects if e.covered] if res.consistency else [],
         # the effects calibrate estimated because the data showed them beyond doubt
-        # ("a~b": a estimated, the recording does not tell it from b; "a>b": a fit the same data
-        # better than b, which could stand in for it)
-        added=[
-            a.effect
-            + "".join(f"~{n}" for n in a.not_told_apart)
-            + (">" + a.rival if a.rival and not a.not_told_apart else "")
-            for a in res.model.added
-        ]
-        if res.model is not None
-        else [],
+        added=[added_label(a) for a in res.model.added] if res.model is not None else [],
         # the IMU blocks the recording determined none of (their choice in the sigmas)
         undetermined=list(res.model.undetermined) if res.model is not None else [],
         # the priors this recording cannot check (and the effects taken as exact that could

@@ -587,7 +587,9 @@ def model(args: argparse.Namespace, workdir: Path) -> None:
             if run.model is not None:
                 kept = " | ".join(",".join(d.effects_found) or "none" for d in run.model.diagnoses)
             elif run.result.model is not None and run.result.model.added:
-                kept = "added " + ",".join(a.effect for a in run.result.model.added)
+                from bench_consistency import added_label
+
+                kept = "added " + ",".join(added_label(a) for a in run.result.model.added)
             verdict = run.result.verdict.status
             print(
                 f" {seed:4d}  {lidar:6s}  {effect:23s}  {mode:7s}  "
