@@ -4,8 +4,9 @@ beyond doubt (``licalib_cli.pipeline.segments_evident``).
 Per-beam range offsets of 2 cm, left out of the configured model, bias a shake's translation by
 about 16 mm. The windows are first calibrated with the configured model (the joint problem
 needs one model for all); they show the offsets beyond doubt, every window is refitted with them
-estimated, and the joint calibration estimates them: its extrinsic lands near the truth, the
-result's ``model.added`` names them and the configuration it returns estimates them.
+estimated (their close rival, a per-beam range scale, refitted in their place and found worse),
+and the joint calibration estimates them: its extrinsic lands near the truth, the result's
+``model.added`` names them and the configuration it returns estimates them.
 """
 
 from __future__ import annotations
@@ -53,6 +54,10 @@ def test_an_effect_a_segment_shows_beyond_doubt_is_estimated_in_every_segment(
     (added,) = result.model.added
     assert added.effect == "lidar_range_offset" and added.delta_bic < 0
     assert added.statistic > 100 * added.dof and added.moved_translation_m > 0.005
+    # a per-beam range scale explains most of the offsets' score: refitted in their place in
+    # every segment, it fit the same data worse, and the segments tell the two apart
+    assert (added.rival, added.not_told_apart) == ("lidar_range_scale", ())
+    assert added.rival_delta_bic < -100.0
     assert run.config is not None and run.config.model.lidar == ["range_offset"]
     assert "effects shown beyond doubt" in run.timings
     truth = sim.truth.extrinsic_for(result)
