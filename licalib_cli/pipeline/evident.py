@@ -57,6 +57,7 @@ from licalib_cli.pipeline.fitcheck import EffectEvidence
 from licalib_cli.pipeline.rivals import refits_alike, rivals_of, same_data_bic
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.timing import Timer
+from licalib_cli.pipeline.unchecked_priors import listed
 from licalib_cli.progress import Progress
 from licalib_cli.sections import AddedEffect
 
@@ -268,19 +269,14 @@ def _pruned(
         return kept, ""
     one = len(out) == 1
     note = (
-        f"The fit before this refit also showed {_listed(out)}, but with "
-        f"{_listed([e.score.name for e in rest])} estimated "
+        f"The fit before this refit also showed {listed(out)}, but with "
+        f"{listed([e.score.name for e in rest])} estimated "
         f"{'it' if one else 'they'} explained nothing more (BIC "
         + ", ".join(f"{deltas[e]:+.0f}" for e in out)
         + f" with {'it' if one else 'each'} than without); "
         f"{'it was' if one else 'they were'} left out."
     )
     return (rest, r_new, r_cfg, r_delta), note
-
-
-def _listed(names: Sequence[str]) -> str:
-    """``a``, ``a and b``, ``a, b and c``."""
-    return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
 
 
 @dataclass(frozen=True)

@@ -44,6 +44,7 @@ __all__ = [
     "UncheckedPrior",
     "assumed_note",
     "combined_unchecked_priors",
+    "listed",
     "prior_owner",
     "unchecked_priors",
     "unchecked_sections",
@@ -245,9 +246,9 @@ def unchecked_text(items: Sequence[UncheckedPrior]) -> str:
             parts.append(f"{u.effect} only from {size:.2g} {unit} RMS (prior {prior:.2g})")
         else:
             parts.append(f"{u.effect} not in every direction (prior {prior:.2g} {unit})")
-    listed = _listed(parts)
+    shown = listed(parts)
     return (
-        f", which this recording cannot check: it would show {listed}; the sigmas hold while "
+        f", which this recording cannot check: it would show {shown}; the sigmas hold while "
         f"the {_sensors(items)} within those priors"
     )
 
@@ -264,7 +265,8 @@ def prior_owner(effects: Sequence[str]) -> tuple[str, str]:
     return "IMU intrinsics", "model.imu_prior"
 
 
-def _listed(parts: Sequence[str]) -> str:
+def listed(parts: Sequence[str]) -> str:
+    """``a``, ``a and b``, ``a, b and c``."""
     return parts[0] if len(parts) == 1 else ", ".join(parts[:-1]) + " and " + parts[-1]
 
 
@@ -339,11 +341,11 @@ def _warning(warned: Sequence[UncheckedPrior]) -> str:
             f"{shown}. Add clock_drift to model.imu, or synchronise the clocks."
         )
     names = [w.effect for w in warned]
-    listed = _listed(names)
+    named = listed(names)
     them = "them" if len(names) > 1 else "it"
     lidar = u.effect.startswith("lidar_")
     whose = "the LiDAR's factory calibration" if lidar else "the IMU's own calibration"
-    subject, known = f"{whose} of {listed}", f"{whose} is known to keep {them} well below that"
+    subject, known = f"{whose} of {named}", f"{whose} is known to keep {them} well below that"
     if names == ["lidar_point_time"]:
         subject = "the per-point times of the LiDAR's driver (lidar_point_time)"
         known = "the driver's per-point times are known to be well within that"
@@ -389,7 +391,7 @@ def assumed_note(items: Sequence[UncheckedPrior]) -> str | None:
     )
     return (
         f"The result takes as exact what the model holds fixed without a prior and this "
-        f"recording cannot show: {_listed(parts)}. Where one may be that large, estimate it "
+        f"recording cannot show: {listed(parts)}. Where one may be that large, estimate it "
         f"({model_entries(names)}){give}."
     )
 
