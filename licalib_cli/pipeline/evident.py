@@ -54,7 +54,7 @@ from licalib_cli.pipeline.effect_models import bic_terms, sensor_samples, with_e
 from licalib_cli.pipeline.effect_refit import REFIT_STATISTIC_PER_DOF, unmistakable_ones
 from licalib_cli.pipeline.evident_prune import redundant, without_all
 from licalib_cli.pipeline.fitcheck import EffectEvidence
-from licalib_cli.pipeline.rivals import refits_alike, rivals_of, same_data_bic
+from licalib_cli.pipeline.rivals import rivals_of, weigh_refits
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.timing import Timer
 from licalib_cli.pipeline.unchecked_priors import listed
@@ -385,7 +385,7 @@ def _weigh_rival(
     timer: Timer,
 ) -> _Weighed | None:
     """The refit ``kept`` against one with ``pair``'s rival in place of its leader, compared on
-    the same data (:func:`~licalib_cli.pipeline.rivals.same_data_bic`) as ``diagnose`` compares
+    the same data (:func:`~licalib_cli.pipeline.rivals.weigh_refits`) as ``diagnose`` compares
     rivals; None when the rival's refit failed, did not converge or did not pay (``kept``
     stands)."""
     group, new, new_cfg, _ = kept
@@ -412,9 +412,7 @@ def _weigh_rival(
     if not _keeps(r_new, r_delta):
         logger.info("%s does not stand in for %s here; %s stays.", b, a, a)
         return None
-    samples = max(sensor_samples(run, CANDIDATES[n][2]) for n in (a, b))
-    b_minus_a = same_data_bic((a, new, new_cfg), (b, r_new, r_cfg), samples)
-    alike = refits_alike((a, new), (b, r_new))
+    b_minus_a, alike = weigh_refits(run, (a, new, new_cfg), (b, r_new, r_cfg))
     if b_minus_a < 0.0:
         winner, loser, won, lost = b, a, (other, r_new, r_cfg, r_delta), new
     else:

@@ -18,8 +18,8 @@ from dataclasses import dataclass, field, replace
 
 from licalib_cli.config import CalibConfig
 from licalib_cli.pipeline import CalibrationRun
-from licalib_cli.pipeline.diagnosis_step import DiagnosisStep
-from licalib_cli.pipeline.effect_models import sum_of_squares, with_effects
+from licalib_cli.pipeline.diagnosis_step import CANDIDATES, DiagnosisStep
+from licalib_cli.pipeline.effect_models import sensor_samples, sum_of_squares, with_effects
 from licalib_cli.pipeline.fitcheck import EFFECT_P_VALUE, EffectEvidence
 
 __all__ = [
@@ -36,6 +36,7 @@ __all__ = [
     "rivals_of",
     "same_data_bic",
     "stand_in_share",
+    "weigh_refits",
 ]
 
 logger = logging.getLogger(__name__)
@@ -88,6 +89,19 @@ def same_data_bic(
         name_b,
     )
     return 0.5 * ((ss_b_on_a - ss_a) + (ss_b - ss_a_on_b)) + (k_b - k_a) * math.log(max(samples, 2))
+
+
+def weigh_refits(
+    base: CalibrationRun,
+    a: tuple[str, CalibrationRun, CalibConfig],
+    b: tuple[str, CalibrationRun, CalibConfig],
+) -> tuple[float, bool]:
+    """A refit against its close rival's, each ``(effect, refit with it, its configuration)``,
+    both refitted from ``base``: the BIC of ``b``'s model minus ``a``'s on the same data
+    (:func:`same_data_bic`, the penalty at the larger of the two effects' sensors' sample counts
+    in ``base``) and whether the recording does not tell them apart (:func:`refits_alike`)."""
+    samples = max(sensor_samples(base, CANDIDATES[name][2]) for name in (a[0], b[0]))
+    return same_data_bic(a, b, samples), refits_alike(a[:2], b[:2])
 
 
 def not_told_apart(a: DiagnosisStep, b: DiagnosisStep) -> bool:

@@ -15,7 +15,7 @@ others explain (their BIC summed over the windows is lower without them, on the 
 on the same terms. An effect kept with a close rival, one that could stand in for it in the
 window that showed it most (:func:`~licalib_cli.pipeline.evident.rival_in`), is weighed as for
 one segment: every window is refitted with the rival in its place, and the two are compared on
-the same data in every window (:func:`~licalib_cli.pipeline.rivals.same_data_bic`, summed); the
+the same data in every window (:func:`~licalib_cli.pipeline.rivals.weigh_refits`, summed); the
 rival is estimated instead when it fit better, and the two are reported as not told apart when
 no window separates them (:func:`~licalib_cli.pipeline.rivals.refits_alike` in each). The joint
 calibration then estimates that model.
@@ -34,8 +34,6 @@ from licalib_cli.config import CalibConfig
 from licalib_cli.errors import LicalibError
 from licalib_cli.pipeline import CalibrationRun, Prepared, fit_and_check
 from licalib_cli.pipeline.backward import bic_deltas
-from licalib_cli.pipeline.diagnosis_step import CANDIDATES
-from licalib_cli.pipeline.effect_models import sensor_samples
 from licalib_cli.pipeline.effect_refit import unmistakable_ones
 from licalib_cli.pipeline.evident import (
     addable,
@@ -48,7 +46,7 @@ from licalib_cli.pipeline.evident import (
 )
 from licalib_cli.pipeline.evident_prune import joint_delta, left_out
 from licalib_cli.pipeline.fitcheck import EffectEvidence
-from licalib_cli.pipeline.rivals import refits_alike, same_data_bic
+from licalib_cli.pipeline.rivals import weigh_refits
 from licalib_cli.pipeline.round import extrinsic_of
 from licalib_cli.pipeline.scan_pattern import with_scan_pattern
 from licalib_cli.pipeline.segments import _with_range
@@ -257,13 +255,10 @@ def _weigh_rival(
     b_minus_a, alike = 0.0, True
     try:
         for run, x, y, (s, t) in zip(runs, kept[0], theirs[0], windows, strict=True):
-            samples = max(sensor_samples(run, CANDIDATES[n][2]) for n in (a, b))
-            b_minus_a += same_data_bic(
-                (a, x, _window_model(kept[1], run, s, t)),
-                (b, y, _window_model(theirs[1], run, s, t)),
-                samples,
-            )
-            alike = alike and refits_alike((a, x), (b, y))
+            ours_k = (a, x, _window_model(kept[1], run, s, t))
+            theirs_k = (b, y, _window_model(theirs[1], run, s, t))
+            delta, alike_here = weigh_refits(run, ours_k, theirs_k)
+            b_minus_a, alike = b_minus_a + delta, alike and alike_here
     except LicalibError as exc:
         logger.warning("Comparing %s with %s failed (%s); %s stays.", a, b, exc, a)
         return None

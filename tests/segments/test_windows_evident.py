@@ -14,7 +14,7 @@ from held_effects import scored_effect
 
 from licalib_cli.config import load_config
 from licalib_cli.geometry import so3
-from licalib_cli.pipeline import segments_evident
+from licalib_cli.pipeline import rivals, segments_evident
 from licalib_cli.pipeline.effect_refit import REFIT_STATISTIC_PER_DOF
 from licalib_cli.pipeline.scan_pattern import SPINNING, ScanPattern
 
@@ -226,9 +226,9 @@ def _compare(
         compared.append((a[0], b[0], a[2].bag.start_s, samples))
         return rotation_minus_scale
 
-    monkeypatch.setattr(segments_evident, "same_data_bic", same_data_bic)
-    monkeypatch.setattr(segments_evident, "refits_alike", lambda a, b: alike[a[1].tz])
-    monkeypatch.setattr(segments_evident, "sensor_samples", lambda run, sensor: 4000)
+    monkeypatch.setattr(rivals, "same_data_bic", same_data_bic)
+    monkeypatch.setattr(rivals, "refits_alike", lambda a, b: alike[a[1].tz])
+    monkeypatch.setattr(rivals, "sensor_samples", lambda run, sensor: 4000)
     return compared
 
 

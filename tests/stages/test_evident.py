@@ -22,7 +22,7 @@ from licalib_cli.config import load_config
 from licalib_cli.errors import SolverError
 from licalib_cli.filetypes import FileValueError
 from licalib_cli.geometry import so3
-from licalib_cli.pipeline import evident
+from licalib_cli.pipeline import evident, rivals
 from licalib_cli.pipeline.checks import Finding
 from licalib_cli.pipeline.effect_refit import REFIT_STATISTIC_PER_DOF
 from licalib_cli.pipeline.fitcheck import EffectEvidence
@@ -386,8 +386,9 @@ def _same_data(monkeypatch: pytest.MonkeyPatch, rival_minus_leader: float, alike
         compared.append((a[0], b[0], samples))
         return rival_minus_leader
 
-    monkeypatch.setattr(evident, "same_data_bic", same_data_bic)
-    monkeypatch.setattr(evident, "refits_alike", lambda a, b: alike)
+    monkeypatch.setattr(rivals, "same_data_bic", same_data_bic)
+    monkeypatch.setattr(rivals, "refits_alike", lambda a, b: alike)
+    monkeypatch.setattr(rivals, "sensor_samples", lambda run, sensor: 1000)
     return compared
 
 
